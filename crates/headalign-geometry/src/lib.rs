@@ -1,0 +1,41 @@
+//! # headalign-geometry
+//!
+//! The mathematics of headalign, with no knowledge of images, heads or I/O.
+//!
+//! Conventions (DESIGN.md section 1): camera frames are x right, y down, z forward;
+//! pixel coordinates have (0, 0) at the centre of the top-left pixel; the projective
+//! frame of a stereo rig is that of the left camera, `P_L = [I | 0]`. Angles inside this
+//! crate are radians; residuals and thresholds are pixels unless a function says
+//! otherwise. Everything is `f64`.
+//!
+//! Modules, in the order the alignment procedure uses them:
+//! - [`camera`]: intrinsics `K`, projective 3x4 cameras, rigid poses.
+//! - [`so3`]: rotation exponential/logarithm safe at zero angle, screw axes.
+//! - [`ransac`]: the `Estimator` trait and one generic, seeded, adaptive RANSAC.
+//! - [`fundamental`]: normalised 8-point and 7-point F, Sampson refinement.
+//! - [`triangulation`]: optimal correction of a match, then linear triangulation.
+//! - [`frame`]: a well-conditioned (quasi-Euclidean) projective frame from F.
+//! - [`homography3d`]: 4x4 projective homographies of 3D space, 5-point DLT,
+//!   symmetric transfer error over four images.
+//! - [`selfcal`]: plane at infinity from two motions, linear self-calibration of `K`,
+//!   Euclidean upgrade, decomposition of the right camera.
+//! - [`invariant`]: invariant lines at infinity of a motion from its complex eigenvectors.
+//! - [`bundle`]: the rig bundle adjustment (maximum likelihood, Schur complement,
+//!   robust loss, covariance).
+
+pub mod bundle;
+pub mod camera;
+pub mod error;
+pub mod frame;
+pub mod fundamental;
+pub mod homography3d;
+pub mod invariant;
+pub mod ransac;
+pub mod selfcal;
+pub mod so3;
+pub mod triangulation;
+
+pub use error::GeometryError;
+
+/// Result alias of this crate.
+pub type Result<T> = std::result::Result<T, GeometryError>;

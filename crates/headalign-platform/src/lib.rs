@@ -1,0 +1,168 @@
+//! # headalign-platform
+//!
+//! The seam between the alignment procedures and whatever moves the cameras: the
+//! [`StereoHead`] trait and the data it exchanges. The procedures in the `headalign`
+//! crate see a head only through this trait; the simulator (`headalign-sim`), a recorded
+//! session on disk, or a user's driver implement it.
+//!
+//! Units: encoder readings in degrees (the joint angle is `encoder - zero_offset`, the
+//! offsets being what alignment finds); pixels with (0, 0) at the centre of the top-left
+//! pixel (DESIGN.md sections 1 and 6).
+
+use nalgebra::Point2;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// One of the four revolute joints of the head.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Joint {
+    /// Pan: axis nominally vertical, fixed to the robot.
+    Pan,
+    /// Elevation (tilt): axis nominally horizontal, carried by pan.
+    Elevation,
+    /// Left vergence: carried by elevation.
+    VergeLeft,
+    /// Right vergence: carried by elevation.
+    VergeRight,
+}
+
+impl Joint {
+    /// All joints, from the root of the kinematic chain outwards (pan, elevation, verges).
+    pub const ALL: [Joint; 4] = [Joint::Pan, Joint::Elevation, Joint::VergeLeft, Joint::VergeRight];
+
+    /// The name used in files and reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Joint::Pan => "pan",
+            Joint::Elevation => "elevation",
+            Joint::VergeLeft => "verge_left",
+            Joint::VergeRight => "verge_right",
+        }
+    }
+}
+
+/// Encoder readings of the four joints, degrees.
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Encoders {
+    /// Pan encoder, degrees.
+    pub pan: f64,
+    /// Elevation encoder, degrees.
+    pub elevation: f64,
+    /// Left vergence encoder, degrees.
+    pub verge_left: f64,
+    /// Right vergence encoder, degrees.
+    pub verge_right: f64,
+}
+
+impl Encoders {
+    /// Reading of one joint.
+    pub fn get(&self, joint: Joint) -> f64 {
+        match joint {
+            Joint::Pan => self.pan,
+            Joint::Elevation => self.elevation,
+            Joint::VergeLeft => self.verge_left,
+            Joint::VergeRight => self.verge_right,
+        }
+    }
+
+    /// Mutable reading of one joint.
+    pub fn get_mut(&mut self, joint: Joint) -> &mut f64 {
+        match joint {
+            Joint::Pan => &mut self.pan,
+            Joint::Elevation => &mut self.elevation,
+            Joint::VergeLeft => &mut self.verge_left,
+            Joint::VergeRight => &mut self.verge_right,
+        }
+    }
+
+    /// These readings with one joint moved by `delta_deg`.
+    pub fn moved(mut self, joint: Joint, delta_deg: f64) -> Self {
+        *self.get_mut(joint) += delta_deg;
+        self
+    }
+
+    /// True if every reading is finite.
+    pub fn is_finite(&self) -> bool {
+        Joint::ALL.iter().all(|&j| self.get(j).is_finite())
+    }
+}
+
+/// One observation of a scene point in one image: its track id (the same id names the
+/// same scene point in every image of every view) and its pixel position.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct TrackObservation {
+    /// Track identity.
+    pub track: u64,
+    /// Pixel position.
+    pub pixel: Point2<f64>,
+}
+
+/// What one capture returns in point mode: the encoder readings at capture time and the
+/// tracked points seen by each camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StereoCapture {
+    /// Encoder readings when the images were taken.
+    pub encoders: Encoders,
+    /// Image size `[width, height]`, pixels.
+    pub image_size: [u32; 2],
+    /// Observations in the left image.
+    pub left: Vec<TrackObservation>,
+    /// Observations in the right image.
+    pub right: Vec<TrackObservation>,
+}
+
+/// Failures reported by a platform.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum PlatformError {
+    /// A commanded position is outside the joint's range.
+    #[error("joint {joint:?} cannot reach {target_deg} deg (range {min_deg}..{max_deg})")]
+    OutOfRange {
+        /// The joint.
+        joint: Joint,
+        /// Commanded reading.
+        target_deg: f64,
+        /// Lowest reachable reading.
+        min_deg: f64,
+        /// Highest reachable reading.
+        max_deg: f64,
+    },
+    /// A command or reading that is not a finite number.
+    #[error("invalid command: {0}")]
+    InvalidCommand(String),
+    /// The device failed (communication, timeout, driver exit).
+    #[error("device error: {0}")]
+    Device(String),
+}
+
+/// A stereo pan-tilt-verge head as the procedures see it.
+///
+/// Implementations: the simulator, a recorded session (replay), a real head's driver.
+pub trait StereoHead {
+    /// Image size `[width, height]` in pixels, the same for both cameras.
+    fn image_size(&self) -> [u32; 2];
+    /// Current encoder readings.
+    fn read_encoders(&mut self) -> Result<Encoders, PlatformError>;
+    /// Move every joint to the given encoder readings (absolute), blocking until done.
+    fn move_to(&mut self, target: &Encoders) -> Result<(), PlatformError>;
+    /// Capture a stereo view at the current position.
+    fn capture(&mut self) -> Result<StereoCapture, PlatformError>;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn encoders_get_and_move() {
+        let e = Encoders { pan: 1.0, elevation: 2.0, verge_left: 3.0, verge_right: 4.0 };
+        let m = e.moved(Joint::Elevation, 3.0);
+        assert_eq!(m.get(Joint::Elevation), 5.0);
+        assert_eq!(m.get(Joint::Pan), 1.0);
+        assert!(m.is_finite());
+        assert!(!e.moved(Joint::Pan, f64::NAN).is_finite());
+        let names: Vec<_> = Joint::ALL.iter().map(|j| j.name()).collect();
+        assert_eq!(names, ["pan", "elevation", "verge_left", "verge_right"]);
+    }
+}

@@ -1,0 +1,1 @@
+//! Placeholder: the simulator (filled in by its owner).
