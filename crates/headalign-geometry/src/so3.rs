@@ -192,7 +192,7 @@ mod tests {
         let w = Vector3::new(1e-5, -2e-5, 3e-5);
         let r = exp(&w);
         let expected = Rotation3::new(w);
-        assert!((r.matrix() - expected.matrix()).norm() < 1e-16);
+        assert!((r.matrix() - expected.matrix()).norm() < 1e-15);
     }
 
     #[test]
