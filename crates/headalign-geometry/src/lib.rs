@@ -31,6 +31,7 @@ pub mod fundamental;
 pub mod homography3d;
 pub mod invariant;
 pub mod ransac;
+pub mod resection;
 pub mod selfcal;
 pub mod so3;
 pub mod triangulation;
