@@ -1,1 +1,366 @@
-fn main() {}
+//! The `headalign` command-line tool: subcommands, output formatting, nothing else (the
+//! algorithms live in the `headalign` library).
+//!
+//! - `headalign demo`: the verge/tilt procedure on the simulated head, estimate vs truth.
+//! - `headalign align --observations FILE`: the estimation on an observation session.
+//! - `headalign simulate --out FILE`: record an observation session from the simulator.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use headalign::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_axes_from_motion};
+use headalign::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
+use headalign::observations::{View, read_session, session_to_json};
+use headalign::procedure::{VergeTiltOptions, VergeTiltRun, alignment_sigmas};
+use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::so3::Line;
+use headalign_platform::{Joint, StereoHead};
+use headalign_sim::{Scenario, SimulatedHead, calibration_errors};
+use serde_json::{Value, json};
+
+#[derive(Parser)]
+#[command(name = "headalign", version, about = "Self-alignment and self-calibration of an active stereo camera head")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run the verge/tilt procedure on the simulated head and compare with the truth.
+    Demo(DemoArgs),
+    /// Estimate calibration, axes and aligned readings from an observation session.
+    Align(AlignArgs),
+    /// Record an observation session (initial, elevation, pan, verge views) from the simulator.
+    Simulate(SimulateArgs),
+}
+
+#[derive(Args, Clone)]
+struct ScenarioArgs {
+    /// Random seed of the scenario (head errors, scene, noise).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Image noise, pixels (standard deviation per coordinate).
+    #[arg(long)]
+    noise: Option<f64>,
+    /// Number of scene points seen by both cameras in the initial view.
+    #[arg(long)]
+    points: Option<usize>,
+    /// Fraction of observations replaced by outliers (0 to <1).
+    #[arg(long)]
+    outliers: Option<f64>,
+    /// Rotation of the elevation, pan and vergence moves, degrees.
+    #[arg(long)]
+    rotation: Option<f64>,
+    /// Scenario file (TOML) overriding the defaults; flags override the file.
+    #[arg(long)]
+    scenario: Option<PathBuf>,
+}
+
+impl ScenarioArgs {
+    fn scenario(&self) -> Result<Scenario> {
+        let mut s = match &self.scenario {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+                Scenario::from_toml_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+            }
+            None => Scenario::default(),
+        };
+        s.seed = self.seed;
+        if let Some(v) = self.noise {
+            s.noise_px = v;
+        }
+        if let Some(v) = self.points {
+            s.points = v;
+        }
+        if let Some(v) = self.outliers {
+            s.outlier_fraction = v;
+        }
+        if let Some(v) = self.rotation {
+            s.rotation_deg = v;
+        }
+        s.validate().map_err(|e| anyhow::anyhow!("invalid scenario: {e}"))?;
+        Ok(s)
+    }
+}
+
+#[derive(Args)]
+struct DemoArgs {
+    #[command(flatten)]
+    scenario: ScenarioArgs,
+    /// Print one JSON object instead of the table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct AlignArgs {
+    /// Observation session (JSON, format headalign-observations/1).
+    #[arg(long)]
+    observations: PathBuf,
+    /// Print one JSON object instead of the table.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(Args)]
+struct SimulateArgs {
+    #[command(flatten)]
+    scenario: ScenarioArgs,
+    /// Output file.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Demo(a) => demo(&a),
+        Command::Align(a) => align(&a),
+        Command::Simulate(a) => simulate(&a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            // One line naming the problem (the chain joined by ": ").
+            let msg: Vec<String> = e.chain().map(|c| c.to_string()).collect();
+            eprintln!("error: {}", msg.join(": "));
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn k_json(k: &Intrinsics) -> Value {
+    json!([[k.fx, k.skew, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])
+}
+
+fn sigma(calib: &RigCalibration, name: &str) -> Option<f64> {
+    calib.bundle.covariance.sigma(name)
+}
+
+fn camera_json(calib: &RigCalibration, side: &str, k: &Intrinsics) -> Value {
+    let s = |p: &str| sigma(calib, &format!("{side}.{p}"));
+    json!({
+        "K": k_json(k),
+        "fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy,
+        "sigma": {"fx": s("fx"), "fy": s("fy"), "cx": s("cx"), "cy": s("cy")},
+    })
+}
+
+fn axis_json(line: &Line, calib: &RigCalibration, index: usize) -> Value {
+    let c = &calib.bundle.covariance;
+    let dir_sigma = match (c.sigma(&format!("axis{index}.dir0")), c.sigma(&format!("axis{index}.dir1"))) {
+        (Some(a), Some(b)) => Some(a.hypot(b).to_degrees()),
+        _ => None,
+    };
+    json!({
+        "direction": [line.direction.x, line.direction.y, line.direction.z],
+        "point_baselines": [line.point.x, line.point.y, line.point.z],
+        "direction_sigma_deg": dir_sigma,
+    })
+}
+
+fn verge_json(line: &Option<Line>) -> Value {
+    match line {
+        Some(l) => json!({"direction": [l.direction.x, l.direction.y, l.direction.z], "point_baselines": [l.point.x, l.point.y, l.point.z]}),
+        None => Value::Null,
+    }
+}
+
+fn encoders_json(e: &headalign_platform::Encoders) -> Value {
+    json!({"pan": e.pan, "elevation": e.elevation, "verge_left": e.verge_left, "verge_right": e.verge_right})
+}
+
+fn demo(args: &DemoArgs) -> Result<()> {
+    let scenario = args.scenario.scenario()?;
+    let t0 = Instant::now();
+    let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
+    let start = head.encoders();
+    let before = head.alignment_errors(&start);
+    let options = VergeTiltOptions {
+        rotation_deg: scenario.rotation_deg,
+        verge_rotation_deg: scenario.rotation_deg,
+        estimation: EstimationOptions { seed: scenario.seed, ..EstimationOptions::default() },
+        ..VergeTiltOptions::default()
+    };
+    let mut run = VergeTiltRun::default();
+    let outcome = run.run(&mut head, &options).context("verge/tilt procedure")?;
+    let total = t0.elapsed().as_secs_f64();
+    let after = head.alignment_errors(&head.encoders());
+    let st = &outcome.calibration.bundle.state;
+    let truth = head.truth().clone();
+    let cal = calibration_errors(&truth.left, &truth.right, &st.left, &st.right);
+    let recon = head.recon_err_pct(&outcome.calibration.reference_encoders, &outcome.calibration.points()).ok();
+    let true_aligned = head.aligned_encoders();
+    let report = &outcome.calibration.report;
+    if args.json {
+        let out = json!({
+            "scenario": serde_json::to_value(&scenario)?,
+            "errors": {
+                "verge_err_l_deg": after.verge_err_l_deg, "verge_err_r_deg": after.verge_err_r_deg,
+                "elev_err_l_deg": after.elev_err_l_deg, "elev_err_r_deg": after.elev_err_r_deg,
+                "f_err_pct": cal.f_err_pct, "aspect_err_pct": cal.aspect_err_pct, "pp_err_pct": cal.pp_err_pct,
+                "recon_err_pct": recon,
+            },
+            "before": {
+                "verge_err_l_deg": before.verge_err_l_deg, "verge_err_r_deg": before.verge_err_r_deg,
+                "elev_err_l_deg": before.elev_err_l_deg, "elev_err_r_deg": before.elev_err_r_deg,
+            },
+            "estimate": {
+                "left": camera_json(&outcome.calibration, "left", &st.left),
+                "right": camera_json(&outcome.calibration, "right", &st.right),
+                "aligned_encoders": encoders_json(&outcome.solution.aligned_encoders),
+                "aligned_sigma_deg": serde_json::to_value(outcome.sigmas)?,
+                "predicted_elev_err_r_deg": outcome.solution.predicted_elev_err_r_deg,
+                "roll_left_deg": outcome.solution.roll_left_deg, "roll_right_deg": outcome.solution.roll_right_deg,
+                "checks": serde_json::to_value(&outcome.checks)?,
+            },
+            "truth": {
+                "left": {"K": k_json(&truth.left)}, "right": {"K": k_json(&truth.right)},
+                "aligned_encoders": encoders_json(&true_aligned),
+            },
+            "report": serde_json::to_value(report)?,
+            "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total},
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!("headalign demo: simulated head '{}' (seed {}, noise {} px, {} points, {:.0} % outliers, {} deg rotations)",
+        "yorick", scenario.seed, scenario.noise_px, scenario.points, 100.0 * scenario.outlier_fraction, scenario.rotation_deg);
+    println!();
+    println!("{:<22} {:>12} {:>12} {:>10}", "calibration", "estimate", "truth", "sigma");
+    let rows: [(&str, f64, f64, Option<f64>); 8] = [
+        ("left fx (px)", st.left.fx, truth.left.fx, sigma(&outcome.calibration, "left.fx")),
+        ("left fy (px)", st.left.fy, truth.left.fy, sigma(&outcome.calibration, "left.fy")),
+        ("left cx (px)", st.left.cx, truth.left.cx, sigma(&outcome.calibration, "left.cx")),
+        ("left cy (px)", st.left.cy, truth.left.cy, sigma(&outcome.calibration, "left.cy")),
+        ("right fx (px)", st.right.fx, truth.right.fx, sigma(&outcome.calibration, "right.fx")),
+        ("right fy (px)", st.right.fy, truth.right.fy, sigma(&outcome.calibration, "right.fy")),
+        ("right cx (px)", st.right.cx, truth.right.cx, sigma(&outcome.calibration, "right.cx")),
+        ("right cy (px)", st.right.cy, truth.right.cy, sigma(&outcome.calibration, "right.cy")),
+    ];
+    for (name, e, t, s) in rows {
+        println!("{:<22} {:>12.2} {:>12.2} {:>10}", name, e, t, s.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()));
+    }
+    println!();
+    println!("{:<22} {:>12} {:>12} {:>10}", "aligned reading (deg)", "estimate", "truth", "sigma");
+    let sig = outcome.sigmas;
+    let a = outcome.solution.aligned_encoders;
+    for (name, e, t, s) in [
+        ("elevation", a.elevation, true_aligned.elevation, sig.elevation_deg),
+        ("verge left", a.verge_left, true_aligned.verge_left, sig.verge_left_deg),
+        ("verge right", a.verge_right, true_aligned.verge_right, sig.verge_right_deg),
+    ] {
+        println!("{:<22} {:>12.3} {:>12.3} {:>10.3}", name, e, t, s);
+    }
+    println!();
+    println!("{:<22} {:>12} {:>12}", "alignment error (deg)", "before", "after");
+    for (name, b, x) in [
+        ("verge left", before.verge_err_l_deg, after.verge_err_l_deg),
+        ("verge right", before.verge_err_r_deg, after.verge_err_r_deg),
+        ("elevation left", before.elev_err_l_deg, after.elev_err_l_deg),
+        ("elevation right", before.elev_err_r_deg, after.elev_err_r_deg),
+    ] {
+        println!("{:<22} {:>12.3} {:>12.3}", name, b, x);
+    }
+    println!("  (right elevation error predicted from the calibration: {:.3} deg; the shared elevation joint cannot remove it)",
+        outcome.solution.predicted_elev_err_r_deg);
+    println!();
+    println!("f_err {:.3} %   aspect_err {:.3} %   pp_err {:.3} %   recon_err {}",
+        cal.f_err_pct, cal.aspect_err_pct, cal.pp_err_pct, recon.map(|r| format!("{r:.2} %")).unwrap_or_else(|| "-".into()));
+    println!("stereo inliers {}/{}, bundle: {} points, {} observations, RMS {:.3} -> {:.3} px, sigma {:.3} px",
+        report.stereo_inliers, report.stereo_matches, report.bundle_points, report.bundle_observations,
+        report.initial_rms_px, report.final_rms_px, report.sigma_px);
+    println!("checks after moving: {}", outcome.checks.len());
+    println!("time: estimation {:.1} ms, total {:.1} ms", 1e3 * outcome.estimation_seconds, 1e3 * total);
+    Ok(())
+}
+
+fn align(args: &AlignArgs) -> Result<()> {
+    let views = read_session(&args.observations)?;
+    let t0 = Instant::now();
+    let roles = classify_views(&views)?;
+    let rig: Vec<View> = views.iter().zip(&roles).filter(|(_, r)| !matches!(r, ViewRole::Verge)).map(|(v, _)| v.clone()).collect();
+    let calib = estimate_rig(&rig, &EstimationOptions::default())?;
+    let state = &calib.bundle.state;
+    let reference = views[0].capture.encoders;
+    // Vergence axes from the first view where a vergence moved, if any.
+    let mut verge = VergeAxes::default();
+    if let Some((v, _)) = views.iter().zip(&roles).find(|(_, r)| matches!(r, ViewRole::Verge)) {
+        let d = |j: Joint| (v.capture.encoders.get(j) - reference.get(j)).to_radians();
+        let chain = headalign::alignment::head_motion(state, d(Joint::Pan), d(Joint::Elevation))
+            .context("head model")?;
+        let measured = measure_cameras(&calib, &v.capture, &chain, &(chain * state.right_from_left.inverse()))?;
+        verge = verge_axes_from_motion(state, &reference, &v.capture.encoders, &measured)?;
+    }
+    let solution = solve_alignment(state, &verge, &reference)?;
+    let sig = alignment_sigmas(&calib, &verge, &reference, &solution)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    let (pan, elev) = headalign::estimate::axes_of(state).context("axes")?;
+    if args.json {
+        let out = json!({
+            "left": camera_json(&calib, "left", &state.left),
+            "right": camera_json(&calib, "right", &state.right),
+            "fixation_px": {"left": solution.fixation_px_left, "right": solution.fixation_px_right},
+            "axes": {
+                "frame": "left camera of the first view; points in baselines",
+                "pan": axis_json(&pan, &calib, 0),
+                "elevation": axis_json(&elev, &calib, 1),
+                "verge_left": verge_json(&verge.left),
+                "verge_right": verge_json(&verge.right),
+            },
+            "aligned_encoders": encoders_json(&solution.aligned_encoders),
+            "aligned_sigma_deg": serde_json::to_value(sig)?,
+            "verge_axes_measured": solution.verge_axes_measured,
+            "predicted_elev_err_r_deg": solution.predicted_elev_err_r_deg,
+            "roll_left_deg": solution.roll_left_deg, "roll_right_deg": solution.roll_right_deg,
+            "report": serde_json::to_value(&calib.report)?,
+            "seconds": seconds,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    let show_k = |name: &str, k: &Intrinsics| {
+        println!("{name} K = [[{:.2}, {:.3}, {:.2}], [0, {:.2}, {:.2}], [0, 0, 1]]", k.fx, k.skew, k.cx, k.fy, k.cy);
+    };
+    show_k("left ", &state.left);
+    show_k("right", &state.right);
+    println!("fixation point: left ({:.2}, {:.2}) px, right ({:.2}, {:.2}) px",
+        solution.fixation_px_left[0], solution.fixation_px_left[1], solution.fixation_px_right[0], solution.fixation_px_right[1]);
+    let d = |l: &Line| format!("({:+.4}, {:+.4}, {:+.4})", l.direction.x, l.direction.y, l.direction.z);
+    println!("pan axis direction {}   elevation axis direction {}", d(&pan), d(&elev));
+    let a = solution.aligned_encoders;
+    println!("aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
+        a.elevation, sig.elevation_deg, a.verge_left, sig.verge_left_deg, a.verge_right, sig.verge_right_deg);
+    if !solution.verge_axes_measured {
+        println!("note: no view moved the vergence joints; their axes were assumed nominal");
+    }
+    Ok(())
+}
+
+fn simulate(args: &SimulateArgs) -> Result<()> {
+    let scenario = args.scenario.scenario()?;
+    let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
+    let e0 = head.read_encoders()?;
+    let r = scenario.rotation_deg;
+    let mut views = Vec::new();
+    for (name, enc) in [
+        ("initial", e0),
+        ("elevation", e0.moved(Joint::Elevation, r)),
+        ("pan", e0.moved(Joint::Pan, r)),
+        ("verge", e0.moved(Joint::VergeLeft, r).moved(Joint::VergeRight, r)),
+    ] {
+        head.move_to(&enc)?;
+        views.push(View { name: name.to_string(), capture: head.capture()? });
+    }
+    let text = session_to_json(&views)?;
+    if args.out.exists() && args.out.is_dir() {
+        bail!("{} is a directory", args.out.display());
+    }
+    std::fs::write(&args.out, text).with_context(|| format!("cannot write {}", args.out.display()))?;
+    eprintln!("wrote {} views to {}", views.len(), args.out.display());
+    Ok(())
+}

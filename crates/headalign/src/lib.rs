@@ -1,1 +1,23 @@
-//! Placeholder.
+//! # headalign
+//!
+//! Self-alignment and self-calibration of an active stereo camera head from images alone
+//! (paper: "Active Visual Alignment of a Mobile Stereo Camera Platform"; design:
+//! `DESIGN.md`). This crate holds the procedures; it sees the head only through the
+//! [`headalign_platform::StereoHead`] trait and does its mathematics in
+//! `headalign-geometry`.
+//!
+//! - [`observations`]: observation sessions on disk (bring your own correspondences).
+//! - [`estimate`]: the verge/tilt estimation core (F, frame, 3D homographies, linear
+//!   self-calibration, rig bundle adjustment).
+//! - [`alignment`]: exact aligned encoder readings from the calibrated head, measurement of
+//!   cameras by resection.
+//! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
+
+pub mod alignment;
+pub mod error;
+pub mod estimate;
+pub mod observations;
+pub mod procedure;
+
+pub use error::AlignError;
+pub use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead};

@@ -1,0 +1,70 @@
+//! Errors of the alignment procedures: every bad input or failed estimate is one of
+//! these, with a one-line message that names the problem (the CLI prints it as is).
+
+use headalign_geometry::GeometryError;
+use headalign_platform::PlatformError;
+use thiserror::Error;
+
+/// What can go wrong when estimating or aligning.
+#[derive(Debug, Error)]
+pub enum AlignError {
+    /// A malformed or inconsistent observation session.
+    #[error("{0}")]
+    Observations(String),
+    /// Not enough tracked points for a step.
+    #[error("too few tracks {what}: need at least {needed}, have {got}")]
+    TooFewTracks {
+        /// Which step.
+        what: String,
+        /// Minimum.
+        needed: usize,
+        /// Available.
+        got: usize,
+    },
+    /// A view whose motion is not a rotation of the head.
+    #[error("view '{view}' is not a rotation of the head: {why}")]
+    NotARotation {
+        /// The view's name.
+        view: String,
+        /// Why.
+        why: String,
+    },
+    /// Two rotations about the same joint cannot determine the plane at infinity.
+    #[error("views '{first}' and '{second}' both rotate only the {joint} joint: two rotations about the same axis cannot calibrate the head; rotate about a second joint")]
+    SameAxis {
+        /// First view.
+        first: String,
+        /// Second view.
+        second: String,
+        /// The joint.
+        joint: String,
+    },
+    /// The views do not contain the motions the procedure needs.
+    #[error("missing motion: {0}")]
+    MissingMotion(String),
+    /// A geometric estimation step failed.
+    #[error("{step}: {source}")]
+    Geometry {
+        /// The step that failed.
+        step: String,
+        /// The cause.
+        source: GeometryError,
+    },
+    /// The platform (head) failed.
+    #[error("head: {0}")]
+    Platform(#[from] PlatformError),
+    /// Invalid options.
+    #[error("invalid option: {0}")]
+    InvalidOption(String),
+}
+
+/// Attach the name of a step to geometry errors.
+pub(crate) trait StepContext<T> {
+    fn step(self, step: &str) -> Result<T, AlignError>;
+}
+
+impl<T> StepContext<T> for Result<T, GeometryError> {
+    fn step(self, step: &str) -> Result<T, AlignError> {
+        self.map_err(|source| AlignError::Geometry { step: step.to_string(), source })
+    }
+}

@@ -1,0 +1,538 @@
+//! The verge/tilt estimation core (DESIGN.md section 2 steps 1-4; paper section 3.2
+//! steps 1-4): from stereo views related by pan and elevation rotations of the head,
+//! recover both cameras' intrinsics, the rig, the pan and elevation axes and the scene,
+//! with covariances.
+//!
+//! Chain, each step a pure function of the previous:
+//! 1. classify views by which joints moved relative to the first ("reference") view;
+//! 2. one fundamental matrix from the stereo matches of all rig views (the rig does not
+//!    change while only pan and elevation move), RANSAC + Sampson refinement;
+//! 3. a quasi-Euclidean projective frame ([`headalign_geometry::frame`]) and optimal
+//!    triangulation of every stereo match;
+//! 4. per rotated view, a 3D homography by RANSAC on symmetric transfer error, then
+//!    guided re-selection of quadruplets with the re-fitted `H` until the set is stable;
+//! 5. linear self-calibration (plane at infinity, `w*`, `K_L`, the right camera, motions);
+//! 6. the rig bundle adjustment, motions modelled as rotations about two fixed axes with
+//!    the commanded encoder differences as priors, robust loss, then a re-selection of
+//!    observations by their residuals and a final adjustment.
+//!
+//! Units: pixels for thresholds, radians inside, the scene in baselines (|t_rig| = 1)
+//! unless the caller gives a baseline. Frames: everything in the reference view's left
+//! camera frame ("ref").
+
+use std::collections::{BTreeMap, HashMap};
+
+use headalign_geometry::bundle::{
+    BundleObservation, BundleOptions, BundleResult, Motions, RigState, Side, bundle_adjust, residual_pixels,
+};
+use headalign_geometry::camera::{Intrinsics, dehomogenise3};
+use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame};
+use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
+use headalign_geometry::homography3d::{Homography3, Homography3Estimator, Quadruplet, TransferModel, symmetric_transfer_error};
+use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
+use headalign_geometry::selfcal::{decompose_camera, linear_self_calibration};
+use headalign_geometry::so3::{Line, screw_from_isometry};
+use headalign_geometry::triangulation::triangulate_optimal;
+use headalign_platform::{Encoders, Joint, StereoCapture};
+use nalgebra::{Isometry3, Point2, Point3, Vector4};
+use serde::Serialize;
+
+use crate::error::{AlignError, StepContext};
+use crate::observations::View;
+
+/// Encoder differences below this (degrees) count as "did not move".
+pub const MOVED_DEG: f64 = 1e-6;
+
+/// Options of [`estimate_rig`].
+#[derive(Debug, Clone)]
+pub struct EstimationOptions {
+    /// RANSAC for F; threshold on Sampson distance (default 1.5 px).
+    pub fundamental: RansacOptions,
+    /// RANSAC for each 3D homography; threshold on the RMS symmetric transfer error over
+    /// four images (default 4 px: the DLT homography transfers noisy triangulated points,
+    /// so inlier errors are about twice the image noise).
+    pub homography: RansacOptions,
+    /// The bundle adjustment (defaults of [`BundleOptions`]).
+    pub bundle: BundleOptions,
+    /// After the first adjustment, observations whose residual exceeds this many robust
+    /// standard deviations are dropped and the rest re-admitted (default 3.5).
+    pub reselect_sigmas: f64,
+    /// Minimum stereo matches / quadruplets / 3D points (default 20).
+    pub min_tracks: usize,
+    /// Seed for every random choice (default 0).
+    pub seed: u64,
+}
+
+impl Default for EstimationOptions {
+    fn default() -> Self {
+        Self {
+            fundamental: RansacOptions { threshold: 1.5, ..RansacOptions::default() },
+            homography: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
+            bundle: BundleOptions::default(),
+            reselect_sigmas: 3.5,
+            min_tracks: 20,
+            seed: 0,
+        }
+    }
+}
+
+impl EstimationOptions {
+    /// Check every option.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        self.fundamental.validate().map_err(|e| AlignError::InvalidOption(format!("fundamental RANSAC: {e}")))?;
+        self.homography.validate().map_err(|e| AlignError::InvalidOption(format!("homography RANSAC: {e}")))?;
+        self.bundle.validate().map_err(|e| AlignError::InvalidOption(format!("bundle adjustment: {e}")))?;
+        if !(self.reselect_sigmas > 1.0) || !self.reselect_sigmas.is_finite() {
+            return Err(AlignError::InvalidOption("reselect_sigmas must be a finite number above 1".into()));
+        }
+        if self.min_tracks < 8 {
+            return Err(AlignError::InvalidOption("min_tracks must be at least 8".into()));
+        }
+        Ok(())
+    }
+}
+
+/// The role of a view, from its encoder differences to the reference view.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ViewRole {
+    /// The first view.
+    Reference,
+    /// Only pan and/or elevation moved: the rig is unchanged. Differences in degrees.
+    Rig {
+        /// Pan difference, degrees.
+        pan_deg: f64,
+        /// Elevation difference, degrees.
+        elevation_deg: f64,
+    },
+    /// A vergence joint moved (the rig changed): used to measure the vergence axes.
+    Verge,
+}
+
+/// Classify each view; errors for a view that did not move and for rotations that are all
+/// about one joint.
+pub fn classify_views(views: &[View]) -> Result<Vec<ViewRole>, AlignError> {
+    let Some(first) = views.first() else {
+        return Err(AlignError::Observations("no views".into()));
+    };
+    let e0 = first.capture.encoders;
+    let mut roles = vec![ViewRole::Reference];
+    for v in &views[1..] {
+        let d = |j: Joint| v.capture.encoders.get(j) - e0.get(j);
+        let moved: Vec<Joint> = Joint::ALL.iter().copied().filter(|&j| d(j).abs() > MOVED_DEG).collect();
+        if moved.is_empty() {
+            return Err(AlignError::NotARotation {
+                view: v.name.clone(),
+                why: format!("its encoder readings equal those of '{}': no rotation to measure", first.name),
+            });
+        }
+        if moved.iter().any(|j| matches!(j, Joint::VergeLeft | Joint::VergeRight)) {
+            roles.push(ViewRole::Verge);
+        } else {
+            roles.push(ViewRole::Rig { pan_deg: d(Joint::Pan), elevation_deg: d(Joint::Elevation) });
+        }
+    }
+    // Single-joint rotations give the axes; at least one about each of pan and elevation.
+    let single = |joint: Joint| -> Option<usize> {
+        roles.iter().enumerate().find_map(|(i, r)| match (r, joint) {
+            (ViewRole::Rig { pan_deg, elevation_deg }, Joint::Pan) if elevation_deg.abs() <= MOVED_DEG && pan_deg.abs() > MOVED_DEG => Some(i),
+            (ViewRole::Rig { pan_deg, elevation_deg }, Joint::Elevation) if pan_deg.abs() <= MOVED_DEG && elevation_deg.abs() > MOVED_DEG => Some(i),
+            _ => None,
+        })
+    };
+    let rig_views: Vec<usize> = (0..roles.len()).filter(|&i| matches!(roles[i], ViewRole::Rig { .. })).collect();
+    match (single(Joint::Pan), single(Joint::Elevation)) {
+        (Some(_), Some(_)) => Ok(roles),
+        (p, e) => {
+            // Name the two views rotating about the same joint, if that is the problem.
+            let joint = if p.is_some() { Joint::Pan } else { Joint::Elevation };
+            let same: Vec<usize> = rig_views.iter().copied().filter(|&i| single(joint) == Some(i) || is_single(&roles[i], joint)).collect();
+            if (p.is_some() || e.is_some()) && same.len() >= 2 {
+                return Err(AlignError::SameAxis {
+                    first: views[same[0]].name.clone(),
+                    second: views[same[1]].name.clone(),
+                    joint: joint.name().to_string(),
+                });
+            }
+            let missing = if p.is_none() { "pan" } else { "elevation" };
+            Err(AlignError::MissingMotion(format!(
+                "no view rotates the {missing} joint alone; the procedure needs one rotation about pan and one about elevation"
+            )))
+        }
+    }
+}
+
+fn is_single(role: &ViewRole, joint: Joint) -> bool {
+    match role {
+        ViewRole::Rig { pan_deg, elevation_deg } => match joint {
+            Joint::Pan => elevation_deg.abs() <= MOVED_DEG && pan_deg.abs() > MOVED_DEG,
+            Joint::Elevation => pan_deg.abs() <= MOVED_DEG && elevation_deg.abs() > MOVED_DEG,
+            _ => false,
+        },
+        _ => false,
+    }
+}
+
+/// Diagnostics of one 3D homography.
+#[derive(Debug, Clone, Serialize)]
+pub struct HomographyReport {
+    /// View name.
+    pub view: String,
+    /// Candidate quadruplets.
+    pub candidates: usize,
+    /// Inliers after guided re-selection.
+    pub inliers: usize,
+    /// RANSAC iterations.
+    pub ransac_iterations: usize,
+    /// Guided re-selection rounds until the set was stable.
+    pub guided_rounds: usize,
+    /// RMS symmetric transfer error of the inliers, pixels.
+    pub rms_transfer_px: f64,
+}
+
+/// Diagnostics of the whole estimation.
+#[derive(Debug, Clone, Serialize)]
+pub struct EstimationReport {
+    /// Stereo matches over all rig views.
+    pub stereo_matches: usize,
+    /// Stereo inliers of F.
+    pub stereo_inliers: usize,
+    /// RMS Sampson distance of the stereo inliers, pixels.
+    pub stereo_rms_px: f64,
+    /// One per rotated view.
+    pub homographies: Vec<HomographyReport>,
+    /// Focal lengths of the linear initialisation (left fx, fy; right fx, fy).
+    pub linear_focal: [f64; 4],
+    /// Observations used by the final bundle adjustment.
+    pub bundle_observations: usize,
+    /// Points in the final bundle adjustment.
+    pub bundle_points: usize,
+    /// Iterations of the final bundle adjustment.
+    pub bundle_iterations: usize,
+    /// RMS reprojection error before / after the bundle adjustment, pixels.
+    pub initial_rms_px: f64,
+    /// Final RMS reprojection error, pixels.
+    pub final_rms_px: f64,
+    /// Estimated image noise, pixels.
+    pub sigma_px: f64,
+}
+
+/// The calibrated rig and head, in the reference view's left camera frame.
+#[derive(Debug, Clone)]
+pub struct RigCalibration {
+    /// The bundle adjustment result (state, covariance, report).
+    pub bundle: BundleResult,
+    /// Track id of each bundle point (same order as `bundle.state.points`).
+    pub point_tracks: Vec<u64>,
+    /// Encoder readings of the reference view.
+    pub reference_encoders: Encoders,
+    /// Diagnostics.
+    pub report: EstimationReport,
+}
+
+impl RigCalibration {
+    /// Pan axis in the reference left camera frame (directed so that a positive pan encoder
+    /// change is a positive rotation).
+    pub fn pan_axis(&self) -> Option<Line> {
+        axes_of(&self.bundle.state).map(|a| a.0)
+    }
+
+    /// Elevation axis in the reference left camera frame (directed like the encoder).
+    pub fn elevation_axis(&self) -> Option<Line> {
+        axes_of(&self.bundle.state).map(|a| a.1)
+    }
+
+    /// Points by track id, reference left camera frame, in baselines.
+    pub fn points(&self) -> Vec<(u64, Point3<f64>)> {
+        self.point_tracks.iter().copied().zip(self.bundle.state.points.iter().copied()).collect()
+    }
+}
+
+/// (pan, elevation) axes of a Joints-model state.
+pub fn axes_of(state: &RigState) -> Option<(Line, Line)> {
+    match &state.motions {
+        Motions::Joints { axes, .. } if axes.len() == 2 => Some((axes[0], axes[1])),
+        _ => None,
+    }
+}
+
+fn to_map(obs: &[headalign_platform::TrackObservation]) -> HashMap<u64, Point2<f64>> {
+    obs.iter().map(|o| (o.track, o.pixel)).collect()
+}
+
+/// Stereo matches (track, left, right) of a capture, sorted by track id.
+fn stereo_matches(c: &StereoCapture) -> Vec<(u64, Point2<f64>, Point2<f64>)> {
+    let right = to_map(&c.right);
+    let mut m: Vec<_> = c.left.iter().filter_map(|o| right.get(&o.track).map(|r| (o.track, o.pixel, *r))).collect();
+    m.sort_by_key(|x| x.0);
+    m
+}
+
+/// Run the whole chain on the views (the first is the reference; verge views are
+/// ignored here).
+pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCalibration, AlignError> {
+    options.validate()?;
+    let roles = classify_views(views)?;
+    let rig: Vec<usize> = (0..views.len()).filter(|&i| !matches!(roles[i], ViewRole::Verge)).collect();
+    let [w, h] = views[0].capture.image_size;
+    let k0 = Intrinsics::rough_guess(w, h);
+
+    // --- 1. Stereo F from all rig views together.
+    let per_view: Vec<Vec<(u64, Point2<f64>, Point2<f64>)>> = rig.iter().map(|&i| stereo_matches(&views[i].capture)).collect();
+    let pairs: Vec<(Point2<f64>, Point2<f64>)> = per_view.iter().flatten().map(|m| (m.1, m.2)).collect();
+    if pairs.len() < options.min_tracks {
+        return Err(AlignError::TooFewTracks { what: "matched between left and right".into(), needed: options.min_tracks, got: pairs.len() });
+    }
+    let f_opts = RansacOptions { seed: options.seed, ..options.fundamental };
+    let f_report = estimate_fundamental(&pairs, &f_opts).step("fundamental matrix")?;
+    let f: FundamentalMatrix = f_report.model.clone();
+    let threshold_f = options.fundamental.threshold;
+    let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = f_report.inliers.iter().map(|&i| pairs[i]).collect();
+    let stereo_rms = rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r)));
+
+    // --- 2. Frame and triangulation per rig view: track -> (X, left, right).
+    let frame: StereoFrame = quasi_euclidean_frame(&f.0, &k0, &inlier_pairs).step("projective frame")?;
+    let (p_l, p_r) = (frame.left_camera(), frame.right_camera());
+    let mut recon: Vec<BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>> = Vec::new();
+    for matches in &per_view {
+        let mut map = BTreeMap::new();
+        for &(track, l, r) in matches {
+            if f.sampson_distance(&l, &r) > threshold_f {
+                continue;
+            }
+            if let Ok(x) = triangulate_optimal(&f, &p_l, &p_r, &l, &r) {
+                map.insert(track, (x, l, r));
+            }
+        }
+        recon.push(map);
+    }
+
+    // --- 3. 3D homographies, RANSAC + guided re-selection.
+    let estimator = Homography3Estimator { p_left: p_l, p_right: p_r };
+    let mut h_reports = Vec::new();
+    let mut homographies = Vec::new();
+    let mut quad_inliers: Vec<Vec<u64>> = vec![Vec::new(); rig.len()];
+    for (slot, &vi) in rig.iter().enumerate().skip(1) {
+        let mut tracks = Vec::new();
+        let mut quads = Vec::new();
+        for (track, (x, l0, r0)) in &recon[0] {
+            if let Some((y, l1, r1)) = recon[slot].get(track) {
+                tracks.push(*track);
+                quads.push(Quadruplet { x: *x, y: *y, left0: *l0, right0: *r0, left1: *l1, right1: *r1 });
+            }
+        }
+        if quads.len() < options.min_tracks {
+            return Err(AlignError::TooFewTracks {
+                what: format!("seen in both stereo views '{}' and '{}'", views[0].name, views[vi].name),
+                needed: options.min_tracks,
+                got: quads.len(),
+            });
+        }
+        let opts = RansacOptions { seed: options.seed.wrapping_add(vi as u64), ..options.homography };
+        let rep = ransac(&estimator, &quads, &opts).step(&format!("3D homography for view '{}'", views[vi].name))?;
+        let mut model: TransferModel = rep.model.clone();
+        let mut inliers = rep.inliers.clone();
+        let mut rounds = 0;
+        for _ in 0..10 {
+            rounds += 1;
+            let Some(refit) = estimator.fit_inliers(&quads, &inliers) else { break };
+            let next: Vec<usize> = (0..quads.len())
+                .filter(|&i| symmetric_transfer_error(&refit, &p_l, &p_r, &quads[i]) <= options.homography.threshold)
+                .collect();
+            model = refit;
+            if next == inliers || next.len() < 5 {
+                break;
+            }
+            inliers = next;
+        }
+        let rms_t = rms(inliers.iter().map(|&i| symmetric_transfer_error(&model, &p_l, &p_r, &quads[i])));
+        h_reports.push(HomographyReport {
+            view: views[vi].name.clone(),
+            candidates: quads.len(),
+            inliers: inliers.len(),
+            ransac_iterations: rep.iterations,
+            guided_rounds: rounds,
+            rms_transfer_px: rms_t,
+        });
+        let h = model.h.normalized_det().map_err(|e| AlignError::NotARotation {
+            view: views[vi].name.clone(),
+            why: format!("its 3D homography {e}"),
+        })?;
+        if headalign_geometry::invariant::invariant_points(&h.0).is_err() {
+            return Err(AlignError::NotARotation {
+                view: views[vi].name.clone(),
+                why: "its 3D homography has no complex eigenvalue pair (no measurable rotation)".into(),
+            });
+        }
+        homographies.push(h);
+        quad_inliers[slot] = inliers.iter().map(|&i| tracks[i]).collect();
+    }
+
+    // --- 4. Linear self-calibration in the conditioned frame.
+    let lin = linear_self_calibration(&homographies).step("linear self-calibration")?;
+    let k_left = Intrinsics::from_matrix(&(k0.matrix() * lin.left.matrix())).step("left intrinsics")?;
+    let h_pe = lin.euclidean_from_projective;
+    let h_pe_inv = h_pe.try_inverse().ok_or_else(|| AlignError::Geometry {
+        step: "Euclidean upgrade".into(),
+        source: headalign_geometry::GeometryError::Numerical("H_PE is singular".into()),
+    })?;
+    let (k_right, right_from_left) = decompose_camera(&(p_r.0 * h_pe_inv)).step("right camera decomposition")?;
+    let baseline = right_from_left.translation.vector.norm();
+    if !(baseline > 0.0) || !baseline.is_finite() {
+        return Err(AlignError::Geometry {
+            step: "right camera decomposition".into(),
+            source: headalign_geometry::GeometryError::Degenerate("zero baseline".into()),
+        });
+    }
+    let scale = 1.0 / baseline;
+    let right_from_left = Isometry3::from_parts((right_from_left.translation.vector * scale).into(), right_from_left.rotation);
+
+    // Motions: ref_from_cam_k = D_k^-1 (D maps reference points to view k), scaled.
+    let mut ref_from_cam = vec![Isometry3::identity(); rig.len()];
+    for (m, d) in lin.motions.iter().enumerate() {
+        let inv = d.inverse();
+        ref_from_cam[m + 1] = Isometry3::from_parts((inv.translation.vector * scale).into(), inv.rotation);
+    }
+
+    // Axes from single-joint views, directed like the encoder.
+    let commanded: Vec<[f64; 2]> = rig
+        .iter()
+        .map(|&i| match roles[i] {
+            ViewRole::Rig { pan_deg, elevation_deg } => [pan_deg.to_radians(), elevation_deg.to_radians()],
+            _ => [0.0, 0.0],
+        })
+        .collect();
+    let mut axes: [Option<(Line, f64)>; 2] = [None, None];
+    for slot in 1..rig.len() {
+        for j in 0..2 {
+            let other = 1 - j;
+            if commanded[slot][other].abs() > MOVED_DEG.to_radians() || commanded[slot][j].abs() <= MOVED_DEG.to_radians() {
+                continue;
+            }
+            let Some(screw) = screw_from_isometry(&ref_from_cam[slot], 1e-6) else {
+                return Err(AlignError::NotARotation { view: views[rig[slot]].name.clone(), why: "the recovered motion has no rotation".into() });
+            };
+            let mut line = screw.axis;
+            if screw.angle * commanded[slot][j] < 0.0 {
+                line = line.reversed();
+            }
+            if axes[j].is_none_or(|(_, a)| commanded[slot][j].abs() > a) {
+                axes[j] = Some((line, commanded[slot][j].abs()));
+            }
+        }
+    }
+    let (Some((pan_axis, _)), Some((elev_axis, _))) = (axes[0], axes[1]) else {
+        return Err(AlignError::MissingMotion("single-joint rotations about pan and elevation".into()));
+    };
+
+    // Points: reference-view reconstruction first, then those first seen in other views.
+    let mut point_index: BTreeMap<u64, usize> = BTreeMap::new();
+    let mut points = Vec::new();
+    for (slot, map) in recon.iter().enumerate() {
+        for (&track, (x, _, _)) in map {
+            if point_index.contains_key(&track) {
+                continue;
+            }
+            if slot > 0 && !quad_inliers[slot].is_empty() && !recon[0].contains_key(&track) {
+                // fine: a point only seen from this view
+            } else if slot > 0 {
+                continue;
+            }
+            let Some(p) = dehomogenise3(&(h_pe * x)) else { continue };
+            let p = Point3::from(p.coords * scale);
+            let p_ref = ref_from_cam[slot] * p;
+            if p.z <= 0.0 || !p_ref.coords.iter().all(|v| v.is_finite()) {
+                continue;
+            }
+            point_index.insert(track, points.len());
+            points.push(p_ref);
+        }
+    }
+    if points.len() < options.min_tracks {
+        return Err(AlignError::TooFewTracks { what: "reconstructed in front of the cameras".into(), needed: options.min_tracks, got: points.len() });
+    }
+
+    // All raw observations of these tracks in the rig views.
+    let mut all_obs = Vec::new();
+    for (slot, &vi) in rig.iter().enumerate() {
+        for (side, list) in [(Side::Left, &views[vi].capture.left), (Side::Right, &views[vi].capture.right)] {
+            for o in list {
+                if let Some(&pi) = point_index.get(&o.track) {
+                    all_obs.push(BundleObservation { point: pi, view: slot, side, pixel: o.pixel });
+                }
+            }
+        }
+    }
+    // First selection: stereo inliers of F (and quadruplet inliers where available).
+    let first_obs: Vec<BundleObservation> = all_obs
+        .iter()
+        .copied()
+        .filter(|o| {
+            let track = point_tracks_of(&point_index, o.point);
+            recon[o.view].contains_key(&track) && (o.view == 0 || quad_inliers[o.view].is_empty() || quad_inliers[o.view].binary_search(&track).is_ok() || !recon[0].contains_key(&track))
+        })
+        .collect();
+
+    let angles: Vec<Vec<f64>> = commanded.iter().map(|c| c.to_vec()).collect();
+    let initial = RigState {
+        left: k_left,
+        right: k_right,
+        right_from_left,
+        motions: Motions::Joints { axes: vec![pan_axis, elev_axis], angles: angles.clone(), commanded: angles },
+        points,
+    };
+    let linear_focal = [k_left.fx, k_left.fy, k_right.fx, k_right.fy];
+    let first = bundle_adjust(&initial, &first_obs, &options.bundle).step("bundle adjustment")?;
+
+    // Re-select every raw observation by its residual under the first solution.
+    let sigma = robust_sigma(&first.state, &first_obs).max(0.05);
+    let gate = options.reselect_sigmas * sigma;
+    let second_obs: Vec<BundleObservation> = all_obs
+        .iter()
+        .copied()
+        .filter(|o| residual_pixels(&first.state, o).is_some_and(|r| r.norm() <= gate))
+        .collect();
+    let final_result = bundle_adjust(&first.state, &second_obs, &options.bundle).step("bundle adjustment (re-selected)")?;
+
+    let mut point_tracks = vec![0u64; point_index.len()];
+    for (&t, &i) in &point_index {
+        point_tracks[i] = t;
+    }
+    let report = EstimationReport {
+        stereo_matches: pairs.len(),
+        stereo_inliers: f_report.inliers.len(),
+        stereo_rms_px: stereo_rms,
+        homographies: h_reports,
+        linear_focal,
+        bundle_observations: second_obs.len(),
+        bundle_points: point_tracks.len(),
+        bundle_iterations: final_result.report.iterations,
+        initial_rms_px: first.report.initial_rms_px,
+        final_rms_px: final_result.report.final_rms_px,
+        sigma_px: final_result.report.sigma_px,
+    };
+    Ok(RigCalibration { bundle: final_result, point_tracks, reference_encoders: views[0].capture.encoders, report })
+}
+
+fn point_tracks_of(index: &BTreeMap<u64, usize>, point: usize) -> u64 {
+    index.iter().find_map(|(&t, &i)| (i == point).then_some(t)).unwrap_or(u64::MAX)
+}
+
+fn rms(values: impl Iterator<Item = f64>) -> f64 {
+    let (mut s, mut n) = (0.0, 0usize);
+    for v in values {
+        s += v * v;
+        n += 1;
+    }
+    if n == 0 { 0.0 } else { (s / n as f64).sqrt() }
+}
+
+/// Robust noise estimate: 1.4826 x median of the residual norms scaled for a 2D
+/// Gaussian (the median of a Rayleigh variable is sigma sqrt(2 ln 2)).
+fn robust_sigma(state: &RigState, obs: &[BundleObservation]) -> f64 {
+    let mut r: Vec<f64> = obs.iter().filter_map(|o| residual_pixels(state, o).map(|v| v.norm())).collect();
+    if r.is_empty() {
+        return 1.0;
+    }
+    r.sort_by(f64::total_cmp);
+    r[r.len() / 2] / (2.0 * std::f64::consts::LN_2).sqrt()
+}

@@ -1,0 +1,236 @@
+//! The verge/tilt procedure over any [`StereoHead`] (DESIGN.md section 2 steps 1-5, paper
+//! section 3.2): capture an initial view; rotate elevation, capture; return and rotate pan,
+//! capture; return and rotate both vergences, capture; return. Estimate the rig and head
+//! ([`crate::estimate`]), measure the vergence axes by resection, compute the aligned
+//! readings exactly ([`crate::alignment`]), move there, capture again and check the result
+//! by vision; if the measured error exceeds the tolerance, re-measure the vergence axes from
+//! that larger move and correct (at most `max_corrections` times).
+//!
+//! Every captured view is kept in the outcome (and in the error path the caller still has
+//! them through [`VergeTiltRun::views`]). Angles in degrees.
+
+use std::time::Instant;
+
+use headalign_geometry::so3::Line;
+use headalign_platform::{Encoders, Joint, StereoHead};
+use nalgebra::DVector;
+use serde::Serialize;
+
+use crate::alignment::{
+    AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors, solve_alignment,
+    verge_axes_from_motion,
+};
+use crate::error::AlignError;
+use crate::estimate::{EstimationOptions, RigCalibration, estimate_rig};
+use crate::observations::View;
+
+/// Options of the verge/tilt procedure.
+#[derive(Debug, Clone)]
+pub struct VergeTiltOptions {
+    /// Elevation and pan rotation for calibration, degrees (default 3, the paper's
+    /// protocol; larger rotations give proportionally better accuracy).
+    pub rotation_deg: f64,
+    /// Vergence rotation used to measure the vergence axes, degrees (default 3).
+    pub verge_rotation_deg: f64,
+    /// Estimation options.
+    pub estimation: EstimationOptions,
+    /// Correct again when a measured alignment error exceeds this, degrees (default 0.02).
+    pub check_tolerance_deg: f64,
+    /// Maximum number of corrective moves after the first (default 2).
+    pub max_corrections: usize,
+}
+
+impl Default for VergeTiltOptions {
+    fn default() -> Self {
+        Self {
+            rotation_deg: 3.0,
+            verge_rotation_deg: 3.0,
+            estimation: EstimationOptions::default(),
+            check_tolerance_deg: 0.02,
+            max_corrections: 2,
+        }
+    }
+}
+
+impl VergeTiltOptions {
+    /// Check every option.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        for (name, v) in [("rotation_deg", self.rotation_deg), ("verge_rotation_deg", self.verge_rotation_deg)] {
+            if !(v.abs() >= 0.1 && v.abs() <= 45.0) {
+                return Err(AlignError::InvalidOption(format!("{name} must be between 0.1 and 45 degrees in magnitude, got {v}")));
+            }
+        }
+        if !(self.check_tolerance_deg > 0.0) || !self.check_tolerance_deg.is_finite() {
+            return Err(AlignError::InvalidOption("check_tolerance_deg must be positive".into()));
+        }
+        self.estimation.validate()
+    }
+}
+
+/// One move to the aligned readings and its check by vision.
+#[derive(Debug, Clone, Serialize)]
+pub struct CheckStep {
+    /// Readings moved to.
+    pub encoders: Encoders,
+    /// Errors measured by resection after the move.
+    pub measured: MeasuredErrors,
+}
+
+/// 1-sigma uncertainties of the aligned readings, degrees, propagated from the bundle
+/// adjustment's covariance (vergence axes taken as exact: resection against hundreds of
+/// points is far more precise than the calibration).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct AlignmentSigmas {
+    /// Elevation reading.
+    pub elevation_deg: f64,
+    /// Left vergence reading.
+    pub verge_left_deg: f64,
+    /// Right vergence reading.
+    pub verge_right_deg: f64,
+}
+
+/// Everything the procedure produced.
+#[derive(Debug, Clone)]
+pub struct VergeTiltOutcome {
+    /// The calibration.
+    pub calibration: RigCalibration,
+    /// Vergence axes measured by resection.
+    pub verge_axes: VergeAxes,
+    /// The final alignment solution.
+    pub solution: AlignmentSolution,
+    /// Uncertainty of the aligned readings.
+    pub sigmas: AlignmentSigmas,
+    /// Each move and its check.
+    pub checks: Vec<CheckStep>,
+    /// Final encoder readings (aligned).
+    pub final_encoders: Encoders,
+    /// Seconds spent estimating (excluding head motion and capture).
+    pub estimation_seconds: f64,
+}
+
+/// A run of the procedure: the views captured so far survive any error.
+#[derive(Debug, Default)]
+pub struct VergeTiltRun {
+    /// Every captured view, in order.
+    pub views: Vec<View>,
+}
+
+impl VergeTiltRun {
+    fn capture<H: StereoHead>(&mut self, head: &mut H, name: &str) -> Result<usize, AlignError> {
+        let capture = head.capture()?;
+        self.views.push(View { name: name.to_string(), capture });
+        Ok(self.views.len() - 1)
+    }
+
+    /// Run the procedure on `head`.
+    pub fn run<H: StereoHead>(&mut self, head: &mut H, options: &VergeTiltOptions) -> Result<VergeTiltOutcome, AlignError> {
+        options.validate()?;
+        let e0 = head.read_encoders()?;
+        let r = options.rotation_deg;
+        self.capture(head, "initial")?;
+        head.move_to(&e0.moved(Joint::Elevation, r))?;
+        self.capture(head, "elevation")?;
+        head.move_to(&e0.moved(Joint::Pan, r))?;
+        self.capture(head, "pan")?;
+        let v = options.verge_rotation_deg;
+        head.move_to(&e0.moved(Joint::VergeLeft, v).moved(Joint::VergeRight, v))?;
+        let verge_view = self.capture(head, "verge")?;
+        head.move_to(&e0)?;
+
+        let t0 = Instant::now();
+        let calibration = estimate_rig(&self.views[..3], &options.estimation)?;
+        let state = &calibration.bundle.state;
+        let reference = self.views[0].capture.encoders;
+        let left0 = nalgebra::Isometry3::identity();
+        let right0 = state.right_from_left.inverse();
+        let measured = measure_cameras(&calibration, &self.views[verge_view].capture, &left0, &right0)?;
+        let mut verge_axes = verge_axes_from_motion(state, &reference, &self.views[verge_view].capture.encoders, &measured)?;
+        let mut solution = solve_alignment(state, &verge_axes, &reference)?;
+        let mut estimation_seconds = t0.elapsed().as_secs_f64();
+
+        let mut checks = Vec::new();
+        for round in 0..=options.max_corrections {
+            let target = solution.aligned_encoders;
+            head.move_to(&target)?;
+            let idx = self.capture(head, &format!("check-{}", round + 1))?;
+            let t1 = Instant::now();
+            let enc = self.views[idx].capture.encoders;
+            let d = |j: Joint| (enc.get(j) - reference.get(j)).to_radians();
+            let (pl, pr) = predicted_poses(&calibration, &verge_axes, &reference, &enc)?;
+            let measured = measure_cameras(&calibration, &self.views[idx].capture, &pl, &pr)?;
+            let errors = measured_errors(state, &measured, d(Joint::Pan))
+                .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
+            checks.push(CheckStep { encoders: enc, measured: errors });
+            // The right camera's elevation error is not correctable; the other three are.
+            let worst = errors.verge_err_l_deg.abs().max(errors.verge_err_r_deg.abs()).max(errors.elev_err_l_deg.abs());
+            if worst <= options.check_tolerance_deg || round == options.max_corrections {
+                estimation_seconds += t1.elapsed().as_secs_f64();
+                break;
+            }
+            // Re-measure the vergence axes from this larger move and solve again.
+            let better = verge_axes_from_motion(state, &reference, &enc, &measured)?;
+            verge_axes = VergeAxes { left: better.left.or(verge_axes.left), right: better.right.or(verge_axes.right) };
+            solution = solve_alignment(state, &verge_axes, &reference)?;
+            estimation_seconds += t1.elapsed().as_secs_f64();
+        }
+        let sigmas = alignment_sigmas(&calibration, &verge_axes, &reference, &solution)?;
+        let final_encoders = head.read_encoders()?;
+        Ok(VergeTiltOutcome { calibration, verge_axes, solution, sigmas, checks, final_encoders, estimation_seconds })
+    }
+}
+
+/// Predicted `ref_from_cam` of both cameras at encoders `enc` from the kinematic model.
+fn predicted_poses(
+    calib: &RigCalibration,
+    verge: &VergeAxes,
+    reference: &Encoders,
+    enc: &Encoders,
+) -> Result<(nalgebra::Isometry3<f64>, nalgebra::Isometry3<f64>), AlignError> {
+    let state = &calib.bundle.state;
+    let d = |j: Joint| (enc.get(j) - reference.get(j)).to_radians();
+    let chain = head_motion(state, d(Joint::Pan), d(Joint::Elevation))
+        .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
+    let rot = |axis: &Option<Line>, angle: f64| {
+        axis.map(|l| headalign_geometry::so3::rotation_about_line(&l, angle)).unwrap_or_else(nalgebra::Isometry3::identity)
+    };
+    let left = chain * rot(&verge.left, d(Joint::VergeLeft));
+    let right = chain * rot(&verge.right, d(Joint::VergeRight)) * state.right_from_left.inverse();
+    Ok((left, right))
+}
+
+/// Propagate the bundle adjustment's covariance to the aligned readings by central
+/// differences of [`solve_alignment`] along each parameter's standard deviation.
+pub fn alignment_sigmas(
+    calib: &RigCalibration,
+    verge: &VergeAxes,
+    reference: &Encoders,
+    solution: &AlignmentSolution,
+) -> Result<AlignmentSigmas, AlignError> {
+    let cov = &calib.bundle.covariance;
+    let n = cov.matrix.nrows();
+    let mut jac = nalgebra::DMatrix::<f64>::zeros(3, n);
+    for i in 0..n {
+        let s = cov.matrix[(i, i)].max(0.0).sqrt();
+        if !(s > 0.0) {
+            continue;
+        }
+        let h = 0.5 * s;
+        let mut delta = DVector::zeros(n);
+        delta[i] = h;
+        let plus = calib.bundle.perturbed(&delta).ok().and_then(|st| solve_alignment(&st, verge, reference).ok());
+        delta[i] = -h;
+        let minus = calib.bundle.perturbed(&delta).ok().and_then(|st| solve_alignment(&st, verge, reference).ok());
+        if let (Some(p), Some(m)) = (plus, minus) {
+            jac[(0, i)] = (p.delta_elevation_deg - m.delta_elevation_deg) / (2.0 * h);
+            jac[(1, i)] = (p.delta_verge_left_deg - m.delta_verge_left_deg) / (2.0 * h);
+            jac[(2, i)] = (p.delta_verge_right_deg - m.delta_verge_right_deg) / (2.0 * h);
+        }
+    }
+    let out = &jac * &cov.matrix * jac.transpose();
+    let _ = solution;
+    Ok(AlignmentSigmas {
+        elevation_deg: out[(0, 0)].max(0.0).sqrt(),
+        verge_left_deg: out[(1, 1)].max(0.0).sqrt(),
+        verge_right_deg: out[(2, 2)].max(0.0).sqrt(),
+    })
+}
