@@ -590,7 +590,7 @@ pub fn estimate_fundamental(
 pub(crate) mod tests {
     use super::*;
     use crate::camera::{Intrinsics, ProjectiveCamera};
-    use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector4};
+    use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
     use proptest::prelude::*;
     use rand::{RngExt, SeedableRng};
     use rand_chacha::ChaCha8Rng;
@@ -817,7 +817,6 @@ pub(crate) mod tests {
         assert!(FundamentalMatrix(Matrix3::zeros()).epipoles().is_err());
         let nan = vec![(Point2::new(f64::NAN, 0.0), p); 9];
         assert!(FundamentalMatrix::eight_point(&nan).is_err());
-        let _ = Vector4::<f64>::zeros();
     }
 
     #[test]
