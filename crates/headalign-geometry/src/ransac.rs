@@ -102,13 +102,13 @@ impl RansacOptions {
     /// Check the options: `threshold` finite and > 0, `confidence` in the open interval
     /// (0, 1), `max_iterations >= 1` and `max_iterations >= min_iterations`.
     pub fn validate(&self) -> Result<()> {
-        if !(self.threshold.is_finite() && self.threshold > 0.0) {
+        if self.threshold.is_nan() || self.threshold <= 0.0 || self.threshold.is_infinite() {
             return Err(GeometryError::InvalidOption(format!(
                 "threshold must be finite and positive, got {}",
                 self.threshold
             )));
         }
-        if !(self.confidence > 0.0 && self.confidence < 1.0) {
+        if self.confidence.is_nan() || self.confidence <= 0.0 || self.confidence >= 1.0 {
             return Err(GeometryError::InvalidOption(format!(
                 "confidence must be in (0, 1), got {}",
                 self.confidence
