@@ -10,9 +10,10 @@ use headalign_geometry::triangulation::triangulate_optimal;
 use nalgebra::{Isometry3, Matrix4, Point2, Point3, Translation3, UnitQuaternion, Vector4};
 use std::hint::black_box;
 
-fn scene(
-    n: usize,
-) -> (ProjectiveCamera, ProjectiveCamera, Vec<Point3<f64>>, Vec<(Point2<f64>, Point2<f64>)>) {
+type Pairs = Vec<(Point2<f64>, Point2<f64>)>;
+type Scene = (ProjectiveCamera, ProjectiveCamera, Vec<Point3<f64>>, Pairs);
+
+fn scene(n: usize) -> Scene {
     let k = Intrinsics::new(700.0, 720.0, 390.0, 284.0);
     let rl = Isometry3::from_parts(
         Translation3::new(-0.25, 0.0, 0.0),
