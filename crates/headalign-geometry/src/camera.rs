@@ -65,7 +65,7 @@ impl Intrinsics {
             return Err(GeometryError::InvalidEstimate("K is not upper triangular".into()));
         }
         let out = Self { fx: k[(0, 0)], fy: k[(1, 1)], skew: k[(0, 1)], cx: k[(0, 2)], cy: k[(1, 2)] };
-        if !(out.fx > 0.0 && out.fy > 0.0) || !out.is_finite() {
+        if !out.is_finite() || out.fx <= 0.0 || out.fy <= 0.0 {
             return Err(GeometryError::InvalidEstimate(format!(
                 "focal lengths must be positive and finite, got fx={}, fy={}",
                 out.fx, out.fy
@@ -169,7 +169,7 @@ impl ProjectiveCamera {
             c[i] = sign * m.determinant();
         }
         let n = c.norm();
-        if !(n > 0.0) || !n.is_finite() {
+        if !n.is_finite() || n <= 0.0 {
             return Err(GeometryError::Degenerate("camera matrix has rank < 3".into()));
         }
         Ok(c / n)

@@ -1,1 +1,833 @@
-//! Placeholder: filled in by its owner.
+//! The fundamental matrix of a stereo pair.
+//!
+//! What it computes: `F` (3x3, rank 2, defined up to scale: 7 degrees of freedom) with the
+//! convention `x_right^T F x_left = 0` — the left image is the first. Stored with
+//! Frobenius norm 1.
+//!
+//! Algorithms (Hartley & Zisserman 2nd ed.):
+//! - [`FundamentalMatrix::eight_point`]: normalised 8-point algorithm, section 11.2,
+//!   Algorithm 11.1: Hartley normalisation of each image (centroid at the origin, mean
+//!   distance sqrt 2), linear solution, rank 2 enforced by zeroing the smallest singular
+//!   value, denormalisation.
+//! - [`FundamentalMatrix::seven_point`]: section 11.1.2: the 2-dimensional null space
+//!   `a F1 + (1 - a) F2` and the real roots of the cubic `det = 0`.
+//! - [`FundamentalMatrix::sampson_distance`]: first-order geometric error, section 11.4.3
+//!   (eq. 11.9); reported in pixels as the square root of the Sampson error.
+//! - [`FundamentalMatrix::refine_sampson`]: Levenberg-Marquardt (appendix A6) on the sum
+//!   of squared Sampson distances, over the minimal parametrisation
+//!   `F = U diag(1, s, 0) V^T` with `U, V` in SO(3) updated by right-multiplied rotation
+//!   exponentials (3 + 3 + 1 = 7 dof, Bartoli & Sturm 2004), analytic Jacobian.
+//! - [`estimate_fundamental`]: RANSAC (7-point samples, 8-point polish, Sampson residual,
+//!   section 11.6, Algorithm 11.4), then Sampson refinement on the inliers.
+//!
+//! Units: Sampson distances and RANSAC thresholds are pixels.
+//!
+//! Pitfalls handled: coordinates are normalised before every linear solve (without it the
+//! 8-point matrix has a condition number of ~1e8 for pixel coordinates); nalgebra's SVD is
+//! thin, so for fewer rows than columns (7-point: 7 x 9) the matrix is padded with zero
+//! rows to square, and for many rows it is first reduced to its 9 x 9 `R` factor by QR
+//! (same right singular vectors, and we never form `A^T A`, which would square the
+//! condition number); SVDs use `try_svd` with an iteration limit and fail with a typed
+//! error; coincident points (zero spread) and rank-deficient solutions are errors.
+
+use nalgebra::{DMatrix, DVector, Matrix3, Point2, SMatrix, SVector, Vector3};
+
+use crate::ransac::{Estimator, RansacOptions, RansacReport, ransac};
+use crate::so3;
+use crate::{GeometryError, Result};
+
+/// Iteration limit of every SVD in this crate's linear solvers.
+pub(crate) const SVD_MAX_ITER: usize = 1000;
+
+/// Right singular vectors of `a` for its `k` smallest singular values (smallest first),
+/// and all singular values in decreasing order (padded with zeros to the column count).
+///
+/// Handles any number of rows: fewer rows than columns are padded with zero rows (the
+/// thin SVD would otherwise drop the null space), more are reduced by QR to a square `R`.
+pub(crate) fn smallest_right_singular_vectors(
+    a: &DMatrix<f64>,
+    k: usize,
+) -> Result<(Vec<DVector<f64>>, DVector<f64>)> {
+    let (m, n) = a.shape();
+    if !a.iter().all(|v| v.is_finite()) {
+        return Err(GeometryError::Numerical("non-finite entry in a linear system".into()));
+    }
+    let square = if m > n {
+        a.clone().qr().r()
+    } else {
+        let mut s = DMatrix::zeros(n, n);
+        s.view_mut((0, 0), (m, n)).copy_from(a);
+        s
+    };
+    let svd = square
+        .try_svd(false, true, f64::EPSILON, SVD_MAX_ITER)
+        .ok_or_else(|| GeometryError::Numerical("SVD did not converge".into()))?;
+    let v_t = svd.v_t.ok_or_else(|| GeometryError::Numerical("SVD without V".into()))?;
+    // try_svd sorts the singular values in decreasing order.
+    let out = (0..k.min(n)).map(|i| v_t.row(n - 1 - i).transpose()).collect();
+    Ok((out, svd.singular_values))
+}
+
+/// Hartley normalisation of 2D points: the similarity `T` moving the centroid to the
+/// origin and the mean distance to it to sqrt 2.
+pub(crate) fn normalising_transform_2d<'a>(
+    points: impl Iterator<Item = &'a Point2<f64>> + Clone,
+) -> Result<Matrix3<f64>> {
+    let n = points.clone().count() as f64;
+    if n == 0.0 {
+        return Err(GeometryError::NotEnoughData { what: "points to normalise", needed: 1, got: 0 });
+    }
+    let c = points.clone().map(|p| p.coords).sum::<nalgebra::Vector2<f64>>() / n;
+    let mean_dist = points.map(|p| (p.coords - c).norm()).sum::<f64>() / n;
+    if !mean_dist.is_finite() || mean_dist <= 1e-12 * (1.0 + c.norm()) {
+        return Err(GeometryError::Degenerate("all points coincide".into()));
+    }
+    let s = std::f64::consts::SQRT_2 / mean_dist;
+    Ok(Matrix3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0))
+}
+
+fn apply(t: &Matrix3<f64>, p: &Point2<f64>) -> Vector3<f64> {
+    t * Vector3::new(p.x, p.y, 1.0)
+}
+
+/// The rows `x_r^T F x_l = 0` of the linear system in the 9 entries of `F` (row-major),
+/// in normalised coordinates, with the two normalising transforms.
+fn epipolar_system(
+    pairs: &[(Point2<f64>, Point2<f64>)],
+) -> Result<(DMatrix<f64>, Matrix3<f64>, Matrix3<f64>)> {
+    let tl = normalising_transform_2d(pairs.iter().map(|p| &p.0))?;
+    let tr = normalising_transform_2d(pairs.iter().map(|p| &p.1))?;
+    let mut a = DMatrix::zeros(pairs.len(), 9);
+    for (i, (l, r)) in pairs.iter().enumerate() {
+        let xl = apply(&tl, l);
+        let xr = apply(&tr, r);
+        for j in 0..3 {
+            for k in 0..3 {
+                a[(i, 3 * j + k)] = xr[j] * xl[k];
+            }
+        }
+    }
+    Ok((a, tl, tr))
+}
+
+fn mat_from_vec9(v: &DVector<f64>) -> Matrix3<f64> {
+    Matrix3::from_row_slice(v.as_slice())
+}
+
+/// Scale to Frobenius norm 1 with a deterministic sign (largest-magnitude entry positive).
+fn normalise_scale(f: &Matrix3<f64>) -> Result<Matrix3<f64>> {
+    let n = f.norm();
+    if !n.is_finite() || n <= 0.0 {
+        return Err(GeometryError::Degenerate("fundamental matrix vanishes".into()));
+    }
+    let imax = f.iamax_full();
+    let sign = if f[imax] < 0.0 { -1.0 } else { 1.0 };
+    Ok(f * (sign / n))
+}
+
+/// Real roots of `c[3] x^3 + c[2] x^2 + c[1] x + c[0]`, with a Newton polish; handles a
+/// vanishing leading coefficient by falling back to the quadratic/linear case.
+fn real_roots_cubic(c: [f64; 4]) -> Vec<f64> {
+    let scale = c.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    if scale == 0.0 || !scale.is_finite() {
+        return vec![];
+    }
+    let [c0, c1, c2, c3] = c.map(|v| v / scale);
+    let mut roots = Vec::new();
+    if c3.abs() < 1e-12 {
+        if c2.abs() < 1e-12 {
+            if c1.abs() > 1e-12 {
+                roots.push(-c0 / c1);
+            }
+        } else {
+            let disc = c1 * c1 - 4.0 * c2 * c0;
+            if disc >= 0.0 {
+                let q = -0.5 * (c1 + c1.signum() * disc.sqrt());
+                if q != 0.0 {
+                    roots.push(q / c2);
+                    roots.push(c0 / q);
+                } else {
+                    roots.push(0.0);
+                }
+            }
+        }
+    } else {
+        // Depressed cubic t^3 + p t + q with x = t - b/3.
+        let (b, cc, d) = (c2 / c3, c1 / c3, c0 / c3);
+        let p = cc - b * b / 3.0;
+        let q = 2.0 * b * b * b / 27.0 - b * cc / 3.0 + d;
+        let disc = q * q / 4.0 + p * p * p / 27.0;
+        if disc > 0.0 {
+            let sq = disc.sqrt();
+            let u = (-q / 2.0 + sq).cbrt();
+            let v = (-q / 2.0 - sq).cbrt();
+            roots.push(u + v - b / 3.0);
+        } else if p.abs() < 1e-300 {
+            roots.push(-b / 3.0);
+        } else {
+            let r = (-p / 3.0).sqrt();
+            let phi = ((3.0 * q) / (2.0 * p * r)).clamp(-1.0, 1.0).acos() / 3.0;
+            for k in 0..3 {
+                let t = 2.0 * r * (phi - 2.0 * std::f64::consts::PI * k as f64 / 3.0).cos();
+                roots.push(t - b / 3.0);
+            }
+        }
+    }
+    // Newton polish on the scaled polynomial.
+    for x in &mut roots {
+        for _ in 0..3 {
+            let f = ((c3 * *x + c2) * *x + c1) * *x + c0;
+            let df = (3.0 * c3 * *x + 2.0 * c2) * *x + c1;
+            if df.abs() > 1e-300 {
+                let nx = *x - f / df;
+                if nx.is_finite() {
+                    *x = nx;
+                }
+            }
+        }
+    }
+    roots
+}
+
+/// A fundamental matrix, `x_right^T F x_left = 0`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FundamentalMatrix(pub Matrix3<f64>);
+
+impl FundamentalMatrix {
+    /// Normalised 8-point algorithm (H&Z Algorithm 11.1) from `>= 8` pairs
+    /// `(left, right)` in pixels. Rank 2 is enforced, the result has Frobenius norm 1.
+    ///
+    /// Errors: fewer than 8 pairs, coincident points, a null space of dimension > 1
+    /// (degenerate configuration), SVD failure.
+    pub fn eight_point(pairs: &[(Point2<f64>, Point2<f64>)]) -> Result<Self> {
+        if pairs.len() < 8 {
+            return Err(GeometryError::NotEnoughData { what: "8-point pairs", needed: 8, got: pairs.len() });
+        }
+        let (a, tl, tr) = epipolar_system(pairs)?;
+        let (v, sv) = smallest_right_singular_vectors(&a, 2)?;
+        // Second-smallest singular value ~0: the solution is not unique.
+        if sv[7] <= 1e-10 * sv[0] {
+            return Err(GeometryError::Degenerate("8-point system has a null space of dimension > 1".into()));
+        }
+        let fn_ = enforce_rank2(&mat_from_vec9(&v[0]))?;
+        // Rank 2 is enforced in normalised coordinates: a Frobenius projection in pixel
+        // coordinates would weight the entries badly. Denormalisation then leaves
+        // sigma_3 ~ 1e-12 from rounding.
+        let f = tr.transpose() * fn_ * tl;
+        Ok(Self(normalise_scale(&f)?))
+    }
+
+    /// 7-point algorithm (H&Z section 11.1.2) from exactly 7 pairs, solved in normalised
+    /// coordinates: one or three real solutions (each rank 2, Frobenius norm 1).
+    ///
+    /// Errors: not exactly 7 pairs, coincident points, a null space of dimension > 2,
+    /// SVD failure.
+    pub fn seven_point(pairs: &[(Point2<f64>, Point2<f64>)]) -> Result<Vec<Self>> {
+        if pairs.len() != 7 {
+            return Err(GeometryError::NotEnoughData {
+                what: "7-point pairs (exactly 7)",
+                needed: 7,
+                got: pairs.len(),
+            });
+        }
+        let (a, tl, tr) = epipolar_system(pairs)?;
+        let (v, sv) = smallest_right_singular_vectors(&a, 2)?;
+        // sv has 9 entries (padded); sv[7], sv[8] are the (near) zero ones. sv[6] must not be.
+        if sv[6] <= 1e-10 * sv[0] {
+            return Err(GeometryError::Degenerate("7-point system has a null space of dimension > 2".into()));
+        }
+        let f1 = mat_from_vec9(&v[0]);
+        let f2 = mat_from_vec9(&v[1]);
+        // det(x A + B) with A = F1 - F2, B = F2 (so x F1 + (1 - x) F2) is a cubic in x:
+        // c0 = det B, c3 = det A, and c1, c2 from the values at x = 1 and x = -1.
+        let am = f1 - f2;
+        let c0 = f2.determinant();
+        let c3 = am.determinant();
+        let d1 = f1.determinant();
+        let dm1 = (f2 - am).determinant();
+        let c2 = 0.5 * (d1 + dm1) - c0;
+        let c1 = 0.5 * (d1 - dm1) - c3;
+        let mut candidates: Vec<Matrix3<f64>> =
+            real_roots_cubic([c0, c1, c2, c3]).into_iter().map(|x| am * x + f2).collect();
+        let cmax = [c0, c1, c2, c3].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        if c3.abs() < 1e-12 * cmax {
+            // Root at infinity: A itself is singular.
+            candidates.push(am);
+        }
+        let mut out = Vec::new();
+        for fn_ in candidates {
+            let f = tr.transpose() * fn_ * tl;
+            if let Ok(f) = normalise_scale(&f) {
+                out.push(Self(f));
+            }
+        }
+        if out.is_empty() {
+            return Err(GeometryError::Degenerate("7-point cubic has no usable real root".into()));
+        }
+        Ok(out)
+    }
+
+    /// Algebraic residual `x_r^T F x_l`.
+    pub fn algebraic(&self, left: &Point2<f64>, right: &Point2<f64>) -> f64 {
+        let xl = Vector3::new(left.x, left.y, 1.0);
+        let xr = Vector3::new(right.x, right.y, 1.0);
+        xr.dot(&(self.0 * xl))
+    }
+
+    /// Sampson distance in pixels: `|x_r^T F x_l| / sqrt((F x_l)_1^2 + (F x_l)_2^2 +
+    /// (F^T x_r)_1^2 + (F^T x_r)_2^2)`, the square root of the Sampson error (H&Z eq.
+    /// 11.9). Zero for an exact match with a vanishing gradient, +infinity if only the
+    /// gradient vanishes.
+    pub fn sampson_distance(&self, left: &Point2<f64>, right: &Point2<f64>) -> f64 {
+        let xl = Vector3::new(left.x, left.y, 1.0);
+        let xr = Vector3::new(right.x, right.y, 1.0);
+        let fx = self.0 * xl;
+        let ftx = self.0.transpose() * xr;
+        let e = xr.dot(&fx);
+        let den = fx.x * fx.x + fx.y * fx.y + ftx.x * ftx.x + ftx.y * ftx.y;
+        if den > 0.0 {
+            e.abs() / den.sqrt()
+        } else if e == 0.0 {
+            0.0
+        } else {
+            f64::INFINITY
+        }
+    }
+
+    /// The epipoles `(e_left, e_right)` with `F e_left = 0` and `F^T e_right = 0`, unit
+    /// norm, sign chosen so that the largest-magnitude component is positive. Errors if `F` does not have rank 2 (to 1e-10 relative).
+    pub fn epipoles(&self) -> Result<(Vector3<f64>, Vector3<f64>)> {
+        let svd = self
+            .0
+            .try_svd(true, true, f64::EPSILON, SVD_MAX_ITER)
+            .ok_or_else(|| GeometryError::Numerical("SVD of F did not converge".into()))?;
+        let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+            return Err(GeometryError::Numerical("SVD of F without U or V".into()));
+        };
+        let s = svd.singular_values;
+        if s[1].is_nan() || s[1] <= 1e-10 * s[0] {
+            return Err(GeometryError::Degenerate("F has rank < 2".into()));
+        }
+        let canon = |v: Vector3<f64>| {
+            let v = v.normalize();
+            if v[v.iamax()] < 0.0 { -v } else { v }
+        };
+        Ok((canon(v_t.row(2).transpose()), canon(u.column(2).into_owned())))
+    }
+
+    /// Levenberg-Marquardt refinement of the sum of squared Sampson distances over the
+    /// 7-dof parametrisation `F = U diag(1, s, 0) V^T` (see the module documentation).
+    /// The input is first projected to rank 2 (a no-op for every `F` this module
+    /// returns); from there the cost never increases. Needs `>= 7` pairs.
+    pub fn refine_sampson(&self, pairs: &[(Point2<f64>, Point2<f64>)]) -> Result<Self> {
+        if pairs.len() < 7 {
+            return Err(GeometryError::NotEnoughData {
+                what: "Sampson refinement pairs",
+                needed: 7,
+                got: pairs.len(),
+            });
+        }
+        let tl = normalising_transform_2d(pairs.iter().map(|p| &p.0))?;
+        let tr = normalising_transform_2d(pairs.iter().map(|p| &p.1))?;
+        let mut p = Rank2Param::from_matrix(&self.0, tl, tr)?;
+        let mut cost = sampson_cost(&p.matrix(), pairs);
+        if !cost.is_finite() {
+            return Err(GeometryError::Numerical("Sampson cost is not finite at the start".into()));
+        }
+        let mut lambda = -1.0;
+        for _ in 0..100 {
+            let mut jtj = SMatrix::<f64, 7, 7>::zeros();
+            let mut jtr = SVector::<f64, 7>::zeros();
+            for (l, r) in pairs {
+                if let Some((res, j)) = p.residual_and_jacobian(l, r) {
+                    jtj += j * j.transpose();
+                    jtr += j * res;
+                }
+            }
+            if lambda < 0.0 {
+                lambda = 1e-3 * (0..7).map(|i| jtj[(i, i)]).fold(0.0, f64::max).max(1e-12);
+            }
+            let mut improved = false;
+            for _ in 0..20 {
+                let mut a = jtj;
+                for i in 0..7 {
+                    a[(i, i)] += lambda * (1.0 + jtj[(i, i)]);
+                }
+                let Some(delta) = a.cholesky().map(|c| c.solve(&(-jtr))) else {
+                    lambda *= 10.0;
+                    continue;
+                };
+                let cand = p.updated(&delta);
+                let c = sampson_cost(&cand.matrix(), pairs);
+                if c.is_finite() && c < cost {
+                    let rel = (cost - c) / cost.max(1e-300);
+                    p = cand;
+                    cost = c;
+                    lambda = (lambda * 0.1).max(1e-15);
+                    improved = rel > 1e-14;
+                    break;
+                }
+                lambda *= 10.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        Ok(Self(normalise_scale(&p.matrix())?))
+    }
+}
+
+fn enforce_rank2(f: &Matrix3<f64>) -> Result<Matrix3<f64>> {
+    let svd = f
+        .try_svd(true, true, f64::EPSILON, SVD_MAX_ITER)
+        .ok_or_else(|| GeometryError::Numerical("SVD of F did not converge".into()))?;
+    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return Err(GeometryError::Numerical("SVD of F without U or V".into()));
+    };
+    let s = svd.singular_values;
+    Ok(u * Matrix3::from_diagonal(&Vector3::new(s[0], s[1], 0.0)) * v_t)
+}
+
+/// Sum of squared Sampson distances (pixels^2).
+pub(crate) fn sampson_cost(f: &Matrix3<f64>, pairs: &[(Point2<f64>, Point2<f64>)]) -> f64 {
+    let fm = FundamentalMatrix(*f);
+    pairs.iter().map(|(l, r)| fm.sampson_distance(l, r).powi(2)).sum()
+}
+
+/// `F = T_r^T U diag(1, s, 0) V^T T_l` with `U, V` rotations and `T_l, T_r` fixed
+/// Hartley normalisations of the data: the parameters live in normalised coordinates
+/// (well scaled), the cost stays in pixels.
+#[derive(Debug, Clone, Copy)]
+struct Rank2Param {
+    u: Matrix3<f64>,
+    v: Matrix3<f64>,
+    s: f64,
+    tl: Matrix3<f64>,
+    tr: Matrix3<f64>,
+}
+
+impl Rank2Param {
+    fn from_matrix(f: &Matrix3<f64>, tl: Matrix3<f64>, tr: Matrix3<f64>) -> Result<Self> {
+        let (Some(tl_inv), Some(tr_inv)) = (tl.try_inverse(), tr.try_inverse()) else {
+            return Err(GeometryError::Degenerate("singular normalising transform".into()));
+        };
+        let g = tr_inv.transpose() * f * tl_inv;
+        let svd = g
+            .try_svd(true, true, f64::EPSILON, SVD_MAX_ITER)
+            .ok_or_else(|| GeometryError::Numerical("SVD of F did not converge".into()))?;
+        let (Some(mut u), Some(v_t)) = (svd.u, svd.v_t) else {
+            return Err(GeometryError::Numerical("SVD of F without U or V".into()));
+        };
+        let sv = svd.singular_values;
+        if sv[1].is_nan() || sv[1] <= 1e-12 * sv[0] {
+            return Err(GeometryError::Degenerate("F has rank < 2".into()));
+        }
+        let mut v = v_t.transpose();
+        // The third singular value is dropped, so the third columns' signs are free.
+        if u.determinant() < 0.0 {
+            u.column_mut(2).neg_mut();
+        }
+        if v.determinant() < 0.0 {
+            v.column_mut(2).neg_mut();
+        }
+        Ok(Self { u, v, s: sv[1] / sv[0], tl, tr })
+    }
+
+    fn d(&self) -> Matrix3<f64> {
+        Matrix3::from_diagonal(&Vector3::new(1.0, self.s, 0.0))
+    }
+
+    fn matrix(&self) -> Matrix3<f64> {
+        self.tr.transpose() * self.u * self.d() * self.v.transpose() * self.tl
+    }
+
+    /// Parameters: `delta = (a, b, ds)`, `U <- U exp([a]x)`, `V <- V exp([b]x)`, `s <- s + ds`.
+    fn updated(&self, delta: &SVector<f64, 7>) -> Self {
+        let a = Vector3::new(delta[0], delta[1], delta[2]);
+        let b = Vector3::new(delta[3], delta[4], delta[5]);
+        Self {
+            u: self.u * so3::exp(&a).into_inner(),
+            v: self.v * so3::exp(&b).into_inner(),
+            s: self.s + delta[6],
+            tl: self.tl,
+            tr: self.tr,
+        }
+    }
+
+    /// Derivatives of `F` with respect to the 7 parameters at zero update.
+    fn d_f(&self) -> [Matrix3<f64>; 7] {
+        let d = self.d();
+        let vt = self.v.transpose() * self.tl;
+        let u = self.tr.transpose() * self.u;
+        let mut out = [Matrix3::zeros(); 7];
+        for k in 0..3 {
+            let ek = so3::skew(&Vector3::ith(k, 1.0));
+            out[k] = u * ek * d * vt;
+            // V exp([b]x) transposed = exp(-[b]x) V^T.
+            out[3 + k] = -(u * d * ek * vt);
+        }
+        out[6] = u * Matrix3::from_diagonal(&Vector3::new(0.0, 1.0, 0.0)) * vt;
+        out
+    }
+
+    /// Signed Sampson residual and its gradient with respect to the 7 parameters; `None`
+    /// where the residual is not differentiable (vanishing gradient of the constraint).
+    fn residual_and_jacobian(&self, l: &Point2<f64>, r: &Point2<f64>) -> Option<(f64, SVector<f64, 7>)> {
+        let f = self.matrix();
+        let (res, g) = sampson_residual_grad(&f, l, r)?;
+        let df = self.d_f();
+        let mut j = SVector::<f64, 7>::zeros();
+        for k in 0..7 {
+            j[k] = g.component_mul(&df[k]).sum();
+        }
+        Some((res, j))
+    }
+}
+
+/// Signed Sampson residual `e / sqrt(den)` and its gradient with respect to the 9
+/// entries of `F`.
+fn sampson_residual_grad(f: &Matrix3<f64>, l: &Point2<f64>, r: &Point2<f64>) -> Option<(f64, Matrix3<f64>)> {
+    let xl = Vector3::new(l.x, l.y, 1.0);
+    let xr = Vector3::new(r.x, r.y, 1.0);
+    let fx = f * xl;
+    let ftx = f.transpose() * xr;
+    let e = xr.dot(&fx);
+    let den = fx.x * fx.x + fx.y * fx.y + ftx.x * ftx.x + ftx.y * ftx.y;
+    if den.is_nan() || den <= 0.0 || den.is_infinite() {
+        return None;
+    }
+    let sd = den.sqrt();
+    // de/dF = xr xl^T; dden/dF_jk = 2 (F xl)_j xl_k [j<2] + 2 (F^T xr)_k xr_j [k<2].
+    let de = xr * xl.transpose();
+    let mut dden = Matrix3::zeros();
+    for j in 0..3 {
+        for k in 0..3 {
+            let mut v = 0.0;
+            if j < 2 {
+                v += 2.0 * fx[j] * xl[k];
+            }
+            if k < 2 {
+                v += 2.0 * ftx[k] * xr[j];
+            }
+            dden[(j, k)] = v;
+        }
+    }
+    let g = de / sd - dden * (0.5 * e / (den * sd));
+    Some((e / sd, g))
+}
+
+/// RANSAC estimator of `F`: datum `(left, right)` pixels, 7-point minimal solver,
+/// 8-point polish, Sampson distance residual (pixels).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct FundamentalEstimator;
+
+impl Estimator for FundamentalEstimator {
+    type Datum = (Point2<f64>, Point2<f64>);
+    type Model = FundamentalMatrix;
+
+    fn sample_size(&self) -> usize {
+        7
+    }
+
+    fn fit_minimal(&self, data: &[Self::Datum], sample: &[usize]) -> Vec<FundamentalMatrix> {
+        let pairs: Vec<_> = sample.iter().map(|&i| data[i]).collect();
+        FundamentalMatrix::seven_point(&pairs).unwrap_or_default()
+    }
+
+    fn fit_inliers(&self, data: &[Self::Datum], inliers: &[usize]) -> Option<FundamentalMatrix> {
+        let pairs: Vec<_> = inliers.iter().map(|&i| data[i]).collect();
+        FundamentalMatrix::eight_point(&pairs).ok()
+    }
+
+    fn residual(&self, model: &FundamentalMatrix, datum: &Self::Datum) -> f64 {
+        model.sampson_distance(&datum.0, &datum.1)
+    }
+}
+
+/// Robust `F`: RANSAC with [`FundamentalEstimator`], then [`FundamentalMatrix::refine_sampson`]
+/// on the inliers, then the final inlier set (Sampson distance <= threshold) of the
+/// refined `F`. The refined `F` is kept only if its MSAC score over all pairs is no worse
+/// than that of the RANSAC model.
+pub fn estimate_fundamental(
+    pairs: &[(Point2<f64>, Point2<f64>)],
+    options: &RansacOptions,
+) -> Result<RansacReport<FundamentalMatrix>> {
+    let report = ransac(&FundamentalEstimator, pairs, options)?;
+    let inlier_pairs: Vec<_> = report.inliers.iter().map(|&i| pairs[i]).collect();
+    let Ok(refined) = report.model.refine_sampson(&inlier_pairs) else {
+        return Ok(report);
+    };
+    let t = options.threshold;
+    let msac = |f: &FundamentalMatrix| -> f64 {
+        pairs.iter().map(|(l, r)| f.sampson_distance(l, r).min(t).powi(2)).sum()
+    };
+    if msac(&refined) > msac(&report.model) {
+        return Ok(report);
+    }
+    let mut inliers = Vec::new();
+    let mut sum_sq = 0.0;
+    for (i, (l, r)) in pairs.iter().enumerate() {
+        let d = refined.sampson_distance(l, r);
+        if d <= t {
+            inliers.push(i);
+            sum_sq += d * d;
+        }
+    }
+    if inliers.len() < 7 {
+        return Ok(report);
+    }
+    let k = inliers.len();
+    Ok(RansacReport {
+        model: refined,
+        inlier_ratio: k as f64 / pairs.len() as f64,
+        rms_inlier_residual: (sum_sq / k as f64).sqrt(),
+        inliers,
+        iterations: report.iterations,
+    })
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::camera::{Intrinsics, ProjectiveCamera};
+    use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
+    use proptest::prelude::*;
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::{Distribution, Normal};
+
+    /// A random stereo rig and scene with ground truth.
+    pub(crate) struct Scene {
+        pub k_l: Intrinsics,
+        pub k_r: Intrinsics,
+        pub right_from_left: Isometry3<f64>,
+        pub points: Vec<Point3<f64>>,
+        pub pairs: Vec<(Point2<f64>, Point2<f64>)>,
+    }
+
+    impl Scene {
+        pub fn p_left(&self) -> ProjectiveCamera {
+            ProjectiveCamera::from_pose(&self.k_l, &Isometry3::identity())
+        }
+        pub fn p_right(&self) -> ProjectiveCamera {
+            ProjectiveCamera::from_pose(&self.k_r, &self.right_from_left)
+        }
+        /// True F = K_r^-T [t]x R K_l^-1.
+        pub fn f_true(&self) -> Matrix3<f64> {
+            let r = self.right_from_left.rotation.to_rotation_matrix().into_inner();
+            let t = self.right_from_left.translation.vector;
+            let f = self.k_r.inverse_matrix().transpose() * so3::skew(&t) * r * self.k_l.inverse_matrix();
+            normalise_scale(&f).unwrap()
+        }
+    }
+
+    pub(crate) fn random_intrinsics(rng: &mut ChaCha8Rng) -> Intrinsics {
+        Intrinsics {
+            fx: rng.random_range(500.0..1200.0),
+            fy: rng.random_range(500.0..1200.0),
+            skew: rng.random_range(-2.0..2.0),
+            cx: rng.random_range(300.0..450.0),
+            cy: rng.random_range(230.0..330.0),
+        }
+    }
+
+    /// Random rig (baseline 0.1-0.5 m, small relative rotation) and `n` points 1.5-6 m in
+    /// front of both cameras, pixels with Gaussian noise `sigma`.
+    pub(crate) fn random_scene(seed: u64, n: usize, sigma: f64) -> Scene {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let k_l = random_intrinsics(&mut rng);
+        let k_r = random_intrinsics(&mut rng);
+        let rot = UnitQuaternion::from_euler_angles(
+            rng.random_range(-0.1..0.1),
+            rng.random_range(-0.3..0.3),
+            rng.random_range(-0.1..0.1),
+        );
+        let base = Vector3::new(
+            -rng.random_range(0.1..0.5),
+            rng.random_range(-0.05..0.05),
+            rng.random_range(-0.05..0.05),
+        );
+        let right_from_left = Isometry3::from_parts(Translation3::from(base), rot);
+        let normal = Normal::new(0.0, sigma.max(1e-300)).unwrap();
+        let mut points = Vec::new();
+        let mut pairs = Vec::new();
+        while points.len() < n {
+            let p = Point3::new(
+                rng.random_range(-2.0..2.0),
+                rng.random_range(-1.5..1.5),
+                rng.random_range(1.5..6.0),
+            );
+            let pr = right_from_left * p;
+            if pr.z < 0.5 {
+                continue;
+            }
+            let mut l = k_l.project(&p).unwrap();
+            let mut r = k_r.project(&pr).unwrap();
+            if sigma > 0.0 {
+                l += nalgebra::Vector2::new(normal.sample(&mut rng), normal.sample(&mut rng));
+                r += nalgebra::Vector2::new(normal.sample(&mut rng), normal.sample(&mut rng));
+            }
+            points.push(p);
+            pairs.push((l, r));
+        }
+        Scene { k_l, k_r, right_from_left, points, pairs }
+    }
+
+    fn same_up_to_sign(a: &Matrix3<f64>, b: &Matrix3<f64>) -> f64 {
+        (a - b).norm().min((a + b).norm())
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(128))]
+
+        #[test]
+        fn eight_point_noise_free(seed in 0u64..1_000_000, n in 8usize..60) {
+            let s = random_scene(seed, n, 0.0);
+            let f = FundamentalMatrix::eight_point(&s.pairs).unwrap();
+            // 1e-6: F has entries spanning ~1e-6..1 in pixel units; the normalised
+            // solve is accurate to ~1e-12 relative, amplified by the denormalisation.
+            prop_assert!(same_up_to_sign(&f.0, &s.f_true()) < 1e-6, "{}", same_up_to_sign(&f.0, &s.f_true()));
+            prop_assert!((f.0.norm() - 1.0).abs() < 1e-12);
+            prop_assert!(f.0.determinant().abs() < 1e-15);
+            for (l, r) in &s.pairs {
+                // 1e-7 px: exact data, rounding in pixel units of ~1e3.
+                prop_assert!(f.sampson_distance(l, r) < 1e-7);
+            }
+        }
+
+        #[test]
+        fn seven_point_contains_truth(seed in 0u64..1_000_000) {
+            let s = random_scene(seed, 7, 0.0);
+            let sols = FundamentalMatrix::seven_point(&s.pairs).unwrap();
+            prop_assert!(sols.len() == 1 || sols.len() == 3 || sols.len() == 2);
+            let best = sols.iter().map(|f| same_up_to_sign(&f.0, &s.f_true())).fold(f64::INFINITY, f64::min);
+            // 1e-5: the 7-point cubic root is polished by Newton; conditioning of
+            // random 7-point sets varies, some are close to degenerate.
+            prop_assert!(best < 1e-5, "{best}");
+            for f in &sols {
+                prop_assert!(f.0.determinant().abs() < 1e-10);
+                for (l, r) in &s.pairs {
+                    prop_assert!(f.sampson_distance(l, r) < 1e-6);
+                }
+            }
+        }
+
+        #[test]
+        fn epipoles_are_null_vectors(seed in 0u64..1_000_000) {
+            let s = random_scene(seed, 20, 0.0);
+            let f = FundamentalMatrix::eight_point(&s.pairs).unwrap();
+            let (el, er) = f.epipoles().unwrap();
+            // 1e-11: |F| = 1; F has exact rank 2 in normalised coordinates, and the
+            // denormalisation (entries of T up to ~1e3) rounds sigma_3 to ~1e-12.
+            prop_assert!((f.0 * el).norm() < 1e-11, "{}", (f.0 * el).norm());
+            prop_assert!((f.0.transpose() * er).norm() < 1e-11, "{}", (f.0.transpose() * er).norm());
+            // The left epipole is the image of the right camera centre in the left camera.
+            let c_r = s.p_right().centre().unwrap();
+            let e_true = s.p_left().0 * c_r;
+            prop_assert!(el.cross(&e_true.normalize()).norm() < 1e-6);
+        }
+
+        #[test]
+        fn refine_sampson_does_not_increase_cost(seed in 0u64..1_000_000) {
+            let s = random_scene(seed, 40, 1.0);
+            let f0 = FundamentalMatrix::eight_point(&s.pairs).unwrap();
+            let f1 = f0.refine_sampson(&s.pairs).unwrap();
+            let c0 = sampson_cost(&f0.0, &s.pairs);
+            let c1 = sampson_cost(&f1.0, &s.pairs);
+            prop_assert!(c1 <= c0, "{c1} > {c0}");
+            prop_assert!(f1.0.determinant().abs() < 1e-14);
+            // With sigma = 1 px the Sampson RMS should be near sigma * sqrt((2n - 7) / (2n))... < 2 px.
+            prop_assert!((c1 / s.pairs.len() as f64).sqrt() < 2.0);
+        }
+    }
+
+    #[test]
+    fn refine_sampson_reaches_truth_on_exact_data_from_perturbed_start() {
+        let s = random_scene(11, 30, 0.0);
+        let truth = s.f_true();
+        let tl = normalising_transform_2d(s.pairs.iter().map(|p| &p.0)).unwrap();
+        let tr = normalising_transform_2d(s.pairs.iter().map(|p| &p.1)).unwrap();
+        let p = Rank2Param::from_matrix(&truth, tl, tr).unwrap();
+        let start =
+            p.updated(&SVector::<f64, 7>::from_column_slice(&[1e-3, -2e-3, 1e-3, 2e-3, 1e-3, -1e-3, 1e-3]));
+        let f = FundamentalMatrix(start.matrix()).refine_sampson(&s.pairs).unwrap();
+        // 1e-7: LM on exact data converges to the truth; residual rounding in pixels.
+        assert!(same_up_to_sign(&f.0, &truth) < 1e-7, "{}", same_up_to_sign(&f.0, &truth));
+        assert!(sampson_cost(&f.0, &s.pairs) < 1e-14);
+    }
+
+    #[test]
+    fn sampson_jacobian_matches_finite_differences() {
+        let s = random_scene(5, 10, 1.0);
+        let f0 = FundamentalMatrix::eight_point(&s.pairs).unwrap();
+        let tl = normalising_transform_2d(s.pairs.iter().map(|p| &p.0)).unwrap();
+        let tr = normalising_transform_2d(s.pairs.iter().map(|p| &p.1)).unwrap();
+        let p = Rank2Param::from_matrix(&f0.0, tl, tr).unwrap();
+        for (l, r) in &s.pairs {
+            let (_, j) = p.residual_and_jacobian(l, r).unwrap();
+            for k in 0..7 {
+                let h = 1e-6;
+                let mut d = SVector::<f64, 7>::zeros();
+                d[k] = h;
+                let rp = sampson_residual_grad(&p.updated(&d).matrix(), l, r).unwrap().0;
+                d[k] = -h;
+                let rm = sampson_residual_grad(&p.updated(&d).matrix(), l, r).unwrap().0;
+                let fd = (rp - rm) / (2.0 * h);
+                // Central differences: O(h^2) truncation plus ~1e-16/h rounding.
+                assert!((fd - j[k]).abs() < 1e-5 * (1.0 + j[k].abs()), "k={k}: fd {fd} vs {}", j[k]);
+            }
+        }
+    }
+
+    #[test]
+    fn estimate_fundamental_with_outliers() {
+        let mut s = random_scene(3, 200, 0.5);
+        let mut rng = ChaCha8Rng::seed_from_u64(99);
+        let n_out = 40;
+        for i in 0..n_out {
+            s.pairs[i].1 = Point2::new(rng.random_range(0.0..768.0), rng.random_range(0.0..576.0));
+        }
+        let opts = RansacOptions { threshold: 2.0, ..Default::default() };
+        let rep = estimate_fundamental(&s.pairs, &opts).unwrap();
+        // Outliers are uniform in the image: a few may fall within 2 px of their epipolar line.
+        let wrong = rep.inliers.iter().filter(|&&i| i < n_out).count();
+        assert!(wrong <= 4, "{wrong} outliers accepted");
+        let good = rep.inliers.iter().filter(|&&i| i >= n_out).count();
+        assert!(good >= 155, "only {good} of 160 inliers");
+        assert!(rep.rms_inlier_residual < 1.0);
+        let again = estimate_fundamental(&s.pairs, &opts).unwrap();
+        assert_eq!(rep, again);
+    }
+
+    #[test]
+    fn degenerate_inputs_give_errors() {
+        let p = Point2::new(1.0, 2.0);
+        assert!(matches!(
+            FundamentalMatrix::eight_point(&[(p, p); 5]),
+            Err(GeometryError::NotEnoughData { .. })
+        ));
+        assert!(FundamentalMatrix::eight_point(&[(p, p); 10]).is_err());
+        assert!(FundamentalMatrix::seven_point(&[(p, p); 8]).is_err());
+        assert!(FundamentalMatrix::seven_point(&[(p, p); 7]).is_err());
+        // Points on a line in both images.
+        let line: Vec<_> = (0..12)
+            .map(|i| (Point2::new(i as f64, 2.0 * i as f64), Point2::new(3.0 * i as f64, 1.0)))
+            .collect();
+        assert!(FundamentalMatrix::eight_point(&line).is_err());
+        assert!(FundamentalMatrix(Matrix3::zeros()).epipoles().is_err());
+        let nan = vec![(Point2::new(f64::NAN, 0.0), p); 9];
+        assert!(FundamentalMatrix::eight_point(&nan).is_err());
+    }
+
+    #[test]
+    fn cubic_roots() {
+        // (x - 1)(x - 2)(x + 3) = x^3 - 7x + 6
+        let mut r = real_roots_cubic([6.0, -7.0, 0.0, 1.0]);
+        r.sort_by(f64::total_cmp);
+        assert!((r[0] + 3.0).abs() < 1e-12 && (r[1] - 1.0).abs() < 1e-12 && (r[2] - 2.0).abs() < 1e-12);
+        // x^3 + x + 1: one real root.
+        assert_eq!(real_roots_cubic([1.0, 1.0, 0.0, 1.0]).len(), 1);
+        // Leading coefficient zero: quadratic (x-1)(x-2).
+        assert_eq!(real_roots_cubic([2.0, -3.0, 1.0, 0.0]).len(), 2);
+    }
+}
