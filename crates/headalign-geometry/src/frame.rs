@@ -109,7 +109,7 @@ pub fn quasi_euclidean_frame(
     let k_inv = k0.inverse_matrix();
     let mut f_n = k.transpose() * f * k;
     let norm = f_n.norm();
-    if !(norm > 0.0) || !norm.is_finite() {
+    if !norm.is_finite() || norm <= 0.0 {
         return Err(GeometryError::InvalidEstimate("fundamental matrix is zero or not finite".into()));
     }
     f_n /= norm;

@@ -62,7 +62,7 @@ pub fn invariant_image_line(h: &Matrix4<f64>, p: &Matrix3x4<f64>) -> Result<Vect
     let (a, b) = invariant_points(h)?;
     let l = (p * a).cross(&(p * b));
     let n = l.norm();
-    if !(n > 0.0) || !n.is_finite() {
+    if !n.is_finite() || n <= 0.0 {
         return Err(GeometryError::Degenerate("invariant line projects to a point".into()));
     }
     Ok(l / n)
