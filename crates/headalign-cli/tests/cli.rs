@@ -1,0 +1,150 @@
+//! End-to-end tests of the `headalign` binary: the demo's JSON, a simulated session
+//! recorded to disk and aligned, and every error path of `align --observations`.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use serde_json::Value;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_headalign"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("headalign-cli-tests-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().unwrap()
+}
+
+/// A failure must be a non-zero exit with exactly one line on stderr that names the
+/// problem, and never a panic.
+fn assert_clean_failure(out: &Output, expected: &str) {
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "expected failure, got success; stderr: {stderr}");
+    assert!(!stderr.contains("panicked"), "panic: {stderr}");
+    assert_eq!(stderr.trim_end().lines().count(), 1, "one line expected: {stderr}");
+    assert!(stderr.to_lowercase().contains(&expected.to_lowercase()), "expected '{expected}' in: {stderr}");
+}
+
+fn simulate(path: &Path, extra: &[&str]) {
+    let mut args = vec!["simulate", "--out", path.to_str().unwrap()];
+    args.extend_from_slice(extra);
+    let out = run(&args);
+    assert!(out.status.success(), "simulate failed: {}", String::from_utf8_lossy(&out.stderr));
+}
+
+#[test]
+fn demo_json_has_the_documented_keys() {
+    let out = run(&["demo", "--json", "--seed", "2"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    for key in ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg", "f_err_pct", "pp_err_pct", "recon_err_pct"] {
+        assert!(v["errors"][key].is_number(), "errors.{key} missing: {}", v["errors"]);
+    }
+    for key in ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg"] {
+        assert!(v["before"][key].is_number(), "before.{key} missing");
+    }
+    // Default scenario: alignment well below a degree (the bar is 0.5 deg RMS over seeds;
+    // one seed gets 1.5 deg of slack) and focal length within 3 %.
+    for key in ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg"] {
+        assert!(v["errors"][key].as_f64().unwrap().abs() < 1.5, "{key} = {}", v["errors"][key]);
+    }
+    assert!(v["errors"]["f_err_pct"].as_f64().unwrap() < 3.0);
+}
+
+#[test]
+fn simulated_session_round_trip_through_align() {
+    let path = tmp("session.json");
+    simulate(&path, &["--seed", "4", "--noise", "0.5"]);
+    let out = run(&["align", "--observations", path.to_str().unwrap(), "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let kl = &v["left"]["K"];
+    // Default truth: left fx 700, fy 720; right fx 705, fy 716 (DESIGN.md section 5).
+    // 2 % covers 0.5 px noise with 3 deg rotations comfortably (expected ~0.3 %).
+    assert!((kl[0][0].as_f64().unwrap() / 700.0 - 1.0).abs() < 0.02, "left fx {}", kl[0][0]);
+    assert!((kl[1][1].as_f64().unwrap() / 720.0 - 1.0).abs() < 0.02, "left fy {}", kl[1][1]);
+    assert!((v["right"]["K"][0][0].as_f64().unwrap() / 705.0 - 1.0).abs() < 0.02);
+    assert_eq!(kl[2][2].as_f64().unwrap(), 1.0);
+    for side in ["left", "right"] {
+        let p = &v["fixation_px"][side];
+        assert!(p[0].is_number() && p[1].is_number(), "fixation_px.{side}: {p}");
+    }
+    assert!(v["axes"]["pan"]["direction"].is_array());
+    assert!(v["axes"]["elevation"]["direction"].is_array());
+    assert!(v["aligned_encoders"]["elevation"].is_number());
+    assert_eq!(v["verge_axes_measured"], Value::Bool(true));
+    // Human-readable output works too.
+    let out = run(&["align", "--observations", path.to_str().unwrap()]);
+    assert!(out.status.success());
+    assert!(String::from_utf8_lossy(&out.stdout).contains("left  K"));
+}
+
+fn session_with(path: &Path, edit: impl FnOnce(&mut Value)) -> PathBuf {
+    let mut v: Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+    edit(&mut v);
+    let out = path.with_extension(format!("edited-{}.json", rand_suffix()));
+    std::fs::write(&out, serde_json::to_string(&v).unwrap()).unwrap();
+    out
+}
+
+fn rand_suffix() -> u64 {
+    use std::sync::atomic::{AtomicU64, Ordering};
+    static N: AtomicU64 = AtomicU64::new(0);
+    N.fetch_add(1, Ordering::Relaxed)
+}
+
+#[test]
+fn align_error_paths_are_one_line_and_named() {
+    let base = tmp("base.json");
+    simulate(&base, &["--seed", "5"]);
+
+    // Missing file.
+    assert_clean_failure(&run(&["align", "--observations", "/nonexistent/x.json"]), "cannot read");
+    // Malformed JSON.
+    let bad = tmp("bad.json");
+    std::fs::write(&bad, "{\"format\": \"headalign-observations/1\", \"views\": [").unwrap();
+    assert_clean_failure(&run(&["align", "--observations", bad.to_str().unwrap()]), "malformed JSON");
+    // Wrong type.
+    let f = session_with(&base, |v| v["views"][0]["encoders"]["pan"] = Value::String("x".into()));
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "malformed JSON");
+    // Inconsistent: pixel outside the image.
+    let f = session_with(&base, |v| v["views"][1]["left"][0][1] = serde_json::json!(5000.0));
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "outside");
+    // Too few tracks.
+    let f = session_with(&base, |v| {
+        for view in v["views"].as_array_mut().unwrap() {
+            for side in ["left", "right"] {
+                view[side].as_array_mut().unwrap().truncate(6);
+            }
+        }
+    });
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "too few tracks");
+    // A motion that is not a rotation: same readings as the initial view.
+    let f = session_with(&base, |v| {
+        let e = v["views"][0]["encoders"].clone();
+        v["views"][2]["encoders"] = e;
+    });
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "not a rotation");
+    // Two rotations about the same axis: the "pan" view claims an elevation move.
+    let f = session_with(&base, |v| {
+        let e = v["views"][1]["encoders"]["elevation"].as_f64().unwrap();
+        let p0 = v["views"][0]["encoders"]["pan"].clone();
+        v["views"][2]["encoders"]["pan"] = p0;
+        v["views"][2]["encoders"]["elevation"] = serde_json::json!(e + 3.0);
+    });
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "same axis");
+    // Fewer than three views.
+    let f = session_with(&base, |v| v["views"].as_array_mut().unwrap().truncate(2));
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "at least 3");
+}
+
+#[test]
+fn invalid_demo_options_are_errors() {
+    assert_clean_failure(&run(&["demo", "--noise", "-1"]), "noise");
+    assert_clean_failure(&run(&["demo", "--outliers", "1.5"]), "outlier");
+}
