@@ -1,0 +1,200 @@
+//! Ground-truth error metrics (DESIGN.md section 1), the same names in every report.
+//!
+//! - [`AlignmentErrors`]: `verge_err_{l,r}` = `asin(optical . elevation_dir)`, the signed
+//!   angle of a camera's optical axis out of the plane perpendicular to the current
+//!   elevation axis (moved by pan); positive when the camera looks towards the elevation
+//!   axis direction (right). `elev_err_{l,r}` = `asin(optical . pan_dir)`, out of the
+//!   plane perpendicular to the pan axis; positive when looking up (the pan direction is
+//!   stored pointing up). Degrees. See [`crate::kinematics`] for the joint signs.
+//! - [`CalibrationErrors`]: focal, aspect and principal point errors in percent.
+//! - `recon_err_pct`: Euclidean reconstruction error after the best similarity
+//!   (Umeyama), RMS over points of `|error| / distance from the camera`, percent.
+//! - [`AxisErrors`]: direction (degrees) and position (metres) error of a recovered axis.
+//!
+//! Pitfall: estimated points and axes are compared in the **left camera frame at the
+//! given encoder readings**; a reconstruction is defined up to a similarity, an axis
+//! direction up to sign (the angle reported is between lines, at most 90 deg), and an
+//! axis position only once the metric scale is fixed (e.g. from a known baseline).
+
+use std::collections::HashMap;
+
+use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::so3::Line;
+use headalign_platform::{Encoders, Joint};
+use nalgebra::{Matrix3, Point3, Vector3};
+use serde::Serialize;
+
+use crate::SimError;
+use crate::head::SimulatedHead;
+
+/// Signed alignment errors of both cameras, degrees.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct AlignmentErrors {
+    /// Left optical axis out of the plane perpendicular to the elevation axis.
+    pub verge_err_l_deg: f64,
+    /// Right optical axis out of the plane perpendicular to the elevation axis.
+    pub verge_err_r_deg: f64,
+    /// Left optical axis out of the plane perpendicular to the pan axis (up positive).
+    pub elev_err_l_deg: f64,
+    /// Right optical axis out of the plane perpendicular to the pan axis (up positive).
+    pub elev_err_r_deg: f64,
+}
+
+/// Calibration errors of a stereo pair, percent.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct CalibrationErrors {
+    /// Largest relative error of the four focal lengths.
+    pub f_err_pct: f64,
+    /// Largest relative error of the two aspect ratios `fy / fx`.
+    pub aspect_err_pct: f64,
+    /// Largest principal point error, as a fraction of the camera's mean true focal length.
+    pub pp_err_pct: f64,
+}
+
+/// Errors of a recovered head axis.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct AxisErrors {
+    /// Angle between the recovered and the true axis lines, degrees, in `[0, 90]`.
+    pub direction_deg: f64,
+    /// Distance from the recovered line to the point of the true axis nearest the left
+    /// camera centre, metres (meaningful only with the metric scale fixed).
+    pub position_m: f64,
+}
+
+fn asin_deg(x: f64) -> f64 {
+    x.clamp(-1.0, 1.0).asin().to_degrees()
+}
+
+/// Calibration errors of estimated intrinsics against the truth.
+pub fn calibration_errors(
+    truth_l: &Intrinsics,
+    truth_r: &Intrinsics,
+    est_l: &Intrinsics,
+    est_r: &Intrinsics,
+) -> CalibrationErrors {
+    let rel = |est: f64, truth: f64| ((est - truth) / truth).abs() * 100.0;
+    let mut f = 0.0f64;
+    let mut aspect = 0.0f64;
+    let mut pp = 0.0f64;
+    for (t, e) in [(truth_l, est_l), (truth_r, est_r)] {
+        f = f.max(rel(e.fx, t.fx)).max(rel(e.fy, t.fy));
+        aspect = aspect.max(rel(e.fy / e.fx, t.fy / t.fx));
+        pp = pp.max((e.cx - t.cx).hypot(e.cy - t.cy) / t.mean_focal() * 100.0);
+    }
+    CalibrationErrors { f_err_pct: f, aspect_err_pct: aspect, pp_err_pct: pp }
+}
+
+/// Best similarity `dst ~ s R src + t` (Umeyama 1991), returned as `(s, R, t)`.
+fn umeyama(
+    src: &[Vector3<f64>],
+    dst: &[Vector3<f64>],
+) -> Result<(f64, Matrix3<f64>, Vector3<f64>), SimError> {
+    let n = src.len() as f64;
+    let mean_src = src.iter().sum::<Vector3<f64>>() / n;
+    let mean_dst = dst.iter().sum::<Vector3<f64>>() / n;
+    let mut cov = Matrix3::zeros();
+    let mut var_src = 0.0;
+    for (a, b) in src.iter().zip(dst) {
+        let (a, b) = (a - mean_src, b - mean_dst);
+        cov += b * a.transpose();
+        var_src += a.norm_squared();
+    }
+    cov /= n;
+    var_src /= n;
+    if !(var_src > 0.0) || !var_src.is_finite() {
+        return Err(SimError::Metric("estimated points are all at one place".into()));
+    }
+    let svd = cov.try_svd(true, true, 1e-15, 200).ok_or_else(|| SimError::Metric("SVD failed".into()))?;
+    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        return Err(SimError::Metric("SVD failed".into()));
+    };
+    let mut d = Vector3::new(1.0, 1.0, 1.0);
+    if (u * v_t).determinant() < 0.0 {
+        d.z = -1.0;
+    }
+    let r = u * Matrix3::from_diagonal(&d) * v_t;
+    let s = svd.singular_values.dot(&d) / var_src;
+    let t = mean_dst - r * mean_src * s;
+    Ok((s, r, t))
+}
+
+impl SimulatedHead {
+    /// Signed alignment errors of both cameras at the given encoder readings, degrees.
+    pub fn alignment_errors(&self, enc: &Encoders) -> AlignmentErrors {
+        let truth = self.truth();
+        let (world_from_left, world_from_right) = truth.world_from_cameras(enc);
+        let optical_l = world_from_left.rotation * Vector3::z();
+        let optical_r = world_from_right.rotation * Vector3::z();
+        let elev_dir = truth.axis_in_world(Joint::Elevation, enc).direction.into_inner();
+        let pan_dir = truth.pan_axis.direction.into_inner();
+        AlignmentErrors {
+            verge_err_l_deg: asin_deg(optical_l.dot(&elev_dir)),
+            verge_err_r_deg: asin_deg(optical_r.dot(&elev_dir)),
+            elev_err_l_deg: asin_deg(optical_l.dot(&pan_dir)),
+            elev_err_r_deg: asin_deg(optical_r.dot(&pan_dir)),
+        }
+    }
+
+    /// The true aligned readings: zero `verge_err_l`, `verge_err_r` and `elev_err_l`; pan
+    /// at its zero offset. See [`crate::HeadTruth::aligned_encoders`].
+    pub fn aligned_encoders(&self) -> Encoders {
+        self.truth().aligned_encoders()
+    }
+
+    /// Reconstruction error, percent: `estimated` points (track id, position in the LEFT
+    /// camera frame at readings `enc`, any scale, rotation and origin) are mapped by the
+    /// best similarity onto the true points in that frame; then the RMS over points of
+    /// `|error| / distance of the true point from the camera` x 100.
+    ///
+    /// Errors: fewer than 3 points, an unknown track id, a non-finite point, or points
+    /// that do not fix a similarity.
+    pub fn recon_err_pct(&self, enc: &Encoders, estimated: &[(u64, Point3<f64>)]) -> Result<f64, SimError> {
+        if estimated.len() < 3 {
+            return Err(SimError::Metric(format!("need at least 3 points, got {}", estimated.len())));
+        }
+        let by_id: HashMap<u64, Point3<f64>> = self.scene_points().iter().copied().collect();
+        let (world_from_left, _) = self.world_from_cameras(enc);
+        let left_from_world = world_from_left.inverse();
+        let mut src = Vec::with_capacity(estimated.len());
+        let mut dst = Vec::with_capacity(estimated.len());
+        for (track, p) in estimated {
+            if !p.coords.iter().all(|v| v.is_finite()) {
+                return Err(SimError::Metric(format!("estimated point of track {track} is not finite")));
+            }
+            let Some(point_in_world) = by_id.get(track) else {
+                return Err(SimError::Metric(format!("track {track} is not a scene point")));
+            };
+            src.push(p.coords);
+            dst.push((left_from_world * point_in_world).coords);
+        }
+        let (s, r, t) = umeyama(&src, &dst)?;
+        let mut sum = 0.0;
+        for (a, b) in src.iter().zip(&dst) {
+            let err = (r * a * s + t - b).norm();
+            let dist = b.norm();
+            if !(dist > 0.0) {
+                return Err(SimError::Metric("a true point is at the camera centre".into()));
+            }
+            sum += (err / dist).powi(2);
+        }
+        Ok((sum / src.len() as f64).sqrt() * 100.0)
+    }
+
+    /// The true axis of a joint as a line in the LEFT camera frame at readings `enc`.
+    pub fn axis_in_left_camera(&self, joint: Joint, enc: &Encoders) -> Line {
+        let (world_from_left, _) = self.world_from_cameras(enc);
+        self.truth().axis_in_world(joint, enc).transformed(&world_from_left.inverse())
+    }
+
+    /// Errors of a recovered axis (a line in the LEFT camera frame at readings `enc`,
+    /// metres) against the true axis of `joint`. The direction error ignores the sign of
+    /// the direction.
+    pub fn axis_errors(&self, joint: Joint, enc: &Encoders, estimated: &Line) -> AxisErrors {
+        let truth = self.axis_in_left_camera(joint, enc);
+        let cos = estimated.direction.dot(&truth.direction).abs().min(1.0);
+        let direction_deg = cos.acos().to_degrees();
+        // Point of the true axis nearest the camera centre (the origin of this frame).
+        let position_m = estimated.distance_to(&truth.point);
+        AxisErrors { direction_deg, position_m }
+    }
+}
