@@ -201,3 +201,176 @@ impl StereoHead for SimulatedHead {
         Ok(StereoCapture { encoders, image_size: self.scenario.image_size, left, right })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::count_visible_in_both;
+    use headalign_geometry::camera::ProjectiveCamera;
+    use nalgebra::Vector4;
+
+    fn quiet(seed: u64) -> Scenario {
+        Scenario { seed, noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() }
+    }
+
+    #[test]
+    fn same_seed_same_captures() {
+        let mut a = SimulatedHead::new(Scenario::default()).unwrap();
+        let mut b = SimulatedHead::new(Scenario::default()).unwrap();
+        let mut c = SimulatedHead::new(Scenario::default().with_seed(2)).unwrap();
+        let moved = Encoders { pan: 3.0, ..Encoders::default() };
+        for head in [&mut a, &mut b, &mut c] {
+            let first = head.capture().unwrap();
+            head.move_to(&moved).unwrap();
+            let second = head.capture().unwrap();
+            assert_ne!(first, second);
+        }
+        let (ca, cb) = (a.capture().unwrap(), b.capture().unwrap());
+        assert_eq!(ca, cb);
+        assert_ne!(ca, c.capture().unwrap());
+        // Captures advance the RNG: the same view captured again differs in its noise.
+        assert_ne!(ca, a.capture().unwrap());
+    }
+
+    #[test]
+    fn noise_free_capture_is_exact_projection() {
+        let mut head = SimulatedHead::new(quiet(3)).unwrap();
+        let enc = Encoders { pan: -5.0, elevation: 2.0, verge_left: 1.0, verge_right: -1.0 };
+        head.move_to(&enc).unwrap();
+        let cap = head.capture().unwrap();
+        assert_eq!(cap.encoders, enc);
+        assert_eq!(cap, head.exact_capture(&enc));
+        let (world_from_left, world_from_right) = head.world_from_cameras(&enc);
+        let by_id: std::collections::HashMap<u64, Point3<f64>> =
+            head.scene_points().iter().copied().collect();
+        let truth = head.truth().clone();
+        for (obs, k, pose) in
+            [(&cap.left, &truth.left, &world_from_left), (&cap.right, &truth.right, &world_from_right)]
+        {
+            assert!(obs.len() > 100);
+            let p = ProjectiveCamera::from_pose(k, &pose.inverse());
+            for o in obs {
+                let x = by_id[&o.track];
+                let px = p.project(&Vector4::new(x.x, x.y, x.z, 1.0)).unwrap();
+                assert!((px - o.pixel).norm() < 1e-9);
+            }
+        }
+    }
+
+    #[test]
+    fn noise_has_its_standard_deviation_and_stays_in_the_image() {
+        let s = Scenario { noise_px: 1.5, outlier_fraction: 0.0, ..Scenario::default() };
+        let mut head = SimulatedHead::new(s).unwrap();
+        let exact = head.exact_capture(&Encoders::default());
+        let exact_by_id: std::collections::HashMap<u64, Point2<f64>> =
+            exact.left.iter().map(|o| (o.track, o.pixel)).collect();
+        let mut sum_sq = 0.0;
+        let mut n = 0usize;
+        for _ in 0..5 {
+            let cap = head.capture().unwrap();
+            for o in cap.left.iter().chain(&cap.right) {
+                assert!(pixel_in_image(&o.pixel, cap.image_size));
+            }
+            for o in &cap.left {
+                let d = o.pixel - exact_by_id[&o.track];
+                sum_sq += d.norm_squared();
+                n += 2;
+            }
+        }
+        let sigma = (sum_sq / n as f64).sqrt();
+        assert!((sigma - 1.5).abs() < 0.1, "{sigma}");
+    }
+
+    #[test]
+    fn outlier_fraction_is_honoured() {
+        let s = Scenario { noise_px: 0.0, outlier_fraction: 0.3, ..Scenario::default() };
+        let mut head = SimulatedHead::new(s).unwrap();
+        let exact = head.exact_capture(&Encoders::default());
+        let exact_by_id: std::collections::HashMap<u64, Point2<f64>> =
+            exact.left.iter().map(|o| (o.track, o.pixel)).collect();
+        let (mut outliers, mut total) = (0usize, 0usize);
+        for _ in 0..10 {
+            let cap = head.capture().unwrap();
+            assert_eq!(cap.left.len(), exact.left.len(), "uniform outliers never leave the image");
+            for o in &cap.left {
+                total += 1;
+                if (o.pixel - exact_by_id[&o.track]).norm() > 1e-9 {
+                    outliers += 1;
+                }
+            }
+        }
+        let frac = outliers as f64 / total as f64;
+        assert!((frac - 0.3).abs() < 0.03, "{frac} of {total}");
+    }
+
+    #[test]
+    fn move_to_validates_and_encoder_noise() {
+        let mut head = SimulatedHead::new(Scenario::default()).unwrap();
+        let nan = Encoders { pan: f64::NAN, ..Encoders::default() };
+        assert!(matches!(head.move_to(&nan), Err(PlatformError::InvalidCommand(_))));
+        let far = Encoders { elevation: 181.0, ..Encoders::default() };
+        assert!(matches!(head.move_to(&far), Err(PlatformError::OutOfRange { joint: Joint::Elevation, .. })));
+        assert_eq!(head.encoders(), Encoders::default());
+        let ok = Encoders { pan: 180.0, elevation: -180.0, verge_left: 1.0, verge_right: 2.0 };
+        head.move_to(&ok).unwrap();
+        assert_eq!(head.read_encoders().unwrap(), ok);
+        assert_eq!(head.image_size(), [768, 576]);
+
+        let mut noisy =
+            SimulatedHead::new(Scenario { encoder_noise_deg: 0.1, ..Scenario::default() }).unwrap();
+        let r1 = noisy.read_encoders().unwrap();
+        let r2 = noisy.read_encoders().unwrap();
+        assert_ne!(r1, r2);
+        assert!(r1.pan.abs() < 1.0 && r1.pan != 0.0);
+        assert_eq!(noisy.encoders(), Encoders::default());
+    }
+
+    #[test]
+    fn scene_density_matches_points_for_seeds_1_to_10() {
+        for seed in 1..=10 {
+            let head = SimulatedHead::new(Scenario::default().with_seed(seed)).unwrap();
+            let (s, t, pts) = (head.scenario(), head.truth(), head.scene_points());
+            let initial = count_visible_in_both(s, t, &Encoders::default(), pts);
+            assert!((150..=250).contains(&initial), "seed {seed}: {initial} visible initially");
+            for pan in [-20.0, 20.0] {
+                let enc = Encoders { pan, ..Encoders::default() };
+                let n = count_visible_in_both(s, t, &enc, pts);
+                assert!(n >= 100, "seed {seed}, pan {pan}: {n} visible");
+            }
+            // Also after the procedure's elevation move and at the aligned readings.
+            let n = count_visible_in_both(s, t, &Encoders { elevation: 3.0, ..Encoders::default() }, pts);
+            assert!(n >= 100, "seed {seed}: {n} after elevation");
+            let n = count_visible_in_both(s, t, &head.aligned_encoders(), pts);
+            assert!(n >= 100, "seed {seed}: {n} when aligned");
+        }
+    }
+
+    #[test]
+    fn scene_points_in_range_and_ids_unique() {
+        let head = SimulatedHead::new(Scenario::default()).unwrap();
+        let s = head.scenario();
+        let centre = Point3::new(0.0, -(s.head_height_m + s.elevation_below_cameras_m), 0.0);
+        let mut ids: Vec<u64> = head.scene_points().iter().map(|(id, _)| *id).collect();
+        for (_, p) in head.scene_points() {
+            let r = (p - centre).norm();
+            assert!(r >= s.scene_min_m && r <= s.scene_max_m);
+            assert!(p.y <= 1e-12, "nothing below the floor");
+        }
+        let n = ids.len();
+        ids.sort_unstable();
+        ids.dedup();
+        assert_eq!(ids.len(), n);
+        // The room surrounds the head: points in every horizontal quadrant.
+        for (sx, sz) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
+            assert!(head.scene_points().iter().any(|(_, p)| p.x * sx > 0.5 && p.z * sz > 0.5));
+        }
+    }
+
+    #[test]
+    fn invalid_scenario_is_rejected() {
+        assert!(matches!(
+            SimulatedHead::new(Scenario { noise_px: -1.0, ..Scenario::default() }),
+            Err(SimError::InvalidScenario(_))
+        ));
+    }
+}

@@ -239,3 +239,129 @@ pub(crate) fn angle_to_perpendicular(axis: &Vector3<f64>, v: &Vector3<f64>, targ
     let (t1, t2) = (wrap(phi + delta), wrap(phi - delta));
     if t1.abs() <= t2.abs() { t1 } else { t2 }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+    use rand::SeedableRng;
+
+    /// A head with no axis tilts and no mounting rotation.
+    pub(crate) fn ideal_scenario() -> Scenario {
+        Scenario {
+            mount_rotation_max_deg: 0.0,
+            elevation_tilt_max_deg: 0.0,
+            verge_tilt_max_deg: 0.0,
+            ..Scenario::default()
+        }
+    }
+
+    fn truth_of(s: &Scenario) -> HeadTruth {
+        HeadTruth::draw(s, &mut ChaCha8Rng::seed_from_u64(s.seed))
+    }
+
+    #[test]
+    fn ideal_head_at_zero_angles_looks_forward_and_level() {
+        let s = ideal_scenario();
+        let t = truth_of(&s);
+        let (l, r) = t.world_from_cameras(&t.zero_offsets);
+        let cam_y = -(s.head_height_m + s.elevation_below_cameras_m);
+        assert!((l.translation.vector - Vector3::new(-0.125, cam_y, 0.03)).norm() < 1e-12);
+        assert!((r.translation.vector - Vector3::new(0.125, cam_y, 0.03)).norm() < 1e-12);
+        assert!(l.rotation.angle() < 1e-12 && r.rotation.angle() < 1e-12);
+        assert_eq!(t.aligned_encoders(), t.zero_offsets);
+    }
+
+    #[test]
+    fn joint_signs() {
+        let t = truth_of(&ideal_scenario());
+        let z0 = t.zero_offsets;
+        let optical_left = |enc: &Encoders| t.world_from_cameras(enc).0.rotation * Vector3::z();
+        // Positive pan turns left (-x).
+        assert!(optical_left(&z0.moved(Joint::Pan, 10.0)).x < -0.17);
+        // Positive elevation tilts up (-y).
+        assert!(optical_left(&z0.moved(Joint::Elevation, 10.0)).y < -0.17);
+        // Positive vergence turns right (+x), for both cameras.
+        assert!(optical_left(&z0.moved(Joint::VergeLeft, 10.0)).x > 0.17);
+        let optical_right =
+            t.world_from_cameras(&z0.moved(Joint::VergeRight, 10.0)).1.rotation * Vector3::z();
+        assert!(optical_right.x > 0.17);
+        // Encoder minus zero offset is the joint angle.
+        assert!(
+            (t.joint_angle_rad(&z0.moved(Joint::Pan, 90.0), Joint::Pan) - std::f64::consts::FRAC_PI_2).abs()
+                < 1e-15
+        );
+    }
+
+    #[test]
+    fn drawn_geometry_respects_the_scenario() {
+        for seed in 1..=20 {
+            let s = Scenario::default().with_seed(seed);
+            let t = truth_of(&s);
+            assert!(t.zero_offsets.pan.abs() <= s.pan_zero_max_deg);
+            assert!(t.zero_offsets.elevation.abs() <= s.elevation_zero_max_deg);
+            assert!(t.zero_offsets.verge_left.abs() <= s.verge_zero_max_deg);
+            assert!(t.zero_offsets.verge_right.abs() <= s.verge_zero_max_deg);
+            let p = t.pan_axis.direction.into_inner();
+            let e = t.elevation_axis.direction.into_inner();
+            assert!((p - Vector3::new(0.0, -1.0, 0.0)).norm() < 1e-15);
+            // Elevation tilt out of perpendicular to pan, as drawn and bounded.
+            let tilt = e.dot(&p).asin().to_degrees();
+            assert!((tilt + t.elevation_tilt_deg).abs() < 1e-9, "{tilt} vs {}", t.elevation_tilt_deg);
+            assert!(tilt.abs() <= s.elevation_tilt_max_deg + 1e-12);
+            assert!((t.elevation_axis.distance_to(&Point3::new(0.0, -s.head_height_m, 0.0))).abs() < 1e-12);
+            for (axis, drawn) in
+                [(&t.verge_left_axis, t.verge_tilt_deg[0]), (&t.verge_right_axis, t.verge_tilt_deg[1])]
+            {
+                let v = axis.direction.into_inner();
+                let out_of_perp = v.dot(&e).asin().to_degrees();
+                assert!((out_of_perp - drawn).abs() < 1e-9);
+                assert!(out_of_perp.abs() <= s.verge_tilt_max_deg + 1e-12);
+                assert!(v.y > 0.99, "verge axes point down: {v}");
+            }
+            for m in t.mount_rotation_deg {
+                assert!((0.0..=s.mount_rotation_max_deg).contains(&m));
+            }
+            // Camera centres are off their vergence axes, by about the forward offset.
+            let cl = Point3::from(t.world_from_left_at_zero.translation.vector);
+            let cr = Point3::from(t.world_from_right_at_zero.translation.vector);
+            for d in [t.verge_left_axis.distance_to(&cl), t.verge_right_axis.distance_to(&cr)] {
+                assert!((d - s.camera_forward_offset_m).abs() < 1e-3, "{d}");
+            }
+        }
+    }
+
+    #[test]
+    fn joints_rotate_about_their_axes() {
+        let t = truth_of(&Scenario::default().with_seed(3));
+        let base = Encoders { pan: 5.0, elevation: -4.0, verge_left: 2.0, verge_right: -3.0 };
+        let (l0, r0) = t.world_from_cameras(&base);
+        // Moving a vergence joint keeps that camera's distance to its (current) axis.
+        let axis_l = t.axis_in_world(Joint::VergeLeft, &base);
+        let (l1, r1) = t.world_from_cameras(&base.moved(Joint::VergeLeft, 7.0));
+        let c = |iso: &Isometry3<f64>| Point3::from(iso.translation.vector);
+        assert!((axis_l.distance_to(&c(&l0)) - axis_l.distance_to(&c(&l1))).abs() < 1e-12);
+        assert!((r0.to_homogeneous() - r1.to_homogeneous()).norm() < 1e-15, "right camera must not move");
+        // Moving elevation rotates both cameras about the current elevation axis.
+        let axis_e = t.axis_in_world(Joint::Elevation, &base);
+        let (l2, r2) = t.world_from_cameras(&base.moved(Joint::Elevation, 7.0));
+        assert!((axis_e.distance_to(&c(&l0)) - axis_e.distance_to(&c(&l2))).abs() < 1e-12);
+        assert!((axis_e.distance_to(&c(&r0)) - axis_e.distance_to(&c(&r2))).abs() < 1e-12);
+        let rel = l2 * l0.inverse();
+        let w = rel.rotation.scaled_axis();
+        assert!((w - axis_e.direction.into_inner() * 7f64.to_radians()).norm() < 1e-12);
+    }
+
+    proptest! {
+        #[test]
+        fn angle_to_perpendicular_solves(ax in -1.0..1.0f64, ay in 0.5..1.0f64, vx in -0.3..0.3f64, tz in -0.2..0.2f64) {
+            let axis = Vector3::new(ax * 0.1, ay, 0.05).normalize();
+            let v = Vector3::new(vx, 0.05, 1.0).normalize();
+            let target = Vector3::new(1.0, 0.1, tz).normalize();
+            let theta = angle_to_perpendicular(&axis, &v, &target);
+            let rotated = UnitQuaternion::from_axis_angle(&Unit::new_normalize(axis), theta) * v;
+            prop_assert!(rotated.dot(&target).abs() < 1e-12);
+            prop_assert!(theta.abs() < 1.0);
+        }
+    }
+}

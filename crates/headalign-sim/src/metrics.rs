@@ -198,3 +198,172 @@ impl SimulatedHead {
         AxisErrors { direction_deg, position_m }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scenario::Scenario;
+    use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion};
+
+    fn ideal() -> SimulatedHead {
+        SimulatedHead::new(Scenario {
+            mount_rotation_max_deg: 0.0,
+            elevation_tilt_max_deg: 0.0,
+            verge_tilt_max_deg: 0.0,
+            ..Scenario::default()
+        })
+        .unwrap()
+    }
+
+    fn all_abs(e: &AlignmentErrors) -> [f64; 4] {
+        [e.verge_err_l_deg.abs(), e.verge_err_r_deg.abs(), e.elev_err_l_deg.abs(), e.elev_err_r_deg.abs()]
+    }
+
+    #[test]
+    fn ideal_head_aligned_has_zero_errors() {
+        let head = ideal();
+        let aligned = head.aligned_encoders();
+        assert_eq!(aligned, head.truth().zero_offsets);
+        for e in all_abs(&head.alignment_errors(&aligned)) {
+            assert!(e < 1e-12, "{e}");
+        }
+        // ... and at any pan.
+        for e in all_abs(&head.alignment_errors(&aligned.moved(Joint::Pan, 33.0))) {
+            assert!(e < 1e-12, "{e}");
+        }
+    }
+
+    #[test]
+    fn aligned_encoders_zero_the_claimed_errors() {
+        for seed in 1..=10 {
+            let head = SimulatedHead::new(Scenario::default().with_seed(seed)).unwrap();
+            let aligned = head.aligned_encoders();
+            assert_eq!(aligned.pan, head.truth().zero_offsets.pan);
+            let e = head.alignment_errors(&aligned);
+            assert!(e.verge_err_l_deg.abs() < 1e-9, "seed {seed}: {e:?}");
+            assert!(e.verge_err_r_deg.abs() < 1e-9, "seed {seed}: {e:?}");
+            assert!(e.elev_err_l_deg.abs() < 1e-9, "seed {seed}: {e:?}");
+            // What no joint corrects: bounded by the mounting and tilt errors.
+            assert!(e.elev_err_r_deg.abs() < 4.0, "seed {seed}: {e:?}");
+            // Aligned readings are near the zero offsets (small tilts and mounting).
+            let z = head.truth().zero_offsets;
+            assert!((aligned.elevation - z.elevation).abs() < 3.0);
+            assert!((aligned.verge_left - z.verge_left).abs() < 3.0);
+        }
+    }
+
+    #[test]
+    fn pan_leaves_verge_and_elevation_errors_unchanged() {
+        let head = SimulatedHead::new(Scenario::default().with_seed(4)).unwrap();
+        let base = Encoders { pan: 3.0, elevation: 5.0, verge_left: -2.0, verge_right: 4.0 };
+        let e0 = head.alignment_errors(&base);
+        for pan in [-40.0, -3.0, 0.0, 17.0, 90.0] {
+            let e = head.alignment_errors(&Encoders { pan, ..base });
+            for (a, b) in all_abs(&e).iter().zip(all_abs(&e0)) {
+                assert!((a - b).abs() < 1e-9);
+            }
+            assert!((e.verge_err_l_deg - e0.verge_err_l_deg).abs() < 1e-9);
+            assert!((e.elev_err_r_deg - e0.elev_err_r_deg).abs() < 1e-9);
+        }
+    }
+
+    #[test]
+    fn error_signs_follow_their_joints() {
+        let head = SimulatedHead::new(Scenario::default().with_seed(2)).unwrap();
+        let a = head.aligned_encoders();
+        let e = |enc: &Encoders| head.alignment_errors(enc);
+        // +1 deg of a joint adds about +1 deg to its error (first order).
+        assert!((e(&a.moved(Joint::VergeLeft, 1.0)).verge_err_l_deg - 1.0).abs() < 0.05);
+        assert!((e(&a.moved(Joint::VergeRight, 1.0)).verge_err_r_deg - 1.0).abs() < 0.05);
+        assert!((e(&a.moved(Joint::Elevation, 1.0)).elev_err_l_deg - 1.0).abs() < 0.05);
+        // Looking right is positive vergence error, looking up positive elevation error.
+        let ideal = ideal();
+        let z = ideal.truth().zero_offsets;
+        let (l, _) = ideal.world_from_cameras(&z.moved(Joint::VergeLeft, 2.0));
+        assert!((l.rotation * Vector3::z()).x > 0.0);
+        assert!((ideal.alignment_errors(&z.moved(Joint::VergeLeft, 2.0)).verge_err_l_deg - 2.0).abs() < 1e-9);
+        let (l, _) = ideal.world_from_cameras(&z.moved(Joint::Elevation, 2.0));
+        assert!((l.rotation * Vector3::z()).y < 0.0);
+        assert!((ideal.alignment_errors(&z.moved(Joint::Elevation, 2.0)).elev_err_r_deg - 2.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn recon_err_of_exact_points_is_zero() {
+        let head = SimulatedHead::new(Scenario::default()).unwrap();
+        let enc = Encoders { pan: 2.0, elevation: 1.0, verge_left: 0.5, verge_right: -0.5 };
+        let (world_from_left, _) = head.world_from_cameras(&enc);
+        let left_from_world = world_from_left.inverse();
+        // An arbitrary similarity applied to the true points in the left frame.
+        let gauge = Isometry3::from_parts(
+            Translation3::new(3.0, -1.0, 0.5),
+            UnitQuaternion::from_axis_angle(&Unit::new_normalize(Vector3::new(1.0, 2.0, 3.0)), 0.7),
+        );
+        let scale = 0.37;
+        let estimated: Vec<(u64, Point3<f64>)> = head
+            .scene_points()
+            .iter()
+            .take(300)
+            .map(|(id, p)| (*id, Point3::from((gauge * (left_from_world * p)).coords * scale)))
+            .collect();
+        let err = head.recon_err_pct(&enc, &estimated).unwrap();
+        assert!(err < 1e-9, "{err}");
+
+        // A 1 % radial perturbation of every other point gives a positive error.
+        let noisy: Vec<_> = head
+            .scene_points()
+            .iter()
+            .take(300)
+            .enumerate()
+            .map(|(i, (id, p))| {
+                let q = left_from_world * p;
+                (*id, if i % 2 == 0 { Point3::from(q.coords * 1.01) } else { q })
+            })
+            .collect();
+        let err = head.recon_err_pct(&enc, &noisy).unwrap();
+        assert!(err > 0.2 && err < 1.0, "{err}");
+
+        assert!(head.recon_err_pct(&enc, &estimated[..2]).is_err());
+        assert!(head.recon_err_pct(&enc, &[(u64::MAX, Point3::origin()); 3]).is_err());
+        let mut bad = estimated.clone();
+        bad[0].1.x = f64::NAN;
+        assert!(head.recon_err_pct(&enc, &bad).is_err());
+    }
+
+    #[test]
+    fn calibration_error_values() {
+        let tl = Intrinsics::new(700.0, 720.0, 390.0, 284.0);
+        let tr = Intrinsics::new(705.0, 716.0, 380.0, 290.0);
+        let zero = calibration_errors(&tl, &tr, &tl, &tr);
+        assert_eq!(zero, CalibrationErrors { f_err_pct: 0.0, aspect_err_pct: 0.0, pp_err_pct: 0.0 });
+        let el = Intrinsics { fx: 707.0, ..tl }; // +1 % fx
+        let er = Intrinsics { cx: tr.cx + 3.0, cy: tr.cy + 4.0, ..tr }; // 5 px
+        let c = calibration_errors(&tl, &tr, &el, &er);
+        assert!((c.f_err_pct - 1.0).abs() < 1e-12);
+        assert!((c.aspect_err_pct - (1.0 - 1.0 / 1.01) * 100.0).abs() < 1e-9);
+        assert!((c.pp_err_pct - 5.0 / 710.5 * 100.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn axis_errors_of_truth_are_zero() {
+        let head = SimulatedHead::new(Scenario::default().with_seed(5)).unwrap();
+        let enc = Encoders { pan: 1.0, elevation: 2.0, verge_left: 3.0, verge_right: 4.0 };
+        for joint in Joint::ALL {
+            let t = head.axis_in_left_camera(joint, &enc);
+            for line in [t, t.reversed()] {
+                let e = head.axis_errors(joint, &enc, &line);
+                assert!(e.direction_deg < 1e-6 && e.position_m < 1e-12, "{joint:?}: {e:?}");
+            }
+        }
+        // The elevation axis seen from the left camera: about along x, about 6 cm below
+        // and 3 cm behind the camera centre (camera y down: below is +y).
+        let elev = head.axis_in_left_camera(Joint::Elevation, &head.aligned_encoders());
+        assert!(elev.direction.x.abs() > 0.99);
+        assert!((elev.point.y - 0.06).abs() < 0.01 && (elev.point.z + 0.03).abs() < 0.01, "{elev:?}");
+        // A 1 deg wrong direction reads as 1 deg.
+        let t = head.axis_in_left_camera(Joint::Pan, &enc);
+        let perp = Unit::new_normalize(t.direction.cross(&Vector3::x()));
+        let tilted = UnitQuaternion::from_axis_angle(&perp, 1f64.to_radians()) * t.direction;
+        let e = head.axis_errors(Joint::Pan, &enc, &Line::new(tilted, t.point));
+        assert!((e.direction_deg - 1.0).abs() < 1e-9);
+    }
+}
