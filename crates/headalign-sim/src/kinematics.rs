@@ -72,10 +72,12 @@ pub struct HeadTruth {
     pub world_from_left_at_zero: Isometry3<f64>,
     /// Right camera pose at zero joint angles.
     pub world_from_right_at_zero: Isometry3<f64>,
-    /// Drawn tilt of the elevation axis out of perpendicular to the pan axis, degrees.
+    /// Drawn tilt of the elevation axis out of perpendicular to the pan axis, degrees:
+    /// the axis direction is `(cos a, sin a, 0)`, so positive tilts its right end down
+    /// (`asin(elevation_dir . pan_dir) = -elevation_tilt_deg`).
     pub elevation_tilt_deg: f64,
     /// Drawn tilts of the vergence axes (left, right) out of perpendicular to the
-    /// elevation axis, degrees.
+    /// elevation axis, degrees: `asin(verge_dir . elevation_dir)`.
     pub verge_tilt_deg: [f64; 2],
     /// Angles of the mounting rotations (left, right), degrees.
     pub mount_rotation_deg: [f64; 2],

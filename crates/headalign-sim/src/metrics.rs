@@ -101,7 +101,7 @@ fn umeyama(
     }
     cov /= n;
     var_src /= n;
-    if !(var_src > 0.0) || !var_src.is_finite() {
+    if !(var_src.is_finite() && var_src > 0.0) {
         return Err(SimError::Metric("estimated points are all at one place".into()));
     }
     let svd = cov.try_svd(true, true, 1e-15, 200).ok_or_else(|| SimError::Metric("SVD failed".into()))?;
@@ -133,6 +133,24 @@ impl SimulatedHead {
             elev_err_l_deg: asin_deg(optical_l.dot(&pan_dir)),
             elev_err_r_deg: asin_deg(optical_r.dot(&pan_dir)),
         }
+    }
+
+    /// Pan error, degrees: the angle about the pan axis from the robot's forward
+    /// direction (+z, the direction of travel with the wheel straight) to the head's
+    /// forward direction, taken as the mean of the two optical axes projected onto the
+    /// plane perpendicular to the pan axis. Positive when the head looks left (the pan
+    /// joint's sign). Zero-length projection (cameras looking straight up) gives NaN.
+    pub fn pan_err_deg(&self, enc: &Encoders) -> f64 {
+        let (world_from_left, world_from_right) = self.world_from_cameras(enc);
+        let forward = world_from_left.rotation * Vector3::z() + world_from_right.rotation * Vector3::z();
+        let up = self.truth().pan_axis.direction.into_inner();
+        let horizontal = forward - up * up.dot(&forward);
+        if horizontal.norm() < 1e-12 {
+            return f64::NAN;
+        }
+        // Right-handed angle about `up` from +z: sin along up x z.
+        let z = Vector3::z();
+        up.cross(&z).dot(&horizontal).atan2(z.dot(&horizontal)).to_degrees()
     }
 
     /// The true aligned readings: zero `verge_err_l`, `verge_err_r` and `elev_err_l`; pan
@@ -172,7 +190,7 @@ impl SimulatedHead {
         for (a, b) in src.iter().zip(&dst) {
             let err = (r * a * s + t - b).norm();
             let dist = b.norm();
-            if !(dist > 0.0) {
+            if dist <= 0.0 || !dist.is_finite() {
                 return Err(SimError::Metric("a true point is at the camera centre".into()));
             }
             sum += (err / dist).powi(2);
@@ -285,6 +303,20 @@ mod tests {
         let (l, _) = ideal.world_from_cameras(&z.moved(Joint::Elevation, 2.0));
         assert!((l.rotation * Vector3::z()).y < 0.0);
         assert!((ideal.alignment_errors(&z.moved(Joint::Elevation, 2.0)).elev_err_r_deg - 2.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn pan_error_sign_and_value() {
+        let head = ideal();
+        let z = head.truth().zero_offsets;
+        assert!(head.pan_err_deg(&z).abs() < 1e-12);
+        assert!((head.pan_err_deg(&z.moved(Joint::Pan, 5.0)) - 5.0).abs() < 1e-9);
+        assert!(
+            (head.pan_err_deg(&z.moved(Joint::Pan, -12.0).moved(Joint::Elevation, 8.0)) + 12.0).abs() < 1e-9
+        );
+        // Symmetric vergence does not change the head's forward direction.
+        let sym = z.moved(Joint::VergeLeft, 3.0).moved(Joint::VergeRight, -3.0);
+        assert!(head.pan_err_deg(&sym).abs() < 1e-9);
     }
 
     #[test]
