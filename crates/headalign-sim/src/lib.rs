@@ -1,1 +1,52 @@
-//! Placeholder: the simulator (filled in by its owner).
+//! # headalign-sim
+//!
+//! A simulated stereo pan-tilt-verge head with ground truth, for tests, the demo and the
+//! experiments (DESIGN.md sections 1 and 5). It implements the platform trait
+//! [`headalign_platform::StereoHead`]; the alignment procedures see it only through that
+//! trait. The ground truth ([`HeadTruth`], the scene points, the error metrics) is for the
+//! simulator itself and for experiments that score the procedures.
+//!
+//! Modules:
+//! - [`scenario`]: every parameter of a simulation ([`Scenario`], default "yorick"),
+//!   validation and TOML loading.
+//! - [`kinematics`]: the true head geometry (axes as lines in the robot frame, zero
+//!   offsets, camera mounting) drawn from the seed, and the product-of-exponentials
+//!   forward kinematics.
+//! - [`scene`]: a seeded room of 3D points (walls, floor, ceiling, boxes) with track ids.
+//! - [`head`]: [`SimulatedHead`], noisy point captures with outliers.
+//! - [`metrics`]: ground-truth error metrics (alignment, calibration, reconstruction,
+//!   axes).
+//!
+//! Frames: the world is the robot frame, origin on the pan axis at the ground, x right,
+//! y down (gravity +y), z forward; cameras are x right, y down, z forward. Angles in the
+//! public API are degrees (as encoders are); inside, radians. Lengths are metres.
+
+pub mod head;
+pub mod kinematics;
+pub mod metrics;
+pub mod scenario;
+pub mod scene;
+
+pub use head::SimulatedHead;
+pub use kinematics::HeadTruth;
+pub use metrics::{AlignmentErrors, AxisErrors, CalibrationErrors, calibration_errors};
+pub use scenario::Scenario;
+
+use thiserror::Error;
+
+/// Failures of the simulator.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum SimError {
+    /// One or more scenario parameters make no sense; the message names every one.
+    #[error("invalid scenario: {0}")]
+    InvalidScenario(String),
+    /// A scenario file could not be parsed or written.
+    #[error("scenario TOML: {0}")]
+    Toml(String),
+    /// The scene could not be built as asked (e.g. nothing visible in the initial view).
+    #[error("scene: {0}")]
+    Scene(String),
+    /// A metric could not be computed from the given data.
+    #[error("metric: {0}")]
+    Metric(String),
+}

@@ -1,0 +1,267 @@
+//! Scenario: every parameter of a simulated head, robot scene and sensor noise.
+//!
+//! The default is the "yorick" scenario of DESIGN.md section 5, modelled on the paper's
+//! set-up. Every field can be overridden from a TOML file ([`Scenario::from_toml_str`]);
+//! missing fields take the default, unknown fields are an error (a misspelt key must not
+//! silently fall back to a default).
+//!
+//! Units: lengths in metres, angles in degrees, pixels with (0, 0) the centre of the
+//! top-left pixel. The `*_max_deg` fields bound random draws made from `seed`: the same
+//! scenario always gives the same head, scene and captures.
+
+use headalign_geometry::camera::Intrinsics;
+use serde::{Deserialize, Serialize};
+
+use crate::SimError;
+
+/// All parameters of a simulation. See the module docs for units.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Scenario {
+    /// Seed of every random draw (head geometry, zero offsets, scene, captures).
+    pub seed: u64,
+    /// Image size `[width, height]`, pixels, both cameras.
+    pub image_size: [u32; 2],
+    /// True intrinsics of the left camera.
+    pub left: Intrinsics,
+    /// True intrinsics of the right camera.
+    pub right: Intrinsics,
+    /// Distance between the two vergence axes, metres.
+    pub baseline_m: f64,
+    /// Camera centre in front of its vergence axis, metres (the axis does not pass
+    /// through the centre).
+    pub camera_forward_offset_m: f64,
+    /// Largest angle of the random mounting rotation of each camera, degrees.
+    pub mount_rotation_max_deg: f64,
+    /// Height of the camera centres above the elevation axis, metres.
+    pub elevation_below_cameras_m: f64,
+    /// Largest angle of the elevation axis out of perpendicular to the pan axis, degrees.
+    pub elevation_tilt_max_deg: f64,
+    /// Largest angle of each vergence axis out of perpendicular to the elevation axis,
+    /// degrees.
+    pub verge_tilt_max_deg: f64,
+    /// Pan encoder zero offset drawn uniformly in `+-pan_zero_max_deg`.
+    pub pan_zero_max_deg: f64,
+    /// Elevation encoder zero offset drawn uniformly in `+-elevation_zero_max_deg`.
+    pub elevation_zero_max_deg: f64,
+    /// Each vergence encoder zero offset drawn uniformly in `+-verge_zero_max_deg`.
+    pub verge_zero_max_deg: f64,
+    /// Height of the elevation axis above the ground, metres.
+    pub head_height_m: f64,
+    /// About this many scene points are seen by both cameras in the initial view.
+    pub points: usize,
+    /// Nearest distance of an observed scene point from a camera, metres.
+    pub scene_min_m: f64,
+    /// Farthest distance of an observed scene point from a camera, metres.
+    pub scene_max_m: f64,
+    /// Standard deviation of the Gaussian image noise, pixels, per coordinate.
+    pub noise_px: f64,
+    /// Probability that an observation is replaced by a uniformly random pixel.
+    pub outlier_fraction: f64,
+    /// The procedure's default rotation size, degrees (shared by the CLI and experiments).
+    pub rotation_deg: f64,
+    /// Standard deviation of the Gaussian noise on each encoder reading, degrees.
+    pub encoder_noise_deg: f64,
+}
+
+impl Default for Scenario {
+    fn default() -> Self {
+        Self {
+            seed: 1,
+            image_size: [768, 576],
+            left: Intrinsics { fx: 700.0, fy: 720.0, skew: 0.0, cx: 390.0, cy: 284.0 },
+            right: Intrinsics { fx: 705.0, fy: 716.0, skew: 0.0, cx: 380.0, cy: 290.0 },
+            baseline_m: 0.25,
+            camera_forward_offset_m: 0.03,
+            mount_rotation_max_deg: 1.0,
+            elevation_below_cameras_m: 0.06,
+            elevation_tilt_max_deg: 1.5,
+            verge_tilt_max_deg: 0.5,
+            pan_zero_max_deg: 20.0,
+            elevation_zero_max_deg: 10.0,
+            verge_zero_max_deg: 10.0,
+            head_height_m: 1.2,
+            points: 200,
+            scene_min_m: 1.5,
+            scene_max_m: 6.0,
+            noise_px: 1.0,
+            outlier_fraction: 0.10,
+            rotation_deg: 3.0,
+            encoder_noise_deg: 0.0,
+        }
+    }
+}
+
+impl Scenario {
+    /// The default "yorick" scenario (same as `Default`).
+    pub fn yorick() -> Self {
+        Self::default()
+    }
+
+    /// The same scenario with another seed.
+    pub fn with_seed(mut self, seed: u64) -> Self {
+        self.seed = seed;
+        self
+    }
+
+    /// Check every parameter; the error message names every value that makes no sense.
+    pub fn validate(&self) -> Result<(), SimError> {
+        let mut problems: Vec<String> = Vec::new();
+        let mut check = |ok: bool, msg: String| {
+            if !ok {
+                problems.push(msg);
+            }
+        };
+        let [w, h] = self.image_size;
+        check(w > 0 && h > 0, format!("image_size must be positive, got [{w}, {h}]"));
+        for (name, k) in [("left", &self.left), ("right", &self.right)] {
+            check(k.is_finite(), format!("{name} intrinsics must be finite, got {k:?}"));
+            check(
+                k.fx > 0.0 && k.fy > 0.0,
+                format!("{name} focal lengths must be positive, got fx={}, fy={}", k.fx, k.fy),
+            );
+        }
+        let finite_nonneg = |v: f64| v.is_finite() && v >= 0.0;
+        let finite_pos = |v: f64| v.is_finite() && v > 0.0;
+        check(finite_pos(self.baseline_m), format!("baseline_m must be positive, got {}", self.baseline_m));
+        check(
+            self.camera_forward_offset_m.is_finite(),
+            format!("camera_forward_offset_m must be finite, got {}", self.camera_forward_offset_m),
+        );
+        check(
+            self.elevation_below_cameras_m.is_finite(),
+            format!("elevation_below_cameras_m must be finite, got {}", self.elevation_below_cameras_m),
+        );
+        for (name, v, max) in [
+            ("mount_rotation_max_deg", self.mount_rotation_max_deg, 45.0),
+            ("elevation_tilt_max_deg", self.elevation_tilt_max_deg, 45.0),
+            ("verge_tilt_max_deg", self.verge_tilt_max_deg, 45.0),
+            ("pan_zero_max_deg", self.pan_zero_max_deg, 180.0),
+            ("elevation_zero_max_deg", self.elevation_zero_max_deg, 90.0),
+            ("verge_zero_max_deg", self.verge_zero_max_deg, 90.0),
+        ] {
+            check(finite_nonneg(v) && v < max, format!("{name} must be in [0, {max}), got {v}"));
+        }
+        check(
+            finite_pos(self.head_height_m),
+            format!("head_height_m must be positive, got {}", self.head_height_m),
+        );
+        check(self.points > 0, "points must be at least 1, got 0".to_string());
+        check(
+            finite_pos(self.scene_min_m),
+            format!("scene_min_m must be positive, got {}", self.scene_min_m),
+        );
+        check(
+            self.scene_max_m.is_finite() && self.scene_max_m > self.scene_min_m,
+            format!(
+                "scene_max_m must be finite and greater than scene_min_m ({}), got {}",
+                self.scene_min_m, self.scene_max_m
+            ),
+        );
+        check(finite_nonneg(self.noise_px), format!("noise_px must be >= 0, got {}", self.noise_px));
+        check(
+            self.outlier_fraction.is_finite() && (0.0..1.0).contains(&self.outlier_fraction),
+            format!("outlier_fraction must be in [0, 1), got {}", self.outlier_fraction),
+        );
+        check(
+            self.rotation_deg.is_finite() && self.rotation_deg > 0.0 && self.rotation_deg < 90.0,
+            format!("rotation_deg must be in (0, 90), got {}", self.rotation_deg),
+        );
+        check(
+            finite_nonneg(self.encoder_noise_deg),
+            format!("encoder_noise_deg must be >= 0, got {}", self.encoder_noise_deg),
+        );
+        if problems.is_empty() { Ok(()) } else { Err(SimError::InvalidScenario(problems.join("; "))) }
+    }
+
+    /// Parse a scenario from TOML (missing keys take the default) and validate it.
+    pub fn from_toml_str(s: &str) -> Result<Self, SimError> {
+        let scenario: Scenario = toml::from_str(s).map_err(|e| SimError::Toml(e.to_string()))?;
+        scenario.validate()?;
+        Ok(scenario)
+    }
+
+    /// The scenario as TOML text (every key written).
+    pub fn to_toml_string(&self) -> Result<String, SimError> {
+        toml::to_string(self).map_err(|e| SimError::Toml(e.to_string()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_is_valid_yorick() {
+        let s = Scenario::default();
+        s.validate().unwrap();
+        assert_eq!(s.image_size, [768, 576]);
+        assert_eq!(s.left.fx, 700.0);
+        assert_eq!(s.right.cy, 290.0);
+        assert_eq!(s.points, 200);
+    }
+
+    #[test]
+    fn validate_names_every_bad_value() {
+        let s = Scenario {
+            noise_px: -1.0,
+            outlier_fraction: 1.0,
+            image_size: [0, 576],
+            scene_max_m: 1.0,
+            left: Intrinsics { fx: -700.0, ..Scenario::default().left },
+            baseline_m: f64::NAN,
+            points: 0,
+            ..Scenario::default()
+        };
+        let err = s.validate().unwrap_err();
+        let SimError::InvalidScenario(msg) = err else { panic!("wrong error kind") };
+        for key in [
+            "noise_px",
+            "outlier_fraction",
+            "image_size",
+            "scene_max_m",
+            "left focal",
+            "baseline_m",
+            "points",
+        ] {
+            assert!(msg.contains(key), "message lacks {key}: {msg}");
+        }
+        assert!(!msg.contains("right"), "{msg}");
+    }
+
+    #[test]
+    fn validate_single_errors() {
+        let bad = [
+            Scenario { noise_px: -0.1, ..Scenario::default() },
+            Scenario { outlier_fraction: 1.5, ..Scenario::default() },
+            Scenario { outlier_fraction: -0.1, ..Scenario::default() },
+            Scenario { image_size: [768, 0], ..Scenario::default() },
+            Scenario { encoder_noise_deg: f64::INFINITY, ..Scenario::default() },
+            Scenario { rotation_deg: 0.0, ..Scenario::default() },
+            Scenario { scene_min_m: 0.0, ..Scenario::default() },
+            Scenario { head_height_m: -1.0, ..Scenario::default() },
+            Scenario { pan_zero_max_deg: 200.0, ..Scenario::default() },
+        ];
+        for s in bad {
+            assert!(s.validate().is_err(), "{s:?}");
+        }
+    }
+
+    #[test]
+    fn toml_round_trip() {
+        let s = Scenario { seed: 42, noise_px: 0.5, points: 50, ..Scenario::default() };
+        let text = s.to_toml_string().unwrap();
+        let back = Scenario::from_toml_str(&text).unwrap();
+        assert_eq!(back, s);
+    }
+
+    #[test]
+    fn toml_partial_and_unknown_keys() {
+        let s = Scenario::from_toml_str("seed = 7\nnoise_px = 2.0\n").unwrap();
+        assert_eq!(s.seed, 7);
+        assert_eq!(s.noise_px, 2.0);
+        assert_eq!(s.baseline_m, 0.25);
+        assert!(matches!(Scenario::from_toml_str("noise = 2.0\n"), Err(SimError::Toml(_))));
+        assert!(matches!(Scenario::from_toml_str("noise_px = -2.0\n"), Err(SimError::InvalidScenario(_))));
+    }
+}

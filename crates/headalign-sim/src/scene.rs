@@ -1,0 +1,220 @@
+//! A seeded room of 3D points with track ids, and the visibility test shared with the
+//! captures.
+//!
+//! The room (world frame: x right, y down, z forward, metres, origin on the pan axis at
+//! the ground) is an axis-aligned box around the head: floor at `y = 0`, a ceiling, four
+//! walls, and a few boxes standing on the floor, rotated about the vertical, at random
+//! bearings all around the head. Wall distances and box sizes scale with
+//! `scene_max_m`, and the whole room is drawn from the seed.
+//!
+//! Points are made by casting rays from the head centre in directions uniform on the
+//! sphere and keeping the first surface hit if it lies between `scene_min_m` and
+//! `scene_max_m` from the head. Uniform in solid angle means about the same number of
+//! points per image whatever the pointing, and first hits mean no point hides behind
+//! another as seen from the head (occlusion is not modelled otherwise: from a camera a few
+//! centimetres away a point may in truth be hidden by a box edge; that is ignored).
+//!
+//! Density: after casting, the points visible in both cameras at the initial encoder
+//! readings (all zero) are counted, and every point is kept with probability
+//! `points / visible`, so that about `points` are seen by both cameras in the initial
+//! view (a binomial count). If too few are visible, more rays are cast.
+
+use headalign_geometry::camera::Intrinsics;
+use nalgebra::{Isometry3, Point2, Point3, Rotation3, Vector3};
+use rand::RngExt;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, UnitSphere};
+
+use crate::SimError;
+use crate::kinematics::HeadTruth;
+use crate::scenario::Scenario;
+use headalign_platform::Encoders;
+
+/// A scene point: track id and position in the world frame.
+pub type ScenePoint = (u64, Point3<f64>);
+
+/// True if a pixel lies inside an image of the given size (pixel centres at integers,
+/// (0, 0) the top-left one, so the image spans `[-0.5, w - 0.5] x [-0.5, h - 0.5]`).
+pub fn pixel_in_image(pixel: &Point2<f64>, image_size: [u32; 2]) -> bool {
+    let (w, h) = (f64::from(image_size[0]), f64::from(image_size[1]));
+    pixel.x >= -0.5 && pixel.x <= w - 0.5 && pixel.y >= -0.5 && pixel.y <= h - 0.5
+}
+
+/// Exact pixel of a world point in a camera, if the camera sees it: in front, between
+/// `min_m` and `max_m` from the camera centre, and projecting inside the image.
+pub fn visible_pixel(
+    k: &Intrinsics,
+    cam_from_world: &Isometry3<f64>,
+    point_in_world: &Point3<f64>,
+    image_size: [u32; 2],
+    min_m: f64,
+    max_m: f64,
+) -> Option<Point2<f64>> {
+    let point_in_cam = cam_from_world * point_in_world;
+    let distance = point_in_cam.coords.norm();
+    if !(distance >= min_m && distance <= max_m) {
+        return None;
+    }
+    let pixel = k.project(&point_in_cam)?;
+    pixel_in_image(&pixel, image_size).then_some(pixel)
+}
+
+/// An oriented box standing on the floor.
+#[derive(Clone, Copy, Debug)]
+struct FloorBox {
+    /// Centre, world frame.
+    centre: Point3<f64>,
+    /// Half extents along the box's own x, y, z.
+    half: Vector3<f64>,
+    /// box_from_world rotation (about the vertical).
+    box_from_world: Rotation3<f64>,
+}
+
+impl FloorBox {
+    /// Ray parameter of the entry point of `origin + t dir`, if the ray enters the box
+    /// at `t > 0` (slab method in the box frame).
+    fn entry(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<f64> {
+        let o = self.box_from_world * (origin - self.centre);
+        let d = self.box_from_world * dir;
+        let mut t_near = f64::NEG_INFINITY;
+        let mut t_far = f64::INFINITY;
+        for i in 0..3 {
+            if d[i].abs() < 1e-15 {
+                if o[i].abs() > self.half[i] {
+                    return None;
+                }
+                continue;
+            }
+            let t1 = (-self.half[i] - o[i]) / d[i];
+            let t2 = (self.half[i] - o[i]) / d[i];
+            t_near = t_near.max(t1.min(t2));
+            t_far = t_far.min(t1.max(t2));
+        }
+        (t_near <= t_far && t_near > 0.0).then_some(t_near)
+    }
+}
+
+/// The room: an axis-aligned box `[x_min, x_max] x [y_min, 0] x [z_min, z_max]` (y_min is
+/// the ceiling, negative) and boxes on the floor.
+#[derive(Clone, Debug)]
+struct Room {
+    min: Vector3<f64>,
+    max: Vector3<f64>,
+    boxes: Vec<FloorBox>,
+}
+
+impl Room {
+    fn draw(scenario: &Scenario, head_centre: &Point3<f64>, rng: &mut ChaCha8Rng) -> Self {
+        let d = scenario.scene_max_m;
+        let lo = scenario.scene_min_m * 1.2;
+        let mut u = |a: f64, b: f64| a + (b - a) * rng.random::<f64>();
+        let front = (u(0.65, 0.8) * d).max(lo);
+        let back = (u(0.6, 0.75) * d).max(lo);
+        let left = (u(0.5, 0.65) * d).max(lo);
+        let right = (u(0.5, 0.65) * d).max(lo);
+        let ceiling = -head_centre.y + u(1.4, 1.9);
+        let nearest_wall = front.min(back).min(left).min(right);
+        let mut boxes = Vec::new();
+        for _ in 0..8 {
+            let bearing = u(0.0, std::f64::consts::TAU);
+            let r_min = scenario.scene_min_m + 0.6;
+            let r = u(r_min, (0.85 * nearest_wall).max(r_min));
+            let half = Vector3::new(u(0.15, 0.5), u(0.2, 0.7), u(0.15, 0.5));
+            let yaw = u(0.0, std::f64::consts::PI);
+            boxes.push(FloorBox {
+                centre: Point3::new(r * bearing.sin(), -half.y, r * bearing.cos()),
+                half,
+                box_from_world: Rotation3::from_axis_angle(&Vector3::y_axis(), -yaw),
+            });
+        }
+        Self { min: Vector3::new(-left, -ceiling, -back), max: Vector3::new(right, 0.0, front), boxes }
+    }
+
+    /// First surface hit by the ray `origin + t dir` (origin inside the room).
+    fn cast(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<Point3<f64>> {
+        let mut t_hit = f64::INFINITY;
+        for i in 0..3 {
+            if dir[i] > 1e-15 {
+                t_hit = t_hit.min((self.max[i] - origin[i]) / dir[i]);
+            } else if dir[i] < -1e-15 {
+                t_hit = t_hit.min((self.min[i] - origin[i]) / dir[i]);
+            }
+        }
+        for b in &self.boxes {
+            if let Some(t) = b.entry(origin, dir) {
+                t_hit = t_hit.min(t);
+            }
+        }
+        t_hit.is_finite().then(|| origin + dir * t_hit)
+    }
+}
+
+/// Number of scene points visible in both cameras at the given encoders.
+pub fn count_visible_in_both(
+    scenario: &Scenario,
+    truth: &HeadTruth,
+    enc: &Encoders,
+    points: &[ScenePoint],
+) -> usize {
+    let (world_from_left, world_from_right) = truth.world_from_cameras(enc);
+    let (left_from_world, right_from_world) = (world_from_left.inverse(), world_from_right.inverse());
+    let (min, max) = (scenario.scene_min_m, scenario.scene_max_m);
+    points
+        .iter()
+        .filter(|(_, p)| {
+            visible_pixel(&truth.left, &left_from_world, p, scenario.image_size, min, max).is_some()
+                && visible_pixel(&truth.right, &right_from_world, p, scenario.image_size, min, max).is_some()
+        })
+        .count()
+}
+
+/// Build the scene of a scenario: a room drawn from `rng`, thinned so that about
+/// `scenario.points` points are visible in both cameras at zero encoder readings. Track
+/// ids are `0..n` in generation order.
+pub fn generate_scene(
+    scenario: &Scenario,
+    truth: &HeadTruth,
+    rng: &mut ChaCha8Rng,
+) -> Result<Vec<ScenePoint>, SimError> {
+    let head_centre = Point3::new(0.0, -(scenario.head_height_m + scenario.elevation_below_cameras_m), 0.0);
+    let room = Room::draw(scenario, &head_centre, rng);
+    let initial = Encoders::default();
+    // About 1/16 of the sphere is seen by both cameras; aim for 4x the wanted count.
+    let mut rays = (scenario.points.saturating_mul(64)).clamp(4096, 1 << 22);
+    const ATTEMPTS: usize = 6;
+    for _ in 0..ATTEMPTS {
+        let mut dense = Vec::with_capacity(rays);
+        for _ in 0..rays {
+            let [x, y, z]: [f64; 3] = UnitSphere.sample(rng);
+            let dir = Vector3::new(x, y, z);
+            if let Some(p) = room.cast(&head_centre, &dir) {
+                let r = (p - head_centre).norm();
+                if r >= scenario.scene_min_m && r <= scenario.scene_max_m {
+                    dense.push((0u64, p));
+                }
+            }
+        }
+        let visible = count_visible_in_both(scenario, truth, &initial, &dense);
+        let wanted = scenario.points as f64;
+        if (visible as f64) >= 2.0 * wanted {
+            let keep = wanted / visible as f64;
+            let mut out = Vec::new();
+            for (_, p) in dense {
+                if rng.random::<f64>() < keep {
+                    out.push((out.len() as u64, p));
+                }
+            }
+            return Ok(out);
+        }
+        if rays >= 1 << 22 {
+            break;
+        }
+        let factor = if visible == 0 { 8.0 } else { (3.0 * wanted / visible as f64).ceil().max(2.0) };
+        rays = ((rays as f64) * factor).min((1u64 << 22) as f64) as usize;
+    }
+    Err(SimError::Scene(format!(
+        "could not place {} points visible in both cameras at the initial pointing (check \
+         scene_min_m/scene_max_m, image size and zero offsets)",
+        scenario.points
+    )))
+}
