@@ -19,6 +19,9 @@
 //!   symmetric transfer error over four images.
 //! - [`selfcal`]: plane at infinity from two motions, linear self-calibration of `K`,
 //!   Euclidean upgrade, decomposition of the right camera.
+//! - [`registration`]: 3D point-set registration (Kabsch/Umeyama), 3-point rigid RANSAC
+//!   solver for homographies in a quasi-Euclidean frame.
+//! - [`resection`]: pose of a calibrated camera from 3D-2D correspondences.
 //! - [`invariant`]: invariant lines at infinity of a motion from its complex eigenvectors.
 //! - [`bundle`]: the rig bundle adjustment (maximum likelihood, Schur complement,
 //!   robust loss, covariance).
@@ -31,6 +34,7 @@ pub mod fundamental;
 pub mod homography3d;
 pub mod invariant;
 pub mod ransac;
+pub mod registration;
 pub mod resection;
 pub mod selfcal;
 pub mod so3;

@@ -116,7 +116,7 @@ pub fn solve_alignment(state: &RigState, verge: &VergeAxes, reference: &Encoders
     if n < 1e-6 {
         return Err(AlignError::Geometry {
             step: "alignment".into(),
-            source: headalign_geometry::GeometryError::Degenerate("pan and elevation axes are parallel".into()),
+            cause: headalign_geometry::GeometryError::Degenerate("pan and elevation axes are parallel".into()),
         });
     }
     d /= n;
@@ -127,7 +127,7 @@ pub fn solve_alignment(state: &RigState, verge: &VergeAxes, reference: &Encoders
     let v_r = verge.right.map(|l| l.direction).unwrap_or_else(|| nominal_verge_axis(&left_from_right, &a_e));
     let no_solution = |side: &str| AlignError::Geometry {
         step: "alignment".into(),
-        source: headalign_geometry::GeometryError::Degenerate(format!(
+        cause: headalign_geometry::GeometryError::Degenerate(format!(
             "the {side} vergence axis cannot bring the optical axis perpendicular to the elevation axis"
         )),
     };

@@ -43,12 +43,12 @@ pub enum AlignError {
     #[error("missing motion: {0}")]
     MissingMotion(String),
     /// A geometric estimation step failed.
-    #[error("{step}: {source}")]
+    #[error("{step}: {cause}")]
     Geometry {
         /// The step that failed.
         step: String,
-        /// The cause.
-        source: GeometryError,
+        /// The cause (its message is part of this error's, so it is not chained again).
+        cause: GeometryError,
     },
     /// The platform (head) failed.
     #[error("head: {0}")]
@@ -65,6 +65,6 @@ pub(crate) trait StepContext<T> {
 
 impl<T> StepContext<T> for Result<T, GeometryError> {
     fn step(self, step: &str) -> Result<T, AlignError> {
-        self.map_err(|source| AlignError::Geometry { step: step.to_string(), source })
+        self.map_err(|cause| AlignError::Geometry { step: step.to_string(), cause })
     }
 }

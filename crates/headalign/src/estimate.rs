@@ -28,8 +28,9 @@ use headalign_geometry::bundle::{
 use headalign_geometry::camera::{Intrinsics, dehomogenise3};
 use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame};
 use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
-use headalign_geometry::homography3d::{Homography3, Homography3Estimator, Quadruplet, TransferModel, symmetric_transfer_error};
+use headalign_geometry::homography3d::{Homography3Estimator, Quadruplet, TransferModel, refine_transfer, symmetric_transfer_error};
 use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
+use headalign_geometry::registration::RigidFrameEstimator;
 use headalign_geometry::selfcal::{decompose_camera, linear_self_calibration};
 use headalign_geometry::so3::{Line, screw_from_isometry};
 use headalign_geometry::triangulation::triangulate_optimal;
@@ -43,16 +44,27 @@ use crate::observations::View;
 /// Encoder differences below this (degrees) count as "did not move".
 pub const MOVED_DEG: f64 = 1e-6;
 
+/// The consensus stage of the 3D homography uses rigid fits in the quasi-Euclidean frame,
+/// whose transfer error carries a bias of a few pixels from the frame's distortion; its
+/// threshold is the homography threshold times this factor.
+pub const COARSE_FACTOR: f64 = 2.5;
+
+/// Default standard deviation of a commanded joint rotation, degrees: the resolution of a
+/// typical head encoder. The prior on each rotation angle is what fixes the focal lengths
+/// most strongly (a 3 deg rotation measured to 0.01 deg is 0.3 % of it).
+pub const ENCODER_SIGMA_DEG: f64 = 0.01;
+
 /// Options of [`estimate_rig`].
 #[derive(Debug, Clone)]
 pub struct EstimationOptions {
-    /// RANSAC for F; threshold on Sampson distance (default 1.5 px).
+    /// RANSAC for F; threshold on Sampson distance (default 3 px: about 2 sigma of the distance at 1 px noise in both images).
     pub fundamental: RansacOptions,
     /// RANSAC for each 3D homography; threshold on the RMS symmetric transfer error over
     /// four images (default 4 px: the DLT homography transfers noisy triangulated points,
     /// so inlier errors are about twice the image noise).
     pub homography: RansacOptions,
-    /// The bundle adjustment (defaults of [`BundleOptions`]).
+    /// The bundle adjustment (defaults of [`BundleOptions`], with the angle prior set to
+    /// [`ENCODER_SIGMA_DEG`]).
     pub bundle: BundleOptions,
     /// After the first adjustment, observations whose residual exceeds this many robust
     /// standard deviations are dropped and the rest re-admitted (default 3.5).
@@ -66,9 +78,9 @@ pub struct EstimationOptions {
 impl Default for EstimationOptions {
     fn default() -> Self {
         Self {
-            fundamental: RansacOptions { threshold: 1.5, ..RansacOptions::default() },
+            fundamental: RansacOptions { threshold: 3.0, ..RansacOptions::default() },
             homography: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
-            bundle: BundleOptions::default(),
+            bundle: BundleOptions { angle_prior_sigma: Some(ENCODER_SIGMA_DEG.to_radians()), ..BundleOptions::default() },
             reselect_sigmas: 3.5,
             min_tracks: 20,
             seed: 0,
@@ -223,6 +235,8 @@ pub struct RigCalibration {
     pub bundle: BundleResult,
     /// Track id of each bundle point (same order as `bundle.state.points`).
     pub point_tracks: Vec<u64>,
+    /// Observations of each point in the final adjustment (same order as the points).
+    pub point_observations: Vec<usize>,
     /// Encoder readings of the reference view.
     pub reference_encoders: Encoders,
     /// Diagnostics.
@@ -241,9 +255,16 @@ impl RigCalibration {
         axes_of(&self.bundle.state).map(|a| a.1)
     }
 
-    /// Points by track id, reference left camera frame, in baselines.
+    /// Points by track id, reference left camera frame, in baselines: those the final
+    /// adjustment constrains (observed at least three times after outlier rejection).
     pub fn points(&self) -> Vec<(u64, Point3<f64>)> {
-        self.point_tracks.iter().copied().zip(self.bundle.state.points.iter().copied()).collect()
+        self.point_tracks
+            .iter()
+            .zip(&self.bundle.state.points)
+            .zip(&self.point_observations)
+            .filter(|(_, n)| **n >= 3)
+            .map(|((t, p), _)| (*t, *p))
+            .collect()
     }
 }
 
@@ -328,21 +349,39 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             });
         }
         let opts = RansacOptions { seed: options.seed.wrapping_add(vi as u64), ..options.homography };
-        let rep = ransac(&estimator, &quads, &opts).step(&format!("3D homography for view '{}'", views[vi].name))?;
+        // Consensus by 3-point rigid fits in the quasi-Euclidean frame (well conditioned
+        // under noise; threshold widened for the frame's residual distortion), then the
+        // full 15-dof H polished on transfer error and guided re-selection at the tight
+        // threshold until the set is stable. A refit that is no longer conjugate to a
+        // rigid motion (det <= 0) is refused.
+        let rigid = RigidFrameEstimator { p_left: p_l, p_right: p_r };
+        let coarse = RansacOptions {
+            threshold: options.homography.threshold * COARSE_FACTOR,
+            local_optimization: false,
+            ..opts
+        };
+        let rep = ransac(&rigid, &quads, &coarse).step(&format!("3D homography for view '{}'", views[vi].name))?;
+        let polished = PolishedHomography(&estimator);
         let mut model: TransferModel = rep.model.clone();
         let mut inliers = rep.inliers.clone();
         let mut rounds = 0;
         for _ in 0..10 {
             rounds += 1;
-            let Some(refit) = estimator.fit_inliers(&quads, &inliers) else { break };
+            let Some(refit) = polished.fit_inliers(&quads, &inliers) else { break };
             let next: Vec<usize> = (0..quads.len())
                 .filter(|&i| symmetric_transfer_error(&refit, &p_l, &p_r, &quads[i]) <= options.homography.threshold)
                 .collect();
+            if next.len() < estimator.sample_size() * 2 {
+                break;
+            }
             model = refit;
-            if next == inliers || next.len() < 5 {
+            if next == inliers {
                 break;
             }
             inliers = next;
+        }
+        if std::env::var_os("HEADALIGN_DEBUG").is_some() {
+            eprintln!("RANSAC H view {}: coarse {} / {} after {} iterations; guided {} in {} rounds", views[vi].name, rep.inliers.len(), quads.len(), rep.iterations, inliers.len(), rounds);
         }
         let rms_t = rms(inliers.iter().map(|&i| symmetric_transfer_error(&model, &p_l, &p_r, &quads[i])));
         h_reports.push(HomographyReport {
@@ -363,37 +402,25 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
                 why: "its 3D homography has no complex eigenvalue pair (no measurable rotation)".into(),
             });
         }
+        if std::env::var_os("HEADALIGN_DEBUG").is_some() {
+            eprintln!("H view {} inliers {}/{} rounds {} rms {:.3} det(raw) {:e}\n{}", views[vi].name, inliers.len(), quads.len(), rounds, rms_t, model.h.0.determinant(), h.0);
+        }
         homographies.push(h);
         quad_inliers[slot] = inliers.iter().map(|&i| tracks[i]).collect();
     }
 
-    // --- 4. Linear self-calibration in the conditioned frame.
-    let lin = linear_self_calibration(&homographies).step("linear self-calibration")?;
-    let k_left = Intrinsics::from_matrix(&(k0.matrix() * lin.left.matrix())).step("left intrinsics")?;
-    let h_pe = lin.euclidean_from_projective;
-    let h_pe_inv = h_pe.try_inverse().ok_or_else(|| AlignError::Geometry {
-        step: "Euclidean upgrade".into(),
-        source: headalign_geometry::GeometryError::Numerical("H_PE is singular".into()),
-    })?;
-    let (k_right, right_from_left) = decompose_camera(&(p_r.0 * h_pe_inv)).step("right camera decomposition")?;
-    let baseline = right_from_left.translation.vector.norm();
-    if !(baseline > 0.0) || !baseline.is_finite() {
-        return Err(AlignError::Geometry {
-            step: "right camera decomposition".into(),
-            source: headalign_geometry::GeometryError::Degenerate("zero baseline".into()),
-        });
+    // --- 4. The point set: tracks reconstructed in the reference view, then those first
+    // reconstructed in another rig view.
+    let mut point_tracks: Vec<u64> = recon[0].keys().copied().collect();
+    let mut origin_slot: Vec<usize> = vec![0; point_tracks.len()];
+    for (slot, map) in recon.iter().enumerate().skip(1) {
+        for &track in map.keys() {
+            if !recon[0].contains_key(&track) && !point_tracks.contains(&track) {
+                point_tracks.push(track);
+                origin_slot.push(slot);
+            }
+        }
     }
-    let scale = 1.0 / baseline;
-    let right_from_left = Isometry3::from_parts((right_from_left.translation.vector * scale).into(), right_from_left.rotation);
-
-    // Motions: ref_from_cam_k = D_k^-1 (D maps reference points to view k), scaled.
-    let mut ref_from_cam = vec![Isometry3::identity(); rig.len()];
-    for (m, d) in lin.motions.iter().enumerate() {
-        let inv = d.inverse();
-        ref_from_cam[m + 1] = Isometry3::from_parts((inv.translation.vector * scale).into(), inv.rotation);
-    }
-
-    // Axes from single-joint views, directed like the encoder.
     let commanded: Vec<[f64; 2]> = rig
         .iter()
         .map(|&i| match roles[i] {
@@ -401,55 +428,16 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             _ => [0.0, 0.0],
         })
         .collect();
-    let mut axes: [Option<(Line, f64)>; 2] = [None, None];
-    for slot in 1..rig.len() {
-        for j in 0..2 {
-            let other = 1 - j;
-            if commanded[slot][other].abs() > MOVED_DEG.to_radians() || commanded[slot][j].abs() <= MOVED_DEG.to_radians() {
-                continue;
-            }
-            let Some(screw) = screw_from_isometry(&ref_from_cam[slot], 1e-6) else {
-                return Err(AlignError::NotARotation { view: views[rig[slot]].name.clone(), why: "the recovered motion has no rotation".into() });
-            };
-            let mut line = screw.axis;
-            if screw.angle * commanded[slot][j] < 0.0 {
-                line = line.reversed();
-            }
-            if axes[j].is_none_or(|(_, a)| commanded[slot][j].abs() > a) {
-                axes[j] = Some((line, commanded[slot][j].abs()));
-            }
-        }
-    }
-    let (Some((pan_axis, _)), Some((elev_axis, _))) = (axes[0], axes[1]) else {
-        return Err(AlignError::MissingMotion("single-joint rotations about pan and elevation".into()));
-    };
+    let ctx = InitContext { views, rig: &rig, recon: &recon, point_tracks: &point_tracks, origin_slot: &origin_slot, commanded: &commanded, min_tracks: options.min_tracks };
 
-    // Points: reference-view reconstruction first, then those first seen in other views.
-    let mut point_index: BTreeMap<u64, usize> = BTreeMap::new();
-    let mut points = Vec::new();
-    for (slot, map) in recon.iter().enumerate() {
-        for (&track, (x, _, _)) in map {
-            if point_index.contains_key(&track) {
-                continue;
-            }
-            if slot > 0 && !quad_inliers[slot].is_empty() && !recon[0].contains_key(&track) {
-                // fine: a point only seen from this view
-            } else if slot > 0 {
-                continue;
-            }
-            let Some(p) = dehomogenise3(&(h_pe * x)) else { continue };
-            let p = Point3::from(p.coords * scale);
-            let p_ref = ref_from_cam[slot] * p;
-            if p.z <= 0.0 || !p_ref.coords.iter().all(|v| v.is_finite()) {
-                continue;
-            }
-            point_index.insert(track, points.len());
-            points.push(p_ref);
-        }
-    }
-    if points.len() < options.min_tracks {
-        return Err(AlignError::TooFewTracks { what: "reconstructed in front of the cameras".into(), needed: options.min_tracks, got: points.len() });
-    }
+    // --- 5. Two initialisations of the bundle adjustment: the linear self-calibration
+    // chain (paper section 3.1) and, as a safeguard when the linear chain is too noisy
+    // (small rotations), a rough one (K = image-width guess, motions by resection in the
+    // quasi-Euclidean frame). The commanded angles make the adjustment well posed from
+    // either; the solution with the lower cost wins.
+    let linear = linear_initial_state(&ctx, &homographies, &k0, &p_r);
+    let rough = rough_initial_state(&ctx, &frame);
+    let point_index: BTreeMap<u64, usize> = point_tracks.iter().enumerate().map(|(i, &t)| (t, i)).collect();
 
     // All raw observations of these tracks in the rig views.
     let mut all_obs = Vec::new();
@@ -462,26 +450,44 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             }
         }
     }
-    // First selection: stereo inliers of F (and quadruplet inliers where available).
+    // First selection: stereo inliers of F, and quadruplet inliers where the point was
+    // part of a quadruplet.
     let first_obs: Vec<BundleObservation> = all_obs
         .iter()
         .copied()
         .filter(|o| {
-            let track = point_tracks_of(&point_index, o.point);
-            recon[o.view].contains_key(&track) && (o.view == 0 || quad_inliers[o.view].is_empty() || quad_inliers[o.view].binary_search(&track).is_ok() || !recon[0].contains_key(&track))
+            let track = point_tracks[o.point];
+            recon[o.view].contains_key(&track)
+                && (o.view == 0 || !recon[0].contains_key(&track) || quad_inliers[o.view].binary_search(&track).is_ok())
         })
         .collect();
 
-    let angles: Vec<Vec<f64>> = commanded.iter().map(|c| c.to_vec()).collect();
-    let initial = RigState {
-        left: k_left,
-        right: k_right,
-        right_from_left,
-        motions: Motions::Joints { axes: vec![pan_axis, elev_axis], angles: angles.clone(), commanded: angles },
-        points,
+    let mut linear_focal = [f64::NAN; 4];
+    let mut best: Option<BundleResult> = None;
+    let mut last_err = None;
+    for init in [linear, rough] {
+        let state = match init {
+            Ok(s) => s,
+            Err(e) => {
+                last_err = Some(e);
+                continue;
+            }
+        };
+        if linear_focal[0].is_nan() {
+            linear_focal = [state.left.fx, state.left.fy, state.right.fx, state.right.fy];
+        }
+        match bundle_adjust(&state, &first_obs, &options.bundle).step("bundle adjustment") {
+            Ok(r) => {
+                if best.as_ref().is_none_or(|b| r.report.final_rms_px < b.report.final_rms_px) {
+                    best = Some(r);
+                }
+            }
+            Err(e) => last_err = Some(e),
+        }
+    }
+    let Some(first) = best else {
+        return Err(last_err.unwrap_or_else(|| AlignError::MissingMotion("no initialisation".into())));
     };
-    let linear_focal = [k_left.fx, k_left.fy, k_right.fx, k_right.fy];
-    let first = bundle_adjust(&initial, &first_obs, &options.bundle).step("bundle adjustment")?;
 
     // Re-select every raw observation by its residual under the first solution.
     let sigma = robust_sigma(&first.state, &first_obs).max(0.05);
@@ -493,10 +499,6 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         .collect();
     let final_result = bundle_adjust(&first.state, &second_obs, &options.bundle).step("bundle adjustment (re-selected)")?;
 
-    let mut point_tracks = vec![0u64; point_index.len()];
-    for (&t, &i) in &point_index {
-        point_tracks[i] = t;
-    }
     let report = EstimationReport {
         stereo_matches: pairs.len(),
         stereo_inliers: f_report.inliers.len(),
@@ -510,11 +512,11 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         final_rms_px: final_result.report.final_rms_px,
         sigma_px: final_result.report.sigma_px,
     };
-    Ok(RigCalibration { bundle: final_result, point_tracks, reference_encoders: views[0].capture.encoders, report })
-}
-
-fn point_tracks_of(index: &BTreeMap<u64, usize>, point: usize) -> u64 {
-    index.iter().find_map(|(&t, &i)| (i == point).then_some(t)).unwrap_or(u64::MAX)
+    let mut point_observations = vec![0usize; point_tracks.len()];
+    for o in &second_obs {
+        point_observations[o.point] += 1;
+    }
+    Ok(RigCalibration { bundle: final_result, point_tracks, point_observations, reference_encoders: views[0].capture.encoders, report })
 }
 
 fn rms(values: impl Iterator<Item = f64>) -> f64 {
@@ -535,4 +537,177 @@ fn robust_sigma(state: &RigState, obs: &[BundleObservation]) -> f64 {
     }
     r.sort_by(f64::total_cmp);
     r[r.len() / 2] / (2.0 * std::f64::consts::LN_2).sqrt()
+}
+
+/// What both initialisations need.
+struct InitContext<'a> {
+    views: &'a [View],
+    rig: &'a [usize],
+    recon: &'a [BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>],
+    point_tracks: &'a [u64],
+    origin_slot: &'a [usize],
+    commanded: &'a [[f64; 2]],
+    min_tracks: usize,
+}
+
+impl InitContext<'_> {
+    /// The Joints-model state from per-view poses `ref_from_cam` and points given in the
+    /// frame of the view that reconstructed them (`point_in_cam(slot, X)`).
+    fn state(
+        &self,
+        left: Intrinsics,
+        right: Intrinsics,
+        right_from_left: Isometry3<f64>,
+        ref_from_cam: &[Isometry3<f64>],
+        point_in_cam: impl Fn(&Vector4<f64>) -> Option<Point3<f64>>,
+    ) -> Result<RigState, AlignError> {
+        // Axes from single-joint views, directed like the encoder; the largest move wins.
+        let mut axes: [Option<(Line, f64)>; 2] = [None, None];
+        let moved = |x: f64| x.abs() > MOVED_DEG.to_radians();
+        for slot in 1..self.rig.len() {
+            for j in 0..2 {
+                if moved(self.commanded[slot][1 - j]) || !moved(self.commanded[slot][j]) {
+                    continue;
+                }
+                let Some(screw) = screw_from_isometry(&ref_from_cam[slot], 1e-6) else {
+                    return Err(AlignError::NotARotation {
+                        view: self.views[self.rig[slot]].name.clone(),
+                        why: "the recovered motion has no rotation".into(),
+                    });
+                };
+                let line = if screw.angle * self.commanded[slot][j] < 0.0 { screw.axis.reversed() } else { screw.axis };
+                if axes[j].is_none_or(|(_, a)| self.commanded[slot][j].abs() > a) {
+                    axes[j] = Some((line, self.commanded[slot][j].abs()));
+                }
+            }
+        }
+        let (Some((pan_axis, _)), Some((elev_axis, _))) = (axes[0], axes[1]) else {
+            return Err(AlignError::MissingMotion("single-joint rotations about pan and elevation".into()));
+        };
+        let mut points = Vec::with_capacity(self.point_tracks.len());
+        let mut in_front = 0;
+        for (i, track) in self.point_tracks.iter().enumerate() {
+            let slot = self.origin_slot[i];
+            let p = self.recon[slot].get(track).and_then(|(x, _, _)| point_in_cam(x));
+            let p = match p {
+                Some(p) if p.coords.iter().all(|v| v.is_finite()) => {
+                    if p.z > 0.0 {
+                        in_front += 1;
+                    }
+                    p
+                }
+                // Keep the index layout; a point with no position starts far ahead.
+                _ => Point3::new(0.0, 0.0, 1e3),
+            };
+            points.push(ref_from_cam[slot] * p);
+        }
+        if in_front < self.min_tracks {
+            return Err(AlignError::TooFewTracks { what: "reconstructed in front of the cameras".into(), needed: self.min_tracks, got: in_front });
+        }
+        let angles: Vec<Vec<f64>> = self.commanded.iter().map(|c| c.to_vec()).collect();
+        Ok(RigState {
+            left,
+            right,
+            right_from_left,
+            motions: Motions::Joints { axes: vec![pan_axis, elev_axis], angles: angles.clone(), commanded: angles },
+            points,
+        })
+    }
+}
+
+/// Initial state from the linear self-calibration chain (module docs, step 5).
+fn linear_initial_state(
+    ctx: &InitContext<'_>,
+    homographies: &[headalign_geometry::homography3d::Homography3],
+    k0: &Intrinsics,
+    p_r: &headalign_geometry::camera::ProjectiveCamera,
+) -> Result<RigState, AlignError> {
+    let lin = linear_self_calibration(homographies).step("linear self-calibration")?;
+    let k_left = Intrinsics::from_matrix(&(k0.matrix() * lin.left.matrix())).step("left intrinsics")?;
+    let h_pe = lin.euclidean_from_projective;
+    let h_pe_inv = h_pe.try_inverse().ok_or_else(|| AlignError::Geometry {
+        step: "Euclidean upgrade".into(),
+        cause: headalign_geometry::GeometryError::Numerical("H_PE is singular".into()),
+    })?;
+    let (k_right, right_from_left) = decompose_camera(&(p_r.0 * h_pe_inv)).step("right camera decomposition")?;
+    let baseline = right_from_left.translation.vector.norm();
+    if !baseline.is_finite() || baseline <= 0.0 {
+        return Err(AlignError::Geometry {
+            step: "right camera decomposition".into(),
+            cause: headalign_geometry::GeometryError::Degenerate("zero baseline".into()),
+        });
+    }
+    let scale = 1.0 / baseline;
+    let right_from_left = Isometry3::from_parts((right_from_left.translation.vector * scale).into(), right_from_left.rotation);
+    // ref_from_cam_k = D_k^-1 (D maps reference points to view k), scaled.
+    let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
+    for (m, d) in lin.motions.iter().enumerate() {
+        let inv = d.inverse();
+        ref_from_cam[m + 1] = Isometry3::from_parts((inv.translation.vector * scale).into(), inv.rotation);
+    }
+    ctx.state(k_left, k_right, right_from_left, &ref_from_cam, |x| {
+        dehomogenise3(&(h_pe * x)).map(|p| Point3::from(p.coords * scale))
+    })
+}
+
+/// Initial state with `K = K0` for both cameras, the rig of the frame's essential-matrix
+/// decomposition, and each view's motion by resection of its left camera against the
+/// reference view's quasi-Euclidean points.
+fn rough_initial_state(ctx: &InitContext<'_>, frame: &StereoFrame) -> Result<RigState, AlignError> {
+    let k0 = frame.k0;
+    let t = frame.right_conditioned.column(3).into_owned();
+    let rot = headalign_geometry::so3::nearest_rotation(&frame.rotation_guess)
+        .ok_or_else(|| AlignError::Geometry { step: "rough initialisation".into(), cause: headalign_geometry::GeometryError::Numerical("SVD failed".into()) })?;
+    let right_from_left = Isometry3::from_parts(t.into(), nalgebra::UnitQuaternion::from_rotation_matrix(&rot));
+    let reference: HashMap<u64, Point3<f64>> =
+        ctx.recon[0].iter().filter_map(|(&track, (x, _, _))| dehomogenise3(x).map(|p| (track, p))).collect();
+    let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
+    for slot in 1..ctx.rig.len() {
+        let (mut p3, mut p2) = (Vec::new(), Vec::new());
+        for o in &ctx.views[ctx.rig[slot]].capture.left {
+            if let Some(p) = reference.get(&o.track) {
+                p3.push(*p);
+                p2.push(o.pixel);
+            }
+        }
+        let options = headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
+        let r = headalign_geometry::resection::resect(&k0, &p3, &p2, &Isometry3::identity(), &options)
+            .step(&format!("rough initialisation of view '{}'", ctx.views[ctx.rig[slot]].name))?;
+        ref_from_cam[slot] = r.cam_from_world.inverse();
+    }
+    ctx.state(k0, k0, right_from_left, &ref_from_cam, dehomogenise3)
+}
+
+/// RANSAC adapter for 3D homographies whose least-squares fit (used by local
+/// optimisation and the guided loop) is the DLT polished by Levenberg-Marquardt on
+/// transfer error: the algebraic DLT over-weights far points, whose triangulated depth is
+/// poor, and under 1 px noise its consensus is only about half the true inliers.
+struct PolishedHomography<'a>(&'a Homography3Estimator);
+
+impl Estimator for PolishedHomography<'_> {
+    type Datum = Quadruplet;
+    type Model = TransferModel;
+
+    fn sample_size(&self) -> usize {
+        self.0.sample_size()
+    }
+
+    /// Minimal DLT models with `det H <= 0` are dropped: `det(lambda H) = lambda^4 det H`,
+    /// so no scaling makes them conjugate to a rigid motion.
+    fn fit_minimal(&self, data: &[Quadruplet], sample: &[usize]) -> Vec<TransferModel> {
+        let mut models = self.0.fit_minimal(data, sample);
+        models.retain(|m| m.h.0.determinant() > 0.0);
+        models
+    }
+
+    fn fit_inliers(&self, data: &[Quadruplet], inliers: &[usize]) -> Option<TransferModel> {
+        let dlt = self.0.fit_inliers(data, inliers)?;
+        let subset: Vec<Quadruplet> = inliers.iter().map(|&i| data[i]).collect();
+        let refined = refine_transfer(&dlt, &self.0.p_left, &self.0.p_right, &subset).unwrap_or(dlt);
+        (refined.h.0.determinant() > 0.0).then_some(refined)
+    }
+
+    fn residual(&self, model: &TransferModel, datum: &Quadruplet) -> f64 {
+        self.0.residual(model, datum)
+    }
 }
