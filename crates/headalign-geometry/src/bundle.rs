@@ -784,7 +784,7 @@ fn linearise_obs(
         Side::Left => (&state.left, xc, Matrix3::identity()),
         Side::Right => (&state.right, rig.r * xc + rig.t, rig.r),
     };
-    if !(xs.z > 0.0) {
+    if !gt(xs.z, 0.0) {
         return None;
     }
     let iz = 1.0 / xs.z;
@@ -868,7 +868,7 @@ fn homogeneous_basis(h: &nalgebra::Vector4<f64>) -> nalgebra::Matrix4x3<f64> {
 fn retract_point(x: &Point3<f64>, d: &Vector3<f64>) -> Option<Point3<f64>> {
     let h = point_homogeneous(x);
     let h2 = (h + homogeneous_basis(&h) * d).normalize();
-    if !(h2.w > 1e-12) {
+    if !gt(h2.w, 1e-12) {
         return None;
     }
     let p = Point3::new(h2.x / h2.w, h2.y / h2.w, h2.z / h2.w);
@@ -956,6 +956,17 @@ impl Problem<'_> {
         (cost.is_finite()).then_some(Eval { cost, sum_sq })
     }
 
+    fn residual_norms(&self, state: &RigState) -> Option<Vec<f64>> {
+        let views = view_geoms(state, &self.layout, false);
+        let rig = rig_geom(state);
+        let mut out = Vec::with_capacity(self.obs.len());
+        for (o, &p) in self.obs.iter().zip(&self.obs_point) {
+            let x = state.points.get(*self.points.get(p)?)?;
+            out.push(linearise_obs(state, &self.layout, &views, &rig, o, x, None)?.0.norm());
+        }
+        Some(out)
+    }
+
     fn normal_equations(&self, state: &RigState, prior_weight: f64) -> Option<Normal> {
         let nc = self.layout.len();
         let np = self.points.len();
@@ -1028,6 +1039,11 @@ fn solve(n: &Normal, lambda: f64) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
     Some((dc, dp))
 }
 
+/// `a > b`, false if either is NaN.
+fn gt(a: f64, b: f64) -> bool {
+    a > b
+}
+
 fn rms(sum_sq: f64, n: usize) -> f64 {
     if n == 0 { 0.0 } else { (sum_sq / n as f64).sqrt() }
 }
@@ -1036,7 +1052,7 @@ fn rms(sum_sq: f64, n: usize) -> f64 {
 // Validation
 
 fn check_intrinsics(k: &Intrinsics, name: &str) -> Result<()> {
-    if !k.is_finite() || !(k.fx > 0.0) || !(k.fy > 0.0) {
+    if !k.is_finite() || !gt(k.fx, 0.0) || !gt(k.fy, 0.0) {
         return Err(GeometryError::InvalidEstimate(format!(
             "{name} intrinsics must be finite with positive focal lengths, got {k:?}"
         )));
@@ -1065,7 +1081,7 @@ fn prepare_state(initial: &RigState, options: &BundleOptions) -> Result<RigState
         }
     }
     let t = s.right_from_left.translation.vector;
-    if !iso_finite(&s.right_from_left) || !(t.norm() > 1e-12) {
+    if !iso_finite(&s.right_from_left) || !gt(t.norm(), 1e-12) {
         return Err(GeometryError::Degenerate(
             "right_from_left must be finite with a non-zero baseline (it fixes the scale)".into(),
         ));
@@ -1117,7 +1133,7 @@ fn prepare_state(initial: &RigState, options: &BundleOptions) -> Result<RigState
             }
             for (j, l) in axes.iter_mut().enumerate() {
                 let d = l.direction.into_inner();
-                if !d.iter().chain(l.point.coords.iter()).all(|x| x.is_finite()) || !(d.norm() > 1e-12) {
+                if !d.iter().chain(l.point.coords.iter()).all(|x| x.is_finite()) || !gt(d.norm(), 1e-12) {
                     return Err(GeometryError::Degenerate(format!("axis {j} is not a finite line")));
                 }
                 *l = Line::new(Unit::new_normalize(d), l.point);
@@ -1262,7 +1278,6 @@ pub fn bundle_adjust(
             let eval = if valid { problem.evaluate(&cand) } else { None };
             match eval {
                 Some(e) if e.cost < current.cost => {
-                    if std::env::var("BA_DEBUG").is_ok() { eprintln!("it {iterations} lambda {lambda:e} cost {:.15e} step {:e}", e.cost, step_sq.sqrt()); }
                     let decrease = current.cost - e.cost;
                     let x_norm = x_norm(&state, &problem.points);
                     state = cand;
@@ -1304,10 +1319,25 @@ pub fn bundle_adjust(
                     got: m,
                 });
             }
-            let Some(n) = problem.normal_equations(&state, 1.0) else {
-                return Err(GeometryError::Numerical("linearisation failed at the solution".into()));
-            };
-            (n.sum_wsq / (m - n_params) as f64).sqrt()
+            let dof = m as f64 / (m - n_params) as f64;
+            match options.robust {
+                RobustLoss::None => {
+                    let Some(n) = problem.normal_equations(&state, 1.0) else {
+                        return Err(GeometryError::Numerical("linearisation failed at the solution".into()));
+                    };
+                    (n.sum_wsq / (m - n_params) as f64).sqrt()
+                }
+                RobustLoss::Huber { .. } | RobustLoss::Cauchy { .. } => {
+                    // Outliers would inflate sum w r^2; use the median residual norm instead
+                    // (Rayleigh: median = sigma sqrt(2 ln 2)), corrected for the fitted dof.
+                    let Some(mut norms) = problem.residual_norms(&state) else {
+                        return Err(GeometryError::Numerical("residuals failed at the solution".into()));
+                    };
+                    norms.sort_by(f64::total_cmp);
+                    let med = norms.get(norms.len() / 2).copied().unwrap_or(0.0);
+                    med / (2.0 * std::f64::consts::LN_2).sqrt() * dof.sqrt()
+                }
+            }
         }
     };
     let covariance = covariance(&problem, &state, sigma)?;
@@ -1464,8 +1494,10 @@ mod tests {
         let deg = 1.0_f64.to_radians();
         let t = s.right_from_left.translation.vector;
         let t_new = small_rot(&mut rng, deg) * t;
-        s.right_from_left =
-            Isometry3::from_parts(Translation3::from(t_new), small_rot(&mut rng, deg) * s.right_from_left.rotation);
+        s.right_from_left = Isometry3::from_parts(
+            Translation3::from(t_new),
+            small_rot(&mut rng, deg) * s.right_from_left.rotation,
+        );
         match &mut s.motions {
             Motions::Free { ref_from_cam } => {
                 for p in ref_from_cam.iter_mut().skip(1) {
@@ -1660,7 +1692,8 @@ mod tests {
         for k in [&mut sq.left, &mut sq.right] {
             k.fy = k.fx;
         }
-        let opts = BundleOptions { square_pixels: true, fix_principal_point: true, ..BundleOptions::default() };
+        let opts =
+            BundleOptions { square_pixels: true, fix_principal_point: true, ..BundleOptions::default() };
         fd_check(&sq, &opts, &pick(&s));
         // Free model.
         let f = synth(7, 30, 0.0, 0.0, true);
@@ -1671,6 +1704,7 @@ mod tests {
     fn covariance_predicts_the_spread() {
         let base = synth(8, 80, 0.0, 0.0, false);
         let opts = BundleOptions { robust: RobustLoss::None, ..BundleOptions::default() };
+        let sigma_prior = opts.angle_prior_sigma.unwrap();
         let trials = 50;
         let mut fx = Vec::new();
         let mut predicted = Vec::new();
@@ -1684,7 +1718,16 @@ mod tests {
                     ..*o
                 })
                 .collect();
-            let res = bundle_adjust(&base.truth, &obs, &opts).unwrap();
+            // Commanded angles scattered by the prior sigma, as the prior claims.
+            let mut start = base.truth.clone();
+            if let Motions::Joints { commanded, .. } = &mut start.motions {
+                for row in commanded.iter_mut().skip(1) {
+                    for c in row.iter_mut() {
+                        *c += sigma_prior * gauss(&mut rng);
+                    }
+                }
+            }
+            let res = bundle_adjust(&start, &obs, &opts).unwrap();
             assert!(res.report.converged, "{:?}", res.report);
             fx.push(res.state.left.fx);
             predicted.push(res.covariance.sigma("left.fx").unwrap());
@@ -1809,7 +1852,12 @@ mod tests {
         let mut st = s.truth.clone();
         st.points.push(Point3::new(0.0, 0.0, 3.0));
         st.points.push(Point3::new(0.0, 0.0, -3.0));
-        partial.push(BundleObservation { point: lone, view: 0, side: Side::Left, pixel: Point2::new(390.0, 284.0) });
+        partial.push(BundleObservation {
+            point: lone,
+            view: 0,
+            side: Side::Left,
+            pixel: Point2::new(390.0, 284.0),
+        });
         for view in 0..3 {
             partial.push(BundleObservation {
                 point: lone + 1,
@@ -1831,43 +1879,5 @@ mod tests {
         let mut o = s.obs[0];
         o.view = 7;
         assert!(residual_pixels(&s.truth, &o).is_none());
-    }
-
-    #[test]
-    fn zz_debug_convergence() {
-        for (free, prior) in [(false, Some(0.05_f64.to_radians())), (false, None), (true, None), (false, Some(1.0))] {
-            let base = synth(8, 80, 1.0, 0.0, free);
-            let opts = BundleOptions { robust: RobustLoss::None, angle_prior_sigma: prior, ..BundleOptions::default() };
-            let res = bundle_adjust(&base.truth, &base.obs, &opts).unwrap();
-            eprintln!("free {free} prior {prior:?}: {:?} sigma fx {:?}", res.report, res.covariance.sigma("left.fx"));
-        }
-    }
-
-    #[test]
-    fn zz_debug_model() {
-        let base = synth(8, 80, 1.0, 0.0, true);
-        let opts = BundleOptions { robust: RobustLoss::None, angle_prior_sigma: None, max_iterations: 8, ..BundleOptions::default() };
-        let st = bundle_adjust(&base.truth, &base.obs, &opts).unwrap().state;
-        let layout = Layout::build(&st, &opts).unwrap();
-        let problem = Problem { layout, obs: base.obs.clone(), obs_point: base.obs.iter().map(|o| o.point).collect(), points: (0..st.points.len()).collect(), options: &opts, prior_weight: 1.0 };
-        let n = problem.normal_equations(&st, 1.0).unwrap();
-        let c0 = problem.evaluate(&st).unwrap().cost;
-        for lambda in [0.0, 1e-8, 1e-6, 1e-5] {
-            let (dc, dp) = solve(&n, lambda).unwrap();
-            for alpha in [1e-3, 0.1, 0.5, 1.0] {
-                let mut cand = retract(&st, &problem.layout, &(&dc * alpha)).unwrap();
-                for (x, d) in cand.points.iter_mut().zip(&dp) { *x += d * alpha; }
-                // predicted decrease: -(g.d) - 0.5 d^T A d  ; use linear part only
-                let mut gd = n.gc.dot(&dc);
-                for (g, d) in n.gp.iter().zip(&dp) { gd += g.dot(d); }
-                let c = problem.evaluate(&cand).unwrap().cost;
-                eprintln!("lambda {lambda:e} alpha {alpha}: dcost {:e}  (linear pred {:e}) |dc| {:e}", c - c0, alpha * gd, dc.norm());
-            }
-        }
-        let (_, dp) = solve(&n, 0.0).unwrap();
-        let mut norms: Vec<(f64, usize)> = dp.iter().enumerate().map(|(i, d)| (d.norm(), i)).collect();
-        norms.sort_by(|a, b| b.0.partial_cmp(&a.0).unwrap());
-        for (nn, i) in norms.iter().take(5) { eprintln!("dp {i} {nn:e} point {:?} dp {:?} nobs {}", st.points[*i], dp[*i], base.obs.iter().filter(|o| o.point == *i).count()); }
-        eprintln!("dc = {:?}", solve(&n, 0.0).unwrap().0.iter().map(|v| format!("{v:.3e}")).collect::<Vec<_>>());
     }
 }
