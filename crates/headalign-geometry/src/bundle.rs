@@ -38,7 +38,13 @@
 //!   The angles carry the Gaussian prior `(theta - commanded) / sigma` (dimensionless),
 //!   weighted against the pixel residuals as if the pixel noise were `noise_sigma_px`
 //!   (1 px when that is `None`).
-//! - Points: 3 each, eliminated by the Schur complement, never in the covariance.
+//! - Points: 3 each, eliminated by the Schur complement, never in the covariance. They
+//!   are stored Euclidean but updated on the sphere of homogeneous 4-vectors
+//!   (`h = (X, 1)/|(X, 1)|`, `h <- normalize(h + B d)`, `B` a Householder basis of the
+//!   tangent space): depth along a ray then enters the disparity nearly linearly, and
+//!   Gauss-Newton steps stay good for far points along the weakly observed
+//!   plane-at-infinity direction of small-rotation self-calibration (with Euclidean point
+//!   updates the same problem needed ~5x more iterations).
 //!
 //! # Gauge
 //!
@@ -61,7 +67,8 @@
 //! Hartley & Zisserman, 2nd ed., appendix A6). Robust losses (Huber, Cauchy) act on the
 //! norm of each 2D residual by iteratively reweighted least squares (weights
 //! `rho'(s)/s` at the linearisation point); the reported RMS is of the unweighted
-//! residuals.
+//! residuals (outliers included). IRLS converges linearly: with 10 % outliers expect
+//! ~45 iterations to the default tolerances, against ~10 for plain least squares.
 //!
 //! Jacobians: projection w.r.t. intrinsics and the camera-frame point are analytic, as
 //! are those w.r.t. the rig and free view poses (tangent updates via [`so3::exp`], safe
@@ -86,8 +93,10 @@
 //! camera parameters (tangent parametrisation above) is `sigma^2 S^-1`, the marginal
 //! covariance with the points eliminated. `sigma` is `noise_sigma_px` or, if `None`, the
 //! estimate `sigma^2 = sum w |r|^2 / (m - n)` with `m = 2 observations + priors`,
-//! `n = parameters`. Points whose undamped block `V_p` is not positive definite are
-//! omitted from the covariance (conservative). [`BundleResult::perturbed`] moves the
+//! `n = parameters` for `RobustLoss::None`; with a robust loss the outliers would inflate
+//! that sum, so the estimate is `median |r| / sqrt(2 ln 2) * sqrt(m / (m - n))` (the
+//! median of the Rayleigh-distributed 2D residual norms). Points whose undamped block
+//! `V_p` is not positive definite are omitted from the covariance (conservative). [`BundleResult::perturbed`] moves the
 //! state by a tangent step so callers can propagate the covariance to any derived
 //! quantity by finite differences.
 //!
@@ -1570,6 +1579,10 @@ mod tests {
         assert!(s.obs.iter().all(|o| residual_pixels(&s.truth, o).unwrap().norm() < 1e-9));
     }
 
+    /// Noise-free data have zero residual at the truth, the gauge (view 0, baseline length)
+    /// is fixed, so the truth is the isolated minimum; LM ends in Gauss-Newton with zero
+    /// residual, which converges quadratically to rounding level (~1e-12). 1e-8 leaves room
+    /// for the conditioning of 3 deg rotations (which amplifies rounding by ~1e3-1e4).
     #[test]
     fn joints_noise_free_converges_to_truth() {
         let s = synth(2, 200, 0.0, 0.0, false);
