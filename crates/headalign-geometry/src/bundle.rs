@@ -38,7 +38,13 @@
 //!   The angles carry the Gaussian prior `(theta - commanded) / sigma` (dimensionless),
 //!   weighted against the pixel residuals as if the pixel noise were `noise_sigma_px`
 //!   (1 px when that is `None`).
-//! - Points: 3 each, eliminated by the Schur complement, never in the covariance.
+//! - Points: 3 each, eliminated by the Schur complement, never in the covariance. They
+//!   are stored Euclidean but updated on the sphere of homogeneous 4-vectors
+//!   (`h = (X, 1)/|(X, 1)|`, `h <- normalize(h + B d)`, `B` a Householder basis of the
+//!   tangent space): depth along a ray then enters the disparity nearly linearly, and
+//!   Gauss-Newton steps stay good for far points along the weakly observed
+//!   plane-at-infinity direction of small-rotation self-calibration (with Euclidean point
+//!   updates the same problem needed ~5x more iterations).
 //!
 //! # Gauge
 //!
@@ -61,7 +67,8 @@
 //! Hartley & Zisserman, 2nd ed., appendix A6). Robust losses (Huber, Cauchy) act on the
 //! norm of each 2D residual by iteratively reweighted least squares (weights
 //! `rho'(s)/s` at the linearisation point); the reported RMS is of the unweighted
-//! residuals.
+//! residuals (outliers included). IRLS converges linearly: with 10 % outliers expect
+//! ~45 iterations to the default tolerances, against ~10 for plain least squares.
 //!
 //! Jacobians: projection w.r.t. intrinsics and the camera-frame point are analytic, as
 //! are those w.r.t. the rig and free view poses (tangent updates via [`so3::exp`], safe
@@ -86,8 +93,10 @@
 //! camera parameters (tangent parametrisation above) is `sigma^2 S^-1`, the marginal
 //! covariance with the points eliminated. `sigma` is `noise_sigma_px` or, if `None`, the
 //! estimate `sigma^2 = sum w |r|^2 / (m - n)` with `m = 2 observations + priors`,
-//! `n = parameters`. Points whose undamped block `V_p` is not positive definite are
-//! omitted from the covariance (conservative). [`BundleResult::perturbed`] moves the
+//! `n = parameters` for `RobustLoss::None`; with a robust loss the outliers would inflate
+//! that sum, so the estimate is `median |r| / sqrt(2 ln 2) * sqrt(m / (m - n))` (the
+//! median of the Rayleigh-distributed 2D residual norms). Points whose undamped block
+//! `V_p` is not positive definite are omitted from the covariance (conservative). [`BundleResult::perturbed`] moves the
 //! state by a tangent step so callers can propagate the covariance to any derived
 //! quantity by finite differences.
 //!
@@ -784,7 +793,7 @@ fn linearise_obs(
         Side::Left => (&state.left, xc, Matrix3::identity()),
         Side::Right => (&state.right, rig.r * xc + rig.t, rig.r),
     };
-    if !(xs.z > 0.0) {
+    if !gt(xs.z, 0.0) {
         return None;
     }
     let iz = 1.0 / xs.z;
@@ -794,8 +803,17 @@ fn linearise_obs(
     let jproj =
         Matrix2x3::new(k.fx * iz, k.skew * iz, -(k.fx * a + k.skew * b) * iz, 0.0, k.fy * iz, -k.fy * b * iz);
     let jpoint = jproj * dxs * view.rt;
+    // Point Jacobian in the homogeneous tangent parametrisation (see `retract_point`):
+    // h = (X, 1) / |(X, 1)|, d residual / d h = [jpoint, d/dw] / w, then times the basis.
+    let h = point_homogeneous(x);
+    let side_t = if obs.side == Side::Right { rig.t } else { Vector3::zeros() };
+    let jw = jproj * (dxs * (-(view.rt * view.t)) + side_t);
+    let mut j4 = nalgebra::Matrix2x4::zeros();
+    j4.fixed_view_mut::<2, 3>(0, 0).copy_from(&jpoint);
+    j4.set_column(3, &jw);
+    let jhom = j4 * homogeneous_basis(&h) / h.w;
     let Some(cols) = cols else {
-        return Some((r, jpoint));
+        return Some((r, jhom));
     };
     cols.clear();
     let s = side_index(obs.side);
@@ -835,7 +853,35 @@ fn linearise_obs(
             cols.push((*idx, jw * gw - jpoint * gv));
         }
     }
-    Some((r, jpoint))
+    Some((r, jhom))
+}
+
+/// The unit homogeneous 4-vector `(X, 1) / |(X, 1)|` of a point (its `w` is positive).
+fn point_homogeneous(x: &Point3<f64>) -> nalgebra::Vector4<f64> {
+    nalgebra::Vector4::new(x.x, x.y, x.z, 1.0).normalize()
+}
+
+/// Orthonormal 4x3 basis of the tangent space of the unit sphere at `h` (`h.w > 0`): the
+/// first three columns of the Householder reflection that maps `h` to `-e4`.
+fn homogeneous_basis(h: &nalgebra::Vector4<f64>) -> nalgebra::Matrix4x3<f64> {
+    let v = h + nalgebra::Vector4::w();
+    let house = nalgebra::Matrix4::identity() - v * v.transpose() * (2.0 / v.norm_squared());
+    house.fixed_view::<4, 3>(0, 0).into_owned()
+}
+
+/// A point moved by a homogeneous tangent step: `h <- normalize(h + B d)`, back to
+/// Euclidean. Points are updated on the sphere of homogeneous 4-vectors (Triggs et al.
+/// section 2.2) because depth along a ray is then nearly linear in the parameters (it
+/// enters the disparity through `w`), which keeps Gauss-Newton steps good for far
+/// points. `None` if the step would take the point to or through infinity.
+fn retract_point(x: &Point3<f64>, d: &Vector3<f64>) -> Option<Point3<f64>> {
+    let h = point_homogeneous(x);
+    let h2 = (h + homogeneous_basis(&h) * d).normalize();
+    if !gt(h2.w, 1e-12) {
+        return None;
+    }
+    let p = Point3::new(h2.x / h2.w, h2.y / h2.w, h2.z / h2.w);
+    p.coords.iter().all(|v| v.is_finite()).then_some(p)
 }
 
 /// `(rho(s), weight = rho'(s)/s)` for a squared residual norm `s2`.
@@ -919,6 +965,17 @@ impl Problem<'_> {
         (cost.is_finite()).then_some(Eval { cost, sum_sq })
     }
 
+    fn residual_norms(&self, state: &RigState) -> Option<Vec<f64>> {
+        let views = view_geoms(state, &self.layout, false);
+        let rig = rig_geom(state);
+        let mut out = Vec::with_capacity(self.obs.len());
+        for (o, &p) in self.obs.iter().zip(&self.obs_point) {
+            let x = state.points.get(*self.points.get(p)?)?;
+            out.push(linearise_obs(state, &self.layout, &views, &rig, o, x, None)?.0.norm());
+        }
+        Some(out)
+    }
+
     fn normal_equations(&self, state: &RigState, prior_weight: f64) -> Option<Normal> {
         let nc = self.layout.len();
         let np = self.points.len();
@@ -991,6 +1048,11 @@ fn solve(n: &Normal, lambda: f64) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
     Some((dc, dp))
 }
 
+/// `a > b`, false if either is NaN.
+fn gt(a: f64, b: f64) -> bool {
+    a > b
+}
+
 fn rms(sum_sq: f64, n: usize) -> f64 {
     if n == 0 { 0.0 } else { (sum_sq / n as f64).sqrt() }
 }
@@ -999,7 +1061,7 @@ fn rms(sum_sq: f64, n: usize) -> f64 {
 // Validation
 
 fn check_intrinsics(k: &Intrinsics, name: &str) -> Result<()> {
-    if !k.is_finite() || !(k.fx > 0.0) || !(k.fy > 0.0) {
+    if !k.is_finite() || !gt(k.fx, 0.0) || !gt(k.fy, 0.0) {
         return Err(GeometryError::InvalidEstimate(format!(
             "{name} intrinsics must be finite with positive focal lengths, got {k:?}"
         )));
@@ -1028,7 +1090,7 @@ fn prepare_state(initial: &RigState, options: &BundleOptions) -> Result<RigState
         }
     }
     let t = s.right_from_left.translation.vector;
-    if !iso_finite(&s.right_from_left) || !(t.norm() > 1e-12) {
+    if !iso_finite(&s.right_from_left) || !gt(t.norm(), 1e-12) {
         return Err(GeometryError::Degenerate(
             "right_from_left must be finite with a non-zero baseline (it fixes the scale)".into(),
         ));
@@ -1080,7 +1142,7 @@ fn prepare_state(initial: &RigState, options: &BundleOptions) -> Result<RigState
             }
             for (j, l) in axes.iter_mut().enumerate() {
                 let d = l.direction.into_inner();
-                if !d.iter().chain(l.point.coords.iter()).all(|x| x.is_finite()) || !(d.norm() > 1e-12) {
+                if !d.iter().chain(l.point.coords.iter()).all(|x| x.is_finite()) || !gt(d.norm(), 1e-12) {
                     return Err(GeometryError::Degenerate(format!("axis {j} is not a finite line")));
                 }
                 *l = Line::new(Unit::new_normalize(d), l.point);
@@ -1210,13 +1272,19 @@ pub fn bundle_adjust(
             };
             let mut cand = retract(&state, &problem.layout, &dc)?;
             let mut step_sq = dc.norm_squared();
+            let mut valid = true;
             for (&pi, d) in problem.points.iter().zip(&dp) {
                 if let Some(x) = cand.points.get_mut(pi) {
-                    *x += d;
+                    match retract_point(x, d) {
+                        Some(p) => {
+                            step_sq += (p - *x).norm_squared();
+                            *x = p;
+                        }
+                        None => valid = false,
+                    }
                 }
-                step_sq += d.norm_squared();
             }
-            let eval = problem.evaluate(&cand);
+            let eval = if valid { problem.evaluate(&cand) } else { None };
             match eval {
                 Some(e) if e.cost < current.cost => {
                     let decrease = current.cost - e.cost;
@@ -1260,10 +1328,25 @@ pub fn bundle_adjust(
                     got: m,
                 });
             }
-            let Some(n) = problem.normal_equations(&state, 1.0) else {
-                return Err(GeometryError::Numerical("linearisation failed at the solution".into()));
-            };
-            (n.sum_wsq / (m - n_params) as f64).sqrt()
+            let dof = m as f64 / (m - n_params) as f64;
+            match options.robust {
+                RobustLoss::None => {
+                    let Some(n) = problem.normal_equations(&state, 1.0) else {
+                        return Err(GeometryError::Numerical("linearisation failed at the solution".into()));
+                    };
+                    (n.sum_wsq / (m - n_params) as f64).sqrt()
+                }
+                RobustLoss::Huber { .. } | RobustLoss::Cauchy { .. } => {
+                    // Outliers would inflate sum w r^2; use the median residual norm instead
+                    // (Rayleigh: median = sigma sqrt(2 ln 2)), corrected for the fitted dof.
+                    let Some(mut norms) = problem.residual_norms(&state) else {
+                        return Err(GeometryError::Numerical("residuals failed at the solution".into()));
+                    };
+                    norms.sort_by(f64::total_cmp);
+                    let med = norms.get(norms.len() / 2).copied().unwrap_or(0.0);
+                    med / (2.0 * std::f64::consts::LN_2).sqrt() * dof.sqrt()
+                }
+            }
         }
     };
     let covariance = covariance(&problem, &state, sigma)?;
@@ -1317,4 +1400,497 @@ fn covariance(problem: &Problem<'_>, state: &RigState, sigma: f64) -> Result<Cov
     let inv = ch.inverse();
     let matrix = 0.5 * (&inv + inv.transpose()) * (sigma * sigma);
     Ok(Covariance { names, matrix })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{RngExt, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::StandardNormal;
+
+    const W: f64 = 768.0;
+    const H: f64 = 576.0;
+
+    fn gauss(rng: &mut ChaCha8Rng) -> f64 {
+        rng.sample(StandardNormal)
+    }
+
+    fn rand_vec(rng: &mut ChaCha8Rng) -> Vector3<f64> {
+        Vector3::new(gauss(rng), gauss(rng), gauss(rng))
+    }
+
+    /// A random rotation of exactly `angle` radians about a random axis.
+    fn small_rot(rng: &mut ChaCha8Rng, angle: f64) -> UnitQuaternion<f64> {
+        UnitQuaternion::from_scaled_axis(rand_vec(rng).normalize() * angle)
+    }
+
+    fn tilt(rng: &mut ChaCha8Rng, d: Vector3<f64>, angle: f64) -> Unit<Vector3<f64>> {
+        Unit::new_normalize(small_rot(rng, angle) * d)
+    }
+
+    struct Synth {
+        truth: RigState,
+        obs: Vec<BundleObservation>,
+    }
+
+    /// The yorick-like rig: 3 views (reference, elevation +3 deg, pan +3 deg), points 1.5-6 m.
+    fn synth(seed: u64, n_points: usize, noise_px: f64, outlier_frac: f64, free: bool) -> Synth {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let left = Intrinsics::new(700.0, 720.0, 390.0, 284.0);
+        let right = Intrinsics::new(705.0, 716.0, 380.0, 290.0);
+        let r_rl = small_rot(&mut rng, 1.0_f64.to_radians());
+        let c_r = Vector3::new(0.25, 0.0, 0.0) + rand_vec(&mut rng) * 0.002;
+        let right_from_left = Isometry3::from_parts(Translation3::from(-(r_rl * c_r)), r_rl);
+        let pan = Line::new(
+            tilt(&mut rng, -Vector3::y(), 1.0_f64.to_radians()),
+            Point3::new(0.125, 0.0, -0.03) + rand_vec(&mut rng) * 0.005,
+        );
+        let elev = Line::new(
+            tilt(&mut rng, Vector3::x(), 1.5_f64.to_radians()),
+            Point3::new(0.0, 0.06, -0.03) + rand_vec(&mut rng) * 0.005,
+        );
+        let deg3 = 3.0_f64.to_radians();
+        let angles = vec![vec![0.0, 0.0], vec![0.0, deg3], vec![deg3, 0.0]];
+        let joints = Motions::Joints { axes: vec![pan, elev], angles: angles.clone(), commanded: angles };
+        let motions = if free {
+            Motions::Free { ref_from_cam: (0..3).map(|k| joints.ref_from_cam(k)).collect() }
+        } else {
+            joints
+        };
+        let mut points = Vec::with_capacity(n_points);
+        for _ in 0..n_points {
+            let u = rng.random_range(160.0..720.0);
+            let v = rng.random_range(50.0..526.0);
+            let depth = rng.random_range(1.5..6.0);
+            points.push(Point3::from(left.unproject(&Point2::new(u, v)) * depth));
+        }
+        let truth = RigState { left, right, right_from_left, motions, points };
+        let mut obs = Vec::new();
+        for (p, _) in truth.points.iter().enumerate() {
+            for view in 0..3 {
+                for side in [Side::Left, Side::Right] {
+                    let o = BundleObservation { point: p, view, side, pixel: Point2::origin() };
+                    let Some(r) = residual_pixels(&truth, &o) else { continue };
+                    let px = Point2::from(r);
+                    if !(0.0..W).contains(&px.x) || !(0.0..H).contains(&px.y) {
+                        continue;
+                    }
+                    let mut pixel = px + Vector2::new(gauss(&mut rng), gauss(&mut rng)) * noise_px;
+                    if rng.random::<f64>() < outlier_frac {
+                        let a = rng.random_range(0.0..std::f64::consts::TAU);
+                        let m = rng.random_range(30.0..100.0);
+                        pixel += Vector2::new(a.cos(), a.sin()) * m;
+                    }
+                    obs.push(BundleObservation { pixel, ..o });
+                }
+            }
+        }
+        Synth { truth, obs }
+    }
+
+    /// Truth perturbed: ~1.5 % on K, ~1 deg on poses and axes, ~5 cm on points; the
+    /// baseline length is kept (scale gauge).
+    fn perturb(truth: &RigState, seed: u64) -> RigState {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut s = truth.clone();
+        for k in [&mut s.left, &mut s.right] {
+            k.fx *= 1.0 + 0.015 * gauss(&mut rng).clamp(-1.3, 1.3);
+            k.fy *= 1.0 + 0.015 * gauss(&mut rng).clamp(-1.3, 1.3);
+            k.cx += 5.0 * gauss(&mut rng);
+            k.cy += 5.0 * gauss(&mut rng);
+        }
+        let deg = 1.0_f64.to_radians();
+        let t = s.right_from_left.translation.vector;
+        let t_new = small_rot(&mut rng, deg) * t;
+        s.right_from_left = Isometry3::from_parts(
+            Translation3::from(t_new),
+            small_rot(&mut rng, deg) * s.right_from_left.rotation,
+        );
+        match &mut s.motions {
+            Motions::Free { ref_from_cam } => {
+                for p in ref_from_cam.iter_mut().skip(1) {
+                    let step = Isometry3::from_parts(
+                        Translation3::from(rand_vec(&mut rng) * 0.01),
+                        small_rot(&mut rng, deg),
+                    );
+                    *p = step * *p;
+                }
+            }
+            Motions::Joints { axes, .. } => {
+                for l in axes.iter_mut() {
+                    *l = Line::new(
+                        tilt(&mut rng, l.direction.into_inner(), deg),
+                        l.point + rand_vec(&mut rng) * 0.01,
+                    );
+                }
+            }
+        }
+        for p in s.points.iter_mut() {
+            *p += rand_vec(&mut rng).normalize() * 0.05;
+        }
+        s
+    }
+
+    fn angle_between(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+        a.normalize().dot(&b.normalize()).clamp(-1.0, 1.0).acos()
+    }
+
+    fn axes(s: &RigState) -> Vec<Line> {
+        match &s.motions {
+            Motions::Joints { axes, .. } => axes.clone(),
+            Motions::Free { .. } => Vec::new(),
+        }
+    }
+
+    /// Largest relative difference over intrinsics, rig, motions and points.
+    fn state_distance(a: &RigState, b: &RigState) -> f64 {
+        let mut d: f64 = 0.0;
+        for (ka, kb) in [(&a.left, &b.left), (&a.right, &b.right)] {
+            for (x, y) in [(ka.fx, kb.fx), (ka.fy, kb.fy), (ka.cx, kb.cx), (ka.cy, kb.cy)] {
+                d = d.max((x - y).abs() / y.abs());
+            }
+            d = d.max((ka.skew - kb.skew).abs() / kb.fx);
+        }
+        d = d.max(a.right_from_left.rotation.angle_to(&b.right_from_left.rotation));
+        d = d.max(
+            (a.right_from_left.translation.vector - b.right_from_left.translation.vector).norm()
+                / b.right_from_left.translation.vector.norm(),
+        );
+        for k in 0..b.motions.view_count() {
+            let (pa, pb) = (a.motions.ref_from_cam(k), b.motions.ref_from_cam(k));
+            d = d.max(pa.rotation.angle_to(&pb.rotation));
+            d = d.max((pa.translation.vector - pb.translation.vector).norm());
+        }
+        for (la, lb) in axes(a).iter().zip(axes(b).iter()) {
+            d = d.max(angle_between(&la.direction, &lb.direction));
+            d = d.max((la.point - lb.point).norm());
+        }
+        for (pa, pb) in a.points.iter().zip(&b.points) {
+            d = d.max((pa - pb).norm() / pb.coords.norm());
+        }
+        d
+    }
+
+    #[test]
+    fn synthetic_problem_has_the_expected_size() {
+        let s = synth(1, 200, 0.0, 0.0, false);
+        assert!(s.obs.len() > 1100, "{} observations", s.obs.len());
+        assert!(s.obs.iter().all(|o| residual_pixels(&s.truth, o).unwrap().norm() < 1e-9));
+    }
+
+    /// Noise-free data have zero residual at the truth, the gauge (view 0, baseline length)
+    /// is fixed, so the truth is the isolated minimum; LM ends in Gauss-Newton with zero
+    /// residual, which converges quadratically to rounding level (~1e-12). 1e-8 leaves room
+    /// for the conditioning of 3 deg rotations (which amplifies rounding by ~1e3-1e4).
+    #[test]
+    fn joints_noise_free_converges_to_truth() {
+        let s = synth(2, 200, 0.0, 0.0, false);
+        let start = perturb(&s.truth, 20);
+        assert!(state_distance(&start, &s.truth) > 1e-3);
+        let res = bundle_adjust(&start, &s.obs, &BundleOptions::default()).unwrap();
+        let d = state_distance(&res.state, &s.truth);
+        assert!(res.report.converged, "{:?}", res.report);
+        assert!(res.report.final_rms_px < 1e-8, "{:?}", res.report);
+        assert!(d < 1e-8, "distance to truth {d:e}, {:?}", res.report);
+    }
+
+    #[test]
+    fn free_noise_free_converges_to_truth() {
+        let s = synth(3, 200, 0.0, 0.0, true);
+        let start = perturb(&s.truth, 30);
+        let res = bundle_adjust(&start, &s.obs, &BundleOptions::default()).unwrap();
+        let d = state_distance(&res.state, &s.truth);
+        assert!(res.report.converged, "{:?}", res.report);
+        assert!(d < 1e-8, "distance to truth {d:e}, {:?}", res.report);
+    }
+
+    #[test]
+    fn noisy_with_outliers_huber_is_accurate() {
+        let s = synth(4, 200, 1.0, 0.10, false);
+        let start = perturb(&s.truth, 40);
+        let res = bundle_adjust(&start, &s.obs, &BundleOptions::default()).unwrap();
+        eprintln!("{:?}", res.report);
+        assert!(res.report.converged, "{:?}", res.report);
+        for (est, tru) in [(&res.state.left, &s.truth.left), (&res.state.right, &s.truth.right)] {
+            for (e, t) in [(est.fx, tru.fx), (est.fy, tru.fy)] {
+                assert!((e - t).abs() / t < 0.015, "focal {e} vs {t}");
+            }
+        }
+        for (le, lt) in axes(&res.state).iter().zip(axes(&s.truth).iter()) {
+            let a = angle_between(&le.direction, &lt.direction).to_degrees();
+            assert!(a < 0.5, "axis direction off by {a} deg");
+        }
+        // Never worse than the start; robust weights keep the inlier RMS near 1 px.
+        assert!(res.report.final_rms_px < res.report.initial_rms_px);
+        assert!((0.7..1.5).contains(&res.report.sigma_px), "{:?}", res.report);
+    }
+
+    #[test]
+    fn cauchy_and_plain_losses_run() {
+        let s = synth(5, 60, 0.5, 0.0, false);
+        for robust in [RobustLoss::None, RobustLoss::Cauchy { scale_px: 3.0 }] {
+            let opts = BundleOptions { robust, ..BundleOptions::default() };
+            let res = bundle_adjust(&perturb(&s.truth, 50), &s.obs, &opts).unwrap();
+            assert!(res.report.converged && res.report.final_rms_px < 1.0, "{:?}", res.report);
+        }
+    }
+
+    /// Central differences of `residual_pixels` along camera parameter `i` / point coordinate.
+    fn fd_check(state: &RigState, options: &BundleOptions, obs: &[BundleObservation]) {
+        let layout = Layout::build(state, options).unwrap();
+        let views = view_geoms(state, &layout, true);
+        let rig = rig_geom(state);
+        let mut cols = Vec::new();
+        let h = 1e-6;
+        let mut checked = 0;
+        for o in obs {
+            let x = state.points[o.point];
+            let (r, jp) = linearise_obs(state, &layout, &views, &rig, o, &x, Some(&mut cols)).unwrap();
+            assert!((r - residual_pixels(state, o).unwrap()).norm() < 1e-9);
+            let mut dense = vec![Vector2::zeros(); layout.len()];
+            for (i, c) in &cols {
+                dense[*i] += c;
+            }
+            for (i, analytic) in dense.iter().enumerate() {
+                let mut e = DVector::zeros(layout.len());
+                e[i] = h;
+                let plus = residual_pixels(&retract(state, &layout, &e).unwrap(), o).unwrap();
+                let minus = residual_pixels(&retract(state, &layout, &(-e)).unwrap(), o).unwrap();
+                let numeric = (plus - minus) / (2.0 * h);
+                let err = (numeric - analytic).norm();
+                assert!(
+                    err < 1e-5 * (1.0 + numeric.norm()),
+                    "{}: analytic {analytic:?} numeric {numeric:?}",
+                    layout.params[i].name()
+                );
+                checked += 1;
+            }
+            for c in 0..3 {
+                let mut sp = state.clone();
+                let mut e = Vector3::zeros();
+                e[c] = h;
+                sp.points[o.point] = retract_point(&x, &e).unwrap();
+                let plus = residual_pixels(&sp, o).unwrap();
+                sp.points[o.point] = retract_point(&x, &(-e)).unwrap();
+                let minus = residual_pixels(&sp, o).unwrap();
+                let numeric = (plus - minus) / (2.0 * h);
+                assert!((numeric - jp.column(c)).norm() < 1e-6 * (1.0 + numeric.norm()), "point {c}");
+            }
+        }
+        assert!(checked > 0);
+    }
+
+    #[test]
+    fn jacobians_match_finite_differences() {
+        let pick = |s: &Synth| -> Vec<BundleObservation> {
+            let mut out = Vec::new();
+            for view in 0..3 {
+                for side in [Side::Left, Side::Right] {
+                    out.extend(s.obs.iter().filter(|o| o.view == view && o.side == side).take(2));
+                }
+            }
+            out
+        };
+        let s = synth(6, 30, 0.0, 0.0, false);
+        let st = perturb(&s.truth, 60);
+        // Joints with free angles, skew and non-square pixels.
+        let all = BundleOptions { zero_skew: false, ..BundleOptions::default() };
+        let mut st_skew = st.clone();
+        st_skew.left.skew = 1.5;
+        st_skew.right.skew = -0.7;
+        fd_check(&st_skew, &all, &pick(&s));
+        // Square pixels and a fixed principal point.
+        let mut sq = st.clone();
+        for k in [&mut sq.left, &mut sq.right] {
+            k.fy = k.fx;
+        }
+        let opts =
+            BundleOptions { square_pixels: true, fix_principal_point: true, ..BundleOptions::default() };
+        fd_check(&sq, &opts, &pick(&s));
+        // Free model.
+        let f = synth(7, 30, 0.0, 0.0, true);
+        fd_check(&perturb(&f.truth, 70), &BundleOptions::default(), &pick(&f));
+    }
+
+    #[test]
+    fn covariance_predicts_the_spread() {
+        let base = synth(8, 80, 0.0, 0.0, false);
+        let opts = BundleOptions { robust: RobustLoss::None, ..BundleOptions::default() };
+        let sigma_prior = opts.angle_prior_sigma.unwrap();
+        let trials = 50;
+        let mut fx = Vec::new();
+        let mut predicted = Vec::new();
+        let mut rng = ChaCha8Rng::seed_from_u64(800);
+        for _ in 0..trials {
+            let obs: Vec<BundleObservation> = base
+                .obs
+                .iter()
+                .map(|o| BundleObservation {
+                    pixel: o.pixel + Vector2::new(gauss(&mut rng), gauss(&mut rng)),
+                    ..*o
+                })
+                .collect();
+            // Commanded angles scattered by the prior sigma, as the prior claims.
+            let mut start = base.truth.clone();
+            if let Motions::Joints { commanded, .. } = &mut start.motions {
+                for row in commanded.iter_mut().skip(1) {
+                    for c in row.iter_mut() {
+                        *c += sigma_prior * gauss(&mut rng);
+                    }
+                }
+            }
+            let res = bundle_adjust(&start, &obs, &opts).unwrap();
+            assert!(res.report.converged, "{:?}", res.report);
+            fx.push(res.state.left.fx);
+            predicted.push(res.covariance.sigma("left.fx").unwrap());
+        }
+        let n = trials as f64;
+        let mean = fx.iter().sum::<f64>() / n;
+        let std = (fx.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        let pred = predicted.iter().sum::<f64>() / n;
+        let ratio = std / pred;
+        eprintln!("fx: empirical std {std:.4}, predicted {pred:.4}, ratio {ratio:.3}");
+        assert!((0.7..1.4).contains(&ratio), "empirical {std} predicted {pred}");
+    }
+
+    #[test]
+    fn covariance_names_and_perturbed() {
+        let s = synth(9, 60, 0.5, 0.0, false);
+        let res = bundle_adjust(&s.truth, &s.obs, &BundleOptions::default()).unwrap();
+        let names = &res.covariance.names;
+        for n in ["left.fx", "left.fy", "left.cx", "left.cy", "right.fx", "rig.rot0", "rig.tdir1"] {
+            assert!(res.covariance.index(n).is_some(), "{n} missing from {names:?}");
+        }
+        for n in ["axis0.dir0", "axis1.pt1", "view1.angle0", "view2.angle1"] {
+            assert!(res.covariance.index(n).is_some(), "{n} missing from {names:?}");
+        }
+        assert!(res.covariance.index("left.skew").is_none());
+        assert_eq!(res.covariance.matrix.nrows(), names.len());
+        assert!(res.covariance.sigma("left.fx").unwrap() > 0.0);
+        let same = res.perturbed(&DVector::zeros(names.len())).unwrap();
+        assert!(state_distance(&same, &res.state) < 1e-14);
+        let mut d = DVector::zeros(names.len());
+        d[res.covariance.index("left.fx").unwrap()] = 1.0;
+        d[res.covariance.index("view2.angle0").unwrap()] = 0.01;
+        let moved = res.perturbed(&d).unwrap();
+        assert!((moved.left.fx - res.state.left.fx - 1.0).abs() < 1e-12);
+        let (Motions::Joints { angles: a, .. }, Motions::Joints { angles: b, .. }) =
+            (&moved.motions, &res.state.motions)
+        else {
+            panic!("joints expected")
+        };
+        assert!((a[2][0] - b[2][0] - 0.01).abs() < 1e-15);
+        assert!(res.perturbed(&DVector::zeros(3)).is_err());
+        // Free model names.
+        let f = synth(10, 40, 0.5, 0.0, true);
+        let opts = BundleOptions { square_pixels: true, ..BundleOptions::default() };
+        let res = bundle_adjust(&f.truth, &f.obs, &opts).unwrap();
+        assert!(res.covariance.index("view2.trans2").is_some() && res.covariance.index("left.fy").is_none());
+        let same = res.perturbed(&DVector::zeros(res.covariance.names.len())).unwrap();
+        assert!(state_distance(&same, &res.state) < 1e-14);
+        assert!((res.state.left.fx - res.state.left.fy).abs() < 1e-12);
+    }
+
+    #[test]
+    fn error_paths() {
+        let s = synth(11, 30, 0.0, 0.0, false);
+        let opts = BundleOptions::default();
+        let ba = |st: &RigState, obs: &[BundleObservation], o: &BundleOptions| bundle_adjust(st, obs, o);
+        assert!(matches!(ba(&s.truth, &[], &opts), Err(GeometryError::NotEnoughData { .. })));
+        // A view with no observations.
+        let no_view2: Vec<_> = s.obs.iter().copied().filter(|o| o.view != 2).collect();
+        assert!(ba(&s.truth, &no_view2, &opts).is_err());
+        // NaN pixel.
+        let mut nan = s.obs.clone();
+        nan[3].pixel.x = f64::NAN;
+        assert!(ba(&s.truth, &nan, &opts).is_err());
+        // Out-of-range indices.
+        let mut oob = s.obs.clone();
+        oob[0].point = 10_000;
+        assert!(ba(&s.truth, &oob, &opts).is_err());
+        // Non-positive focal length.
+        let mut bad = s.truth.clone();
+        bad.right.fx = 0.0;
+        assert!(ba(&bad, &s.obs, &opts).is_err());
+        bad.right.fx = -700.0;
+        assert!(ba(&bad, &s.obs, &opts).is_err());
+        // Zero baseline.
+        let mut bad = s.truth.clone();
+        bad.right_from_left.translation.vector = Vector3::zeros();
+        assert!(ba(&bad, &s.obs, &opts).is_err());
+        // Unobservable axis: elevation never moves.
+        let mut bad = s.truth.clone();
+        if let Motions::Joints { angles, commanded, .. } = &mut bad.motions {
+            for row in angles.iter_mut().chain(commanded.iter_mut()) {
+                row[1] = 0.0;
+            }
+        }
+        let only_pan = |o: &&BundleObservation| o.view != 1;
+        let obs02: Vec<_> = s.obs.iter().filter(only_pan).copied().collect();
+        assert!(matches!(ba(&bad, &obs02, &opts), Err(GeometryError::Degenerate(_))));
+        // Bad angle shapes, non-zero row 0.
+        let mut bad = s.truth.clone();
+        if let Motions::Joints { angles, .. } = &mut bad.motions {
+            angles[0][0] = 0.1;
+        }
+        assert!(ba(&bad, &s.obs, &opts).is_err());
+        let mut bad = s.truth.clone();
+        if let Motions::Joints { commanded, .. } = &mut bad.motions {
+            commanded.pop();
+        }
+        assert!(ba(&bad, &s.obs, &opts).is_err());
+        // Free model with a non-identity view 0.
+        let f = synth(12, 30, 0.0, 0.0, true);
+        let mut bad = f.truth.clone();
+        if let Motions::Free { ref_from_cam } = &mut bad.motions {
+            ref_from_cam[0].translation.vector.x = 0.1;
+        }
+        assert!(ba(&bad, &f.obs, &opts).is_err());
+        // Bad options.
+        for o in [
+            BundleOptions { robust: RobustLoss::Huber { scale_px: 0.0 }, ..opts.clone() },
+            BundleOptions { robust: RobustLoss::Cauchy { scale_px: f64::NAN }, ..opts.clone() },
+            BundleOptions { angle_prior_sigma: Some(-1.0), ..opts.clone() },
+            BundleOptions { noise_sigma_px: Some(0.0), ..opts.clone() },
+            BundleOptions { function_tolerance: f64::INFINITY, ..opts.clone() },
+        ] {
+            assert!(o.validate().is_err());
+            assert!(matches!(ba(&s.truth, &s.obs, &o), Err(GeometryError::InvalidOption(_))));
+        }
+        assert!(opts.validate().is_ok());
+        // Points seen once are left out without error; behind-camera points too.
+        let mut partial = s.obs.clone();
+        let lone = s.truth.points.len();
+        let mut st = s.truth.clone();
+        st.points.push(Point3::new(0.0, 0.0, 3.0));
+        st.points.push(Point3::new(0.0, 0.0, -3.0));
+        partial.push(BundleObservation {
+            point: lone,
+            view: 0,
+            side: Side::Left,
+            pixel: Point2::new(390.0, 284.0),
+        });
+        for view in 0..3 {
+            partial.push(BundleObservation {
+                point: lone + 1,
+                view,
+                side: Side::Left,
+                pixel: Point2::new(100.0, 100.0),
+            });
+        }
+        let res = ba(&st, &partial, &opts).unwrap();
+        assert_eq!(res.report.observations, s.obs.len());
+        assert_eq!(res.state.points[lone], st.points[lone]);
+        assert_eq!(res.state.points[lone + 1], st.points[lone + 1]);
+        // Angles held fixed without a prior.
+        let fixed = BundleOptions { angle_prior_sigma: None, ..opts.clone() };
+        let res = ba(&s.truth, &s.obs, &fixed).unwrap();
+        assert!(res.covariance.index("view1.angle1").is_none());
+        // Residual helper: behind the camera and out of range.
+        assert!(residual_pixels(&st, &partial[partial.len() - 1]).is_none());
+        let mut o = s.obs[0];
+        o.view = 7;
+        assert!(residual_pixels(&s.truth, &o).is_none());
+    }
 }
