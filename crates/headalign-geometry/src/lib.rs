@@ -15,6 +15,7 @@
 //! - [`fundamental`]: normalised 8-point and 7-point F, Sampson refinement.
 //! - [`triangulation`]: optimal correction of a match, then linear triangulation.
 //! - [`frame`]: a well-conditioned (quasi-Euclidean) projective frame from F.
+//! - [`homography2d`]: plane homographies (4-point DLT), a robust prefilter for rotations.
 //! - [`homography3d`]: 4x4 projective homographies of 3D space, 5-point DLT,
 //!   symmetric transfer error over four images.
 //! - [`selfcal`]: plane at infinity from two motions, linear self-calibration of `K`,
@@ -31,6 +32,7 @@ pub mod camera;
 pub mod error;
 pub mod frame;
 pub mod fundamental;
+pub mod homography2d;
 pub mod homography3d;
 pub mod invariant;
 pub mod ransac;

@@ -30,6 +30,7 @@ use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame};
 use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
 use headalign_geometry::homography3d::{Homography3Estimator, Quadruplet, TransferModel, refine_transfer, symmetric_transfer_error};
 use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
+use headalign_geometry::homography2d::Homography2Estimator;
 use headalign_geometry::registration::RigidFrameEstimator;
 use headalign_geometry::selfcal::{decompose_camera, linear_self_calibration};
 use headalign_geometry::so3::{Line, screw_from_isometry};
@@ -43,11 +44,6 @@ use crate::observations::View;
 
 /// Encoder differences below this (degrees) count as "did not move".
 pub const MOVED_DEG: f64 = 1e-6;
-
-/// The consensus stage of the 3D homography uses rigid fits in the quasi-Euclidean frame,
-/// whose transfer error carries a bias of a few pixels from the frame's distortion; its
-/// threshold is the homography threshold times this factor.
-pub const COARSE_FACTOR: f64 = 2.5;
 
 /// Default standard deviation of a commanded joint rotation, degrees: the resolution of a
 /// typical head encoder. The prior on each rotation angle is what fixes the focal lengths
@@ -63,6 +59,10 @@ pub struct EstimationOptions {
     /// four images (default 4 px: the DLT homography transfers noisy triangulated points,
     /// so inlier errors are about twice the image noise).
     pub homography: RansacOptions,
+    /// Threshold of the plane-homography screening of quadruplets, pixels (default 6: the
+    /// image motion of a head rotation departs from a homography by the parallax of the
+    /// axis offsets, about 3 px at 1.5 m for 3 deg, plus noise).
+    pub prefilter_px: f64,
     /// The bundle adjustment (defaults of [`BundleOptions`], with the angle prior set to
     /// [`ENCODER_SIGMA_DEG`]).
     pub bundle: BundleOptions,
@@ -80,6 +80,7 @@ impl Default for EstimationOptions {
         Self {
             fundamental: RansacOptions { threshold: 3.0, ..RansacOptions::default() },
             homography: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
+            prefilter_px: 6.0,
             bundle: BundleOptions { angle_prior_sigma: Some(ENCODER_SIGMA_DEG.to_radians()), ..BundleOptions::default() },
             reselect_sigmas: 3.5,
             min_tracks: 20,
@@ -94,6 +95,9 @@ impl EstimationOptions {
         self.fundamental.validate().map_err(|e| AlignError::InvalidOption(format!("fundamental RANSAC: {e}")))?;
         self.homography.validate().map_err(|e| AlignError::InvalidOption(format!("homography RANSAC: {e}")))?;
         self.bundle.validate().map_err(|e| AlignError::InvalidOption(format!("bundle adjustment: {e}")))?;
+        if !self.prefilter_px.is_finite() || self.prefilter_px <= 0.0 {
+            return Err(AlignError::InvalidOption("prefilter_px must be positive".into()));
+        }
         if !(self.reselect_sigmas > 1.0) || !self.reselect_sigmas.is_finite() {
             return Err(AlignError::InvalidOption("reselect_sigmas must be a finite number above 1".into()));
         }
@@ -193,7 +197,7 @@ pub struct HomographyReport {
     pub candidates: usize,
     /// Inliers after guided re-selection.
     pub inliers: usize,
-    /// RANSAC iterations.
+    /// Iterations of the fallback 5-point RANSAC (0 when the screened set sufficed).
     pub ransac_iterations: usize,
     /// Guided re-selection rounds until the set was stable.
     pub guided_rounds: usize,
@@ -349,29 +353,64 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             });
         }
         let opts = RansacOptions { seed: options.seed.wrapping_add(vi as u64), ..options.homography };
-        // Consensus by 3-point rigid fits in the quasi-Euclidean frame (well conditioned
-        // under noise; threshold widened for the frame's residual distortion), then the
-        // full 15-dof H polished on transfer error and guided re-selection at the tight
-        // threshold until the set is stable. A refit that is no longer conjugate to a
-        // rigid motion (det <= 0) is refused.
-        let rigid = RigidFrameEstimator { p_left: p_l, p_right: p_r };
-        let coarse = RansacOptions {
-            threshold: options.homography.threshold * COARSE_FACTOR,
-            local_optimization: false,
-            ..opts
+        // Consensus: a head rotation maps each camera's image almost by K R K^-1, so
+        // quadruplets are first screened by 4-point plane-homography RANSAC on
+        // left0 -> left1 and right0 -> right1 (robust); then the 5-point 3D DLT RANSAC
+        // (polished on transfer error) runs on the screened set, and guided re-selection
+        // over all quadruplets with the 3D homography repeats until the set is stable.
+        let screened = screen_rotation(&quads, options.prefilter_px, opts.seed);
+        if screened.len() < options.min_tracks {
+            return Err(AlignError::TooFewTracks {
+                what: format!("consistent with a rotation between '{}' and '{}'", views[0].name, views[vi].name),
+                needed: options.min_tracks,
+                got: screened.len(),
+            });
+        }
+        let hview = format!("3D homography for view '{}'", views[vi].name);
+        let count = |m: &TransferModel| {
+            quads.iter().filter(|q| symmetric_transfer_error(m, &p_l, &p_r, q) <= options.homography.threshold).count()
         };
-        let rep = ransac(&rigid, &quads, &coarse).step(&format!("3D homography for view '{}'", views[vi].name))?;
-        let polished = PolishedHomography(&estimator);
-        let mut model: TransferModel = rep.model.clone();
-        let mut inliers = rep.inliers.clone();
+        // Starting models: the rigid fit in the quasi-Euclidean frame (always well
+        // conditioned, a few pixels biased) and the DLT when it is a valid rigid conjugate
+        // (with a 3 deg rotation H is close to the identity and the DLT over many noisy
+        // points can come out near-singular); each is polished on transfer error.
+        let rigid = RigidFrameEstimator { p_left: p_l, p_right: p_r };
+        let mut best: Option<(TransferModel, usize)> = None;
+        for start in [rigid.fit_inliers(&quads, &screened), estimator.fit_inliers(&quads, &screened)].into_iter().flatten() {
+            if start.h.0.determinant() <= 0.0 {
+                continue;
+            }
+            let Some(m) = polish(&start, &quads, &screened, &p_l, &p_r) else { continue };
+            let n = count(&m);
+            if best.as_ref().is_none_or(|(_, b)| n > *b) {
+                best = Some((m, n));
+            }
+        }
+        let mut ransac_iterations = 0;
+        // Fallback: the 5-point DLT RANSAC with polished local optimisation.
+        if best.as_ref().is_none_or(|(_, n)| *n * 2 < screened.len()) {
+            let screened_quads: Vec<Quadruplet> = screened.iter().map(|&i| quads[i]).collect();
+            let rep = ransac(&PolishedHomography(&estimator), &screened_quads, &opts).step(&hview)?;
+            ransac_iterations = rep.iterations;
+            let n = count(&rep.model);
+            if best.as_ref().is_none_or(|(_, b)| n > *b) {
+                best = Some((rep.model, n));
+            }
+        }
+        let Some((mut model, _)) = best else {
+            return Err(AlignError::NotARotation { view: views[vi].name.clone(), why: "no 3D homography fits its matches".into() });
+        };
+        // Guided re-selection until the inlier set is stable.
+        let select = |m: &TransferModel| -> Vec<usize> {
+            (0..quads.len()).filter(|&i| symmetric_transfer_error(m, &p_l, &p_r, &quads[i]) <= options.homography.threshold).collect()
+        };
+        let mut inliers = select(&model);
         let mut rounds = 0;
         for _ in 0..10 {
             rounds += 1;
-            let Some(refit) = polished.fit_inliers(&quads, &inliers) else { break };
-            let next: Vec<usize> = (0..quads.len())
-                .filter(|&i| symmetric_transfer_error(&refit, &p_l, &p_r, &quads[i]) <= options.homography.threshold)
-                .collect();
-            if next.len() < estimator.sample_size() * 2 {
+            let Some(refit) = polish(&model, &quads, &inliers, &p_l, &p_r) else { break };
+            let next = select(&refit);
+            if next.len() < inliers.len() {
                 break;
             }
             model = refit;
@@ -380,15 +419,18 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             }
             inliers = next;
         }
+        if inliers.len() < options.min_tracks {
+            return Err(AlignError::TooFewTracks { what: format!("fitting the 3D homography of view '{}'", views[vi].name), needed: options.min_tracks, got: inliers.len() });
+        }
         if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-            eprintln!("RANSAC H view {}: coarse {} / {} after {} iterations; guided {} in {} rounds", views[vi].name, rep.inliers.len(), quads.len(), rep.iterations, inliers.len(), rounds);
+            eprintln!("H view {}: screened {} / {}, guided {} in {} rounds, ransac iterations {}", views[vi].name, screened.len(), quads.len(), inliers.len(), rounds, ransac_iterations);
         }
         let rms_t = rms(inliers.iter().map(|&i| symmetric_transfer_error(&model, &p_l, &p_r, &quads[i])));
         h_reports.push(HomographyReport {
             view: views[vi].name.clone(),
             candidates: quads.len(),
             inliers: inliers.len(),
-            ransac_iterations: rep.iterations,
+            ransac_iterations,
             guided_rounds: rounds,
             rms_transfer_px: rms_t,
         });
@@ -710,4 +752,41 @@ impl Estimator for PolishedHomography<'_> {
     fn residual(&self, model: &TransferModel, datum: &Quadruplet) -> f64 {
         self.0.residual(model, datum)
     }
+}
+
+/// Indices of the quadruplets consistent with a plane homography in both the left and the
+/// right image pair (4-point RANSAC, `threshold_px`). If a RANSAC fails (too few
+/// quadruplets), every quadruplet passes and the 3D stage decides.
+fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> Vec<usize> {
+    let options = RansacOptions { threshold: threshold_px, seed, ..RansacOptions::default() };
+    let left: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.left0, q.left1)).collect();
+    let right: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.right0, q.right1)).collect();
+    let keep = |data: &[(Point2<f64>, Point2<f64>)]| -> Vec<bool> {
+        match ransac(&Homography2Estimator, data, &options) {
+            Ok(rep) => {
+                let mut mask = vec![false; data.len()];
+                for i in rep.inliers {
+                    mask[i] = true;
+                }
+                mask
+            }
+            Err(_) => vec![true; data.len()],
+        }
+    };
+    let (l, r) = (keep(&left), keep(&right));
+    (0..quads.len()).filter(|&i| l[i] && r[i]).collect()
+}
+
+/// `start` polished by Levenberg-Marquardt on the transfer error of `subset`; `None` if the
+/// result is not a rigid conjugate (det <= 0).
+fn polish(
+    start: &TransferModel,
+    quads: &[Quadruplet],
+    subset: &[usize],
+    p_l: &headalign_geometry::camera::ProjectiveCamera,
+    p_r: &headalign_geometry::camera::ProjectiveCamera,
+) -> Option<TransferModel> {
+    let sub: Vec<Quadruplet> = subset.iter().map(|&i| quads[i]).collect();
+    let m = refine_transfer(start, p_l, p_r, &sub).ok()?;
+    (m.h.0.determinant() > 0.0).then_some(m)
 }
