@@ -113,27 +113,7 @@ pub fn quasi_euclidean_frame(
         return Err(GeometryError::InvalidEstimate("fundamental matrix is zero or not finite".into()));
     }
     f_n /= norm;
-    let candidates = essential_decompositions(&f_n)?;
-    let rays: Vec<(Vector3<f64>, Vector3<f64>)> =
-        matches.iter().map(|(l, r)| (k_inv * Vector3::new(l.x, l.y, 1.0), k_inv * Vector3::new(r.x, r.y, 1.0))).collect();
-    let mut votes = [0usize; 4];
-    for (c, (r, t)) in candidates.iter().enumerate() {
-        votes[c] = rays
-            .iter()
-            .filter(|(x1, x2)| {
-                let (z1, z2) = depths(r, t, x1, x2);
-                z1 > 0.0 && z2 > 0.0
-            })
-            .count();
-    }
-    let best = (0..4).max_by_key(|&c| votes[c]).unwrap_or(0);
-    let runner_up = (0..4).filter(|&c| c != best).map(|c| votes[c]).max().unwrap_or(0);
-    if votes[best] == 0 || votes[best] == runner_up {
-        return Err(GeometryError::Degenerate(
-            "cannot tell which side of the cameras the scene is on (cheirality vote tied)".into(),
-        ));
-    }
-    let (rot, t) = candidates[best];
+    let (rot, t) = pose_by_cheirality(&f_n, &k_inv, &k_inv, matches)?;
     // A = alpha [t]x F_n + t v^T closest to R: 4 unknowns (alpha, v), 9 equations.
     let b = skew(&t) * f_n;
     let mut design = SMatrix::<f64, 9, 4>::zeros();
@@ -156,6 +136,61 @@ pub fn quasi_euclidean_frame(
     right.fixed_view_mut::<3, 3>(0, 0).copy_from(&a);
     right.set_column(3, &t);
     Ok(StereoFrame { k0: *k0, right_conditioned: right, rotation_guess: rot })
+}
+
+/// The `(R, t)` (`|t| = 1`) of the four decompositions of the essential matrix `e` (in
+/// coordinates normalised by `k_left_inv`, `k_right_inv`) that puts most of `matches`
+/// (pixels) in front of both cameras. Errors on a tied vote.
+fn pose_by_cheirality(
+    e: &Matrix3<f64>,
+    k_left_inv: &Matrix3<f64>,
+    k_right_inv: &Matrix3<f64>,
+    matches: &[(Point2<f64>, Point2<f64>)],
+) -> Result<(Matrix3<f64>, Vector3<f64>)> {
+    let candidates = essential_decompositions(e)?;
+    let rays: Vec<(Vector3<f64>, Vector3<f64>)> =
+        matches.iter().map(|(l, r)| (k_left_inv * Vector3::new(l.x, l.y, 1.0), k_right_inv * Vector3::new(r.x, r.y, 1.0))).collect();
+    let mut votes = [0usize; 4];
+    for (c, (r, t)) in candidates.iter().enumerate() {
+        votes[c] = rays
+            .iter()
+            .filter(|(x1, x2)| {
+                let (z1, z2) = depths(r, t, x1, x2);
+                z1 > 0.0 && z2 > 0.0
+            })
+            .count();
+    }
+    let best = (0..4).max_by_key(|&c| votes[c]).unwrap_or(0);
+    let runner_up = (0..4).filter(|&c| c != best).map(|c| votes[c]).max().unwrap_or(0);
+    if votes[best] == 0 || votes[best] == runner_up {
+        return Err(GeometryError::Degenerate(
+            "cannot tell which side of the cameras the scene is on (cheirality vote tied)".into(),
+        ));
+    }
+    let (rot, t) = candidates[best];
+    Ok((rot, t))
+}
+
+/// Relative pose `right_from_left` (unit translation) of two calibrated cameras from their
+/// fundamental matrix (pixels, `x_R^T F x_L = 0`), by decomposing `E = K_R^T F K_L` and
+/// keeping the solution that puts `matches` in front of both cameras (H&Z section 9.6).
+pub fn relative_pose(
+    f: &Matrix3<f64>,
+    k_left: &Intrinsics,
+    k_right: &Intrinsics,
+    matches: &[(Point2<f64>, Point2<f64>)],
+) -> Result<nalgebra::Isometry3<f64>> {
+    if matches.is_empty() {
+        return Err(GeometryError::NotEnoughData { what: "matches for the cheirality vote", needed: 1, got: 0 });
+    }
+    let e = k_right.matrix().transpose() * f * k_left.matrix();
+    let n = e.norm();
+    if !n.is_finite() || n <= 0.0 {
+        return Err(GeometryError::InvalidEstimate("essential matrix is zero or not finite".into()));
+    }
+    let (rot, t) = pose_by_cheirality(&(e / n), &k_left.inverse_matrix(), &k_right.inverse_matrix(), matches)?;
+    let r = crate::so3::nearest_rotation(&rot).ok_or_else(|| GeometryError::Numerical("SVD failed".into()))?;
+    Ok(nalgebra::Isometry3::from_parts(t.into(), nalgebra::UnitQuaternion::from_rotation_matrix(&r)))
 }
 
 #[cfg(test)]
