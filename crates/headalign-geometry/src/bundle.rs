@@ -1272,19 +1272,18 @@ pub fn bundle_adjust(
             };
             let mut cand = retract(&state, &problem.layout, &dc)?;
             let mut step_sq = dc.norm_squared();
-            let mut valid = true;
             for (&pi, d) in problem.points.iter().zip(&dp) {
                 if let Some(x) = cand.points.get_mut(pi) {
-                    match retract_point(x, d) {
-                        Some(p) => {
-                            step_sq += (p - *x).norm_squared();
-                            *x = p;
-                        }
-                        None => valid = false,
+                    // A far point whose step would cross infinity keeps its position for this
+                    // step; rejecting the whole step for it stalls the solver from rough
+                    // starts (the damping grows until no step moves anything).
+                    if let Some(p) = retract_point(x, d) {
+                        step_sq += (p - *x).norm_squared();
+                        *x = p;
                     }
                 }
             }
-            let eval = if valid { problem.evaluate(&cand) } else { None };
+            let eval = problem.evaluate(&cand);
             match eval {
                 Some(e) if e.cost < current.cost => {
                     let decrease = current.cost - e.cost;

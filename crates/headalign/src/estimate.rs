@@ -26,7 +26,7 @@ use headalign_geometry::bundle::{
     BundleObservation, BundleOptions, BundleResult, Motions, RigState, Side, bundle_adjust, residual_pixels,
 };
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
-use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame, relative_pose};
+use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame};
 use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
 use headalign_geometry::homography3d::{Homography3Estimator, Quadruplet, TransferModel, refine_transfer, symmetric_transfer_error};
 use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
@@ -36,7 +36,7 @@ use headalign_geometry::selfcal::{decompose_camera, linear_self_calibration};
 use headalign_geometry::so3::{Line, screw_from_isometry};
 use headalign_geometry::triangulation::triangulate_optimal;
 use headalign_platform::{Encoders, Joint, StereoCapture};
-use nalgebra::{Isometry3, Matrix3, Point2, Point3, Vector4};
+use nalgebra::{Isometry3, Point2, Point3, Vector4};
 use serde::Serialize;
 
 use crate::error::{AlignError, StepContext};
@@ -48,7 +48,7 @@ pub const MOVED_DEG: f64 = 1e-6;
 /// Default standard deviation of a commanded joint rotation, degrees: the resolution of a
 /// typical head encoder. The prior on each rotation angle is what fixes the focal lengths
 /// most strongly (a 3 deg rotation measured to 0.01 deg is 0.3 % of it).
-pub const ENCODER_SIGMA_DEG: f64 = 0.05;
+pub const ENCODER_SIGMA_DEG: f64 = 0.01;
 
 /// Options of [`estimate_rig`].
 #[derive(Debug, Clone)]
@@ -239,7 +239,8 @@ pub struct RigCalibration {
     pub bundle: BundleResult,
     /// Track id of each bundle point (same order as `bundle.state.points`).
     pub point_tracks: Vec<u64>,
-    /// Observations of each point in the final adjustment (same order as the points).
+    /// Observations of each point in the final adjustment (same order as the points); zero
+    /// for points not seen by both cameras.
     pub point_observations: Vec<usize>,
     /// Encoder readings of the reference view.
     pub reference_encoders: Encoders,
@@ -336,8 +337,6 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     let mut h_reports = Vec::new();
     let mut homographies = Vec::new();
     let mut quad_inliers: Vec<Vec<u64>> = vec![Vec::new(); rig.len()];
-    // Plane homographies (left, right) of each rotation, for the rotation-based start.
-    let mut image_rotations: Vec<(Matrix3<f64>, Matrix3<f64>)> = Vec::new();
     for (slot, &vi) in rig.iter().enumerate().skip(1) {
         let mut tracks = Vec::new();
         let mut quads = Vec::new();
@@ -360,10 +359,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         // left0 -> left1 and right0 -> right1 (robust); then the 5-point 3D DLT RANSAC
         // (polished on transfer error) runs on the screened set, and guided re-selection
         // over all quadruplets with the 3D homography repeats until the set is stable.
-        let (screened, plane_homographies) = screen_rotation(&quads, options.prefilter_px, opts.seed);
-        if let Some(g) = plane_homographies {
-            image_rotations.push(g);
-        }
+        let screened = screen_rotation(&quads, options.prefilter_px, opts.seed);
         if screened.len() < options.min_tracks {
             return Err(AlignError::TooFewTracks {
                 what: format!("consistent with a rotation between '{}' and '{}'", views[0].name, views[vi].name),
@@ -483,7 +479,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     // quasi-Euclidean frame). The commanded angles make the adjustment well posed from
     // either; the solution with the lower cost wins.
     let linear = linear_initial_state(&ctx, &homographies, &k0, &p_r);
-    let rough = rotation_initial_state(&ctx, &f, &inlier_pairs, &image_rotations, &k0);
+    let rough = rough_initial_state(&ctx, &frame);
     let point_index: BTreeMap<u64, usize> = point_tracks.iter().enumerate().map(|(i, &t)| (t, i)).collect();
 
     // All raw observations of these tracks in the rig views.
@@ -509,20 +505,10 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         })
         .collect();
 
-    // Each start is adjusted on the first selection; the start whose solution explains the
-    // most observations within the gate wins (RMS would reward fitting fewer of them).
-    if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-        eprintln!("all_obs {} first_obs {} points {} recon sizes {:?} quad inliers {:?}", all_obs.len(), first_obs.len(), point_tracks.len(), recon.iter().map(|r| r.len()).collect::<Vec<_>>(), quad_inliers.iter().map(|q| q.len()).collect::<Vec<_>>());
-    }
-    let gate_of = |state: &RigState| -> Vec<BundleObservation> {
-        let sigma = robust_sigma(state, &all_obs).max(0.05);
-        let gate = options.reselect_sigmas * sigma;
-        all_obs.iter().copied().filter(|o| residual_pixels(state, o).is_some_and(|r| r.norm() <= gate)).collect()
-    };
     let mut linear_focal = [f64::NAN; 4];
-    let mut best: Option<(BundleResult, Vec<BundleObservation>)> = None;
+    let mut best: Option<BundleResult> = None;
     let mut last_err = None;
-    for (i, init) in [linear, rough].into_iter().enumerate() {
+    for init in [linear, rough] {
         let state = match init {
             Ok(s) => s,
             Err(e) => {
@@ -530,71 +516,48 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
                 continue;
             }
         };
-        if i == 0 {
+        if linear_focal[0].is_nan() {
             linear_focal = [state.left.fx, state.left.fy, state.right.fx, state.right.fy];
         }
-        if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-            for v in 0..rig.len() {
-                for side in [Side::Left, Side::Right] {
-                    let mut r: Vec<f64> = first_obs.iter().filter(|o| o.view == v && o.side == side).filter_map(|o| residual_pixels(&state, o).map(|x| x.norm())).collect();
-                    r.sort_by(f64::total_cmp);
-                    if !r.is_empty() { eprintln!("   init {i} view {v} {side:?}: n {} median {:.2} 90% {:.2}", r.len(), r[r.len()/2], r[r.len()*9/10]); }
-                }
-            }
-            if let Motions::Joints { axes, .. } = &state.motions { eprintln!("   axes {:?}", axes); }
-        }
-        match bundle_adjust(&state, &first_obs, &options.bundle).step("bundle adjustment") {
+        // Gross residuals under this start (wrong matches that no quadruplet checked, points
+        // placed badly by a rough start) are left out of its first adjustment: above 5 times
+        // the median residual, and at least 10 px. The re-selection below re-admits them.
+        let start_obs: Vec<BundleObservation> = {
+            let mut r: Vec<f64> = first_obs.iter().filter_map(|o| residual_pixels(&state, o).map(|v| v.norm())).collect();
+            r.sort_by(f64::total_cmp);
+            let cut = r.get(r.len() / 2).map_or(f64::INFINITY, |m| (5.0 * m).max(10.0));
+            first_obs.iter().copied().filter(|o| residual_pixels(&state, o).is_some_and(|v| v.norm() <= cut)).collect()
+        };
+        match bundle_adjust(&state, &start_obs, &options.bundle).step("bundle adjustment") {
             Ok(r) => {
-                let selected = gate_of(&r.state);
                 if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-                    let sig = robust_sigma(&r.state, &all_obs);
-                    let within_first = first_obs.iter().filter(|o| residual_pixels(&r.state, o).is_some_and(|v| v.norm() <= options.reselect_sigmas * sig)).count();
-                    let none = all_obs.iter().filter(|o| residual_pixels(&r.state, o).is_none()).count();
-                    eprintln!("   robust sigma over all {:.3}, first_obs within {} , none {}", sig, within_first, none);
-                    let mut hist = std::collections::BTreeMap::new();
-                    for o in all_obs.iter().filter(|o| residual_pixels(&r.state, o).is_none()) {
-                        *hist.entry((o.view, o.side == Side::Left, origin_slot[o.point])).or_insert(0) += 1;
-                    }
-                    eprintln!("   none by (view, left, origin): {:?}", hist);
-                    let p = r.state.points.iter().filter(|p| p.z < 0.0).count();
-                    eprintln!("   points with z<0 in ref: {} of {}", p, r.state.points.len());
+                    eprintln!("BA start f {:.0}: iters {} term {} rms {:.3} -> {:.3}, f {:.1} {:.1}", state.left.fx, r.report.iterations, r.report.termination, r.report.initial_rms_px, r.report.final_rms_px, r.state.left.fx, r.state.left.fy);
                 }
-                if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-                    eprintln!("BA start f {:.0}: iters {} term {} rms {:.3} -> {:.3}, {} within the gate, f {:.1} {:.1}", state.left.fx, r.report.iterations, r.report.termination, r.report.initial_rms_px, r.report.final_rms_px, selected.len(), r.state.left.fx, r.state.left.fy);
-                }
-                if std::env::var_os("HEADALIGN_DEBUG2").is_some() {
-                    let mut big: Vec<(f64, usize, usize, bool, usize)> = first_obs.iter().filter_map(|o| residual_pixels(&r.state, o).map(|v| (v.norm(), o.point, o.view, o.side == Side::Left, origin_slot[o.point]))).collect();
-                    big.sort_by(|a, b| b.0.total_cmp(&a.0));
-                    for b in big.iter().take(12) { eprintln!("   res {:.1} point {} view {} left {} origin {} nobs {}", b.0, b.1, b.2, b.3, b.4, first_obs.iter().filter(|o| o.point == b.1).count()); }
-                }
-                if best.as_ref().is_none_or(|(_, b)| selected.len() > b.len()) {
-                    best = Some((r, selected));
+                if best.as_ref().is_none_or(|b| r.report.final_rms_px < b.report.final_rms_px) {
+                    best = Some(r);
                 }
             }
             Err(e) => last_err = Some(e),
         }
     }
-    let Some((first, mut selected)) = best else {
+    let Some(first) = best else {
         return Err(last_err.unwrap_or_else(|| AlignError::MissingMotion("no initialisation".into())));
     };
-    let first_report = first.report.clone();
-    // Alternate adjustment and re-selection of every raw observation by its residual until
-    // the selection is stable: observations wrongly rejected under an early solution come
-    // back as it improves.
-    let mut final_result = bundle_adjust(&first.state, &selected, &options.bundle).step("bundle adjustment (re-selected)")?;
-    for _ in 0..4 {
-        let next = gate_of(&final_result.state);
-        if next.len() == selected.len() && next.iter().zip(&selected).all(|(a, b)| a.point == b.point && a.view == b.view && a.side == b.side) {
-            break;
-        }
-        selected = next;
-        final_result = bundle_adjust(&final_result.state, &selected, &options.bundle).step("bundle adjustment (re-selected)")?;
-        if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-            let r = &final_result.report;
-            eprintln!("BA round: {} obs, iters {} term {} rms {:.3} -> {:.3} f {:.1} {:.1}", selected.len(), r.iterations, r.termination, r.initial_rms_px, r.final_rms_px, final_result.state.left.fx, final_result.state.left.fy);
-        }
-    }
-    let second_obs = selected;
+
+    // Points the first adjustment could not use (behind a camera under its start) are
+    // re-triangulated with the calibrated rig, then every raw observation is re-selected
+    // by its residual under the first solution.
+    let mut first = first;
+    retriangulate_lost_points(&mut first.state, &point_tracks, &origin_slot, &recon);
+    let sigma = robust_sigma(&first.state, &first_obs).max(0.05);
+    let gate = options.reselect_sigmas * sigma;
+    let second_obs: Vec<BundleObservation> = all_obs
+        .iter()
+        .copied()
+        .filter(|o| residual_pixels(&first.state, o).is_some_and(|r| r.norm() <= gate))
+        .collect();
+    let final_result = bundle_adjust(&first.state, &second_obs, &options.bundle).step("bundle adjustment (re-selected)")?;
+
     let report = EstimationReport {
         stereo_matches: pairs.len(),
         stereo_inliers: f_report.inliers.len(),
@@ -604,14 +567,22 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         bundle_observations: second_obs.len(),
         bundle_points: point_tracks.len(),
         bundle_iterations: final_result.report.iterations,
-        initial_rms_px: first_report.initial_rms_px,
+        initial_rms_px: first.report.initial_rms_px,
         final_rms_px: final_result.report.final_rms_px,
         sigma_px: final_result.report.sigma_px,
     };
-
     let mut point_observations = vec![0usize; point_tracks.len()];
+    let mut point_sides = vec![[false; 2]; point_tracks.len()];
     for o in &second_obs {
         point_observations[o.point] += 1;
+        point_sides[o.point][usize::from(o.side == Side::Right)] = true;
+    }
+    // A point seen by one camera only has its depth fixed by tiny rotation parallax: it is
+    // not counted as reconstructed.
+    for (n, sides) in point_observations.iter_mut().zip(&point_sides) {
+        if !(sides[0] && sides[1]) {
+            *n = 0;
+        }
     }
     Ok(RigCalibration { bundle: final_result, point_tracks, point_observations, reference_encoders: views[0].capture.encoders, report })
 }
@@ -656,7 +627,7 @@ impl InitContext<'_> {
         right: Intrinsics,
         right_from_left: Isometry3<f64>,
         ref_from_cam: &[Isometry3<f64>],
-        point_in_cam: impl Fn(usize, u64) -> Option<Point3<f64>>,
+        point_in_cam: impl Fn(&Vector4<f64>) -> Option<Point3<f64>>,
     ) -> Result<RigState, AlignError> {
         // Axes from single-joint views, directed like the encoder; the largest move wins.
         let mut axes: [Option<(Line, f64)>; 2] = [None, None];
@@ -681,34 +652,25 @@ impl InitContext<'_> {
         let (Some((pan_axis, _)), Some((elev_axis, _))) = (axes[0], axes[1]) else {
             return Err(AlignError::MissingMotion("single-joint rotations about pan and elevation".into()));
         };
-        // Points in the frame of the view that reconstructed them. A point that comes out
-        // behind the camera (the initial frame's plane at infinity can cut through a deep
-        // scene when the calibration guess is poor) starts instead on its left-image ray at
-        // a far depth (the 90th percentile of the valid depths); the adjustment then moves
-        // it, rather than leaving its observations out.
-        let mut in_cam: Vec<Option<Point3<f64>>> = Vec::with_capacity(self.point_tracks.len());
-        for (i, track) in self.point_tracks.iter().enumerate() {
-            let slot = self.origin_slot[i];
-            let p = point_in_cam(slot, *track);
-            in_cam.push(p.filter(|p| p.z > 0.0 && p.coords.iter().all(|v| v.is_finite())));
-        }
-        let mut depths: Vec<f64> = in_cam.iter().flatten().map(|p| p.z).collect();
-        if depths.len() < self.min_tracks {
-            return Err(AlignError::TooFewTracks { what: "reconstructed in front of the cameras".into(), needed: self.min_tracks, got: depths.len() });
-        }
-        depths.sort_by(f64::total_cmp);
-        let far = depths[depths.len() * 9 / 10];
         let mut points = Vec::with_capacity(self.point_tracks.len());
+        let mut in_front = 0;
         for (i, track) in self.point_tracks.iter().enumerate() {
             let slot = self.origin_slot[i];
-            let p = match in_cam[i] {
-                Some(p) => p,
-                None => {
-                    let pixel = self.recon[slot].get(track).map(|r| r.1).unwrap_or(Point2::new(left.cx, left.cy));
-                    Point3::from(left.unproject(&pixel) * far)
+            let p = self.recon[slot].get(track).and_then(|(x, _, _)| point_in_cam(x));
+            let p = match p {
+                Some(p) if p.coords.iter().all(|v| v.is_finite()) => {
+                    if p.z > 0.0 {
+                        in_front += 1;
+                    }
+                    p
                 }
+                // Keep the index layout; a point with no position starts far ahead.
+                _ => Point3::new(0.0, 0.0, 1e3),
             };
             points.push(ref_from_cam[slot] * p);
+        }
+        if in_front < self.min_tracks {
+            return Err(AlignError::TooFewTracks { what: "reconstructed in front of the cameras".into(), needed: self.min_tracks, got: in_front });
         }
         let angles: Vec<Vec<f64>> = self.commanded.iter().map(|c| c.to_vec()).collect();
         Ok(RigState {
@@ -751,57 +713,22 @@ fn linear_initial_state(
         let inv = d.inverse();
         ref_from_cam[m + 1] = Isometry3::from_parts((inv.translation.vector * scale).into(), inv.rotation);
     }
-    ctx.state(k_left, k_right, right_from_left, &ref_from_cam, |slot, track| {
-        let (x, _, _) = ctx.recon[slot].get(&track)?;
+    ctx.state(k_left, k_right, right_from_left, &ref_from_cam, |x| {
         dehomogenise3(&(h_pe * x)).map(|p| Point3::from(p.coords * scale))
     })
 }
 
-/// `K` of a rotating camera from its image homographies `G_i ~ K R_i K^-1` (Hartley's
-/// rotating-camera self-calibration: `G w* G^T = w*`, the solver of
-/// [`headalign_geometry::selfcal::dual_image_of_absolute_conic`]), in coordinates
-/// conditioned by `k0`. Falls back to `k0` if the conic is not positive definite.
-fn k_from_rotations(gs: &[Matrix3<f64>], k0: &Intrinsics) -> Intrinsics {
-    let (k, k_inv) = (k0.matrix(), k0.inverse_matrix());
-    let ms: Vec<Matrix3<f64>> = gs
-        .iter()
-        .filter_map(|g| {
-            let m = k_inv * g * k;
-            let d = m.determinant();
-            (d.is_finite() && d != 0.0).then(|| m / d.cbrt())
-        })
-        .collect();
-    headalign_geometry::selfcal::dual_image_of_absolute_conic(&ms)
-        .and_then(|w| headalign_geometry::selfcal::k_from_dual_conic(&w))
-        .and_then(|kn| Intrinsics::from_matrix(&(k * kn.matrix())))
-        .ok()
-        .filter(|kk| kk.fx > 0.3 * k0.fx && kk.fx < 3.0 * k0.fx && kk.fy > 0.3 * k0.fy && kk.fy < 3.0 * k0.fy)
-        .unwrap_or(*k0)
-}
-
-/// Initial state from the image homographies of the rotations: each camera's `K` by
-/// rotating-camera self-calibration, the rig from `E = K_R^T F K_L`, Euclidean
-/// triangulation, and each view's motion by resection of its left camera.
-fn rotation_initial_state(
-    ctx: &InitContext<'_>,
-    f: &FundamentalMatrix,
-    matches: &[(Point2<f64>, Point2<f64>)],
-    image_rotations: &[(Matrix3<f64>, Matrix3<f64>)],
-    k0: &Intrinsics,
-) -> Result<RigState, AlignError> {
-    let gl: Vec<Matrix3<f64>> = image_rotations.iter().map(|g| g.0).collect();
-    let gr: Vec<Matrix3<f64>> = image_rotations.iter().map(|g| g.1).collect();
-    let (k_left, k_right) = (k_from_rotations(&gl, k0), k_from_rotations(&gr, k0));
-    let right_from_left = relative_pose(&f.0, &k_left, &k_right, matches).step("relative pose of the rig")?;
-    let p_l = ProjectiveCamera::from_pose(&k_left, &Isometry3::identity());
-    let p_r = ProjectiveCamera::from_pose(&k_right, &right_from_left);
-    let triangulate = |slot: usize, track: u64| -> Option<Point3<f64>> {
-        let (_, l, r) = ctx.recon[slot].get(&track)?;
-        dehomogenise3(&triangulate_optimal(f, &p_l, &p_r, l, r).ok()?)
-    };
-    let reference: Vec<(u64, Point3<f64>)> =
-        ctx.recon[0].keys().filter_map(|&t| triangulate(0, t).filter(|p| p.z > 0.0).map(|p| (t, p))).collect();
-    let reference: HashMap<u64, Point3<f64>> = reference.into_iter().collect();
+/// Initial state with `K = K0` for both cameras, the rig of the frame's essential-matrix
+/// decomposition, and each view's motion by resection of its left camera against the
+/// reference view's quasi-Euclidean points.
+fn rough_initial_state(ctx: &InitContext<'_>, frame: &StereoFrame) -> Result<RigState, AlignError> {
+    let k0 = frame.k0;
+    let t = frame.right_conditioned.column(3).into_owned();
+    let rot = headalign_geometry::so3::nearest_rotation(&frame.rotation_guess)
+        .ok_or_else(|| AlignError::Geometry { step: "rough initialisation".into(), cause: headalign_geometry::GeometryError::Numerical("SVD failed".into()) })?;
+    let right_from_left = Isometry3::from_parts(t.into(), nalgebra::UnitQuaternion::from_rotation_matrix(&rot));
+    let reference: HashMap<u64, Point3<f64>> =
+        ctx.recon[0].iter().filter_map(|(&track, (x, _, _))| dehomogenise3(x).map(|p| (track, p))).collect();
     let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
     for slot in 1..ctx.rig.len() {
         let (mut p3, mut p2) = (Vec::new(), Vec::new());
@@ -812,11 +739,11 @@ fn rotation_initial_state(
             }
         }
         let options = headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
-        let r = headalign_geometry::resection::resect(&k_left, &p3, &p2, &Isometry3::identity(), &options)
-            .step(&format!("initial motion of view '{}'", ctx.views[ctx.rig[slot]].name))?;
+        let r = headalign_geometry::resection::resect(&k0, &p3, &p2, &Isometry3::identity(), &options)
+            .step(&format!("rough initialisation of view '{}'", ctx.views[ctx.rig[slot]].name))?;
         ref_from_cam[slot] = r.cam_from_world.inverse();
     }
-    ctx.state(k_left, k_right, right_from_left, &ref_from_cam, triangulate)
+    ctx.state(k0, k0, right_from_left, &ref_from_cam, dehomogenise3)
 }
 
 /// RANSAC adapter for 3D homographies whose least-squares fit (used by local
@@ -856,25 +783,24 @@ impl Estimator for PolishedHomography<'_> {
 /// Indices of the quadruplets consistent with a plane homography in both the left and the
 /// right image pair (4-point RANSAC, `threshold_px`). If a RANSAC fails (too few
 /// quadruplets), every quadruplet passes and the 3D stage decides.
-fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> (Vec<usize>, Option<(Matrix3<f64>, Matrix3<f64>)>) {
+fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> Vec<usize> {
     let options = RansacOptions { threshold: threshold_px, seed, ..RansacOptions::default() };
     let left: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.left0, q.left1)).collect();
     let right: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.right0, q.right1)).collect();
-    let keep = |data: &[(Point2<f64>, Point2<f64>)]| -> (Vec<bool>, Option<Matrix3<f64>>) {
+    let keep = |data: &[(Point2<f64>, Point2<f64>)]| -> Vec<bool> {
         match ransac(&Homography2Estimator, data, &options) {
             Ok(rep) => {
                 let mut mask = vec![false; data.len()];
                 for i in rep.inliers {
                     mask[i] = true;
                 }
-                (mask, Some(rep.model.0))
+                mask
             }
-            Err(_) => (vec![true; data.len()], None),
+            Err(_) => vec![true; data.len()],
         }
     };
-    let ((l, gl), (r, gr)) = (keep(&left), keep(&right));
-    let kept = (0..quads.len()).filter(|&i| l[i] && r[i]).collect();
-    (kept, gl.zip(gr))
+    let (l, r) = (keep(&left), keep(&right));
+    (0..quads.len()).filter(|&i| l[i] && r[i]).collect()
 }
 
 /// `start` polished by Levenberg-Marquardt on the transfer error of `subset`; `None` if the
@@ -889,4 +815,31 @@ fn polish(
     let sub: Vec<Quadruplet> = subset.iter().map(|&i| quads[i]).collect();
     let m = refine_transfer(start, p_l, p_r, &sub).ok()?;
     (m.h.0.determinant() > 0.0).then_some(m)
+}
+
+/// Re-triangulate, with the calibrated rig of `state`, every point that lies behind the
+/// reference camera or is not finite, from the stereo match of the view that first
+/// reconstructed it; points that still do not triangulate in front are left as they are.
+fn retriangulate_lost_points(
+    state: &mut RigState,
+    point_tracks: &[u64],
+    origin_slot: &[usize],
+    recon: &[BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>],
+) {
+    let p_l = ProjectiveCamera::from_pose(&state.left, &Isometry3::identity());
+    let p_r = ProjectiveCamera::from_pose(&state.right, &state.right_from_left);
+    for (i, track) in point_tracks.iter().enumerate() {
+        let slot = origin_slot[i];
+        let cam_from_ref = state.motions.ref_from_cam(slot).inverse();
+        let ok = state.points.get(i).is_some_and(|p| p.coords.iter().all(|v| v.is_finite()) && (cam_from_ref * p).z > 0.0);
+        if ok {
+            continue;
+        }
+        let Some((_, l, r)) = recon[slot].get(track) else { continue };
+        let Ok(x) = headalign_geometry::triangulation::triangulate_linear(&p_l, &p_r, l, r) else { continue };
+        let Some(p) = dehomogenise3(&x) else { continue };
+        if p.z > 0.0 && (state.right_from_left * p).z > 0.0 {
+            state.points[i] = state.motions.ref_from_cam(slot) * p;
+        }
+    }
 }

@@ -1,6 +1,7 @@
 //! The verge/tilt procedure over any [`StereoHead`] (DESIGN.md section 2 steps 1-5, paper
-//! section 3.2): capture an initial view; rotate elevation, capture; return and rotate pan,
-//! capture; return and rotate both vergences, capture; return. Estimate the rig and head
+//! section 3.2): capture an initial view; rotate elevation, capture; rotate pan (from the
+//! initial position), capture — by default each both ways (+r and -r), which doubles the
+//! angular span per axis; rotate both vergences, capture; return. Estimate the rig and head
 //! ([`crate::estimate`]), measure the vergence axes by resection, compute the aligned
 //! readings exactly ([`crate::alignment`]), move there, capture again and check the result
 //! by vision; if the measured error exceeds the tolerance, re-measure the vergence axes from
@@ -32,6 +33,9 @@ pub struct VergeTiltOptions {
     pub rotation_deg: f64,
     /// Vergence rotation used to measure the vergence axes, degrees (default 3).
     pub verge_rotation_deg: f64,
+    /// Rotate each of elevation and pan both ways (+r and -r), five rig views instead of
+    /// three (default true): twice the angular span per axis, about half the error.
+    pub both_directions: bool,
     /// Estimation options.
     pub estimation: EstimationOptions,
     /// Correct again when a measured alignment error exceeds this, degrees (default 0.02).
@@ -45,6 +49,7 @@ impl Default for VergeTiltOptions {
         Self {
             rotation_deg: 3.0,
             verge_rotation_deg: 3.0,
+            both_directions: true,
             estimation: EstimationOptions::default(),
             check_tolerance_deg: 0.02,
             max_corrections: 2,
@@ -128,17 +133,27 @@ impl VergeTiltRun {
         let e0 = head.read_encoders()?;
         let r = options.rotation_deg;
         self.capture(head, "initial")?;
-        head.move_to(&e0.moved(Joint::Elevation, r))?;
-        self.capture(head, "elevation")?;
-        head.move_to(&e0.moved(Joint::Pan, r))?;
-        self.capture(head, "pan")?;
+        let mut moves = vec![("elevation", Joint::Elevation, r), ("pan", Joint::Pan, r)];
+        if options.both_directions {
+            moves = vec![
+                ("elevation+", Joint::Elevation, r),
+                ("elevation-", Joint::Elevation, -r),
+                ("pan+", Joint::Pan, r),
+                ("pan-", Joint::Pan, -r),
+            ];
+        }
+        for (name, joint, angle) in moves {
+            head.move_to(&e0.moved(joint, angle))?;
+            self.capture(head, name)?;
+        }
+        let rig_views = self.views.len();
         let v = options.verge_rotation_deg;
         head.move_to(&e0.moved(Joint::VergeLeft, v).moved(Joint::VergeRight, v))?;
         let verge_view = self.capture(head, "verge")?;
         head.move_to(&e0)?;
 
         let t0 = Instant::now();
-        let calibration = estimate_rig(&self.views[..3], &options.estimation)?;
+        let calibration = estimate_rig(&self.views[..rig_views], &options.estimation)?;
         let state = &calibration.bundle.state;
         let reference = self.views[0].capture.encoders;
         let left0 = nalgebra::Isometry3::identity();
