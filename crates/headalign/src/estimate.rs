@@ -26,7 +26,7 @@ use headalign_geometry::bundle::{
     BundleObservation, BundleOptions, BundleResult, Motions, RigState, Side, bundle_adjust, residual_pixels,
 };
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
-use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame};
+use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame, relative_pose};
 use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
 use headalign_geometry::homography3d::{Homography3Estimator, Quadruplet, TransferModel, refine_transfer, symmetric_transfer_error};
 use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
@@ -36,7 +36,7 @@ use headalign_geometry::selfcal::{decompose_camera, linear_self_calibration};
 use headalign_geometry::so3::{Line, screw_from_isometry};
 use headalign_geometry::triangulation::triangulate_optimal;
 use headalign_platform::{Encoders, Joint, StereoCapture};
-use nalgebra::{Isometry3, Point2, Point3, Vector4};
+use nalgebra::{Isometry3, Matrix3, Point2, Point3, Vector4};
 use serde::Serialize;
 
 use crate::error::{AlignError, StepContext};
@@ -44,6 +44,11 @@ use crate::observations::View;
 
 /// Encoder differences below this (degrees) count as "did not move".
 pub const MOVED_DEG: f64 = 1e-6;
+
+/// Iterations of the short adjustment that screens each initialisation.
+pub const SCREEN_ITERATIONS: usize = 40;
+/// Minimum iterations of the final adjustment (robust IRLS converges linearly).
+pub const FINAL_ITERATIONS: usize = 300;
 
 /// Default standard deviation of a commanded joint rotation, degrees: the resolution of a
 /// typical head encoder. The prior on each rotation angle is what fixes the focal lengths
@@ -81,7 +86,11 @@ impl Default for EstimationOptions {
             fundamental: RansacOptions { threshold: 3.0, ..RansacOptions::default() },
             homography: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
             prefilter_px: 6.0,
-            bundle: BundleOptions { angle_prior_sigma: Some(ENCODER_SIGMA_DEG.to_radians()), ..BundleOptions::default() },
+            bundle: BundleOptions {
+                angle_prior_sigma: Some(ENCODER_SIGMA_DEG.to_radians()),
+                function_tolerance: 1e-9,
+                ..BundleOptions::default()
+            },
             reselect_sigmas: 3.5,
             min_tracks: 20,
             seed: 0,
@@ -337,6 +346,8 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     let mut h_reports = Vec::new();
     let mut homographies = Vec::new();
     let mut quad_inliers: Vec<Vec<u64>> = vec![Vec::new(); rig.len()];
+    // Plane homographies (left, right) of each rotation, for the rotation-based start.
+    let mut image_rotations: Vec<(Matrix3<f64>, Matrix3<f64>)> = Vec::new();
     for (slot, &vi) in rig.iter().enumerate().skip(1) {
         let mut tracks = Vec::new();
         let mut quads = Vec::new();
@@ -359,7 +370,10 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         // left0 -> left1 and right0 -> right1 (robust); then the 5-point 3D DLT RANSAC
         // (polished on transfer error) runs on the screened set, and guided re-selection
         // over all quadruplets with the 3D homography repeats until the set is stable.
-        let screened = screen_rotation(&quads, options.prefilter_px, opts.seed);
+        let (screened, plane_homographies) = screen_rotation(&quads, options.prefilter_px, opts.seed);
+        if let Some(g) = plane_homographies {
+            image_rotations.push(g);
+        }
         if screened.len() < options.min_tracks {
             return Err(AlignError::TooFewTracks {
                 what: format!("consistent with a rotation between '{}' and '{}'", views[0].name, views[vi].name),
@@ -473,13 +487,14 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         .collect();
     let ctx = InitContext { views, rig: &rig, recon: &recon, point_tracks: &point_tracks, origin_slot: &origin_slot, commanded: &commanded, min_tracks: options.min_tracks };
 
-    // --- 5. Two initialisations of the bundle adjustment: the linear self-calibration
-    // chain (paper section 3.1) and, as a safeguard when the linear chain is too noisy
-    // (small rotations), a rough one (K = image-width guess, motions by resection in the
-    // quasi-Euclidean frame). The commanded angles make the adjustment well posed from
-    // either; the solution with the lower cost wins.
+    // --- 5. Three initialisations of the bundle adjustment: the linear self-calibration
+    // chain (paper section 3.1); the image homographies of the rotations (each camera's K
+    // by rotating-camera self-calibration, better conditioned than the 3D chain with small
+    // rotations); and a rough one (K = image-width guess, motions by resection in the
+    // quasi-Euclidean frame). The solution with the lowest RMS wins.
     let linear = linear_initial_state(&ctx, &homographies, &k0, &p_r);
     let rough = rough_initial_state(&ctx, &frame);
+    let rotation = rotation_initial_state(&ctx, &f, &inlier_pairs, &image_rotations, &k0);
     let point_index: BTreeMap<u64, usize> = point_tracks.iter().enumerate().map(|(i, &t)| (t, i)).collect();
 
     // All raw observations of these tracks in the rig views.
@@ -508,7 +523,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     let mut linear_focal = [f64::NAN; 4];
     let mut best: Option<BundleResult> = None;
     let mut last_err = None;
-    for init in [linear, rough] {
+    for init in [linear, rotation, rough] {
         let state = match init {
             Ok(s) => s,
             Err(e) => {
@@ -528,7 +543,9 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             let cut = r.get(r.len() / 2).map_or(f64::INFINITY, |m| (5.0 * m).max(10.0));
             first_obs.iter().copied().filter(|o| residual_pixels(&state, o).is_some_and(|v| v.norm() <= cut)).collect()
         };
-        match bundle_adjust(&state, &start_obs, &options.bundle).step("bundle adjustment") {
+        // A short adjustment screens each start; only the best continues to convergence.
+        let screen = BundleOptions { max_iterations: options.bundle.max_iterations.min(SCREEN_ITERATIONS), ..options.bundle.clone() };
+        match bundle_adjust(&state, &start_obs, &screen).step("bundle adjustment") {
             Ok(r) => {
                 if std::env::var_os("HEADALIGN_DEBUG").is_some() {
                     eprintln!("BA start f {:.0}: iters {} term {} rms {:.3} -> {:.3}, f {:.1} {:.1}", state.left.fx, r.report.iterations, r.report.termination, r.report.initial_rms_px, r.report.final_rms_px, r.state.left.fx, r.state.left.fy);
@@ -556,7 +573,8 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         .copied()
         .filter(|o| residual_pixels(&first.state, o).is_some_and(|r| r.norm() <= gate))
         .collect();
-    let final_result = bundle_adjust(&first.state, &second_obs, &options.bundle).step("bundle adjustment (re-selected)")?;
+    let full = BundleOptions { max_iterations: options.bundle.max_iterations.max(FINAL_ITERATIONS), ..options.bundle.clone() };
+    let final_result = bundle_adjust(&first.state, &second_obs, &full).step("bundle adjustment (re-selected)")?;
 
     let report = EstimationReport {
         stereo_matches: pairs.len(),
@@ -627,7 +645,7 @@ impl InitContext<'_> {
         right: Intrinsics,
         right_from_left: Isometry3<f64>,
         ref_from_cam: &[Isometry3<f64>],
-        point_in_cam: impl Fn(&Vector4<f64>) -> Option<Point3<f64>>,
+        point_in_cam: impl Fn(usize, u64) -> Option<Point3<f64>>,
     ) -> Result<RigState, AlignError> {
         // Axes from single-joint views, directed like the encoder; the largest move wins.
         let mut axes: [Option<(Line, f64)>; 2] = [None, None];
@@ -656,7 +674,7 @@ impl InitContext<'_> {
         let mut in_front = 0;
         for (i, track) in self.point_tracks.iter().enumerate() {
             let slot = self.origin_slot[i];
-            let p = self.recon[slot].get(track).and_then(|(x, _, _)| point_in_cam(x));
+            let p = point_in_cam(slot, *track);
             let p = match p {
                 Some(p) if p.coords.iter().all(|v| v.is_finite()) => {
                     if p.z > 0.0 {
@@ -713,7 +731,8 @@ fn linear_initial_state(
         let inv = d.inverse();
         ref_from_cam[m + 1] = Isometry3::from_parts((inv.translation.vector * scale).into(), inv.rotation);
     }
-    ctx.state(k_left, k_right, right_from_left, &ref_from_cam, |x| {
+    ctx.state(k_left, k_right, right_from_left, &ref_from_cam, |slot, track| {
+        let (x, _, _) = ctx.recon[slot].get(&track)?;
         dehomogenise3(&(h_pe * x)).map(|p| Point3::from(p.coords * scale))
     })
 }
@@ -743,7 +762,72 @@ fn rough_initial_state(ctx: &InitContext<'_>, frame: &StereoFrame) -> Result<Rig
             .step(&format!("rough initialisation of view '{}'", ctx.views[ctx.rig[slot]].name))?;
         ref_from_cam[slot] = r.cam_from_world.inverse();
     }
-    ctx.state(k0, k0, right_from_left, &ref_from_cam, dehomogenise3)
+    ctx.state(k0, k0, right_from_left, &ref_from_cam, |slot, track| {
+        let (x, _, _) = ctx.recon[slot].get(&track)?;
+        dehomogenise3(x)
+    })
+}
+
+/// `K` of a rotating camera from its image homographies `G_i ~ K R_i K^-1` (Hartley's
+/// rotating-camera self-calibration: `G w* G^T = w*`, the solver of
+/// [`headalign_geometry::selfcal::dual_image_of_absolute_conic`]), in coordinates
+/// conditioned by `k0`. Falls back to `k0` if the conic is not positive definite.
+fn k_from_rotations(gs: &[Matrix3<f64>], k0: &Intrinsics) -> Intrinsics {
+    let (k, k_inv) = (k0.matrix(), k0.inverse_matrix());
+    let ms: Vec<Matrix3<f64>> = gs
+        .iter()
+        .filter_map(|g| {
+            let m = k_inv * g * k;
+            let d = m.determinant();
+            (d.is_finite() && d != 0.0).then(|| m / d.cbrt())
+        })
+        .collect();
+    headalign_geometry::selfcal::dual_image_of_absolute_conic(&ms)
+        .and_then(|w| headalign_geometry::selfcal::k_from_dual_conic(&w))
+        .and_then(|kn| Intrinsics::from_matrix(&(k * kn.matrix())))
+        .ok()
+        .filter(|kk| kk.fx > 0.3 * k0.fx && kk.fx < 3.0 * k0.fx && kk.fy > 0.3 * k0.fy && kk.fy < 3.0 * k0.fy)
+        .unwrap_or(*k0)
+}
+
+/// Initial state from the image homographies of the rotations: each camera's `K` by
+/// rotating-camera self-calibration, the rig from `E = K_R^T F K_L`, Euclidean
+/// triangulation, and each view's motion by resection of its left camera.
+fn rotation_initial_state(
+    ctx: &InitContext<'_>,
+    f: &FundamentalMatrix,
+    matches: &[(Point2<f64>, Point2<f64>)],
+    image_rotations: &[(Matrix3<f64>, Matrix3<f64>)],
+    k0: &Intrinsics,
+) -> Result<RigState, AlignError> {
+    let gl: Vec<Matrix3<f64>> = image_rotations.iter().map(|g| g.0).collect();
+    let gr: Vec<Matrix3<f64>> = image_rotations.iter().map(|g| g.1).collect();
+    let (k_left, k_right) = (k_from_rotations(&gl, k0), k_from_rotations(&gr, k0));
+    let right_from_left = relative_pose(&f.0, &k_left, &k_right, matches).step("relative pose of the rig")?;
+    let p_l = ProjectiveCamera::from_pose(&k_left, &Isometry3::identity());
+    let p_r = ProjectiveCamera::from_pose(&k_right, &right_from_left);
+    let triangulate = |slot: usize, track: u64| -> Option<Point3<f64>> {
+        let (_, l, r) = ctx.recon[slot].get(&track)?;
+        dehomogenise3(&triangulate_optimal(f, &p_l, &p_r, l, r).ok()?)
+    };
+    let reference: Vec<(u64, Point3<f64>)> =
+        ctx.recon[0].keys().filter_map(|&t| triangulate(0, t).filter(|p| p.z > 0.0).map(|p| (t, p))).collect();
+    let reference: HashMap<u64, Point3<f64>> = reference.into_iter().collect();
+    let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
+    for slot in 1..ctx.rig.len() {
+        let (mut p3, mut p2) = (Vec::new(), Vec::new());
+        for o in &ctx.views[ctx.rig[slot]].capture.left {
+            if let Some(p) = reference.get(&o.track) {
+                p3.push(*p);
+                p2.push(o.pixel);
+            }
+        }
+        let options = headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
+        let r = headalign_geometry::resection::resect(&k_left, &p3, &p2, &Isometry3::identity(), &options)
+            .step(&format!("initial motion of view '{}'", ctx.views[ctx.rig[slot]].name))?;
+        ref_from_cam[slot] = r.cam_from_world.inverse();
+    }
+    ctx.state(k_left, k_right, right_from_left, &ref_from_cam, triangulate)
 }
 
 /// RANSAC adapter for 3D homographies whose least-squares fit (used by local
@@ -783,24 +867,25 @@ impl Estimator for PolishedHomography<'_> {
 /// Indices of the quadruplets consistent with a plane homography in both the left and the
 /// right image pair (4-point RANSAC, `threshold_px`). If a RANSAC fails (too few
 /// quadruplets), every quadruplet passes and the 3D stage decides.
-fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> Vec<usize> {
+fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> (Vec<usize>, Option<(Matrix3<f64>, Matrix3<f64>)>) {
     let options = RansacOptions { threshold: threshold_px, seed, ..RansacOptions::default() };
     let left: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.left0, q.left1)).collect();
     let right: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.right0, q.right1)).collect();
-    let keep = |data: &[(Point2<f64>, Point2<f64>)]| -> Vec<bool> {
+    let keep = |data: &[(Point2<f64>, Point2<f64>)]| -> (Vec<bool>, Option<Matrix3<f64>>) {
         match ransac(&Homography2Estimator, data, &options) {
             Ok(rep) => {
                 let mut mask = vec![false; data.len()];
                 for i in rep.inliers {
                     mask[i] = true;
                 }
-                mask
+                (mask, Some(rep.model.0))
             }
-            Err(_) => vec![true; data.len()],
+            Err(_) => (vec![true; data.len()], None),
         }
     };
-    let (l, r) = (keep(&left), keep(&right));
-    (0..quads.len()).filter(|&i| l[i] && r[i]).collect()
+    let ((l, gl), (r, gr)) = (keep(&left), keep(&right));
+    let kept = (0..quads.len()).filter(|&i| l[i] && r[i]).collect();
+    (kept, gl.zip(gr))
 }
 
 /// `start` polished by Levenberg-Marquardt on the transfer error of `subset`; `None` if the
