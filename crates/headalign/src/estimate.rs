@@ -45,6 +45,10 @@ use crate::observations::View;
 /// Encoder differences below this (degrees) count as "did not move".
 pub const MOVED_DEG: f64 = 1e-6;
 
+/// Points farther than this many times the median point distance, or nearer than its
+/// inverse, are treated as wrong tracks (a scene spans far less than a factor 100).
+pub const DEPTH_RATIO: f64 = 10.0;
+
 /// Iterations of the short adjustment that screens each initialisation.
 pub const SCREEN_ITERATIONS: usize = 40;
 /// Minimum iterations of the final adjustment (robust IRLS converges linearly).
@@ -574,7 +578,24 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         .filter(|o| residual_pixels(&first.state, o).is_some_and(|r| r.norm() <= gate))
         .collect();
     let full = BundleOptions { max_iterations: options.bundle.max_iterations.max(FINAL_ITERATIONS), ..options.bundle.clone() };
-    let final_result = bundle_adjust(&first.state, &second_obs, &full).step("bundle adjustment (re-selected)")?;
+    let mut final_result = bundle_adjust(&first.state, &second_obs, &full).step("bundle adjustment (re-selected)")?;
+    // Wrong tracks can be "explained" by a point at an absurd depth (at the camera, or near
+    // infinity): points farther than DEPTH_RATIO times the median distance, or nearer than
+    // its inverse, are outliers; their observations go and the adjustment runs once more.
+    let mut second_obs = second_obs;
+    let mut dist: Vec<f64> = final_result.state.points.iter().map(|p| p.coords.norm()).collect();
+    dist.sort_by(f64::total_cmp);
+    if let Some(&median) = dist.get(dist.len() / 2) {
+        let wild = |i: usize| {
+            let d = final_result.state.points[i].coords.norm();
+            !(d.is_finite() && d <= median * DEPTH_RATIO && d >= median / DEPTH_RATIO)
+        };
+        let kept: Vec<BundleObservation> = second_obs.iter().copied().filter(|o| !wild(o.point)).collect();
+        if kept.len() < second_obs.len() {
+            second_obs = kept;
+            final_result = bundle_adjust(&final_result.state, &second_obs, &full).step("bundle adjustment (wild points removed)")?;
+        }
+    }
 
     let report = EstimationReport {
         stereo_matches: pairs.len(),
