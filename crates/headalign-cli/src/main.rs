@@ -21,8 +21,21 @@ use headalign_platform::{Joint, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead, calibration_errors};
 use serde_json::{Value, json};
 
+/// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
+/// head`, is not a failure of the command and must not panic).
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+
 #[derive(Parser)]
-#[command(name = "headalign", version, about = "Self-alignment and self-calibration of an active stereo camera head")]
+#[command(
+    name = "headalign",
+    version,
+    about = "Self-alignment and self-calibration of an active stereo camera head"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -64,7 +77,8 @@ impl ScenarioArgs {
     fn scenario(&self) -> Result<Scenario> {
         let mut s = match &self.scenario {
             Some(path) => {
-                let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+                let text = std::fs::read_to_string(path)
+                    .with_context(|| format!("cannot read {}", path.display()))?;
                 Scenario::from_toml_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
             }
             None => Scenario::default(),
@@ -165,7 +179,9 @@ fn axis_json(line: &Line, calib: &RigCalibration, index: usize) -> Value {
 
 fn verge_json(line: &Option<Line>) -> Value {
     match line {
-        Some(l) => json!({"direction": [l.direction.x, l.direction.y, l.direction.z], "point_baselines": [l.point.x, l.point.y, l.point.z]}),
+        Some(l) => {
+            json!({"direction": [l.direction.x, l.direction.y, l.direction.z], "point_baselines": [l.point.x, l.point.y, l.point.z]})
+        }
         None => Value::Null,
     }
 }
@@ -193,8 +209,12 @@ fn demo(args: &DemoArgs) -> Result<()> {
     let st = &outcome.calibration.bundle.state;
     let truth = head.truth().clone();
     let cal = calibration_errors(&truth.left, &truth.right, &st.left, &st.right);
-    let recon = head.recon_err_pct(&outcome.calibration.reference_encoders, &outcome.calibration.points()).ok();
+    let recon =
+        head.recon_err_pct(&outcome.calibration.reference_encoders, &outcome.calibration.points()).ok();
     let true_aligned = head.aligned_encoders();
+    // What no joint can remove: the right camera's elevation error at the true aligned
+    // readings (its mounting relative to the left camera).
+    let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
     let report = &outcome.calibration.report;
     if args.json {
         let out = json!({
@@ -202,6 +222,8 @@ fn demo(args: &DemoArgs) -> Result<()> {
             "errors": {
                 "verge_err_l_deg": after.verge_err_l_deg, "verge_err_r_deg": after.verge_err_r_deg,
                 "elev_err_l_deg": after.elev_err_l_deg, "elev_err_r_deg": after.elev_err_r_deg,
+                "elev_err_r_unavoidable_deg": unavoidable_r,
+                "elev_err_r_excess_deg": after.elev_err_r_deg - unavoidable_r,
                 "f_err_pct": cal.f_err_pct, "aspect_err_pct": cal.aspect_err_pct, "pp_err_pct": cal.pp_err_pct,
                 "recon_err_pct": recon,
             },
@@ -225,13 +247,20 @@ fn demo(args: &DemoArgs) -> Result<()> {
             "report": serde_json::to_value(report)?,
             "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total},
         });
-        println!("{}", serde_json::to_string_pretty(&out)?);
+        say!("{}", serde_json::to_string_pretty(&out)?);
         return Ok(());
     }
-    println!("headalign demo: simulated head '{}' (seed {}, noise {} px, {} points, {:.0} % outliers, {} deg rotations)",
-        "yorick", scenario.seed, scenario.noise_px, scenario.points, 100.0 * scenario.outlier_fraction, scenario.rotation_deg);
-    println!();
-    println!("{:<22} {:>12} {:>12} {:>10}", "calibration", "estimate", "truth", "sigma");
+    say!(
+        "headalign demo: simulated head '{}' (seed {}, noise {} px, {} points, {:.0} % outliers, {} deg rotations)",
+        "yorick",
+        scenario.seed,
+        scenario.noise_px,
+        scenario.points,
+        100.0 * scenario.outlier_fraction,
+        scenario.rotation_deg
+    );
+    say!();
+    say!("{:<22} {:>12} {:>12} {:>10}", "calibration", "estimate", "truth", "sigma");
     let rows: [(&str, f64, f64, Option<f64>); 8] = [
         ("left fx (px)", st.left.fx, truth.left.fx, sigma(&outcome.calibration, "left.fx")),
         ("left fy (px)", st.left.fy, truth.left.fy, sigma(&outcome.calibration, "left.fy")),
@@ -243,10 +272,16 @@ fn demo(args: &DemoArgs) -> Result<()> {
         ("right cy (px)", st.right.cy, truth.right.cy, sigma(&outcome.calibration, "right.cy")),
     ];
     for (name, e, t, s) in rows {
-        println!("{:<22} {:>12.2} {:>12.2} {:>10}", name, e, t, s.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into()));
+        say!(
+            "{:<22} {:>12.2} {:>12.2} {:>10}",
+            name,
+            e,
+            t,
+            s.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into())
+        );
     }
-    println!();
-    println!("{:<22} {:>12} {:>12} {:>10}", "aligned reading (deg)", "estimate", "truth", "sigma");
+    say!();
+    say!("{:<22} {:>12} {:>12} {:>10}", "aligned reading (deg)", "estimate", "truth", "sigma");
     let sig = outcome.sigmas;
     let a = outcome.solution.aligned_encoders;
     for (name, e, t, s) in [
@@ -254,28 +289,43 @@ fn demo(args: &DemoArgs) -> Result<()> {
         ("verge left", a.verge_left, true_aligned.verge_left, sig.verge_left_deg),
         ("verge right", a.verge_right, true_aligned.verge_right, sig.verge_right_deg),
     ] {
-        println!("{:<22} {:>12.3} {:>12.3} {:>10.3}", name, e, t, s);
+        say!("{:<22} {:>12.3} {:>12.3} {:>10.3}", name, e, t, s);
     }
-    println!();
-    println!("{:<22} {:>12} {:>12}", "alignment error (deg)", "before", "after");
+    say!();
+    say!("{:<22} {:>12} {:>12}", "alignment error (deg)", "before", "after");
     for (name, b, x) in [
         ("verge left", before.verge_err_l_deg, after.verge_err_l_deg),
         ("verge right", before.verge_err_r_deg, after.verge_err_r_deg),
         ("elevation left", before.elev_err_l_deg, after.elev_err_l_deg),
         ("elevation right", before.elev_err_r_deg, after.elev_err_r_deg),
     ] {
-        println!("{:<22} {:>12.3} {:>12.3}", name, b, x);
+        say!("{:<22} {:>12.3} {:>12.3}", name, b, x);
     }
-    println!("  (right elevation error predicted from the calibration: {:.3} deg; the shared elevation joint cannot remove it)",
-        outcome.solution.predicted_elev_err_r_deg);
-    println!();
-    println!("f_err {:.3} %   aspect_err {:.3} %   pp_err {:.3} %   recon_err {}",
-        cal.f_err_pct, cal.aspect_err_pct, cal.pp_err_pct, recon.map(|r| format!("{r:.2} %")).unwrap_or_else(|| "-".into()));
-    println!("stereo inliers {}/{}, bundle: {} points, {} observations, RMS {:.3} -> {:.3} px, sigma {:.3} px",
-        report.stereo_inliers, report.stereo_matches, report.bundle_points, report.bundle_observations,
-        report.initial_rms_px, report.final_rms_px, report.sigma_px);
-    println!("checks after moving: {}", outcome.checks.len());
-    println!("time: estimation {:.1} ms, total {:.1} ms", 1e3 * outcome.estimation_seconds, 1e3 * total);
+    say!(
+        "  (right elevation: {:.3} deg of it cannot be removed by any joint (true mounting); predicted from the calibration: {:.3} deg)",
+        unavoidable_r,
+        outcome.solution.predicted_elev_err_r_deg
+    );
+    say!();
+    say!(
+        "f_err {:.3} %   aspect_err {:.3} %   pp_err {:.3} %   recon_err {}",
+        cal.f_err_pct,
+        cal.aspect_err_pct,
+        cal.pp_err_pct,
+        recon.map(|r| format!("{r:.2} %")).unwrap_or_else(|| "-".into())
+    );
+    say!(
+        "stereo inliers {}/{}, bundle: {} points, {} observations, RMS {:.3} -> {:.3} px, sigma {:.3} px",
+        report.stereo_inliers,
+        report.stereo_matches,
+        report.bundle_points,
+        report.bundle_observations,
+        report.initial_rms_px,
+        report.final_rms_px,
+        report.sigma_px
+    );
+    say!("checks after moving: {}", outcome.checks.len());
+    say!("time: estimation {:.1} ms, total {:.1} ms", 1e3 * outcome.estimation_seconds, 1e3 * total);
     Ok(())
 }
 
@@ -283,7 +333,12 @@ fn align(args: &AlignArgs) -> Result<()> {
     let views = read_session(&args.observations)?;
     let t0 = Instant::now();
     let roles = classify_views(&views)?;
-    let rig: Vec<View> = views.iter().zip(&roles).filter(|(_, r)| !matches!(r, ViewRole::Verge)).map(|(v, _)| v.clone()).collect();
+    let rig: Vec<View> = views
+        .iter()
+        .zip(&roles)
+        .filter(|(_, r)| !matches!(r, ViewRole::Verge))
+        .map(|(v, _)| v.clone())
+        .collect();
     let calib = estimate_rig(&rig, &EstimationOptions::default())?;
     let state = &calib.bundle.state;
     let reference = views[0].capture.encoders;
@@ -293,7 +348,8 @@ fn align(args: &AlignArgs) -> Result<()> {
         let d = |j: Joint| (v.capture.encoders.get(j) - reference.get(j)).to_radians();
         let chain = headalign::alignment::head_motion(state, d(Joint::Pan), d(Joint::Elevation))
             .context("head model")?;
-        let measured = measure_cameras(&calib, &v.capture, &chain, &(chain * state.right_from_left.inverse()))?;
+        let measured =
+            measure_cameras(&calib, &v.capture, &chain, &(chain * state.right_from_left.inverse()))?;
         verge = verge_axes_from_motion(state, &reference, &v.capture.encoders, &measured)?;
     }
     let solution = solve_alignment(state, &verge, &reference)?;
@@ -320,23 +376,42 @@ fn align(args: &AlignArgs) -> Result<()> {
             "report": serde_json::to_value(&calib.report)?,
             "seconds": seconds,
         });
-        println!("{}", serde_json::to_string_pretty(&out)?);
+        say!("{}", serde_json::to_string_pretty(&out)?);
         return Ok(());
     }
     let show_k = |name: &str, k: &Intrinsics| {
-        println!("{name} K = [[{:.2}, {:.3}, {:.2}], [0, {:.2}, {:.2}], [0, 0, 1]]", k.fx, k.skew, k.cx, k.fy, k.cy);
+        say!(
+            "{name} K = [[{:.2}, {:.3}, {:.2}], [0, {:.2}, {:.2}], [0, 0, 1]]",
+            k.fx,
+            k.skew,
+            k.cx,
+            k.fy,
+            k.cy
+        );
     };
     show_k("left ", &state.left);
     show_k("right", &state.right);
-    println!("fixation point: left ({:.2}, {:.2}) px, right ({:.2}, {:.2}) px",
-        solution.fixation_px_left[0], solution.fixation_px_left[1], solution.fixation_px_right[0], solution.fixation_px_right[1]);
+    say!(
+        "fixation point: left ({:.2}, {:.2}) px, right ({:.2}, {:.2}) px",
+        solution.fixation_px_left[0],
+        solution.fixation_px_left[1],
+        solution.fixation_px_right[0],
+        solution.fixation_px_right[1]
+    );
     let d = |l: &Line| format!("({:+.4}, {:+.4}, {:+.4})", l.direction.x, l.direction.y, l.direction.z);
-    println!("pan axis direction {}   elevation axis direction {}", d(&pan), d(&elev));
+    say!("pan axis direction {}   elevation axis direction {}", d(&pan), d(&elev));
     let a = solution.aligned_encoders;
-    println!("aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
-        a.elevation, sig.elevation_deg, a.verge_left, sig.verge_left_deg, a.verge_right, sig.verge_right_deg);
+    say!(
+        "aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
+        a.elevation,
+        sig.elevation_deg,
+        a.verge_left,
+        sig.verge_left_deg,
+        a.verge_right,
+        sig.verge_right_deg
+    );
     if !solution.verge_axes_measured {
-        println!("note: no view moved the vergence joints; their axes were assumed nominal");
+        say!("note: no view moved the vergence joints; their axes were assumed nominal");
     }
     Ok(())
 }

@@ -42,7 +42,15 @@ fn demo_json_has_the_documented_keys() {
     let out = run(&["demo", "--json", "--seed", "2"]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let v: Value = serde_json::from_slice(&out.stdout).unwrap();
-    for key in ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg", "f_err_pct", "pp_err_pct", "recon_err_pct"] {
+    for key in [
+        "verge_err_l_deg",
+        "verge_err_r_deg",
+        "elev_err_l_deg",
+        "elev_err_r_deg",
+        "f_err_pct",
+        "pp_err_pct",
+        "recon_err_pct",
+    ] {
         assert!(v["errors"][key].is_number(), "errors.{key} missing: {}", v["errors"]);
     }
     for key in ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg"] {

@@ -53,14 +53,22 @@ impl StereoFrame {
 
 /// The four essential-matrix decompositions of a 3x3 matrix treated as essential.
 fn essential_decompositions(e: &Matrix3<f64>) -> Result<[(Matrix3<f64>, Vector3<f64>); 4]> {
-    let svd = e.try_svd(true, true, 1e-15, 500).ok_or_else(|| GeometryError::Numerical("SVD of F failed".into()))?;
+    let svd = e
+        .try_svd(true, true, 1e-15, 500)
+        .ok_or_else(|| GeometryError::Numerical("SVD of F failed".into()))?;
     let (mut u, mut v_t) = match (svd.u, svd.v_t) {
         (Some(u), Some(v_t)) => (u, v_t),
         _ => return Err(GeometryError::Numerical("SVD of F returned no vectors".into())),
     };
     // nalgebra does not sort singular values: put the smallest last.
     let s = svd.singular_values;
-    let imin = if s[0] <= s[1] && s[0] <= s[2] { 0 } else if s[1] <= s[2] { 1 } else { 2 };
+    let imin = if s[0] <= s[1] && s[0] <= s[2] {
+        0
+    } else if s[1] <= s[2] {
+        1
+    } else {
+        2
+    };
     if imin != 2 {
         u.swap_columns(imin, 2);
         v_t.swap_rows(imin, 2);
@@ -103,7 +111,11 @@ pub fn quasi_euclidean_frame(
     matches: &[(Point2<f64>, Point2<f64>)],
 ) -> Result<StereoFrame> {
     if matches.is_empty() {
-        return Err(GeometryError::NotEnoughData { what: "matches for the cheirality vote", needed: 1, got: 0 });
+        return Err(GeometryError::NotEnoughData {
+            what: "matches for the cheirality vote",
+            needed: 1,
+            got: 0,
+        });
     }
     let k = k0.matrix();
     let k_inv = k0.inverse_matrix();
@@ -148,8 +160,10 @@ fn pose_by_cheirality(
     matches: &[(Point2<f64>, Point2<f64>)],
 ) -> Result<(Matrix3<f64>, Vector3<f64>)> {
     let candidates = essential_decompositions(e)?;
-    let rays: Vec<(Vector3<f64>, Vector3<f64>)> =
-        matches.iter().map(|(l, r)| (k_left_inv * Vector3::new(l.x, l.y, 1.0), k_right_inv * Vector3::new(r.x, r.y, 1.0))).collect();
+    let rays: Vec<(Vector3<f64>, Vector3<f64>)> = matches
+        .iter()
+        .map(|(l, r)| (k_left_inv * Vector3::new(l.x, l.y, 1.0), k_right_inv * Vector3::new(r.x, r.y, 1.0)))
+        .collect();
     let mut votes = [0usize; 4];
     for (c, (r, t)) in candidates.iter().enumerate() {
         votes[c] = rays
@@ -181,15 +195,21 @@ pub fn relative_pose(
     matches: &[(Point2<f64>, Point2<f64>)],
 ) -> Result<nalgebra::Isometry3<f64>> {
     if matches.is_empty() {
-        return Err(GeometryError::NotEnoughData { what: "matches for the cheirality vote", needed: 1, got: 0 });
+        return Err(GeometryError::NotEnoughData {
+            what: "matches for the cheirality vote",
+            needed: 1,
+            got: 0,
+        });
     }
     let e = k_right.matrix().transpose() * f * k_left.matrix();
     let n = e.norm();
     if !n.is_finite() || n <= 0.0 {
         return Err(GeometryError::InvalidEstimate("essential matrix is zero or not finite".into()));
     }
-    let (rot, t) = pose_by_cheirality(&(e / n), &k_left.inverse_matrix(), &k_right.inverse_matrix(), matches)?;
-    let r = crate::so3::nearest_rotation(&rot).ok_or_else(|| GeometryError::Numerical("SVD failed".into()))?;
+    let (rot, t) =
+        pose_by_cheirality(&(e / n), &k_left.inverse_matrix(), &k_right.inverse_matrix(), matches)?;
+    let r =
+        crate::so3::nearest_rotation(&rot).ok_or_else(|| GeometryError::Numerical("SVD failed".into()))?;
     Ok(nalgebra::Isometry3::from_parts(t.into(), nalgebra::UnitQuaternion::from_rotation_matrix(&r)))
 }
 
@@ -234,7 +254,9 @@ mod tests {
     #[test]
     fn errors_on_bad_input() {
         let k0 = Intrinsics::rough_guess(768, 576);
-        assert!(quasi_euclidean_frame(&Matrix3::zeros(), &k0, &[(Point2::origin(), Point2::origin())]).is_err());
+        assert!(
+            quasi_euclidean_frame(&Matrix3::zeros(), &k0, &[(Point2::origin(), Point2::origin())]).is_err()
+        );
         assert!(quasi_euclidean_frame(&Matrix3::identity(), &k0, &[]).is_err());
     }
 }

@@ -22,7 +22,11 @@ impl Homography2 {
     /// Normalised DLT from at least 4 correspondences.
     pub fn dlt(pairs: &[(Point2<f64>, Point2<f64>)]) -> Result<Self> {
         if pairs.len() < 4 {
-            return Err(GeometryError::NotEnoughData { what: "point pairs for a homography", needed: 4, got: pairs.len() });
+            return Err(GeometryError::NotEnoughData {
+                what: "point pairs for a homography",
+                needed: 4,
+                got: pairs.len(),
+            });
         }
         let a_pts: Vec<Point2<f64>> = pairs.iter().map(|p| p.0).collect();
         let b_pts: Vec<Point2<f64>> = pairs.iter().map(|p| p.1).collect();
@@ -43,7 +47,8 @@ impl Homography2 {
         let (v, _) = smallest_right_singular_vectors(&m, 1)?;
         let h = v.first().ok_or_else(|| GeometryError::Numerical("no null vector".into()))?;
         let g = Matrix3::new(h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]);
-        let tb_inv = tb.try_inverse().ok_or_else(|| GeometryError::Numerical("singular normalisation".into()))?;
+        let tb_inv =
+            tb.try_inverse().ok_or_else(|| GeometryError::Numerical("singular normalisation".into()))?;
         let g = tb_inv * g * ta;
         let n = g.norm();
         if !n.is_finite() || n <= 0.0 || g.determinant().abs() < 1e-12 * n * n * n {
@@ -126,7 +131,9 @@ mod tests {
             }
             data.push((a, b));
         }
-        let rep = ransac(&Homography2Estimator, &data, &RansacOptions { threshold: 1.0, ..Default::default() }).unwrap();
+        let rep =
+            ransac(&Homography2Estimator, &data, &RansacOptions { threshold: 1.0, ..Default::default() })
+                .unwrap();
         assert_eq!(rep.inliers.len(), 80);
         assert!(rep.inliers.iter().all(|i| i % 5 != 0));
         assert!(Homography2::dlt(&data[..3]).is_err());

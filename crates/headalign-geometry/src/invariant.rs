@@ -26,7 +26,8 @@ pub fn invariant_points(h: &Matrix4<f64>) -> Result<(Vector4<f64>, Vector4<f64>)
         return Err(GeometryError::InvalidEstimate("homography is not finite".into()));
     }
     let m = Mat::<f64>::from_fn(4, 4, |i, j| h[(i, j)]);
-    let eig = m.eigen().map_err(|e| GeometryError::Numerical(format!("eigen-decomposition failed: {e:?}")))?;
+    let eig =
+        m.eigen().map_err(|e| GeometryError::Numerical(format!("eigen-decomposition failed: {e:?}")))?;
     let s = eig.S();
     let u = eig.U();
     let vals = s.column_vector();

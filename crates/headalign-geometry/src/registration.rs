@@ -56,7 +56,11 @@ pub fn similarity_fit(x: &[Point3<f64>], y: &[Point3<f64>], with_scale: bool) ->
         return Err(GeometryError::InvalidOption("point sets differ in size".into()));
     }
     if x.len() < 3 {
-        return Err(GeometryError::NotEnoughData { what: "point pairs for registration", needed: 3, got: x.len() });
+        return Err(GeometryError::NotEnoughData {
+            what: "point pairs for registration",
+            needed: 3,
+            got: x.len(),
+        });
     }
     let n = x.len() as f64;
     let cx = x.iter().fold(Vector3::zeros(), |a, p| a + p.coords) / n;
@@ -70,7 +74,8 @@ pub fn similarity_fit(x: &[Point3<f64>], y: &[Point3<f64>], with_scale: bool) ->
     }
     cov /= n;
     var_x /= n;
-    let svd = cov.try_svd(true, true, 1e-15, 200).ok_or_else(|| GeometryError::Numerical("SVD failed".into()))?;
+    let svd =
+        cov.try_svd(true, true, 1e-15, 200).ok_or_else(|| GeometryError::Numerical("SVD failed".into()))?;
     let mut s = svd.singular_values;
     s.as_mut_slice().sort_by(|a, b| b.total_cmp(a));
     if !(s[1] > 1e-12 * s[0].max(1e-300)) {

@@ -11,7 +11,9 @@
 //! gives one). Observations whose final residual exceeds `outlier_px` are dropped and the
 //! pose refined again.
 
-use nalgebra::{Isometry3, Matrix2x3, Matrix6, Point2, Point3, SMatrix, Translation3, UnitQuaternion, Vector6};
+use nalgebra::{
+    Isometry3, Matrix2x3, Matrix6, Point2, Point3, SMatrix, Translation3, UnitQuaternion, Vector6,
+};
 
 use crate::camera::Intrinsics;
 use crate::so3::{exp, skew};
@@ -48,14 +50,7 @@ pub struct Resection {
 fn projection_jacobian(k: &Intrinsics, p: &Point3<f64>) -> Matrix2x3<f64> {
     let z = p.z;
     let z2 = z * z;
-    Matrix2x3::new(
-        k.fx / z,
-        k.skew / z,
-        -(k.fx * p.x + k.skew * p.y) / z2,
-        0.0,
-        k.fy / z,
-        -k.fy * p.y / z2,
-    )
+    Matrix2x3::new(k.fx / z, k.skew / z, -(k.fx * p.x + k.skew * p.y) / z2, 0.0, k.fy / z, -k.fy * p.y / z2)
 }
 
 fn refine(
@@ -154,7 +149,11 @@ pub fn resect(
         return Err(GeometryError::InvalidOption("points and pixels differ in number".into()));
     }
     if points_in_world.len() < 6 {
-        return Err(GeometryError::NotEnoughData { what: "3D-2D correspondences", needed: 6, got: points_in_world.len() });
+        return Err(GeometryError::NotEnoughData {
+            what: "3D-2D correspondences",
+            needed: 6,
+            got: points_in_world.len(),
+        });
     }
     let all: Vec<usize> = (0..pixels.len()).collect();
     let mut pose = refine(k, points_in_world, pixels, &all, initial, options);
@@ -226,7 +225,13 @@ mod tests {
     #[test]
     fn too_few_points_is_an_error() {
         let k = Intrinsics::new(700.0, 720.0, 390.0, 284.0);
-        let r = resect(&k, &[Point3::new(0.0, 0.0, 1.0)], &[Point2::new(1.0, 1.0)], &Isometry3::identity(), &ResectionOptions::default());
+        let r = resect(
+            &k,
+            &[Point3::new(0.0, 0.0, 1.0)],
+            &[Point2::new(1.0, 1.0)],
+            &Isometry3::identity(),
+            &ResectionOptions::default(),
+        );
         assert!(matches!(r, Err(GeometryError::NotEnoughData { .. })));
     }
 }

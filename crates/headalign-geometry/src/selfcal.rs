@@ -28,7 +28,9 @@
 //! linear and noise-sensitive (small rotations make `H_i` close to the identity); it is an
 //! initialisation for the bundle adjustment, and it needs a well-conditioned frame.
 
-use nalgebra::{Isometry3, Matrix3, Matrix3x4, Matrix4, SMatrix, Translation3, UnitQuaternion, Vector3, Vector4};
+use nalgebra::{
+    Isometry3, Matrix3, Matrix3x4, Matrix4, SMatrix, Translation3, UnitQuaternion, Vector3, Vector4,
+};
 
 use crate::camera::Intrinsics;
 use crate::homography3d::Homography3;
@@ -262,11 +264,15 @@ pub struct LinearCalibration {
 /// Steps 1-5 on a set of homographies (see the module documentation).
 pub fn linear_self_calibration(homographies: &[Homography3]) -> Result<LinearCalibration> {
     let plane = plane_at_infinity(homographies)?;
-    let ms = homographies.iter().map(|h| infinite_homography(&h.normalized_det()?, &plane)).collect::<Result<Vec<_>>>()?;
+    let ms = homographies
+        .iter()
+        .map(|h| infinite_homography(&h.normalized_det()?, &plane))
+        .collect::<Result<Vec<_>>>()?;
     let omega = dual_image_of_absolute_conic(&ms)?;
     let left = k_from_dual_conic(&omega)?;
     let h_pe = euclidean_upgrade(&left, &plane)?;
-    let motions = homographies.iter().map(|h| motion_from_homography(h, &h_pe)).collect::<Result<Vec<_>>>()?;
+    let motions =
+        homographies.iter().map(|h| motion_from_homography(h, &h_pe)).collect::<Result<Vec<_>>>()?;
     Ok(LinearCalibration { left, plane_at_infinity: plane, euclidean_from_projective: h_pe, motions })
 }
 
@@ -279,12 +285,27 @@ mod tests {
 
     /// A random but realistic projective frame and two rotations about different axes.
     fn setup(seed: [f64; 8]) -> (Intrinsics, Matrix4<f64>, Vec<Isometry3<f64>>, Vec<Homography3>) {
-        let k = Intrinsics { fx: 1.0 + 0.2 * seed[0], fy: 1.0 + 0.2 * seed[1], skew: 0.01 * seed[2], cx: 0.05 * seed[3], cy: -0.05 * seed[4] };
+        let k = Intrinsics {
+            fx: 1.0 + 0.2 * seed[0],
+            fy: 1.0 + 0.2 * seed[1],
+            skew: 0.01 * seed[2],
+            cx: 0.05 * seed[3],
+            cy: -0.05 * seed[4],
+        };
         let plane = Vector4::new(0.1 * seed[5], -0.2 * seed[6], 0.05 * seed[7], 1.0);
         let h_pe = euclidean_upgrade(&k, &plane).unwrap();
-        let pan = Line::new(Unit::new_normalize(Vector3::new(0.02 * seed[0], -1.0, 0.03)), Point3::new(0.1, 0.2, -0.1));
-        let elev = Line::new(Unit::new_normalize(Vector3::new(1.0, 0.01 * seed[1], 0.02)), Point3::new(0.0, 0.1, -0.05));
-        let d = vec![rotation_about_line(&elev, 0.05 + 0.02 * seed[2]), rotation_about_line(&pan, -0.05 - 0.02 * seed[3])];
+        let pan = Line::new(
+            Unit::new_normalize(Vector3::new(0.02 * seed[0], -1.0, 0.03)),
+            Point3::new(0.1, 0.2, -0.1),
+        );
+        let elev = Line::new(
+            Unit::new_normalize(Vector3::new(1.0, 0.01 * seed[1], 0.02)),
+            Point3::new(0.0, 0.1, -0.05),
+        );
+        let d = vec![
+            rotation_about_line(&elev, 0.05 + 0.02 * seed[2]),
+            rotation_about_line(&pan, -0.05 - 0.02 * seed[3]),
+        ];
         let inv = h_pe.try_inverse().unwrap();
         let hs = d.iter().map(|m| Homography3(inv * m.to_homogeneous() * h_pe * (0.5 + seed[4]))).collect();
         (k, h_pe, d, hs)

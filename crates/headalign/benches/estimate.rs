@@ -12,7 +12,9 @@ fn views() -> Vec<View> {
     let mut head = SimulatedHead::new(Scenario::default()).expect("default scenario is valid");
     let e0 = head.read_encoders().expect("simulator reads");
     let mut out = Vec::new();
-    for (name, enc) in [("initial", e0), ("elevation", e0.moved(Joint::Elevation, 3.0)), ("pan", e0.moved(Joint::Pan, 3.0))] {
+    for (name, enc) in
+        [("initial", e0), ("elevation", e0.moved(Joint::Elevation, 3.0)), ("pan", e0.moved(Joint::Pan, 3.0))]
+    {
         head.move_to(&enc).expect("simulator moves");
         out.push(View { name: name.into(), capture: head.capture().expect("simulator captures") });
     }

@@ -90,7 +90,8 @@ fn zero_crossing(a: &Unit<Vector3<f64>>, n: &Vector3<f64>, z: &Vector3<f64>) -> 
     }
     let phi = big_b.atan2(big_a);
     let delta = (-big_c / r).acos();
-    let wrap = |x: f64| (x + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI;
+    let wrap =
+        |x: f64| (x + std::f64::consts::PI).rem_euclid(2.0 * std::f64::consts::PI) - std::f64::consts::PI;
     let (g1, g2) = (wrap(phi + delta), wrap(phi - delta));
     Some(if g1.abs() <= g2.abs() { g1 } else { g2 })
 }
@@ -104,8 +105,13 @@ fn nominal_verge_axis(ref_from_cam: &Isometry3<f64>, a_e: &Vector3<f64>) -> Unit
 
 /// Solve for the aligned readings (module docs). `reference` are the encoder readings of
 /// the reference view.
-pub fn solve_alignment(state: &RigState, verge: &VergeAxes, reference: &Encoders) -> Result<AlignmentSolution, AlignError> {
-    let (pan, elev) = axes_of(state).ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
+pub fn solve_alignment(
+    state: &RigState,
+    verge: &VergeAxes,
+    reference: &Encoders,
+) -> Result<AlignmentSolution, AlignError> {
+    let (pan, elev) =
+        axes_of(state).ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
     let (a_p, a_e) = (pan.direction, elev.direction);
     let left_from_right = state.right_from_left.inverse();
     let z = Vector3::z();
@@ -116,14 +122,17 @@ pub fn solve_alignment(state: &RigState, verge: &VergeAxes, reference: &Encoders
     if n < 1e-6 {
         return Err(AlignError::Geometry {
             step: "alignment".into(),
-            cause: headalign_geometry::GeometryError::Degenerate("pan and elevation axes are parallel".into()),
+            cause: headalign_geometry::GeometryError::Degenerate(
+                "pan and elevation axes are parallel".into(),
+            ),
         });
     }
     d /= n;
     if d.dot(&z_l) < 0.0 {
         d = -d;
     }
-    let v_l = verge.left.map(|l| l.direction).unwrap_or_else(|| nominal_verge_axis(&Isometry3::identity(), &a_e));
+    let v_l =
+        verge.left.map(|l| l.direction).unwrap_or_else(|| nominal_verge_axis(&Isometry3::identity(), &a_e));
     let v_r = verge.right.map(|l| l.direction).unwrap_or_else(|| nominal_verge_axis(&left_from_right, &a_e));
     let no_solution = |side: &str| AlignError::Geometry {
         step: "alignment".into(),
@@ -198,7 +207,10 @@ pub fn measure_cameras(
 ) -> Result<MeasuredCameras, AlignError> {
     let state = &calib.bundle.state;
     let points: std::collections::HashMap<u64, Point3<f64>> = calib.points().into_iter().collect();
-    let side = |obs: &[headalign_platform::TrackObservation], k: &Intrinsics, predicted: &Isometry3<f64>, name: &str| {
+    let side = |obs: &[headalign_platform::TrackObservation],
+                k: &Intrinsics,
+                predicted: &Isometry3<f64>,
+                name: &str| {
         let (mut p3, mut p2): (Vec<Point3<f64>>, Vec<Point2<f64>>) = (Vec::new(), Vec::new());
         for o in obs {
             if let Some(p) = points.get(&o.track) {

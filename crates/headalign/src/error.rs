@@ -30,7 +30,9 @@ pub enum AlignError {
         why: String,
     },
     /// Two rotations about the same joint cannot determine the plane at infinity.
-    #[error("views '{first}' and '{second}' both rotate only the {joint} joint: two rotations about the same axis cannot calibrate the head; rotate about a second joint")]
+    #[error(
+        "views '{first}' and '{second}' both rotate only the {joint} joint: two rotations about the same axis cannot calibrate the head; rotate about a second joint"
+    )]
     SameAxis {
         /// First view.
         first: String,

@@ -28,9 +28,11 @@ use headalign_geometry::bundle::{
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame, relative_pose};
 use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
-use headalign_geometry::homography3d::{Homography3Estimator, Quadruplet, TransferModel, refine_transfer, symmetric_transfer_error};
-use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
 use headalign_geometry::homography2d::Homography2Estimator;
+use headalign_geometry::homography3d::{
+    Homography3Estimator, Quadruplet, TransferModel, refine_transfer, symmetric_transfer_error,
+};
+use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
 use headalign_geometry::registration::RigidFrameEstimator;
 use headalign_geometry::selfcal::{decompose_camera, linear_self_calibration};
 use headalign_geometry::so3::{Line, screw_from_isometry};
@@ -105,8 +107,12 @@ impl Default for EstimationOptions {
 impl EstimationOptions {
     /// Check every option.
     pub fn validate(&self) -> Result<(), AlignError> {
-        self.fundamental.validate().map_err(|e| AlignError::InvalidOption(format!("fundamental RANSAC: {e}")))?;
-        self.homography.validate().map_err(|e| AlignError::InvalidOption(format!("homography RANSAC: {e}")))?;
+        self.fundamental
+            .validate()
+            .map_err(|e| AlignError::InvalidOption(format!("fundamental RANSAC: {e}")))?;
+        self.homography
+            .validate()
+            .map_err(|e| AlignError::InvalidOption(format!("homography RANSAC: {e}")))?;
         self.bundle.validate().map_err(|e| AlignError::InvalidOption(format!("bundle adjustment: {e}")))?;
         if !self.prefilter_px.is_finite() || self.prefilter_px <= 0.0 {
             return Err(AlignError::InvalidOption("prefilter_px must be positive".into()));
@@ -163,18 +169,31 @@ pub fn classify_views(views: &[View]) -> Result<Vec<ViewRole>, AlignError> {
     // Single-joint rotations give the axes; at least one about each of pan and elevation.
     let single = |joint: Joint| -> Option<usize> {
         roles.iter().enumerate().find_map(|(i, r)| match (r, joint) {
-            (ViewRole::Rig { pan_deg, elevation_deg }, Joint::Pan) if elevation_deg.abs() <= MOVED_DEG && pan_deg.abs() > MOVED_DEG => Some(i),
-            (ViewRole::Rig { pan_deg, elevation_deg }, Joint::Elevation) if pan_deg.abs() <= MOVED_DEG && elevation_deg.abs() > MOVED_DEG => Some(i),
+            (ViewRole::Rig { pan_deg, elevation_deg }, Joint::Pan)
+                if elevation_deg.abs() <= MOVED_DEG && pan_deg.abs() > MOVED_DEG =>
+            {
+                Some(i)
+            }
+            (ViewRole::Rig { pan_deg, elevation_deg }, Joint::Elevation)
+                if pan_deg.abs() <= MOVED_DEG && elevation_deg.abs() > MOVED_DEG =>
+            {
+                Some(i)
+            }
             _ => None,
         })
     };
-    let rig_views: Vec<usize> = (0..roles.len()).filter(|&i| matches!(roles[i], ViewRole::Rig { .. })).collect();
+    let rig_views: Vec<usize> =
+        (0..roles.len()).filter(|&i| matches!(roles[i], ViewRole::Rig { .. })).collect();
     match (single(Joint::Pan), single(Joint::Elevation)) {
         (Some(_), Some(_)) => Ok(roles),
         (p, e) => {
             // Name the two views rotating about the same joint, if that is the problem.
             let joint = if p.is_some() { Joint::Pan } else { Joint::Elevation };
-            let same: Vec<usize> = rig_views.iter().copied().filter(|&i| single(joint) == Some(i) || is_single(&roles[i], joint)).collect();
+            let same: Vec<usize> = rig_views
+                .iter()
+                .copied()
+                .filter(|&i| single(joint) == Some(i) || is_single(&roles[i], joint))
+                .collect();
             if (p.is_some() || e.is_some()) && same.len() >= 2 {
                 return Err(AlignError::SameAxis {
                     first: views[same[0]].name.clone(),
@@ -301,7 +320,8 @@ fn to_map(obs: &[headalign_platform::TrackObservation]) -> HashMap<u64, Point2<f
 /// Stereo matches (track, left, right) of a capture, sorted by track id.
 fn stereo_matches(c: &StereoCapture) -> Vec<(u64, Point2<f64>, Point2<f64>)> {
     let right = to_map(&c.right);
-    let mut m: Vec<_> = c.left.iter().filter_map(|o| right.get(&o.track).map(|r| (o.track, o.pixel, *r))).collect();
+    let mut m: Vec<_> =
+        c.left.iter().filter_map(|o| right.get(&o.track).map(|r| (o.track, o.pixel, *r))).collect();
     m.sort_by_key(|x| x.0);
     m
 }
@@ -316,10 +336,15 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     let k0 = Intrinsics::rough_guess(w, h);
 
     // --- 1. Stereo F from all rig views together.
-    let per_view: Vec<Vec<(u64, Point2<f64>, Point2<f64>)>> = rig.iter().map(|&i| stereo_matches(&views[i].capture)).collect();
+    let per_view: Vec<Vec<(u64, Point2<f64>, Point2<f64>)>> =
+        rig.iter().map(|&i| stereo_matches(&views[i].capture)).collect();
     let pairs: Vec<(Point2<f64>, Point2<f64>)> = per_view.iter().flatten().map(|m| (m.1, m.2)).collect();
     if pairs.len() < options.min_tracks {
-        return Err(AlignError::TooFewTracks { what: "matched between left and right".into(), needed: options.min_tracks, got: pairs.len() });
+        return Err(AlignError::TooFewTracks {
+            what: "matched between left and right".into(),
+            needed: options.min_tracks,
+            got: pairs.len(),
+        });
     }
     let f_opts = RansacOptions { seed: options.seed, ..options.fundamental };
     let f_report = estimate_fundamental(&pairs, &f_opts).step("fundamental matrix")?;
@@ -380,14 +405,20 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         }
         if screened.len() < options.min_tracks {
             return Err(AlignError::TooFewTracks {
-                what: format!("consistent with a rotation between '{}' and '{}'", views[0].name, views[vi].name),
+                what: format!(
+                    "consistent with a rotation between '{}' and '{}'",
+                    views[0].name, views[vi].name
+                ),
                 needed: options.min_tracks,
                 got: screened.len(),
             });
         }
         let hview = format!("3D homography for view '{}'", views[vi].name);
         let count = |m: &TransferModel| {
-            quads.iter().filter(|q| symmetric_transfer_error(m, &p_l, &p_r, q) <= options.homography.threshold).count()
+            quads
+                .iter()
+                .filter(|q| symmetric_transfer_error(m, &p_l, &p_r, q) <= options.homography.threshold)
+                .count()
         };
         // Starting models: the rigid fit in the quasi-Euclidean frame (always well
         // conditioned, a few pixels biased) and the DLT when it is a valid rigid conjugate
@@ -395,7 +426,10 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         // points can come out near-singular); each is polished on transfer error.
         let rigid = RigidFrameEstimator { p_left: p_l, p_right: p_r };
         let mut best: Option<(TransferModel, usize)> = None;
-        for start in [rigid.fit_inliers(&quads, &screened), estimator.fit_inliers(&quads, &screened)].into_iter().flatten() {
+        for start in [rigid.fit_inliers(&quads, &screened), estimator.fit_inliers(&quads, &screened)]
+            .into_iter()
+            .flatten()
+        {
             if start.h.0.determinant() <= 0.0 {
                 continue;
             }
@@ -417,11 +451,18 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             }
         }
         let Some((mut model, _)) = best else {
-            return Err(AlignError::NotARotation { view: views[vi].name.clone(), why: "no 3D homography fits its matches".into() });
+            return Err(AlignError::NotARotation {
+                view: views[vi].name.clone(),
+                why: "no 3D homography fits its matches".into(),
+            });
         };
         // Guided re-selection until the inlier set is stable.
         let select = |m: &TransferModel| -> Vec<usize> {
-            (0..quads.len()).filter(|&i| symmetric_transfer_error(m, &p_l, &p_r, &quads[i]) <= options.homography.threshold).collect()
+            (0..quads.len())
+                .filter(|&i| {
+                    symmetric_transfer_error(m, &p_l, &p_r, &quads[i]) <= options.homography.threshold
+                })
+                .collect()
         };
         let mut inliers = select(&model);
         let mut rounds = 0;
@@ -439,10 +480,11 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             inliers = next;
         }
         if inliers.len() < options.min_tracks {
-            return Err(AlignError::TooFewTracks { what: format!("fitting the 3D homography of view '{}'", views[vi].name), needed: options.min_tracks, got: inliers.len() });
-        }
-        if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-            eprintln!("H view {}: screened {} / {}, guided {} in {} rounds, ransac iterations {}", views[vi].name, screened.len(), quads.len(), inliers.len(), rounds, ransac_iterations);
+            return Err(AlignError::TooFewTracks {
+                what: format!("fitting the 3D homography of view '{}'", views[vi].name),
+                needed: options.min_tracks,
+                got: inliers.len(),
+            });
         }
         let rms_t = rms(inliers.iter().map(|&i| symmetric_transfer_error(&model, &p_l, &p_r, &quads[i])));
         h_reports.push(HomographyReport {
@@ -462,9 +504,6 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
                 view: views[vi].name.clone(),
                 why: "its 3D homography has no complex eigenvalue pair (no measurable rotation)".into(),
             });
-        }
-        if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-            eprintln!("H view {} inliers {}/{} rounds {} rms {:.3} det(raw) {:e}\n{}", views[vi].name, inliers.len(), quads.len(), rounds, rms_t, model.h.0.determinant(), h.0);
         }
         homographies.push(h);
         quad_inliers[slot] = inliers.iter().map(|&i| tracks[i]).collect();
@@ -489,7 +528,15 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             _ => [0.0, 0.0],
         })
         .collect();
-    let ctx = InitContext { views, rig: &rig, recon: &recon, point_tracks: &point_tracks, origin_slot: &origin_slot, commanded: &commanded, min_tracks: options.min_tracks };
+    let ctx = InitContext {
+        views,
+        rig: &rig,
+        recon: &recon,
+        point_tracks: &point_tracks,
+        origin_slot: &origin_slot,
+        commanded: &commanded,
+        min_tracks: options.min_tracks,
+    };
 
     // --- 5. Three initialisations of the bundle adjustment: the linear self-calibration
     // chain (paper section 3.1); the image homographies of the rotations (each camera's K
@@ -520,7 +567,9 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         .filter(|o| {
             let track = point_tracks[o.point];
             recon[o.view].contains_key(&track)
-                && (o.view == 0 || !recon[0].contains_key(&track) || quad_inliers[o.view].binary_search(&track).is_ok())
+                && (o.view == 0
+                    || !recon[0].contains_key(&track)
+                    || quad_inliers[o.view].binary_search(&track).is_ok())
         })
         .collect();
 
@@ -542,18 +591,23 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         // placed badly by a rough start) are left out of its first adjustment: above 5 times
         // the median residual, and at least 10 px. The re-selection below re-admits them.
         let start_obs: Vec<BundleObservation> = {
-            let mut r: Vec<f64> = first_obs.iter().filter_map(|o| residual_pixels(&state, o).map(|v| v.norm())).collect();
+            let mut r: Vec<f64> =
+                first_obs.iter().filter_map(|o| residual_pixels(&state, o).map(|v| v.norm())).collect();
             r.sort_by(f64::total_cmp);
             let cut = r.get(r.len() / 2).map_or(f64::INFINITY, |m| (5.0 * m).max(10.0));
-            first_obs.iter().copied().filter(|o| residual_pixels(&state, o).is_some_and(|v| v.norm() <= cut)).collect()
+            first_obs
+                .iter()
+                .copied()
+                .filter(|o| residual_pixels(&state, o).is_some_and(|v| v.norm() <= cut))
+                .collect()
         };
         // A short adjustment screens each start; only the best continues to convergence.
-        let screen = BundleOptions { max_iterations: options.bundle.max_iterations.min(SCREEN_ITERATIONS), ..options.bundle.clone() };
+        let screen = BundleOptions {
+            max_iterations: options.bundle.max_iterations.min(SCREEN_ITERATIONS),
+            ..options.bundle.clone()
+        };
         match bundle_adjust(&state, &start_obs, &screen).step("bundle adjustment") {
             Ok(r) => {
-                if std::env::var_os("HEADALIGN_DEBUG").is_some() {
-                    eprintln!("BA start f {:.0}: iters {} term {} rms {:.3} -> {:.3}, f {:.1} {:.1}", state.left.fx, r.report.iterations, r.report.termination, r.report.initial_rms_px, r.report.final_rms_px, r.state.left.fx, r.state.left.fy);
-                }
                 if best.as_ref().is_none_or(|b| r.report.final_rms_px < b.report.final_rms_px) {
                     best = Some(r);
                 }
@@ -577,8 +631,12 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         .copied()
         .filter(|o| residual_pixels(&first.state, o).is_some_and(|r| r.norm() <= gate))
         .collect();
-    let full = BundleOptions { max_iterations: options.bundle.max_iterations.max(FINAL_ITERATIONS), ..options.bundle.clone() };
-    let mut final_result = bundle_adjust(&first.state, &second_obs, &full).step("bundle adjustment (re-selected)")?;
+    let full = BundleOptions {
+        max_iterations: options.bundle.max_iterations.max(FINAL_ITERATIONS),
+        ..options.bundle.clone()
+    };
+    let mut final_result =
+        bundle_adjust(&first.state, &second_obs, &full).step("bundle adjustment (re-selected)")?;
     // Wrong tracks can be "explained" by a point at an absurd depth (at the camera, or near
     // infinity): points farther than DEPTH_RATIO times the median distance, or nearer than
     // its inverse, are outliers; their observations go and the adjustment runs once more.
@@ -593,7 +651,8 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         let kept: Vec<BundleObservation> = second_obs.iter().copied().filter(|o| !wild(o.point)).collect();
         if kept.len() < second_obs.len() {
             second_obs = kept;
-            final_result = bundle_adjust(&final_result.state, &second_obs, &full).step("bundle adjustment (wild points removed)")?;
+            final_result = bundle_adjust(&final_result.state, &second_obs, &full)
+                .step("bundle adjustment (wild points removed)")?;
         }
     }
 
@@ -623,7 +682,13 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             *n = 0;
         }
     }
-    Ok(RigCalibration { bundle: final_result, point_tracks, point_observations, reference_encoders: views[0].capture.encoders, report })
+    Ok(RigCalibration {
+        bundle: final_result,
+        point_tracks,
+        point_observations,
+        reference_encoders: views[0].capture.encoders,
+        report,
+    })
 }
 
 fn rms(values: impl Iterator<Item = f64>) -> f64 {
@@ -682,7 +747,11 @@ impl InitContext<'_> {
                         why: "the recovered motion has no rotation".into(),
                     });
                 };
-                let line = if screw.angle * self.commanded[slot][j] < 0.0 { screw.axis.reversed() } else { screw.axis };
+                let line = if screw.angle * self.commanded[slot][j] < 0.0 {
+                    screw.axis.reversed()
+                } else {
+                    screw.axis
+                };
                 if axes[j].is_none_or(|(_, a)| self.commanded[slot][j].abs() > a) {
                     axes[j] = Some((line, self.commanded[slot][j].abs()));
                 }
@@ -709,14 +778,22 @@ impl InitContext<'_> {
             points.push(ref_from_cam[slot] * p);
         }
         if in_front < self.min_tracks {
-            return Err(AlignError::TooFewTracks { what: "reconstructed in front of the cameras".into(), needed: self.min_tracks, got: in_front });
+            return Err(AlignError::TooFewTracks {
+                what: "reconstructed in front of the cameras".into(),
+                needed: self.min_tracks,
+                got: in_front,
+            });
         }
         let angles: Vec<Vec<f64>> = self.commanded.iter().map(|c| c.to_vec()).collect();
         Ok(RigState {
             left,
             right,
             right_from_left,
-            motions: Motions::Joints { axes: vec![pan_axis, elev_axis], angles: angles.clone(), commanded: angles },
+            motions: Motions::Joints {
+                axes: vec![pan_axis, elev_axis],
+                angles: angles.clone(),
+                commanded: angles,
+            },
             points,
         })
     }
@@ -736,7 +813,8 @@ fn linear_initial_state(
         step: "Euclidean upgrade".into(),
         cause: headalign_geometry::GeometryError::Numerical("H_PE is singular".into()),
     })?;
-    let (k_right, right_from_left) = decompose_camera(&(p_r.0 * h_pe_inv)).step("right camera decomposition")?;
+    let (k_right, right_from_left) =
+        decompose_camera(&(p_r.0 * h_pe_inv)).step("right camera decomposition")?;
     let baseline = right_from_left.translation.vector.norm();
     if !baseline.is_finite() || baseline <= 0.0 {
         return Err(AlignError::Geometry {
@@ -745,7 +823,8 @@ fn linear_initial_state(
         });
     }
     let scale = 1.0 / baseline;
-    let right_from_left = Isometry3::from_parts((right_from_left.translation.vector * scale).into(), right_from_left.rotation);
+    let right_from_left =
+        Isometry3::from_parts((right_from_left.translation.vector * scale).into(), right_from_left.rotation);
     // ref_from_cam_k = D_k^-1 (D maps reference points to view k), scaled.
     let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
     for (m, d) in lin.motions.iter().enumerate() {
@@ -764,9 +843,14 @@ fn linear_initial_state(
 fn rough_initial_state(ctx: &InitContext<'_>, frame: &StereoFrame) -> Result<RigState, AlignError> {
     let k0 = frame.k0;
     let t = frame.right_conditioned.column(3).into_owned();
-    let rot = headalign_geometry::so3::nearest_rotation(&frame.rotation_guess)
-        .ok_or_else(|| AlignError::Geometry { step: "rough initialisation".into(), cause: headalign_geometry::GeometryError::Numerical("SVD failed".into()) })?;
-    let right_from_left = Isometry3::from_parts(t.into(), nalgebra::UnitQuaternion::from_rotation_matrix(&rot));
+    let rot = headalign_geometry::so3::nearest_rotation(&frame.rotation_guess).ok_or_else(|| {
+        AlignError::Geometry {
+            step: "rough initialisation".into(),
+            cause: headalign_geometry::GeometryError::Numerical("SVD failed".into()),
+        }
+    })?;
+    let right_from_left =
+        Isometry3::from_parts(t.into(), nalgebra::UnitQuaternion::from_rotation_matrix(&rot));
     let reference: HashMap<u64, Point3<f64>> =
         ctx.recon[0].iter().filter_map(|(&track, (x, _, _))| dehomogenise3(x).map(|p| (track, p))).collect();
     let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
@@ -778,7 +862,8 @@ fn rough_initial_state(ctx: &InitContext<'_>, frame: &StereoFrame) -> Result<Rig
                 p2.push(o.pixel);
             }
         }
-        let options = headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
+        let options =
+            headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
         let r = headalign_geometry::resection::resect(&k0, &p3, &p2, &Isometry3::identity(), &options)
             .step(&format!("rough initialisation of view '{}'", ctx.views[ctx.rig[slot]].name))?;
         ref_from_cam[slot] = r.cam_from_world.inverse();
@@ -831,8 +916,10 @@ fn rotation_initial_state(
         let (_, l, r) = ctx.recon[slot].get(&track)?;
         dehomogenise3(&triangulate_optimal(f, &p_l, &p_r, l, r).ok()?)
     };
-    let reference: Vec<(u64, Point3<f64>)> =
-        ctx.recon[0].keys().filter_map(|&t| triangulate(0, t).filter(|p| p.z > 0.0).map(|p| (t, p))).collect();
+    let reference: Vec<(u64, Point3<f64>)> = ctx.recon[0]
+        .keys()
+        .filter_map(|&t| triangulate(0, t).filter(|p| p.z > 0.0).map(|p| (t, p)))
+        .collect();
     let reference: HashMap<u64, Point3<f64>> = reference.into_iter().collect();
     let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
     for slot in 1..ctx.rig.len() {
@@ -843,7 +930,8 @@ fn rotation_initial_state(
                 p2.push(o.pixel);
             }
         }
-        let options = headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
+        let options =
+            headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
         let r = headalign_geometry::resection::resect(&k_left, &p3, &p2, &Isometry3::identity(), &options)
             .step(&format!("initial motion of view '{}'", ctx.views[ctx.rig[slot]].name))?;
         ref_from_cam[slot] = r.cam_from_world.inverse();
@@ -888,7 +976,11 @@ impl Estimator for PolishedHomography<'_> {
 /// Indices of the quadruplets consistent with a plane homography in both the left and the
 /// right image pair (4-point RANSAC, `threshold_px`). If a RANSAC fails (too few
 /// quadruplets), every quadruplet passes and the 3D stage decides.
-fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> (Vec<usize>, Option<(Matrix3<f64>, Matrix3<f64>)>) {
+fn screen_rotation(
+    quads: &[Quadruplet],
+    threshold_px: f64,
+    seed: u64,
+) -> (Vec<usize>, Option<(Matrix3<f64>, Matrix3<f64>)>) {
     let options = RansacOptions { threshold: threshold_px, seed, ..RansacOptions::default() };
     let left: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.left0, q.left1)).collect();
     let right: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.right0, q.right1)).collect();
@@ -937,7 +1029,10 @@ fn retriangulate_lost_points(
     for (i, track) in point_tracks.iter().enumerate() {
         let slot = origin_slot[i];
         let cam_from_ref = state.motions.ref_from_cam(slot).inverse();
-        let ok = state.points.get(i).is_some_and(|p| p.coords.iter().all(|v| v.is_finite()) && (cam_from_ref * p).z > 0.0);
+        let ok = state
+            .points
+            .get(i)
+            .is_some_and(|p| p.coords.iter().all(|v| v.is_finite()) && (cam_from_ref * p).z > 0.0);
         if ok {
             continue;
         }

@@ -47,8 +47,8 @@ struct RawView {
 
 /// Parse and validate a session from JSON text. `origin` names the source in messages.
 pub fn parse_session(text: &str, origin: &str) -> Result<Vec<View>, AlignError> {
-    let raw: RawSession =
-        serde_json::from_str(text).map_err(|e| AlignError::Observations(format!("{origin}: malformed JSON: {e}")))?;
+    let raw: RawSession = serde_json::from_str(text)
+        .map_err(|e| AlignError::Observations(format!("{origin}: malformed JSON: {e}")))?;
     if raw.format != FORMAT {
         return Err(AlignError::Observations(format!(
             "{origin}: unsupported format '{}', expected '{FORMAT}'",
@@ -57,7 +57,9 @@ pub fn parse_session(text: &str, origin: &str) -> Result<Vec<View>, AlignError> 
     }
     let [w, h] = raw.image_size;
     if w == 0 || h == 0 || w > 100_000 || h > 100_000 {
-        return Err(AlignError::Observations(format!("{origin}: image_size {w} x {h} is not a valid image size")));
+        return Err(AlignError::Observations(format!(
+            "{origin}: image_size {w} x {h} is not a valid image size"
+        )));
     }
     if raw.views.len() < 3 {
         return Err(AlignError::Observations(format!(
@@ -76,7 +78,9 @@ pub fn parse_session(text: &str, origin: &str) -> Result<Vec<View>, AlignError> 
             return Err(AlignError::Observations(format!("{origin}: view name '{name}' appears twice")));
         }
         if !v.encoders.is_finite() {
-            return Err(AlignError::Observations(format!("{origin}: view '{name}': encoder readings must be finite")));
+            return Err(AlignError::Observations(format!(
+                "{origin}: view '{name}': encoder readings must be finite"
+            )));
         }
         if headalign_platform::Joint::ALL.iter().any(|&j| v.encoders.get(j).abs() > 3600.0) {
             return Err(AlignError::Observations(format!(
@@ -85,7 +89,10 @@ pub fn parse_session(text: &str, origin: &str) -> Result<Vec<View>, AlignError> 
         }
         let left = convert_side(&v.left, w, h, origin, &name, "left")?;
         let right = convert_side(&v.right, w, h, origin, &name, "right")?;
-        views.push(View { name, capture: StereoCapture { encoders: v.encoders, image_size: [w, h], left, right } });
+        views.push(View {
+            name,
+            capture: StereoCapture { encoders: v.encoders, image_size: [w, h], left, right },
+        });
     }
     Ok(views)
 }
@@ -125,7 +132,8 @@ fn convert_side(
 /// Read and validate a session file.
 pub fn read_session(path: &Path) -> Result<Vec<View>, AlignError> {
     let origin = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| AlignError::Observations(format!("{origin}: cannot read: {e}")))?;
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| AlignError::Observations(format!("{origin}: cannot read: {e}")))?;
     parse_session(&text, &origin)
 }
 
@@ -145,7 +153,8 @@ pub fn session_to_json(views: &[View]) -> Result<String, AlignError> {
             })
             .collect(),
     };
-    serde_json::to_string_pretty(&raw).map_err(|e| AlignError::Observations(format!("cannot serialise session: {e}")))
+    serde_json::to_string_pretty(&raw)
+        .map_err(|e| AlignError::Observations(format!("cannot serialise session: {e}")))
 }
 
 #[cfg(test)]

@@ -18,8 +18,8 @@ use nalgebra::DVector;
 use serde::Serialize;
 
 use crate::alignment::{
-    AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors, solve_alignment,
-    verge_axes_from_motion,
+    AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors,
+    solve_alignment, verge_axes_from_motion,
 };
 use crate::error::AlignError;
 use crate::estimate::{EstimationOptions, RigCalibration, estimate_rig};
@@ -60,9 +60,13 @@ impl Default for VergeTiltOptions {
 impl VergeTiltOptions {
     /// Check every option.
     pub fn validate(&self) -> Result<(), AlignError> {
-        for (name, v) in [("rotation_deg", self.rotation_deg), ("verge_rotation_deg", self.verge_rotation_deg)] {
+        for (name, v) in
+            [("rotation_deg", self.rotation_deg), ("verge_rotation_deg", self.verge_rotation_deg)]
+        {
             if !(v.abs() >= 0.1 && v.abs() <= 45.0) {
-                return Err(AlignError::InvalidOption(format!("{name} must be between 0.1 and 45 degrees in magnitude, got {v}")));
+                return Err(AlignError::InvalidOption(format!(
+                    "{name} must be between 0.1 and 45 degrees in magnitude, got {v}"
+                )));
             }
         }
         if !(self.check_tolerance_deg > 0.0) || !self.check_tolerance_deg.is_finite() {
@@ -128,7 +132,11 @@ impl VergeTiltRun {
     }
 
     /// Run the procedure on `head`.
-    pub fn run<H: StereoHead>(&mut self, head: &mut H, options: &VergeTiltOptions) -> Result<VergeTiltOutcome, AlignError> {
+    pub fn run<H: StereoHead>(
+        &mut self,
+        head: &mut H,
+        options: &VergeTiltOptions,
+    ) -> Result<VergeTiltOutcome, AlignError> {
         options.validate()?;
         let e0 = head.read_encoders()?;
         let r = options.rotation_deg;
@@ -159,7 +167,8 @@ impl VergeTiltRun {
         let left0 = nalgebra::Isometry3::identity();
         let right0 = state.right_from_left.inverse();
         let measured = measure_cameras(&calibration, &self.views[verge_view].capture, &left0, &right0)?;
-        let mut verge_axes = verge_axes_from_motion(state, &reference, &self.views[verge_view].capture.encoders, &measured)?;
+        let mut verge_axes =
+            verge_axes_from_motion(state, &reference, &self.views[verge_view].capture.encoders, &measured)?;
         let mut solution = solve_alignment(state, &verge_axes, &reference)?;
         let mut estimation_seconds = t0.elapsed().as_secs_f64();
 
@@ -177,20 +186,33 @@ impl VergeTiltRun {
                 .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
             checks.push(CheckStep { encoders: enc, measured: errors });
             // The right camera's elevation error is not correctable; the other three are.
-            let worst = errors.verge_err_l_deg.abs().max(errors.verge_err_r_deg.abs()).max(errors.elev_err_l_deg.abs());
+            let worst = errors
+                .verge_err_l_deg
+                .abs()
+                .max(errors.verge_err_r_deg.abs())
+                .max(errors.elev_err_l_deg.abs());
             if worst <= options.check_tolerance_deg || round == options.max_corrections {
                 estimation_seconds += t1.elapsed().as_secs_f64();
                 break;
             }
             // Re-measure the vergence axes from this larger move and solve again.
             let better = verge_axes_from_motion(state, &reference, &enc, &measured)?;
-            verge_axes = VergeAxes { left: better.left.or(verge_axes.left), right: better.right.or(verge_axes.right) };
+            verge_axes =
+                VergeAxes { left: better.left.or(verge_axes.left), right: better.right.or(verge_axes.right) };
             solution = solve_alignment(state, &verge_axes, &reference)?;
             estimation_seconds += t1.elapsed().as_secs_f64();
         }
         let sigmas = alignment_sigmas(&calibration, &verge_axes, &reference, &solution)?;
         let final_encoders = head.read_encoders()?;
-        Ok(VergeTiltOutcome { calibration, verge_axes, solution, sigmas, checks, final_encoders, estimation_seconds })
+        Ok(VergeTiltOutcome {
+            calibration,
+            verge_axes,
+            solution,
+            sigmas,
+            checks,
+            final_encoders,
+            estimation_seconds,
+        })
     }
 }
 
@@ -206,7 +228,8 @@ fn predicted_poses(
     let chain = head_motion(state, d(Joint::Pan), d(Joint::Elevation))
         .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
     let rot = |axis: &Option<Line>, angle: f64| {
-        axis.map(|l| headalign_geometry::so3::rotation_about_line(&l, angle)).unwrap_or_else(nalgebra::Isometry3::identity)
+        axis.map(|l| headalign_geometry::so3::rotation_about_line(&l, angle))
+            .unwrap_or_else(nalgebra::Isometry3::identity)
     };
     let left = chain * rot(&verge.left, d(Joint::VergeLeft));
     let right = chain * rot(&verge.right, d(Joint::VergeRight)) * state.right_from_left.inverse();
@@ -232,9 +255,11 @@ pub fn alignment_sigmas(
         let h = 0.5 * s;
         let mut delta = DVector::zeros(n);
         delta[i] = h;
-        let plus = calib.bundle.perturbed(&delta).ok().and_then(|st| solve_alignment(&st, verge, reference).ok());
+        let plus =
+            calib.bundle.perturbed(&delta).ok().and_then(|st| solve_alignment(&st, verge, reference).ok());
         delta[i] = -h;
-        let minus = calib.bundle.perturbed(&delta).ok().and_then(|st| solve_alignment(&st, verge, reference).ok());
+        let minus =
+            calib.bundle.perturbed(&delta).ok().and_then(|st| solve_alignment(&st, verge, reference).ok());
         if let (Some(p), Some(m)) = (plus, minus) {
             jac[(0, i)] = (p.delta_elevation_deg - m.delta_elevation_deg) / (2.0 * h);
             jac[(1, i)] = (p.delta_verge_left_deg - m.delta_verge_left_deg) / (2.0 * h);
