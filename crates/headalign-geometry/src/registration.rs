@@ -78,7 +78,7 @@ pub fn similarity_fit(x: &[Point3<f64>], y: &[Point3<f64>], with_scale: bool) ->
         cov.try_svd(true, true, 1e-15, 200).ok_or_else(|| GeometryError::Numerical("SVD failed".into()))?;
     let mut s = svd.singular_values;
     s.as_mut_slice().sort_by(|a, b| b.total_cmp(a));
-    if !(s[1] > 1e-12 * s[0].max(1e-300)) {
+    if s[1].is_nan() || s[1] <= 1e-12 * s[0].max(1e-300) {
         return Err(GeometryError::Degenerate("points are collinear or coincident".into()));
     }
     let r = nearest_rotation(&cov).ok_or_else(|| GeometryError::Numerical("SVD failed".into()))?;

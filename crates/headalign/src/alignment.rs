@@ -12,6 +12,7 @@
 //!    + C = 0` in closed form, the root of smallest magnitude (the verge error is zero);
 //! 2. choose `de` to rotate that direction about `a_e` onto `d` (the elevation error is
 //!    zero for the left camera).
+//!
 //! The right camera gets its own `dv` by step 1; elevation is shared, so its elevation
 //! error is what remains: it is predicted and reported, not hidden. Camera roll (the angle
 //! of the image x axis out of the plane perpendicular to the pan axis) is reported too.

@@ -44,6 +44,13 @@ use serde::Serialize;
 use crate::error::{AlignError, StepContext};
 use crate::observations::View;
 
+/// A stereo match: track id, left pixel, right pixel.
+type StereoMatch = (u64, Point2<f64>, Point2<f64>);
+/// One view's reconstruction in the projective frame: track -> (X, left pixel, right pixel).
+type Reconstruction = BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>;
+/// The plane homographies (left, right) of one rotation.
+type PlanePair = (Matrix3<f64>, Matrix3<f64>);
+
 /// Encoder differences below this (degrees) count as "did not move".
 pub const MOVED_DEG: f64 = 1e-6;
 
@@ -117,7 +124,7 @@ impl EstimationOptions {
         if !self.prefilter_px.is_finite() || self.prefilter_px <= 0.0 {
             return Err(AlignError::InvalidOption("prefilter_px must be positive".into()));
         }
-        if !(self.reselect_sigmas > 1.0) || !self.reselect_sigmas.is_finite() {
+        if !self.reselect_sigmas.is_finite() || self.reselect_sigmas <= 1.0 {
             return Err(AlignError::InvalidOption("reselect_sigmas must be a finite number above 1".into()));
         }
         if self.min_tracks < 8 {
@@ -318,7 +325,7 @@ fn to_map(obs: &[headalign_platform::TrackObservation]) -> HashMap<u64, Point2<f
 }
 
 /// Stereo matches (track, left, right) of a capture, sorted by track id.
-fn stereo_matches(c: &StereoCapture) -> Vec<(u64, Point2<f64>, Point2<f64>)> {
+fn stereo_matches(c: &StereoCapture) -> Vec<StereoMatch> {
     let right = to_map(&c.right);
     let mut m: Vec<_> =
         c.left.iter().filter_map(|o| right.get(&o.track).map(|r| (o.track, o.pixel, *r))).collect();
@@ -336,8 +343,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     let k0 = Intrinsics::rough_guess(w, h);
 
     // --- 1. Stereo F from all rig views together.
-    let per_view: Vec<Vec<(u64, Point2<f64>, Point2<f64>)>> =
-        rig.iter().map(|&i| stereo_matches(&views[i].capture)).collect();
+    let per_view: Vec<Vec<StereoMatch>> = rig.iter().map(|&i| stereo_matches(&views[i].capture)).collect();
     let pairs: Vec<(Point2<f64>, Point2<f64>)> = per_view.iter().flatten().map(|m| (m.1, m.2)).collect();
     if pairs.len() < options.min_tracks {
         return Err(AlignError::TooFewTracks {
@@ -348,7 +354,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     }
     let f_opts = RansacOptions { seed: options.seed, ..options.fundamental };
     let f_report = estimate_fundamental(&pairs, &f_opts).step("fundamental matrix")?;
-    let f: FundamentalMatrix = f_report.model.clone();
+    let f: FundamentalMatrix = f_report.model;
     let threshold_f = options.fundamental.threshold;
     let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = f_report.inliers.iter().map(|&i| pairs[i]).collect();
     let stereo_rms = rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r)));
@@ -356,7 +362,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     // --- 2. Frame and triangulation per rig view: track -> (X, left, right).
     let frame: StereoFrame = quasi_euclidean_frame(&f.0, &k0, &inlier_pairs).step("projective frame")?;
     let (p_l, p_r) = (frame.left_camera(), frame.right_camera());
-    let mut recon: Vec<BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>> = Vec::new();
+    let mut recon: Vec<Reconstruction> = Vec::new();
     for matches in &per_view {
         let mut map = BTreeMap::new();
         for &(track, l, r) in matches {
@@ -376,7 +382,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     let mut homographies = Vec::new();
     let mut quad_inliers: Vec<Vec<u64>> = vec![Vec::new(); rig.len()];
     // Plane homographies (left, right) of each rotation, for the rotation-based start.
-    let mut image_rotations: Vec<(Matrix3<f64>, Matrix3<f64>)> = Vec::new();
+    let mut image_rotations: Vec<PlanePair> = Vec::new();
     for (slot, &vi) in rig.iter().enumerate().skip(1) {
         let mut tracks = Vec::new();
         let mut quads = Vec::new();
@@ -715,7 +721,7 @@ fn robust_sigma(state: &RigState, obs: &[BundleObservation]) -> f64 {
 struct InitContext<'a> {
     views: &'a [View],
     rig: &'a [usize],
-    recon: &'a [BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>],
+    recon: &'a [Reconstruction],
     point_tracks: &'a [u64],
     origin_slot: &'a [usize],
     commanded: &'a [[f64; 2]],
@@ -725,6 +731,7 @@ struct InitContext<'a> {
 impl InitContext<'_> {
     /// The Joints-model state from per-view poses `ref_from_cam` and points given in the
     /// frame of the view that reconstructed them (`point_in_cam(slot, X)`).
+    #[allow(clippy::needless_range_loop)] // slots index several parallel per-view arrays
     fn state(
         &self,
         left: Intrinsics,
@@ -800,6 +807,7 @@ impl InitContext<'_> {
 }
 
 /// Initial state from the linear self-calibration chain (module docs, step 5).
+#[allow(clippy::needless_range_loop)] // slots index several parallel per-view arrays
 fn linear_initial_state(
     ctx: &InitContext<'_>,
     homographies: &[headalign_geometry::homography3d::Homography3],
@@ -840,6 +848,7 @@ fn linear_initial_state(
 /// Initial state with `K = K0` for both cameras, the rig of the frame's essential-matrix
 /// decomposition, and each view's motion by resection of its left camera against the
 /// reference view's quasi-Euclidean points.
+#[allow(clippy::needless_range_loop)] // slots index several parallel per-view arrays
 fn rough_initial_state(ctx: &InitContext<'_>, frame: &StereoFrame) -> Result<RigState, AlignError> {
     let k0 = frame.k0;
     let t = frame.right_conditioned.column(3).into_owned();
@@ -899,11 +908,12 @@ fn k_from_rotations(gs: &[Matrix3<f64>], k0: &Intrinsics) -> Intrinsics {
 /// Initial state from the image homographies of the rotations: each camera's `K` by
 /// rotating-camera self-calibration, the rig from `E = K_R^T F K_L`, Euclidean
 /// triangulation, and each view's motion by resection of its left camera.
+#[allow(clippy::needless_range_loop)] // slots index several parallel per-view arrays
 fn rotation_initial_state(
     ctx: &InitContext<'_>,
     f: &FundamentalMatrix,
     matches: &[(Point2<f64>, Point2<f64>)],
-    image_rotations: &[(Matrix3<f64>, Matrix3<f64>)],
+    image_rotations: &[PlanePair],
     k0: &Intrinsics,
 ) -> Result<RigState, AlignError> {
     let gl: Vec<Matrix3<f64>> = image_rotations.iter().map(|g| g.0).collect();
@@ -976,11 +986,7 @@ impl Estimator for PolishedHomography<'_> {
 /// Indices of the quadruplets consistent with a plane homography in both the left and the
 /// right image pair (4-point RANSAC, `threshold_px`). If a RANSAC fails (too few
 /// quadruplets), every quadruplet passes and the 3D stage decides.
-fn screen_rotation(
-    quads: &[Quadruplet],
-    threshold_px: f64,
-    seed: u64,
-) -> (Vec<usize>, Option<(Matrix3<f64>, Matrix3<f64>)>) {
+fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> (Vec<usize>, Option<PlanePair>) {
     let options = RansacOptions { threshold: threshold_px, seed, ..RansacOptions::default() };
     let left: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.left0, q.left1)).collect();
     let right: Vec<(Point2<f64>, Point2<f64>)> = quads.iter().map(|q| (q.right0, q.right1)).collect();
@@ -1022,7 +1028,7 @@ fn retriangulate_lost_points(
     state: &mut RigState,
     point_tracks: &[u64],
     origin_slot: &[usize],
-    recon: &[BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>],
+    recon: &[Reconstruction],
 ) {
     let p_l = ProjectiveCamera::from_pose(&state.left, &Isometry3::identity());
     let p_r = ProjectiveCamera::from_pose(&state.right, &state.right_from_left);

@@ -69,7 +69,7 @@ impl VergeTiltOptions {
                 )));
             }
         }
-        if !(self.check_tolerance_deg > 0.0) || !self.check_tolerance_deg.is_finite() {
+        if !self.check_tolerance_deg.is_finite() || self.check_tolerance_deg <= 0.0 {
             return Err(AlignError::InvalidOption("check_tolerance_deg must be positive".into()));
         }
         self.estimation.validate()
@@ -249,7 +249,7 @@ pub fn alignment_sigmas(
     let mut jac = nalgebra::DMatrix::<f64>::zeros(3, n);
     for i in 0..n {
         let s = cov.matrix[(i, i)].max(0.0).sqrt();
-        if !(s > 0.0) {
+        if s.is_nan() || s <= 0.0 {
             continue;
         }
         let h = 0.5 * s;
