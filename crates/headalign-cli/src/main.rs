@@ -14,7 +14,7 @@ use clap::{Args, Parser, Subcommand};
 use headalign::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_axes_from_motion};
 use headalign::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
 use headalign::observations::{View, read_session, session_to_json};
-use headalign::procedure::{VergeTiltOptions, VergeTiltRun, alignment_sigmas};
+use headalign::procedure::{VergeTiltOptions, VergeTiltRun, alignment_sigmas, capture_plan};
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::so3::Line;
 use headalign_platform::{Joint, StereoHead};
@@ -420,16 +420,15 @@ fn simulate(args: &SimulateArgs) -> Result<()> {
     let scenario = args.scenario.scenario()?;
     let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
     let e0 = head.read_encoders()?;
-    let r = scenario.rotation_deg;
+    let options = VergeTiltOptions {
+        rotation_deg: scenario.rotation_deg,
+        verge_rotation_deg: scenario.rotation_deg,
+        ..VergeTiltOptions::default()
+    };
     let mut views = Vec::new();
-    for (name, enc) in [
-        ("initial", e0),
-        ("elevation", e0.moved(Joint::Elevation, r)),
-        ("pan", e0.moved(Joint::Pan, r)),
-        ("verge", e0.moved(Joint::VergeLeft, r).moved(Joint::VergeRight, r)),
-    ] {
+    for (name, enc) in capture_plan(&e0, &options) {
         head.move_to(&enc)?;
-        views.push(View { name: name.to_string(), capture: head.capture()? });
+        views.push(View { name, capture: head.capture()? });
     }
     let text = session_to_json(&views)?;
     if args.out.exists() && args.out.is_dir() {

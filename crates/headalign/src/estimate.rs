@@ -1050,3 +1050,60 @@ fn retriangulate_lost_points(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn view(name: &str, pan: f64, elevation: f64, verge: f64) -> View {
+        View {
+            name: name.into(),
+            capture: StereoCapture {
+                encoders: Encoders { pan, elevation, verge_left: verge, verge_right: verge },
+                image_size: [768, 576],
+                left: Vec::new(),
+                right: Vec::new(),
+            },
+        }
+    }
+
+    #[test]
+    fn classifies_rig_and_verge_views() {
+        let views = [
+            view("i", 0.0, 0.0, 0.0),
+            view("e", 0.0, 3.0, 0.0),
+            view("p", 3.0, 0.0, 0.0),
+            view("v", 0.0, 0.0, 3.0),
+        ];
+        let roles = classify_views(&views).unwrap();
+        assert_eq!(roles[0], ViewRole::Reference);
+        assert_eq!(roles[1], ViewRole::Rig { pan_deg: 0.0, elevation_deg: 3.0 });
+        assert_eq!(roles[3], ViewRole::Verge);
+    }
+
+    #[test]
+    fn names_each_bad_motion() {
+        let same = [view("i", 0.0, 0.0, 0.0), view("e1", 0.0, 3.0, 0.0), view("e2", 0.0, -3.0, 0.0)];
+        let err = classify_views(&same).unwrap_err().to_string();
+        assert!(err.contains("'e1'") && err.contains("'e2'") && err.contains("same axis"), "{err}");
+        let still = [view("i", 0.0, 0.0, 0.0), view("e", 0.0, 3.0, 0.0), view("x", 0.0, 0.0, 0.0)];
+        assert!(classify_views(&still).unwrap_err().to_string().contains("not a rotation"));
+        let no_pan = [view("i", 0.0, 0.0, 0.0), view("e", 0.0, 3.0, 0.0), view("b", 3.0, 3.0, 0.0)];
+        assert!(classify_views(&no_pan).unwrap_err().to_string().contains("pan joint alone"));
+    }
+
+    #[test]
+    fn too_few_tracks_is_an_error() {
+        let views = [view("i", 0.0, 0.0, 0.0), view("e", 0.0, 3.0, 0.0), view("p", 3.0, 0.0, 0.0)];
+        let err = estimate_rig(&views, &EstimationOptions::default()).unwrap_err();
+        assert!(matches!(err, AlignError::TooFewTracks { .. }), "{err}");
+    }
+
+    #[test]
+    fn options_validate() {
+        assert!(EstimationOptions::default().validate().is_ok());
+        assert!(EstimationOptions { reselect_sigmas: 0.5, ..Default::default() }.validate().is_err());
+        assert!(EstimationOptions { prefilter_px: f64::NAN, ..Default::default() }.validate().is_err());
+        assert!(EstimationOptions { min_tracks: 3, ..Default::default() }.validate().is_err());
+    }
+}
