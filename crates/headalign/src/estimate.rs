@@ -729,6 +729,31 @@ struct InitContext<'a> {
 }
 
 impl InitContext<'_> {
+    /// `ref_from_cam` of every rig view by resection of its left camera (intrinsics `k`)
+    /// against the reference view's points; the reference view is the identity.
+    fn resect_views(
+        &self,
+        k: &Intrinsics,
+        reference: &HashMap<u64, Point3<f64>>,
+    ) -> Result<Vec<Isometry3<f64>>, AlignError> {
+        let options =
+            headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
+        let mut ref_from_cam = vec![Isometry3::identity(); self.rig.len()];
+        for (slot, &vi) in self.rig.iter().enumerate().skip(1) {
+            let (mut p3, mut p2) = (Vec::new(), Vec::new());
+            for o in &self.views[vi].capture.left {
+                if let Some(p) = reference.get(&o.track) {
+                    p3.push(*p);
+                    p2.push(o.pixel);
+                }
+            }
+            let r = headalign_geometry::resection::resect(k, &p3, &p2, &Isometry3::identity(), &options)
+                .step(&format!("initial motion of view '{}'", self.views[vi].name))?;
+            ref_from_cam[slot] = r.cam_from_world.inverse();
+        }
+        Ok(ref_from_cam)
+    }
+
     /// The Joints-model state from per-view poses `ref_from_cam` and points given in the
     /// frame of the view that reconstructed them (`point_in_cam(slot, X)`).
     #[allow(clippy::needless_range_loop)] // slots index several parallel per-view arrays
@@ -862,21 +887,7 @@ fn rough_initial_state(ctx: &InitContext<'_>, frame: &StereoFrame) -> Result<Rig
         Isometry3::from_parts(t.into(), nalgebra::UnitQuaternion::from_rotation_matrix(&rot));
     let reference: HashMap<u64, Point3<f64>> =
         ctx.recon[0].iter().filter_map(|(&track, (x, _, _))| dehomogenise3(x).map(|p| (track, p))).collect();
-    let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
-    for slot in 1..ctx.rig.len() {
-        let (mut p3, mut p2) = (Vec::new(), Vec::new());
-        for o in &ctx.views[ctx.rig[slot]].capture.left {
-            if let Some(p) = reference.get(&o.track) {
-                p3.push(*p);
-                p2.push(o.pixel);
-            }
-        }
-        let options =
-            headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
-        let r = headalign_geometry::resection::resect(&k0, &p3, &p2, &Isometry3::identity(), &options)
-            .step(&format!("rough initialisation of view '{}'", ctx.views[ctx.rig[slot]].name))?;
-        ref_from_cam[slot] = r.cam_from_world.inverse();
-    }
+    let ref_from_cam = ctx.resect_views(&k0, &reference)?;
     ctx.state(k0, k0, right_from_left, &ref_from_cam, |slot, track| {
         let (x, _, _) = ctx.recon[slot].get(&track)?;
         dehomogenise3(x)
@@ -931,21 +942,7 @@ fn rotation_initial_state(
         .filter_map(|&t| triangulate(0, t).filter(|p| p.z > 0.0).map(|p| (t, p)))
         .collect();
     let reference: HashMap<u64, Point3<f64>> = reference.into_iter().collect();
-    let mut ref_from_cam = vec![Isometry3::identity(); ctx.rig.len()];
-    for slot in 1..ctx.rig.len() {
-        let (mut p3, mut p2) = (Vec::new(), Vec::new());
-        for o in &ctx.views[ctx.rig[slot]].capture.left {
-            if let Some(p) = reference.get(&o.track) {
-                p3.push(*p);
-                p2.push(o.pixel);
-            }
-        }
-        let options =
-            headalign_geometry::resection::ResectionOptions { outlier_px: 10.0, ..Default::default() };
-        let r = headalign_geometry::resection::resect(&k_left, &p3, &p2, &Isometry3::identity(), &options)
-            .step(&format!("initial motion of view '{}'", ctx.views[ctx.rig[slot]].name))?;
-        ref_from_cam[slot] = r.cam_from_world.inverse();
-    }
+    let ref_from_cam = ctx.resect_views(&k_left, &reference)?;
     ctx.state(k_left, k_right, right_from_left, &ref_from_cam, triangulate)
 }
 
