@@ -361,6 +361,7 @@ fn align(args: &AlignArgs) -> Result<()> {
             "left": camera_json(&calib, "left", &state.left),
             "right": camera_json(&calib, "right", &state.right),
             "fixation_px": {"left": solution.fixation_px_left, "right": solution.fixation_px_right},
+            "invariant_lines": serde_json::to_value(solution.invariant_lines)?,
             "axes": {
                 "frame": "left camera of the first view; points in baselines",
                 "pan": axis_json(&pan, &calib, 0),

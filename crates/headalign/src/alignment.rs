@@ -64,12 +64,66 @@ pub struct AlignmentSolution {
     pub roll_left_deg: f64,
     /// Right camera roll after alignment, degrees.
     pub roll_right_deg: f64,
-    /// The fixation point (vanishing point of `d`) in the reference view's left image.
+    /// The fixation point in the reference view's left image: the intersection of the
+    /// invariant lines (the vanishing point of `d`).
     pub fixation_px_left: [f64; 2],
     /// ... and in its right image.
     pub fixation_px_right: [f64; 2],
+    /// The invariant lines whose intersections are the fixation points.
+    pub invariant_lines: InvariantLines,
     /// False if the vergence axes were assumed nominal rather than measured.
     pub verge_axes_measured: bool,
+}
+
+/// The images of the invariant lines at infinity of the pan and elevation rotations in the
+/// reference view (paper section 3.2 steps 5-6), each a unit homogeneous line.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct InvariantLines {
+    /// Pan rotation's line (the horizon) in the left image.
+    pub pan_left: [f64; 3],
+    /// Elevation rotation's line in the left image.
+    pub elevation_left: [f64; 3],
+    /// Pan rotation's line in the right image.
+    pub pan_right: [f64; 3],
+    /// Elevation rotation's line in the right image.
+    pub elevation_right: [f64; 3],
+}
+
+/// Invariant lines of the calibrated head's pan and elevation rotations, from the complex
+/// eigenvectors of each rotation's 4x4 motion (the Euclidean frame's 3D homography),
+/// projected by both cameras; and their intersections, the fixation point in the left and
+/// right images (pixels). A unit test checks them against the closed form `K (a_e x a_p)`.
+pub fn invariant_lines(state: &RigState) -> Result<(InvariantLines, [f64; 2], [f64; 2]), AlignError> {
+    let (pan, elev) =
+        axes_of(state).ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
+    let p_l = headalign_geometry::camera::ProjectiveCamera::from_pose(&state.left, &Isometry3::identity()).0;
+    let p_r = headalign_geometry::camera::ProjectiveCamera::from_pose(&state.right, &state.right_from_left).0;
+    // Any nonzero angle gives the same invariant line; 3 deg keeps the complex pair clear.
+    let angle = 3f64.to_radians();
+    let line = |axis: &Line, p: &nalgebra::Matrix3x4<f64>| {
+        let h = rotation_about_line(axis, angle).inverse().to_homogeneous();
+        headalign_geometry::invariant::invariant_image_line(&h, p).step("invariant line")
+    };
+    let (pl, el, pr, er) = (line(&pan, &p_l)?, line(&elev, &p_l)?, line(&pan, &p_r)?, line(&elev, &p_r)?);
+    let meet = |a: &Vector3<f64>, b: &Vector3<f64>| -> Result<[f64; 2], AlignError> {
+        let x = headalign_geometry::invariant::intersect_lines(a, b).step("fixation point")?;
+        if x.z.abs() < 1e-12 {
+            return Err(AlignError::Geometry {
+                step: "fixation point".into(),
+                cause: headalign_geometry::GeometryError::Degenerate(
+                    "the invariant lines meet at infinity".into(),
+                ),
+            });
+        }
+        Ok([x.x / x.z, x.y / x.z])
+    };
+    let lines = InvariantLines {
+        pan_left: [pl.x, pl.y, pl.z],
+        elevation_left: [el.x, el.y, el.z],
+        pan_right: [pr.x, pr.y, pr.z],
+        elevation_right: [er.x, er.y, er.z],
+    };
+    Ok((lines, meet(&pl, &el)?, meet(&pr, &er)?))
 }
 
 /// Rotate direction `v` by `angle` about unit `a`.
@@ -153,11 +207,7 @@ pub fn solve_alignment(
     };
     let roll_l = roll(Vector3::x(), g_l, &v_l);
     let roll_r = roll(left_from_right.rotation * Vector3::x(), g_r, &v_r);
-    let px = |k: &Intrinsics, dir: &Vector3<f64>| -> [f64; 2] {
-        let p = k.project_unchecked(&Point3::from(*dir));
-        [p.x, p.y]
-    };
-    let d_in_right = state.right_from_left.rotation * d;
+    let (lines, fixation_left, fixation_right) = invariant_lines(state)?;
     let mut aligned = *reference;
     aligned.elevation += de.to_degrees();
     aligned.verge_left += g_l.to_degrees();
@@ -171,8 +221,9 @@ pub fn solve_alignment(
         predicted_elev_err_r_deg: elev_err_r.to_degrees(),
         roll_left_deg: roll_l,
         roll_right_deg: roll_r,
-        fixation_px_left: px(&state.left, &d),
-        fixation_px_right: px(&state.right, &d_in_right),
+        fixation_px_left: fixation_left,
+        fixation_px_right: fixation_right,
+        invariant_lines: lines,
         verge_axes_measured: verge.left.is_some() && verge.right.is_some(),
     })
 }
@@ -303,6 +354,41 @@ mod tests {
             prop_assert!(n.dot(&rotate(&a, g, &z)).abs() < 1e-12);
             prop_assert!(g.abs() < 1.0);
         }
+    }
+
+    /// The eigenvector route (invariant lines, their intersection) agrees with the closed
+    /// form `K (a_e x a_p)` to 1e-6 px (4x4 eigenvectors to ~1e-15, pixels ~1e3).
+    #[test]
+    fn fixation_point_matches_closed_form() {
+        use headalign_geometry::bundle::Motions;
+        use nalgebra::{Translation3, UnitQuaternion};
+        let pan = Line::new(Unit::new_normalize(Vector3::new(0.02, -1.0, 0.15)), Point3::new(0.5, 0.1, -0.2));
+        let elev = Line::new(Unit::new_normalize(Vector3::new(1.0, 0.03, -0.1)), Point3::new(0.0, 0.3, -0.1));
+        let state = RigState {
+            left: Intrinsics::new(700.0, 720.0, 390.0, 284.0),
+            right: Intrinsics::new(705.0, 716.0, 380.0, 290.0),
+            right_from_left: Isometry3::from_parts(
+                Translation3::new(-1.0, 0.01, 0.02),
+                UnitQuaternion::from_euler_angles(0.01, 0.1, -0.02),
+            ),
+            motions: Motions::Joints {
+                axes: vec![pan, elev],
+                angles: vec![vec![0.0, 0.0]],
+                commanded: vec![vec![0.0, 0.0]],
+            },
+            points: Vec::new(),
+        };
+        let (_, left, right) = invariant_lines(&state).unwrap();
+        let mut d = elev.direction.cross(&pan.direction).normalize();
+        if d.z < 0.0 {
+            d = -d;
+        }
+        let l = state.left.project_unchecked(&Point3::from(d));
+        let r = state.right.project_unchecked(&Point3::from(state.right_from_left.rotation * d));
+        assert!((l.x - left[0]).abs() < 1e-6 && (l.y - left[1]).abs() < 1e-6, "{left:?} vs {l}");
+        assert!((r.x - right[0]).abs() < 1e-6 && (r.y - right[1]).abs() < 1e-6, "{right:?} vs {r}");
+        let sol = solve_alignment(&state, &VergeAxes::default(), &Encoders::default()).unwrap();
+        assert_eq!(sol.fixation_px_left, left);
     }
 
     #[test]
