@@ -16,12 +16,13 @@
 //! direction up to sign (the angle reported is between lines, at most 90 deg), and an
 //! axis position only once the metric scale is fixed (e.g. from a known baseline).
 
+use headalign_geometry::registration::similarity_fit;
 use std::collections::HashMap;
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::so3::Line;
 use headalign_platform::{Encoders, Joint};
-use nalgebra::{Matrix3, Point3, Vector3};
+use nalgebra::{Point3, Vector3};
 use serde::Serialize;
 
 use crate::SimError;
@@ -82,40 +83,6 @@ pub fn calibration_errors(
         pp = pp.max((e.cx - t.cx).hypot(e.cy - t.cy) / t.mean_focal() * 100.0);
     }
     CalibrationErrors { f_err_pct: f, aspect_err_pct: aspect, pp_err_pct: pp }
-}
-
-/// Best similarity `dst ~ s R src + t` (Umeyama 1991), returned as `(s, R, t)`.
-fn umeyama(
-    src: &[Vector3<f64>],
-    dst: &[Vector3<f64>],
-) -> Result<(f64, Matrix3<f64>, Vector3<f64>), SimError> {
-    let n = src.len() as f64;
-    let mean_src = src.iter().sum::<Vector3<f64>>() / n;
-    let mean_dst = dst.iter().sum::<Vector3<f64>>() / n;
-    let mut cov = Matrix3::zeros();
-    let mut var_src = 0.0;
-    for (a, b) in src.iter().zip(dst) {
-        let (a, b) = (a - mean_src, b - mean_dst);
-        cov += b * a.transpose();
-        var_src += a.norm_squared();
-    }
-    cov /= n;
-    var_src /= n;
-    if !(var_src.is_finite() && var_src > 0.0) {
-        return Err(SimError::Metric("estimated points are all at one place".into()));
-    }
-    let svd = cov.try_svd(true, true, 1e-15, 200).ok_or_else(|| SimError::Metric("SVD failed".into()))?;
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Err(SimError::Metric("SVD failed".into()));
-    };
-    let mut d = Vector3::new(1.0, 1.0, 1.0);
-    if (u * v_t).determinant() < 0.0 {
-        d.z = -1.0;
-    }
-    let r = u * Matrix3::from_diagonal(&d) * v_t;
-    let s = svd.singular_values.dot(&d) / var_src;
-    let t = mean_dst - r * mean_src * s;
-    Ok((s, r, t))
 }
 
 impl SimulatedHead {
@@ -185,10 +152,14 @@ impl SimulatedHead {
             src.push(p.coords);
             dst.push((left_from_world * point_in_world).coords);
         }
-        let (s, r, t) = umeyama(&src, &dst)?;
+        let src: Vec<Point3<f64>> = src.into_iter().map(Point3::from).collect();
+        let dst: Vec<Point3<f64>> = dst.into_iter().map(Point3::from).collect();
+        let sim = similarity_fit(&src, &dst, true)
+            .map_err(|e| SimError::Metric(format!("best similarity: {e}")))?;
         let mut sum = 0.0;
         for (a, b) in src.iter().zip(&dst) {
-            let err = (r * a * s + t - b).norm();
+            let err = (sim.transform(a) - b).norm();
+            let b = b.coords;
             let dist = b.norm();
             if dist <= 0.0 || !dist.is_finite() {
                 return Err(SimError::Metric("a true point is at the camera centre".into()));
