@@ -329,13 +329,12 @@ impl FundamentalMatrix {
         }
         let tl = normalising_transform_2d(pairs.iter().map(|p| &p.0))?;
         let tr = normalising_transform_2d(pairs.iter().map(|p| &p.1))?;
-        let mut p = Rank2Param::from_matrix(&self.0, tl, tr)?;
-        let mut cost = sampson_cost(&p.matrix(), pairs);
+        let p = Rank2Param::from_matrix(&self.0, tl, tr)?;
+        let cost = sampson_cost(&p.matrix(), pairs);
         if !cost.is_finite() {
             return Err(GeometryError::Numerical("Sampson cost is not finite at the start".into()));
         }
-        let mut lambda = -1.0;
-        for _ in 0..100 {
+        let normal = |p: &Rank2Param| {
             let mut jtj = SMatrix::<f64, 7, 7>::zeros();
             let mut jtr = SVector::<f64, 7>::zeros();
             for (l, r) in pairs {
@@ -344,35 +343,16 @@ impl FundamentalMatrix {
                     jtr += j * res;
                 }
             }
-            if lambda < 0.0 {
-                lambda = 1e-3 * (0..7).map(|i| jtj[(i, i)]).fold(0.0, f64::max).max(1e-12);
-            }
-            let mut improved = false;
-            for _ in 0..20 {
-                let mut a = jtj;
-                for i in 0..7 {
-                    a[(i, i)] += lambda * (1.0 + jtj[(i, i)]);
-                }
-                let Some(delta) = a.cholesky().map(|c| c.solve(&(-jtr))) else {
-                    lambda *= 10.0;
-                    continue;
-                };
-                let cand = p.updated(&delta);
-                let c = sampson_cost(&cand.matrix(), pairs);
-                if c.is_finite() && c < cost {
-                    let rel = (cost - c) / cost.max(1e-300);
-                    p = cand;
-                    cost = c;
-                    lambda = (lambda * 0.1).max(1e-15);
-                    improved = rel > 1e-14;
-                    break;
-                }
-                lambda *= 10.0;
-            }
-            if !improved {
-                break;
-            }
-        }
+            Some((jtj, jtr))
+        };
+        let (p, _) = crate::lm::minimise(
+            p,
+            cost,
+            100,
+            normal,
+            |p, d| Some(p.updated(d)),
+            |p| sampson_cost(&p.matrix(), pairs),
+        );
         Ok(Self(normalise_scale(&p.matrix())?))
     }
 }

@@ -366,52 +366,29 @@ pub fn refine_transfer(
     if !n0.is_finite() || n0 == 0.0 {
         return Err(GeometryError::Degenerate("H vanishes".into()));
     }
-    let mut h = model.h.0 / n0;
-    let mut cost = transfer_cost(&h, p_left, p_right, quads);
+    let h = model.h.0 / n0;
+    let cost = transfer_cost(&h, p_left, p_right, quads);
     if !cost.is_finite() {
         return Err(GeometryError::Numerical("transfer cost is not finite at the start".into()));
     }
-    let mut lambda = -1.0;
-    for _ in 0..100 {
-        let Some(h_inv) = h.try_inverse() else { break };
+    let normal = |h: &Matrix4<f64>| {
+        let h_inv = h.try_inverse()?;
         let mut jtj = SMatrix::<f64, 16, 16>::zeros();
         let mut jtr = SVector::<f64, 16>::zeros();
         for q in quads {
-            if let Some((r, j)) = transfer_residuals(&h, &h_inv, p_left, p_right, q) {
+            if let Some((r, j)) = transfer_residuals(h, &h_inv, p_left, p_right, q) {
                 jtj += j.transpose() * j;
                 jtr += j.transpose() * r;
             }
         }
-        if lambda < 0.0 {
-            lambda = 1e-3 * (0..16).map(|i| jtj[(i, i)]).fold(0.0, f64::max).max(1e-12);
-        }
-        let mut improved = false;
-        for _ in 0..20 {
-            let mut a = jtj;
-            for i in 0..16 {
-                a[(i, i)] += lambda * (1.0 + jtj[(i, i)]);
-            }
-            let Some(delta) = a.cholesky().map(|c| c.solve(&(-jtr))) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let cand = h + Matrix4::from_row_slice(delta.as_slice());
-            let cand = cand / cand.norm();
-            let c = transfer_cost(&cand, p_left, p_right, quads);
-            if c.is_finite() && c < cost {
-                let rel = (cost - c) / cost.max(1e-300);
-                h = cand;
-                cost = c;
-                lambda = (lambda * 0.1).max(1e-15);
-                improved = rel > 1e-14;
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-    }
+        Some((jtj, jtr))
+    };
+    let retract = |h: &Matrix4<f64>, d: &SVector<f64, 16>| {
+        let cand = h + Matrix4::from_row_slice(d.as_slice());
+        Some(cand / cand.norm())
+    };
+    let (h, _) =
+        crate::lm::minimise(h, cost, 100, normal, retract, |h| transfer_cost(h, p_left, p_right, quads));
     TransferModel::new(Homography3(h))
 }
 

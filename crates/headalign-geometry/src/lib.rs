@@ -24,6 +24,7 @@
 //!   solver for homographies in a quasi-Euclidean frame.
 //! - [`resection`]: pose of a calibrated camera from 3D-2D correspondences.
 //! - [`invariant`]: invariant lines at infinity of a motion from its complex eigenvectors.
+//! - [`lm`]: a small dense Levenberg-Marquardt shared by the refinements.
 //! - [`bundle`]: the rig bundle adjustment (maximum likelihood, Schur complement,
 //!   robust loss, covariance).
 
@@ -35,6 +36,7 @@ pub mod fundamental;
 pub mod homography2d;
 pub mod homography3d;
 pub mod invariant;
+pub mod lm;
 pub mod ransac;
 pub mod registration;
 pub mod resection;

@@ -61,8 +61,6 @@ fn refine(
     init: &Isometry3<f64>,
     options: &ResectionOptions,
 ) -> Isometry3<f64> {
-    let mut pose = *init;
-    let mut lambda = 1e-3;
     let cost = |pose: &Isometry3<f64>| -> f64 {
         active
             .iter()
@@ -71,13 +69,13 @@ fn refine(
                 if p.z <= 0.0 {
                     return 1e6;
                 }
-                let r = (k.project_unchecked(&p) - pixels[i]).norm();
-                huber(r, options.huber_px)
+                huber((k.project_unchecked(&p) - pixels[i]).norm(), options.huber_px)
             })
             .sum()
     };
-    let mut current = cost(&pose);
-    for _ in 0..options.max_iterations {
+    // Normal equations of the IRLS-weighted squared residuals; `huber(r)` is `r^2` inside
+    // the scale and its weight is 1 there, so the two agree where it matters.
+    let normal = |pose: &Isometry3<f64>| {
         let mut jtj = Matrix6::<f64>::zeros();
         let mut jtr = Vector6::<f64>::zeros();
         for &i in active {
@@ -94,38 +92,17 @@ fn refine(
             jtj += j.transpose() * j * w;
             jtr += j.transpose() * r * w;
         }
-        let mut improved = false;
-        for _ in 0..10 {
-            let mut a = jtj;
-            for d in 0..6 {
-                a[(d, d)] += lambda * jtj[(d, d)].max(1e-12);
-            }
-            let Some(step) = a.cholesky().map(|c| c.solve(&(-jtr))) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let rot = exp(&step.fixed_rows::<3>(0).into_owned());
-            let upd = Isometry3::from_parts(
-                Translation3::from(step.fixed_rows::<3>(3).into_owned()),
-                UnitQuaternion::from_rotation_matrix(&rot),
-            );
-            let candidate = upd * pose;
-            let c = cost(&candidate);
-            if c < current {
-                let rel = (current - c) / current.max(1e-300);
-                pose = candidate;
-                current = c;
-                lambda = (lambda * 0.3).max(1e-12);
-                improved = rel > 1e-14;
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    pose
+        Some((jtj, jtr))
+    };
+    let retract = |pose: &Isometry3<f64>, step: &Vector6<f64>| {
+        let rot = exp(&step.fixed_rows::<3>(0).into_owned());
+        let upd = Isometry3::from_parts(
+            Translation3::from(step.fixed_rows::<3>(3).into_owned()),
+            UnitQuaternion::from_rotation_matrix(&rot),
+        );
+        Some(upd * pose)
+    };
+    crate::lm::minimise(*init, cost(init), options.max_iterations, normal, retract, cost).0
 }
 
 fn huber(r: f64, s: f64) -> f64 {
