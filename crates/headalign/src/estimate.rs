@@ -293,6 +293,9 @@ pub struct RigCalibration {
     /// Observations of each point in the final adjustment (same order as the points); zero
     /// for points not seen by both cameras.
     pub point_observations: Vec<usize>,
+    /// The observations the final adjustment used (the inliers); `view` indexes the rig
+    /// views in input order, `point` the points.
+    pub observations: Vec<BundleObservation>,
     /// Encoder readings of the reference view.
     pub reference_encoders: Encoders,
     /// Diagnostics.
@@ -704,6 +707,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         bundle: final_result,
         point_tracks,
         point_observations,
+        observations: second_obs,
         reference_encoders: views[0].capture.encoders,
         report,
     })
