@@ -353,7 +353,7 @@ fn align(args: &AlignArgs) -> Result<()> {
         verge = verge_axes_from_motion(state, &reference, &v.capture.encoders, &measured)?;
     }
     let solution = solve_alignment(state, &verge, &reference)?;
-    let sig = alignment_sigmas(&calib, &verge, &reference, &solution)?;
+    let sig = alignment_sigmas(&calib, &verge, &reference)?;
     let seconds = t0.elapsed().as_secs_f64();
     let (pan, elev) = headalign::estimate::axes_of(state).context("axes")?;
     if args.json {

@@ -193,7 +193,7 @@ impl VergeTiltRun {
             solution = solve_alignment(state, &verge_axes, &reference)?;
             estimation_seconds += t1.elapsed().as_secs_f64();
         }
-        let sigmas = alignment_sigmas(&calibration, &verge_axes, &reference, &solution)?;
+        let sigmas = alignment_sigmas(&calibration, &verge_axes, &reference)?;
         let final_encoders = head.read_encoders()?;
         Ok(VergeTiltOutcome {
             calibration,
@@ -257,7 +257,6 @@ pub fn alignment_sigmas(
     calib: &RigCalibration,
     verge: &VergeAxes,
     reference: &Encoders,
-    solution: &AlignmentSolution,
 ) -> Result<AlignmentSigmas, AlignError> {
     let cov = &calib.bundle.covariance;
     let n = cov.matrix.nrows();
@@ -282,7 +281,6 @@ pub fn alignment_sigmas(
         }
     }
     let out = &jac * &cov.matrix * jac.transpose();
-    let _ = solution;
     Ok(AlignmentSigmas {
         elevation_deg: out[(0, 0)].max(0.0).sqrt(),
         verge_left_deg: out[(1, 1)].max(0.0).sqrt(),
