@@ -7,7 +7,7 @@ import json, math, subprocess, sys
 
 first, last = int(sys.argv[1]), int(sys.argv[2])
 extra = sys.argv[3:]
-keys = ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg", "f_err_pct", "pp_err_pct", "recon_err_pct"]
+keys = ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg", "elev_err_r_excess_deg", "f_err_pct", "pp_err_pct", "recon_err_pct"]
 rows, fails, times = [], 0, []
 for seed in range(first, last + 1):
     p = subprocess.run(["target/release/headalign", "demo", "--json", "--seed", str(seed), *extra], capture_output=True, text=True)
