@@ -70,8 +70,8 @@ pub const MOVED_DEG: f64 = 1e-6;
 /// inverse, are treated as wrong tracks (a scene spans far less than a factor 100).
 pub const DEPTH_RATIO: f64 = 10.0;
 
-/// Iterations (at most, capped by the options) of the adjustment that screens each start.
-pub const SCREEN_ITERATIONS: usize = 300;
+/// Iterations of the short adjustment that screens each initialisation.
+pub const SCREEN_ITERATIONS: usize = 40;
 /// Minimum iterations of the final adjustment (robust IRLS converges linearly).
 pub const FINAL_ITERATIONS: usize = 300;
 
@@ -595,13 +595,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         .collect();
 
     let mut linear_focal = [f64::NAN; 4];
-    // Screened solutions are compared on one common set (the first selection) by a
-    // truncated quadratic (MSAC) cost, since each start's own set differs.
-    let common_cost = |state: &RigState| -> f64 {
-        let cap = (options.reselect_sigmas * options.reselect_sigmas).max(1.0);
-        first_obs.iter().map(|o| residual_pixels(state, o).map_or(cap, |r| r.norm_squared().min(cap))).sum()
-    };
-    let mut best: Option<(BundleResult, f64)> = None;
+    let mut best: Option<BundleResult> = None;
     let mut last_err = None;
     for init in [linear, rotation, rough] {
         let state = match init {
@@ -628,22 +622,21 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
                 .filter(|o| residual_pixels(&state, o).is_some_and(|v| v.norm() <= cut))
                 .collect()
         };
-        // Each start is adjusted on its own gated set, then ranked on the common set.
+        // A short adjustment screens each start; only the best continues to convergence.
         let screen = BundleOptions {
             max_iterations: options.bundle.max_iterations.min(SCREEN_ITERATIONS),
             ..options.bundle.clone()
         };
         match bundle_adjust(&state, &start_obs, &screen).step("bundle adjustment") {
             Ok(r) => {
-                let c = common_cost(&r.state);
-                if best.as_ref().is_none_or(|(_, b)| c < *b) {
-                    best = Some((r, c));
+                if best.as_ref().is_none_or(|b| r.report.final_rms_px < b.report.final_rms_px) {
+                    best = Some(r);
                 }
             }
             Err(e) => last_err = Some(e),
         }
     }
-    let Some((first, _)) = best else {
+    let Some(first) = best else {
         return Err(last_err.unwrap_or_else(|| AlignError::MissingMotion("no initialisation".into())));
     };
 
