@@ -70,6 +70,10 @@ pub const MOVED_DEG: f64 = 1e-6;
 /// inverse, are treated as wrong tracks (a scene spans far less than a factor 100).
 pub const DEPTH_RATIO: f64 = 10.0;
 
+/// Observations a point needs to take part in the final adjustment (two views of both
+/// cameras): with fewer, a wrong observation is absorbed by moving the point.
+pub const MIN_POINT_OBSERVATIONS: usize = 4;
+
 /// Iterations of the short adjustment that screens each initialisation.
 pub const SCREEN_ITERATIONS: usize = 40;
 /// Minimum iterations of the final adjustment (robust IRLS converges linearly).
@@ -647,11 +651,19 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     retriangulate_lost_points(&mut first.state, &point_tracks, &origin_slot, &recon);
     let sigma = robust_sigma(&first.state, &first_obs).max(0.05);
     let gate = options.reselect_sigmas * sigma;
-    let second_obs: Vec<BundleObservation> = all_obs
+    let gated: Vec<BundleObservation> = all_obs
         .iter()
         .copied()
         .filter(|o| residual_pixels(&first.state, o).is_some_and(|r| r.norm() <= gate))
         .collect();
+    // A point with fewer than MIN_POINT_OBSERVATIONS observations can bend to fit a wrong
+    // one (its depth is weakly fixed by small rotations), so it does not take part.
+    let mut counts = vec![0usize; point_tracks.len()];
+    for o in &gated {
+        counts[o.point] += 1;
+    }
+    let second_obs: Vec<BundleObservation> =
+        gated.into_iter().filter(|o| counts[o.point] >= MIN_POINT_OBSERVATIONS).collect();
     let full = BundleOptions {
         max_iterations: options.bundle.max_iterations.max(FINAL_ITERATIONS),
         ..options.bundle.clone()
