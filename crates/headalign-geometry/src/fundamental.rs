@@ -704,7 +704,13 @@ pub(crate) mod tests {
             // The left epipole is the image of the right camera centre in the left camera.
             let c_r = s.p_right().centre().unwrap();
             let e_true = s.p_left().0 * c_r;
-            prop_assert!(el.cross(&e_true.normalize()).norm() < 1e-6);
+            // A null vector is determined only to (error of F) / (singular-value gap): in
+            // pixel units sigma_2 / sigma_1 can be ~1e-6 (epipole far outside the image), so
+            // the tolerance scales with the gap; 1e-11 covers the 8-point's rounding after
+            // denormalisation (seen: 1.6e-6 at a gap of 5e-6, seed 800790).
+            let sv = f.0.singular_values();
+            let gap = sv[1] / sv[0];
+            prop_assert!(el.cross(&e_true.normalize()).norm() < 1e-11 / gap, "gap {gap:e}");
         }
 
         #[test]
