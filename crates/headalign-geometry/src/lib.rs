@@ -27,6 +27,7 @@
 //! - [`lm`]: a small dense Levenberg-Marquardt shared by the refinements.
 //! - [`bundle`]: the rig bundle adjustment (maximum likelihood, Schur complement,
 //!   robust loss, covariance).
+//! - [`synthetic`]: seeded rig problems with known truth for tests, benches, experiments.
 
 pub mod bundle;
 pub mod camera;
@@ -42,6 +43,7 @@ pub mod registration;
 pub mod resection;
 pub mod selfcal;
 pub mod so3;
+pub mod synthetic;
 pub mod triangulation;
 
 pub use error::GeometryError;
