@@ -9,6 +9,7 @@ first, last = int(sys.argv[1]), int(sys.argv[2])
 extra = sys.argv[3:]
 keys = ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg", "elev_err_r_excess_deg", "f_err_pct", "pp_err_pct", "recon_err_pct"]
 rows, fails, times = [], 0, []
+zs = {}  # name -> list of (estimate - truth) / sigma
 for seed in range(first, last + 1):
     p = subprocess.run(["target/release/headalign", "demo", "--json", "--seed", str(seed), *extra], capture_output=True, text=True)
     if p.returncode != 0:
@@ -17,6 +18,18 @@ for seed in range(first, last + 1):
         continue
     v = json.loads(p.stdout)
     rows.append(v["errors"])
+    est, tru = v["estimate"], v["truth"]
+    for cam in ("left", "right"):
+        K = tru[cam]["K"]
+        truth_k = {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]}
+        for k, t in truth_k.items():
+            sig = est[cam]["sigma"].get(k)
+            if sig:
+                zs.setdefault(f"{cam}.{k}", []).append((est[cam][k] - t) / sig)
+    for j in ("elevation", "verge_left", "verge_right"):
+        sig = est["aligned_sigma_deg"].get(f"{j}_deg")
+        if sig:
+            zs.setdefault(f"aligned.{j}", []).append((est["aligned_encoders"][j] - tru["aligned_encoders"][j]) / sig)
     times.append(v["timings"]["total_s"])
     print(f"seed {seed}: " + " ".join(f"{k.replace('_deg','').replace('_pct','%')}={v['errors'][k]:+.3f}" for k in keys if v['errors'][k] is not None))
 print(f"{len(rows)} runs, {fails} failures, mean time {1e3*sum(times)/max(1,len(times)):.1f} ms")
@@ -24,3 +37,7 @@ for k in keys:
     vals = [r[k] for r in rows if r[k] is not None]
     if vals:
         print(f"RMS {k:16s} {math.sqrt(sum(x*x for x in vals)/len(vals)):.4f}   max {max(abs(x) for x in vals):.4f}")
+print("z-scores (estimate - truth) / sigma: RMS 1 and mean 0 when the sigmas are calibrated")
+for k, vals in zs.items():
+    rms = math.sqrt(sum(x * x for x in vals) / len(vals))
+    print(f"  {k:22s} RMS {rms:.2f}   mean {sum(vals) / len(vals):+.2f}")

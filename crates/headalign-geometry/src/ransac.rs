@@ -13,10 +13,13 @@
 //! 3. score every model by MSAC (Torr & Zisserman 2000): the sum over all data of the
 //!    truncated quadratic `min(r^2, t^2)`, `r` the residual and `t` the threshold; lower is
 //!    better. A datum is an inlier when `r <= t`;
-//! 4. when a model beats the best so far, and [`RansacOptions::local_optimization`] is
-//!    set, polish it: refit on its inliers with [`Estimator::fit_inliers`] and re-score,
-//!    repeating while the score improves (at most [`LO_MAX_ROUNDS`] rounds) — a simple
-//!    form of LO-RANSAC (Chum, Matas & Kittler 2003);
+//! 4. when a sample's model beats every earlier *sample* model, and
+//!    [`RansacOptions::local_optimization`] is set, polish it: refit on its inliers with
+//!    [`Estimator::fit_inliers`] and re-score, repeating while the score improves (at most
+//!    [`LO_MAX_ROUNDS`] rounds) — LO-RANSAC (Chum, Matas & Kittler 2003); the polished
+//!    model replaces the best if it scores better. (Triggering on the polished best
+//!    instead starves local optimisation: a sample from a better basin is rarely better
+//!    than a polished model before its own polish.);
 //! 5. update the number of samples needed, `N = log(1 - p) / log(1 - w^s)` with `p` the
 //!    confidence, `w` the best inlier ratio and `s` the sample size; stop after
 //!    `max(min_iterations, min(N, max_iterations))` samples.
@@ -242,6 +245,7 @@ pub fn ransac<E: Estimator>(
     let mut rng = ChaCha8Rng::seed_from_u64(options.seed);
     let mut sample = Vec::with_capacity(s);
     let mut best: Option<(E::Model, Score)> = None;
+    let mut best_raw_cost = f64::INFINITY;
     let mut needed = options.max_iterations;
     let mut iterations = 0;
 
@@ -251,15 +255,21 @@ pub fn ransac<E: Estimator>(
         sample_indices(&mut rng, n, s, &mut sample);
         for model in estimator.fit_minimal(data, &sample) {
             let sc = score(estimator, &model, data, threshold);
-            let better = best.as_ref().is_none_or(|(_, b)| sc.cost < b.cost);
-            if !better {
+            // Local optimisation runs whenever a sample's model beats the best *sample*
+            // model so far: comparing it with the polished best would never polish a
+            // model from another, better basin whose raw sample is a little worse.
+            if sc.cost >= best_raw_cost {
                 continue;
             }
+            best_raw_cost = sc.cost;
             let (model, sc) = if options.local_optimization {
                 local_optimize(estimator, data, threshold, model, sc)
             } else {
                 (model, sc)
             };
+            if best.as_ref().is_some_and(|(_, b)| sc.cost >= b.cost) {
+                continue;
+            }
             let w = sc.inliers.len() as f64 / n as f64;
             needed = required_iterations(options.confidence, w, s, options.max_iterations);
             best = Some((model, sc));
