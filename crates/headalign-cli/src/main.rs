@@ -13,6 +13,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use headalign::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_axes_from_motion};
 use headalign::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
+use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
 use headalign::procedure::{VergeTiltOptions, VergeTiltRun, alignment_sigmas, capture_plan};
 use headalign_geometry::camera::Intrinsics;
@@ -118,6 +119,15 @@ struct AlignArgs {
     /// Print one JSON object instead of the table.
     #[arg(long)]
     json: bool,
+    /// Write the calibration files here: calibration.json, opencv_stereo.yaml (OpenCV
+    /// FileStorage), left.yaml and right.yaml (ROS camera_info), camchain.yaml (Kalibr),
+    /// head.json (axes with sigmas) and alignment.json (aligned readings with sigmas).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Baseline length in metres, to write the rig translation in metres (without it the
+    /// translation is in baselines: self-calibration fixes no scale).
+    #[arg(long)]
+    baseline_m: Option<f64>,
 }
 
 #[derive(Args)]
@@ -356,19 +366,47 @@ fn align(args: &AlignArgs) -> Result<()> {
     let sig = alignment_sigmas(&calib, &verge, &reference)?;
     let seconds = t0.elapsed().as_secs_f64();
     let (pan, elev) = headalign::estimate::axes_of(state).context("axes")?;
+    let axes = json!({
+        "frame": "left camera of the first view; points in baselines",
+        "pan": axis_json(&pan, &calib, 0),
+        "elevation": axis_json(&elev, &calib, 1),
+        "verge_left": verge_json(&verge.left),
+        "verge_right": verge_json(&verge.right),
+    });
+    let mut written = Vec::new();
+    if let Some(dir) = &args.out {
+        let stereo = StereoCalibration::from_rig(&calib, views[0].capture.image_size, args.baseline_m)?;
+        written = stereo.write_all(dir)?;
+        let extra = [
+            ("head.json", json!({"format": "headalign-head/1", "axes": axes})),
+            (
+                "alignment.json",
+                json!({
+                    "format": "headalign-alignment/1",
+                    "reference_encoders": encoders_json(&reference),
+                    "aligned_encoders": encoders_json(&solution.aligned_encoders),
+                    "aligned_sigma_deg": serde_json::to_value(sig)?,
+                    "verge_axes_measured": solution.verge_axes_measured,
+                    "predicted_elev_err_r_deg": solution.predicted_elev_err_r_deg,
+                    "roll_left_deg": solution.roll_left_deg, "roll_right_deg": solution.roll_right_deg,
+                }),
+            ),
+        ];
+        for (name, value) in extra {
+            let path = dir.join(name);
+            std::fs::write(&path, serde_json::to_string_pretty(&value)? + "\n")
+                .with_context(|| format!("cannot write {}", path.display()))?;
+            written.push(path);
+        }
+    }
     if args.json {
         let out = json!({
             "left": camera_json(&calib, "left", &state.left),
             "right": camera_json(&calib, "right", &state.right),
             "fixation_px": {"left": solution.fixation_px_left, "right": solution.fixation_px_right},
             "invariant_lines": serde_json::to_value(solution.invariant_lines)?,
-            "axes": {
-                "frame": "left camera of the first view; points in baselines",
-                "pan": axis_json(&pan, &calib, 0),
-                "elevation": axis_json(&elev, &calib, 1),
-                "verge_left": verge_json(&verge.left),
-                "verge_right": verge_json(&verge.right),
-            },
+            "axes": axes,
+            "files": written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
             "aligned_encoders": encoders_json(&solution.aligned_encoders),
             "aligned_sigma_deg": serde_json::to_value(sig)?,
             "verge_axes_measured": solution.verge_axes_measured,
@@ -413,6 +451,9 @@ fn align(args: &AlignArgs) -> Result<()> {
     );
     if !solution.verge_axes_measured {
         say!("note: no view moved the vergence joints; their axes were assumed nominal");
+    }
+    for p in &written {
+        say!("wrote {}", p.display());
     }
     Ok(())
 }

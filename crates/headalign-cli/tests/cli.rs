@@ -92,6 +92,53 @@ fn simulated_session_round_trip_through_align() {
     assert!(String::from_utf8_lossy(&out.stdout).contains("left  K"));
 }
 
+#[test]
+fn align_writes_the_calibration_files() {
+    let path = tmp("session-out.json");
+    simulate(&path, &["--seed", "5", "--noise", "0.5"]);
+    let dir = tmp("calibration-out");
+    let out = run(&[
+        "align",
+        "--observations",
+        path.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+        "--baseline-m",
+        "0.25",
+        "--json",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["files"].as_array().unwrap().len(), 7);
+    let cal: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("calibration.json")).unwrap()).unwrap();
+    assert_eq!(cal["translation_unit"], "m");
+    // The baseline is scaled to the given length exactly (up to rounding).
+    let t: Vec<f64> =
+        cal["right_from_left"]["t"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+    assert!(((t[0] * t[0] + t[1] * t[1] + t[2] * t[2]).sqrt() - 0.25).abs() < 1e-12);
+    // The files agree with the JSON (the readers of each ecosystem are exercised by
+    // bench/check_formats.py, which needs Python's cv2 and yaml).
+    let opencv = std::fs::read_to_string(dir.join("opencv_stereo.yaml")).unwrap();
+    assert!(opencv.starts_with("%YAML:1.0"));
+    let fx = cal["left"]["fx"].as_f64().unwrap();
+    assert!(opencv.contains(&format!("{fx:?}")));
+    for f in ["left.yaml", "right.yaml", "camchain.yaml", "head.json", "alignment.json"] {
+        assert!(dir.join(f).exists(), "{f}");
+    }
+    // A bad baseline is a clean error.
+    let out = run(&[
+        "align",
+        "--observations",
+        path.to_str().unwrap(),
+        "--out",
+        dir.to_str().unwrap(),
+        "--baseline-m=-1",
+    ]);
+    assert_clean_failure(&out, "baseline must be positive");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 fn session_with(path: &Path, edit: impl FnOnce(&mut Value)) -> PathBuf {
     let mut v: Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
     edit(&mut v);

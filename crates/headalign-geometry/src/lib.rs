@@ -25,6 +25,7 @@
 //! - [`resection`]: pose of a calibrated camera from 3D-2D correspondences.
 //! - [`invariant`]: invariant lines at infinity of a motion from its complex eigenvectors.
 //! - [`lm`]: a small dense Levenberg-Marquardt shared by the refinements.
+//! - [`rectify`]: stereo rectification of a calibrated pair (OpenCV / ROS conventions).
 //! - [`bundle`]: the rig bundle adjustment (maximum likelihood, Schur complement,
 //!   robust loss, covariance).
 //! - [`synthetic`]: seeded rig problems with known truth for tests, benches, experiments.
@@ -39,6 +40,7 @@ pub mod homography3d;
 pub mod invariant;
 pub mod lm;
 pub mod ransac;
+pub mod rectify;
 pub mod registration;
 pub mod resection;
 pub mod selfcal;

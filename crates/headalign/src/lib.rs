@@ -16,6 +16,7 @@
 pub mod alignment;
 pub mod error;
 pub mod estimate;
+pub mod export;
 pub mod observations;
 pub mod procedure;
 

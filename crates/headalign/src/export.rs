@@ -1,0 +1,447 @@
+//! Calibration files in the formats robotics software reads: JSON, OpenCV FileStorage YAML
+//! (`cv2.FileStorage`, the layout of OpenCV's `stereo_calib` sample: `M1 D1 M2 D2 R T R1
+//! R2 P1 P2 Q`), ROS `camera_info` YAML for each camera (`camera_calibration_parsers`
+//! layout), and a Kalibr `camchain.yaml`.
+//!
+//! What it computes: nothing is estimated here. The stereo rectification that OpenCV's
+//! `R1 R2 P1 P2 Q` and ROS's `rectification_matrix` / `projection_matrix` need comes from
+//! [`headalign_geometry::rectify::rectify_stereo`].
+//!
+//! Units: pixels for intrinsics; the rig translation is in metres when the user gives the
+//! baseline length, otherwise in baselines (the self-calibration is only up to scale;
+//! every file then says so in a comment and the JSON in `translation_unit`).
+//!
+//! Pitfalls: OpenCV's YAML needs the `%YAML:1.0` header and `!!opencv-matrix` tags, so it
+//! is written by hand, as are the other YAML files (small, fixed layouts). Numbers are
+//! written with Rust's shortest round-trip formatting, so reading them back gives the same
+//! `f64`; a non-finite number is an error, never written. Kalibr's pinhole model has no
+//! skew: a non-zero skew is reported in a comment and dropped there only. Distortion is
+//! zero (plumb_bob / radtan with zero coefficients) until the lens model is estimated.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::rectify::{Rectification, rectify_stereo};
+use nalgebra::{DMatrix, Isometry3, Matrix3};
+use serde_json::{Value, json};
+
+use crate::AlignError;
+use crate::estimate::RigCalibration;
+
+/// The unit of the rig translation in the written files.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum TranslationUnit {
+    /// Metres (the user gave the baseline length).
+    Metres,
+    /// Baselines: the translation has unit length (self-calibration fixes no scale).
+    Baselines,
+}
+
+impl TranslationUnit {
+    fn name(self) -> &'static str {
+        match self {
+            Self::Metres => "m",
+            Self::Baselines => "baselines",
+        }
+    }
+}
+
+/// Standard deviations of one camera's intrinsics, pixels (`None` where not estimated).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct IntrinsicSigmas {
+    /// Of `fx`.
+    pub fx: Option<f64>,
+    /// Of `fy`.
+    pub fy: Option<f64>,
+    /// Of `cx`.
+    pub cx: Option<f64>,
+    /// Of `cy`.
+    pub cy: Option<f64>,
+    /// Of the skew.
+    pub skew: Option<f64>,
+}
+
+/// A calibrated stereo pair, ready to be written.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StereoCalibration {
+    /// Image size `[width, height]`, pixels.
+    pub image_size: [u32; 2],
+    /// Left camera intrinsics.
+    pub left: Intrinsics,
+    /// Right camera intrinsics.
+    pub right: Intrinsics,
+    /// Their standard deviations.
+    pub sigmas: [IntrinsicSigmas; 2],
+    /// Rig pose: maps points in the left camera frame to the right one.
+    pub right_from_left: Isometry3<f64>,
+    /// Unit of `right_from_left`'s translation.
+    pub unit: TranslationUnit,
+}
+
+impl StereoCalibration {
+    /// From an estimated rig. With `baseline_m` the translation is scaled to metres;
+    /// without, it stays in baselines.
+    pub fn from_rig(
+        calib: &RigCalibration,
+        image_size: [u32; 2],
+        baseline_m: Option<f64>,
+    ) -> Result<Self, AlignError> {
+        let state = &calib.bundle.state;
+        let mut right_from_left = state.right_from_left;
+        let norm = right_from_left.translation.vector.norm();
+        if !norm.is_finite() || norm <= 0.0 {
+            return Err(AlignError::Output("the rig has no baseline".into()));
+        }
+        let unit = match baseline_m {
+            Some(b) if b.is_finite() && b > 0.0 => {
+                right_from_left.translation.vector *= b / norm;
+                TranslationUnit::Metres
+            }
+            Some(b) => return Err(AlignError::InvalidOption(format!("baseline must be positive, got {b}"))),
+            None => {
+                right_from_left.translation.vector /= norm;
+                TranslationUnit::Baselines
+            }
+        };
+        let c = &calib.bundle.covariance;
+        let sig = |side: &str| IntrinsicSigmas {
+            fx: c.sigma(&format!("{side}.fx")),
+            fy: c.sigma(&format!("{side}.fy")),
+            cx: c.sigma(&format!("{side}.cx")),
+            cy: c.sigma(&format!("{side}.cy")),
+            skew: c.sigma(&format!("{side}.skew")),
+        };
+        Ok(Self {
+            image_size,
+            left: state.left,
+            right: state.right,
+            sigmas: [sig("left"), sig("right")],
+            right_from_left,
+            unit,
+        })
+    }
+
+    /// The rectification of the pair.
+    pub fn rectification(&self) -> Result<Rectification, AlignError> {
+        rectify_stereo(&self.left, &self.right, &self.right_from_left, self.image_size)
+            .map_err(|e| AlignError::Output(format!("stereo rectification: {e}")))
+    }
+
+    fn rotation(&self) -> Matrix3<f64> {
+        self.right_from_left.rotation.to_rotation_matrix().into_inner()
+    }
+
+    /// JSON: both cameras (K, sigmas, distortion), the rig, the rectification.
+    pub fn json(&self) -> Result<Value, AlignError> {
+        let r = self.rectification()?;
+        let cam = |k: &Intrinsics, s: &IntrinsicSigmas| {
+            json!({
+                "K": rows(&k.matrix()),
+                "fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy,
+                "sigma": {"fx": s.fx, "fy": s.fy, "cx": s.cx, "cy": s.cy, "skew": s.skew},
+                "distortion_model": "plumb_bob",
+                "distortion_coefficients": [0.0, 0.0, 0.0, 0.0, 0.0],
+            })
+        };
+        let v = json!({
+            "format": "headalign-calibration/1",
+            "image_size": self.image_size,
+            "left": cam(&self.left, &self.sigmas[0]),
+            "right": cam(&self.right, &self.sigmas[1]),
+            "right_from_left": {
+                "R": rows(&self.rotation()),
+                "t": self.right_from_left.translation.vector.as_slice(),
+            },
+            "translation_unit": self.unit.name(),
+            "rectification": {
+                "R1": rows(&r.rect_from_left), "R2": rows(&r.rect_from_right),
+                "P1": dyn_rows(&DMatrix::from_column_slice(3, 4, r.p_left.as_slice())),
+                "P2": dyn_rows(&DMatrix::from_column_slice(3, 4, r.p_right.as_slice())),
+                "Q": dyn_rows(&DMatrix::from_column_slice(4, 4, r.q.as_slice())),
+            },
+        });
+        check_finite(&v)?;
+        Ok(v)
+    }
+
+    /// OpenCV FileStorage YAML (readable by `cv::FileStorage` / `cv2.FileStorage`).
+    pub fn opencv_yaml(&self) -> Result<String, AlignError> {
+        let r = self.rectification()?;
+        let mut s = String::from("%YAML:1.0\n---\n");
+        let _ = writeln!(s, "# headalign stereo calibration; translation unit: {}", self.unit.name());
+        let _ = writeln!(s, "image_width: {}", self.image_size[0]);
+        let _ = writeln!(s, "image_height: {}", self.image_size[1]);
+        let zeros5 = DMatrix::zeros(1, 5);
+        let t = self.right_from_left.translation.vector;
+        let entries: [(&str, DMatrix<f64>); 11] = [
+            ("M1", dyn3(&self.left.matrix())),
+            ("D1", zeros5.clone()),
+            ("M2", dyn3(&self.right.matrix())),
+            ("D2", zeros5),
+            ("R", dyn3(&self.rotation())),
+            ("T", DMatrix::from_column_slice(3, 1, t.as_slice())),
+            ("R1", dyn3(&r.rect_from_left)),
+            ("R2", dyn3(&r.rect_from_right)),
+            ("P1", DMatrix::from_column_slice(3, 4, r.p_left.as_slice())),
+            ("P2", DMatrix::from_column_slice(3, 4, r.p_right.as_slice())),
+            ("Q", DMatrix::from_column_slice(4, 4, r.q.as_slice())),
+        ];
+        for (name, m) in entries {
+            let _ = writeln!(
+                s,
+                "{name}: !!opencv-matrix\n   rows: {}\n   cols: {}\n   dt: d\n   data: [ {} ]",
+                m.nrows(),
+                m.ncols(),
+                row_major(&m)?.join(", ")
+            );
+        }
+        Ok(s)
+    }
+
+    /// ROS `camera_info` YAML of one camera (`0` left, `1` right), with the rectification
+    /// of the pair (`rectification_matrix`, `projection_matrix`).
+    pub fn ros_camera_info(&self, index: usize, camera_name: &str) -> Result<String, AlignError> {
+        let r = self.rectification()?;
+        let (k, rect, p) = match index {
+            0 => (&self.left, r.rect_from_left, r.p_left),
+            1 => (&self.right, r.rect_from_right, r.p_right),
+            _ => return Err(AlignError::Output(format!("camera index {index} (0 = left, 1 = right)"))),
+        };
+        let block = |name: &str, m: &DMatrix<f64>| -> Result<String, AlignError> {
+            Ok(format!(
+                "{name}:\n  rows: {}\n  cols: {}\n  data: [{}]\n",
+                m.nrows(),
+                m.ncols(),
+                row_major(m)?.join(", ")
+            ))
+        };
+        let mut s = format!(
+            "# headalign; projection_matrix translation unit: {}\nimage_width: {}\nimage_height: {}\ncamera_name: {}\n",
+            self.unit.name(),
+            self.image_size[0],
+            self.image_size[1],
+            yaml_string(camera_name)
+        );
+        s += &block("camera_matrix", &dyn3(&k.matrix()))?;
+        s += "distortion_model: plumb_bob\n";
+        s += &block("distortion_coefficients", &DMatrix::zeros(1, 5))?;
+        s += &block("rectification_matrix", &dyn3(&rect))?;
+        s += &block("projection_matrix", &DMatrix::from_column_slice(3, 4, p.as_slice()))?;
+        Ok(s)
+    }
+
+    /// Kalibr `camchain.yaml`: `cam0` (left), `cam1` (right) with `T_cn_cnm1` =
+    /// `right_from_left` as a 4x4 matrix.
+    pub fn kalibr_camchain(&self) -> Result<String, AlignError> {
+        let cam = |k: &Intrinsics, topic: &str| -> Result<String, AlignError> {
+            let skew = if k.skew.abs() > 1e-9 {
+                format!("  # skew {} px is not representable in Kalibr's pinhole model\n", num(k.skew)?)
+            } else {
+                String::new()
+            };
+            Ok(format!(
+                "{skew}  camera_model: pinhole\n  intrinsics: [{}, {}, {}, {}]\n  distortion_model: radtan\n  distortion_coeffs: [0.0, 0.0, 0.0, 0.0]\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
+                num(k.fx)?,
+                num(k.fy)?,
+                num(k.cx)?,
+                num(k.cy)?,
+                self.image_size[0],
+                self.image_size[1]
+            ))
+        };
+        let mut s = format!("# headalign; translation unit: {}\ncam0:\n", self.unit.name());
+        s += &cam(&self.left, "/left/image_raw")?;
+        s += "cam1:\n  T_cn_cnm1:\n";
+        let m = self.right_from_left.to_homogeneous();
+        for i in 0..4 {
+            let row: Result<Vec<String>, _> = (0..4).map(|j| num(m[(i, j)])).collect();
+            let _ = writeln!(s, "  - [{}]", row?.join(", "));
+        }
+        s += &cam(&self.right, "/right/image_raw")?;
+        Ok(s)
+    }
+
+    /// Write every format into `dir` (created if missing): `calibration.json`,
+    /// `opencv_stereo.yaml`, `left.yaml`, `right.yaml` (ROS), `camchain.yaml` (Kalibr).
+    /// Returns the paths written.
+    pub fn write_all(&self, dir: &Path) -> Result<Vec<PathBuf>, AlignError> {
+        std::fs::create_dir_all(dir)
+            .map_err(|e| AlignError::Output(format!("cannot create {}: {e}", dir.display())))?;
+        let json = serde_json::to_string_pretty(&self.json()?)
+            .map_err(|e| AlignError::Output(format!("JSON: {e}")))?;
+        let files = [
+            ("calibration.json", json + "\n"),
+            ("opencv_stereo.yaml", self.opencv_yaml()?),
+            ("left.yaml", self.ros_camera_info(0, "left")?),
+            ("right.yaml", self.ros_camera_info(1, "right")?),
+            ("camchain.yaml", self.kalibr_camchain()?),
+        ];
+        let mut written = Vec::new();
+        for (name, text) in files {
+            let path = dir.join(name);
+            std::fs::write(&path, text)
+                .map_err(|e| AlignError::Output(format!("cannot write {}: {e}", path.display())))?;
+            written.push(path);
+        }
+        Ok(written)
+    }
+}
+
+/// A YAML-safe number: shortest round-trip form, always with a decimal point or exponent
+/// (so YAML reads a float); non-finite numbers are errors.
+fn num(v: f64) -> Result<String, AlignError> {
+    if !v.is_finite() {
+        return Err(AlignError::Output(format!("non-finite number {v} in a calibration file")));
+    }
+    let s = format!("{v:?}");
+    Ok(if s.contains(['.', 'e', 'E']) { s } else { format!("{s}.0") })
+}
+
+fn row_major(m: &DMatrix<f64>) -> Result<Vec<String>, AlignError> {
+    let mut out = Vec::with_capacity(m.len());
+    for i in 0..m.nrows() {
+        for j in 0..m.ncols() {
+            out.push(num(m[(i, j)])?);
+        }
+    }
+    Ok(out)
+}
+
+fn dyn3(m: &Matrix3<f64>) -> DMatrix<f64> {
+    DMatrix::from_column_slice(3, 3, m.as_slice())
+}
+
+fn rows(m: &Matrix3<f64>) -> Vec<[f64; 3]> {
+    (0..3).map(|i| [m[(i, 0)], m[(i, 1)], m[(i, 2)]]).collect()
+}
+
+fn dyn_rows(m: &DMatrix<f64>) -> Vec<Vec<f64>> {
+    (0..m.nrows()).map(|i| (0..m.ncols()).map(|j| m[(i, j)]).collect()).collect()
+}
+
+/// A YAML scalar for a name: plain if it is a simple identifier, quoted otherwise.
+fn yaml_string(s: &str) -> String {
+    if !s.is_empty() && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-' || c == '/') {
+        s.to_string()
+    } else {
+        format!("{:?}", s)
+    }
+}
+
+fn check_finite(v: &Value) -> Result<(), AlignError> {
+    match v {
+        // serde_json turns non-finite f64 into null; a null where a matrix entry belongs
+        // means a non-finite number (sigmas may legitimately be null).
+        Value::Array(a) => a.iter().try_for_each(|x| {
+            if x.is_null() {
+                Err(AlignError::Output("non-finite number in a matrix".into()))
+            } else {
+                check_finite(x)
+            }
+        }),
+        Value::Object(o) => o.values().try_for_each(check_finite),
+        _ => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    fn sample() -> StereoCalibration {
+        StereoCalibration {
+            image_size: [768, 576],
+            left: Intrinsics { fx: 700.25, fy: 720.5, skew: 0.0, cx: 390.125, cy: 284.0 },
+            right: Intrinsics { fx: 705.0, fy: 716.0, skew: 0.3, cx: 380.0, cy: 290.0 },
+            sigmas: [IntrinsicSigmas { fx: Some(2.0), ..Default::default() }, IntrinsicSigmas::default()],
+            right_from_left: Isometry3::from_parts(
+                Translation3::new(-0.25, 0.001, 0.002),
+                UnitQuaternion::from_euler_angles(0.01, -0.05, 0.002),
+            ),
+            unit: TranslationUnit::Metres,
+        }
+    }
+
+    /// Numbers in a `data: [...]` list after `key`.
+    fn data_after(text: &str, key: &str) -> Vec<f64> {
+        let start = text.find(key).unwrap();
+        let rest = &text[start..];
+        let open = rest.find('[').unwrap();
+        let close = rest.find(']').unwrap();
+        rest[open + 1..close].split(',').map(|x| x.trim().parse::<f64>().unwrap()).collect()
+    }
+
+    #[test]
+    fn opencv_yaml_has_every_matrix_with_exact_numbers() {
+        let c = sample();
+        let y = c.opencv_yaml().unwrap();
+        assert!(y.starts_with("%YAML:1.0\n---\n"));
+        for key in ["M1:", "D1:", "M2:", "D2:", "R:", "T:", "R1:", "R2:", "P1:", "P2:", "Q:"] {
+            assert!(y.contains(&format!("{key} !!opencv-matrix")), "{key}");
+        }
+        // Round trip is exact: shortest round-trip formatting.
+        let m1 = data_after(&y, "M1:");
+        assert_eq!(m1, vec![700.25, 0.0, 390.125, 0.0, 720.5, 284.0, 0.0, 0.0, 1.0]);
+        let t = data_after(&y, "\nT:");
+        assert_eq!(t, vec![-0.25, 0.001, 0.002]);
+        let m2 = data_after(&y, "M2:");
+        assert_eq!(m2[1], 0.3, "skew kept in OpenCV's camera matrix");
+    }
+
+    #[test]
+    fn ros_and_kalibr_layouts() {
+        let c = sample();
+        let l = c.ros_camera_info(0, "left").unwrap();
+        for key in [
+            "image_width: 768",
+            "camera_name: left",
+            "camera_matrix:",
+            "distortion_model: plumb_bob",
+            "distortion_coefficients:",
+            "rectification_matrix:",
+            "projection_matrix:",
+        ] {
+            assert!(l.contains(key), "{key}");
+        }
+        assert_eq!(data_after(&l, "projection_matrix:\n").len(), 12);
+        let r = c.ros_camera_info(1, "right").unwrap();
+        let p = data_after(&r, "projection_matrix:\n");
+        // P2[0][3] = -f B with B = |t| (metres here).
+        let b = c.right_from_left.translation.vector.norm();
+        assert!((p[3] + p[0] * b).abs() < 1e-9 * p[0]);
+        assert!(c.ros_camera_info(2, "x").is_err());
+        let k = c.kalibr_camchain().unwrap();
+        assert!(k.contains("cam0:\n") && k.contains("cam1:\n  T_cn_cnm1:\n"));
+        assert!(k.contains("intrinsics: [700.25, 720.5, 390.125, 284.0]"));
+        assert!(k.contains("# skew 0.3 px"));
+    }
+
+    #[test]
+    fn non_finite_numbers_are_errors_not_files() {
+        let mut c = sample();
+        c.left.fx = f64::NAN;
+        assert!(c.opencv_yaml().is_err());
+        assert!(c.kalibr_camchain().is_err());
+        assert!(c.json().is_err());
+        let dir = std::env::temp_dir().join(format!("headalign-export-nan-{}", std::process::id()));
+        assert!(c.write_all(&dir).is_err());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
+    fn write_all_writes_five_files() {
+        let dir = std::env::temp_dir().join(format!("headalign-export-{}", std::process::id()));
+        let paths = sample().write_all(&dir).unwrap();
+        assert_eq!(paths.len(), 5);
+        for p in &paths {
+            assert!(std::fs::metadata(p).unwrap().len() > 50, "{}", p.display());
+        }
+        let v: Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("calibration.json")).unwrap()).unwrap();
+        assert_eq!(v["translation_unit"], "m");
+        assert_eq!(v["left"]["sigma"]["fx"], 2.0);
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
