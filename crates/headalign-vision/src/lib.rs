@@ -5,6 +5,7 @@
 //! Conventions: pixel `(x, y)` is column `x`, row `y`; `(0, 0)` is the centre of the
 //! top-left pixel (the same convention as the observation files, DESIGN.md section 6).
 
+pub mod draw;
 pub mod error;
 pub mod image;
 
