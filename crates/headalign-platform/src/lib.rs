@@ -9,6 +9,7 @@
 //! offsets being what alignment finds); pixels with (0, 0) at the centre of the top-left
 //! pixel (DESIGN.md sections 1 and 6).
 
+pub use headalign_vision::GrayImage;
 use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -148,6 +149,48 @@ pub trait StereoHead {
     fn move_to(&mut self, target: &Encoders) -> Result<(), PlatformError>;
     /// Capture a stereo view at the current position.
     fn capture(&mut self) -> Result<StereoCapture, PlatformError>;
+}
+
+/// A stereo pair of images and the encoder readings when they were taken (image mode).
+#[derive(Debug, Clone, PartialEq)]
+pub struct StereoImages {
+    /// Encoder readings when the images were taken.
+    pub encoders: Encoders,
+    /// Left image.
+    pub left: GrayImage,
+    /// Right image.
+    pub right: GrayImage,
+}
+
+impl StereoImages {
+    /// A pair; errors if the two images differ in size.
+    pub fn new(encoders: Encoders, left: GrayImage, right: GrayImage) -> Result<Self, PlatformError> {
+        if left.size() != right.size() {
+            return Err(PlatformError::Device(format!(
+                "left image is {}x{} but right image is {}x{}",
+                left.width(),
+                left.height(),
+                right.width(),
+                right.height()
+            )));
+        }
+        Ok(Self { encoders, left, right })
+    }
+
+    /// Image size `[width, height]`.
+    pub fn image_size(&self) -> [u32; 2] {
+        self.left.size()
+    }
+}
+
+/// A head whose cameras deliver images (image mode). The image-mode procedures move it
+/// with [`StereoHead::move_to`], read it with [`StereoHead::read_encoders`] and take
+/// pictures with [`ImagingHead::capture_images`]; they find correspondences themselves and
+/// never call [`StereoHead::capture`] (a head without its own tracker may return an error
+/// there).
+pub trait ImagingHead: StereoHead {
+    /// Capture both images at the current position.
+    fn capture_images(&mut self) -> Result<StereoImages, PlatformError>;
 }
 
 #[cfg(test)]
