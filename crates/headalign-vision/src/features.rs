@@ -447,3 +447,145 @@ fn bucket(ranked: &[Keypoint], w: usize, h: usize, cell: usize, max: usize) -> V
     }
     ranked.iter().zip(&take).filter(|(_, t)| **t).map(|(k, _)| *k).collect()
 }
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    fn xorshift(seed: u64) -> impl FnMut() -> u64 {
+        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        move || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            s
+        }
+    }
+
+    /// A `w x h` window at `(ox, oy)` of a large scene of random grey rectangles (many
+    /// corners and junctions), plus independent uniform noise of +-`noise` grey levels.
+    pub(crate) fn rect_scene(w: u32, h: u32, ox: u32, oy: u32, noise: u8, seed: u64) -> GrayImage {
+        const SW: usize = 640;
+        const SH: usize = 480;
+        let mut rnd = xorshift(seed);
+        let mut scene = vec![128u8; SW * SH];
+        for _ in 0..900 {
+            let (x0, y0) = ((rnd() % SW as u64) as usize, (rnd() % SH as u64) as usize);
+            let (rw, rh) = (6 + (rnd() % 40) as usize, 6 + (rnd() % 40) as usize);
+            let v = (rnd() % 256) as u8;
+            for y in y0..(y0 + rh).min(SH) {
+                for x in x0..(x0 + rw).min(SW) {
+                    scene[y * SW + x] = v;
+                }
+            }
+        }
+        let mut nrnd = xorshift(seed ^ u64::from(ox * 7919 + oy * 104_729 + 1));
+        let data = (0..h as usize)
+            .flat_map(|y| (0..w as usize).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let v = i32::from(scene[(y + oy as usize) * SW + x + ox as usize]);
+                let n = if noise == 0 {
+                    0
+                } else {
+                    (nrnd() % (2 * u64::from(noise) + 1)) as i32 - i32::from(noise)
+                };
+                (v + n).clamp(0, 255) as u8
+            })
+            .collect();
+        GrayImage::new(w, h, data).unwrap()
+    }
+
+    /// Fraction of `a`'s corners (that stay inside `b`'s detection area) re-detected in `b`
+    /// within `tol` px after the scene moved by `-shift` (b = scene window at +shift).
+    fn repeatability(a: &Features, b: &Features, shift: [f32; 2], w: f32, h: f32, tol: f32) -> f64 {
+        let (mut n, mut hit) = (0, 0);
+        for ka in &a.keypoints {
+            let (x, y) = (ka.x - shift[0], ka.y - shift[1]);
+            if x < 20.0 || y < 20.0 || x > w - 20.0 || y > h - 20.0 {
+                continue;
+            }
+            n += 1;
+            if b.keypoints.iter().any(|kb| (kb.x - x).powi(2) + (kb.y - y).powi(2) <= tol * tol) {
+                hit += 1;
+            }
+        }
+        hit as f64 / n.max(1) as f64
+    }
+
+    #[test]
+    fn corners_repeat_under_a_known_shift() {
+        let a = rect_scene(400, 300, 20, 30, 2, 5);
+        let b = rect_scene(400, 300, 27, 35, 2, 5);
+        let shift = [7.0, 5.0];
+        // All corners (no cap): detection is local, so most come back; the independent
+        // +-2 grey-level noise flips weak FAST candidates near the threshold (about 10 %).
+        let all = FeatureOptions { max_features: 100_000, ..Default::default() };
+        let (fa, fb) = (detect_and_describe(&a, &all).unwrap(), detect_and_describe(&b, &all).unwrap());
+        assert!(fa.len() > 300, "{}", fa.len());
+        let r = repeatability(&fa, &fb, shift, 400.0, 300.0, 1.0);
+        eprintln!("uncapped repeatability {r}");
+        assert!(r > 0.85, "uncapped repeatability {r}");
+        // Default (1000 features, bucketed): the cap and the cell boundaries move with the
+        // image, so some corners near the cut are exchanged; most still repeat.
+        let def = FeatureOptions::default();
+        let (fa, fb) = (detect_and_describe(&a, &def).unwrap(), detect_and_describe(&b, &def).unwrap());
+        assert!(fa.len() <= 1000 && fa.len() == fa.descriptors.len());
+        let r = repeatability(&fa, &fb, shift, 400.0, 300.0, 1.0);
+        eprintln!("capped repeatability {r}");
+        assert!(r > 0.75, "capped repeatability {r}");
+        // Strongest first.
+        assert!(fa.keypoints.windows(2).all(|p| p[0].response >= p[1].response));
+    }
+
+    #[test]
+    fn bucketing_spreads_features() {
+        let img = rect_scene(512, 384, 0, 0, 2, 9);
+        let opts = FeatureOptions { max_features: 200, ..Default::default() };
+        let f = detect_and_describe(&img, &opts).unwrap();
+        assert_eq!(f.len(), 200);
+        let mut cells = std::collections::HashSet::new();
+        for k in &f.keypoints {
+            cells.insert((k.x as usize / 64, k.y as usize / 64));
+        }
+        // 8x6 = 48 cells, quota 5 each: nearly every cell with corners is used.
+        assert!(cells.len() >= 40, "{} cells", cells.len());
+    }
+
+    #[test]
+    fn blank_small_and_bad_options() {
+        let blank = GrayImage::filled(200, 100, 90);
+        assert!(detect_and_describe(&blank, &FeatureOptions::default()).unwrap().is_empty());
+        let small = GrayImage::filled(32, 100, 90);
+        assert!(matches!(
+            detect_and_describe(&small, &FeatureOptions::default()),
+            Err(VisionError::InvalidInput(_))
+        ));
+        for bad in [
+            FeatureOptions { border: 3, ..Default::default() },
+            FeatureOptions { max_features: 0, ..Default::default() },
+            FeatureOptions { fast_threshold: 0, ..Default::default() },
+            FeatureOptions { harris_k: 0.3, ..Default::default() },
+        ] {
+            assert!(matches!(detect_and_describe(&blank, &bad), Err(VisionError::InvalidOptions(_))));
+        }
+    }
+
+    #[test]
+    fn fast_arc_test_and_pattern() {
+        // A bright 9-pixel... single bright square corner: the pixel just outside the
+        // corner of a dark square on a bright background is a FAST corner.
+        let mut img = GrayImage::filled(40, 40, 200);
+        for y in 20..40 {
+            for x in 20..40 {
+                img.pixels_mut()[y * 40 + x] = 20;
+            }
+        }
+        let mut row = vec![0u16; 40];
+        fast_row(img.pixels(), 40, 20, 3, 20, &mut row);
+        assert!(row[20] > 0, "corner pixel of the dark square");
+        assert_eq!(row[30], 0, "edge pixel is not a corner");
+        let p = brief_pattern();
+        assert!(p.iter().flatten().all(|v| v.abs() <= 13));
+        assert!(p.iter().all(|q| q[0] != q[2] || q[1] != q[3]));
+    }
+}

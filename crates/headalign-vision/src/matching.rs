@@ -296,3 +296,113 @@ pub fn match_homography(
     };
     match_predicted(a, b, predict, radius_px, options)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::features::tests::rect_scene;
+    use crate::features::{FeatureOptions, detect_and_describe};
+    use proptest::prelude::*;
+
+    /// Reference implementation: the definition, written plainly.
+    fn naive(a: &[Descriptor], b: &[Descriptor], o: &MatchOptions) -> Vec<Match> {
+        let mut out = Vec::new();
+        for (i, da) in a.iter().enumerate() {
+            let mut ds: Vec<(u32, usize)> = b.iter().enumerate().map(|(j, db)| (da.hamming(db), j)).collect();
+            ds.sort();
+            let (d1, j) = ds[0];
+            if d1 > o.max_distance || (ds.len() > 1 && d1 as f32 >= o.ratio * ds[1].0 as f32) {
+                continue;
+            }
+            let back = a.iter().enumerate().map(|(k, dk)| (dk.hamming(&b[j]), k)).min().map(|p| p.1);
+            if o.mutual && back != Some(i) {
+                continue;
+            }
+            out.push(Match { a: i, b: j, distance: d1 });
+        }
+        out
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(40))]
+        #[test]
+        fn brute_force_equals_definition(seed in any::<u64>(), na in 1usize..300, nb in 1usize..300) {
+            let mut s = seed | 1;
+            let mut rnd = || { s ^= s << 13; s ^= s >> 7; s ^= s << 17; s };
+            // Few distinct bits so that near neighbours and ties occur.
+            let mut desc = |_| Descriptor([rnd() & rnd(), rnd() & 0xFF, 0, rnd() & rnd() & rnd()]);
+            let a: Vec<Descriptor> = (0..na).map(&mut desc).collect();
+            let b: Vec<Descriptor> = (0..nb).map(&mut desc).collect();
+            for o in [MatchOptions::default(), MatchOptions { max_distance: 256, ratio: 1.0, mutual: false }] {
+                prop_assert_eq!(match_descriptors(&a, &b, &o).unwrap(), naive(&a, &b, &o));
+            }
+        }
+    }
+
+    fn pair() -> (Features, Features) {
+        let a = rect_scene(400, 300, 20, 30, 2, 5);
+        let b = rect_scene(400, 300, 27, 35, 2, 5);
+        let o = FeatureOptions::default();
+        (detect_and_describe(&a, &o).unwrap(), detect_and_describe(&b, &o).unwrap())
+    }
+
+    /// Fraction of matches whose b point is at a's point minus the scene shift (7, 5).
+    fn correct(a: &Features, b: &Features, m: &[Match]) -> f64 {
+        let ok = m
+            .iter()
+            .filter(|m| {
+                let (ka, kb) = (a.keypoints[m.a], b.keypoints[m.b]);
+                (kb.x - ka.x + 7.0).hypot(kb.y - ka.y + 5.0) < 1.5
+            })
+            .count();
+        ok as f64 / m.len().max(1) as f64
+    }
+
+    #[test]
+    fn descriptors_of_a_shifted_image_match() {
+        let (a, b) = pair();
+        let m = match_descriptors(&a.descriptors, &b.descriptors, &MatchOptions::default()).unwrap();
+        assert!(m.len() > 300, "{} matches", m.len());
+        let c = correct(&a, &b, &m);
+        assert!(c > 0.9, "correct fraction {c}");
+    }
+
+    #[test]
+    fn guided_matching_respects_band_and_radius() {
+        let (a, b) = pair();
+        let o = MatchOptions::default();
+        // Pure image translation t = (-7, -5): epipole at infinity e = (7, 5, 0), F = [e]x.
+        let f = [[0.0, 0.0, 5.0], [0.0, 0.0, -7.0], [-5.0, 7.0, 0.0]];
+        let band = 1.5;
+        let m = match_epipolar(&a, &b, &f, band, &o).unwrap();
+        assert!(m.len() > 300 && correct(&a, &b, &m) > 0.95, "{} {}", m.len(), correct(&a, &b, &m));
+        for mm in &m {
+            let (ka, kb) = (a.keypoints[mm.a], b.keypoints[mm.b]);
+            let (xa, ya, xb, yb) = (f64::from(ka.x), f64::from(ka.y), f64::from(kb.x), f64::from(kb.y));
+            let l = [0, 1, 2].map(|r| f[r][0] * xa + f[r][1] * ya + f[r][2]);
+            let d = (l[0] * xb + l[1] * yb + l[2]).abs() / l[0].hypot(l[1]);
+            assert!(d <= band + 1e-9, "distance to epipolar line {d}");
+        }
+        // A wrong F (epipolar lines 20 px off) finds (almost) nothing right.
+        let wrong = [[0.0, 0.0, 5.0], [0.0, 0.0, -7.0], [-5.0, 7.0, 20.0 * 74f64.sqrt()]];
+        let mw = match_epipolar(&a, &b, &wrong, band, &o).unwrap();
+        assert!(correct(&a, &b, &mw) * (mw.len() as f64) < 10.0, "{}", mw.len());
+        // Homography prediction x_b = x_a - (7, 5), radius 3 px.
+        let g = [[1.0, 0.0, -7.0], [0.0, 1.0, -5.0], [0.0, 0.0, 1.0]];
+        let m = match_homography(&a, &b, &g, 3.0, &o).unwrap();
+        assert!(m.len() > 300 && correct(&a, &b, &m) > 0.97);
+        for mm in &m {
+            let (ka, kb) = (a.keypoints[mm.a], b.keypoints[mm.b]);
+            assert!((kb.x - ka.x + 7.0).hypot(kb.y - ka.y + 5.0) <= 3.0 + 1e-4);
+        }
+        // Errors and degenerate input.
+        assert!(match_epipolar(&a, &b, &f, -1.0, &o).is_err());
+        assert!(match_epipolar(&a, &b, &[[f64::NAN; 3]; 3], 1.0, &o).is_err());
+        assert!(match_predicted(&a, &b, |_| None, 3.0, &o).unwrap().is_empty());
+        let bad = MatchOptions { ratio: 0.0, ..Default::default() };
+        assert!(match_descriptors(&a.descriptors, &b.descriptors, &bad).is_err());
+        assert!(match_descriptors(&[], &b.descriptors, &o).unwrap().is_empty());
+        let broken = Features { keypoints: a.keypoints.clone(), descriptors: vec![] };
+        assert!(matches!(match_homography(&broken, &b, &g, 3.0, &o), Err(VisionError::InvalidInput(_))));
+    }
+}
