@@ -386,9 +386,7 @@ fn coarse_to_fine(
 }
 
 fn std_dev(img: &FloatImage) -> f64 {
-    let m = img.mean();
-    let v = img.pixels().iter().map(|&x| (f64::from(x) - m).powi(2)).sum::<f64>() / img.pixels().len() as f64;
-    v.sqrt()
+    img.mean_std().1
 }
 
 /// Options of [`register_translation`].

@@ -100,7 +100,38 @@ impl FloatImage {
 
     /// Mean value.
     pub fn mean(&self) -> f64 {
-        self.data.iter().map(|&v| f64::from(v)).sum::<f64>() / self.data.len() as f64
+        self.mean_std().0
+    }
+
+    /// Mean and (population) standard deviation. Sums run in `f32` over 8 lanes per row
+    /// (vectorised; about 1e-6 relative error on a row) and in `f64` across rows; the
+    /// variance is taken about the first pixel's value to limit cancellation.
+    pub fn mean_std(&self) -> (f64, f64) {
+        let pivot = self.data[0];
+        let (mut s1, mut s2) = (0.0f64, 0.0f64);
+        for row in self.data.chunks(self.width) {
+            let mut a1 = [0.0f32; 8];
+            let mut a2 = [0.0f32; 8];
+            let ch = row.chunks_exact(8);
+            let rem = ch.remainder();
+            for c in ch {
+                for i in 0..8 {
+                    let v = c[i] - pivot;
+                    a1[i] += v;
+                    a2[i] += v * v;
+                }
+            }
+            let (mut r1, mut r2): (f32, f32) = (a1.iter().sum(), a2.iter().sum());
+            for &v in rem {
+                r1 += v - pivot;
+                r2 += (v - pivot) * (v - pivot);
+            }
+            s1 += f64::from(r1);
+            s2 += f64::from(r2);
+        }
+        let n = self.data.len() as f64;
+        let m = s1 / n;
+        (f64::from(pivot) + m, (s2 / n - m * m).max(0.0).sqrt())
     }
 }
 
