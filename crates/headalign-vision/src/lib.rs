@@ -4,10 +4,32 @@
 //!
 //! Conventions: pixel `(x, y)` is column `x`, row `y`; `(0, 0)` is the centre of the
 //! top-left pixel (the same convention as the observation files, DESIGN.md section 6).
+//!
+//! Main entry points:
+//! - [`Pyramid`], [`gaussian_blur`]: Gaussian pyramids of [`FloatImage`]s;
+//! - [`register_translation`] (whole-image shift, paper sections 5-6) and [`locate_patch`]
+//!   (where did the patch around a point go), both by coarse-to-fine ZNCC;
+//! - [`detect_and_describe`]: FAST-9 corners ranked by Harris, spread over a grid, with
+//!   256-bit BRIEF descriptors;
+//! - [`match_descriptors`], [`match_epipolar`], [`match_predicted`]: Hamming matching,
+//!   free or guided by a fundamental matrix or a predicting map.
 
+pub mod correlation;
 pub mod draw;
 pub mod error;
+pub mod features;
 pub mod image;
+pub mod matching;
+pub mod pyramid;
 
+pub use correlation::{
+    PatchMatch, PatchSearchOptions, Registration, RegistrationOptions, locate_patch,
+    locate_patch_in_pyramids, register_pyramids, register_translation, zncc,
+};
 pub use error::VisionError;
+pub use features::{Descriptor, FeatureOptions, Features, Keypoint, detect_and_describe};
 pub use image::GrayImage;
+pub use matching::{
+    Match, MatchOptions, match_descriptors, match_epipolar, match_homography, match_predicted,
+};
+pub use pyramid::{FloatImage, Pyramid, gaussian_blur};
