@@ -12,22 +12,32 @@
 //! noise of `noise_px` is added to each coordinate. Observations that noise pushes out of
 //! the image are dropped.
 //!
+//! Images: [`SimulatedHead::render_stereo`] renders both cameras at the current (true)
+//! pose with the textured version of the same room ([`crate::render`]); the textures are
+//! baked on the first render. With `scenario.render.distortion` non-zero, the point
+//! captures use the same distorted projection as the images.
+//!
 //! Randomness: independent ChaCha8 streams, all seeded from `scenario.seed`: head
-//! geometry (0), scene (1), captures (2), encoder readings (3). The capture stream
+//! geometry (0), scene (1), captures (2), encoder readings (3), image noise (4),
+//! textures (5). The capture stream
 //! advances with each capture, so the same seed and the same sequence of calls give the
 //! same captures, bit for bit; reading encoders does not disturb the captures.
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_platform::{Encoders, Joint, PlatformError, StereoCapture, StereoHead, TrackObservation};
+use headalign_vision::GrayImage;
 use nalgebra::{Isometry3, Point2, Point3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
+use std::sync::Arc;
 
 use crate::SimError;
 use crate::kinematics::HeadTruth;
+use crate::render::{CameraView, RenderOptions, project, render_view};
 use crate::scenario::Scenario;
-use crate::scene::{ScenePoint, generate_scene, pixel_in_image, visible_pixel};
+use crate::scene::{Room, ScenePoint, generate_room_and_scene, pixel_in_image, visible_pixel};
+use crate::texture::{TexturedScene, bake_textures};
 
 /// Commanded encoder readings must lie in `+-JOINT_RANGE_DEG`.
 pub const JOINT_RANGE_DEG: f64 = 180.0;
@@ -36,6 +46,8 @@ const STREAM_GEOMETRY: u64 = 0;
 const STREAM_SCENE: u64 = 1;
 const STREAM_CAPTURE: u64 = 2;
 const STREAM_ENCODERS: u64 = 3;
+const STREAM_RENDER: u64 = 4;
+const STREAM_TEXTURE: u64 = 5;
 
 fn rng_stream(seed: u64, stream: u64) -> ChaCha8Rng {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -49,9 +61,12 @@ pub struct SimulatedHead {
     scenario: Scenario,
     truth: HeadTruth,
     scene: Vec<ScenePoint>,
+    room: Room,
+    textured: Option<Arc<TexturedScene>>,
     encoders: Encoders,
     capture_rng: ChaCha8Rng,
     encoder_rng: ChaCha8Rng,
+    render_rng: ChaCha8Rng,
 }
 
 impl SimulatedHead {
@@ -60,13 +75,17 @@ impl SimulatedHead {
     pub fn new(scenario: Scenario) -> Result<Self, SimError> {
         scenario.validate()?;
         let truth = HeadTruth::draw(&scenario, &mut rng_stream(scenario.seed, STREAM_GEOMETRY));
-        let scene = generate_scene(&scenario, &truth, &mut rng_stream(scenario.seed, STREAM_SCENE))?;
+        let (room, scene) =
+            generate_room_and_scene(&scenario, &truth, &mut rng_stream(scenario.seed, STREAM_SCENE))?;
         Ok(Self {
             capture_rng: rng_stream(scenario.seed, STREAM_CAPTURE),
             encoder_rng: rng_stream(scenario.seed, STREAM_ENCODERS),
+            render_rng: rng_stream(scenario.seed, STREAM_RENDER),
             scenario,
             truth,
             scene,
+            room,
+            textured: None,
             encoders: Encoders::default(),
         })
     }
@@ -124,7 +143,95 @@ impl SimulatedHead {
         p: &Point3<f64>,
     ) -> Option<Point2<f64>> {
         let s = &self.scenario;
-        visible_pixel(k, cam_from_world, p, s.image_size, s.scene_min_m, s.scene_max_m)
+        let distortion = &s.render.distortion;
+        if distortion.is_zero() {
+            return visible_pixel(k, cam_from_world, p, s.image_size, s.scene_min_m, s.scene_max_m);
+        }
+        let point_in_cam = cam_from_world * p;
+        let distance = point_in_cam.coords.norm();
+        if !(distance >= s.scene_min_m && distance <= s.scene_max_m) {
+            return None;
+        }
+        let pixel = project(k, distortion, &point_in_cam)?;
+        pixel_in_image(&pixel, s.image_size).then_some(pixel)
+    }
+
+    /// Exact pixels `(left, right)` of a world point at the given readings, through the
+    /// true intrinsics and the scenario's distortion; `None` where the point is behind the
+    /// camera or outside its image (no distance limits, no occlusion test). This is the
+    /// projection the rendered images agree with.
+    pub fn exact_pixels(
+        &self,
+        enc: &Encoders,
+        point_in_world: &Point3<f64>,
+    ) -> (Option<Point2<f64>>, Option<Point2<f64>>) {
+        let (world_from_left, world_from_right) = self.world_from_cameras(enc);
+        let size = self.scenario.image_size;
+        let distortion = &self.scenario.render.distortion;
+        let pixel = |k: &Intrinsics, world_from_cam: &Isometry3<f64>| {
+            project(k, distortion, &(world_from_cam.inverse() * point_in_world))
+                .filter(|px| pixel_in_image(px, size))
+        };
+        (pixel(&self.truth.left, &world_from_left), pixel(&self.truth.right, &world_from_right))
+    }
+
+    /// The room the scene points lie on (walls, floor, ceiling, boxes).
+    pub fn room(&self) -> &Room {
+        &self.room
+    }
+
+    /// The textured room, baked on first use from the texture stream and
+    /// `scenario.render` (photographs or the procedural fallback: see its report).
+    pub fn textured_scene(&mut self) -> Arc<TexturedScene> {
+        if let Some(t) = &self.textured {
+            return t.clone();
+        }
+        let r = &self.scenario.render;
+        let data_dir = r.resolved_data_dir();
+        let mut rng = rng_stream(self.scenario.seed, STREAM_TEXTURE);
+        let (quads, report) =
+            bake_textures(&self.room.quads(), r.metres_per_texel, data_dir.as_deref(), &mut rng);
+        let t = Arc::new(TexturedScene { quads, report });
+        self.textured = Some(t.clone());
+        t
+    }
+
+    /// Render both cameras at the current (true, commanded) pose with
+    /// `scenario.render`; the noise seeds come from the image-noise stream, which advances
+    /// with each call (same seed, same calls: same images).
+    pub fn render_stereo(&mut self) -> Result<(GrayImage, GrayImage), SimError> {
+        let seed = self.render_rng.random::<u64>();
+        let (enc, options) = (self.encoders, self.scenario.render.clone());
+        self.render_stereo_with(&enc, &options, seed)
+    }
+
+    /// Render both cameras at the given readings with the given options and noise seed
+    /// (the left image uses `noise_seed`, the right `noise_seed + 1`); no RNG of the head
+    /// advances. The textures are those of `scenario.render` (the texture fields of
+    /// `options` are ignored once baked).
+    pub fn render_stereo_with(
+        &mut self,
+        enc: &Encoders,
+        options: &RenderOptions,
+        noise_seed: u64,
+    ) -> Result<(GrayImage, GrayImage), SimError> {
+        let scene = self.textured_scene();
+        let (world_from_left, world_from_right) = self.world_from_cameras(enc);
+        let size = self.scenario.image_size;
+        let view = |k, world_from_cam| CameraView {
+            k,
+            distortion: &options.distortion,
+            world_from_cam,
+            image_size: size,
+        };
+        let left = render_view(&scene.quads, &view(&self.truth.left, &world_from_left), options, noise_seed)?;
+        let right = render_view(
+            &scene.quads,
+            &view(&self.truth.right, &world_from_right),
+            options,
+            noise_seed.wrapping_add(1),
+        )?;
+        Ok((left, right))
     }
 
     /// Noisy observations of one camera, advancing the capture RNG.

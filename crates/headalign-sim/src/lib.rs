@@ -13,7 +13,12 @@
 //!   offsets, camera mounting) drawn from the seed, and the product-of-exponentials
 //!   forward kinematics.
 //! - [`scene`]: a seeded room of 3D points (walls, floor, ceiling, boxes) with track ids.
-//! - [`head`]: [`SimulatedHead`], noisy point captures with outliers.
+//! - [`head`]: [`SimulatedHead`], noisy point captures with outliers, rendered stereo
+//!   images.
+//! - [`texture`]: baked, mip-mapped textures of the room's surfaces (photographs from the
+//!   shared data folder plus procedural detail; procedural only if the folder is missing).
+//! - [`render`]: ray-cast renderer of the textured room with radial distortion,
+//!   supersampling, blur and sensor noise ([`RenderOptions`]).
 //! - [`metrics`]: ground-truth error metrics (alignment, calibration, reconstruction,
 //!   axes).
 //!
@@ -24,13 +29,17 @@
 pub mod head;
 pub mod kinematics;
 pub mod metrics;
+pub mod render;
 pub mod scenario;
 pub mod scene;
+pub mod texture;
 
 pub use head::SimulatedHead;
 pub use kinematics::HeadTruth;
 pub use metrics::{AlignmentErrors, AxisErrors, CalibrationErrors, calibration_errors};
+pub use render::{RadialDistortion, RenderOptions};
 pub use scenario::Scenario;
+pub use texture::{TextureReport, TexturedScene};
 
 use thiserror::Error;
 
@@ -46,6 +55,9 @@ pub enum SimError {
     /// The scene could not be built as asked (e.g. nothing visible in the initial view).
     #[error("scene: {0}")]
     Scene(String),
+    /// An image could not be rendered (bad camera, non-invertible distortion).
+    #[error("render: {0}")]
+    Render(String),
     /// A metric could not be computed from the given data.
     #[error("metric: {0}")]
     Metric(String),

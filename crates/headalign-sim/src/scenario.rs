@@ -13,6 +13,7 @@ use headalign_geometry::camera::Intrinsics;
 use serde::{Deserialize, Serialize};
 
 use crate::SimError;
+use crate::render::RenderOptions;
 
 /// All parameters of a simulation. See the module docs for units.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -62,6 +63,9 @@ pub struct Scenario {
     pub rotation_deg: f64,
     /// Standard deviation of the Gaussian noise on each encoder reading, degrees.
     pub encoder_noise_deg: f64,
+    /// Image rendering: distortion (also used by the point captures), blur, noise,
+    /// supersampling, textures. TOML table `[render]`; defaults in [`RenderOptions`].
+    pub render: RenderOptions,
 }
 
 impl Default for Scenario {
@@ -88,6 +92,7 @@ impl Default for Scenario {
             outlier_fraction: 0.10,
             rotation_deg: 3.0,
             encoder_noise_deg: 0.0,
+            render: RenderOptions::default(),
         }
     }
 }
@@ -171,6 +176,7 @@ impl Scenario {
             finite_nonneg(self.encoder_noise_deg),
             format!("encoder_noise_deg must be >= 0, got {}", self.encoder_noise_deg),
         );
+        problems.extend(self.render.problems());
         if problems.is_empty() { Ok(()) } else { Err(SimError::InvalidScenario(problems.join("; "))) }
     }
 
@@ -263,5 +269,16 @@ mod tests {
         assert_eq!(s.baseline_m, 0.25);
         assert!(matches!(Scenario::from_toml_str("noise = 2.0\n"), Err(SimError::Toml(_))));
         assert!(matches!(Scenario::from_toml_str("noise_px = -2.0\n"), Err(SimError::InvalidScenario(_))));
+        // The render table: partial, defaults elsewhere; unknown keys rejected.
+        let s = Scenario::from_toml_str("[render]\nblur_sigma_px = 1.5\n[render.distortion]\nk1 = -0.1\n")
+            .unwrap();
+        assert_eq!(s.render.blur_sigma_px, 1.5);
+        assert_eq!(s.render.distortion.k1, -0.1);
+        assert_eq!(s.render.supersampling, 2);
+        assert!(matches!(Scenario::from_toml_str("[render]\nblur = 1.0\n"), Err(SimError::Toml(_))));
+        assert!(matches!(
+            Scenario::from_toml_str("[render]\nsupersampling = 0\n"),
+            Err(SimError::InvalidScenario(_))
+        ));
     }
 }

@@ -95,12 +95,54 @@ impl FloorBox {
 }
 
 /// The room: an axis-aligned box `[x_min, x_max] x [y_min, 0] x [z_min, z_max]` (y_min is
-/// the ceiling, negative) and boxes on the floor.
+/// the ceiling, negative) and boxes on the floor. Drawn once per scenario from the scene
+/// stream; the point scene and the rendered images see the same room.
 #[derive(Clone, Debug)]
-struct Room {
+pub struct Room {
     min: Vector3<f64>,
     max: Vector3<f64>,
     boxes: Vec<FloorBox>,
+}
+
+/// A planar rectangle in the world frame: `corner + a * u + b * v` for `a` in
+/// `[0, |u|]`, `b` in `[0, |v|]` (metres, `u` and `v` unit and perpendicular). `u x v` is
+/// the normal of the **visible** side (into the room for walls, outward for boxes): a
+/// surface seen from its back is never the first hit in a closed room.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PlanarQuad {
+    /// The first corner, world frame.
+    pub corner: Point3<f64>,
+    /// Unit direction of the first edge, world frame.
+    pub u: Vector3<f64>,
+    /// Unit direction of the second edge, world frame.
+    pub v: Vector3<f64>,
+    /// Lengths of the two edges, metres.
+    pub size_m: [f64; 2],
+}
+
+impl PlanarQuad {
+    /// The rectangle centred at `centre` with half edges `half_u`, `half_v` (vectors,
+    /// perpendicular; their cross product is the visible side's normal).
+    fn centred(centre: Point3<f64>, half_u: Vector3<f64>, half_v: Vector3<f64>) -> Self {
+        let (lu, lv) = (half_u.norm(), half_v.norm());
+        Self {
+            corner: centre - half_u - half_v,
+            u: half_u / lu,
+            v: half_v / lv,
+            size_m: [2.0 * lu, 2.0 * lv],
+        }
+    }
+
+    /// Unit normal of the visible side, `u x v`.
+    pub fn normal(&self) -> Vector3<f64> {
+        self.u.cross(&self.v)
+    }
+
+    /// The four corners in order `corner`, `+u`, `+u+v`, `+v`, world frame.
+    pub fn corners(&self) -> [Point3<f64>; 4] {
+        let (du, dv) = (self.u * self.size_m[0], self.v * self.size_m[1]);
+        [self.corner, self.corner + du, self.corner + du + dv, self.corner + dv]
+    }
 }
 
 impl Room {
@@ -128,6 +170,42 @@ impl Room {
             });
         }
         Self { min: Vector3::new(-left, -ceiling, -back), max: Vector3::new(right, 0.0, front), boxes }
+    }
+
+    /// The surfaces as visible-side-oriented quads: floor, ceiling, the four walls (in
+    /// that order), then for each box its top and four sides (the bottom stands on the
+    /// floor and is never seen).
+    pub fn quads(&self) -> Vec<PlanarQuad> {
+        let (lo, hi) = (self.min, self.max);
+        let c = (lo + hi) * 0.5;
+        let h = (hi - lo) * 0.5;
+        let (x, y, z) = (Vector3::x(), Vector3::y(), Vector3::z());
+        let at = |v: Vector3<f64>| Point3::from(v);
+        let mut quads = vec![
+            // Floor (y = max.y = 0), seen from above (-y): x cross z = -y.
+            PlanarQuad::centred(at(Vector3::new(c.x, hi.y, c.z)), x * h.x, z * h.z),
+            // Ceiling, seen from below (+y): z cross x = +y.
+            PlanarQuad::centred(at(Vector3::new(c.x, lo.y, c.z)), z * h.z, x * h.x),
+            // Right wall x = max.x, normal -x: z cross y = -x.
+            PlanarQuad::centred(at(Vector3::new(hi.x, c.y, c.z)), z * h.z, y * h.y),
+            // Left wall, normal +x: y cross z = +x.
+            PlanarQuad::centred(at(Vector3::new(lo.x, c.y, c.z)), y * h.y, z * h.z),
+            // Front wall z = max.z, normal -z: y cross x = -z.
+            PlanarQuad::centred(at(Vector3::new(c.x, c.y, hi.z)), y * h.y, x * h.x),
+            // Back wall, normal +z: x cross y = +z.
+            PlanarQuad::centred(at(Vector3::new(c.x, c.y, lo.z)), x * h.x, y * h.y),
+        ];
+        for b in &self.boxes {
+            let world_from_box = b.box_from_world.inverse();
+            let (bx, by, bz) =
+                (world_from_box * x * b.half.x, world_from_box * y * b.half.y, world_from_box * z * b.half.z);
+            // (offset to the face centre, half edges) with hu x hv along the offset.
+            let faces = [(-by, bx, bz), (bx, by, bz), (-bx, bz, by), (bz, bx, by), (-bz, by, bx)];
+            for (offset, hu, hv) in faces {
+                quads.push(PlanarQuad::centred(b.centre + offset, hu, hv));
+            }
+        }
+        quads
     }
 
     /// First surface hit by the ray `origin + t dir` (origin inside the room).
@@ -176,6 +254,15 @@ pub fn generate_scene(
     truth: &HeadTruth,
     rng: &mut ChaCha8Rng,
 ) -> Result<Vec<ScenePoint>, SimError> {
+    generate_room_and_scene(scenario, truth, rng).map(|(_, points)| points)
+}
+
+/// [`generate_scene`], also returning the room the points lie on (for the renderer).
+pub fn generate_room_and_scene(
+    scenario: &Scenario,
+    truth: &HeadTruth,
+    rng: &mut ChaCha8Rng,
+) -> Result<(Room, Vec<ScenePoint>), SimError> {
     let head_centre = Point3::new(0.0, -(scenario.head_height_m + scenario.elevation_below_cameras_m), 0.0);
     let room = Room::draw(scenario, &head_centre, rng);
     let initial = Encoders::default();
@@ -204,7 +291,7 @@ pub fn generate_scene(
                     out.push((out.len() as u64, p));
                 }
             }
-            return Ok(out);
+            return Ok((room, out));
         }
         if rays >= 1 << 22 {
             break;
@@ -217,4 +304,45 @@ pub fn generate_scene(
          scene_min_m/scene_max_m, image size and zero offsets)",
         scenario.points
     )))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn quads_face_the_head_side_and_carry_every_point() {
+        for seed in 1..=5 {
+            let scenario = Scenario::default().with_seed(seed);
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let truth = HeadTruth::draw(&scenario, &mut rng);
+            let (room, points) = generate_room_and_scene(&scenario, &truth, &mut rng).unwrap();
+            let quads = room.quads();
+            assert_eq!(quads.len(), 6 + 5 * room.boxes.len());
+            for q in &quads[..6] {
+                // Walls face the room's centre.
+                let centre = Point3::from((room.min + room.max) * 0.5);
+                assert!(q.normal().dot(&(centre - q.corner)) > 0.0);
+                assert!((q.u.dot(&q.v)).abs() < 1e-12 && (q.normal().norm() - 1.0).abs() < 1e-12);
+            }
+            for (b, faces) in room.boxes.iter().zip(quads[6..].chunks(5)) {
+                for q in faces {
+                    // Box faces face away from the box centre.
+                    assert!(q.normal().dot(&(q.corner - b.centre)) > 0.0);
+                }
+            }
+            // Every scene point lies on (within 1e-9 m of) some quad.
+            for (_, p) in &points {
+                let on = quads.iter().any(|q| {
+                    let d = p - q.corner;
+                    let (a, c) = (d.dot(&q.u), d.dot(&q.v));
+                    d.dot(&q.normal()).abs() < 1e-9
+                        && (-1e-9..=q.size_m[0] + 1e-9).contains(&a)
+                        && (-1e-9..=q.size_m[1] + 1e-9).contains(&c)
+                });
+                assert!(on, "seed {seed}: point {p} on no quad");
+            }
+        }
+    }
 }
