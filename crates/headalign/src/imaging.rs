@@ -16,14 +16,18 @@
 //! `t alpha^2 - (x - y) alpha + x y t = 0` with `x, y` the offsets before and after and
 //! `t = tan(delta)`. A target outside the image (e.g. a vanishing point) is approached
 //! through a visible point near the edge in its direction; its own position is carried
-//! from image to image by the plane homography of a grid of correlated patches (exact
-//! for a direction at infinity under rotation), until it is inside and at the centre.
+//! from image to image by the plane homography of the correlated patches nearest to it
+//! (its own surface, most likely), until it is inside and at the centre.
 //!
 //! Units: pixels for positions and tolerances, degrees for encoder moves, `alpha` in
 //! pixels (its sign absorbs the joint's direction: a move that goes the wrong way is
 //! detected and corrected at the next step).
 //! Pitfalls: the vertical and horizontal joints are treated as independent (true for
-//! small angles; the loop absorbs the coupling); a textureless patch cannot be located
+//! small angles; the loop absorbs the coupling); a target that starts outside the image
+//! is carried by the motion of its neighbourhood, so one at a very different depth from
+//! its neighbours (or a vanishing point) picks up the parallax of the offset axes, about
+//! a pixel per 10 deg of travel at 2 m (for the vanishing point of alignment use the
+//! calibrated solution of [`crate::alignment`]); a textureless patch cannot be located
 //! (an error naming it); the elevation joint is shared, so fixating with the right camera
 //! moves the left one too.
 
@@ -178,7 +182,9 @@ pub struct FixationOptions {
     /// A target counts as visible (and is located by its own patch) when it is at least
     /// this far inside the image, pixels (default 48; patches need room).
     pub edge_margin_px: f64,
-    /// Patch search for the target and the grid (default: 25x25 templates, 48 px radius).
+    /// Patch search for the target and the grid around the place the whole-image shift
+    /// predicts (default: 25x25 templates, 24 px radius: the shift is measured, only
+    /// parallax and rotation are left).
     pub patch: PatchSearchOptions,
 }
 
@@ -189,7 +195,7 @@ impl Default for FixationOptions {
             tolerance_px: 0.3,
             max_moves: 20,
             edge_margin_px: 48.0,
-            patch: PatchSearchOptions { half_size: 12, search_radius: 48.0, ..PatchSearchOptions::default() },
+            patch: PatchSearchOptions { half_size: 12, search_radius: 24.0, ..PatchSearchOptions::default() },
         }
     }
 }
@@ -197,6 +203,8 @@ impl Default for FixationOptions {
 /// One fixation move.
 #[derive(Debug, Clone, Serialize)]
 pub struct FixationStep {
+    /// Encoder readings before the move.
+    pub encoders: Encoders,
     /// Where the target was before the move, pixels (may be outside the image).
     pub target_px: [f64; 2],
     /// The point brought to the centre by this move (the target, or an edge point in its
@@ -248,41 +256,59 @@ fn inside(p: [f64; 2], size: [u32; 2], margin: f64) -> bool {
         && p[1] <= f64::from(size[1]) - 1.0 - margin
 }
 
-/// The plane homography from `a` to `b` from a grid of correlated patches (predicted at
-/// `p + shift`).
-fn grid_homography(
+/// Patches nearest the target that fit the local image motion.
+const LOCAL_PATCHES: usize = 10;
+
+/// The image motion from `a` to `b` near `target` (a pixel of `a`, possibly outside): a
+/// plane homography through the [`LOCAL_PATCHES`] grid patches nearest the target, each
+/// found by correlation around `p + shift`. Local, because scene points at other depths
+/// move differently (parallax of the offset axes); the nearest patches most likely lie on
+/// the target's own surface.
+fn local_homography(
     a: &GrayImage,
     b: &GrayImage,
     shift: [f64; 2],
+    target: [f64; 2],
     options: &FixationOptions,
 ) -> Result<Homography2, AlignError> {
     let size = a.size();
     let m = options.edge_margin_px;
-    let mut pairs = Vec::new();
-    for i in 0..6 {
-        for j in 0..5 {
+    let mut grid = Vec::new();
+    for i in 0..12 {
+        for j in 0..9 {
             let p = [
-                m + (f64::from(size[0]) - 1.0 - 2.0 * m) * f64::from(i) / 5.0,
-                m + (f64::from(size[1]) - 1.0 - 2.0 * m) * f64::from(j) / 4.0,
+                m + (f64::from(size[0]) - 1.0 - 2.0 * m) * f64::from(i) / 11.0,
+                m + (f64::from(size[1]) - 1.0 - 2.0 * m) * f64::from(j) / 8.0,
             ];
-            let pred = [p[0] + shift[0], p[1] + shift[1]];
-            if !inside(pred, size, options.patch.half_size as f64) {
-                continue;
-            }
-            if let Ok(found) = locate_patch(a, p, b, Some(pred), &options.patch)
-                && found.score > 0.8
-            {
-                pairs.push((Point2::new(p[0], p[1]), Point2::new(found.position[0], found.position[1])));
-            }
+            grid.push(p);
+        }
+    }
+    grid.sort_by(|p, q| {
+        let d = |x: &[f64; 2]| (x[0] - target[0]).hypot(x[1] - target[1]);
+        d(p).total_cmp(&d(q))
+    });
+    let mut pairs = Vec::new();
+    for p in grid {
+        if pairs.len() >= LOCAL_PATCHES {
+            break;
+        }
+        let pred = [p[0] + shift[0], p[1] + shift[1]];
+        if !inside(pred, size, options.patch.half_size as f64 + 1.0) {
+            continue;
+        }
+        if let Ok(found) = locate_patch(a, p, b, Some(pred), &options.patch)
+            && found.score > 0.8
+        {
+            pairs.push((Point2::new(p[0], p[1]), Point2::new(found.position[0], found.position[1])));
         }
     }
     if pairs.len() < 6 {
         return Err(AlignError::Images(format!(
-            "fixation: only {} image patches could be followed across a move (need 6)",
+            "fixation: only {} image patches near the target could be followed across a move (need 6)",
             pairs.len()
         )));
     }
-    let opts = RansacOptions { threshold: 1.5, ..RansacOptions::default() };
+    let opts = RansacOptions { threshold: 1.0, ..RansacOptions::default() };
     ransac(&Homography2Estimator, &pairs, &opts)
         .map(|r| r.model)
         .map_err(|e| AlignError::Images(format!("fixation: no image motion fits the followed patches: {e}")))
@@ -313,6 +339,10 @@ pub fn fixate<H: ImagingHead>(
     let mut alpha = [f, -f];
     let mut images = head.capture_images()?;
     let mut target = target_px;
+    // A target visible at the start is a scene point: its own patch follows it. One that
+    // starts outside has no appearance (e.g. a vanishing point): it is carried by the
+    // image motion of the whole view.
+    let mut patch_target = inside(target, size, options.edge_margin_px);
     let mut steps = Vec::new();
     loop {
         let err = ((target[0] - c[0]).powi(2) + (target[1] - c[1]).powi(2)).sqrt();
@@ -335,23 +365,37 @@ pub fn fixate<H: ImagingHead>(
             });
         }
         // The aim: the target, or the point near the edge in its direction.
-        let aim = if visible {
-            target
+        // A target in view is brought to the centre. One outside is first brought just
+        // inside the border (small moves, so little parallax while it is carried by the
+        // image motion); a visible point near the edge in its direction measures each
+        // move for the update of alpha.
+        let (aim, delta) = if patch_target {
+            (target, [((target[0] - c[0]) / alpha[0]).atan(), ((target[1] - c[1]) / alpha[1]).atan()])
         } else {
             let d = [target[0] - c[0], target[1] - c[1]];
-            let half = [c[0] - options.edge_margin_px - 2.0, c[1] - options.edge_margin_px - 2.0];
-            let s = (half[0] / d[0].abs().max(1e-9)).min(half[1] / d[1].abs().max(1e-9)).min(1.0);
-            [c[0] + s * d[0], c[1] + s * d[1]]
+            let along = |inset: f64| {
+                let half = [c[0] - inset, c[1] - inset];
+                let s = (half[0] / d[0].abs().max(1e-9)).min(half[1] / d[1].abs().max(1e-9)).min(1.0);
+                [c[0] + s * d[0], c[1] + s * d[1]]
+            };
+            let (proxy, entry) = (along(options.edge_margin_px + 2.0), along(options.edge_margin_px + 12.0));
+            let angle = |k: usize, p: [f64; 2]| ((p[k] - c[k]) / alpha[k]).atan();
+            (proxy, [angle(0, target) - angle(0, entry), angle(1, target) - angle(1, entry)])
         };
-        let delta = [((aim[0] - c[0]) / alpha[0]).atan(), ((aim[1] - c[1]) / alpha[1]).atan()];
         let move_deg = [delta[0].to_degrees(), delta[1].to_degrees()];
-        steps.push(FixationStep { target_px: target, aim_px: aim, move_deg, alpha_px: alpha });
         let e = head.read_encoders()?;
+        steps.push(FixationStep { encoders: e, target_px: target, aim_px: aim, move_deg, alpha_px: alpha });
         head.move_to(&e.moved(camera.horizontal_joint(), move_deg[0]).moved(Joint::Elevation, move_deg[1]))?;
         let next = head.capture_images()?;
         let (before, after) = (camera.image(&images), camera.image(&next));
-        // Where the aim went: measured by its own patch (it is always visible).
-        let aim_after = locate_patch(before, aim, after, Some(c), &options.patch)
+        // The image shift of the move by whole-image pyramid correlation (paper section 5
+        // step 3), then the aim's own patch around its predicted place (it is always
+        // visible).
+        let shift = register_translation(before, after, &RegistrationOptions::default())
+            .map_err(vision("fixation: registering the images before and after a move"))?
+            .shift;
+        let predicted = [aim[0] + shift[0], aim[1] + shift[1]];
+        let aim_after = locate_patch(before, aim, after, Some(predicted), &options.patch)
             .map_err(vision("fixation: following the aimed point"))?
             .position;
         for k in 0..2 {
@@ -359,17 +403,18 @@ pub fn fixate<H: ImagingHead>(
                 alpha[k] = a;
             }
         }
-        target = if visible {
+        target = if patch_target {
             aim_after
         } else {
-            let shift = [aim_after[0] - aim[0], aim_after[1] - aim[1]];
-            let g = grid_homography(before, after, shift, options)?;
+            let g = local_homography(before, after, shift, target, options)?;
             let p = g.0 * nalgebra::Vector3::new(target[0], target[1], 1.0);
             if p.z.abs() < 1e-12 {
                 return Err(AlignError::Images("fixation: the target left the image plane".into()));
             }
             [p.x / p.z, p.y / p.z]
         };
+        // Once the carried target is in view, its own patch follows it from now on.
+        patch_target = patch_target || inside(target, size, options.edge_margin_px);
         images = next;
     }
 }
