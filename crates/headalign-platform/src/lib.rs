@@ -15,6 +15,10 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// One of the four revolute joints of the head.
+///
+/// Directions (the simulator's, and what the image-mode procedures assume at first; they
+/// detect and correct a reversed joint): a positive pan move turns the head left, a
+/// positive elevation move turns it up, a positive vergence move turns that camera right.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Joint {
@@ -135,6 +139,9 @@ pub enum PlatformError {
     /// The device failed (communication, timeout, driver exit).
     #[error("device error: {0}")]
     Device(String),
+    /// The image front end of an imaging head failed (no usable matches, bad images).
+    #[error("image front end: {0}")]
+    FrontEnd(String),
 }
 
 /// A stereo pan-tilt-verge head as the procedures see it.

@@ -24,7 +24,9 @@
 //! same captures, bit for bit; reading encoders does not disturb the captures.
 
 use headalign_geometry::camera::Intrinsics;
-use headalign_platform::{Encoders, Joint, PlatformError, StereoCapture, StereoHead, TrackObservation};
+use headalign_platform::{
+    Encoders, ImagingHead, Joint, PlatformError, StereoCapture, StereoHead, StereoImages, TrackObservation,
+};
 use headalign_vision::GrayImage;
 use nalgebra::{Isometry3, Point2, Point3};
 use rand::{RngExt, SeedableRng};
@@ -260,6 +262,17 @@ impl SimulatedHead {
             }
         }
         out
+    }
+}
+
+impl ImagingHead for SimulatedHead {
+    /// Renders both cameras at the current joint angles (the renderer's noise advances its
+    /// own seeded stream); the readings come from [`StereoHead::read_encoders`].
+    fn capture_images(&mut self) -> Result<StereoImages, PlatformError> {
+        let encoders = self.read_encoders()?;
+        let (left, right) =
+            self.render_stereo().map_err(|e| PlatformError::Device(format!("renderer: {e}")))?;
+        StereoImages::new(encoders, left, right)
     }
 }
 

@@ -58,6 +58,9 @@ pub enum AlignError {
     /// Invalid options.
     #[error("invalid option: {0}")]
     InvalidOption(String),
+    /// Bad or unusable images.
+    #[error("images: {0}")]
+    Images(String),
     /// An output file could not be produced.
     #[error("output: {0}")]
     Output(String),

@@ -17,6 +17,8 @@ pub mod alignment;
 pub mod error;
 pub mod estimate;
 pub mod export;
+pub mod frontend;
+pub mod imaging;
 pub mod observations;
 pub mod procedure;
 

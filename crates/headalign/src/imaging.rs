@@ -1,0 +1,440 @@
+//! Image-driven head control with no calibration: verging both cameras onto the same part
+//! of the scene (paper section 6) and fixating a target from zero prior knowledge (paper
+//! section 5).
+//!
+//! **Verging** ([`verge_to_common_view`]): the right image is registered against the left
+//! by heavily subsampled coarse-to-fine correlation (the shift of the whole image); the
+//! right vergence turns by `atan(shift / f)` with a rough `f` (the image width) until the
+//! shift is small. Only the overlap matters, so the search stops at a coarse pyramid level.
+//!
+//! **Fixation** ([`fixate`]): bring a target pixel to the image centre with the joints that
+//! move one camera (its vergence horizontally, the elevation vertically), knowing nothing
+//! of `K`. Each move turns by `atan((u - u0) / alpha_u)`, `atan((v - v0) / alpha_v)` with
+//! overestimated `alpha` (so the first move falls short instead of overshooting); the
+//! point's true new position is measured by pyramid correlation, and `alpha` is re-solved
+//! exactly from the pinhole model `u - u0 = alpha tan(theta)`:
+//! `t alpha^2 - (x - y) alpha + x y t = 0` with `x, y` the offsets before and after and
+//! `t = tan(delta)`. A target outside the image (e.g. a vanishing point) is approached
+//! through a visible point near the edge in its direction; its own position is carried
+//! from image to image by the plane homography of the correlated patches nearest to it
+//! (its own surface, most likely), until it is inside and at the centre.
+//!
+//! Units: pixels for positions and tolerances, degrees for encoder moves, `alpha` in
+//! pixels (its sign absorbs the joint's direction: a move that goes the wrong way is
+//! detected and corrected at the next step).
+//! Pitfalls: the vertical and horizontal joints are treated as independent (true for
+//! small angles; the loop absorbs the coupling); a target that starts outside the image
+//! is carried by the motion of its neighbourhood, so one at a very different depth from
+//! its neighbours (or a vanishing point) picks up the parallax of the offset axes, about
+//! a pixel per 10 deg of travel at 2 m (for the vanishing point of alignment use the
+//! calibrated solution of [`crate::alignment`]); a textureless patch cannot be located
+//! (an error naming it); the elevation joint is shared, so fixating with the right camera
+//! moves the left one too.
+
+use headalign_geometry::homography2d::{Homography2, Homography2Estimator};
+use headalign_geometry::ransac::{RansacOptions, ransac};
+use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint};
+use headalign_vision::{PatchSearchOptions, RegistrationOptions, locate_patch, register_translation};
+use nalgebra::Point2;
+use serde::Serialize;
+
+use crate::AlignError;
+
+/// Which camera a fixation moves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Camera {
+    /// Left camera: left vergence and elevation.
+    Left,
+    /// Right camera: right vergence and elevation.
+    Right,
+}
+
+impl Camera {
+    fn horizontal_joint(self) -> Joint {
+        match self {
+            Camera::Left => Joint::VergeLeft,
+            Camera::Right => Joint::VergeRight,
+        }
+    }
+
+    fn image(self, images: &headalign_platform::StereoImages) -> &GrayImage {
+        match self {
+            Camera::Left => &images.left,
+            Camera::Right => &images.right,
+        }
+    }
+}
+
+fn vision(step: &str) -> impl Fn(headalign_vision::VisionError) -> AlignError + '_ {
+    move |e| AlignError::Images(format!("{step}: {e}"))
+}
+
+fn centre_of(size: [u32; 2]) -> [f64; 2] {
+    [(f64::from(size[0]) - 1.0) / 2.0, (f64::from(size[1]) - 1.0) / 2.0]
+}
+
+/// Options of [`verge_to_common_view`].
+#[derive(Debug, Clone)]
+pub struct VergingOptions {
+    /// Rough focal length in pixels to turn shifts into angles (default: the image width).
+    pub focal_guess_px: Option<f64>,
+    /// Done when the horizontal shift is below this fraction of the image width
+    /// (default 0.1).
+    pub done_fraction: f64,
+    /// Most vergence moves (default 6).
+    pub max_moves: usize,
+    /// The registration (default: [`RegistrationOptions::verging`], heavily subsampled).
+    pub registration: RegistrationOptions,
+}
+
+impl Default for VergingOptions {
+    fn default() -> Self {
+        Self {
+            focal_guess_px: None,
+            done_fraction: 0.1,
+            max_moves: 6,
+            registration: RegistrationOptions::verging(),
+        }
+    }
+}
+
+/// One verging step.
+#[derive(Debug, Clone, Serialize)]
+pub struct VergeStep {
+    /// Shift of the right image against the left (content at `x` in the left appears at
+    /// `x + shift` in the right), pixels.
+    pub shift_px: [f64; 2],
+    /// Correlation peak.
+    pub score: f64,
+    /// Right vergence move made after this measurement, degrees (0 for the last).
+    pub verge_right_move_deg: f64,
+}
+
+/// What [`verge_to_common_view`] did.
+#[derive(Debug, Clone, Serialize)]
+pub struct VergingReport {
+    /// Each measurement and move.
+    pub steps: Vec<VergeStep>,
+    /// Encoder readings at the end.
+    pub encoders: Encoders,
+    /// Final horizontal overlap of the two images, fraction of the width.
+    pub overlap_fraction: f64,
+}
+
+/// Verge the right camera until both images show the same part of the scene (paper
+/// section 6). Convention: a positive right-vergence move turns the camera right (image
+/// content moves left); if a move increases the shift, the direction is reversed.
+pub fn verge_to_common_view<H: ImagingHead>(
+    head: &mut H,
+    options: &VergingOptions,
+) -> Result<VergingReport, AlignError> {
+    options.registration.validate().map_err(vision("verging options"))?;
+    if !(options.done_fraction > 0.0 && options.done_fraction < 1.0) || options.max_moves == 0 {
+        return Err(AlignError::InvalidOption("verging: done_fraction in (0, 1) and max_moves >= 1".into()));
+    }
+    let width = f64::from(head.image_size()[0]);
+    let f = options.focal_guess_px.unwrap_or(width);
+    if !(f.is_finite() && f > 0.0) {
+        return Err(AlignError::InvalidOption(format!("verging focal guess must be positive, got {f}")));
+    }
+    let mut direction = 1.0;
+    let mut steps: Vec<VergeStep> = Vec::new();
+    loop {
+        let images = head.capture_images()?;
+        let reg = register_translation(&images.left, &images.right, &options.registration)
+            .map_err(vision("verging registration of the right image against the left"))?;
+        let shift = reg.shift;
+        if let Some(prev) = steps.last()
+            && shift[0].abs() > prev.shift_px[0].abs()
+        {
+            direction = -direction;
+        }
+        let done = shift[0].abs() <= options.done_fraction * width;
+        if done || steps.len() >= options.max_moves {
+            steps.push(VergeStep { shift_px: shift, score: reg.score, verge_right_move_deg: 0.0 });
+            let encoders = head.read_encoders()?;
+            if !done {
+                return Err(AlignError::Images(format!(
+                    "verging did not converge in {} moves: the right image is still shifted {:.0} px against the left",
+                    options.max_moves, shift[0]
+                )));
+            }
+            return Ok(VergingReport { steps, encoders, overlap_fraction: 1.0 - shift[0].abs() / width });
+        }
+        let delta = direction * (shift[0] / f).atan().to_degrees();
+        steps.push(VergeStep { shift_px: shift, score: reg.score, verge_right_move_deg: delta });
+        let e = head.read_encoders()?;
+        head.move_to(&e.moved(Joint::VergeRight, delta))?;
+    }
+}
+
+/// Options of [`fixate`].
+#[derive(Debug, Clone)]
+pub struct FixationOptions {
+    /// Initial focal estimate, pixels (default: twice the image width, an overestimate as
+    /// the paper recommends: moves then fall short and never overshoot).
+    pub focal_guess_px: Option<f64>,
+    /// Done when the target is this close to the centre, pixels (default 0.3).
+    pub tolerance_px: f64,
+    /// Most moves (default 20).
+    pub max_moves: usize,
+    /// A target counts as visible (and is located by its own patch) when it is at least
+    /// this far inside the image, pixels (default 48; patches need room).
+    pub edge_margin_px: f64,
+    /// Patch search for the target and the grid around the place the whole-image shift
+    /// predicts (default: 25x25 templates, 24 px radius: the shift is measured, only
+    /// parallax and rotation are left).
+    pub patch: PatchSearchOptions,
+}
+
+impl Default for FixationOptions {
+    fn default() -> Self {
+        Self {
+            focal_guess_px: None,
+            tolerance_px: 0.3,
+            max_moves: 20,
+            edge_margin_px: 48.0,
+            patch: PatchSearchOptions { half_size: 12, search_radius: 24.0, ..PatchSearchOptions::default() },
+        }
+    }
+}
+
+/// One fixation move.
+#[derive(Debug, Clone, Serialize)]
+pub struct FixationStep {
+    /// Encoder readings before the move.
+    pub encoders: Encoders,
+    /// Where the target was before the move, pixels (may be outside the image).
+    pub target_px: [f64; 2],
+    /// The point brought to the centre by this move (the target, or an edge point in its
+    /// direction), pixels.
+    pub aim_px: [f64; 2],
+    /// Joint moves (horizontal, elevation), degrees.
+    pub move_deg: [f64; 2],
+    /// Focal estimates (horizontal, vertical) used for the move, pixels (signed).
+    pub alpha_px: [f64; 2],
+}
+
+/// What [`fixate`] did.
+#[derive(Debug, Clone, Serialize)]
+pub struct FixationReport {
+    /// Each move.
+    pub steps: Vec<FixationStep>,
+    /// Final target position (measured), pixels.
+    pub final_target_px: [f64; 2],
+    /// Distance of the final target from the image centre, pixels.
+    pub final_error_px: f64,
+    /// The image centre, pixels.
+    pub centre_px: [f64; 2],
+    /// Final focal estimates (horizontal, vertical), pixels (signed by joint direction).
+    pub alpha_px: [f64; 2],
+    /// Encoder readings at the end.
+    pub encoders: Encoders,
+}
+
+/// The exact `alpha` from one move: offsets `x` before and `y` after a rotation by
+/// `delta` (radians) about an axis through the centre; `None` if the move told nothing.
+pub fn solve_alpha(x: f64, y: f64, delta: f64) -> Option<f64> {
+    let t = delta.tan();
+    if !(t.is_finite() && t.abs() > 1e-9) || (x - y).abs() < 1e-6 {
+        return None;
+    }
+    let small = (x - y) / t;
+    let disc = (x - y).powi(2) - 4.0 * t * t * x * y;
+    if disc < 0.0 {
+        return Some(small);
+    }
+    let roots = [((x - y) + disc.sqrt()) / (2.0 * t), ((x - y) - disc.sqrt()) / (2.0 * t)];
+    roots.into_iter().filter(|a| a.is_finite()).min_by(|a, b| (a - small).abs().total_cmp(&(b - small).abs()))
+}
+
+fn inside(p: [f64; 2], size: [u32; 2], margin: f64) -> bool {
+    p[0] >= margin
+        && p[1] >= margin
+        && p[0] <= f64::from(size[0]) - 1.0 - margin
+        && p[1] <= f64::from(size[1]) - 1.0 - margin
+}
+
+/// Patches nearest the target that fit the local image motion.
+const LOCAL_PATCHES: usize = 10;
+
+/// The image motion from `a` to `b` near `target` (a pixel of `a`, possibly outside): a
+/// plane homography through the [`LOCAL_PATCHES`] grid patches nearest the target, each
+/// found by correlation around `p + shift`. Local, because scene points at other depths
+/// move differently (parallax of the offset axes); the nearest patches most likely lie on
+/// the target's own surface.
+fn local_homography(
+    a: &GrayImage,
+    b: &GrayImage,
+    shift: [f64; 2],
+    target: [f64; 2],
+    options: &FixationOptions,
+) -> Result<Homography2, AlignError> {
+    let size = a.size();
+    let m = options.edge_margin_px;
+    let mut grid = Vec::new();
+    for i in 0..12 {
+        for j in 0..9 {
+            let p = [
+                m + (f64::from(size[0]) - 1.0 - 2.0 * m) * f64::from(i) / 11.0,
+                m + (f64::from(size[1]) - 1.0 - 2.0 * m) * f64::from(j) / 8.0,
+            ];
+            grid.push(p);
+        }
+    }
+    grid.sort_by(|p, q| {
+        let d = |x: &[f64; 2]| (x[0] - target[0]).hypot(x[1] - target[1]);
+        d(p).total_cmp(&d(q))
+    });
+    let mut pairs = Vec::new();
+    for p in grid {
+        if pairs.len() >= LOCAL_PATCHES {
+            break;
+        }
+        let pred = [p[0] + shift[0], p[1] + shift[1]];
+        if !inside(pred, size, options.patch.half_size as f64 + 1.0) {
+            continue;
+        }
+        if let Ok(found) = locate_patch(a, p, b, Some(pred), &options.patch)
+            && found.score > 0.8
+        {
+            pairs.push((Point2::new(p[0], p[1]), Point2::new(found.position[0], found.position[1])));
+        }
+    }
+    if pairs.len() < 6 {
+        return Err(AlignError::Images(format!(
+            "fixation: only {} image patches near the target could be followed across a move (need 6)",
+            pairs.len()
+        )));
+    }
+    let opts = RansacOptions { threshold: 1.0, ..RansacOptions::default() };
+    ransac(&Homography2Estimator, &pairs, &opts)
+        .map(|r| r.model)
+        .map_err(|e| AlignError::Images(format!("fixation: no image motion fits the followed patches: {e}")))
+}
+
+/// Bring `target_px` (a pixel of `camera`'s current image; it may lie outside) to the
+/// image centre without calibration (paper section 5). See the module documentation.
+pub fn fixate<H: ImagingHead>(
+    head: &mut H,
+    camera: Camera,
+    target_px: [f64; 2],
+    options: &FixationOptions,
+) -> Result<FixationReport, AlignError> {
+    options.patch.validate().map_err(vision("fixation options"))?;
+    if !(options.tolerance_px > 0.0 && options.edge_margin_px > options.patch.half_size as f64) {
+        return Err(AlignError::InvalidOption(
+            "fixation: tolerance must be positive and the edge margin larger than the patch half-size".into(),
+        ));
+    }
+    if !target_px.iter().all(|v| v.is_finite()) {
+        return Err(AlignError::InvalidOption("fixation target is not a finite pixel".into()));
+    }
+    let size = head.image_size();
+    let c = centre_of(size);
+    let f = options.focal_guess_px.unwrap_or(2.0 * f64::from(size[0]));
+    // Signed: +vergence turns right (content moves left), +elevation turns up (content
+    // moves down). A wrong sign is corrected after the first move.
+    let mut alpha = [f, -f];
+    let mut images = head.capture_images()?;
+    let mut target = target_px;
+    // A target visible at the start is a scene point: its own patch follows it. One that
+    // starts outside has no appearance (e.g. a vanishing point): it is carried by the
+    // image motion of the whole view.
+    let mut patch_target = inside(target, size, options.edge_margin_px);
+    let mut steps = Vec::new();
+    loop {
+        let err = ((target[0] - c[0]).powi(2) + (target[1] - c[1]).powi(2)).sqrt();
+        let visible = inside(target, size, options.edge_margin_px);
+        if (err <= options.tolerance_px && visible) || steps.len() >= options.max_moves {
+            let encoders = head.read_encoders()?;
+            if err > options.tolerance_px {
+                return Err(AlignError::Images(format!(
+                    "fixation did not converge in {} moves: the target is {err:.2} px from the centre",
+                    options.max_moves
+                )));
+            }
+            return Ok(FixationReport {
+                steps,
+                final_target_px: target,
+                final_error_px: err,
+                centre_px: c,
+                alpha_px: alpha,
+                encoders,
+            });
+        }
+        // The aim: the target, or the point near the edge in its direction.
+        // A target in view is brought to the centre. One outside is first brought just
+        // inside the border (small moves, so little parallax while it is carried by the
+        // image motion); a visible point near the edge in its direction measures each
+        // move for the update of alpha.
+        let (aim, delta) = if patch_target {
+            (target, [((target[0] - c[0]) / alpha[0]).atan(), ((target[1] - c[1]) / alpha[1]).atan()])
+        } else {
+            let d = [target[0] - c[0], target[1] - c[1]];
+            let along = |inset: f64| {
+                let half = [c[0] - inset, c[1] - inset];
+                let s = (half[0] / d[0].abs().max(1e-9)).min(half[1] / d[1].abs().max(1e-9)).min(1.0);
+                [c[0] + s * d[0], c[1] + s * d[1]]
+            };
+            let (proxy, entry) = (along(options.edge_margin_px + 2.0), along(options.edge_margin_px + 12.0));
+            let angle = |k: usize, p: [f64; 2]| ((p[k] - c[k]) / alpha[k]).atan();
+            (proxy, [angle(0, target) - angle(0, entry), angle(1, target) - angle(1, entry)])
+        };
+        let move_deg = [delta[0].to_degrees(), delta[1].to_degrees()];
+        let e = head.read_encoders()?;
+        steps.push(FixationStep { encoders: e, target_px: target, aim_px: aim, move_deg, alpha_px: alpha });
+        head.move_to(&e.moved(camera.horizontal_joint(), move_deg[0]).moved(Joint::Elevation, move_deg[1]))?;
+        let next = head.capture_images()?;
+        let (before, after) = (camera.image(&images), camera.image(&next));
+        // The image shift of the move by whole-image pyramid correlation (paper section 5
+        // step 3), then the aim's own patch around its predicted place (it is always
+        // visible).
+        let shift = register_translation(before, after, &RegistrationOptions::default())
+            .map_err(vision("fixation: registering the images before and after a move"))?
+            .shift;
+        let predicted = [aim[0] + shift[0], aim[1] + shift[1]];
+        let aim_after = locate_patch(before, aim, after, Some(predicted), &options.patch)
+            .map_err(vision("fixation: following the aimed point"))?
+            .position;
+        for k in 0..2 {
+            if let Some(a) = solve_alpha(aim[k] - c[k], aim_after[k] - c[k], delta[k]) {
+                alpha[k] = a;
+            }
+        }
+        target = if patch_target {
+            aim_after
+        } else {
+            let g = local_homography(before, after, shift, target, options)?;
+            let p = g.0 * nalgebra::Vector3::new(target[0], target[1], 1.0);
+            if p.z.abs() < 1e-12 {
+                return Err(AlignError::Images("fixation: the target left the image plane".into()));
+            }
+            [p.x / p.z, p.y / p.z]
+        };
+        // Once the carried target is in view, its own patch follows it from now on.
+        patch_target = patch_target || inside(target, size, options.edge_margin_px);
+        images = next;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn alpha_from_one_move_is_exact() {
+        for alpha in [500.0, 700.0, -650.0, 1400.0] {
+            for (theta, delta) in [(0.2f64, 0.15f64), (-0.3, -0.1), (0.05, 0.2), (0.4, 0.4)] {
+                let x = alpha * theta.tan();
+                let y = alpha * (theta - delta).tan();
+                let a = solve_alpha(x, y, delta).unwrap();
+                // Exact model: 1e-9 relative (rounding of tan and the quadratic).
+                assert!((a - alpha).abs() < 1e-9 * alpha.abs(), "{a} vs {alpha}");
+            }
+        }
+        assert!(solve_alpha(10.0, 10.0, 0.1).is_none());
+        assert!(solve_alpha(10.0, 5.0, 0.0).is_none());
+    }
+}
