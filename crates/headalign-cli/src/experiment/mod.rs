@@ -434,7 +434,7 @@ fn write_csv(path: &Path, exp: &Experiment, outcomes: &[Outcome]) -> Result<()> 
             Err(e) => {
                 let msg = e.replace([',', '\n', '"'], ";");
                 let _ = write!(s, "false,{msg}");
-                s.push_str(&",".repeat(10 + 4 * SIGMA_QUANTITIES.len()));
+                s.push_str(&",".repeat(11 + 4 * SIGMA_QUANTITIES.len()));
             }
         }
         s.push('\n');
