@@ -373,7 +373,8 @@ fn summarise(exp: &Experiment, outcomes: &[Outcome]) -> Vec<ConditionSummary> {
             let coverage = (0..SIGMA_QUANTITIES.len())
                 .map(|i| coverage(recs.iter().filter_map(|r| r.quantities.get(i))))
                 .collect();
-            let n = recs.len().max(1) as f64;
+            // NaN (printed "-") when no trial succeeded.
+            let n = if recs.is_empty() { f64::NAN } else { recs.len() as f64 };
             ConditionSummary {
                 group: c.group,
                 x: c.x,
