@@ -4,6 +4,9 @@
 //! - `headalign demo`: the verge/tilt procedure on the simulated head, estimate vs truth.
 //! - `headalign align --observations FILE`: the estimation on an observation session.
 //! - `headalign simulate --out FILE`: record an observation session from the simulator.
+//! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
+
+mod experiment;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -50,6 +53,8 @@ enum Command {
     Align(AlignArgs),
     /// Record an observation session (initial, elevation, pan, verge views) from the simulator.
     Simulate(SimulateArgs),
+    /// Run a Monte-Carlo experiment (CSV, PNG/SVG plots, Markdown summary).
+    Experiment(experiment::ExperimentArgs),
 }
 
 #[derive(Args, Clone)]
@@ -145,6 +150,7 @@ fn main() -> ExitCode {
         Command::Demo(a) => demo(&a),
         Command::Align(a) => align(&a),
         Command::Simulate(a) => simulate(&a),
+        Command::Experiment(a) => experiment::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

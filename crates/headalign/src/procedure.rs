@@ -7,6 +7,17 @@
 //! by vision; if the measured error exceeds the tolerance, re-measure the vergence axes from
 //! that larger move and correct (at most `max_corrections` times).
 //!
+//! Rotation size: fixed (`rotation_deg`, default 3 deg, the paper's protocol) or, with
+//! [`VergeTiltOptions::auto_rotation`], chosen by the procedure "when the scene allows":
+//! it probes the elevation and pan moves (both ways) at growing candidate sizes (e.g. 3, 6,
+//! 10 deg) and keeps the largest at which every probed view still sees, in both cameras, at
+//! least `min_overlap_fraction` of the reference view's stereo tracks and at least
+//! `min_tracks` of them. Calibration error falls roughly as 1/rotation (the plane at
+//! infinity is found from the rotations' screws), so larger is better while enough of the
+//! scene stays in view. Probe captures are discarded (they are not in `views`). Pitfall: the
+//! overlap is counted by track id, which in image mode means the tracker's matches; a
+//! tracker that loses tracks at larger rotations shrinks the choice, as it should.
+//!
 //! Every captured view is kept in the outcome (and in the error path the caller still has
 //! them through [`VergeTiltRun::views`]). Angles in degrees.
 
@@ -44,6 +55,55 @@ pub struct VergeTiltOptions {
     pub check_tolerance_deg: f64,
     /// Maximum number of corrective moves after the first (default 2).
     pub max_corrections: usize,
+    /// Let the procedure choose the elevation/pan rotation itself (default `None`: use
+    /// `rotation_deg`).
+    pub auto_rotation: Option<AutoRotation>,
+}
+
+/// How the procedure chooses its calibration rotation when the scene allows (see the
+/// module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct AutoRotation {
+    /// Candidate rotation sizes, degrees, tried in increasing order (default 3, 6, 10).
+    /// The first one is used even if its overlap is insufficient (the fixed protocol).
+    pub candidates_deg: Vec<f64>,
+    /// Fraction of the reference view's stereo tracks that each probed view must still
+    /// see in both cameras (default 0.6).
+    pub min_overlap_fraction: f64,
+    /// Minimum number of such shared tracks (default 60).
+    pub min_tracks: usize,
+}
+
+impl Default for AutoRotation {
+    fn default() -> Self {
+        Self { candidates_deg: vec![3.0, 6.0, 10.0], min_overlap_fraction: 0.6, min_tracks: 60 }
+    }
+}
+
+impl AutoRotation {
+    /// Check the candidates (increasing, each 0.1-45 deg) and thresholds.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        if self.candidates_deg.is_empty() {
+            return Err(AlignError::InvalidOption("auto rotation needs at least one candidate".into()));
+        }
+        let mut last = 0.0;
+        for &c in &self.candidates_deg {
+            if !(c.is_finite() && (0.1..=45.0).contains(&c) && c > last) {
+                return Err(AlignError::InvalidOption(format!(
+                    "auto rotation candidates must increase within 0.1-45 degrees, got {:?}",
+                    self.candidates_deg
+                )));
+            }
+            last = c;
+        }
+        if !(self.min_overlap_fraction.is_finite() && (0.0..=1.0).contains(&self.min_overlap_fraction)) {
+            return Err(AlignError::InvalidOption(format!(
+                "min_overlap_fraction must be in [0, 1], got {}",
+                self.min_overlap_fraction
+            )));
+        }
+        Ok(())
+    }
 }
 
 impl Default for VergeTiltOptions {
@@ -55,6 +115,7 @@ impl Default for VergeTiltOptions {
             estimation: EstimationOptions::default(),
             check_tolerance_deg: 0.2,
             max_corrections: 2,
+            auto_rotation: None,
         }
     }
 }
@@ -73,6 +134,9 @@ impl VergeTiltOptions {
         }
         if !self.check_tolerance_deg.is_finite() || self.check_tolerance_deg <= 0.0 {
             return Err(AlignError::InvalidOption("check_tolerance_deg must be positive".into()));
+        }
+        if let Some(auto) = &self.auto_rotation {
+            auto.validate()?;
         }
         self.estimation.validate()
     }
@@ -115,6 +179,8 @@ pub struct VergeTiltOutcome {
     pub checks: Vec<CheckStep>,
     /// Final encoder readings (aligned).
     pub final_encoders: Encoders,
+    /// Elevation/pan rotation used for calibration, degrees (chosen if auto).
+    pub rotation_deg: f64,
     /// Seconds spent estimating (excluding head motion and capture).
     pub estimation_seconds: f64,
 }
@@ -141,7 +207,11 @@ impl VergeTiltRun {
     ) -> Result<VergeTiltOutcome, AlignError> {
         options.validate()?;
         let e0 = head.read_encoders()?;
-        let plan = capture_plan(&e0, options);
+        let rotation_deg = match &options.auto_rotation {
+            Some(auto) => choose_rotation(head, &e0, options.both_directions, auto)?,
+            None => options.rotation_deg,
+        };
+        let plan = capture_plan(&e0, &VergeTiltOptions { rotation_deg, ..options.clone() });
         for (name, encoders) in &plan {
             head.move_to(encoders)?;
             self.capture(head, name)?;
@@ -202,9 +272,57 @@ impl VergeTiltRun {
             sigmas,
             checks,
             final_encoders,
+            rotation_deg,
             estimation_seconds,
         })
     }
+}
+
+/// Track ids seen by both cameras of a capture.
+fn stereo_tracks(capture: &headalign_platform::StereoCapture) -> std::collections::HashSet<u64> {
+    let left: std::collections::HashSet<u64> = capture.left.iter().map(|o| o.track).collect();
+    capture.right.iter().map(|o| o.track).filter(|t| left.contains(t)).collect()
+}
+
+/// How many of `reference`'s stereo tracks `capture` also sees in both cameras.
+pub fn shared_stereo_tracks(
+    reference: &headalign_platform::StereoCapture,
+    capture: &headalign_platform::StereoCapture,
+) -> (usize, usize) {
+    let r = stereo_tracks(reference);
+    let c = stereo_tracks(capture);
+    (r.intersection(&c).count(), r.len())
+}
+
+/// Choose the largest candidate rotation at which every probed elevation/pan view keeps
+/// enough of the reference view's stereo tracks (module docs). Returns to `e0`.
+fn choose_rotation<H: StereoHead>(
+    head: &mut H,
+    e0: &Encoders,
+    both_directions: bool,
+    auto: &AutoRotation,
+) -> Result<f64, AlignError> {
+    head.move_to(e0)?;
+    let reference = head.capture()?;
+    let mut chosen = auto.candidates_deg.first().copied().unwrap_or(3.0);
+    'candidates: for &r in auto.candidates_deg.iter().skip(1) {
+        let signs: &[f64] = if both_directions { &[1.0, -1.0] } else { &[1.0] };
+        for joint in [Joint::Elevation, Joint::Pan] {
+            for &sign in signs {
+                head.move_to(&e0.moved(joint, sign * r))?;
+                let probe = head.capture()?;
+                let (shared, total) = shared_stereo_tracks(&reference, &probe);
+                let enough =
+                    shared >= auto.min_tracks && (shared as f64) >= auto.min_overlap_fraction * total as f64;
+                if !enough {
+                    break 'candidates;
+                }
+            }
+        }
+        chosen = r;
+    }
+    head.move_to(e0)?;
+    Ok(chosen)
 }
 
 /// The views the procedure captures, in order, from the initial readings `e0`: the
@@ -362,6 +480,23 @@ mod tests {
         let short =
             capture_plan(&e0, &VergeTiltOptions { both_directions: false, ..VergeTiltOptions::default() });
         assert_eq!(short.len(), 4);
+    }
+
+    /// Auto rotation on the default scene grows past the fixed 3 deg (the simulated room
+    /// fills the view), and a demanding overlap keeps the first candidate.
+    #[test]
+    fn auto_rotation_grows_when_the_scene_allows() {
+        let scenario = Scenario { seed: 3, noise_px: 0.5, outlier_fraction: 0.0, ..Scenario::default() };
+        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+        let e0 = head.read_encoders().unwrap();
+        let loose = AutoRotation::default();
+        let r = choose_rotation(&mut head, &e0, true, &loose).unwrap();
+        assert!(r > 3.0, "chose {r}");
+        assert_eq!(head.read_encoders().unwrap(), e0, "returns to the initial readings");
+        let strict = AutoRotation { min_overlap_fraction: 1.0, ..AutoRotation::default() };
+        assert_eq!(choose_rotation(&mut head, &e0, true, &strict).unwrap(), 3.0);
+        let bad = AutoRotation { candidates_deg: vec![6.0, 3.0], ..AutoRotation::default() };
+        assert!(bad.validate().is_err());
     }
 
     #[test]

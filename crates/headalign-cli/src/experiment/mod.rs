@@ -1,0 +1,639 @@
+//! `headalign experiment <name>`: Monte-Carlo experiments of the verge/tilt procedure on
+//! the simulated head (paper section 5, figure 5), with the Cramer-Rao bound and the
+//! coverage of the reported uncertainties.
+//!
+//! An experiment is a list of conditions (a swept parameter value `x`: noise in pixels,
+//! point count, rotation in degrees or outlier fraction) times `trials` seeds. A *trial*
+//! is one run of the procedure at one condition; `--trials N` is the total number of
+//! trials of the experiment, split evenly over its conditions (`ceil(N / conditions)`
+//! seeds, each run at every condition; so `fig5-verge-tilt --trials 100` is 20 seeds at
+//! each of 5 noise levels). Seed index `t` uses seed `seed + t` for
+//! every condition (common random numbers: the same head and scene at every noise level)
+//! and, in `fig5-verge-tilt`, initial head position `t mod 3`. The trials of one seed run
+//! in one rayon task and share one noise-free run, which gives the Cramer-Rao bound at
+//! every noise level and is itself the noise-0 trial ([`trial`] module).
+//!
+//! Outputs in `--out DIR`: `<name>.csv` (every trial, failures included with their error
+//! message), `<name>.png` and `<name>.svg` (RMS error against the parameter, with the
+//! bound), `<name>.md` (summary tables: RMS per series, RMS / bound per reported
+//! quantity, 95 % coverage). `all` runs every experiment and writes `results.md` beside
+//! DIR with the paper's numbers and the issue's bars.
+
+pub mod plot;
+pub mod stats;
+pub mod trial;
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use headalign_platform::Encoders;
+use headalign_sim::Scenario;
+use indicatif::{ProgressBar, ProgressStyle};
+use rayon::prelude::*;
+use serde_json::json;
+
+use self::plot::{Curve, write_plots};
+use self::stats::{coverage, quantity_crb, quantity_rms, rms};
+use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
+
+/// Names accepted by `headalign experiment`.
+pub const NAMES: [&str; 8] =
+    ["fig5-verge-tilt", "fig5-pan-tilt", "calibration", "points", "rotation", "outliers", "coverage", "all"];
+
+/// Arguments of `headalign experiment`.
+#[derive(Args, Debug)]
+pub struct ExperimentArgs {
+    /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
+    /// coverage, or all.
+    pub name: String,
+    /// Total trials, split evenly over the experiment's conditions (at least one seed
+    /// each); default per experiment.
+    #[arg(long)]
+    pub trials: Option<usize>,
+    /// First seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Output directory.
+    #[arg(long, default_value = "results")]
+    pub out: PathBuf,
+    /// Print a JSON summary on stdout instead of the Markdown table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// One condition: a point of the swept parameter.
+#[derive(Clone, Debug)]
+struct Condition {
+    /// Group ("fixed", "auto"): one plotted line set per group in the table; only the
+    /// first group is plotted.
+    group: &'static str,
+    /// The swept value.
+    x: f64,
+    scenario: Scenario,
+    rotation: RotationMode,
+}
+
+type Extract = fn(&TrialRecord) -> f64;
+
+/// A plotted series: signed error per trial and optionally its bound per trial.
+struct Series {
+    label: &'static str,
+    value: Extract,
+    crb: Option<Extract>,
+}
+
+struct Experiment {
+    name: &'static str,
+    title: &'static str,
+    x_label: &'static str,
+    y_label: &'static str,
+    default_trials: usize,
+    positions: Vec<Encoders>,
+    conditions: Vec<Condition>,
+    series: Vec<Series>,
+}
+
+fn q_rel_pct(r: &TrialRecord, i: usize) -> f64 {
+    r.quantities.get(i).map_or(f64::NAN, |q| 100.0 * (q.est - q.truth) / q.truth)
+}
+fn q_crb_pct(r: &TrialRecord, i: usize) -> f64 {
+    r.quantities.get(i).map_or(f64::NAN, |q| 100.0 * q.crb / q.truth)
+}
+fn q_crb(r: &TrialRecord, i: usize) -> f64 {
+    r.quantities.get(i).map_or(f64::NAN, |q| q.crb)
+}
+
+fn alignment_series() -> Vec<Series> {
+    vec![
+        Series { label: "verge left (deg)", value: |r| r.verge_err_l_deg, crb: Some(|r| q_crb(r, 9)) },
+        Series { label: "verge right (deg)", value: |r| r.verge_err_r_deg, crb: Some(|r| q_crb(r, 10)) },
+        Series { label: "elevation left (deg)", value: |r| r.elev_err_l_deg, crb: Some(|r| q_crb(r, 8)) },
+        Series { label: "elevation right, excess (deg)", value: |r| r.elev_err_r_excess_deg, crb: None },
+    ]
+}
+
+fn base(noise: f64) -> Scenario {
+    Scenario { noise_px: noise, ..Scenario::default() }
+}
+
+fn fixed(x: f64, scenario: Scenario) -> Condition {
+    Condition { group: "fixed", x, scenario, rotation: RotationMode::Fixed }
+}
+
+fn experiment(name: &str) -> Result<Experiment> {
+    let noise_grid = [0.0, 0.5, 1.0, 2.0, 3.0];
+    Ok(match name {
+        "fig5-verge-tilt" => Experiment {
+            name: "fig5-verge-tilt",
+            title: "Verge/tilt alignment error vs noise (3 deg, 200 points)",
+            x_label: "image noise (px)",
+            y_label: "RMS error (deg)",
+            default_trials: 150,
+            positions: vec![
+                Encoders::default(),
+                Encoders { pan: 4.0, elevation: 4.0, verge_left: 2.0, verge_right: -2.0 },
+                Encoders { pan: -4.0, elevation: -4.0, verge_left: -2.0, verge_right: 2.0 },
+            ],
+            conditions: noise_grid.iter().map(|&n| fixed(n, base(n))).collect(),
+            series: alignment_series(),
+        },
+        "calibration" => Experiment {
+            name: "calibration",
+            title: "Calibration error vs noise (3 deg, 200 points)",
+            x_label: "image noise (px)",
+            y_label: "RMS error (%)",
+            default_trials: 150,
+            positions: vec![Encoders::default()],
+            conditions: [0.5, 1.0, 1.5, 2.0, 3.0].iter().map(|&n| fixed(n, base(n))).collect(),
+            series: vec![
+                Series { label: "left fx (%)", value: |r| q_rel_pct(r, 0), crb: Some(|r| q_crb_pct(r, 0)) },
+                Series { label: "right fx (%)", value: |r| q_rel_pct(r, 4), crb: Some(|r| q_crb_pct(r, 4)) },
+                Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None },
+                Series { label: "aspect ratio, worst (%)", value: |r| r.aspect_err_pct, crb: None },
+                Series { label: "principal point, worst (% of f)", value: |r| r.pp_err_pct, crb: None },
+                Series { label: "reconstruction (%)", value: |r| r.recon_err_pct, crb: None },
+            ],
+        },
+        "points" => Experiment {
+            name: "points",
+            title: "Error vs number of points (1.5 px, 3 deg)",
+            x_label: "points",
+            y_label: "RMS error (deg, %)",
+            default_trials: 120,
+            positions: vec![Encoders::default()],
+            conditions: [50usize, 100, 200, 400]
+                .iter()
+                .map(|&p| fixed(p as f64, Scenario { points: p, ..base(1.5) }))
+                .collect(),
+            series: vec![
+                Series {
+                    label: "elevation left (deg)",
+                    value: |r| r.elev_err_l_deg,
+                    crb: Some(|r| q_crb(r, 8)),
+                },
+                Series {
+                    label: "verge left (deg)",
+                    value: |r| r.verge_err_l_deg,
+                    crb: Some(|r| q_crb(r, 9)),
+                },
+                Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None },
+                Series { label: "reconstruction (%)", value: |r| r.recon_err_pct, crb: None },
+            ],
+        },
+        "rotation" => {
+            let mut conditions: Vec<Condition> = [1.0, 3.0, 6.0, 10.0, 15.0]
+                .iter()
+                .map(|&d| fixed(d, Scenario { rotation_deg: d, ..base(1.0) }))
+                .collect();
+            for n in [1.0, 3.0] {
+                conditions.push(Condition {
+                    group: "auto",
+                    x: n,
+                    scenario: base(n),
+                    rotation: RotationMode::Auto,
+                });
+            }
+            Experiment {
+                name: "rotation",
+                title: "Error vs rotation size (1 px, 200 points)",
+                x_label: "rotation (deg)",
+                y_label: "RMS error (deg, %)",
+                default_trials: 140,
+                positions: vec![Encoders::default()],
+                conditions,
+                series: vec![
+                    Series {
+                        label: "verge left (deg)",
+                        value: |r| r.verge_err_l_deg,
+                        crb: Some(|r| q_crb(r, 9)),
+                    },
+                    Series {
+                        label: "elevation left (deg)",
+                        value: |r| r.elev_err_l_deg,
+                        crb: Some(|r| q_crb(r, 8)),
+                    },
+                    Series {
+                        label: "left fx (%)",
+                        value: |r| q_rel_pct(r, 0),
+                        crb: Some(|r| q_crb_pct(r, 0)),
+                    },
+                    Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None },
+                ],
+            }
+        }
+        "outliers" => Experiment {
+            name: "outliers",
+            title: "Error vs outlier fraction (1 px, 3 deg, 200 points)",
+            x_label: "outlier fraction (per observation)",
+            y_label: "RMS error (deg, %)",
+            default_trials: 140,
+            positions: vec![Encoders::default()],
+            conditions: [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
+                .iter()
+                .map(|&o| fixed(o, Scenario { outlier_fraction: o, ..base(1.0) }))
+                .collect(),
+            series: vec![
+                Series {
+                    label: "elevation left (deg)",
+                    value: |r| r.elev_err_l_deg,
+                    crb: Some(|r| q_crb(r, 8)),
+                },
+                Series {
+                    label: "verge left (deg)",
+                    value: |r| r.verge_err_l_deg,
+                    crb: Some(|r| q_crb(r, 9)),
+                },
+                Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None },
+            ],
+        },
+        "coverage" => Experiment {
+            name: "coverage",
+            title: "Reported sigma vs actual error (3 deg, 200 points)",
+            x_label: "image noise (px)",
+            y_label: "RMS error (deg)",
+            default_trials: 300,
+            positions: vec![Encoders::default()],
+            conditions: [0.5, 1.0, 2.0].iter().map(|&n| fixed(n, base(n))).collect(),
+            series: alignment_series(),
+        },
+        "fig5-pan-tilt" => bail!(
+            "experiment 'fig5-pan-tilt' needs the robot stage (pan alignment by the forward drive), which is not built yet"
+        ),
+        other => bail!("unknown experiment '{other}'; expected one of {}", NAMES.join(", ")),
+    })
+}
+
+/// The outcome of one trial slot.
+struct Outcome {
+    condition: usize,
+    trial: usize,
+    seed: u64,
+    result: Result<TrialRecord, String>,
+}
+
+fn spec(exp: &Experiment, c: &Condition, trial: usize, seed: u64) -> TrialSpec {
+    let initial = exp.positions.get(trial % exp.positions.len().max(1)).copied().unwrap_or_default();
+    TrialSpec { scenario: Scenario { seed, ..c.scenario.clone() }, initial, rotation: c.rotation }
+}
+
+/// All trials of one seed: conditions that differ only in noise share one noise-free run.
+fn run_seed(exp: &Experiment, trial: usize, seed: u64) -> Vec<Outcome> {
+    let mut out = Vec::new();
+    let mut clean: Vec<(TrialSpec, Result<CleanRun, String>)> = Vec::new();
+    for (ci, c) in exp.conditions.iter().enumerate() {
+        let s = spec(exp, c, trial, seed);
+        let mut key = s.clone();
+        key.scenario.noise_px = 0.0;
+        let idx = match clean.iter().position(|(k, _)| {
+            k.scenario == key.scenario && k.initial == key.initial && k.rotation == key.rotation
+        }) {
+            Some(i) => i,
+            None => {
+                let run = CleanRun::new(&key).map_err(|e| format!("{e:#}"));
+                clean.push((key, run));
+                clean.len() - 1
+            }
+        };
+        let result = match clean.get(idx).map(|c| &c.1) {
+            Some(Ok(run)) => {
+                if s.scenario.noise_px == 0.0 {
+                    run.record().map_err(|e| format!("{e:#}"))
+                } else {
+                    let crb = run.crb_sigmas(s.scenario.noise_px).ok();
+                    run_trial(&s, crb.as_deref()).map_err(|e| format!("{e:#}"))
+                }
+            }
+            // No bound without the noise-free run; the trial itself still runs.
+            _ => run_trial(&s, None).map_err(|e| format!("{e:#}")),
+        };
+        out.push(Outcome { condition: ci, trial, seed, result });
+    }
+    out
+}
+
+fn run_experiment(exp: &Experiment, trials: usize, seed: u64) -> Vec<Outcome> {
+    let bar = ProgressBar::new((trials * exp.conditions.len()) as u64);
+    if let Ok(style) =
+        ProgressStyle::with_template("{prefix:>16} [{bar:30}] {pos}/{len} trials {elapsed}<{eta}")
+    {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    bar.set_prefix(exp.name);
+    let mut all: Vec<Outcome> = (0..trials)
+        .into_par_iter()
+        .flat_map_iter(|t| {
+            let v = run_seed(exp, t, seed + t as u64);
+            bar.inc(v.len() as u64);
+            v
+        })
+        .collect();
+    bar.finish_and_clear();
+    all.sort_by_key(|o| (o.condition, o.trial));
+    all
+}
+
+/// Per-condition summary.
+struct ConditionSummary {
+    group: &'static str,
+    x: f64,
+    ok: usize,
+    total: usize,
+    /// (rms, crb rms) per series.
+    series: Vec<(f64, f64)>,
+    /// (rms, crb rms) per reported quantity.
+    quantities: Vec<(f64, f64)>,
+    /// (coverage, n) per reported quantity.
+    coverage: Vec<(f64, usize)>,
+    mean_rotation_deg: f64,
+}
+
+fn summarise(exp: &Experiment, outcomes: &[Outcome]) -> Vec<ConditionSummary> {
+    exp.conditions
+        .iter()
+        .enumerate()
+        .map(|(ci, c)| {
+            let mine: Vec<&Outcome> = outcomes.iter().filter(|o| o.condition == ci).collect();
+            let recs: Vec<&TrialRecord> = mine.iter().filter_map(|o| o.result.as_ref().ok()).collect();
+            let series = exp
+                .series
+                .iter()
+                .map(|s| {
+                    (
+                        rms(recs.iter().map(|r| (s.value)(r))),
+                        s.crb.map_or(f64::NAN, |f| rms(recs.iter().map(|r| f(r)))),
+                    )
+                })
+                .collect();
+            let quantities = (0..SIGMA_QUANTITIES.len())
+                .map(|i| (quantity_rms(&recs, i), quantity_crb(&recs, i)))
+                .collect();
+            let coverage = (0..SIGMA_QUANTITIES.len())
+                .map(|i| coverage(recs.iter().filter_map(|r| r.quantities.get(i))))
+                .collect();
+            // NaN (printed "-") when no trial succeeded.
+            let n = if recs.is_empty() { f64::NAN } else { recs.len() as f64 };
+            ConditionSummary {
+                group: c.group,
+                x: c.x,
+                ok: recs.len(),
+                total: mine.len(),
+                series,
+                quantities,
+                coverage,
+                mean_rotation_deg: recs.iter().map(|r| r.rotation_deg).sum::<f64>() / n,
+            }
+        })
+        .collect()
+}
+
+fn f(v: f64, digits: usize) -> String {
+    if v.is_finite() { format!("{v:.digits$}") } else { "-".into() }
+}
+
+fn write_csv(path: &Path, exp: &Experiment, outcomes: &[Outcome]) -> Result<()> {
+    let mut s = String::from(
+        "experiment,group,x,trial,seed,noise_px,points,outlier_fraction,rotation_mode,ok,error,rotation_deg,verge_err_l_deg,verge_err_r_deg,elev_err_l_deg,elev_err_r_deg,elev_err_r_excess_deg,f_err_pct,aspect_err_pct,pp_err_pct,recon_err_pct,seconds",
+    );
+    for q in SIGMA_QUANTITIES {
+        for p in ["est", "truth", "sigma", "crb"] {
+            let _ = write!(s, ",{q}.{p}");
+        }
+    }
+    s.push('\n');
+    for o in outcomes {
+        let Some(c) = exp.conditions.get(o.condition) else { continue };
+        let sc = &c.scenario;
+        let _ = write!(
+            s,
+            "{},{},{},{},{},{},{},{},{:?},",
+            exp.name, c.group, c.x, o.trial, o.seed, sc.noise_px, sc.points, sc.outlier_fraction, c.rotation
+        );
+        match &o.result {
+            Ok(r) => {
+                let _ = write!(
+                    s,
+                    "true,,{},{},{},{},{},{},{},{},{},{},{:.4}",
+                    r.rotation_deg,
+                    r.verge_err_l_deg,
+                    r.verge_err_r_deg,
+                    r.elev_err_l_deg,
+                    r.elev_err_r_deg,
+                    r.elev_err_r_excess_deg,
+                    r.f_err_pct,
+                    r.aspect_err_pct,
+                    r.pp_err_pct,
+                    r.recon_err_pct,
+                    r.seconds
+                );
+                for q in &r.quantities {
+                    let _ = write!(s, ",{},{},{},{}", q.est, q.truth, q.sigma, q.crb);
+                }
+            }
+            Err(e) => {
+                let msg = e.replace([',', '\n', '"'], ";");
+                let _ = write!(s, "false,{msg}");
+                s.push_str(&",".repeat(11 + 4 * SIGMA_QUANTITIES.len()));
+            }
+        }
+        s.push('\n');
+    }
+    std::fs::write(path, s).with_context(|| format!("cannot write {}", path.display()))
+}
+
+fn markdown(exp: &Experiment, trials: usize, seed: u64, sums: &[ConditionSummary], seconds: f64) -> String {
+    let mut m = String::new();
+    let _ = writeln!(m, "## {} — {}\n", exp.name, exp.title);
+    let _ = writeln!(
+        m,
+        "{trials} trials per condition (seeds {seed}-{}), {} position(s), {:.0} s. RMS over successful trials; in brackets the Cramer-Rao bound (RMS over trials of the covariance-predicted sigma at the truth).\n",
+        seed + trials as u64 - 1,
+        exp.positions.len(),
+        seconds
+    );
+    let mut head = format!("| group | {} | ok | rotation (deg) |", exp.x_label);
+    let mut rule = String::from("|---|---|---|---|");
+    for s in &exp.series {
+        let _ = write!(head, " {} |", s.label);
+        rule.push_str("---|");
+    }
+    let _ = writeln!(m, "{head}\n{rule}");
+    for c in sums {
+        let _ = write!(m, "| {} | {} | {}/{} | {} |", c.group, c.x, c.ok, c.total, f(c.mean_rotation_deg, 1));
+        for (s, (v, b)) in exp.series.iter().zip(&c.series) {
+            if s.crb.is_some() {
+                let _ = write!(m, " {} ({}) |", f(*v, 3), f(*b, 3));
+            } else {
+                let _ = write!(m, " {} |", f(*v, 3));
+            }
+        }
+        m.push('\n');
+    }
+    let _ = writeln!(m, "\nRMS error / Cramer-Rao bound per reported quantity (1.00 = efficient):\n");
+    let mut head = format!("| group | {} |", exp.x_label);
+    let mut rule = String::from("|---|---|");
+    for q in SIGMA_QUANTITIES {
+        let _ = write!(head, " {q} |");
+        rule.push_str("---|");
+    }
+    let _ = writeln!(m, "{head}\n{rule}");
+    for c in sums {
+        let _ = write!(m, "| {} | {} |", c.group, c.x);
+        for (v, b) in &c.quantities {
+            let _ = write!(m, " {} |", f(v / b, 2));
+        }
+        m.push('\n');
+    }
+    let _ = writeln!(
+        m,
+        "\n95 % coverage of the reported sigmas (fraction of trials with |est - truth| <= 1.96 sigma):\n"
+    );
+    let _ = writeln!(m, "{head}\n{rule}");
+    for c in sums {
+        let _ = write!(m, "| {} | {} |", c.group, c.x);
+        for (v, _) in &c.coverage {
+            let _ = write!(m, " {} |", f(100.0 * v, 0));
+        }
+        m.push('\n');
+    }
+    let _ = writeln!(m, "\n![{}]({}.png)\n", exp.name, exp.name);
+    m
+}
+
+fn curves(exp: &Experiment, sums: &[ConditionSummary]) -> Vec<Curve> {
+    let first = sums.first().map_or("fixed", |s| s.group);
+    let plotted: Vec<&ConditionSummary> = sums.iter().filter(|s| s.group == first).collect();
+    let mut out = Vec::new();
+    for (i, s) in exp.series.iter().enumerate() {
+        out.push(Curve {
+            label: s.label.to_string(),
+            points: plotted.iter().map(|c| (c.x, c.series.get(i).map_or(f64::NAN, |v| v.0))).collect(),
+            colour: i,
+            bound: false,
+        });
+        if s.crb.is_some() {
+            out.push(Curve {
+                label: format!("{} bound", s.label),
+                points: plotted.iter().map(|c| (c.x, c.series.get(i).map_or(f64::NAN, |v| v.1))).collect(),
+                colour: i,
+                bound: true,
+            });
+        }
+    }
+    out
+}
+
+/// What one experiment produced, for `all`'s report.
+struct Produced {
+    name: &'static str,
+    markdown: String,
+    sums: Vec<ConditionSummary>,
+    series_labels: Vec<&'static str>,
+}
+
+fn run_one(name: &str, args: &ExperimentArgs) -> Result<Produced> {
+    let exp = experiment(name)?;
+    let total = args.trials.unwrap_or(exp.default_trials);
+    if total == 0 {
+        bail!("--trials must be at least 1");
+    }
+    let trials = total.div_ceil(exp.conditions.len().max(1));
+    std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
+    let t0 = Instant::now();
+    let outcomes = run_experiment(&exp, trials, args.seed);
+    let seconds = t0.elapsed().as_secs_f64();
+    let sums = summarise(&exp, &outcomes);
+    write_csv(&args.out.join(format!("{}.csv", exp.name)), &exp, &outcomes)?;
+    write_plots(&args.out.join(exp.name), exp.title, exp.x_label, exp.y_label, &curves(&exp, &sums))?;
+    let md = markdown(&exp, trials, args.seed, &sums, seconds);
+    std::fs::write(args.out.join(format!("{}.md", exp.name)), &md)
+        .with_context(|| format!("cannot write {}.md", exp.name))?;
+    Ok(Produced {
+        name: exp.name,
+        markdown: md,
+        sums,
+        series_labels: exp.series.iter().map(|s| s.label).collect(),
+    })
+}
+
+fn summary_json(p: &Produced) -> serde_json::Value {
+    let conds: Vec<_> = p
+        .sums
+        .iter()
+        .map(|c| {
+            let series: serde_json::Map<String, serde_json::Value> = p
+                .series_labels
+                .iter()
+                .zip(&c.series)
+                .map(|(l, (v, b))| (l.to_string(), json!({"rms": nan_null(*v), "crb": nan_null(*b)})))
+                .collect();
+            let quantities: serde_json::Map<String, serde_json::Value> = SIGMA_QUANTITIES
+                .iter()
+                .zip(c.quantities.iter().zip(&c.coverage))
+                .map(|(n, ((v, b), (cov, k)))| {
+                    (n.to_string(), json!({"rms": nan_null(*v), "crb": nan_null(*b), "coverage": nan_null(*cov), "n": k}))
+                })
+                .collect();
+            json!({"group": c.group, "x": c.x, "ok": c.ok, "total": c.total, "series": series, "quantities": quantities})
+        })
+        .collect();
+    json!({"experiment": p.name, "conditions": conds})
+}
+
+fn nan_null(v: f64) -> serde_json::Value {
+    if v.is_finite() { json!(v) } else { serde_json::Value::Null }
+}
+
+/// Entry point of `headalign experiment`.
+pub fn run(args: &ExperimentArgs) -> Result<()> {
+    let names: Vec<&str> = if args.name == "all" {
+        NAMES.iter().copied().filter(|n| *n != "all" && *n != "fig5-pan-tilt").collect()
+    } else {
+        experiment(&args.name)?;
+        vec![args.name.as_str()]
+    };
+    let mut produced = Vec::new();
+    for n in names {
+        produced.push(run_one(n, args)?);
+    }
+    if args.name == "all" {
+        let path = results_path(&args.out);
+        std::fs::write(&path, report::results_md(&produced, &args.out))
+            .with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    use std::io::Write as _;
+    let mut stdout = std::io::stdout();
+    if args.json {
+        let v: Vec<_> = produced.iter().map(summary_json).collect();
+        let _ = writeln!(stdout, "{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        for p in &produced {
+            let _ = writeln!(stdout, "{}", p.markdown);
+        }
+    }
+    Ok(())
+}
+
+/// `results.md` beside the output directory (`docs/results` -> `docs/results.md`).
+fn results_path(out: &Path) -> PathBuf {
+    let name = out.file_name().map_or_else(|| "results".into(), |n| n.to_string_lossy().into_owned());
+    out.with_file_name(format!("{name}.md"))
+}
+
+mod report;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unknown_and_pan_tilt_are_clean_errors() {
+        let e = experiment("nope").err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(e.contains("unknown experiment"), "{e}");
+        let e = experiment("fig5-pan-tilt").err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(e.contains("robot stage"), "{e}");
+        assert_eq!(results_path(Path::new("docs/results")), Path::new("docs/results.md"));
+    }
+}
