@@ -7,6 +7,7 @@
 //! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
 
 mod experiment;
+mod images;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -114,6 +115,14 @@ struct DemoArgs {
     /// Print one JSON object instead of the table.
     #[arg(long)]
     json: bool,
+    /// Run on rendered images with the vision front end (verging, features, matching)
+    /// instead of the simulator's point correspondences.
+    #[arg(long)]
+    images: bool,
+    /// With --images: write every captured view (PNG + view.json) and the annotated
+    /// images (figure6.png, aligned.png) here.
+    #[arg(long, requires = "images")]
+    save: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -208,6 +217,9 @@ fn encoders_json(e: &headalign_platform::Encoders) -> Value {
 
 fn demo(args: &DemoArgs) -> Result<()> {
     let scenario = args.scenario.scenario()?;
+    if args.images {
+        return demo_images(args, &scenario);
+    }
     let t0 = Instant::now();
     let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
     let start = head.encoders();
@@ -342,6 +354,68 @@ fn demo(args: &DemoArgs) -> Result<()> {
     );
     say!("checks after moving: {}", outcome.checks.len());
     say!("time: estimation {:.1} ms, total {:.1} ms", 1e3 * outcome.estimation_seconds, 1e3 * total);
+    Ok(())
+}
+
+fn demo_images(args: &DemoArgs, scenario: &Scenario) -> Result<()> {
+    let r = images::run(scenario, args.save.as_deref())?;
+    if args.json {
+        say!("{}", serde_json::to_string_pretty(&r.json)?);
+        return Ok(());
+    }
+    let v = &r.json;
+    say!(
+        "headalign demo --images: simulated head 'yorick' (seed {}), rendered {}x{} images, vision front end",
+        scenario.seed,
+        scenario.image_size[0],
+        scenario.image_size[1]
+    );
+    let steps = v["images"]["verging"]["steps"].as_array().map_or(0, Vec::len);
+    say!(
+        "verging: {} registration(s), overlap {:.0} %",
+        steps,
+        100.0 * v["images"]["verging"]["overlap_fraction"].as_f64().unwrap_or(f64::NAN)
+    );
+    if let Some(t) = v["images"]["tracking"].as_array() {
+        for (name, t) in v["images"]["views"].as_array().into_iter().flatten().zip(t) {
+            say!(
+                "  view {:<12} stereo matches {:>5}, tracked left/right {:>5} {:>5}",
+                name.as_str().unwrap_or("?"),
+                t["stereo_matches"],
+                t["observations"][0],
+                t["observations"][1]
+            );
+        }
+    }
+    say!();
+    say!("{:<22} {:>12} {:>12}", "alignment error (deg)", "before", "after");
+    for (name, key) in [
+        ("verge left", "verge_err_l_deg"),
+        ("verge right", "verge_err_r_deg"),
+        ("elevation left", "elev_err_l_deg"),
+        ("elevation right", "elev_err_r_deg"),
+    ] {
+        say!(
+            "{:<22} {:>12.3} {:>12.3}",
+            name,
+            v["before"][key].as_f64().unwrap_or(f64::NAN),
+            v["errors"][key].as_f64().unwrap_or(f64::NAN)
+        );
+    }
+    say!(
+        "  (right elevation: {:.3} deg of it cannot be removed by any joint)",
+        v["errors"]["elev_err_r_unavoidable_deg"].as_f64().unwrap_or(f64::NAN)
+    );
+    say!(
+        "f_err {:.3} %   aspect_err {:.3} %   pp_err {:.3} %",
+        v["errors"]["f_err_pct"].as_f64().unwrap_or(f64::NAN),
+        v["errors"]["aspect_err_pct"].as_f64().unwrap_or(f64::NAN),
+        v["errors"]["pp_err_pct"].as_f64().unwrap_or(f64::NAN)
+    );
+    say!("time: total {:.2} s", v["timings"]["total_s"].as_f64().unwrap_or(f64::NAN));
+    if let Some(dir) = &args.save {
+        say!("saved the views and figure6.png, aligned.png in {}", dir.display());
+    }
     Ok(())
 }
 

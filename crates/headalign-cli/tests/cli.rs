@@ -139,6 +139,35 @@ fn align_writes_the_calibration_files() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+#[test]
+fn demo_on_rendered_images_aligns_and_saves_the_views() {
+    let dir = tmp("images-save");
+    let out = run(&["demo", "--images", "--seed", "4", "--json", "--save", dir.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    // The bar for image mode is 0.5 deg and 2 %; one seed here, measured about
+    // 0.05 deg and 0.3 % (seeds 1-5 in the README), so 0.5 / 2 is the bar itself.
+    for key in ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_excess_deg"] {
+        assert!(v["errors"][key].as_f64().unwrap().abs() < 0.5, "{key} = {}", v["errors"][key]);
+    }
+    assert!(v["errors"]["f_err_pct"].as_f64().unwrap() < 2.0);
+    assert!(v["before"]["verge_err_l_deg"].is_number());
+    // Every captured view is on disk with its readings, plus the annotated images.
+    let views = v["images"]["views"].as_array().unwrap();
+    assert!(views.len() >= 7);
+    for (i, name) in views.iter().enumerate() {
+        let sub = dir.join(format!("{:02}-{}", i, name.as_str().unwrap()));
+        for f in ["left.png", "right.png", "view.json"] {
+            assert!(sub.join(f).exists(), "{}", sub.join(f).display());
+        }
+    }
+    assert!(dir.join("figure6.png").exists() && dir.join("aligned.png").exists());
+    std::fs::remove_dir_all(&dir).ok();
+    // --save needs --images.
+    let out = run(&["demo", "--save", "x"]);
+    assert!(!out.status.success());
+}
+
 fn session_with(path: &Path, edit: impl FnOnce(&mut Value)) -> PathBuf {
     let mut v: Value = serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
     edit(&mut v);

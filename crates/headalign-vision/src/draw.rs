@@ -56,6 +56,22 @@ impl Canvas {
         c
     }
 
+    /// Two canvases side by side (`left`, then `right`); heights may differ.
+    pub fn beside(left: &Canvas, right: &Canvas) -> Self {
+        let (w, h) = (left.width + right.width, left.height.max(right.height));
+        let mut c = Self { width: w, height: h, data: vec![0; 3 * w as usize * h as usize] };
+        for (src, x0) in [(left, 0), (right, left.width)] {
+            for y in 0..src.height {
+                for x in 0..src.width {
+                    if let Some(px) = src.get(x, y) {
+                        c.put(i64::from(x0 + x), i64::from(y), px);
+                    }
+                }
+            }
+        }
+        c
+    }
+
     /// Width in pixels.
     pub fn width(&self) -> u32 {
         self.width
@@ -223,6 +239,8 @@ mod tests {
         let b = GrayImage::filled(5, 2, 200);
         let c = Canvas::side_by_side(&a, &b);
         assert_eq!((c.width(), c.height()), (9, 3));
+        let d = Canvas::beside(&Canvas::from_gray(&a), &Canvas::from_gray(&b));
+        assert!(d.data == c.data);
         assert_eq!(c.get(3, 0), Some([10, 10, 10]));
         assert_eq!(c.get(4, 1), Some([200, 200, 200]));
         assert_eq!(c.get(4, 2), Some([0, 0, 0]));

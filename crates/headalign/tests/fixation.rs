@@ -6,7 +6,7 @@
 use headalign::imaging::{Camera, FixationOptions, fixate};
 use headalign_platform::StereoHead;
 use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::{Point3, Vector3};
+use nalgebra::Point3;
 
 fn head(seed: u64) -> SimulatedHead {
     SimulatedHead::new(Scenario { seed, ..Scenario::default() }).unwrap()
