@@ -14,6 +14,7 @@
 //!   forward kinematics.
 //! - [`scene`]: a seeded room of 3D points (walls, floor, ceiling, boxes) with track ids.
 //! - [`head`]: [`SimulatedHead`], noisy point captures with outliers.
+//! - [`robot`]: [`SimulatedRobot`], a tricycle AGV carrying the head ([`headalign_platform::Vehicle`]).
 //! - [`metrics`]: ground-truth error metrics (alignment, calibration, reconstruction,
 //!   axes).
 //!
@@ -24,12 +25,14 @@
 pub mod head;
 pub mod kinematics;
 pub mod metrics;
+pub mod robot;
 pub mod scenario;
 pub mod scene;
 
 pub use head::SimulatedHead;
 pub use kinematics::HeadTruth;
 pub use metrics::{AlignmentErrors, AxisErrors, CalibrationErrors, calibration_errors};
+pub use robot::{RobotTruth, SimulatedRobot};
 pub use scenario::Scenario;
 
 use thiserror::Error;
