@@ -44,6 +44,7 @@ pub mod resection;
 pub mod selfcal;
 pub mod so3;
 pub mod synthetic;
+pub mod translation;
 pub mod triangulation;
 
 pub use error::GeometryError;
