@@ -43,6 +43,7 @@ pub mod registration;
 pub mod resection;
 pub mod selfcal;
 pub mod so3;
+pub mod steering;
 pub mod synthetic;
 pub mod translation;
 pub mod triangulation;
