@@ -107,7 +107,7 @@ pub fn steering_from_turns(
         .enumerate()
         .max_by(|a, b| a.1.total_cmp(b.1))
         .ok_or_else(|| GeometryError::Numerical("eigen decomposition".into()))?;
-    if !(*lmax > 1e-24) {
+    if *lmax <= 1e-24 || lmax.is_nan() {
         return Err(GeometryError::Degenerate("the turning centres coincide".into()));
     }
     let axle = eig.eigenvectors.column(imax).into_owned();
