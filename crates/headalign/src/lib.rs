@@ -18,6 +18,7 @@ pub mod error;
 pub mod estimate;
 pub mod observations;
 pub mod procedure;
+pub mod robot;
 
 pub use error::AlignError;
-pub use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead};
+pub use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead, Vehicle};
