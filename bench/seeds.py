@@ -7,7 +7,7 @@ import json, math, subprocess, sys
 
 first, last = int(sys.argv[1]), int(sys.argv[2])
 extra = sys.argv[3:]
-keys = ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg", "elev_err_r_excess_deg", "f_err_pct", "pp_err_pct", "recon_err_pct"]
+keys = ["pan_err_deg", "steer_err_deg", "verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_deg", "elev_err_r_excess_deg", "f_err_pct", "pp_err_pct", "recon_err_pct"]
 rows, fails, times = [], 0, []
 zs = {}  # name -> list of (estimate - truth) / sigma
 for seed in range(first, last + 1):
@@ -31,10 +31,10 @@ for seed in range(first, last + 1):
         if sig:
             zs.setdefault(f"aligned.{j}", []).append((est["aligned_encoders"][j] - tru["aligned_encoders"][j]) / sig)
     times.append(v["timings"]["total_s"])
-    print(f"seed {seed}: " + " ".join(f"{k.replace('_deg','').replace('_pct','%')}={v['errors'][k]:+.3f}" for k in keys if v['errors'][k] is not None))
+    print(f"seed {seed}: " + " ".join(f"{k.replace('_deg','').replace('_pct','%')}={v['errors'][k]:+.3f}" for k in keys if v["errors"].get(k) is not None))
 print(f"{len(rows)} runs, {fails} failures, mean time {1e3*sum(times)/max(1,len(times)):.1f} ms")
 for k in keys:
-    vals = [r[k] for r in rows if r[k] is not None]
+    vals = [r[k] for r in rows if r.get(k) is not None]
     if vals:
         print(f"RMS {k:16s} {math.sqrt(sum(x*x for x in vals)/len(vals)):.4f}   max {max(abs(x) for x in vals):.4f}")
 print("z-scores (estimate - truth) / sigma: RMS 1 and mean 0 when the sigmas are calibrated")

@@ -45,7 +45,9 @@ pub mod registration;
 pub mod resection;
 pub mod selfcal;
 pub mod so3;
+pub mod steering;
 pub mod synthetic;
+pub mod translation;
 pub mod triangulation;
 
 pub use error::GeometryError;

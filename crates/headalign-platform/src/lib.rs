@@ -200,6 +200,27 @@ pub trait ImagingHead: StereoHead {
     fn capture_images(&mut self) -> Result<StereoImages, PlatformError>;
 }
 
+/// A wheeled robot carrying the head, as the procedures see it: a tricycle AGV (one
+/// steered front wheel, a fixed rear axle) that drives on the ground plane
+/// (DESIGN.md section 1).
+///
+/// Units: metres for distances (positive forward, negative reverses along the same
+/// arc), degrees for the steering encoder (the true steering angle is
+/// `encoder - zero_offset`; the zero offset is what steering alignment finds).
+pub trait Vehicle {
+    /// Drive `distance_m` along the current steering arc, blocking until done.
+    fn drive(&mut self, distance_m: f64) -> Result<(), PlatformError>;
+    /// Turn the steering wheel to the absolute encoder reading `encoder_deg`.
+    fn steer_to(&mut self, encoder_deg: f64) -> Result<(), PlatformError>;
+    /// Current steering encoder reading, degrees.
+    fn read_steering(&mut self) -> Result<f64, PlatformError>;
+    /// Turn the steering wheel by `delta_deg` from its current reading.
+    fn steer_by(&mut self, delta_deg: f64) -> Result<(), PlatformError> {
+        let now = self.read_steering()?;
+        self.steer_to(now + delta_deg)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

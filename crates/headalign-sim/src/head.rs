@@ -69,6 +69,9 @@ pub struct SimulatedHead {
     capture_rng: ChaCha8Rng,
     encoder_rng: ChaCha8Rng,
     render_rng: ChaCha8Rng,
+    /// Pose of the robot (the frame of [`HeadTruth`]) in the scene's world frame;
+    /// identity until a [`crate::robot::SimulatedRobot`] drives it.
+    world_from_robot: Isometry3<f64>,
 }
 
 impl SimulatedHead {
@@ -89,6 +92,7 @@ impl SimulatedHead {
             room,
             textured: None,
             encoders: Encoders::default(),
+            world_from_robot: Isometry3::identity(),
         })
     }
 
@@ -107,9 +111,30 @@ impl SimulatedHead {
         self.encoders
     }
 
-    /// Camera poses `(world_from_left, world_from_right)` at the given readings.
+    /// Camera poses `(world_from_left, world_from_right)` at the given readings, in the
+    /// robot frame (the scene's world frame while the robot has not moved).
     pub fn world_from_cameras(&self, enc: &Encoders) -> (Isometry3<f64>, Isometry3<f64>) {
         self.truth.world_from_cameras(enc)
+    }
+
+    /// Pose of the robot frame (the frame of [`HeadTruth`] and of
+    /// [`Self::world_from_cameras`]) in the scene's world frame; identity initially.
+    pub fn world_from_robot(&self) -> Isometry3<f64> {
+        self.world_from_robot
+    }
+
+    /// Move the robot (and the head on it) to a new pose in the scene's world frame.
+    /// Captures see the scene from there; the head's own geometry and every metric,
+    /// which live in the robot frame, are unchanged.
+    pub fn set_world_from_robot(&mut self, world_from_robot: Isometry3<f64>) {
+        self.world_from_robot = world_from_robot;
+    }
+
+    /// Camera poses `(world_from_left, world_from_right)` in the scene's world frame (the
+    /// robot pose composed with the head's kinematics).
+    pub fn scene_from_cameras(&self, enc: &Encoders) -> (Isometry3<f64>, Isometry3<f64>) {
+        let (l, r) = self.truth.world_from_cameras(enc);
+        (self.world_from_robot * l, self.world_from_robot * r)
     }
 
     /// The scene points with their track ids, world frame.
@@ -120,7 +145,7 @@ impl SimulatedHead {
     /// Exact (noise-free, outlier-free) observations at the given readings; the RNG is not
     /// touched. For tests and experiments.
     pub fn exact_capture(&self, enc: &Encoders) -> StereoCapture {
-        let (world_from_left, world_from_right) = self.world_from_cameras(enc);
+        let (world_from_left, world_from_right) = self.scene_from_cameras(enc);
         let observe = |k: &Intrinsics, world_from_cam: &Isometry3<f64>| {
             let cam_from_world = world_from_cam.inverse();
             self.scene
@@ -167,7 +192,7 @@ impl SimulatedHead {
         enc: &Encoders,
         point_in_world: &Point3<f64>,
     ) -> (Option<Point2<f64>>, Option<Point2<f64>>) {
-        let (world_from_left, world_from_right) = self.world_from_cameras(enc);
+        let (world_from_left, world_from_right) = self.scene_from_cameras(enc);
         let size = self.scenario.image_size;
         let distortion = &self.scenario.render.distortion;
         let pixel = |k: &Intrinsics, world_from_cam: &Isometry3<f64>| {
@@ -218,7 +243,7 @@ impl SimulatedHead {
         noise_seed: u64,
     ) -> Result<(GrayImage, GrayImage), SimError> {
         let scene = self.textured_scene();
-        let (world_from_left, world_from_right) = self.world_from_cameras(enc);
+        let (world_from_left, world_from_right) = self.scene_from_cameras(enc);
         let size = self.scenario.image_size;
         let view = |k, world_from_cam| CameraView {
             k,
@@ -314,7 +339,7 @@ impl StereoHead for SimulatedHead {
 
     fn capture(&mut self) -> Result<StereoCapture, PlatformError> {
         let encoders = self.read_encoders()?;
-        let (world_from_left, world_from_right) = self.world_from_cameras(&self.encoders);
+        let (world_from_left, world_from_right) = self.scene_from_cameras(&self.encoders);
         let (k_left, k_right) = (self.truth.left, self.truth.right);
         let left = self.observe_noisy(&k_left, &world_from_left);
         let right = self.observe_noisy(&k_right, &world_from_right);

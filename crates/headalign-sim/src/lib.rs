@@ -19,6 +19,7 @@
 //!   shared data folder plus procedural detail; procedural only if the folder is missing).
 //! - [`render`]: ray-cast renderer of the textured room with radial distortion,
 //!   supersampling, blur and sensor noise ([`RenderOptions`]).
+//! - [`robot`]: [`SimulatedRobot`], a tricycle AGV carrying the head ([`headalign_platform::Vehicle`]).
 //! - [`metrics`]: ground-truth error metrics (alignment, calibration, reconstruction,
 //!   axes).
 //!
@@ -30,6 +31,7 @@ pub mod head;
 pub mod kinematics;
 pub mod metrics;
 pub mod render;
+pub mod robot;
 pub mod scenario;
 pub mod scene;
 pub mod texture;
@@ -38,6 +40,7 @@ pub use head::SimulatedHead;
 pub use kinematics::HeadTruth;
 pub use metrics::{AlignmentErrors, AxisErrors, CalibrationErrors, calibration_errors};
 pub use render::{RadialDistortion, RenderOptions};
+pub use robot::{RobotTruth, SimulatedRobot};
 pub use scenario::Scenario;
 pub use texture::{TextureReport, TexturedScene};
 

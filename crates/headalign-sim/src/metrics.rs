@@ -138,7 +138,7 @@ impl SimulatedHead {
             return Err(SimError::Metric(format!("need at least 3 points, got {}", estimated.len())));
         }
         let by_id: HashMap<u64, Point3<f64>> = self.scene_points().iter().copied().collect();
-        let (world_from_left, _) = self.world_from_cameras(enc);
+        let (world_from_left, _) = self.scene_from_cameras(enc);
         let left_from_world = world_from_left.inverse();
         let mut src = Vec::with_capacity(estimated.len());
         let mut dst = Vec::with_capacity(estimated.len());

@@ -66,6 +66,16 @@ pub struct Scenario {
     /// Image rendering: distortion (also used by the point captures), blur, noise,
     /// supersampling, textures. TOML table `[render]`; defaults in [`RenderOptions`].
     pub render: RenderOptions,
+    /// Robot (tricycle AGV): distance from the rear-axle line to the steered front
+    /// wheel, metres.
+    pub wheelbase_m: f64,
+    /// Robot: the rear-axle centre lies this far behind the pan axis, metres (0: the pan
+    /// axis stands over the rear-axle centre).
+    pub rear_axle_behind_pan_m: f64,
+    /// Robot: steering encoder zero offset drawn uniformly in `+-steer_zero_max_deg`.
+    pub steer_zero_max_deg: f64,
+    /// Robot: the procedure's straight drive for pan alignment, metres.
+    pub drive_m: f64,
 }
 
 impl Default for Scenario {
@@ -93,6 +103,10 @@ impl Default for Scenario {
             rotation_deg: 3.0,
             encoder_noise_deg: 0.0,
             render: RenderOptions::default(),
+            wheelbase_m: 0.6,
+            rear_axle_behind_pan_m: 0.0,
+            steer_zero_max_deg: 5.0,
+            drive_m: 0.10,
         }
     }
 }
@@ -176,6 +190,19 @@ impl Scenario {
             finite_nonneg(self.encoder_noise_deg),
             format!("encoder_noise_deg must be >= 0, got {}", self.encoder_noise_deg),
         );
+        check(
+            finite_pos(self.wheelbase_m),
+            format!("wheelbase_m must be positive, got {}", self.wheelbase_m),
+        );
+        check(
+            self.rear_axle_behind_pan_m.is_finite(),
+            format!("rear_axle_behind_pan_m must be finite, got {}", self.rear_axle_behind_pan_m),
+        );
+        check(
+            finite_nonneg(self.steer_zero_max_deg) && self.steer_zero_max_deg < 45.0,
+            format!("steer_zero_max_deg must be in [0, 45), got {}", self.steer_zero_max_deg),
+        );
+        check(finite_pos(self.drive_m), format!("drive_m must be positive, got {}", self.drive_m));
         problems.extend(self.render.problems());
         if problems.is_empty() { Ok(()) } else { Err(SimError::InvalidScenario(problems.join("; "))) }
     }

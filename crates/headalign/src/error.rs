@@ -56,6 +56,31 @@ pub enum AlignError {
     #[error("head: {0}")]
     Platform(#[from] PlatformError),
     /// Invalid options.
+    /// The drive was too short for the scene depth: the image flow is too small to
+    /// locate the epipole.
+    #[error(
+        "drive too short for the scene depth: median flow {median_flow_px:.2} px, need at least {min_flow_px} px; drive farther or face a nearer scene"
+    )]
+    DriveTooShort {
+        /// Measured median flow, pixels.
+        median_flow_px: f64,
+        /// Required median flow, pixels.
+        min_flow_px: f64,
+    },
+    /// A steering drive turned too little to locate its axis.
+    #[error(
+        "turn too small to locate its axis: {angle_deg:.3} deg, need at least {min_deg} deg; steer more or drive farther"
+    )]
+    TurnTooSmall {
+        /// Measured turn, degrees.
+        angle_deg: f64,
+        /// Required turn, degrees.
+        min_deg: f64,
+    },
+    /// The robot's motion was not planar (screw axis not parallel to the pan axis, or
+    /// translation along it).
+    #[error("motion not planar: {0}")]
+    NotPlanar(String),
     #[error("invalid option: {0}")]
     InvalidOption(String),
     /// Bad or unusable images.

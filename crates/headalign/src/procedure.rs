@@ -350,7 +350,7 @@ pub fn capture_plan(e0: &Encoders, options: &VergeTiltOptions) -> Vec<(String, E
 }
 
 /// Predicted `ref_from_cam` of both cameras at encoders `enc` from the kinematic model.
-fn predicted_poses(
+pub(crate) fn predicted_poses(
     calib: &RigCalibration,
     verge: &VergeAxes,
     reference: &Encoders,
