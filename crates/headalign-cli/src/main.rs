@@ -144,8 +144,13 @@ struct DemoArgs {
 #[derive(Args)]
 struct AlignArgs {
     /// Observation session (JSON, format headalign-observations/1).
+    #[arg(long, required_unless_present = "images", conflicts_with = "images")]
+    observations: Option<PathBuf>,
+    /// A recorded image session instead (folders NN-name/ with left.png, right.png and
+    /// view.json, as `demo --images --save DIR` writes): the image front end finds the
+    /// correspondences.
     #[arg(long)]
-    observations: PathBuf,
+    images: Option<PathBuf>,
     /// Print one JSON object instead of the table.
     #[arg(long)]
     json: bool,
@@ -520,7 +525,14 @@ fn demo_images(args: &DemoArgs, scenario: &Scenario) -> Result<()> {
 }
 
 fn align(args: &AlignArgs) -> Result<()> {
-    let views = read_session(&args.observations)?;
+    let views = match (&args.observations, &args.images) {
+        (Some(file), _) => read_session(file)?,
+        (None, Some(dir)) => {
+            let recorded = headalign::session::read_image_session(dir)?;
+            headalign::session::track_session(&recorded, &headalign::frontend::FrontEndOptions::default())?
+        }
+        (None, None) => bail!("give --observations FILE or --images DIR"),
+    };
     let t0 = Instant::now();
     let roles = classify_views(&views)?;
     let rig: Vec<View> = views

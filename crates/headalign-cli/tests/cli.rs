@@ -162,6 +162,19 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
         }
     }
     assert!(dir.join("figure6.png").exists() && dir.join("aligned.png").exists());
+    // Replaying the recorded images offline gives the same calibration, bit for bit.
+    let out = run(&["align", "--images", dir.to_str().unwrap(), "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    for k in ["fx", "fy", "cx", "cy"] {
+        assert_eq!(r["left"][k], v["estimate"]["left"][k], "left {k}");
+        assert_eq!(r["right"][k], v["estimate"]["right"][k], "right {k}");
+    }
+    // A damaged image is a one-line error naming the file.
+    let bad = dir.join(format!("01-{}", views[1].as_str().unwrap())).join("right.png");
+    std::fs::write(&bad, b"truncated").unwrap();
+    let out = run(&["align", "--images", dir.to_str().unwrap()]);
+    assert_clean_failure(&out, "right.png");
     std::fs::remove_dir_all(&dir).ok();
     // --save needs --images.
     let out = run(&["demo", "--save", "x"]);

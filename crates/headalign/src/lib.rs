@@ -22,6 +22,7 @@ pub mod imaging;
 pub mod observations;
 pub mod procedure;
 pub mod robot;
+pub mod session;
 
 pub use error::AlignError;
 pub use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead, Vehicle};
