@@ -13,7 +13,7 @@ use headalign::frontend::{FrontEndOptions, TrackingHead};
 use headalign::imaging::{VergingOptions, verge_to_common_view};
 use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
 use headalign_platform::StereoImages;
-use headalign_sim::{Scenario, SimulatedHead, calibration_errors};
+use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedHead, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
 use serde_json::{Value, json};
 
@@ -60,18 +60,8 @@ pub fn run(scenario: &Scenario, save: Option<&Path>) -> Result<ImageDemo> {
     let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
     let json = json!({
         "mode": "images",
-        "errors": {
-            "verge_err_l_deg": after.verge_err_l_deg, "verge_err_r_deg": after.verge_err_r_deg,
-            "elev_err_l_deg": after.elev_err_l_deg, "elev_err_r_deg": after.elev_err_r_deg,
-            "elev_err_r_unavoidable_deg": unavoidable_r,
-            "elev_err_r_excess_deg": after.elev_err_r_deg - unavoidable_r,
-            "f_err_pct": cal.f_err_pct, "aspect_err_pct": cal.aspect_err_pct, "pp_err_pct": cal.pp_err_pct,
-            "recon_err_pct": Value::Null,
-        },
-        "before": {
-            "verge_err_l_deg": before.verge_err_l_deg, "verge_err_r_deg": before.verge_err_r_deg,
-            "elev_err_l_deg": before.elev_err_l_deg, "elev_err_r_deg": before.elev_err_r_deg,
-        },
+        "errors": errors_json(&after, unavoidable_r, &cal, None),
+        "before": before_json(&before),
         "estimate": {
             "left": {"fx": st.left.fx, "fy": st.left.fy, "cx": st.left.cx, "cy": st.left.cy},
             "right": {"fx": st.right.fx, "fy": st.right.fy, "cx": st.right.cx, "cy": st.right.cy},
@@ -94,6 +84,42 @@ pub fn run(scenario: &Scenario, save: Option<&Path>) -> Result<ImageDemo> {
         "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total},
     });
     Ok(ImageDemo { json })
+}
+
+/// The `errors` member of the demo's JSON: the alignment errors after alignment, the
+/// right camera's unavoidable part and the excess over it, and the calibration errors.
+pub fn errors_json(
+    after: &AlignmentErrors,
+    unavoidable_r: f64,
+    cal: &CalibrationErrors,
+    recon_err_pct: Option<f64>,
+) -> serde_json::Map<String, Value> {
+    let mut m = before_json(after);
+    for (k, v) in [
+        ("elev_err_r_unavoidable_deg", json!(unavoidable_r)),
+        ("elev_err_r_excess_deg", json!(after.elev_err_r_deg - unavoidable_r)),
+        ("f_err_pct", json!(cal.f_err_pct)),
+        ("aspect_err_pct", json!(cal.aspect_err_pct)),
+        ("pp_err_pct", json!(cal.pp_err_pct)),
+        ("recon_err_pct", json!(recon_err_pct)),
+    ] {
+        m.insert(k.to_string(), v);
+    }
+    m
+}
+
+/// The four alignment errors, as the demo's `before` member names them.
+pub fn before_json(e: &AlignmentErrors) -> serde_json::Map<String, Value> {
+    let mut m = serde_json::Map::new();
+    for (k, v) in [
+        ("verge_err_l_deg", e.verge_err_l_deg),
+        ("verge_err_r_deg", e.verge_err_r_deg),
+        ("elev_err_l_deg", e.elev_err_l_deg),
+        ("elev_err_r_deg", e.elev_err_r_deg),
+    ] {
+        m.insert(k.to_string(), json!(v));
+    }
+    m
 }
 
 /// Each captured view as `DIR/NN-name/{left,right}.png` + `view.json`.

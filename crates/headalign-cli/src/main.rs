@@ -313,22 +313,16 @@ fn demo(args: &DemoArgs) -> Result<()> {
     let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
     let report = &outcome.calibration.report;
     if args.json {
+        let mut errors_j = images::errors_json(&after, unavoidable_r, &cal, recon);
+        errors_j.insert("pan_err_deg".into(), json!(pan_after));
+        errors_j.insert("steer_err_deg".into(), json!(steer_after));
+        let mut before_j = images::before_json(&before);
+        before_j.insert("pan_err_deg".into(), json!(pan_before));
+        before_j.insert("steer_err_deg".into(), json!(steer_before));
         let out = json!({
             "scenario": serde_json::to_value(&scenario)?,
-            "errors": {
-                "verge_err_l_deg": after.verge_err_l_deg, "verge_err_r_deg": after.verge_err_r_deg,
-                "elev_err_l_deg": after.elev_err_l_deg, "elev_err_r_deg": after.elev_err_r_deg,
-                "elev_err_r_unavoidable_deg": unavoidable_r,
-                "elev_err_r_excess_deg": after.elev_err_r_deg - unavoidable_r,
-                "f_err_pct": cal.f_err_pct, "aspect_err_pct": cal.aspect_err_pct, "pp_err_pct": cal.pp_err_pct,
-                "recon_err_pct": recon,
-                "pan_err_deg": pan_after, "steer_err_deg": steer_after,
-            },
-            "before": {
-                "verge_err_l_deg": before.verge_err_l_deg, "verge_err_r_deg": before.verge_err_r_deg,
-                "elev_err_l_deg": before.elev_err_l_deg, "elev_err_r_deg": before.elev_err_r_deg,
-                "pan_err_deg": pan_before, "steer_err_deg": steer_before,
-            },
+            "errors": errors_j,
+            "before": before_j,
             "pan": serde_json::to_value(&pan_outcome)?,
             "steering": serde_json::to_value(&steer_outcome)?,
             "stages": stages,
