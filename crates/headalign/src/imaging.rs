@@ -343,6 +343,10 @@ pub fn fixate<H: ImagingHead>(
     // starts outside has no appearance (e.g. a vanishing point): it is carried by the
     // image motion of the whole view.
     let mut patch_target = inside(target, size, options.edge_margin_px);
+    // Where the target's own patch was taken: every later position is measured against
+    // this one image (chaining image to image would add each step's sub-pixel error).
+    let mut anchor: Option<(GrayImage, [f64; 2])> =
+        patch_target.then(|| (camera.image(&images).clone(), target));
     let mut steps = Vec::new();
     loop {
         let err = ((target[0] - c[0]).powi(2) + (target[1] - c[1]).powi(2)).sqrt();
@@ -403,8 +407,11 @@ pub fn fixate<H: ImagingHead>(
                 alpha[k] = a;
             }
         }
-        target = if patch_target {
-            aim_after
+        target = if let Some((anchor_image, anchor_px)) = &anchor {
+            let tight = PatchSearchOptions { search_radius: 6.0, ..options.patch.clone() };
+            locate_patch(anchor_image, *anchor_px, after, Some(aim_after), &tight)
+                .map_err(vision("fixation: following the target"))?
+                .position
         } else {
             let g = local_homography(before, after, shift, target, options)?;
             let p = g.0 * nalgebra::Vector3::new(target[0], target[1], 1.0);
@@ -414,7 +421,10 @@ pub fn fixate<H: ImagingHead>(
             [p.x / p.z, p.y / p.z]
         };
         // Once the carried target is in view, its own patch follows it from now on.
-        patch_target = patch_target || inside(target, size, options.edge_margin_px);
+        if !patch_target && inside(target, size, options.edge_margin_px) {
+            patch_target = true;
+            anchor = Some((camera.image(&next).clone(), target));
+        }
         images = next;
     }
 }

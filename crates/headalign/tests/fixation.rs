@@ -45,7 +45,9 @@ fn fixates_a_visible_scene_point_within_a_pixel() {
 
 #[test]
 fn fixates_a_scene_point_outside_the_image() {
-    for (seed, tx) in [(5, 900.0), (2, -150.0)] {
+    for (seed, tx) in
+        [(1, 900.0), (1, -150.0), (2, 900.0), (2, -150.0), (3, 900.0), (3, -150.0), (5, 900.0), (5, -150.0)]
+    {
         fixate_outside(seed, tx);
     }
 }
