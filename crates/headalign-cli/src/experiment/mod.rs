@@ -106,11 +106,23 @@ fn q_crb(r: &TrialRecord, i: usize) -> f64 {
     r.quantities.get(i).map_or(f64::NAN, |q| q.crb)
 }
 
+fn verge_left() -> Series {
+    Series { label: "verge left (deg)", value: |r| r.verge_err_l_deg, crb: Some(|r| q_crb(r, 9)) }
+}
+
+fn elevation_left() -> Series {
+    Series { label: "elevation left (deg)", value: |r| r.elev_err_l_deg, crb: Some(|r| q_crb(r, 8)) }
+}
+
+fn worst_focal() -> Series {
+    Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None }
+}
+
 fn alignment_series() -> Vec<Series> {
     vec![
-        Series { label: "verge left (deg)", value: |r| r.verge_err_l_deg, crb: Some(|r| q_crb(r, 9)) },
+        verge_left(),
         Series { label: "verge right (deg)", value: |r| r.verge_err_r_deg, crb: Some(|r| q_crb(r, 10)) },
-        Series { label: "elevation left (deg)", value: |r| r.elev_err_l_deg, crb: Some(|r| q_crb(r, 8)) },
+        elevation_left(),
         Series { label: "elevation right, excess (deg)", value: |r| r.elev_err_r_excess_deg, crb: None },
     ]
 }
@@ -151,7 +163,7 @@ fn experiment(name: &str) -> Result<Experiment> {
             series: vec![
                 Series { label: "left fx (%)", value: |r| q_rel_pct(r, 0), crb: Some(|r| q_crb_pct(r, 0)) },
                 Series { label: "right fx (%)", value: |r| q_rel_pct(r, 4), crb: Some(|r| q_crb_pct(r, 4)) },
-                Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None },
+                worst_focal(),
                 Series { label: "aspect ratio, worst (%)", value: |r| r.aspect_err_pct, crb: None },
                 Series { label: "principal point, worst (% of f)", value: |r| r.pp_err_pct, crb: None },
                 Series { label: "reconstruction (%)", value: |r| r.recon_err_pct, crb: None },
@@ -169,17 +181,9 @@ fn experiment(name: &str) -> Result<Experiment> {
                 .map(|&p| fixed(p as f64, Scenario { points: p, ..base(1.5) }))
                 .collect(),
             series: vec![
-                Series {
-                    label: "elevation left (deg)",
-                    value: |r| r.elev_err_l_deg,
-                    crb: Some(|r| q_crb(r, 8)),
-                },
-                Series {
-                    label: "verge left (deg)",
-                    value: |r| r.verge_err_l_deg,
-                    crb: Some(|r| q_crb(r, 9)),
-                },
-                Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None },
+                elevation_left(),
+                verge_left(),
+                worst_focal(),
                 Series { label: "reconstruction (%)", value: |r| r.recon_err_pct, crb: None },
             ],
         },
@@ -205,22 +209,14 @@ fn experiment(name: &str) -> Result<Experiment> {
                 positions: vec![Encoders::default()],
                 conditions,
                 series: vec![
-                    Series {
-                        label: "verge left (deg)",
-                        value: |r| r.verge_err_l_deg,
-                        crb: Some(|r| q_crb(r, 9)),
-                    },
-                    Series {
-                        label: "elevation left (deg)",
-                        value: |r| r.elev_err_l_deg,
-                        crb: Some(|r| q_crb(r, 8)),
-                    },
+                    verge_left(),
+                    elevation_left(),
                     Series {
                         label: "left fx (%)",
                         value: |r| q_rel_pct(r, 0),
                         crb: Some(|r| q_crb_pct(r, 0)),
                     },
-                    Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None },
+                    worst_focal(),
                 ],
             }
         }
@@ -235,19 +231,7 @@ fn experiment(name: &str) -> Result<Experiment> {
                 .iter()
                 .map(|&o| fixed(o, Scenario { outlier_fraction: o, ..base(1.0) }))
                 .collect(),
-            series: vec![
-                Series {
-                    label: "elevation left (deg)",
-                    value: |r| r.elev_err_l_deg,
-                    crb: Some(|r| q_crb(r, 8)),
-                },
-                Series {
-                    label: "verge left (deg)",
-                    value: |r| r.verge_err_l_deg,
-                    crb: Some(|r| q_crb(r, 9)),
-                },
-                Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None },
-            ],
+            series: vec![elevation_left(), verge_left(), worst_focal()],
         },
         "coverage" => Experiment {
             name: "coverage",
