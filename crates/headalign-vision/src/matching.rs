@@ -93,10 +93,7 @@ fn scan<F: Fn(usize, usize) -> bool>(
             if !allowed(i, j) {
                 continue;
             }
-            let d = (da.0[0] ^ db.0[0]).count_ones()
-                + (da.0[1] ^ db.0[1]).count_ones()
-                + (da.0[2] ^ db.0[2]).count_ones()
-                + (da.0[3] ^ db.0[3]).count_ones();
+            let d = da.hamming(db);
             if d < best.d1 {
                 best.d2 = best.d1;
                 best.d1 = d;

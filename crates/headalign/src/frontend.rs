@@ -126,7 +126,6 @@ pub struct Tracker {
     options: FrontEndOptions,
     reference: Option<Reference>,
     next_id: u64,
-    views: usize,
 }
 
 fn point(f: &Features, i: usize) -> Point2<f64> {
@@ -146,7 +145,7 @@ impl Tracker {
     /// A tracker with no reference yet.
     pub fn new(options: FrontEndOptions) -> Result<Self, AlignError> {
         options.validate()?;
-        Ok(Self { options, reference: None, next_id: 0, views: 0 })
+        Ok(Self { options, reference: None, next_id: 0 })
     }
 
     /// Stereo matches `(left index, right index)` of one view.
@@ -290,7 +289,6 @@ impl Tracker {
         if self.reference.is_none() {
             self.reference = Some(Reference { left, right, left_ids, right_ids });
         }
-        self.views += 1;
         Ok((capture, report))
     }
 }
