@@ -5,9 +5,11 @@
 //! - [`FloatImage`]: `f32` grey values (same scale as the 8-bit input, 0..255), row-major.
 //! - [`gaussian_blur`]: separable Gaussian of standard deviation `sigma` pixels, kernel
 //!   truncated at `ceil(3 sigma)`, borders replicated (clamp-to-edge).
-//! - [`Pyramid`]: level 0 is the image itself; level `k + 1` is level `k` smoothed with the
-//!   5-tap binomial kernel `[1 4 6 4 1] / 16` (sigma = 1 pixel of level `k`) and sampled at
-//!   even pixels, so its size is `ceil(w / 2) x ceil(h / 2)`.
+//! - [`Pyramid`]: level 0 is the 8-bit image itself (borrowed, not copied); level `k + 1`
+//!   is level `k` smoothed with the 5-tap binomial kernel `[1 4 6 4 1] / 16` (sigma = 1
+//!   pixel of level `k`) and sampled at even pixels, so its size is `ceil(w / 2) x ceil(h / 2)`.
+//!   Coarse levels are `f32` minus the mean of level 0 ([`Pyramid::offset`]). The first
+//!   reduction runs on the bytes in exact `u16` arithmetic (`255 * 256 < 2^16`).
 //!
 //! Coordinates: pixel `x` of level `k + 1` sits exactly on pixel `2x` of level `k` (centres
 //! aligned at `(0, 0)`), so a position or shift `p` at level `k` is `p * 2^k` at full
@@ -204,89 +206,225 @@ pub fn gaussian_blur(img: &FloatImage, sigma: f32) -> Result<FloatImage, VisionE
     FloatImage::new(w, h, out)
 }
 
-/// Smooth with `[1 4 6 4 1] / 16` and keep even pixels: `ceil(w/2) x ceil(h/2)`.
-/// Only the needed rows and columns are filtered.
-pub fn downsample2(img: &FloatImage) -> FloatImage {
-    const K: [f32; 5] = [1.0 / 16.0, 4.0 / 16.0, 6.0 / 16.0, 4.0 / 16.0, 1.0 / 16.0];
-    let (w, h) = (img.width, img.height);
-    let (wo, ho) = (w.div_ceil(2), h.div_ceil(2));
-    let mut out = vec![0.0f32; wo * ho];
-    let row_job = |(yo, dst): (usize, &mut [f32])| {
-        // Vertical filter of the 5 source rows around 2*yo into a full-width scratch row.
-        let mut col = vec![0.0f32; w];
-        for (i, kv) in K.iter().enumerate() {
-            let yi = (2 * yo as isize + i as isize - 2).clamp(0, h as isize - 1) as usize;
-            for (c, s) in col.iter_mut().zip(img.row(yi)) {
-                *c += kv * s;
-            }
+/// Arithmetic of one 2x reduction: `f32` for float levels, `u16` for bytes (exact: the
+/// binomial weights sum to 16 per axis, and `255 * 16 * 16 < 2^16`).
+trait Reducible: Copy + Sync {
+    /// Filtered (unnormalised) value type.
+    type Acc: Copy + Default + Send;
+    /// `r0 + 4 r1 + 6 r2 + 4 r3 + r4`, element-wise, into `out`.
+    fn vertical(r: [&[Self]; 5], out: &mut [Self::Acc]);
+    /// The same along a row: `out[i] = c[i] + 4 c[i+1] + 6 c[i+2] + 4 c[i+3] + c[i+4]`.
+    fn horizontal(c: &[Self::Acc], out: &mut [Self::Acc]);
+    fn to_f32(v: Self::Acc) -> f32;
+}
+
+impl Reducible for f32 {
+    type Acc = f32;
+    #[inline]
+    fn vertical(r: [&[f32]; 5], out: &mut [f32]) {
+        let n = out.len();
+        let (r0, r1, r2, r3, r4) = (&r[0][..n], &r[1][..n], &r[2][..n], &r[3][..n], &r[4][..n]);
+        for x in 0..n {
+            out[x] = (r0[x] + r4[x]) + 4.0 * (r1[x] + r3[x]) + 6.0 * r2[x];
         }
-        for (xo, d) in dst.iter_mut().enumerate() {
-            let x = 2 * xo as isize;
-            let mut acc = 0.0;
-            for (i, kv) in K.iter().enumerate() {
-                let xi = (x + i as isize - 2).clamp(0, w as isize - 1) as usize;
-                acc += kv * col[xi];
-            }
-            *d = acc;
-        }
-    };
-    if w * h >= PARALLEL_MIN_PIXELS {
-        out.par_chunks_mut(wo).enumerate().for_each(row_job);
-    } else {
-        out.chunks_mut(wo).enumerate().for_each(row_job);
     }
+    #[inline]
+    fn horizontal(c: &[f32], out: &mut [f32]) {
+        let n = out.len();
+        let (c0, c1, c2, c3, c4) = (&c[..n], &c[1..n + 1], &c[2..n + 2], &c[3..n + 3], &c[4..n + 4]);
+        for x in 0..n {
+            out[x] = (c0[x] + c4[x]) + 4.0 * (c1[x] + c3[x]) + 6.0 * c2[x];
+        }
+    }
+    #[inline]
+    fn to_f32(v: f32) -> f32 {
+        v
+    }
+}
+
+impl Reducible for u8 {
+    type Acc = u16;
+    #[inline]
+    fn vertical(r: [&[u8]; 5], out: &mut [u16]) {
+        let n = out.len();
+        let (r0, r1, r2, r3, r4) = (&r[0][..n], &r[1][..n], &r[2][..n], &r[3][..n], &r[4][..n]);
+        for x in 0..n {
+            let v = |r: &[u8]| u16::from(r[x]);
+            out[x] = (v(r0) + v(r4)) + 4 * (v(r1) + v(r3)) + 6 * v(r2);
+        }
+    }
+    #[inline]
+    fn horizontal(c: &[u16], out: &mut [u16]) {
+        let n = out.len();
+        let (c0, c1, c2, c3, c4) = (&c[..n], &c[1..n + 1], &c[2..n + 2], &c[3..n + 3], &c[4..n + 4]);
+        for x in 0..n {
+            out[x] = (c0[x] + c4[x]) + 4 * (c1[x] + c3[x]) + 6 * c2[x];
+        }
+    }
+    #[inline]
+    fn to_f32(v: u16) -> f32 {
+        f32::from(v)
+    }
+}
+
+/// Scratch rows of one reduction worker: the vertically filtered row padded by two
+/// replicated pixels per side, and its horizontal filter at every pixel.
+struct Scratch<A> {
+    padded: Vec<A>,
+    full: Vec<A>,
+}
+
+/// One 2x reduction of a row-major image (`u8` or `f32`): smooth with `[1 4 6 4 1] / 16`
+/// in x and y, keep even pixels (`ceil(w/2) x ceil(h/2)`), subtract `offset`. Borders are
+/// replicated. Only the needed rows are filtered; the horizontal filter runs at every
+/// pixel of a row (contiguous, so it vectorises) and the even ones are kept.
+fn reduce<T: Reducible>(src: &[T], w: usize, h: usize, offset: f32) -> FloatImage {
+    const SCALE: f32 = 1.0 / 256.0;
+    let (wo, ho) = (w.div_ceil(2), h.div_ceil(2));
+    let row = |y: isize| {
+        let y = y.clamp(0, h as isize - 1) as usize;
+        &src[y * w..(y + 1) * w]
+    };
+    let new_scratch = || Scratch { padded: vec![T::Acc::default(); w + 4], full: vec![T::Acc::default(); w] };
+    // Filtered row 2 yo at every pixel, in s.full.
+    let filter = |s: &mut Scratch<T::Acc>, yo: usize| {
+        let y = 2 * yo as isize;
+        T::vertical([row(y - 2), row(y - 1), row(y), row(y + 1), row(y + 2)], &mut s.padded[2..w + 2]);
+        let (first, last) = (s.padded[2], s.padded[w + 1]);
+        s.padded[..2].fill(first);
+        s.padded[w + 2..].fill(last);
+        T::horizontal(&s.padded, &mut s.full);
+    };
+    fn even<A: Copy, T: Reducible<Acc = A>>(full: &[A], offset: f32) -> impl Iterator<Item = f32> + '_ {
+        full.iter().step_by(2).map(move |v| T::to_f32(*v) * SCALE - offset)
+    }
+    let out = if w * h >= PARALLEL_MIN_PIXELS && rayon::current_num_threads() > 1 {
+        let mut out = vec![0.0f32; wo * ho];
+        out.par_chunks_mut(wo).enumerate().for_each_init(new_scratch, |s, (yo, dst)| {
+            filter(s, yo);
+            dst.iter_mut().zip(even::<_, T>(&s.full, offset)).for_each(|(d, v)| *d = v);
+        });
+        out
+    } else {
+        // One thread: append rows (no zero-filling pass over the output).
+        let mut out = Vec::with_capacity(wo * ho);
+        let mut s = new_scratch();
+        for yo in 0..ho {
+            filter(&mut s, yo);
+            out.extend(even::<_, T>(&s.full, offset));
+        }
+        out
+    };
     FloatImage { width: wo, height: ho, data: out }
 }
 
-/// A Gaussian pyramid: `level(0)` is the full-resolution image, each further level half
-/// the size (see the module docs for the exact kernel and coordinates).
-#[derive(Clone, Debug)]
-pub struct Pyramid {
-    levels: Vec<FloatImage>,
+/// Smooth with `[1 4 6 4 1] / 16` and keep even pixels: `ceil(w/2) x ceil(h/2)`.
+/// Only the needed rows and columns are filtered.
+pub fn downsample2(img: &FloatImage) -> FloatImage {
+    reduce(&img.data, img.width, img.height, 0.0)
 }
 
-impl Pyramid {
+/// Mean and (population) standard deviation of an 8-bit image, exact integer sums.
+pub fn gray_mean_std(img: &GrayImage) -> (f64, f64) {
+    let (mut s1, mut s2) = (0u64, 0u64);
+    for row in img.pixels().chunks(img.width() as usize) {
+        // Per-chunk u32 sums cannot overflow: 4096 * 255^2 < 2^32.
+        for c in row.chunks(4096) {
+            s1 += u64::from(c.iter().map(|&v| u32::from(v)).sum::<u32>());
+            s2 += u64::from(c.iter().map(|&v| u32::from(v) * u32::from(v)).sum::<u32>());
+        }
+    }
+    let n = img.pixels().len() as f64;
+    let m = s1 as f64 / n;
+    // n s2 - s1^2 exactly in i128, so no cancellation.
+    let var =
+        (i128::from(s2) * img.pixels().len() as i128 - i128::from(s1) * i128::from(s1)) as f64 / (n * n);
+    (m, var.max(0.0).sqrt())
+}
+
+/// A Gaussian pyramid of an 8-bit image: level 0 is the image itself (borrowed, never
+/// copied to floats), each further level half the size (see the module docs for the exact
+/// kernel and coordinates) as `f32` **minus [`Pyramid::offset`]**, the mean grey value of
+/// level 0. The offset keeps the coarse levels near zero mean, so correlation sums
+/// (`sum ab - sum a sum b / n`) cancel little, without a zero-mean copy of every level.
+#[derive(Clone, Debug)]
+pub struct Pyramid<'a> {
+    base: &'a GrayImage,
+    base_mean_std: (f64, f64),
+    offset: f32,
+    coarse: Vec<FloatImage>,
+}
+
+impl<'a> Pyramid<'a> {
     /// Build up to `levels` levels (at least 1). Building stops early once a side would
     /// drop below 2 pixels, so [`Pyramid::len`] may be smaller than asked.
-    pub fn new(img: &GrayImage, levels: usize) -> Result<Self, VisionError> {
-        Self::from_float(FloatImage::from_gray(img), levels)
-    }
-
-    /// As [`Pyramid::new`], from a float image.
-    pub fn from_float(img: FloatImage, levels: usize) -> Result<Self, VisionError> {
+    pub fn new(img: &'a GrayImage, levels: usize) -> Result<Self, VisionError> {
         if levels == 0 {
             return Err(VisionError::InvalidOptions("a pyramid needs at least one level".into()));
         }
-        let mut out = vec![img];
-        while out.len() < levels {
-            let last = &out[out.len() - 1];
-            if last.width < 4 || last.height < 4 {
-                break;
-            }
-            let next = downsample2(last);
-            out.push(next);
+        let base_mean_std = gray_mean_std(img);
+        let offset = base_mean_std.0 as f32;
+        let mut coarse: Vec<FloatImage> = Vec::with_capacity(levels - 1);
+        let (mut w, mut h) = (img.width() as usize, img.height() as usize);
+        while coarse.len() + 1 < levels && w >= 4 && h >= 4 {
+            let next = match coarse.last() {
+                None => reduce(img.pixels(), w, h, offset),
+                Some(last) => reduce(&last.data, w, h, 0.0),
+            };
+            (w, h) = (next.width, next.height);
+            coarse.push(next);
         }
-        Ok(Self { levels: out })
+        Ok(Self { base: img, base_mean_std, offset, coarse })
     }
 
     /// Number of levels.
     pub fn len(&self) -> usize {
-        self.levels.len()
+        1 + self.coarse.len()
     }
 
     /// Always false (a pyramid has at least its full-resolution level).
     pub fn is_empty(&self) -> bool {
-        self.levels.is_empty()
+        false
     }
 
-    /// Level `k` (0 = full resolution); `None` beyond the last level.
-    pub fn level(&self, k: usize) -> Option<&FloatImage> {
-        self.levels.get(k)
+    /// Level 0, the full-resolution image.
+    pub fn base(&self) -> &'a GrayImage {
+        self.base
     }
 
-    /// All levels, finest first.
-    pub fn levels(&self) -> &[FloatImage] {
-        &self.levels
+    /// Mean and standard deviation of level 0 (grey levels), computed once.
+    pub fn base_mean_std(&self) -> (f64, f64) {
+        self.base_mean_std
+    }
+
+    /// The value subtracted from every coarse level (the mean of level 0).
+    pub fn offset(&self) -> f32 {
+        self.offset
+    }
+
+    /// Level `k >= 1` as stored (values minus [`Pyramid::offset`]); `None` for `k = 0` or
+    /// beyond the last level.
+    pub fn coarse_level(&self, k: usize) -> Option<&FloatImage> {
+        k.checked_sub(1).and_then(|i| self.coarse.get(i))
+    }
+
+    /// `(width, height)` of level `k`; `None` beyond the last level.
+    pub fn size(&self, k: usize) -> Option<(usize, usize)> {
+        if k == 0 {
+            Some((self.base.width() as usize, self.base.height() as usize))
+        } else {
+            self.coarse_level(k).map(|l| (l.width, l.height))
+        }
+    }
+
+    /// Level `k` with its true grey values (allocates a copy; for inspection and tests).
+    pub fn level(&self, k: usize) -> Option<FloatImage> {
+        if k == 0 {
+            return Some(FloatImage::from_gray(self.base));
+        }
+        let l = self.coarse_level(k)?;
+        let data = l.data.iter().map(|&v| v + self.offset).collect();
+        Some(FloatImage { width: l.width, height: l.height, data })
     }
 }
 
@@ -301,23 +439,49 @@ mod tests {
 
     #[test]
     fn pyramid_level_sizes() {
-        let p = Pyramid::new(&ramp(768, 577), 5).unwrap();
-        let sizes: Vec<_> = p.levels().iter().map(|l| (l.width(), l.height())).collect();
+        let img = ramp(768, 577);
+        let p = Pyramid::new(&img, 5).unwrap();
+        let sizes: Vec<_> = (0..p.len()).map(|k| p.size(k).unwrap()).collect();
         assert_eq!(sizes, vec![(768, 577), (384, 289), (192, 145), (96, 73), (48, 37)]);
         // Stops early on tiny images.
-        let p = Pyramid::new(&ramp(5, 9), 10).unwrap();
+        let tiny = ramp(5, 9);
+        let p = Pyramid::new(&tiny, 10).unwrap();
         assert_eq!(p.len(), 2);
-        assert_eq!((p.level(1).unwrap().width(), p.level(1).unwrap().height()), (3, 5));
-        assert!(Pyramid::new(&ramp(5, 5), 0).is_err());
+        assert_eq!(p.size(1), Some((3, 5)));
+        assert_eq!(p.size(2), None);
+        assert!(Pyramid::new(&tiny, 0).is_err());
+    }
+
+    #[test]
+    fn pyramid_from_bytes_matches_float_reduction() {
+        // Level 1 is built straight from the bytes (minus the mean); it must equal the float
+        // reduction of the float image, levels 2+ likewise, to float rounding.
+        let img = ramp(97, 61);
+        let p = Pyramid::new(&img, 4).unwrap();
+        let mut want = FloatImage::from_gray(&img);
+        for k in 1..p.len() {
+            want = downsample2(&want);
+            let got = p.level(k).unwrap();
+            assert_eq!((got.width(), got.height()), (want.width(), want.height()));
+            for (g, w) in got.pixels().iter().zip(want.pixels()) {
+                assert!((g - w).abs() < 1e-3, "level {k}: {g} {w}");
+            }
+        }
+        let (m, s) = gray_mean_std(&img);
+        let (mf, sf) = FloatImage::from_gray(&img).mean_std();
+        assert!((m - mf).abs() < 1e-4 && (s - sf).abs() < 1e-4, "{m} {mf} {s} {sf}");
+        assert!((f64::from(p.offset()) - m).abs() < 1e-4);
     }
 
     #[test]
     fn pyramid_values() {
         // A constant image stays constant (the kernel sums to one, borders replicate).
-        let p = Pyramid::new(&GrayImage::filled(64, 48, 77), 4).unwrap();
-        for l in p.levels() {
-            assert!(l.pixels().iter().all(|&v| (v - 77.0).abs() < 1e-4));
+        let flat = GrayImage::filled(64, 48, 77);
+        let p = Pyramid::new(&flat, 4).unwrap();
+        for k in 0..p.len() {
+            assert!(p.level(k).unwrap().pixels().iter().all(|&v| (v - 77.0).abs() < 1e-4));
         }
+        assert!((p.offset() - 77.0).abs() < 1e-6 && p.base_mean_std().1 == 0.0);
         // A linear ramp is reproduced exactly away from the border: the symmetric kernel
         // has zero first moment, so level 1 at x equals level 0 at 2x.
         let data: Vec<f32> = (0..40).flat_map(|y| (0..60).map(move |x| (x + 2 * y) as f32)).collect();
