@@ -158,45 +158,45 @@ impl FeatureOptions {
     }
 }
 
-/// Full FAST-9 test of pixel `i` (index into `img`): score, or 0 if not a corner.
+/// Does the 16-bit circle mask `m` contain 9 contiguous set bits (cyclically)?
 #[inline]
-fn fast_full(img: &[u8], off: &[isize; 16], i: isize, t: i16) -> u16 {
+fn arc9(m: u32) -> bool {
+    let m = m | (m << 16);
+    let mut r = m;
+    for k in 1..9 {
+        r &= m >> k;
+    }
+    r != 0
+}
+
+/// Full FAST-9 test of pixel `i` (index into `img`) for the polarities the pre-test left
+/// open: score (the sum of `|p - c| - t` over the circle pixels of the winning polarity,
+/// plus one), or 0 if not a corner. Masks first, scores only for a corner.
+#[inline]
+fn fast_full(img: &[u8], off: &[isize; 16], i: isize, t: i16, bright: bool, dark: bool) -> u16 {
     let c = i16::from(img[i as usize]);
     let (hi, lo) = (c + t, c - t);
+    let p: [i16; 16] = off.map(|o| i16::from(img[(i + o) as usize]));
     let (mut mb, mut md) = (0u32, 0u32);
-    let (mut sb, mut sd) = (0u16, 0u16);
-    for (k, o) in off.iter().enumerate() {
-        let p = i16::from(img[(i + o) as usize]);
-        if p > hi {
-            mb |= 1 << k;
-            sb += (p - hi) as u16;
-        } else if p < lo {
-            md |= 1 << k;
-            sd += (lo - p) as u16;
-        }
+    for (k, &v) in p.iter().enumerate() {
+        mb |= u32::from(v > hi) << k;
+        md |= u32::from(v < lo) << k;
     }
-    let arc9 = |m: u32| {
-        let m = m | (m << 16);
-        let mut r = m;
-        for k in 1..9 {
-            r &= m >> k;
-        }
-        r != 0
-    };
     let mut s = 0u16;
-    if arc9(mb) {
-        s = sb + 1;
+    if bright && arc9(mb) {
+        s = p.iter().map(|&v| (v - hi).max(0)).sum::<i16>() as u16 + 1;
     }
-    if arc9(md) {
-        s = s.max(sd + 1);
+    if dark && arc9(md) {
+        s = s.max(p.iter().map(|&v| (lo - v).max(0)).sum::<i16>() as u16 + 1);
     }
     s
 }
 
 /// FAST-9 score map of one row (`0` = not a corner). A branch-free pre-test over 32
-/// pixels at a time (it vectorises) keeps only pixels where every antipodal circle pair
-/// `(k, k + 8)` has a member brighter than `c + t` (or every pair one darker than `c - t`):
-/// a 9-arc of the 16-circle always contains one of each antipodal pair (as OpenCV's FAST).
+/// pixels at a time (on bytes, so it vectorises) keeps only pixels where every antipodal
+/// circle pair `(k, k + 8)` has a member brighter than `c + t` (a 9-arc of the 16-circle
+/// always contains one of each antipodal pair, as in OpenCV's FAST) and at least 9 of the
+/// 16 are brighter (or the same for darker than `c - t`).
 fn fast_row(img: &[u8], w: usize, y: usize, border: usize, t: u8, out: &mut [u16]) {
     const L: usize = 32;
     let off: [isize; 16] = CIRCLE.map(|(dx, dy)| dy * w as isize + dx);
@@ -219,16 +219,24 @@ fn fast_row(img: &[u8], w: usize, y: usize, border: usize, t: u8, out: &mut [u16
         }
         let mut okb = [true; L];
         let mut okd = [true; L];
+        let mut nb = [0u8; L];
+        let mut nd = [0u8; L];
         for k in 0..8 {
             let a: &[u8; L] = ring[k][x0..x0 + L].try_into().unwrap_or(&[0; L]);
             let b: &[u8; L] = ring[k + 8][x0..x0 + L].try_into().unwrap_or(&[0; L]);
             for l in 0..L {
-                okb[l] &= (a[l] > hi[l]) | (b[l] > hi[l]);
-                okd[l] &= (a[l] < lo[l]) | (b[l] < lo[l]);
+                let (ab, bb) = (a[l] > hi[l], b[l] > hi[l]);
+                let (ad, bd) = (a[l] < lo[l], b[l] < lo[l]);
+                okb[l] &= ab | bb;
+                okd[l] &= ad | bd;
+                nb[l] += u8::from(ab) + u8::from(bb);
+                nd[l] += u8::from(ad) + u8::from(bd);
             }
         }
         let mut any = false;
         for l in 0..L {
+            okb[l] &= nb[l] >= 9;
+            okd[l] &= nd[l] >= 9;
             any |= okb[l] | okd[l];
         }
         if !any {
@@ -237,37 +245,48 @@ fn fast_row(img: &[u8], w: usize, y: usize, border: usize, t: u8, out: &mut [u16
         for l in 0..L {
             if okb[l] || okd[l] {
                 let x = x0 + l;
-                out[border + x] = fast_full(img, &off, (start + x) as isize, i16::from(t));
+                out[border + x] = fast_full(img, &off, (start + x) as isize, i16::from(t), okb[l], okd[l]);
             }
         }
     }
     for x in full_chunks * L..n {
-        out[border + x] = fast_full(img, &off, (start + x) as isize, i16::from(t));
+        out[border + x] = fast_full(img, &off, (start + x) as isize, i16::from(t), true, true);
     }
 }
 
-/// Gradient-product sums `(sxx, syy, sxy)` over the `(2r+1)^2` window at `(x, y)`.
+/// Gradient-product sums `(sxx, syy, sxy)` over the 7x7 window at `(x, y)` (central
+/// differences). Each window row is 8 lanes wide (columns `x - 3 .. x + 4`, the last lane
+/// zeroed) so the products vectorise; integer sums are exact. Needs `x >= 4`, `y >= 4` and
+/// 5 pixels to the right and below (the feature border guarantees it).
 #[inline]
-fn structure(img: &[u8], w: usize, x: usize, y: usize, r: usize) -> (f32, f32, f32) {
-    let (mut a, mut b, mut c) = (0i32, 0i32, 0i32);
-    for yy in y - r..=y + r {
-        let row = &img[yy * w..(yy + 1) * w];
-        let up = &img[(yy - 1) * w..yy * w];
-        let dn = &img[(yy + 1) * w..(yy + 2) * w];
-        for xx in x - r..=x + r {
-            let gx = i32::from(row[xx + 1]) - i32::from(row[xx - 1]);
-            let gy = i32::from(dn[xx]) - i32::from(up[xx]);
-            a += gx * gx;
-            b += gy * gy;
-            c += gx * gy;
+fn structure7(img: &[u8], w: usize, x: usize, y: usize) -> (f32, f32, f32) {
+    let (mut a, mut b, mut c) = ([0i32; 8], [0i32; 8], [0i32; 8]);
+    for yy in y - 3..=y + 3 {
+        let s = yy * w + x - 4;
+        let row = &img[s..s + 10];
+        let up = &img[s - w + 1..s - w + 9];
+        let dn = &img[s + w + 1..s + w + 9];
+        let mut gx = [0i32; 8];
+        let mut gy = [0i32; 8];
+        for l in 0..8 {
+            gx[l] = i32::from(row[l + 2]) - i32::from(row[l]);
+            gy[l] = i32::from(dn[l]) - i32::from(up[l]);
+        }
+        gx[7] = 0;
+        gy[7] = 0;
+        for l in 0..8 {
+            a[l] += gx[l] * gx[l];
+            b[l] += gy[l] * gy[l];
+            c[l] += gx[l] * gy[l];
         }
     }
-    (a as f32, b as f32, c as f32)
+    let sum = |v: [i32; 8]| v.iter().sum::<i32>() as f32;
+    (sum(a), sum(b), sum(c))
 }
 
 #[inline]
 fn harris(img: &[u8], w: usize, x: usize, y: usize, k: f32) -> f32 {
-    let (a, b, c) = structure(img, w, x, y, 3);
+    let (a, b, c) = structure7(img, w, x, y);
     a * b - c * c - k * (a + b) * (a + b)
 }
 
@@ -277,44 +296,56 @@ fn parabola(l: f32, c: f32, r: f32) -> f32 {
     if den < 0.0 { (0.5 * (l - r) / den).clamp(-0.5, 0.5) } else { 0.0 }
 }
 
-/// Smooth with the 9-tap binomial kernel `[1 8 28 56 70 56 28 8 1] / 256` in x and y
-/// (integer arithmetic, borders replicated).
+/// Smooth with the 9-tap binomial kernel `[1 8 28 56 70 56 28 8 1] / 256` in y, then x
+/// (borders replicated). Each pass sums in exact `u16` (`255 * 256 < 2^16`) and rounds to
+/// 8 bits, so both run on 8 or 16 lanes; the intermediate rounding moves values by at most
+/// half a grey level, which BRIEF's comparisons do not notice.
 fn smooth_binomial9(img: &GrayImage) -> Vec<u8> {
-    const K: [u32; 9] = [1, 8, 28, 56, 70, 56, 28, 8, 1];
+    const K: [u16; 9] = [1, 8, 28, 56, 70, 56, 28, 8, 1];
     let (w, h) = (img.width() as usize, img.height() as usize);
     let src = img.pixels();
-    let mut tmp = vec![0u16; w * h];
-    let hpass = |(y, dst): (usize, &mut [u16])| {
-        let row = &src[y * w..(y + 1) * w];
-        for (x, d) in dst.iter_mut().enumerate() {
-            let mut acc = 0u32;
-            if x >= 4 && x + 4 < w {
-                for (k, p) in K.iter().zip(&row[x - 4..x + 5]) {
-                    acc += k * u32::from(*p);
-                }
-            } else {
-                for (i, k) in K.iter().enumerate() {
-                    let xi = (x as isize + i as isize - 4).clamp(0, w as isize - 1) as usize;
-                    acc += k * u32::from(row[xi]);
-                }
-            }
-            *d = acc as u16;
-        }
-    };
-    tmp.par_chunks_mut(w).enumerate().for_each(hpass);
-    let mut out = vec![0u8; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, dst)| {
-        let mut acc = vec![0u32; w];
+    let round = |v: u16| ((u32::from(v) + 128) >> 8) as u8;
+    // Vertical pass, whole rows at a time.
+    let vpass = |acc: &mut Vec<u16>, y: usize, dst: &mut [u8]| {
+        acc.fill(0);
         for (i, k) in K.iter().enumerate() {
             let yi = (y as isize + i as isize - 4).clamp(0, h as isize - 1) as usize;
-            for (a, s) in acc.iter_mut().zip(&tmp[yi * w..(yi + 1) * w]) {
-                *a += k * u32::from(*s);
+            for (a, s) in acc.iter_mut().zip(&src[yi * w..(yi + 1) * w]) {
+                *a += k * u16::from(*s);
             }
         }
-        for (d, a) in dst.iter_mut().zip(&acc) {
-            *d = ((a + (1 << 15)) >> 16) as u8;
+        for (d, a) in dst.iter_mut().zip(acc.iter()) {
+            *d = round(*a);
         }
-    });
+    };
+    // Horizontal pass on a row padded by 4 replicated pixels per side.
+    let hpass = |pad: &mut Vec<u8>, src: &[u8], dst: &mut [u8]| {
+        pad[4..w + 4].copy_from_slice(src);
+        let (first, last) = (src[0], src[w - 1]);
+        pad[..4].fill(first);
+        pad[w + 4..].fill(last);
+        let t: [&[u8]; 9] = std::array::from_fn(|i| &pad[i..i + w]);
+        for x in 0..w {
+            let mut a = 0u16;
+            for i in 0..9 {
+                a += K[i] * u16::from(t[i][x]);
+            }
+            dst[x] = round(a);
+        }
+    };
+    let mut tmp = vec![0u8; w * h];
+    let mut out = vec![0u8; w * h];
+    if rayon::current_num_threads() > 1 {
+        tmp.par_chunks_mut(w).enumerate().for_each_init(|| vec![0u16; w], |acc, (y, d)| vpass(acc, y, d));
+        out.par_chunks_mut(w)
+            .zip(tmp.par_chunks(w))
+            .for_each_init(|| vec![0u8; w + 8], |pad, (d, s)| hpass(pad, s, d));
+    } else {
+        let mut acc = vec![0u16; w];
+        tmp.chunks_mut(w).enumerate().for_each(|(y, d)| vpass(&mut acc, y, d));
+        let mut pad = vec![0u8; w + 8];
+        out.chunks_mut(w).zip(tmp.chunks(w)).for_each(|(d, s)| hpass(&mut pad, s, d));
+    }
     out
 }
 
@@ -624,5 +655,67 @@ pub(crate) mod tests {
         let p = brief_pattern();
         assert!(p.iter().flatten().all(|v| v.abs() <= 13));
         assert!(p.iter().all(|q| q[0] != q[2] || q[1] != q[3]));
+    }
+
+    /// The textbook FAST-9 score (no pre-test): both polarities, all 16 circle pixels.
+    fn naive_fast(img: &GrayImage, x: usize, y: usize, t: i16) -> u16 {
+        let at = |dx: isize, dy: isize| {
+            i16::from(img.get((x as isize + dx) as u32, (y as isize + dy) as u32).unwrap_or(0))
+        };
+        let c = at(0, 0);
+        let p: Vec<i16> = CIRCLE.iter().map(|&(dx, dy)| at(dx, dy)).collect();
+        let arc = |f: &dyn Fn(i16) -> bool| (0..16).any(|s| (0..9).all(|k| f(p[(s + k) % 16])));
+        let mut score = 0;
+        if arc(&|v| v > c + t) {
+            score = p.iter().map(|&v| (v - c - t).max(0)).sum::<i16>() as u16 + 1;
+        }
+        if arc(&|v| v < c - t) {
+            score = score.max(p.iter().map(|&v| (c - t - v).max(0)).sum::<i16>() as u16 + 1);
+        }
+        score
+    }
+
+    #[test]
+    fn fast_pretest_loses_no_corner() {
+        // The vectorised pre-tests (antipodal pairs, at least 9 of 16) are necessary
+        // conditions only: scores must equal the textbook test at every pixel.
+        for (seed, t) in [(1, 20u8), (2, 7), (3, 40)] {
+            let img = rect_scene(150, 60, 10, 20, 12, seed);
+            let w = 150;
+            let mut row = vec![0u16; w];
+            let mut corners = 0;
+            for y in 3..57 {
+                row.iter_mut().for_each(|v| *v = 0);
+                fast_row(img.pixels(), w, y, 3, t, &mut row);
+                for (x, &score) in row.iter().enumerate().take(w - 3).skip(3) {
+                    assert_eq!(score, naive_fast(&img, x, y, i16::from(t)), "({x}, {y}) t {t}");
+                    corners += usize::from(score > 0);
+                }
+            }
+            assert!(corners > 20, "seed {seed}: only {corners} corners");
+        }
+    }
+
+    #[test]
+    fn binomial_smoothing_matches_float_convolution() {
+        // Two passes, each rounded to 8 bits: within one grey level of the exact result.
+        let img = rect_scene(90, 70, 5, 9, 30, 4);
+        let got = smooth_binomial9(&img);
+        let k = [1.0, 8.0, 28.0, 56.0, 70.0, 56.0, 28.0, 8.0, 1.0].map(|v: f64| v / 256.0);
+        let at =
+            |x: isize, y: isize| f64::from(img.get(x.clamp(0, 89) as u32, y.clamp(0, 69) as u32).unwrap());
+        let mut worst: f64 = 0.0;
+        for y in 0..70isize {
+            for x in 0..90isize {
+                let mut v = 0.0;
+                for (j, kj) in k.iter().enumerate() {
+                    for (i, ki) in k.iter().enumerate() {
+                        v += kj * ki * at(x + i as isize - 4, y + j as isize - 4);
+                    }
+                }
+                worst = worst.max((f64::from(got[(y * 90 + x) as usize]) - v).abs());
+            }
+        }
+        assert!(worst <= 1.0, "worst {worst}");
     }
 }
