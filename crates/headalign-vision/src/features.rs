@@ -429,17 +429,25 @@ pub fn detect_and_describe(img: &GrayImage, options: &FeatureOptions) -> Result<
     }
     // Descriptors at the integer positions (the pattern is on the pixel grid).
     let smooth = smooth_binomial9(img);
-    let pattern = brief_pattern();
+    // Pattern pairs as index offsets in this image, once per call.
+    let pairs: Vec<[isize; 2]> = brief_pattern()
+        .iter()
+        .map(|p| {
+            let off = |dx: i8, dy: i8| isize::from(dy) * w as isize + isize::from(dx);
+            [off(p[0], p[1]), off(p[2], p[3])]
+        })
+        .collect();
     let descriptors = kept
         .par_iter()
         .map(|kp| {
             let (x, y) = (kp.x.round() as isize, kp.y.round() as isize);
             let centre = y * w as isize + x;
             let mut d = [0u64; 4];
-            for (i, p) in pattern.iter().enumerate() {
-                let a = smooth[(centre + isize::from(p[1]) * w as isize + isize::from(p[0])) as usize];
-                let c = smooth[(centre + isize::from(p[3]) * w as isize + isize::from(p[2])) as usize];
-                d[i / 64] |= u64::from(a < c) << (i % 64);
+            for (word, chunk) in d.iter_mut().zip(pairs.chunks_exact(64)) {
+                for (i, [a, c]) in chunk.iter().enumerate() {
+                    let (a, c) = (smooth[(centre + a) as usize], smooth[(centre + c) as usize]);
+                    *word |= u64::from(a < c) << i;
+                }
             }
             Descriptor(d)
         })
@@ -461,23 +469,30 @@ fn fast_nms(px: &[u8], w: usize, h: usize, b: usize, t: u8) -> Vec<(u32, u32)> {
             let mut out = Vec::new();
             let (up, row, dn) =
                 (&score[(y - 1) * w..y * w], &score[y * w..(y + 1) * w], &score[(y + 1) * w..(y + 2) * w]);
-            for x in b..w - b {
-                let s = row[x];
-                if s == 0 {
+            // Blocks of 16 scores; all-zero blocks (most) are skipped by an OR-reduction.
+            for x0 in (b..w - b).step_by(16) {
+                let x1 = (x0 + 16).min(w - b);
+                if row[x0..x1].iter().fold(0, |a, &v| a | v) == 0 {
                     continue;
                 }
-                // Strictly greater than neighbours before in raster order, >= after: one
-                // winner on plateaus.
-                if s > up[x - 1]
-                    && s > up[x]
-                    && s > up[x + 1]
-                    && s > row[x - 1]
-                    && s >= row[x + 1]
-                    && s >= dn[x - 1]
-                    && s >= dn[x]
-                    && s >= dn[x + 1]
-                {
-                    out.push((x as u32, y as u32));
+                for x in x0..x1 {
+                    let s = row[x];
+                    if s == 0 {
+                        continue;
+                    }
+                    // Strictly greater than neighbours before in raster order, >= after: one
+                    // winner on plateaus.
+                    if s > up[x - 1]
+                        && s > up[x]
+                        && s > up[x + 1]
+                        && s > row[x - 1]
+                        && s >= row[x + 1]
+                        && s >= dn[x - 1]
+                        && s >= dn[x]
+                        && s >= dn[x + 1]
+                    {
+                        out.push((x as u32, y as u32));
+                    }
                 }
             }
             out
