@@ -1,23 +1,29 @@
 #!/usr/bin/env python3
 """OpenCV reference timings for the headalign-vision benches (crates/headalign-vision/benches/vision.rs).
 
-Same image, same crops, same three operations, one thread (cv2.setNumThreads(1)):
+Same image, same crops, same three operations, one thread (cv2.setNumThreads(1); set
+OPENCV_THREADS=2 for two, to compare with RAYON_NUM_THREADS=2):
   detect_describe_768x576  ORB_create(nfeatures=1000).detectAndCompute (default 8-level pyramid),
                            plus a single-level ORB for reference
   match_1000x1000          BFMatcher(NORM_HAMMING, crossCheck=True).match
   pyramid_register         pyrDown pyramids (5 levels) + matchTemplate(TM_CCOEFF_NORMED): the central
                            part of the reference searched exhaustively at the top level, then +-1 px
-                           per finer level (the paper's pyramid correlation)
+                           per finer level (the paper's pyramid correlation). Like for like,
+                           ours does more: its coarsest search covers shifts of +-50 % of
+                           the side over the whole overlap (this one +-25 % with a central
+                           half template), then the same +-1 px central-half search per
+                           level, plus a sub-pixel fit.
 Needs `pip install opencv-python-headless` (for this script only; never a crate dependency).
 Image: OpenCV sample textures/building.jpg (Apache-2.0 / BSD-3-Clause), override with argv[1].
 """
+import os
 import sys
 import time
 
 import cv2
 import numpy as np
 
-cv2.setNumThreads(1)
+cv2.setNumThreads(int(os.environ.get("OPENCV_THREADS", "1")))
 PATH = sys.argv[1] if len(sys.argv) > 1 else "/work/shared/data/opencv_samples/textures/building.jpg"
 
 
