@@ -6,7 +6,7 @@
 //! top-left pixel (the same convention as the observation files, DESIGN.md section 6).
 //!
 //! Main entry points:
-//! - [`Pyramid`], [`gaussian_blur`]: Gaussian pyramids of [`FloatImage`]s;
+//! - [`Pyramid`], [`gaussian_blur`]: Gaussian pyramids (8-bit level 0, [`FloatImage`] above);
 //! - [`register_translation`] (whole-image shift, paper sections 5-6) and [`locate_patch`]
 //!   (where did the patch around a point go), both by coarse-to-fine ZNCC;
 //! - [`detect_and_describe`]: FAST-9 corners ranked by Harris, spread over a grid, with
