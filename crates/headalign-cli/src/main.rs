@@ -7,7 +7,9 @@
 //! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
 
 mod experiment;
+mod headcmd;
 mod images;
+mod replay;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -57,6 +59,11 @@ enum Command {
     Simulate(SimulateArgs),
     /// Run a Monte-Carlo experiment (CSV, PNG/SVG plots, Markdown summary).
     Experiment(experiment::ExperimentArgs),
+    /// Re-run a recorded session offline (same procedure, recorded images: same result).
+    Replay(replay::ReplayArgs),
+    /// Verge, calibrate and align a head driven through the JSON-lines protocol
+    /// (docs/head-protocol.md), recording the session.
+    Run(headcmd::RunArgs),
 }
 
 #[derive(Args, Clone)]
@@ -135,10 +142,14 @@ struct DemoArgs {
     /// instead of the simulator's point correspondences.
     #[arg(long)]
     images: bool,
-    /// With --images: write every captured view (PNG + view.json) and the annotated
-    /// images (figure6.png, aligned.png) here.
+    /// With --images: record the session here (every captured view as it is captured,
+    /// report.json, figure6.png, aligned.png; format in `headalign::session`). Default:
+    /// ./headalign-sessions/<UTC time>. `--save` is an older name.
+    #[arg(long, alias = "save", requires = "images", conflicts_with = "no_session")]
+    session: Option<PathBuf>,
+    /// With --images: record nothing (the simulated run can be repeated from its seed).
     #[arg(long, requires = "images")]
-    save: Option<PathBuf>,
+    no_session: bool,
 }
 
 #[derive(Args)]
@@ -181,13 +192,14 @@ fn main() -> ExitCode {
         Command::Align(a) => align(&a),
         Command::Simulate(a) => simulate(&a),
         Command::Experiment(a) => experiment::run(&a),
+        Command::Replay(a) => replay::run(&a),
+        Command::Run(a) => headcmd::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             // One line naming the problem (the chain joined by ": ").
-            let msg: Vec<String> = e.chain().map(|c| c.to_string()).collect();
-            eprintln!("error: {}", msg.join(": "));
+            eprintln!("error: {}", images::one_line(&e));
             ExitCode::FAILURE
         }
     }
@@ -457,12 +469,17 @@ fn demo(args: &DemoArgs) -> Result<()> {
 }
 
 fn demo_images(args: &DemoArgs, scenario: &Scenario) -> Result<()> {
-    let r = images::run(scenario, args.save.as_deref())?;
+    let target = match (&args.session, args.no_session) {
+        (Some(d), _) => images::SessionTarget::Dir(d.clone()),
+        (None, true) => images::SessionTarget::None,
+        (None, false) => images::SessionTarget::Default,
+    };
+    let v = images::run(scenario, &target)?;
     if args.json {
-        say!("{}", serde_json::to_string_pretty(&r.json)?);
+        say!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
-    let v = &r.json;
+    let v = &v;
     say!(
         "headalign demo --images: simulated head 'yorick' (seed {}), rendered {}x{} images, vision front end",
         scenario.seed,
@@ -512,8 +529,8 @@ fn demo_images(args: &DemoArgs, scenario: &Scenario) -> Result<()> {
         v["errors"]["pp_err_pct"].as_f64().unwrap_or(f64::NAN)
     );
     say!("time: total {:.2} s", v["timings"]["total_s"].as_f64().unwrap_or(f64::NAN));
-    if let Some(dir) = &args.save {
-        say!("saved the views and figure6.png, aligned.png in {}", dir.display());
+    if let Some(dir) = v["session"].as_str() {
+        say!("session (views, report.json, figure6.png, aligned.png): {dir}");
     }
     Ok(())
 }
@@ -522,7 +539,12 @@ fn align(args: &AlignArgs) -> Result<()> {
     let views = match (&args.observations, &args.images) {
         (Some(file), _) => read_session(file)?,
         (None, Some(dir)) => {
-            let recorded = headalign::session::read_image_session(dir)?;
+            // The verge/tilt views (verging captures are recorded too, but the rig is not
+            // rigid there).
+            let recorded: Vec<_> = headalign::session::read_image_session(dir)?
+                .into_iter()
+                .filter(headalign::session::RecordedView::is_verge_tilt)
+                .collect();
             headalign::session::track_session(&recorded, &headalign::frontend::FrontEndOptions::default())?
         }
         (None, None) => bail!("give --observations FILE or --images DIR"),
