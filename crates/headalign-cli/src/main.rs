@@ -5,6 +5,8 @@
 //! - `headalign align --observations FILE`: the estimation on an observation session.
 //! - `headalign simulate --out FILE`: record an observation session from the simulator.
 //! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
+//! - `headalign replay DIR`: re-run a recorded session offline ([`replay`]).
+//! - `headalign run --head-cmd CMD`: the image procedure on a driver process ([`headcmd`]).
 
 mod experiment;
 mod headcmd;
@@ -158,7 +160,7 @@ struct AlignArgs {
     #[arg(long, required_unless_present = "images", conflicts_with = "images")]
     observations: Option<PathBuf>,
     /// A recorded image session instead (folders NN-name/ with left.png, right.png and
-    /// view.json, as `demo --images --save DIR` writes): the image front end finds the
+    /// view.json, as `demo --images --session DIR` writes): the image front end finds the
     /// correspondences.
     #[arg(long)]
     images: Option<PathBuf>,
