@@ -11,6 +11,7 @@
 mod experiment;
 mod headcmd;
 mod images;
+mod points;
 mod replay;
 
 use std::path::PathBuf;
@@ -144,10 +145,12 @@ struct DemoArgs {
     /// instead of the simulator's point correspondences.
     #[arg(long)]
     images: bool,
-    /// With --images: record the session here (every captured view as it is captured,
-    /// report.json, figure6.png, aligned.png; format in `headalign::session`). Default:
-    /// ./headalign-sessions/<UTC time>. `--save` is an older name.
-    #[arg(long, alias = "save", requires = "images", conflicts_with = "no_session")]
+    /// Record the session here (every captured view as it is captured, report.json;
+    /// format in `headalign::session`). With --images the default is
+    /// ./headalign-sessions/<UTC time> (and figure6.png, aligned.png are added); in point
+    /// mode only this records (the verge/tilt stage, and observations.json). `--save` is an
+    /// older name.
+    #[arg(long, alias = "save", conflicts_with = "no_session")]
     session: Option<PathBuf>,
     /// With --images: record nothing (the simulated run can be repeated from its seed).
     #[arg(long, requires = "images")]
@@ -288,7 +291,12 @@ fn demo(args: &DemoArgs) -> Result<()> {
         ..VergeTiltOptions::default()
     };
     let mut run = VergeTiltRun::default();
-    let outcome = run.run(robot.head_mut(), &options).context("verge/tilt procedure")?;
+    let session = args.session.as_ref().map(|dir| {
+        let head = json!({"kind": "simulator", "scenario": serde_json::to_value(&scenario).ok()});
+        (dir.clone(), points::session_info(&options, robot.head().image_size(), head))
+    });
+    let plan = capture_plan(&start, &options);
+    let (outcome, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session, plan)?;
     let mut pan_outcome = None;
     let mut steer_outcome = None;
     for st in &stages {
@@ -326,7 +334,7 @@ fn demo(args: &DemoArgs) -> Result<()> {
     // readings (its mounting relative to the left camera).
     let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
     let report = &outcome.calibration.report;
-    if args.json {
+    if args.json || writer.is_some() {
         let mut errors_j = images::errors_json(&after, unavoidable_r, &cal, recon);
         errors_j.insert("pan_err_deg".into(), json!(pan_after));
         errors_j.insert("steer_err_deg".into(), json!(steer_after));
@@ -358,8 +366,13 @@ fn demo(args: &DemoArgs) -> Result<()> {
             "report": serde_json::to_value(report)?,
             "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total},
         });
-        say!("{}", serde_json::to_string_pretty(&out)?);
-        return Ok(());
+        if let Some(w) = &writer {
+            w.write_report(&out).context("session")?;
+        }
+        if args.json {
+            say!("{}", serde_json::to_string_pretty(&out)?);
+            return Ok(());
+        }
     }
     say!(
         "headalign demo: simulated head '{}' (seed {}, noise {} px, {} points, {:.0} % outliers, {} deg rotations)",

@@ -12,7 +12,8 @@ use clap::Args;
 use headalign::session::{ReplayHead, read_session_info};
 use serde_json::{Value, json};
 
-use crate::images;
+use crate::{images, points};
+use headalign::procedure::VergeTiltRun;
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {
@@ -36,19 +37,33 @@ pub struct ReplayArgs {
 pub fn run(args: &ReplayArgs) -> Result<()> {
     let t0 = Instant::now();
     let info = read_session_info(&args.dir)?;
-    if info.procedure != images::PROCEDURE {
+    let mut head = ReplayHead::open(&args.dir)?;
+    let context = || format!("replay of '{}'", args.dir.display());
+    let (mut v, views) = if info.procedure == images::PROCEDURE {
+        let (run, outcome) =
+            images::procedure(&mut head, info.rotation_deg, info.estimation_seed, &mut |_, _, _, _| {});
+        let outcome = outcome.with_context(context)?;
+        (images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
+    } else if info.procedure == points::PROCEDURE {
+        let mut run = VergeTiltRun::default();
+        let outcome = run.run(&mut head, &points::options(&info)).with_context(context)?;
+        let v = json!({
+            "mode": "points",
+            "estimate": images::estimate_json(&outcome)?,
+            "report": serde_json::to_value(&outcome.calibration.report)?,
+            "checks": serde_json::to_value(&outcome.checks)?,
+            "views": run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
+        });
+        (v, run.views.len())
+    } else {
         bail!(
-            "'{}': cannot replay procedure '{}' (this version replays '{}')",
+            "'{}': cannot replay procedure '{}' (this version replays '{}' and '{}')",
             args.dir.join("session.json").display(),
             info.procedure,
-            images::PROCEDURE
+            images::PROCEDURE,
+            points::PROCEDURE
         );
-    }
-    let mut head = ReplayHead::open(&args.dir)?;
-    let (run, outcome) =
-        images::procedure(&mut head, info.rotation_deg, info.estimation_seed, &mut |_, _, _, _| {});
-    let outcome = outcome.with_context(|| format!("replay of '{}'", args.dir.display()))?;
-    let mut v = images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
+    };
     if let Some(m) = v.as_object_mut() {
         m.insert("replayed".into(), json!(args.dir.display().to_string()));
         m.insert("unplayed_events".into(), json!(head.remaining()));
@@ -56,7 +71,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
     } else {
-        say!("replayed {} ({} views)", args.dir.display(), run.run.views.len());
+        say!("replayed {} ({views} views)", args.dir.display());
         print_summary(&v);
     }
     Ok(())

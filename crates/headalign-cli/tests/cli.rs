@@ -178,8 +178,8 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
     let out = run(&["align", "--images", dir.to_str().unwrap()]);
     assert_clean_failure(&out, "right.png");
     std::fs::remove_dir_all(&dir).ok();
-    // --save needs --images.
-    let out = run(&["demo", "--save", "x"]);
+    // --no-session needs --images (point mode records only with --session).
+    let out = run(&["demo", "--no-session"]);
     assert!(!out.status.success());
 }
 

@@ -178,3 +178,38 @@ fn driver_failures_stop_the_run_and_keep_the_session() {
     let out = bin().args(["run", "--head-cmd", "x", "--head-timeout=0"]).output().unwrap();
     assert_clean_failure(&out, &["--head-timeout"]);
 }
+
+#[test]
+fn point_mode_sessions_record_the_verge_tilt_stage_and_replay() {
+    let dir = tmp("points-3");
+    let live =
+        ok_json(&bin().args(["demo", "--seed", "3", "--json", "--session"]).arg(&dir).output().unwrap());
+    let report: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("report.json")).unwrap()).unwrap();
+    assert_eq!(report, live);
+    let folders = view_folders(&dir);
+    assert_eq!(folders.first().map(String::as_str), Some("00-initial"));
+    let meta: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join(&folders[1]).join("view.json")).unwrap())
+            .unwrap();
+    assert!(meta["capture"]["left"].as_array().is_some_and(|l| !l.is_empty()), "{meta}");
+    // Replay: the same calibration and aligned readings, bit for bit.
+    let r = replay(&dir);
+    for side in ["left", "right"] {
+        for k in ["fx", "fy", "cx", "cy"] {
+            assert_eq!(r["estimate"][side][k], live["estimate"][side][k], "{side} {k}");
+        }
+    }
+    assert_eq!(r["estimate"]["aligned_encoders"], live["estimate"]["aligned_encoders"]);
+    // The views are also an observation session.
+    let out = bin().args(["align", "--observations"]).arg(dir.join("observations.json")).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // A run that fails after capturing (too few points to estimate) keeps its views.
+    let dir2 = tmp("points-fail");
+    let out = bin().args(["demo", "--seed", "3", "--points", "6", "--session"]).arg(&dir2).output().unwrap();
+    assert_clean_failure(&out, &["too few tracks", &format!("kept in {}", dir2.display())]);
+    assert_eq!(view_folders(&dir2).len(), 6);
+    assert!(dir2.join("observations.json").exists());
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_dir_all(&dir2).ok();
+}

@@ -20,6 +20,8 @@
 //!   report.json         the results (the command's `--json` object), written at the end;
 //!                       on failure {"status": "failed", "error": "..."}
 //!   figure6.png aligned.png   annotated images (image mode, after success)
+//!   observations.json   point mode: the views as an observation session
+//!                       (`headalign-observations/1`, [`crate::observations`])
 //! ```
 //!
 //! Encoder readings are degrees; `time_s` seconds. `view.json` is written after both
