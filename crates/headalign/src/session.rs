@@ -816,6 +816,8 @@ mod tests {
         let v = read_image_session(&dir).unwrap();
         assert_eq!(v.len(), 1);
         assert_eq!(v[0].name, "initial");
+        // An older view.json (no stage) counts as a verge/tilt view.
+        assert!(v[0].stage.is_none() && v[0].is_verge_tilt());
         std::fs::remove_dir_all(&base).ok();
     }
 
@@ -934,5 +936,30 @@ mod tests {
             utc_timestamp(UNIX_EPOCH + std::time::Duration::from_secs(86_399), false),
             "19700101T235959Z"
         );
+    }
+
+    proptest::proptest! {
+        /// Replay is bit for bit only if recorded readings parse back exactly: any finite
+        /// reading survives an event line unchanged (`float_roundtrip`).
+        #[test]
+        fn recorded_readings_round_trip_exactly(
+            pan in proptest::num::f64::NORMAL | proptest::num::f64::SUBNORMAL | proptest::num::f64::ZERO,
+            elevation in -90.0f64..90.0,
+            verge_left in -1e-300f64..1e-300,
+            verge_right in proptest::num::f64::ANY,
+        ) {
+            let verge_right = if verge_right.is_finite() { verge_right } else { 0.0 };
+            let e = Encoders { pan, elevation, verge_left, verge_right };
+            for event in [Event::Read { encoders: e }, Event::Move { target: e }] {
+                let line = serde_json::to_string(&event).unwrap();
+                let back: Event = serde_json::from_str(&line).unwrap();
+                let (Event::Read { encoders: b } | Event::Move { target: b }) = back else {
+                    panic!("wrong event {line}")
+                };
+                for j in headalign_platform::Joint::ALL {
+                    proptest::prop_assert_eq!(b.get(j).to_bits(), e.get(j).to_bits(), "{}", line);
+                }
+            }
+        }
     }
 }
