@@ -164,7 +164,8 @@ struct AlignArgs {
     observations: Option<PathBuf>,
     /// A recorded image session instead (folders NN-name/ with left.png, right.png and
     /// view.json, as `demo --images --session DIR` writes): the image front end finds the
-    /// correspondences.
+    /// correspondences in its verge/tilt views (verging captures are skipped). `replay DIR`
+    /// re-runs the whole recorded procedure instead.
     #[arg(long)]
     images: Option<PathBuf>,
     /// Print one JSON object instead of the table.
