@@ -11,7 +11,9 @@ keys = ["pan_err_deg", "steer_err_deg", "verge_err_l_deg", "verge_err_r_deg", "e
 rows, fails, times = [], 0, []
 zs = {}  # name -> list of (estimate - truth) / sigma
 for seed in range(first, last + 1):
-    p = subprocess.run(["target/release/headalign", "demo", "--json", "--seed", str(seed), *extra], capture_output=True, text=True)
+    # Image-mode runs record a session by default; a seed sweep does not need them.
+    quiet = ["--no-session"] if "--images" in extra and "--session" not in extra else []
+    p = subprocess.run(["target/release/headalign", "demo", "--json", "--seed", str(seed), *extra, *quiet], capture_output=True, text=True)
     if p.returncode != 0:
         fails += 1
         print(f"seed {seed}: FAILED {p.stderr.strip()}")

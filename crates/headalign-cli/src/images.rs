@@ -1,89 +1,251 @@
 //! `headalign demo --images`: the verge/tilt procedure on rendered images with the real
 //! front end (no simulator-provided correspondences): verging (paper section 6), then the
-//! captures, tracking, estimation, alignment and checks of the point-mode procedure, and
-//! with `--save DIR` every captured view (PNG + `view.json`) and the annotated images of
-//! the paper's Figure 6.
+//! captures, tracking, estimation, alignment and checks of the point-mode procedure. Every
+//! captured view is recorded to a session folder as it is captured (format: the
+//! `headalign::session` module documentation), with the results in `report.json` and the
+//! annotated images of the paper's Figure 6.
+//!
+//! [`procedure`] is the one image-mode procedure: the demo runs it on the simulator, `run
+//! --head-cmd` on a driver, `replay` on a recorded session; the same code on the same
+//! images gives the same numbers.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
 use headalign::estimate::EstimationOptions;
-use headalign::frontend::{FrontEndOptions, TrackingHead};
-use headalign::imaging::{VergingOptions, verge_to_common_view};
-use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
-use headalign_platform::StereoImages;
+use headalign::frontend::{FrontEndOptions, TrackingHead, ViewTracking};
+use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
+use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan};
+use headalign::session::{
+    RecordingHead, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter, default_session_dir,
+};
+use headalign_platform::{Encoders, ImagingHead, StereoImages};
 use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedHead, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
 use serde_json::{Value, json};
 
-/// What the image-mode demo measured, for the caller's report.
-pub struct ImageDemo {
-    /// The JSON object (same `errors` / `before` keys as the point-mode demo).
-    pub json: Value,
+/// The procedure name in `session.json` for image mode.
+pub const PROCEDURE: &str = "verge-tilt-images";
+
+/// Where sessions go when the user names none: `./headalign-sessions/<UTC time>`.
+pub const DEFAULT_SESSION_BASE: &str = "headalign-sessions";
+
+/// Where to record: a named folder, the default location, or nowhere.
+#[derive(Debug, Clone)]
+pub enum SessionTarget {
+    /// This folder (must not hold a session yet).
+    Dir(PathBuf),
+    /// `./headalign-sessions/<UTC time>`.
+    Default,
+    /// No recording (simulated runs only).
+    None,
 }
 
-/// Run verging and the verge/tilt procedure on rendered images.
-pub fn run(scenario: &Scenario, save: Option<&Path>) -> Result<ImageDemo> {
+impl SessionTarget {
+    /// The folder to record into, if any.
+    pub fn resolve(&self) -> Option<PathBuf> {
+        match self {
+            SessionTarget::Dir(d) => Some(d.clone()),
+            SessionTarget::Default => Some(default_session_dir(Path::new(DEFAULT_SESSION_BASE))),
+            SessionTarget::None => None,
+        }
+    }
+}
+
+/// What the image procedure captured and found, whether it succeeded or not.
+#[derive(Default)]
+pub struct ImageRun {
+    /// The verging report (if verging finished).
+    pub verging: Option<VergingReport>,
+    /// The verge/tilt views (tracked observations), in capture order.
+    pub run: VergeTiltRun,
+    /// Their images.
+    pub images: Vec<StereoImages>,
+    /// The front end's report per view.
+    pub tracking: Vec<ViewTracking>,
+}
+
+/// Called before each stage with the stage's name, its planned captures `(name, target)`
+/// and the name of unplanned captures.
+pub type OnStage<'a, H> = dyn FnMut(&mut H, &str, Vec<(String, Encoders)>, &str) + 'a;
+
+/// Verging, then the verge/tilt procedure on images through the front end, on any
+/// imaging head. `on_stage` is called with the stage name and the planned captures before
+/// each stage (a recording head names its folders with them).
+pub fn procedure<H: ImagingHead>(
+    head: &mut H,
+    rotation_deg: f64,
+    estimation_seed: u64,
+    on_stage: &mut OnStage<'_, H>,
+) -> (ImageRun, Result<VergeTiltOutcome>) {
+    let mut out = ImageRun::default();
+    on_stage(head, STAGE_VERGING, Vec::new(), STAGE_VERGING);
+    let verging = match verge_to_common_view(head, &VergingOptions::default()).context("verging") {
+        Ok(v) => v,
+        Err(e) => return (out, Err(e)),
+    };
+    let options = VergeTiltOptions {
+        rotation_deg,
+        verge_rotation_deg: rotation_deg,
+        // The session records the seed: a replay reproduces this run bit for bit (and
+        // `align --images`, which uses the default seed, too when the run did).
+        estimation: EstimationOptions { seed: estimation_seed, ..EstimationOptions::default() },
+        ..VergeTiltOptions::default()
+    };
+    on_stage(head, STAGE_VERGE_TILT, capture_plan(&verging.encoders, &options), "check");
+    out.verging = Some(verging);
+    let tracking_head = TrackingHead::new(head, FrontEndOptions::default());
+    let mut tracking_head = match tracking_head {
+        Ok(t) => t,
+        Err(e) => return (out, Err(e.into())),
+    };
+    let outcome = out.run.run(&mut tracking_head, &options).context("verge/tilt procedure on images");
+    out.images = std::mem::take(&mut tracking_head.images);
+    out.tracking = std::mem::take(&mut tracking_head.tracking);
+    (out, outcome)
+}
+
+/// Run [`procedure`] on `head`, recording into `session` (if any): `report.json` holds
+/// `report(outcome)` or the failure, `figure6.png` and `aligned.png` the annotated images.
+/// A failure's message ends with where the session is.
+pub fn recorded<H: ImagingHead>(
+    head: &mut H,
+    session: Option<(PathBuf, SessionInfo)>,
+    rotation_deg: f64,
+    seed: u64,
+    report: &mut dyn FnMut(&mut H, &ImageRun, &VergeTiltOutcome) -> Result<Value>,
+) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
+    let Some((dir, info)) = session else {
+        let (run, outcome) = procedure(head, rotation_deg, seed, &mut |_, _, _, _| {});
+        let outcome = outcome?;
+        let json = report(head, &run, &outcome)?;
+        return Ok((run, outcome, json));
+    };
+    let writer = SessionWriter::create(&dir, &info).context("session")?;
+    let mut rec = RecordingHead::new(head, writer);
+    let (run, outcome) =
+        procedure(&mut rec, rotation_deg, seed, &mut |h, stage, plan, other| h.set_stage(stage, plan, other));
+    let writer = rec.into_writer();
+    let kept = |writer: &SessionWriter| {
+        format!("session with {} captured view(s) kept in {}", writer.views(), writer.dir().display())
+    };
+    let result = outcome.and_then(|o| {
+        let mut json = report(head, &run, &o)?;
+        if let Some(m) = json.as_object_mut() {
+            m.insert("session".into(), json!(writer.dir().display().to_string()));
+        }
+        annotate(writer.dir(), &run, &o)?;
+        Ok((o, json))
+    });
+    match result {
+        Ok((o, json)) => {
+            writer.write_report(&json).context("session")?;
+            Ok((run, o, json))
+        }
+        Err(e) => {
+            // Best effort: the error itself is what the user must see.
+            let _ = writer.write_report(&json!({"status": "failed", "error": one_line(&e)}));
+            Err(e.context(kept(&writer)))
+        }
+    }
+}
+
+/// An error and its causes on one line, joined by ": ", leaving out a cause whose text
+/// the message before it already ends with (errors that print their source).
+pub fn one_line(e: &anyhow::Error) -> String {
+    let mut parts: Vec<String> = Vec::new();
+    for c in e.chain() {
+        let text = c.to_string();
+        if parts.last().is_some_and(|p| p.ends_with(&text)) {
+            continue;
+        }
+        parts.push(text);
+    }
+    parts.join(": ")
+}
+
+/// The session description of an image-mode run.
+pub fn session_info(rotation_deg: f64, image_size: [u32; 2], head: Value) -> SessionInfo {
+    let mut info = SessionInfo::new(PROCEDURE, rotation_deg, EstimationOptions::default().seed, image_size);
+    info.head = head;
+    info
+}
+
+/// The estimate as every image-mode command reports it (`estimate` member).
+pub fn estimate_json(outcome: &VergeTiltOutcome) -> Result<Value> {
+    let st = &outcome.calibration.bundle.state;
+    Ok(json!({
+        "left": {"fx": st.left.fx, "fy": st.left.fy, "cx": st.left.cx, "cy": st.left.cy},
+        "right": {"fx": st.right.fx, "fy": st.right.fy, "cx": st.right.cx, "cy": st.right.cy},
+        "aligned_encoders": serde_json::to_value(outcome.solution.aligned_encoders)?,
+        "aligned_sigma_deg": serde_json::to_value(outcome.sigmas)?,
+        "fixation_px": {"left": outcome.solution.fixation_px_left, "right": outcome.solution.fixation_px_right},
+        "final_encoders": serde_json::to_value(outcome.final_encoders)?,
+    }))
+}
+
+/// The JSON of an image-mode run without truth (`run --head-cmd`, `replay`).
+pub fn run_json(run: &ImageRun, outcome: &VergeTiltOutcome, total_s: f64) -> Result<Value> {
+    Ok(json!({
+        "mode": "images",
+        "estimate": estimate_json(outcome)?,
+        "images": images_json(run)?,
+        "report": serde_json::to_value(&outcome.calibration.report)?,
+        "checks": serde_json::to_value(&outcome.checks)?,
+        "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total_s},
+    }))
+}
+
+fn images_json(run: &ImageRun) -> Result<Value> {
+    Ok(json!({
+        "verging": serde_json::to_value(&run.verging)?,
+        "tracking": serde_json::to_value(&run.tracking)?,
+        "views": run.run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
+    }))
+}
+
+/// Run verging and the verge/tilt procedure on rendered images (the demo), recording to
+/// `session`; the JSON has the estimate against the simulator's truth.
+pub fn run(scenario: &Scenario, session: &SessionTarget) -> Result<Value> {
     let t0 = Instant::now();
     let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
     let before = head.alignment_errors(&head.encoders());
-    let verging = verge_to_common_view(&mut head, &VergingOptions::default()).context("verging")?;
-    let options = VergeTiltOptions {
-        rotation_deg: scenario.rotation_deg,
-        verge_rotation_deg: scenario.rotation_deg,
-        // The default estimation seed, as `align --images` uses: a replay of the saved
-        // views then reproduces this run bit for bit.
-        estimation: EstimationOptions::default(),
-        ..VergeTiltOptions::default()
-    };
-    let mut run = VergeTiltRun::default();
-    let (outcome, images, tracking) = {
-        let mut tracking_head = TrackingHead::new(&mut head, FrontEndOptions::default())?;
-        let outcome = run.run(&mut tracking_head, &options);
-        (outcome, std::mem::take(&mut tracking_head.images), tracking_head.tracking.clone())
-    };
-    // Whatever happened, the captured views are written first.
-    if let Some(dir) = save {
-        save_views(dir, &run, &images)?;
-    }
-    let outcome = outcome.context("verge/tilt procedure on images")?;
-    if let Some(dir) = save {
-        annotate(dir, &run, &images, &outcome)?;
-    }
-    let total = t0.elapsed().as_secs_f64();
-    let after = head.alignment_errors(&head.encoders());
-    let st = &outcome.calibration.bundle.state;
-    let truth = head.truth().clone();
-    let cal = calibration_errors(&truth.left, &truth.right, &st.left, &st.right);
-    let true_aligned = head.aligned_encoders();
-    let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
-    let json = json!({
-        "mode": "images",
-        "errors": errors_json(&after, unavoidable_r, &cal, None),
-        "before": before_json(&before),
-        "estimate": {
-            "left": {"fx": st.left.fx, "fy": st.left.fy, "cx": st.left.cx, "cy": st.left.cy},
-            "right": {"fx": st.right.fx, "fy": st.right.fy, "cx": st.right.cx, "cy": st.right.cy},
-            "aligned_encoders": serde_json::to_value(outcome.solution.aligned_encoders)?,
-            "aligned_sigma_deg": serde_json::to_value(outcome.sigmas)?,
-            "fixation_px": {"left": outcome.solution.fixation_px_left, "right": outcome.solution.fixation_px_right},
+    let description = json!({"kind": "simulator", "scenario": serde_json::to_value(scenario)?});
+    let session = session
+        .resolve()
+        .map(|dir| (dir, session_info(scenario.rotation_deg, scenario.image_size, description)));
+    let seed = EstimationOptions::default().seed;
+    let (_, _, json) = recorded(
+        &mut head,
+        session,
+        scenario.rotation_deg,
+        seed,
+        &mut |head, run, outcome| {
+            let total = t0.elapsed().as_secs_f64();
+            let after = head.alignment_errors(&head.encoders());
+            let st = &outcome.calibration.bundle.state;
+            let truth = head.truth().clone();
+            let cal = calibration_errors(&truth.left, &truth.right, &st.left, &st.right);
+            let true_aligned = head.aligned_encoders();
+            let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
+            let mut json = run_json(run, outcome, total)?;
+            if let Some(m) = json.as_object_mut() {
+                m.insert("errors".into(), Value::Object(errors_json(&after, unavoidable_r, &cal, None)));
+                m.insert("before".into(), Value::Object(before_json(&before)));
+                m.insert(
+                "truth".into(),
+                json!({
+                    "left": {"fx": truth.left.fx, "fy": truth.left.fy, "cx": truth.left.cx, "cy": truth.left.cy},
+                    "right": {"fx": truth.right.fx, "fy": truth.right.fy, "cx": truth.right.cx, "cy": truth.right.cy},
+                    "aligned_encoders": serde_json::to_value(true_aligned)?,
+                }),
+            );
+            }
+            Ok(json)
         },
-        "truth": {
-            "left": {"fx": truth.left.fx, "fy": truth.left.fy, "cx": truth.left.cx, "cy": truth.left.cy},
-            "right": {"fx": truth.right.fx, "fy": truth.right.fy, "cx": truth.right.cx, "cy": truth.right.cy},
-            "aligned_encoders": serde_json::to_value(true_aligned)?,
-        },
-        "images": {
-            "verging": serde_json::to_value(&verging)?,
-            "tracking": serde_json::to_value(&tracking)?,
-            "views": run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
-        },
-        "report": serde_json::to_value(&outcome.calibration.report)?,
-        "checks": serde_json::to_value(&outcome.checks)?,
-        "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total},
-    });
-    Ok(ImageDemo { json })
+    )?;
+    Ok(json)
 }
 
 /// The `errors` member of the demo's JSON: the alignment errors after alignment, the
@@ -122,36 +284,13 @@ pub fn before_json(e: &AlignmentErrors) -> serde_json::Map<String, Value> {
     m
 }
 
-/// Each captured view as `DIR/NN-name/{left,right}.png` + `view.json`.
-fn save_views(dir: &Path, run: &VergeTiltRun, images: &[StereoImages]) -> Result<()> {
-    for (i, (pair, view)) in images.iter().zip(&run.views).enumerate() {
-        let sub = dir.join(format!("{:02}-{}", i, view.name));
-        std::fs::create_dir_all(&sub).with_context(|| format!("cannot create {}", sub.display()))?;
-        pair.left.save(&sub.join("left.png"))?;
-        pair.right.save(&sub.join("right.png"))?;
-        let meta = json!({
-            "name": view.name,
-            "encoders": serde_json::to_value(pair.encoders)?,
-            "image_size": pair.image_size(),
-            "tracked": {"left": view.capture.left.len(), "right": view.capture.right.len()},
-        });
-        let path = sub.join("view.json");
-        std::fs::write(&path, serde_json::to_string_pretty(&meta)? + "\n")
-            .with_context(|| format!("cannot write {}", path.display()))?;
-    }
-    Ok(())
-}
-
 /// The paper's Figure 6 on the reference view (stereo pair side by side): features used by
 /// the adjustment (green; others red), the invariant lines of the pan (horizon, blue) and
 /// elevation (yellow) rotations, and the fixation point (magenta); and the last check view
 /// with the image centres marked.
-fn annotate(
-    dir: &Path,
-    run: &VergeTiltRun,
-    images: &[StereoImages],
-    outcome: &VergeTiltOutcome,
-) -> Result<()> {
+fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()> {
+    let images = &run.images;
+    let run = &run.run;
     let (Some(first), Some(view0)) = (images.first(), run.views.first()) else { return Ok(()) };
     let calib = &outcome.calibration;
     let used: std::collections::HashSet<u64> =

@@ -5,9 +5,14 @@
 //! - `headalign align --observations FILE`: the estimation on an observation session.
 //! - `headalign simulate --out FILE`: record an observation session from the simulator.
 //! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
+//! - `headalign replay DIR`: re-run a recorded session offline ([`replay`]).
+//! - `headalign run --head-cmd CMD`: the image procedure on a driver process ([`headcmd`]).
 
 mod experiment;
+mod headcmd;
 mod images;
+mod points;
+mod replay;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -57,6 +62,11 @@ enum Command {
     Simulate(SimulateArgs),
     /// Run a Monte-Carlo experiment (CSV, PNG/SVG plots, Markdown summary).
     Experiment(experiment::ExperimentArgs),
+    /// Re-run a recorded session offline (same procedure, recorded images: same result).
+    Replay(replay::ReplayArgs),
+    /// Verge, calibrate and align a head driven through the JSON-lines protocol
+    /// (docs/head-protocol.md), recording the session.
+    Run(headcmd::RunArgs),
 }
 
 #[derive(Args, Clone)]
@@ -135,10 +145,16 @@ struct DemoArgs {
     /// instead of the simulator's point correspondences.
     #[arg(long)]
     images: bool,
-    /// With --images: write every captured view (PNG + view.json) and the annotated
-    /// images (figure6.png, aligned.png) here.
+    /// Record the session here (every captured view as it is captured, report.json;
+    /// format in `headalign::session`). With --images the default is
+    /// ./headalign-sessions/<UTC time> (and figure6.png, aligned.png are added); in point
+    /// mode only this records (the verge/tilt stage, and observations.json). `--save` is an
+    /// older name.
+    #[arg(long, alias = "save", conflicts_with = "no_session")]
+    session: Option<PathBuf>,
+    /// With --images: record nothing (the simulated run can be repeated from its seed).
     #[arg(long, requires = "images")]
-    save: Option<PathBuf>,
+    no_session: bool,
 }
 
 #[derive(Args)]
@@ -147,8 +163,9 @@ struct AlignArgs {
     #[arg(long, required_unless_present = "images", conflicts_with = "images")]
     observations: Option<PathBuf>,
     /// A recorded image session instead (folders NN-name/ with left.png, right.png and
-    /// view.json, as `demo --images --save DIR` writes): the image front end finds the
-    /// correspondences.
+    /// view.json, as `demo --images --session DIR` writes): the image front end finds the
+    /// correspondences in its verge/tilt views (verging captures are skipped). `replay DIR`
+    /// re-runs the whole recorded procedure instead.
     #[arg(long)]
     images: Option<PathBuf>,
     /// Print one JSON object instead of the table.
@@ -181,13 +198,14 @@ fn main() -> ExitCode {
         Command::Align(a) => align(&a),
         Command::Simulate(a) => simulate(&a),
         Command::Experiment(a) => experiment::run(&a),
+        Command::Replay(a) => replay::run(&a),
+        Command::Run(a) => headcmd::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             // One line naming the problem (the chain joined by ": ").
-            let msg: Vec<String> = e.chain().map(|c| c.to_string()).collect();
-            eprintln!("error: {}", msg.join(": "));
+            eprintln!("error: {}", images::one_line(&e));
             ExitCode::FAILURE
         }
     }
@@ -274,7 +292,12 @@ fn demo(args: &DemoArgs) -> Result<()> {
         ..VergeTiltOptions::default()
     };
     let mut run = VergeTiltRun::default();
-    let outcome = run.run(robot.head_mut(), &options).context("verge/tilt procedure")?;
+    let session = args.session.as_ref().map(|dir| {
+        let head = json!({"kind": "simulator", "scenario": serde_json::to_value(&scenario).ok()});
+        (dir.clone(), points::session_info(&options, robot.head().image_size(), head))
+    });
+    let plan = capture_plan(&start, &options);
+    let (outcome, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session, plan)?;
     let mut pan_outcome = None;
     let mut steer_outcome = None;
     for st in &stages {
@@ -312,7 +335,7 @@ fn demo(args: &DemoArgs) -> Result<()> {
     // readings (its mounting relative to the left camera).
     let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
     let report = &outcome.calibration.report;
-    if args.json {
+    if args.json || writer.is_some() {
         let mut errors_j = images::errors_json(&after, unavoidable_r, &cal, recon);
         errors_j.insert("pan_err_deg".into(), json!(pan_after));
         errors_j.insert("steer_err_deg".into(), json!(steer_after));
@@ -344,8 +367,13 @@ fn demo(args: &DemoArgs) -> Result<()> {
             "report": serde_json::to_value(report)?,
             "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total},
         });
-        say!("{}", serde_json::to_string_pretty(&out)?);
-        return Ok(());
+        if let Some(w) = &writer {
+            w.write_report(&out).context("session")?;
+        }
+        if args.json {
+            say!("{}", serde_json::to_string_pretty(&out)?);
+            return Ok(());
+        }
     }
     say!(
         "headalign demo: simulated head '{}' (seed {}, noise {} px, {} points, {:.0} % outliers, {} deg rotations)",
@@ -457,12 +485,17 @@ fn demo(args: &DemoArgs) -> Result<()> {
 }
 
 fn demo_images(args: &DemoArgs, scenario: &Scenario) -> Result<()> {
-    let r = images::run(scenario, args.save.as_deref())?;
+    let target = match (&args.session, args.no_session) {
+        (Some(d), _) => images::SessionTarget::Dir(d.clone()),
+        (None, true) => images::SessionTarget::None,
+        (None, false) => images::SessionTarget::Default,
+    };
+    let v = images::run(scenario, &target)?;
     if args.json {
-        say!("{}", serde_json::to_string_pretty(&r.json)?);
+        say!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
-    let v = &r.json;
+    let v = &v;
     say!(
         "headalign demo --images: simulated head 'yorick' (seed {}), rendered {}x{} images, vision front end",
         scenario.seed,
@@ -512,8 +545,8 @@ fn demo_images(args: &DemoArgs, scenario: &Scenario) -> Result<()> {
         v["errors"]["pp_err_pct"].as_f64().unwrap_or(f64::NAN)
     );
     say!("time: total {:.2} s", v["timings"]["total_s"].as_f64().unwrap_or(f64::NAN));
-    if let Some(dir) = &args.save {
-        say!("saved the views and figure6.png, aligned.png in {}", dir.display());
+    if let Some(dir) = v["session"].as_str() {
+        say!("session (views, report.json, figure6.png, aligned.png): {dir}");
     }
     Ok(())
 }
@@ -522,7 +555,12 @@ fn align(args: &AlignArgs) -> Result<()> {
     let views = match (&args.observations, &args.images) {
         (Some(file), _) => read_session(file)?,
         (None, Some(dir)) => {
-            let recorded = headalign::session::read_image_session(dir)?;
+            // The verge/tilt views (verging captures are recorded too, but the rig is not
+            // rigid there).
+            let recorded: Vec<_> = headalign::session::read_image_session(dir)?
+                .into_iter()
+                .filter(headalign::session::RecordedView::is_verge_tilt)
+                .collect();
             headalign::session::track_session(&recorded, &headalign::frontend::FrontEndOptions::default())?
         }
         (None, None) => bail!("give --observations FILE or --images DIR"),

@@ -152,11 +152,13 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
     }
     assert!(v["errors"]["f_err_pct"].as_f64().unwrap() < 2.0);
     assert!(v["before"]["verge_err_l_deg"].is_number());
-    // Every captured view is on disk with its readings, plus the annotated images.
+    // Every captured view is on disk with its readings (after the verging captures, in
+    // the same order), plus the annotated images.
     let views = v["images"]["views"].as_array().unwrap();
     assert!(views.len() >= 7);
+    let verging = v["images"]["verging"]["steps"].as_array().unwrap().len();
     for (i, name) in views.iter().enumerate() {
-        let sub = dir.join(format!("{:02}-{}", i, name.as_str().unwrap()));
+        let sub = dir.join(format!("{:02}-{}", verging + i, name.as_str().unwrap()));
         for f in ["left.png", "right.png", "view.json"] {
             assert!(sub.join(f).exists(), "{}", sub.join(f).display());
         }
@@ -171,13 +173,13 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
         assert_eq!(r["right"][k], v["estimate"]["right"][k], "right {k}");
     }
     // A damaged image is a one-line error naming the file.
-    let bad = dir.join(format!("01-{}", views[1].as_str().unwrap())).join("right.png");
+    let bad = dir.join(format!("{:02}-{}", verging + 1, views[1].as_str().unwrap())).join("right.png");
     std::fs::write(&bad, b"truncated").unwrap();
     let out = run(&["align", "--images", dir.to_str().unwrap()]);
     assert_clean_failure(&out, "right.png");
     std::fs::remove_dir_all(&dir).ok();
-    // --save needs --images.
-    let out = run(&["demo", "--save", "x"]);
+    // --no-session needs --images (point mode records only with --session).
+    let out = run(&["demo", "--no-session"]);
     assert!(!out.status.success());
 }
 

@@ -12,6 +12,8 @@
 //! - [`alignment`]: exact aligned encoder readings from the calibrated head, measurement of
 //!   cameras by resection.
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
+//! - [`session`]: sessions on disk (recording head, replay head, the format).
+//! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
 
 pub mod alignment;
 pub mod error;
@@ -21,6 +23,7 @@ pub mod frontend;
 pub mod imaging;
 pub mod observations;
 pub mod procedure;
+pub mod process_head;
 pub mod robot;
 pub mod session;
 

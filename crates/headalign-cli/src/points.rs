@@ -1,0 +1,80 @@
+//! Point-mode sessions (`headalign demo --session DIR` without `--images`): the verge/tilt
+//! stage's captures are recorded as they happen (`NN-name/view.json` with the tracked
+//! points in its `capture` member, no images; `events.jsonl`), the views so far as an
+//! observation session (`observations.json`, format `headalign-observations/1`, readable
+//! by `align --observations`) and the demo's JSON as `report.json`. The robot stages
+//! (steering, pan) that follow are not recorded (their drives are not head calls);
+//! `replay` re-runs the verge/tilt stage.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use headalign::observations::session_to_json;
+use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
+use headalign::session::{RecordingHead, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
+use headalign_platform::{Encoders, StereoHead};
+use serde_json::json;
+
+/// The procedure name in `session.json` for point mode.
+pub const PROCEDURE: &str = "verge-tilt-points";
+
+/// Run the verge/tilt procedure on `head`, recording into `session` if given (`plan`
+/// names the view folders). On failure the session keeps the views and the message says
+/// where.
+pub fn verge_tilt<H: StereoHead>(
+    run: &mut VergeTiltRun,
+    head: &mut H,
+    options: &VergeTiltOptions,
+    session: Option<(PathBuf, SessionInfo)>,
+    plan: Vec<(String, Encoders)>,
+) -> Result<(VergeTiltOutcome, Option<SessionWriter>)> {
+    let Some((dir, info)) = session else {
+        return Ok((run.run(head, options).context("verge/tilt procedure")?, None));
+    };
+    let writer = SessionWriter::create(&dir, &info).context("session")?;
+    let mut rec = RecordingHead::new(head, writer);
+    rec.set_stage(STAGE_VERGE_TILT, plan, "check");
+    let outcome = run.run(&mut rec, options).context("verge/tilt procedure");
+    let writer = rec.into_writer();
+    let observations = dir.join("observations.json");
+    let saved = session_to_json(&run.views)
+        .map_err(anyhow::Error::from)
+        .and_then(|text| std::fs::write(&observations, text).map_err(anyhow::Error::from))
+        .with_context(|| format!("cannot write {}", observations.display()));
+    match outcome.and_then(|o| saved.map(|()| o)) {
+        Ok(o) => Ok((o, Some(writer))),
+        Err(e) => {
+            let _ = writer.write_report(&json!({"status": "failed", "error": crate::images::one_line(&e)}));
+            let kept = format!(
+                "session with {} captured view(s) kept in {}",
+                writer.views(),
+                writer.dir().display()
+            );
+            Err(e.context(kept))
+        }
+    }
+}
+
+/// The session description of a point-mode run.
+pub fn session_info(
+    options: &VergeTiltOptions,
+    image_size: [u32; 2],
+    head: serde_json::Value,
+) -> SessionInfo {
+    let mut info = SessionInfo::new(PROCEDURE, options.rotation_deg, options.estimation.seed, image_size);
+    info.head = head;
+    info
+}
+
+/// The options a point-mode session was recorded with.
+pub fn options(info: &SessionInfo) -> VergeTiltOptions {
+    VergeTiltOptions {
+        rotation_deg: info.rotation_deg,
+        verge_rotation_deg: info.rotation_deg,
+        estimation: headalign::estimate::EstimationOptions {
+            seed: info.estimation_seed,
+            ..headalign::estimate::EstimationOptions::default()
+        },
+        ..VergeTiltOptions::default()
+    }
+}

@@ -1,0 +1,108 @@
+//! `headalign replay DIR`: re-run a recorded session offline. The session's head is played
+//! back ([`headalign::session::ReplayHead`]: recorded readings, recorded images, moves
+//! checked against the recorded ones) under the same procedure that recorded it, so the
+//! result is the recorded run's, bit for bit. A recording that stopped early (its run
+//! failed) replays up to where it stopped and fails there, naming the event.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use headalign::session::{ReplayHead, read_session_info};
+use serde_json::{Value, json};
+
+use crate::{images, points};
+use headalign::procedure::VergeTiltRun;
+
+/// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+
+/// Arguments of `headalign replay`.
+#[derive(Args)]
+pub struct ReplayArgs {
+    /// The session folder (as `demo --images` or `run --head-cmd` recorded it).
+    pub dir: PathBuf,
+    /// Print one JSON object instead of the summary.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Run `headalign replay`.
+pub fn run(args: &ReplayArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let info = read_session_info(&args.dir)?;
+    let mut head = ReplayHead::open(&args.dir)?;
+    let context = || format!("replay of '{}'", args.dir.display());
+    let (mut v, views) = if info.procedure == images::PROCEDURE {
+        let (run, outcome) =
+            images::procedure(&mut head, info.rotation_deg, info.estimation_seed, &mut |_, _, _, _| {});
+        let outcome = outcome.with_context(context)?;
+        (images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
+    } else if info.procedure == points::PROCEDURE {
+        let mut run = VergeTiltRun::default();
+        let outcome = run.run(&mut head, &points::options(&info)).with_context(context)?;
+        let v = json!({
+            "mode": "points",
+            "estimate": images::estimate_json(&outcome)?,
+            "report": serde_json::to_value(&outcome.calibration.report)?,
+            "checks": serde_json::to_value(&outcome.checks)?,
+            "views": run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
+        });
+        (v, run.views.len())
+    } else {
+        bail!(
+            "'{}': cannot replay procedure '{}' (this version replays '{}' and '{}')",
+            args.dir.join("session.json").display(),
+            info.procedure,
+            images::PROCEDURE,
+            points::PROCEDURE
+        );
+    };
+    if let Some(m) = v.as_object_mut() {
+        m.insert("replayed".into(), json!(args.dir.display().to_string()));
+        m.insert("unplayed_events".into(), json!(head.remaining()));
+    }
+    if args.json {
+        say!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        say!("replayed {} ({views} views)", args.dir.display());
+        print_summary(&v);
+    }
+    Ok(())
+}
+
+/// The human-readable summary of an image-mode run without truth (`replay`, `run`).
+pub fn print_summary(v: &Value) {
+    let e = &v["estimate"];
+    let f = |x: &Value| x.as_f64().unwrap_or(f64::NAN);
+    for side in ["left", "right"] {
+        say!(
+            "{side:<5} fx {:.2}  fy {:.2}  cx {:.2}  cy {:.2} px",
+            f(&e[side]["fx"]),
+            f(&e[side]["fy"]),
+            f(&e[side]["cx"]),
+            f(&e[side]["cy"])
+        );
+    }
+    let a = &e["aligned_encoders"];
+    let s = &e["aligned_sigma_deg"];
+    say!(
+        "aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
+        f(&a["elevation"]),
+        f(&s["elevation_deg"]),
+        f(&a["verge_left"]),
+        f(&s["verge_left_deg"]),
+        f(&a["verge_right"]),
+        f(&s["verge_right_deg"])
+    );
+    say!("checks after moving: {}", v["checks"].as_array().map_or(0, Vec::len));
+    if let Some(dir) = v["session"].as_str() {
+        say!("session (views, report.json, figure6.png, aligned.png): {dir}");
+    }
+}
