@@ -31,11 +31,14 @@
 //! (an error naming it); the elevation joint is shared, so fixating with the right camera
 //! moves the left one too.
 
-use headalign_geometry::homography2d::{Homography2, Homography2Estimator};
+use headalign_geometry::homography2d::Homography2Estimator;
 use headalign_geometry::ransac::{RansacOptions, ransac};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint};
-use headalign_vision::{PatchSearchOptions, RegistrationOptions, locate_patch, register_translation};
-use nalgebra::Point2;
+use headalign_vision::{
+    FloatImage, PatchSearchOptions, Pyramid, RegistrationOptions, locate_patch_in_pyramids,
+    register_translation,
+};
+use nalgebra::{Matrix3, Point2, Vector3};
 use serde::Serialize;
 
 use crate::AlignError;
@@ -256,62 +259,114 @@ fn inside(p: [f64; 2], size: [u32; 2], margin: f64) -> bool {
         && p[1] <= f64::from(size[1]) - 1.0 - margin
 }
 
-/// Patches nearest the target that fit the local image motion.
-const LOCAL_PATCHES: usize = 10;
+/// Grid of patches (columns, rows) whose correlation measures the image motion of a move.
+const MOTION_GRID: [u32; 2] = [16, 12];
 
-/// The image motion from `a` to `b` near `target` (a pixel of `a`, possibly outside): a
-/// plane homography through the [`LOCAL_PATCHES`] grid patches nearest the target, each
-/// found by correlation around `p + shift`. Local, because scene points at other depths
-/// move differently (parallax of the offset axes); the nearest patches most likely lie on
-/// the target's own surface.
-fn local_homography(
-    a: &GrayImage,
-    b: &GrayImage,
+/// `G x`, dehomogenised; `None` at infinity.
+fn apply(g: &Matrix3<f64>, x: [f64; 2]) -> Option<[f64; 2]> {
+    let p = g * Vector3::new(x[0], x[1], 1.0);
+    (p.z.abs() > 1e-12 && p.z.is_finite()).then(|| [p.x / p.z, p.y / p.z])
+}
+
+/// The image motion of a move from `a` to `b` (pyramids of the two images): the plane
+/// homography through a [`MOTION_GRID`] of patches spread over the whole image, each found
+/// by correlation around `p + shift` (`shift`: the whole-image translation). A head
+/// rotation moves the image by `K R K^-1` exactly if the axes pass through the optical
+/// centre; the axis offsets add a parallax of a few tenths of a pixel per degree at most,
+/// which the fit averages over the scene. Support over the whole image matters: a fit to
+/// the patches near the target only extrapolates badly (about 1-2 px at 150 px outside the
+/// image, measured), a fit over the whole image to within 0.1 px.
+fn image_motion(
+    a: &Pyramid,
+    b: &Pyramid,
     shift: [f64; 2],
-    target: [f64; 2],
     options: &FixationOptions,
-) -> Result<Homography2, AlignError> {
-    let size = a.size();
+) -> Result<Matrix3<f64>, AlignError> {
+    let level0 = &a.levels()[0];
+    let size = [level0.width() as u32, level0.height() as u32];
     let m = options.edge_margin_px;
-    let mut grid = Vec::new();
-    for i in 0..12 {
-        for j in 0..9 {
-            let p = [
-                m + (f64::from(size[0]) - 1.0 - 2.0 * m) * f64::from(i) / 11.0,
-                m + (f64::from(size[1]) - 1.0 - 2.0 * m) * f64::from(j) / 8.0,
-            ];
-            grid.push(p);
-        }
-    }
-    grid.sort_by(|p, q| {
-        let d = |x: &[f64; 2]| (x[0] - target[0]).hypot(x[1] - target[1]);
-        d(p).total_cmp(&d(q))
-    });
     let mut pairs = Vec::new();
-    for p in grid {
-        if pairs.len() >= LOCAL_PATCHES {
-            break;
-        }
-        let pred = [p[0] + shift[0], p[1] + shift[1]];
-        if !inside(pred, size, options.patch.half_size as f64 + 1.0) {
-            continue;
-        }
-        if let Ok(found) = locate_patch(a, p, b, Some(pred), &options.patch)
-            && found.score > 0.8
-        {
-            pairs.push((Point2::new(p[0], p[1]), Point2::new(found.position[0], found.position[1])));
+    for i in 0..MOTION_GRID[0] {
+        for j in 0..MOTION_GRID[1] {
+            let p = [
+                m + (f64::from(size[0]) - 1.0 - 2.0 * m) * f64::from(i) / f64::from(MOTION_GRID[0] - 1),
+                m + (f64::from(size[1]) - 1.0 - 2.0 * m) * f64::from(j) / f64::from(MOTION_GRID[1] - 1),
+            ];
+            let pred = [p[0] + shift[0], p[1] + shift[1]];
+            if !inside(pred, size, options.patch.half_size as f64 + 1.0) {
+                continue;
+            }
+            if let Ok(found) = locate_patch_in_pyramids(a, p, b, Some(pred), &options.patch)
+                && found.score > 0.8
+            {
+                pairs.push((Point2::new(p[0], p[1]), Point2::new(found.position[0], found.position[1])));
+            }
         }
     }
-    if pairs.len() < 6 {
+    if pairs.len() < 12 {
         return Err(AlignError::Images(format!(
-            "fixation: only {} image patches near the target could be followed across a move (need 6)",
+            "fixation: only {} image patches could be followed across a move (need 12)",
             pairs.len()
         )));
     }
     let opts = RansacOptions { threshold: 1.0, ..RansacOptions::default() };
     ransac(&Homography2Estimator, &pairs, &opts)
-        .map(|r| r.model)
+        .map(|r| r.model.0)
         .map_err(|e| AlignError::Images(format!("fixation: no image motion fits the followed patches: {e}")))
+}
+
+/// Where the patch around `point_a` of image `a` appears in image `b`, given the image
+/// motion `g` (a to b, any homography close to the truth near the point): the template is
+/// `a` resampled through `g^-1` (bilinear), so it looks as the patch should look in `b`
+/// (a rotation of 20-30 deg stretches an edge patch by 10-20 % relative to the centre,
+/// which biases a plain template's correlation peak by up to a pixel), then searched by
+/// correlation within `radius` of `g(point_a)`.
+fn locate_warped(
+    a: &GrayImage,
+    point_a: [f64; 2],
+    b: &Pyramid,
+    g: &Matrix3<f64>,
+    radius: f64,
+    options: &FixationOptions,
+) -> Result<[f64; 2], AlignError> {
+    let lost = || {
+        AlignError::Images(format!(
+            "fixation: the target's patch ({:.1}, {:.1}) cannot be followed",
+            point_a[0], point_a[1]
+        ))
+    };
+    let predicted = apply(g, point_a).ok_or_else(lost)?;
+    let g_inv = g.try_inverse().ok_or_else(lost)?;
+    let half = options.patch.half_size as i64 + 4;
+    let q0 = [predicted[0].round() as i64, predicted[1].round() as i64];
+    let side = (2 * half + 1) as usize;
+    let (w, h) = (i64::from(a.width()), i64::from(a.height()));
+    let mut data = Vec::with_capacity(side * side);
+    for j in -half..=half {
+        for i in -half..=half {
+            let src = apply(&g_inv, [(q0[0] + i) as f64, (q0[1] + j) as f64]).ok_or_else(lost)?;
+            let (x0, y0) = (src[0].floor(), src[1].floor());
+            let (xi, yi) = (x0 as i64, y0 as i64);
+            if !(x0.is_finite() && y0.is_finite()) || xi < 0 || yi < 0 || xi + 1 >= w || yi + 1 >= h {
+                return Err(lost());
+            }
+            let (fx, fy) = (src[0] - x0, src[1] - y0);
+            let px = |x: i64, y: i64| f64::from(a.pixels()[(y * w + x) as usize]);
+            let v = (1.0 - fy) * ((1.0 - fx) * px(xi, yi) + fx * px(xi + 1, yi))
+                + fy * ((1.0 - fx) * px(xi, yi + 1) + fx * px(xi + 1, yi + 1));
+            data.push(v as f32);
+        }
+    }
+    let levels = b.len();
+    let template = FloatImage::new(side, side, data).map_err(vision("fixation: warped patch"))?;
+    let template = Pyramid::from_float(template, levels).map_err(vision("fixation: warped patch"))?;
+    // The target sits at `predicted` in b's coordinates, i.e. at `predicted - q0 + half`
+    // in the template's.
+    let at = [predicted[0] - q0[0] as f64 + half as f64, predicted[1] - q0[1] as f64 + half as f64];
+    let search = PatchSearchOptions { search_radius: radius, ..options.patch.clone() };
+    let found = locate_patch_in_pyramids(&template, at, b, Some(predicted), &search)
+        .map_err(vision("fixation: following the target"))?;
+    Ok(found.position)
 }
 
 /// Bring `target_px` (a pixel of `camera`'s current image; it may lie outside) to the
@@ -345,8 +400,8 @@ pub fn fixate<H: ImagingHead>(
     let mut patch_target = inside(target, size, options.edge_margin_px);
     // Where the target's own patch was taken: every later position is measured against
     // this one image (chaining image to image would add each step's sub-pixel error).
-    let mut anchor: Option<(GrayImage, [f64; 2])> =
-        patch_target.then(|| (camera.image(&images).clone(), target));
+    let mut anchor: Option<(GrayImage, [f64; 2], Matrix3<f64>)> =
+        patch_target.then(|| (camera.image(&images).clone(), target, Matrix3::identity()));
     let mut steps = Vec::new();
     loop {
         let err = ((target[0] - c[0]).powi(2) + (target[1] - c[1]).powi(2)).sqrt();
@@ -393,37 +448,40 @@ pub fn fixate<H: ImagingHead>(
         let next = head.capture_images()?;
         let (before, after) = (camera.image(&images), camera.image(&next));
         // The image shift of the move by whole-image pyramid correlation (paper section 5
-        // step 3), then the aim's own patch around its predicted place (it is always
-        // visible).
+        // step 3), then the image motion (a homography) from patches all over the image,
+        // then the aim's own patch through that motion (it is always visible).
         let shift = register_translation(before, after, &RegistrationOptions::default())
             .map_err(vision("fixation: registering the images before and after a move"))?
             .shift;
-        let predicted = [aim[0] + shift[0], aim[1] + shift[1]];
-        let aim_after = locate_patch(before, aim, after, Some(predicted), &options.patch)
-            .map_err(vision("fixation: following the aimed point"))?
-            .position;
+        let levels = options.patch.max_levels.max(1);
+        let pyr_before = Pyramid::new(before, levels).map_err(vision("fixation: image pyramid"))?;
+        let pyr_after = Pyramid::new(after, levels).map_err(vision("fixation: image pyramid"))?;
+        let motion = image_motion(&pyr_before, &pyr_after, shift, options)?;
+        let aim_after =
+            locate_warped(before, aim, &pyr_after, &motion, options.patch.search_radius, options)?;
         for k in 0..2 {
             if let Some(a) = solve_alpha(aim[k] - c[k], aim_after[k] - c[k], delta[k]) {
                 alpha[k] = a;
             }
         }
-        target = if let Some((anchor_image, anchor_px)) = &anchor {
-            let tight = PatchSearchOptions { search_radius: 6.0, ..options.patch.clone() };
-            locate_patch(anchor_image, *anchor_px, after, Some(aim_after), &tight)
-                .map_err(vision("fixation: following the target"))?
-                .position
-        } else {
-            let g = local_homography(before, after, shift, target, options)?;
-            let p = g.0 * nalgebra::Vector3::new(target[0], target[1], 1.0);
-            if p.z.abs() < 1e-12 {
-                return Err(AlignError::Images("fixation: the target left the image plane".into()));
+        target = if let Some((anchor_image, anchor_px, anchor_motion)) = &mut anchor {
+            // The motion from the anchor image to this one, chained: it only shapes the
+            // template and centres the search; the target's position is its correlation
+            // peak against the anchor image's patch.
+            *anchor_motion = motion * *anchor_motion;
+            let n = anchor_motion.norm();
+            if n > 0.0 {
+                *anchor_motion /= n;
             }
-            [p.x / p.z, p.y / p.z]
+            locate_warped(anchor_image, *anchor_px, &pyr_after, anchor_motion, 6.0, options)?
+        } else {
+            apply(&motion, target)
+                .ok_or_else(|| AlignError::Images("fixation: the target left the image plane".into()))?
         };
         // Once the carried target is in view, its own patch follows it from now on.
         if !patch_target && inside(target, size, options.edge_margin_px) {
             patch_target = true;
-            anchor = Some((camera.image(&next).clone(), target));
+            anchor = Some((camera.image(&next).clone(), target, Matrix3::identity()));
         }
         images = next;
     }
