@@ -423,6 +423,9 @@ fn median(mut v: Vec<f64>) -> f64 {
     if v.is_empty() { 0.0 } else { v[v.len() / 2] }
 }
 
+/// Smallest image displacement (pixels, per axis) of the aimed point that updates `alpha`.
+const MIN_ALPHA_MOVE_PX: f64 = 5.0;
+
 /// RMS residual (pixels) of the whole-image homography below which no parallax is modelled.
 const PARALLAX_NOISE_PX: f64 = 0.03;
 /// Patches whose median relative inverse depth a carried point takes.
@@ -579,7 +582,12 @@ pub fn fixate<H: ImagingHead>(
             options,
         )?;
         for k in 0..2 {
-            if let Some(a) = solve_alpha(aim[k] - c[k], aim_after[k] - c[k], delta[k]) {
+            // A move of a few pixels tells little about alpha (a 0.05 px correlation error
+            // is 1 % of 5 px): only larger ones update it.
+            let moved = (aim_after[k] - aim[k]).abs();
+            if moved >= MIN_ALPHA_MOVE_PX
+                && let Some(a) = solve_alpha(aim[k] - c[k], aim_after[k] - c[k], delta[k])
+            {
                 alpha[k] = a;
             }
         }

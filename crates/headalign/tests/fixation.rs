@@ -41,6 +41,7 @@ fn fixates_a_visible_scene_point_within_a_pixel() {
         .unwrap();
     let report = fixate(&mut h, Camera::Left, [pixel.x, pixel.y], &FixationOptions::default()).unwrap();
     let err = true_error(&h, &point);
+    println!("visible target: true error {err:.3} px, {} moves", report.steps.len());
     // The bar: within 1 px of the centre (truth, not the tracker's own estimate).
     assert!(err < 1.0, "true error {err:.3} px after {} moves: {report:?}", report.steps.len());
     assert!(report.steps.len() >= 2, "the 2x focal guess needs more than one move");
