@@ -41,7 +41,7 @@
 //! textureless patch cannot be located (an error naming it); the elevation joint is
 //! shared, so fixating with the right camera moves the left one too.
 
-use headalign_geometry::homography2d::Homography2Estimator;
+use headalign_geometry::homography2d::{Homography2, Homography2Estimator};
 use headalign_geometry::ransac::{RansacOptions, ransac};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint};
 use headalign_vision::{
@@ -284,7 +284,8 @@ fn apply(g: &Matrix3<f64>, x: [f64; 2]) -> Option<[f64; 2]> {
 struct ImageMotion {
     /// The plane homography from the image before to the image after (normalised).
     g: Matrix3<f64>,
-    /// Inlier patches: centre before, found position after, pixels.
+    /// Patches within [`PARALLAX_MAX_PX`] of `g` (parallax kept, mismatches dropped):
+    /// centre before, found position after, pixels.
     pairs: Vec<([f64; 2], [f64; 2])>,
 }
 
@@ -320,7 +321,14 @@ fn fit_motion(pairs: Vec<([f64; 2], [f64; 2])>) -> Result<ImageMotion, AlignErro
     })?;
     let n = r.model.0.norm();
     let g = if n > 0.0 { r.model.0 / n } else { r.model.0 };
-    Ok(ImageMotion { g, pairs: r.inliers.iter().map(|&i| pairs[i]).collect() })
+    let model = Homography2(g);
+    let pairs = data
+        .iter()
+        .zip(&pairs)
+        .filter(|((a, b), _)| model.transfer_error(a, b) <= PARALLAX_MAX_PX)
+        .map(|(_, pq)| *pq)
+        .collect();
+    Ok(ImageMotion { g, pairs })
 }
 
 /// The image motion of a move from `a` to `b` (pyramids of the two images): the plane
@@ -422,6 +430,9 @@ fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
     if v.is_empty() { 0.0 } else { v[v.len() / 2] }
 }
+
+/// Patches further than this from the homography (pixels) are mismatches, not parallax.
+const PARALLAX_MAX_PX: f64 = 3.0;
 
 /// Smallest image displacement (pixels, per axis) of the aimed point that updates `alpha`.
 const MIN_ALPHA_MOVE_PX: f64 = 5.0;
