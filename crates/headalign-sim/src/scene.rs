@@ -208,8 +208,9 @@ impl Room {
         quads
     }
 
-    /// First surface hit by the ray `origin + t dir` (origin inside the room).
-    fn cast(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<Point3<f64>> {
+    /// First surface hit by the ray `origin + t dir` (origin inside the room, `t > 0`),
+    /// world frame: what a camera at `origin` sees in direction `dir`.
+    pub fn cast(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<Point3<f64>> {
         let mut t_hit = f64::INFINITY;
         for i in 0..3 {
             if dir[i] > 1e-15 {

@@ -14,28 +14,41 @@
 //! point's true new position is measured by pyramid correlation, and `alpha` is re-solved
 //! exactly from the pinhole model `u - u0 = alpha tan(theta)`:
 //! `t alpha^2 - (x - y) alpha + x y t = 0` with `x, y` the offsets before and after and
-//! `t = tan(delta)`. A target outside the image (e.g. a vanishing point) is approached
-//! through a visible point near the edge in its direction; its own position is carried
-//! from image to image by the plane homography of the correlated patches nearest to it
-//! (its own surface, most likely), until it is inside and at the centre.
+//! `t = tan(delta)`. Every move's image motion is measured as a plane homography through a
+//! 16 x 12 grid of correlated patches over the whole image (found first around the
+//! whole-image shift, then again with templates warped by the first fit). A target in view
+//! is located by its own patch, taken in the image where it was first seen and warped by
+//! the chained motion so that it looks as it should in the new image: a 20-30 deg move
+//! stretches an edge patch by 10-20 %, which biased a plain template's peak by 0.5-1.2 px.
+//! A target outside the image is approached through a visible point near the edge in its
+//! direction (its move updates `alpha`); the target itself is carried from image to image
+//! by the homography plus the local parallax (plane plus parallax, Hartley & Zisserman
+//! 13.2: each patch's residual points to the epipole, scaled by its relative inverse depth;
+//! the target takes the median of its 12 nearest patches) until it is inside, then
+//! followed by its own patch to the centre.
 //!
 //! Units: pixels for positions and tolerances, degrees for encoder moves, `alpha` in
 //! pixels (its sign absorbs the joint's direction: a move that goes the wrong way is
 //! detected and corrected at the next step).
 //! Pitfalls: the vertical and horizontal joints are treated as independent (true for
-//! small angles; the loop absorbs the coupling); a target that starts outside the image
-//! is carried by the motion of its neighbourhood, so one at a very different depth from
-//! its neighbours (or a vanishing point) picks up the parallax of the offset axes, about
-//! a pixel per 10 deg of travel at 2 m (for the vanishing point of alignment use the
-//! calibrated solution of [`crate::alignment`]); a textureless patch cannot be located
-//! (an error naming it); the elevation joint is shared, so fixating with the right camera
-//! moves the left one too.
+//! small angles; the loop absorbs the coupling). A target that starts outside the image
+//! is a ray whose depth nobody has seen: the offset axes translate the camera (about
+//! 1 cm per 10 deg here), so its image depends on that depth, which is taken from the
+//! surfaces nearest it in the image; a target on another surface than its visible
+//! neighbours (a ceiling beyond a wall's edge) keeps that depth error, measured up to
+//! 0.9 px on the simulated head (0.1 px with the axes through the optical centre). For the
+//! vanishing point of alignment use the calibrated solution of [`crate::alignment`]. A
+//! textureless patch cannot be located (an error naming it); the elevation joint is
+//! shared, so fixating with the right camera moves the left one too.
 
 use headalign_geometry::homography2d::{Homography2, Homography2Estimator};
 use headalign_geometry::ransac::{RansacOptions, ransac};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint};
-use headalign_vision::{PatchSearchOptions, RegistrationOptions, locate_patch, register_translation};
-use nalgebra::Point2;
+use headalign_vision::{
+    FloatImage, PatchSearchOptions, Pyramid, RegistrationOptions, locate_patch_in_pyramids,
+    register_translation,
+};
+use nalgebra::{Matrix3, Point2, Vector3};
 use serde::Serialize;
 
 use crate::AlignError;
@@ -182,9 +195,10 @@ pub struct FixationOptions {
     /// A target counts as visible (and is located by its own patch) when it is at least
     /// this far inside the image, pixels (default 48; patches need room).
     pub edge_margin_px: f64,
-    /// Patch search for the target and the grid around the place the whole-image shift
-    /// predicts (default: 25x25 templates, 24 px radius: the shift is measured, only
-    /// parallax and rotation are left).
+    /// Patch search for the motion grid around the place the whole-image shift predicts,
+    /// and for the aimed point (default: 25x25 templates, 24 px radius: the shift is
+    /// measured, only parallax and rotation are left). The target's own patch is searched
+    /// within 6 px of where the measured motion puts it.
     pub patch: PatchSearchOptions,
 }
 
@@ -256,62 +270,230 @@ fn inside(p: [f64; 2], size: [u32; 2], margin: f64) -> bool {
         && p[1] <= f64::from(size[1]) - 1.0 - margin
 }
 
-/// Patches nearest the target that fit the local image motion.
-const LOCAL_PATCHES: usize = 10;
+/// Grid of patches (columns, rows) whose correlation measures the image motion of a move.
+const MOTION_GRID: [u32; 2] = [16, 12];
 
-/// The image motion from `a` to `b` near `target` (a pixel of `a`, possibly outside): a
-/// plane homography through the [`LOCAL_PATCHES`] grid patches nearest the target, each
-/// found by correlation around `p + shift`. Local, because scene points at other depths
-/// move differently (parallax of the offset axes); the nearest patches most likely lie on
-/// the target's own surface.
-fn local_homography(
-    a: &GrayImage,
-    b: &GrayImage,
-    shift: [f64; 2],
-    target: [f64; 2],
-    options: &FixationOptions,
-) -> Result<Homography2, AlignError> {
-    let size = a.size();
-    let m = options.edge_margin_px;
+/// `G x`, dehomogenised; `None` at infinity.
+fn apply(g: &Matrix3<f64>, x: [f64; 2]) -> Option<[f64; 2]> {
+    let p = g * Vector3::new(x[0], x[1], 1.0);
+    (p.z.abs() > 1e-12 && p.z.is_finite()).then(|| [p.x / p.z, p.y / p.z])
+}
+
+/// The image motion of one move, measured on a grid of patches.
+#[derive(Debug, Clone)]
+struct ImageMotion {
+    /// The plane homography from the image before to the image after (normalised).
+    g: Matrix3<f64>,
+    /// Patches within [`PARALLAX_MAX_PX`] of `g` (parallax kept, mismatches dropped):
+    /// centre before, found position after, pixels.
+    pairs: Vec<([f64; 2], [f64; 2])>,
+}
+
+fn grid_points(size: [u32; 2], margin: f64) -> Vec<[f64; 2]> {
     let mut grid = Vec::new();
-    for i in 0..12 {
-        for j in 0..9 {
-            let p = [
-                m + (f64::from(size[0]) - 1.0 - 2.0 * m) * f64::from(i) / 11.0,
-                m + (f64::from(size[1]) - 1.0 - 2.0 * m) * f64::from(j) / 8.0,
-            ];
-            grid.push(p);
+    for i in 0..MOTION_GRID[0] {
+        for j in 0..MOTION_GRID[1] {
+            grid.push([
+                margin
+                    + (f64::from(size[0]) - 1.0 - 2.0 * margin) * f64::from(i)
+                        / f64::from(MOTION_GRID[0] - 1),
+                margin
+                    + (f64::from(size[1]) - 1.0 - 2.0 * margin) * f64::from(j)
+                        / f64::from(MOTION_GRID[1] - 1),
+            ]);
         }
     }
-    grid.sort_by(|p, q| {
-        let d = |x: &[f64; 2]| (x[0] - target[0]).hypot(x[1] - target[1]);
-        d(p).total_cmp(&d(q))
-    });
+    grid
+}
+
+fn fit_motion(pairs: Vec<([f64; 2], [f64; 2])>) -> Result<ImageMotion, AlignError> {
+    if pairs.len() < 12 {
+        return Err(AlignError::Images(format!(
+            "fixation: only {} image patches could be followed across a move (need 12)",
+            pairs.len()
+        )));
+    }
+    let data: Vec<(Point2<f64>, Point2<f64>)> =
+        pairs.iter().map(|(p, q)| (Point2::new(p[0], p[1]), Point2::new(q[0], q[1]))).collect();
+    let opts = RansacOptions { threshold: 1.0, ..RansacOptions::default() };
+    let r = ransac(&Homography2Estimator, &data, &opts).map_err(|e| {
+        AlignError::Images(format!("fixation: no image motion fits the followed patches: {e}"))
+    })?;
+    let n = r.model.0.norm();
+    let g = if n > 0.0 { r.model.0 / n } else { r.model.0 };
+    let model = Homography2(g);
+    let pairs = data
+        .iter()
+        .zip(&pairs)
+        .filter(|((a, b), _)| model.transfer_error(a, b) <= PARALLAX_MAX_PX)
+        .map(|(_, pq)| *pq)
+        .collect();
+    Ok(ImageMotion { g, pairs })
+}
+
+/// The image motion of a move from `a` to `b` (pyramids of the two images): the plane
+/// homography through a [`MOTION_GRID`] of patches spread over the whole image, found
+/// by correlation around `p + shift` (`shift`: the whole-image translation), then again
+/// with templates warped by that first fit (see [`locate_warped`]). A head rotation moves
+/// the image by `K R K^-1` exactly if the axes pass through the optical centre; the axis
+/// offsets add a parallax, which the fit averages over the scene and [`carry`] corrects
+/// locally. Support over the whole image matters: a homography fitted to the ten patches
+/// nearest a target outside the image extrapolated it 1-2 px wrong (measured, even with no
+/// axis offsets); one fitted over the whole image, to within about 0.1 px.
+fn image_motion(
+    a: &Pyramid,
+    b: &Pyramid,
+    shift: [f64; 2],
+    options: &FixationOptions,
+) -> Result<ImageMotion, AlignError> {
+    let level0 = &a.levels()[0];
+    let size = [level0.width() as u32, level0.height() as u32];
+    let grid = grid_points(size, options.edge_margin_px);
     let mut pairs = Vec::new();
-    for p in grid {
-        if pairs.len() >= LOCAL_PATCHES {
-            break;
-        }
+    for &p in &grid {
         let pred = [p[0] + shift[0], p[1] + shift[1]];
         if !inside(pred, size, options.patch.half_size as f64 + 1.0) {
             continue;
         }
-        if let Ok(found) = locate_patch(a, p, b, Some(pred), &options.patch)
+        if let Ok(found) = locate_patch_in_pyramids(a, p, b, Some(pred), &options.patch)
             && found.score > 0.8
         {
-            pairs.push((Point2::new(p[0], p[1]), Point2::new(found.position[0], found.position[1])));
+            pairs.push((p, found.position));
         }
     }
-    if pairs.len() < 6 {
-        return Err(AlignError::Images(format!(
-            "fixation: only {} image patches near the target could be followed across a move (need 6)",
-            pairs.len()
-        )));
+    let first = fit_motion(pairs)?;
+    // Again through the first motion: the warped templates are not stretched by the
+    // rotation, so their positions (and the parallax residuals) are unbiased.
+    let mut pairs = Vec::new();
+    for &p in &grid {
+        if let Ok(q) = locate_warped(level0, p, b, &first.g, 3.0, options) {
+            pairs.push((p, q));
+        }
     }
-    let opts = RansacOptions { threshold: 1.0, ..RansacOptions::default() };
-    ransac(&Homography2Estimator, &pairs, &opts)
-        .map(|r| r.model)
-        .map_err(|e| AlignError::Images(format!("fixation: no image motion fits the followed patches: {e}")))
+    fit_motion(pairs)
+}
+
+/// Carry a point `x` of the image before a move (possibly outside it) into the image after
+/// it: the homography of the whole image plus the local parallax (plane plus parallax,
+/// Hartley & Zisserman section 13.2): each inlier patch's residual `r_i` from the
+/// homography is `gamma_i (e - G p_i)` with `e` the epipole (homogeneous, found as the
+/// point all residuals point to, least squares) and `gamma_i` its relative inverse depth.
+/// The point takes the median `gamma` of its nearest patches (its own surface, most
+/// likely: it has never been seen). Pixels; the correction is left out when the residuals
+/// are below the correlation noise (a rotation about the optical centre).
+fn carry(motion: &ImageMotion, x: [f64; 2]) -> Option<[f64; 2]> {
+    let predicted = apply(&motion.g, x)?;
+    let scale = 1e-3;
+    let mut rows = Vec::new();
+    let mut residuals = Vec::new();
+    for (p, q) in &motion.pairs {
+        let h = apply(&motion.g, *p)?;
+        let r = [q[0] - h[0], q[1] - h[1]];
+        let hs = [h[0] * scale, h[1] * scale];
+        rows.push([-r[1], r[0], r[1] * hs[0] - r[0] * hs[1]]);
+        residuals.push((*p, hs, r));
+    }
+    let rms = (residuals.iter().map(|(_, _, r)| r[0] * r[0] + r[1] * r[1]).sum::<f64>()
+        / residuals.len().max(1) as f64)
+        .sqrt();
+    if rms < PARALLAX_NOISE_PX || residuals.len() < 12 {
+        return Some(predicted);
+    }
+    let mut m = Matrix3::zeros();
+    for row in &rows {
+        let v = Vector3::new(row[0], row[1], row[2]);
+        m += v * v.transpose();
+    }
+    let eig = m.symmetric_eigen();
+    let (k, _) = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?;
+    let e = eig.eigenvectors.column(k).into_owned();
+    let toward = |hs: [f64; 2]| [e[0] - e[2] * hs[0], e[1] - e[2] * hs[1]];
+    let mut near: Vec<(f64, f64)> = residuals
+        .iter()
+        .filter_map(|(p, hs, r)| {
+            let v = toward(*hs);
+            let vv = v[0] * v[0] + v[1] * v[1];
+            (vv > 1e-18).then(|| ((p[0] - x[0]).hypot(p[1] - x[1]), (r[0] * v[0] + r[1] * v[1]) / vv))
+        })
+        .collect();
+    near.sort_by(|a, b| a.0.total_cmp(&b.0));
+    near.truncate(PARALLAX_NEIGHBOURS);
+    if near.is_empty() {
+        return Some(predicted);
+    }
+    let gamma = median(near.iter().map(|n| n.1).collect());
+    let v = toward([predicted[0] * scale, predicted[1] * scale]);
+    Some([predicted[0] + gamma * v[0], predicted[1] + gamma * v[1]])
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() { 0.0 } else { v[v.len() / 2] }
+}
+
+/// Patches further than this from the homography (pixels) are mismatches, not parallax.
+const PARALLAX_MAX_PX: f64 = 3.0;
+
+/// Smallest image displacement (pixels, per axis) of the aimed point that updates `alpha`.
+const MIN_ALPHA_MOVE_PX: f64 = 5.0;
+
+/// RMS residual (pixels) of the whole-image homography below which no parallax is modelled.
+const PARALLAX_NOISE_PX: f64 = 0.03;
+/// Patches whose median relative inverse depth a carried point takes.
+const PARALLAX_NEIGHBOURS: usize = 12;
+
+/// Where the patch around `point_a` of image `a` appears in image `b`, given the image
+/// motion `g` (a to b, any homography close to the truth near the point): the template is
+/// `a` resampled through `g^-1` (bilinear), so it looks as the patch should look in `b`
+/// (a rotation of 20-30 deg stretches an edge patch by 10-20 % relative to the centre,
+/// which biases a plain template's correlation peak by up to a pixel), then searched by
+/// correlation within `radius` of `g(point_a)`.
+fn locate_warped(
+    a: &FloatImage,
+    point_a: [f64; 2],
+    b: &Pyramid,
+    g: &Matrix3<f64>,
+    radius: f64,
+    options: &FixationOptions,
+) -> Result<[f64; 2], AlignError> {
+    let lost = || {
+        AlignError::Images(format!(
+            "fixation: the target's patch ({:.1}, {:.1}) cannot be followed",
+            point_a[0], point_a[1]
+        ))
+    };
+    let predicted = apply(g, point_a).ok_or_else(lost)?;
+    let g_inv = g.try_inverse().ok_or_else(lost)?;
+    let half = options.patch.half_size as i64 + 4;
+    let q0 = [predicted[0].round() as i64, predicted[1].round() as i64];
+    let side = (2 * half + 1) as usize;
+    let (w, h) = (a.width() as i64, a.height() as i64);
+    let mut data = Vec::with_capacity(side * side);
+    for j in -half..=half {
+        for i in -half..=half {
+            let src = apply(&g_inv, [(q0[0] + i) as f64, (q0[1] + j) as f64]).ok_or_else(lost)?;
+            let (x0, y0) = (src[0].floor(), src[1].floor());
+            let (xi, yi) = (x0 as i64, y0 as i64);
+            if !(x0.is_finite() && y0.is_finite()) || xi < 0 || yi < 0 || xi + 1 >= w || yi + 1 >= h {
+                return Err(lost());
+            }
+            let (fx, fy) = (src[0] - x0, src[1] - y0);
+            let px = |x: i64, y: i64| f64::from(a.pixels()[(y * w + x) as usize]);
+            let v = (1.0 - fy) * ((1.0 - fx) * px(xi, yi) + fx * px(xi + 1, yi))
+                + fy * ((1.0 - fx) * px(xi, yi + 1) + fx * px(xi + 1, yi + 1));
+            data.push(v as f32);
+        }
+    }
+    let levels = b.len();
+    let template = FloatImage::new(side, side, data).map_err(vision("fixation: warped patch"))?;
+    let template = Pyramid::from_float(template, levels).map_err(vision("fixation: warped patch"))?;
+    // The target sits at `predicted` in b's coordinates, i.e. at `predicted - q0 + half`
+    // in the template's.
+    let at = [predicted[0] - q0[0] as f64 + half as f64, predicted[1] - q0[1] as f64 + half as f64];
+    let search = PatchSearchOptions { search_radius: radius, ..options.patch.clone() };
+    let found = locate_patch_in_pyramids(&template, at, b, Some(predicted), &search)
+        .map_err(vision("fixation: following the target"))?;
+    Ok(found.position)
 }
 
 /// Bring `target_px` (a pixel of `camera`'s current image; it may lie outside) to the
@@ -345,8 +527,8 @@ pub fn fixate<H: ImagingHead>(
     let mut patch_target = inside(target, size, options.edge_margin_px);
     // Where the target's own patch was taken: every later position is measured against
     // this one image (chaining image to image would add each step's sub-pixel error).
-    let mut anchor: Option<(GrayImage, [f64; 2])> =
-        patch_target.then(|| (camera.image(&images).clone(), target));
+    let mut anchor: Option<(FloatImage, [f64; 2], Matrix3<f64>)> =
+        patch_target.then(|| (FloatImage::from_gray(camera.image(&images)), target, Matrix3::identity()));
     let mut steps = Vec::new();
     loop {
         let err = ((target[0] - c[0]).powi(2) + (target[1] - c[1]).powi(2)).sqrt();
@@ -393,37 +575,51 @@ pub fn fixate<H: ImagingHead>(
         let next = head.capture_images()?;
         let (before, after) = (camera.image(&images), camera.image(&next));
         // The image shift of the move by whole-image pyramid correlation (paper section 5
-        // step 3), then the aim's own patch around its predicted place (it is always
-        // visible).
+        // step 3), then the image motion (a homography) from patches all over the image,
+        // then the aim's own patch through that motion (it is always visible).
         let shift = register_translation(before, after, &RegistrationOptions::default())
             .map_err(vision("fixation: registering the images before and after a move"))?
             .shift;
-        let predicted = [aim[0] + shift[0], aim[1] + shift[1]];
-        let aim_after = locate_patch(before, aim, after, Some(predicted), &options.patch)
-            .map_err(vision("fixation: following the aimed point"))?
-            .position;
+        let levels = options.patch.max_levels.max(1);
+        let pyr_before = Pyramid::new(before, levels).map_err(vision("fixation: image pyramid"))?;
+        let pyr_after = Pyramid::new(after, levels).map_err(vision("fixation: image pyramid"))?;
+        let motion = image_motion(&pyr_before, &pyr_after, shift, options)?;
+        let aim_after = locate_warped(
+            &pyr_before.levels()[0],
+            aim,
+            &pyr_after,
+            &motion.g,
+            options.patch.search_radius,
+            options,
+        )?;
         for k in 0..2 {
-            if let Some(a) = solve_alpha(aim[k] - c[k], aim_after[k] - c[k], delta[k]) {
+            // A move of a few pixels tells little about alpha (a 0.05 px correlation error
+            // is 1 % of 5 px): only larger ones update it.
+            let moved = (aim_after[k] - aim[k]).abs();
+            if moved >= MIN_ALPHA_MOVE_PX
+                && let Some(a) = solve_alpha(aim[k] - c[k], aim_after[k] - c[k], delta[k])
+            {
                 alpha[k] = a;
             }
         }
-        target = if let Some((anchor_image, anchor_px)) = &anchor {
-            let tight = PatchSearchOptions { search_radius: 6.0, ..options.patch.clone() };
-            locate_patch(anchor_image, *anchor_px, after, Some(aim_after), &tight)
-                .map_err(vision("fixation: following the target"))?
-                .position
-        } else {
-            let g = local_homography(before, after, shift, target, options)?;
-            let p = g.0 * nalgebra::Vector3::new(target[0], target[1], 1.0);
-            if p.z.abs() < 1e-12 {
-                return Err(AlignError::Images("fixation: the target left the image plane".into()));
+        target = if let Some((anchor_image, anchor_px, anchor_motion)) = &mut anchor {
+            // The motion from the anchor image to this one, chained: it only shapes the
+            // template and centres the search; the target's position is its correlation
+            // peak against the anchor image's patch.
+            *anchor_motion = motion.g * *anchor_motion;
+            let n = anchor_motion.norm();
+            if n > 0.0 {
+                *anchor_motion /= n;
             }
-            [p.x / p.z, p.y / p.z]
+            locate_warped(anchor_image, *anchor_px, &pyr_after, anchor_motion, 6.0, options)?
+        } else {
+            carry(&motion, target)
+                .ok_or_else(|| AlignError::Images("fixation: the target left the image plane".into()))?
         };
         // Once the carried target is in view, its own patch follows it from now on.
         if !patch_target && inside(target, size, options.edge_margin_px) {
             patch_target = true;
-            anchor = Some((camera.image(&next).clone(), target));
+            anchor = Some((pyr_after.levels()[0].clone(), target, Matrix3::identity()));
         }
         images = next;
     }
@@ -446,5 +642,94 @@ mod tests {
         }
         assert!(solve_alpha(10.0, 10.0, 0.1).is_none());
         assert!(solve_alpha(10.0, 5.0, 0.0).is_none());
+    }
+
+    /// A rotation-like homography (K R K^-1 of a 10 deg turn, f = 700).
+    fn rotation_homography() -> Matrix3<f64> {
+        let k = Matrix3::new(700.0, 0.0, 384.0, 0.0, 700.0, 288.0, 0.0, 0.0, 1.0);
+        let r = nalgebra::Rotation3::from_euler_angles(0.03, 0.17, 0.01);
+        let g = k * r.matrix() * k.try_inverse().unwrap();
+        g / g.norm()
+    }
+
+    fn grid() -> Vec<[f64; 2]> {
+        grid_points([768, 576], 48.0)
+    }
+
+    #[test]
+    fn carry_is_exact_for_plane_plus_parallax() {
+        let g = rotation_homography();
+        for (e, gamma_near, gamma_far) in
+            [([0.4, 2.5, 1.0], 0.8, 0.2), ([1.0, 0.1, 0.0], -1.5, 0.5), ([0.2, -0.3, 1.0], 0.0, 0.0)]
+        {
+            let e = Vector3::new(e[0], e[1], e[2]);
+            let target = [-150.0, 200.0];
+            // Every patch within 200 px of the target lies at one relative inverse depth, the
+            // rest at another: the target takes its neighbours'.
+            let pairs: Vec<([f64; 2], [f64; 2])> = grid()
+                .into_iter()
+                .map(|p| {
+                    let h = apply(&g, p).unwrap();
+                    let gamma = if (p[0] - target[0]).hypot(p[1] - target[1]) < 260.0 {
+                        gamma_near
+                    } else {
+                        gamma_far
+                    };
+                    let v = [e[0] - e[2] * h[0] * 1e-3, e[1] - e[2] * h[1] * 1e-3];
+                    (p, [h[0] + gamma * v[0], h[1] + gamma * v[1]])
+                })
+                .collect();
+            let motion = ImageMotion { g, pairs };
+            let got = carry(&motion, target).unwrap();
+            let h = apply(&g, target).unwrap();
+            let v = [e[0] - e[2] * h[0] * 1e-3, e[1] - e[2] * h[1] * 1e-3];
+            let want = [h[0] + gamma_near * v[0], h[1] + gamma_near * v[1]];
+            // Exact model, noise-free: rounding only.
+            assert!((got[0] - want[0]).hypot(got[1] - want[1]) < 1e-9, "{got:?} vs {want:?}");
+        }
+    }
+
+    /// A smooth texture (sum of sinusoids, wavelengths 12-100 px) seen through `g_inv`
+    /// (pixel x of the image shows the texture at `g_inv x`), as a float image.
+    fn textured(g_inv: &Matrix3<f64>) -> FloatImage {
+        let waves = [
+            [0.31, 0.12, 0.3, 20.0],
+            [-0.07, 0.22, 1.1, 18.0],
+            [0.05, -0.06, 2.0, 25.0],
+            [0.5, 0.3, 0.7, 8.0],
+            [-0.2, -0.45, 2.9, 8.0],
+        ];
+        let (w, h) = (320usize, 240usize);
+        let data = (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let p = apply(g_inv, [x as f64, y as f64]).unwrap();
+                let v: f64 = waves.iter().map(|q| q[3] * (q[0] * p[0] + q[1] * p[1] + q[2]).sin()).sum();
+                (128.0 + v) as f32
+            })
+            .collect();
+        FloatImage::new(w, h, data).unwrap()
+    }
+
+    #[test]
+    fn warped_template_finds_a_stretched_patch() {
+        // Image b shows image a through a homography that stretches by 20 % and shears:
+        // the patch at (150, 110) of a is at g(150, 110) in b.
+        let g = Matrix3::new(1.2, 0.08, -20.0, -0.05, 1.1, 5.0, 2e-4, -1e-4, 1.0);
+        let a = textured(&Matrix3::identity());
+        let b = Pyramid::from_float(textured(&g.try_inverse().unwrap()), 4).unwrap();
+        let options = FixationOptions::default();
+        let p = [150.3, 110.6];
+        let want = apply(&g, p).unwrap();
+        let got = locate_warped(&a, p, &b, &g, 6.0, &options).unwrap();
+        // Noise-free and exactly warped: the sub-pixel peak fit of a smooth texture is good
+        // to a few hundredths of a pixel.
+        assert!((got[0] - want[0]).hypot(got[1] - want[1]) < 0.05, "{got:?} vs {want:?}");
+        // A motion known only roughly (1.5 px off) still finds it: the search corrects it.
+        let off = Matrix3::new(1.0, 0.0, 1.5, 0.0, 1.0, -1.0, 0.0, 0.0, 1.0) * g;
+        let got = locate_warped(&a, p, &b, &off, 6.0, &options).unwrap();
+        assert!((got[0] - want[0]).hypot(got[1] - want[1]) < 0.1, "{got:?} vs {want:?}");
+        // A patch that leaves image a is an error, not a panic.
+        assert!(locate_warped(&a, [3.0, 3.0], &b, &g, 6.0, &options).is_err());
     }
 }
