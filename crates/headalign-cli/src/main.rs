@@ -128,6 +128,11 @@ struct DemoArgs {
     /// Forward drive of the pan stage, metres.
     #[arg(long)]
     drive: Option<f64>,
+    /// Tall textured panels about 1 m in front of the robot (the paper's near scene).
+    /// Default: when the pan or steering stage runs and the scenario has none, 6; else
+    /// the scenario's (0 by default: the verge/tilt-only scene is the plain room).
+    #[arg(long)]
+    near_panels: Option<usize>,
     /// Print one JSON object instead of the table.
     #[arg(long)]
     json: bool,
@@ -256,6 +261,14 @@ fn demo(args: &DemoArgs) -> Result<()> {
             anyhow::bail!("unknown stage '{st}' (expected verge-tilt, pan, steering)");
         }
     }
+    match args.near_panels {
+        Some(n) => scenario.near_panels = n,
+        None if scenario.near_panels == 0 && stages.iter().any(|s| *s != "verge-tilt") => {
+            scenario.near_panels = Scenario::ROBOT_NEAR_PANELS;
+        }
+        None => {}
+    }
+    scenario.validate().map_err(|e| anyhow::anyhow!("invalid scenario: {e}"))?;
     if !stages.contains(&"verge-tilt") {
         anyhow::bail!(
             "the pan and steering stages need the calibration of the verge-tilt stage (the calibration-free fixation route is not implemented)"
