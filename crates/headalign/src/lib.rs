@@ -26,14 +26,3 @@ pub mod session;
 
 pub use error::AlignError;
 pub use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead, Vehicle};
-
-/// Polish with the geometry crate's small Levenberg-Marquardt (30 iterations).
-pub(crate) fn lm_polish<S, const N: usize>(
-    start: S,
-    start_cost: f64,
-    normal: impl Fn(&S) -> Option<(nalgebra::SMatrix<f64, N, N>, nalgebra::SVector<f64, N>)>,
-    retract: impl Fn(&S, &nalgebra::SVector<f64, N>) -> Option<S>,
-    cost: impl Fn(&S) -> f64,
-) -> S {
-    headalign_geometry::lm::minimise(start, start_cost, 30, normal, retract, cost).0
-}

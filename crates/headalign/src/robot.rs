@@ -48,6 +48,9 @@ use std::collections::HashMap;
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
 use headalign_geometry::registration::similarity_fit;
+use headalign_geometry::rigmotion::{
+    RigMotionEstimate, RigMotionOptions, RigTrack, StereoRig, refine_rig_motion,
+};
 use headalign_geometry::so3::screw_from_isometry;
 use headalign_geometry::steering::{Turn, steering_from_turns};
 use headalign_geometry::translation::{TranslationOptions, derotate, translation_from_flow};
@@ -93,7 +96,7 @@ impl Default for PanOptions {
             registration: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
             guide_px: 6.0,
             min_flow_px: 2.0,
-            use_stereo_rotation: false,
+            use_stereo_rotation: true,
         }
     }
 }
@@ -255,6 +258,7 @@ struct Rig {
     p_right: ProjectiveCamera,
     ref_from_left: Isometry3<f64>,
     left_from_right: Isometry3<f64>,
+    stereo: StereoRig,
 }
 
 fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) -> Result<Rig, AlignError> {
@@ -267,6 +271,7 @@ fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) -> Result<R
         p_right: ProjectiveCamera::from_pose(&st.right, &left_from_right.inverse()),
         ref_from_left,
         left_from_right,
+        stereo: StereoRig { left: st.left, right: st.right, right_from_left: left_from_right.inverse() },
     })
 }
 
@@ -294,6 +299,8 @@ struct Moved {
     after: Point3<f64>,
     left: Point2<f64>,
     right: Point2<f64>,
+    /// Pixels left/right before, left/right after.
+    pixels: RigTrack,
 }
 
 struct DriveEstimator<'a> {
@@ -330,86 +337,13 @@ impl Estimator for DriveEstimator<'_> {
     }
 }
 
-/// Pixel residuals of a drive motion: the points before projected into both images
-/// after, and the points after projected back into both images before (8 per track;
-/// symmetric so that the depth noise of either reconstruction is not favoured).
-fn drive_residuals(rig: &Rig, data: &[Moved], m: &Isometry3<f64>, out: &mut Vec<f64>) {
-    out.clear();
-    let inv = m.inverse();
-    let proj =
-        |p: &Point3<f64>, cam: &ProjectiveCamera| cam.project(&nalgebra::Vector4::new(p.x, p.y, p.z, 1.0));
-    for d in data {
-        let y = m * d.before;
-        let x = inv * d.after;
-        let before_l = proj(&d.before, &rig.p_left);
-        let before_r = proj(&d.before, &rig.p_right);
-        for (a, b) in [
-            (proj(&y, &rig.p_left), Some(d.left)),
-            (proj(&y, &rig.p_right), Some(d.right)),
-            (proj(&x, &rig.p_left), before_l),
-            (proj(&x, &rig.p_right), before_r),
-        ] {
-            match (a, b) {
-                (Some(a), Some(b)) => {
-                    out.push(a.x - b.x);
-                    out.push(a.y - b.y);
-                }
-                _ => {
-                    out.push(0.0);
-                    out.push(0.0);
-                }
-            }
-        }
-    }
-}
-
-/// Levenberg-Marquardt polish of a drive motion on [`drive_residuals`] (6 parameters,
-/// central-difference Jacobian, step 1e-7).
-fn refine_drive(rig: &Rig, data: &[Moved], start: Isometry3<f64>) -> Isometry3<f64> {
-    use nalgebra::{SMatrix, SVector, Translation3};
-    let retract = |m: &Isometry3<f64>, d: &SVector<f64, 6>| {
-        let dr = UnitQuaternion::from_scaled_axis(Vector3::new(d[0], d[1], d[2]));
-        Some(Isometry3::from_parts(Translation3::new(d[3], d[4], d[5]), dr) * m)
-    };
-    let cost = |m: &Isometry3<f64>| {
-        let mut r = Vec::new();
-        drive_residuals(rig, data, m, &mut r);
-        r.iter().map(|v| v * v).sum::<f64>()
-    };
-    let normal = |m: &Isometry3<f64>| -> Option<(SMatrix<f64, 6, 6>, SVector<f64, 6>)> {
-        let mut r0 = Vec::new();
-        drive_residuals(rig, data, m, &mut r0);
-        let h = 1e-7;
-        let mut cols: Vec<Vec<f64>> = Vec::with_capacity(6);
-        let (mut rp, mut rm) = (Vec::new(), Vec::new());
-        for j in 0..6 {
-            let mut d = SVector::<f64, 6>::zeros();
-            d[j] = h;
-            drive_residuals(rig, data, &retract(m, &d)?, &mut rp);
-            d[j] = -h;
-            drive_residuals(rig, data, &retract(m, &d)?, &mut rm);
-            cols.push(rp.iter().zip(&rm).map(|(a, b)| (a - b) / (2.0 * h)).collect());
-        }
-        let mut jtj = SMatrix::<f64, 6, 6>::zeros();
-        let mut jtr = SVector::<f64, 6>::zeros();
-        for i in 0..r0.len() {
-            let row = SVector::<f64, 6>::from_fn(|j, _| cols[j][i]);
-            jtj += row * row.transpose();
-            jtr += row * r0[i];
-        }
-        Some((jtj, jtr))
-    };
-    let c0 = cost(&start);
-    crate::lm_polish(start, c0, normal, retract, cost)
-}
-
 /// The measured rigid motion of one drive.
 struct DriveMotion {
     cam2_from_cam1: Isometry3<f64>,
     before: HashMap<u64, Point3<f64>>,
     inliers: usize,
-    /// Residual variance of the 3D fit per coordinate, centre units squared.
-    sigma3_sq: f64,
+    /// The maximum-likelihood refinement (covariance of the centre's displacement).
+    ml: RigMotionEstimate,
 }
 
 fn drive_motion(
@@ -421,26 +355,25 @@ fn drive_motion(
     let xb = triangulate(rig, before);
     let xa = triangulate(rig, after);
     let (la, ra) = (by_track(&after.left), by_track(&after.right));
+    let (lb, rb) = (by_track(&before.left), by_track(&before.right));
     let mut data = Vec::new();
     let mut tracks: Vec<&u64> = xb.keys().collect();
     tracks.sort_unstable();
     for t in tracks {
-        if let (Some(b), Some(a), Some(l), Some(r)) = (xb.get(t), xa.get(t), la.get(t), ra.get(t)) {
-            data.push(Moved { before: *b, after: *a, left: *l, right: *r });
+        if let (Some(b), Some(a), Some(l), Some(r), Some(bl), Some(br)) =
+            (xb.get(t), xa.get(t), la.get(t), ra.get(t), lb.get(t), rb.get(t))
+        {
+            data.push(Moved { before: *b, after: *a, left: *l, right: *r, pixels: [*bl, *br, *l, *r] });
         }
     }
     let est = DriveEstimator { rig };
     let rep = ransac(&est, &data, options).step("drive registration")?;
     let n = rep.inliers.len();
-    let inl: Vec<Moved> = rep.inliers.iter().map(|&i| data[i]).collect();
-    let m = refine_drive(rig, &inl, rep.model);
-    let ss: f64 = rep.inliers.iter().map(|&i| (m * data[i].before - data[i].after).norm_squared()).sum();
-    Ok(DriveMotion {
-        cam2_from_cam1: m,
-        before: xb,
-        inliers: n,
-        sigma3_sq: ss / (3.0 * n.saturating_sub(2).max(1) as f64),
-    })
+    let obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
+    let pts: Vec<Point3<f64>> = rep.inliers.iter().map(|&i| data[i].before).collect();
+    let ml = refine_rig_motion(&rig.stereo, &obs, &rep.model, &pts, &RigMotionOptions::default())
+        .step("drive motion")?;
+    Ok(DriveMotion { cam2_from_cam1: ml.cam2_from_cam1, before: xb, inliers: n, ml })
 }
 
 /// Signed angle about `up` from `a` to `b` (both projected onto the plane perpendicular
@@ -495,7 +428,7 @@ pub fn pan_step(
     let motion = drive_motion(&rig, before, after, &options.registration)?;
     let r_stereo = motion.cam2_from_cam1.rotation.to_rotation_matrix().into_inner();
     let r = if options.use_stereo_rotation { r_stereo } else { Matrix3::identity() };
-    let c = -(r.transpose() * motion.cam2_from_cam1.translation.vector);
+    let c = motion.ml.centre_displacement;
     let heading_stereo = (motion.cam2_from_cam1.rotation.inverse().scaled_axis()).dot(&up);
     let heading = if options.use_stereo_rotation { heading_stereo } else { 0.0 };
 
@@ -531,7 +464,7 @@ pub fn pan_step(
     let g_img = grad(&f_img);
     let var_img = c.norm_squared() * (g_img.transpose() * image.covariance * g_img)[(0, 0)];
     let g_st = grad(&f_st);
-    let var_st = g_st.norm_squared() * motion.sigma3_sq / motion.inliers.max(1) as f64;
+    let var_st = (g_st.transpose() * motion.ml.centre_covariance * g_st)[(0, 0)];
     let a_img = angle_about(&up, &h, &f_img);
     let a_st = angle_about(&up, &h, &f_st);
     let (w_i, w_s) = (1.0 / var_img.max(1e-30), 1.0 / var_st.max(1e-30));
