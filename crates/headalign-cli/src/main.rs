@@ -128,6 +128,13 @@ struct DemoArgs {
     /// Forward drive of the pan stage, metres.
     #[arg(long)]
     drive: Option<f64>,
+    /// Drive per steering setting of the steering stage, metres (default 0.3).
+    #[arg(long)]
+    steer_drive: Option<f64>,
+    /// Steering settings of the steering stage relative to the start reading, degrees,
+    /// comma separated (default -20,20,30).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    steer_settings: Option<Vec<f64>>,
     /// Tall textured panels about 1 m in front of the robot (the paper's near scene).
     /// Default: when the pan or steering stage runs and the scenario has none, 6; else
     /// the scenario's (0 by default: the verge/tilt-only scene is the plain room).
@@ -300,7 +307,13 @@ fn demo(args: &DemoArgs) -> Result<()> {
                 );
             }
             "steering" => {
-                let o = SteeringOptions { baseline_m: scenario.baseline_m, ..SteeringOptions::default() };
+                let mut o = SteeringOptions { baseline_m: scenario.baseline_m, ..SteeringOptions::default() };
+                if let Some(d) = args.steer_drive {
+                    o.drive_m = d;
+                }
+                if let Some(v) = &args.steer_settings {
+                    o.settings_deg = v.clone();
+                }
                 steer_outcome = Some(
                     zero_steering(&mut robot, &outcome.calibration, &outcome.verge_axes, &o)
                         .context("steering stage")?,

@@ -37,7 +37,8 @@ use nalgebra::{
     Isometry3, Matrix3, Matrix6, Point2, Point3, SMatrix, Translation3, UnitQuaternion, Vector3, Vector6,
 };
 
-use crate::camera::Intrinsics;
+use crate::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
+use crate::triangulation::triangulate_views;
 use crate::{GeometryError, Result};
 
 /// A calibrated stereo rig: both intrinsics and the right camera's pose.
@@ -185,6 +186,52 @@ pub fn track_jacobians(
 pub fn perturb(m: &Isometry3<f64>, d: &Vector6<f64>) -> Isometry3<f64> {
     let dr = UnitQuaternion::from_scaled_axis(Vector3::new(d[0], d[1], d[2]));
     Isometry3::from_parts(Translation3::new(d[3], d[4], d[5]), dr) * m
+}
+
+/// Tracks consistent with a motion: each track triangulated from its four views (linear,
+/// [`triangulate_views`]) and kept when its largest image residual is at most
+/// `threshold_px`; returns `(index, point)` pairs (guided re-selection after a
+/// refinement, when the motion is better than the RANSAC model that chose the first
+/// inliers).
+pub fn consistent_tracks(
+    rig: &StereoRig,
+    m: &Isometry3<f64>,
+    obs: &[RigTrack],
+    threshold_px: f64,
+) -> Vec<(usize, Point3<f64>)> {
+    let cams = four_cameras(rig, m);
+    obs.iter()
+        .enumerate()
+        .filter_map(|(i, o)| {
+            let (x, worst) = track_error(rig, m, &cams, o)?;
+            (worst <= threshold_px).then_some((i, x))
+        })
+        .collect()
+}
+
+/// The four cameras of a motion: left and right before, left and right after (first
+/// left camera frame).
+pub fn four_cameras(rig: &StereoRig, m: &Isometry3<f64>) -> [ProjectiveCamera; 4] {
+    [
+        ProjectiveCamera::from_pose(&rig.left, &Isometry3::identity()),
+        ProjectiveCamera::from_pose(&rig.right, &rig.right_from_left),
+        ProjectiveCamera::from_pose(&rig.left, m),
+        ProjectiveCamera::from_pose(&rig.right, &(rig.right_from_left * m)),
+    ]
+}
+
+/// A track's point triangulated linearly from its four views under motion `m` (cameras
+/// from [`four_cameras`]) and its largest image residual, pixels (a RANSAC score that
+/// does not trust either stereo pair's depth alone).
+pub fn track_error(
+    rig: &StereoRig,
+    m: &Isometry3<f64>,
+    cams: &[ProjectiveCamera; 4],
+    obs: &RigTrack,
+) -> Option<(Point3<f64>, f64)> {
+    let x = dehomogenise3(&triangulate_views(cams, obs).ok()?)?;
+    let r = track_residuals(rig, m, &x, obs)?;
+    Some((x, (0..4).map(|j| r[2 * j].hypot(r[2 * j + 1])).fold(0.0, f64::max)))
 }
 
 /// Huber weights of the four 2D residuals of a track.
@@ -483,6 +530,17 @@ mod tests {
         let mean = chi.iter().sum::<f64>() / chi.len() as f64;
         // Mean of a chi-square with 3 dof is 3; 20 samples: within [1.5, 5] comfortably.
         assert!((1.5..5.0).contains(&mean), "mean chi2 {mean}");
+    }
+
+    /// Re-selection keeps every exact track and drops a corrupted one.
+    #[test]
+    fn consistent_tracks_select_exact_ones() {
+        let m = motion(0.1, 0.01, Vector3::new(0.2, 0.0, -0.5));
+        let (mut obs, pts) = problem(4, &m, 30, 0.0);
+        obs[7][2].x += 10.0;
+        let kept = consistent_tracks(&rig(), &m, &obs, 1e-6);
+        assert_eq!(kept.len(), 29);
+        assert!(kept.iter().all(|(i, x)| *i != 7 && (x - pts[*i]).norm() < 1e-8));
     }
 
     #[test]

@@ -49,7 +49,8 @@ use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
 use headalign_geometry::registration::similarity_fit;
 use headalign_geometry::rigmotion::{
-    RigMotionEstimate, RigMotionOptions, RigTrack, StereoRig, refine_rig_motion,
+    RigMotionEstimate, RigMotionOptions, RigTrack, StereoRig, consistent_tracks, four_cameras,
+    refine_rig_motion, track_error,
 };
 use headalign_geometry::so3::screw_from_isometry;
 use headalign_geometry::steering::{Turn, steering_from_turns};
@@ -232,6 +233,8 @@ pub struct TurnStep {
     pub axis_tilt_deg: f64,
     /// Registration inliers.
     pub inliers: usize,
+    /// Turning centre, left camera frame at the stage's start, stereo baselines.
+    pub centre: [f64; 3],
 }
 
 /// Result of [`zero_steering`].
@@ -297,8 +300,6 @@ fn triangulate(rig: &Rig, cap: &StereoCapture) -> HashMap<u64, Point3<f64>> {
 struct Moved {
     before: Point3<f64>,
     after: Point3<f64>,
-    left: Point2<f64>,
-    right: Point2<f64>,
     /// Pixels left/right before, left/right after.
     pixels: RigTrack,
 }
@@ -328,12 +329,8 @@ impl Estimator for DriveEstimator<'_> {
         self.fit(data, inliers)
     }
     fn residual(&self, m: &Isometry3<f64>, d: &Moved) -> f64 {
-        let y = m * d.before;
-        let h = nalgebra::Vector4::new(y.x, y.y, y.z, 1.0);
-        let (Some(l), Some(r)) = (self.rig.p_left.project(&h), self.rig.p_right.project(&h)) else {
-            return f64::INFINITY;
-        };
-        (l - d.left).norm().max((r - d.right).norm())
+        let cams = four_cameras(&self.rig.stereo, m);
+        track_error(&self.rig.stereo, m, &cams, &d.pixels).map_or(f64::INFINITY, |(_, e)| e)
     }
 }
 
@@ -363,7 +360,7 @@ fn drive_motion(
         if let (Some(b), Some(a), Some(l), Some(r), Some(bl), Some(br)) =
             (xb.get(t), xa.get(t), la.get(t), ra.get(t), lb.get(t), rb.get(t))
         {
-            data.push(Moved { before: *b, after: *a, left: *l, right: *r, pixels: [*bl, *br, *l, *r] });
+            data.push(Moved { before: *b, after: *a, pixels: [*bl, *br, *l, *r] });
         }
     }
     let est = DriveEstimator { rig };
@@ -371,8 +368,23 @@ fn drive_motion(
     let n = rep.inliers.len();
     let obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
     let pts: Vec<Point3<f64>> = rep.inliers.iter().map(|&i| data[i].before).collect();
-    let ml = refine_rig_motion(&rig.stereo, &obs, &rep.model, &pts, &RigMotionOptions::default())
+    let mut ml = refine_rig_motion(&rig.stereo, &obs, &rep.model, &pts, &RigMotionOptions::default())
         .step("drive motion")?;
+    let all: Vec<RigTrack> = data.iter().map(|d| d.pixels).collect();
+    let mut n = n;
+    // Guided re-selection: the refined motion is far better than the 3-point RANSAC
+    // model that chose the inliers (whose threshold must allow for its depth noise).
+    for _ in 0..2 {
+        let kept = consistent_tracks(&rig.stereo, &ml.cam2_from_cam1, &all, options.threshold);
+        if kept.len() < n {
+            break;
+        }
+        let obs: Vec<RigTrack> = kept.iter().map(|(i, _)| all[*i]).collect();
+        let pts: Vec<Point3<f64>> = kept.iter().map(|(_, x)| *x).collect();
+        ml = refine_rig_motion(&rig.stereo, &obs, &ml.cam2_from_cam1, &pts, &RigMotionOptions::default())
+            .step("drive motion")?;
+        n = kept.len();
+    }
     Ok(DriveMotion { cam2_from_cam1: ml.cam2_from_cam1, before: xb, inliers: n, ml })
 }
 
@@ -548,6 +560,7 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
             turn_deg: screw.angle.to_degrees(),
             axis_tilt_deg: tilt,
             inliers: motion.inliers,
+            centre: [centre.x, centre.y, centre.z],
         });
     }
     let scale = options.baseline_m;
