@@ -118,7 +118,7 @@ impl PanOptions {
         if self.iterations == 0 {
             return bad("iterations must be at least 1".into());
         }
-        if !(self.max_off_axis_deg > 0.0) {
+        if !(self.max_off_axis_deg.is_finite() && self.max_off_axis_deg > 0.0) {
             return bad(format!("max_off_axis_deg must be positive, got {}", self.max_off_axis_deg));
         }
         if !(self.guide_px > 0.0 && self.min_flow_px >= 0.0) {
