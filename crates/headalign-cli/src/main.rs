@@ -19,6 +19,7 @@ use headalign::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_ax
 use headalign::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
 use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
+use headalign::panfix::{PanFixationOptions, align_pan_by_fixation};
 use headalign::procedure::{VergeTiltOptions, VergeTiltRun, alignment_sigmas, capture_plan};
 use headalign::robot::{PanOptions, SteeringOptions, align_pan, zero_steering};
 use headalign_geometry::camera::Intrinsics;
@@ -113,8 +114,9 @@ impl ScenarioArgs {
 struct DemoArgs {
     #[command(flatten)]
     scenario: ScenarioArgs,
-    /// Stages to run, in order, comma separated: verge-tilt, pan, steering (pan and
-    /// steering need the verge-tilt calibration; a stage may repeat). Default: pan first
+    /// Stages to run, in order, comma separated: verge-tilt, pan, steering, pan-fixate
+    /// (pan and steering need the verge-tilt calibration; pan-fixate, the calibration-free
+    /// route, fixates the epipole and needs a straight wheel; a stage may repeat). Default: pan first
     /// (coarse: the drive is derotated, so a bent wheel is tolerated, and it turns the
     /// head to the near scene for steering), steering, then pan again with the wheel
     /// straight (exact wherever the pan axis stands). Measured, seeds 1-20, 1 px, RMS
@@ -268,8 +270,8 @@ fn demo(args: &DemoArgs) -> Result<()> {
     }
     let stages: Vec<&str> = args.stages.split(',').map(str::trim).filter(|s| !s.is_empty()).collect();
     for st in &stages {
-        if !["verge-tilt", "pan", "steering"].contains(st) {
-            anyhow::bail!("unknown stage '{st}' (expected verge-tilt, pan, steering)");
+        if !["verge-tilt", "pan", "steering", "pan-fixate"].contains(st) {
+            anyhow::bail!("unknown stage '{st}' (expected verge-tilt, pan, steering, pan-fixate)");
         }
     }
     match args.near_panels {
@@ -300,6 +302,7 @@ fn demo(args: &DemoArgs) -> Result<()> {
     let mut run = VergeTiltRun::default();
     let outcome = run.run(robot.head_mut(), &options).context("verge/tilt procedure")?;
     let mut pan_outcomes = Vec::new();
+    let mut fixate_outcomes = Vec::new();
     let mut steer_outcome = None;
     for st in &stages {
         match *st {
@@ -309,6 +312,10 @@ fn demo(args: &DemoArgs) -> Result<()> {
                     align_pan(&mut robot, &outcome.calibration, &outcome.verge_axes, &o)
                         .context("pan stage")?,
                 );
+            }
+            "pan-fixate" => {
+                let o = PanFixationOptions { drive_m: scenario.drive_m, ..PanFixationOptions::default() };
+                fixate_outcomes.push(align_pan_by_fixation(&mut robot, &o).context("pan fixation stage")?);
             }
             "steering" => {
                 let mut o = SteeringOptions { baseline_m: scenario.baseline_m, ..SteeringOptions::default() };
@@ -328,7 +335,8 @@ fn demo(args: &DemoArgs) -> Result<()> {
     }
     let total = t0.elapsed().as_secs_f64();
     let final_enc = robot.head().encoders();
-    let pan_after = (!pan_outcomes.is_empty()).then(|| robot.pan_err_deg(&final_enc));
+    let pan_after =
+        (!pan_outcomes.is_empty() || !fixate_outcomes.is_empty()).then(|| robot.pan_err_deg(&final_enc));
     let steer_after = steer_outcome.as_ref().map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
     let head = robot.head();
     let after = head.alignment_errors(&head.encoders());
@@ -354,6 +362,7 @@ fn demo(args: &DemoArgs) -> Result<()> {
             "errors": errors_j,
             "before": before_j,
             "pan": serde_json::to_value(&pan_outcomes)?,
+            "pan_fixate": serde_json::to_value(&fixate_outcomes)?,
             "steering": serde_json::to_value(&steer_outcome)?,
             "stages": stages,
             "estimate": {
@@ -454,6 +463,16 @@ fn demo(args: &DemoArgs) -> Result<()> {
     say!("checks after moving: {}", outcome.checks.len());
     if !pan_outcomes.is_empty() {
         say!();
+    }
+    for (i, s) in fixate_outcomes.iter().flat_map(|p| &p.steps).enumerate() {
+        say!(
+            "pan fixation drive {}: epipole {}, alpha {:.0} px, pan move {:+.3} deg, median flow {:.1} px",
+            i + 1,
+            s.epipole_px.map_or("at infinity".to_string(), |e| format!("({:.1}, {:.1}) px", e[0], e[1])),
+            s.alpha_px,
+            s.pan_move_deg,
+            s.median_flow_px
+        );
     }
     for (i, s) in pan_outcomes.iter().flat_map(|p| &p.steps).enumerate() {
         {

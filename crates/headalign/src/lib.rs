@@ -12,6 +12,7 @@
 //! - [`alignment`]: exact aligned encoder readings from the calibrated head, measurement of
 //!   cameras by resection.
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
+//! - [`panfix`]: pan alignment without calibration, by fixating a drive's epipole.
 
 pub mod alignment;
 pub mod error;
@@ -20,6 +21,7 @@ pub mod export;
 pub mod frontend;
 pub mod imaging;
 pub mod observations;
+pub mod panfix;
 pub mod procedure;
 pub mod robot;
 pub mod session;
