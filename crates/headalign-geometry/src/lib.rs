@@ -23,6 +23,8 @@
 //! - [`registration`]: 3D point-set registration (Kabsch/Umeyama), 3-point rigid RANSAC
 //!   solver for homographies in a quasi-Euclidean frame.
 //! - [`resection`]: pose of a calibrated camera from 3D-2D correspondences.
+//! - [`rigmotion`]: maximum-likelihood rigid motion of a calibrated stereo rig between
+//!   two stereo views (robot drives).
 //! - [`invariant`]: invariant lines at infinity of a motion from its complex eigenvectors.
 //! - [`lm`]: a small dense Levenberg-Marquardt shared by the refinements.
 //! - [`rectify`]: stereo rectification of a calibrated pair (OpenCV / ROS conventions).
@@ -43,6 +45,7 @@ pub mod ransac;
 pub mod rectify;
 pub mod registration;
 pub mod resection;
+pub mod rigmotion;
 pub mod selfcal;
 pub mod so3;
 pub mod steering;

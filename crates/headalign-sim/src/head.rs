@@ -6,7 +6,8 @@
 //! (`encoder_noise_deg`, zero by default).
 //!
 //! A capture observes every scene point each camera sees (in front, inside the image,
-//! between `scene_min_m` and `scene_max_m` from that camera; each camera independently).
+//! between `scene_min_m` (or [`Scenario::min_range_m`] with near panels) and `scene_max_m`
+//! from that camera; each camera independently).
 //! Each observation is, with probability `outlier_fraction`, replaced by a uniformly
 //! random pixel of the image (keeping its track id: a wrong match); otherwise Gaussian
 //! noise of `noise_px` is added to each coordinate. Observations that noise pushes out of
@@ -172,11 +173,11 @@ impl SimulatedHead {
         let s = &self.scenario;
         let distortion = &s.render.distortion;
         if distortion.is_zero() {
-            return visible_pixel(k, cam_from_world, p, s.image_size, s.scene_min_m, s.scene_max_m);
+            return visible_pixel(k, cam_from_world, p, s.image_size, s.min_range_m(), s.scene_max_m);
         }
         let point_in_cam = cam_from_world * p;
         let distance = point_in_cam.coords.norm();
-        if !(distance >= s.scene_min_m && distance <= s.scene_max_m) {
+        if !(distance >= s.min_range_m() && distance <= s.scene_max_m) {
             return None;
         }
         let pixel = project(k, distortion, &point_in_cam)?;

@@ -76,6 +76,16 @@ pub struct Scenario {
     pub steer_zero_max_deg: f64,
     /// Robot: the procedure's straight drive for pan alignment, metres.
     pub drive_m: f64,
+    /// Near structure: this many tall textured panels (boxes standing on the floor, about
+    /// 0.3-0.5 m wide and 1.6-2.2 m tall) at about `near_distance_m` in front of the
+    /// robot, spread over bearings +-70 deg (so that a head panned up to 60 deg off still
+    /// sees some), with gaps through which the room shows. 0 (the default) leaves the
+    /// room exactly as without this field; the robot stages of the demo use
+    /// [`Scenario::ROBOT_NEAR_PANELS`] (the paper's robot faced a scene about 1 m away).
+    pub near_panels: usize,
+    /// Near structure: distance of the panels' fronts from the pan axis, metres (each
+    /// drawn in `[1, 1.25] x` this).
+    pub near_distance_m: f64,
 }
 
 impl Default for Scenario {
@@ -107,11 +117,22 @@ impl Default for Scenario {
             rear_axle_behind_pan_m: 0.0,
             steer_zero_max_deg: 5.0,
             drive_m: 0.10,
+            near_panels: 0,
+            near_distance_m: 1.0,
         }
     }
 }
 
 impl Scenario {
+    /// Near panels the demo's robot stages add when the scenario has none.
+    pub const ROBOT_NEAR_PANELS: usize = 6;
+
+    /// Nearest distance at which a point is observed, metres: `scene_min_m`, or with near
+    /// panels at most half their distance (so that they are seen).
+    pub fn min_range_m(&self) -> f64 {
+        if self.near_panels > 0 { self.scene_min_m.min(0.5 * self.near_distance_m) } else { self.scene_min_m }
+    }
+
     /// The default "yorick" scenario (same as `Default`).
     pub fn yorick() -> Self {
         Self::default()
@@ -203,6 +224,11 @@ impl Scenario {
             format!("steer_zero_max_deg must be in [0, 45), got {}", self.steer_zero_max_deg),
         );
         check(finite_pos(self.drive_m), format!("drive_m must be positive, got {}", self.drive_m));
+        check(self.near_panels <= 64, format!("near_panels must be at most 64, got {}", self.near_panels));
+        check(
+            self.near_distance_m.is_finite() && self.near_distance_m >= 0.5,
+            format!("near_distance_m must be at least 0.5, got {}", self.near_distance_m),
+        );
         problems.extend(self.render.problems());
         if problems.is_empty() { Ok(()) } else { Err(SimError::InvalidScenario(problems.join("; "))) }
     }

@@ -14,6 +14,12 @@
 //! another as seen from the head (occlusion is not modelled otherwise: from a camera a few
 //! centimetres away a point may in truth be hidden by a box edge; that is ignored).
 //!
+//! Near structure (`near_panels > 0`): tall boxes standing on the floor at about
+//! `near_distance_m` in front of the robot (bearings spread over +-70 deg, each turned
+//! to face the head), drawn from their own random stream (6) after the room, so that a
+//! scenario without them gives exactly the room and points it gave before they existed.
+//! Points are then observed from [`Scenario::min_range_m`] on.
+//!
 //! Density: after casting, the points visible in both cameras at the initial encoder
 //! readings (all zero) are counted, and every point is kept with probability
 //! `points / visible`, so that about `points` are seen by both cameras in the initial
@@ -21,7 +27,7 @@
 
 use headalign_geometry::camera::Intrinsics;
 use nalgebra::{Isometry3, Point2, Point3, Rotation3, Vector3};
-use rand::RngExt;
+use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, UnitSphere};
 
@@ -29,6 +35,9 @@ use crate::SimError;
 use crate::kinematics::HeadTruth;
 use crate::scenario::Scenario;
 use headalign_platform::Encoders;
+
+/// Random stream of the near panels (the head uses 0-5).
+const STREAM_NEAR: u64 = 6;
 
 /// A scene point: track id and position in the world frame.
 pub type ScenePoint = (u64, Point3<f64>);
@@ -172,6 +181,26 @@ impl Room {
         Self { min: Vector3::new(-left, -ceiling, -back), max: Vector3::new(right, 0.0, front), boxes }
     }
 
+    /// Add `scenario.near_panels` tall panels about `near_distance_m` in front of the pan
+    /// axis (module docs), drawn from `rng`.
+    fn add_near_panels(&mut self, scenario: &Scenario, rng: &mut ChaCha8Rng) {
+        let n = scenario.near_panels;
+        let mut u = |a: f64, b: f64| a + (b - a) * rng.random::<f64>();
+        let span = 70f64.to_radians();
+        for i in 0..n {
+            let slot = 2.0 * span / n as f64;
+            let bearing = -span + slot * (i as f64 + u(0.3, 0.7));
+            let half = Vector3::new(u(0.15, 0.25), u(0.8, 1.1), u(0.08, 0.15));
+            let r = scenario.near_distance_m * u(1.0, 1.25) + half.z;
+            let yaw = bearing + u(-0.3, 0.3);
+            self.boxes.push(FloorBox {
+                centre: Point3::new(r * bearing.sin(), -half.y, r * bearing.cos()),
+                half,
+                box_from_world: Rotation3::from_axis_angle(&Vector3::y_axis(), -yaw),
+            });
+        }
+    }
+
     /// The surfaces as visible-side-oriented quads: floor, ceiling, the four walls (in
     /// that order), then for each box its top and four sides (the bottom stands on the
     /// floor and is never seen).
@@ -237,7 +266,7 @@ pub fn count_visible_in_both(
 ) -> usize {
     let (world_from_left, world_from_right) = truth.world_from_cameras(enc);
     let (left_from_world, right_from_world) = (world_from_left.inverse(), world_from_right.inverse());
-    let (min, max) = (scenario.scene_min_m, scenario.scene_max_m);
+    let (min, max) = (scenario.min_range_m(), scenario.scene_max_m);
     points
         .iter()
         .filter(|(_, p)| {
@@ -265,7 +294,12 @@ pub fn generate_room_and_scene(
     rng: &mut ChaCha8Rng,
 ) -> Result<(Room, Vec<ScenePoint>), SimError> {
     let head_centre = Point3::new(0.0, -(scenario.head_height_m + scenario.elevation_below_cameras_m), 0.0);
-    let room = Room::draw(scenario, &head_centre, rng);
+    let mut room = Room::draw(scenario, &head_centre, rng);
+    if scenario.near_panels > 0 {
+        let mut near_rng = ChaCha8Rng::seed_from_u64(scenario.seed);
+        near_rng.set_stream(STREAM_NEAR);
+        room.add_near_panels(scenario, &mut near_rng);
+    }
     let initial = Encoders::default();
     // About 1/16 of the sphere is seen by both cameras; aim for 4x the wanted count.
     let mut rays = (scenario.points.saturating_mul(64)).clamp(4096, 1 << 22);
@@ -277,7 +311,7 @@ pub fn generate_room_and_scene(
             let dir = Vector3::new(x, y, z);
             if let Some(p) = room.cast(&head_centre, &dir) {
                 let r = (p - head_centre).norm();
-                if r >= scenario.scene_min_m && r <= scenario.scene_max_m {
+                if r >= scenario.min_range_m() && r <= scenario.scene_max_m {
                     dense.push((0u64, p));
                 }
             }
@@ -310,17 +344,19 @@ pub fn generate_room_and_scene(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use rand::SeedableRng;
 
     #[test]
     fn quads_face_the_head_side_and_carry_every_point() {
-        for seed in 1..=5 {
-            let scenario = Scenario::default().with_seed(seed);
+        for seed in 1..=6 {
+            // Seeds 4-6 with the robot's near panels.
+            let near = if seed > 3 { Scenario::ROBOT_NEAR_PANELS } else { 0 };
+            let scenario = Scenario { near_panels: near, ..Scenario::default().with_seed(seed) };
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
             let truth = HeadTruth::draw(&scenario, &mut rng);
             let (room, points) = generate_room_and_scene(&scenario, &truth, &mut rng).unwrap();
             let quads = room.quads();
             assert_eq!(quads.len(), 6 + 5 * room.boxes.len());
+            assert_eq!(room.boxes.len(), 8 + near);
             for q in &quads[..6] {
                 // Walls face the room's centre.
                 let centre = Point3::from((room.min + room.max) * 0.5);
@@ -345,5 +381,31 @@ mod tests {
                 assert!(on, "seed {seed}: point {p} on no quad");
             }
         }
+    }
+
+    /// Near panels: many of the initially seen points lie about 1 m away, and without
+    /// panels the room and points are exactly those of a scenario that never had them.
+    #[test]
+    fn near_panels_put_points_at_one_metre_and_leave_the_room_alone() {
+        let base = Scenario::default().with_seed(2);
+        let near = Scenario { near_panels: Scenario::ROBOT_NEAR_PANELS, ..base.clone() };
+        let draw = |s: &Scenario| {
+            let mut rng = ChaCha8Rng::seed_from_u64(s.seed);
+            let truth = HeadTruth::draw(s, &mut rng);
+            let (_, pts) = generate_room_and_scene(s, &truth, &mut rng).unwrap();
+            (truth, pts)
+        };
+        let (truth, pts) = draw(&near);
+        let (left, _) = truth.world_from_cameras(&Encoders::default());
+        let close = pts
+            .iter()
+            .filter(|(_, p)| {
+                let q = left.inverse() * p;
+                q.z > 0.0 && q.coords.norm() < 1.6 && truth.left.project(&q).is_some()
+            })
+            .count();
+        assert!(close >= 40, "{close} points within 1.6 m in view");
+        let explicit_zero = Scenario { near_panels: 0, near_distance_m: 2.0, ..base.clone() };
+        assert_eq!(draw(&base).1, draw(&explicit_zero).1);
     }
 }

@@ -45,8 +45,7 @@ use headalign_geometry::homography2d::{Homography2, Homography2Estimator};
 use headalign_geometry::ransac::{RansacOptions, ransac};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint};
 use headalign_vision::{
-    FloatImage, PatchSearchOptions, Pyramid, RegistrationOptions, locate_patch_in_pyramids,
-    register_translation,
+    PatchSearchOptions, Pyramid, RegistrationOptions, locate_patch_in_pyramids, register_translation,
 };
 use nalgebra::{Matrix3, Point2, Vector3};
 use serde::Serialize;
@@ -346,8 +345,8 @@ fn image_motion(
     shift: [f64; 2],
     options: &FixationOptions,
 ) -> Result<ImageMotion, AlignError> {
-    let level0 = &a.levels()[0];
-    let size = [level0.width() as u32, level0.height() as u32];
+    let level0 = a.base();
+    let size = [level0.width(), level0.height()];
     let grid = grid_points(size, options.edge_margin_px);
     let mut pairs = Vec::new();
     for &p in &grid {
@@ -449,7 +448,7 @@ const PARALLAX_NEIGHBOURS: usize = 12;
 /// which biases a plain template's correlation peak by up to a pixel), then searched by
 /// correlation within `radius` of `g(point_a)`.
 fn locate_warped(
-    a: &FloatImage,
+    a: &GrayImage,
     point_a: [f64; 2],
     b: &Pyramid,
     g: &Matrix3<f64>,
@@ -481,12 +480,15 @@ fn locate_warped(
             let px = |x: i64, y: i64| f64::from(a.pixels()[(y * w + x) as usize]);
             let v = (1.0 - fy) * ((1.0 - fx) * px(xi, yi) + fx * px(xi + 1, yi))
                 + fy * ((1.0 - fx) * px(xi, yi + 1) + fx * px(xi + 1, yi + 1));
-            data.push(v as f32);
+            // Rounded to grey levels like every image the head captures: the rounding
+            // (0.29 grey levels RMS) is far below the sensor noise.
+            data.push(v.round().clamp(0.0, 255.0) as u8);
         }
     }
     let levels = b.len();
-    let template = FloatImage::new(side, side, data).map_err(vision("fixation: warped patch"))?;
-    let template = Pyramid::from_float(template, levels).map_err(vision("fixation: warped patch"))?;
+    let template =
+        GrayImage::new(side as u32, side as u32, data).map_err(vision("fixation: warped patch"))?;
+    let template = Pyramid::new(&template, levels).map_err(vision("fixation: warped patch"))?;
     // The target sits at `predicted` in b's coordinates, i.e. at `predicted - q0 + half`
     // in the template's.
     let at = [predicted[0] - q0[0] as f64 + half as f64, predicted[1] - q0[1] as f64 + half as f64];
@@ -527,8 +529,8 @@ pub fn fixate<H: ImagingHead>(
     let mut patch_target = inside(target, size, options.edge_margin_px);
     // Where the target's own patch was taken: every later position is measured against
     // this one image (chaining image to image would add each step's sub-pixel error).
-    let mut anchor: Option<(FloatImage, [f64; 2], Matrix3<f64>)> =
-        patch_target.then(|| (FloatImage::from_gray(camera.image(&images)), target, Matrix3::identity()));
+    let mut anchor: Option<(GrayImage, [f64; 2], Matrix3<f64>)> =
+        patch_target.then(|| (camera.image(&images).clone(), target, Matrix3::identity()));
     let mut steps = Vec::new();
     loop {
         let err = ((target[0] - c[0]).powi(2) + (target[1] - c[1]).powi(2)).sqrt();
@@ -584,14 +586,8 @@ pub fn fixate<H: ImagingHead>(
         let pyr_before = Pyramid::new(before, levels).map_err(vision("fixation: image pyramid"))?;
         let pyr_after = Pyramid::new(after, levels).map_err(vision("fixation: image pyramid"))?;
         let motion = image_motion(&pyr_before, &pyr_after, shift, options)?;
-        let aim_after = locate_warped(
-            &pyr_before.levels()[0],
-            aim,
-            &pyr_after,
-            &motion.g,
-            options.patch.search_radius,
-            options,
-        )?;
+        let aim_after =
+            locate_warped(before, aim, &pyr_after, &motion.g, options.patch.search_radius, options)?;
         for k in 0..2 {
             // A move of a few pixels tells little about alpha (a 0.05 px correlation error
             // is 1 % of 5 px): only larger ones update it.
@@ -619,7 +615,7 @@ pub fn fixate<H: ImagingHead>(
         // Once the carried target is in view, its own patch follows it from now on.
         if !patch_target && inside(target, size, options.edge_margin_px) {
             patch_target = true;
-            anchor = Some((pyr_after.levels()[0].clone(), target, Matrix3::identity()));
+            anchor = Some((after.clone(), target, Matrix3::identity()));
         }
         images = next;
     }
@@ -690,8 +686,8 @@ mod tests {
     }
 
     /// A smooth texture (sum of sinusoids, wavelengths 12-100 px) seen through `g_inv`
-    /// (pixel x of the image shows the texture at `g_inv x`), as a float image.
-    fn textured(g_inv: &Matrix3<f64>) -> FloatImage {
+    /// (pixel x of the image shows the texture at `g_inv x`), as an 8-bit image.
+    fn textured(g_inv: &Matrix3<f64>) -> GrayImage {
         let waves = [
             [0.31, 0.12, 0.3, 20.0],
             [-0.07, 0.22, 1.1, 18.0],
@@ -705,10 +701,10 @@ mod tests {
             .map(|(x, y)| {
                 let p = apply(g_inv, [x as f64, y as f64]).unwrap();
                 let v: f64 = waves.iter().map(|q| q[3] * (q[0] * p[0] + q[1] * p[1] + q[2]).sin()).sum();
-                (128.0 + v) as f32
+                (128.0 + v).round() as u8
             })
             .collect();
-        FloatImage::new(w, h, data).unwrap()
+        GrayImage::new(w as u32, h as u32, data).unwrap()
     }
 
     #[test]
@@ -717,7 +713,8 @@ mod tests {
         // the patch at (150, 110) of a is at g(150, 110) in b.
         let g = Matrix3::new(1.2, 0.08, -20.0, -0.05, 1.1, 5.0, 2e-4, -1e-4, 1.0);
         let a = textured(&Matrix3::identity());
-        let b = Pyramid::from_float(textured(&g.try_inverse().unwrap()), 4).unwrap();
+        let b_image = textured(&g.try_inverse().unwrap());
+        let b = Pyramid::new(&b_image, 4).unwrap();
         let options = FixationOptions::default();
         let p = [150.3, 110.6];
         let want = apply(&g, p).unwrap();

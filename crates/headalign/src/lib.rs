@@ -14,6 +14,7 @@
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
 //! - [`session`]: sessions on disk (recording head, replay head, the format).
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
+//! - [`panfix`]: pan alignment without calibration, by fixating a drive's epipole.
 
 pub mod alignment;
 pub mod error;
@@ -22,6 +23,7 @@ pub mod export;
 pub mod frontend;
 pub mod imaging;
 pub mod observations;
+pub mod panfix;
 pub mod procedure;
 pub mod process_head;
 pub mod robot;
@@ -29,14 +31,3 @@ pub mod session;
 
 pub use error::AlignError;
 pub use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead, Vehicle};
-
-/// Polish with the geometry crate's small Levenberg-Marquardt (30 iterations).
-pub(crate) fn lm_polish<S, const N: usize>(
-    start: S,
-    start_cost: f64,
-    normal: impl Fn(&S) -> Option<(nalgebra::SMatrix<f64, N, N>, nalgebra::SVector<f64, N>)>,
-    retract: impl Fn(&S, &nalgebra::SVector<f64, N>) -> Option<S>,
-    cost: impl Fn(&S) -> f64,
-) -> S {
-    headalign_geometry::lm::minimise(start, start_cost, 30, normal, retract, cost).0
-}

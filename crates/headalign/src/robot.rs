@@ -7,30 +7,37 @@
 //! (cameras predicted by the calibrated kinematics), in the current left camera frame,
 //! in stereo-baseline units.
 //!
-//! **Rigid motion of a drive** (both stages): triangulate before and after, then RANSAC
-//! over 3-point rigid fits (Umeyama) of `Y = R X + t` (`cam2_from_cam1`), each track
-//! scored by the larger of its reprojection errors of `R X + t` in the left and right
-//! images after the drive (pixels; the right image checks the depth), polished on the
-//! inliers. The camera centre moved by `c = -R^T t` (first camera frame).
+//! **Rigid motion of a drive** (both stages): triangulate before and after; RANSAC over
+//! 3-point rigid fits (Umeyama) of `Y = R X + t` (`cam2_from_cam1`), each track scored by
+//! its linear triangulation from all four views under the model and the largest of its
+//! four reprojection errors (pixels; a score that trusts neither stereo pair's depth
+//! alone); then the maximum-likelihood motion ([`refine_rig_motion`]: motion and points
+//! on the reprojection error in all four images, Huber, covariance) and a guided
+//! re-selection of the tracks with it (twice). The camera centre moved by `c = -R^T t`
+//! (first camera frame) with covariance from that adjustment.
 //!
 //! **Pan** (per drive): two estimates of the displacement direction:
 //! - *image*: left-left matches, the second image derotated by the measured `R`
 //!   (`K R^T K^-1`), matches kept only within `guide_px` of the flow the reconstruction
-//!   predicts, then [`translation_from_flow`] (epipole, `t = K^-1 e`);
-//! - *stereo*: `c` itself.
+//!   predicts, then [`translation_from_flow`] (epipole by 2-point RANSAC on flow lines,
+//!   LM on the sphere, `t = K^-1 e`);
+//! - *stereo*: `c` of the maximum-likelihood motion.
 //!
 //! Each is turned into the displacement of the pan axis (`d = (R^T - I) o + c`, `o` a
 //! point of the calibrated pan axis) and rotated back by half the measured heading change
 //! (the chord of an arc makes half the turn angle with the tangent; exact for the
 //! rear-axle line, so this assumes the pan axis stands over it, and is a no-op when the
-//! wheel is straight). The pan correction is the signed angle about the pan axis from the
-//! head's forward direction (mean of the optical axes, projected) to that direction.
-//! The two are combined by inverse-variance weights: image variance from the LM
-//! covariance; stereo variance `sigma3^2 / n` per coordinate from the registration's 3D
-//! residuals (isotropic approximation, stated; depth errors make it optimistic along
-//! the drive, which is not the pan direction). The drive is repeated (`iterations`)
-//! after correcting, as the paper suggests. The angle of `d` out of the plane
-//! perpendicular to the pan axis is reported as an elevation check.
+//! wheel is straight: hence the demo's pan, steering, pan order). The pan correction is
+//! the signed angle about the pan axis from the head's forward direction (mean of the
+//! optical axes, projected) to that direction. The two are combined by inverse-variance
+//! weights: image variance from the epipole's LM covariance (it ignores the rotation's
+//! own uncertainty, about 0.02 deg at 1 px); stereo variance from the adjustment's
+//! covariance of `c`. They share the left images, so they are not independent: the
+//! combination is a pragmatic average whose stated sigma is optimistic. The drive is
+//! repeated (`iterations`) after correcting, as the paper suggests. The angle of `d` out
+//! of the plane perpendicular to the pan axis is reported as an elevation check; a drive
+//! that rotates more than `max_off_axis_deg` about an axis perpendicular to the pan axis
+//! is [`AlignError::NotPlanar`].
 //!
 //! **Steering**: drives at `settings_deg` relative to the current steering reading; each
 //! gives the screw axis of `cam1_from_cam2` (the robot's motion in a robot-fixed frame):
@@ -48,6 +55,10 @@ use std::collections::HashMap;
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
 use headalign_geometry::registration::similarity_fit;
+use headalign_geometry::rigmotion::{
+    RigMotionEstimate, RigMotionOptions, RigTrack, StereoRig, consistent_tracks, four_cameras,
+    refine_rig_motion, track_error,
+};
 use headalign_geometry::so3::screw_from_isometry;
 use headalign_geometry::steering::{Turn, steering_from_turns};
 use headalign_geometry::translation::{TranslationOptions, derotate, translation_from_flow};
@@ -77,11 +88,16 @@ pub struct PanOptions {
     pub guide_px: f64,
     /// Smallest median flow accepted, pixels. Default 2.
     pub min_flow_px: f64,
-    /// Derotate and guide the image matches with the stereo motion. Default false: at
-    /// 1 px the stereo rotation of a 0.10 m drive is off by tenths of a degree, which
-    /// shifts the image by several pixels and ruins the epipole (measured: 20 deg pan
-    /// errors); without it the image estimate assumes a pure translation.
+    /// Derotate and guide the image matches with the stereo motion's rotation. Default
+    /// true: the maximum-likelihood motion locates a 0.10 m drive's turn to about
+    /// 0.02 deg at 1 px, and a wheel 1 deg off turns the robot by 0.17 deg, which shifts
+    /// the image by 2 px, a third of the flow of a far scene (false assumes a pure
+    /// translation, as the paper, which needs a straight wheel).
     pub use_stereo_rotation: bool,
+    /// Largest rotation of a drive about any axis perpendicular to the pan axis, degrees
+    /// (more is [`AlignError::NotPlanar`]: the robot pitched or rolled, or the pan axis is
+    /// not perpendicular to the ground). Default 1 (measured noise about 0.02 deg).
+    pub max_off_axis_deg: f64,
 }
 
 impl Default for PanOptions {
@@ -93,7 +109,8 @@ impl Default for PanOptions {
             registration: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
             guide_px: 6.0,
             min_flow_px: 2.0,
-            use_stereo_rotation: false,
+            use_stereo_rotation: true,
+            max_off_axis_deg: 1.0,
         }
     }
 }
@@ -107,6 +124,9 @@ impl PanOptions {
         }
         if self.iterations == 0 {
             return bad("iterations must be at least 1".into());
+        }
+        if !(self.max_off_axis_deg.is_finite() && self.max_off_axis_deg > 0.0) {
+            return bad(format!("max_off_axis_deg must be positive, got {}", self.max_off_axis_deg));
         }
         if !(self.guide_px > 0.0 && self.min_flow_px >= 0.0) {
             return bad(format!(
@@ -136,6 +156,8 @@ pub struct PanStep {
     pub pan_correction_deg: f64,
     /// Heading change measured during the drive, degrees.
     pub turn_deg: f64,
+    /// Rotation about axes perpendicular to the pan axis (planarity check), degrees.
+    pub off_axis_deg: f64,
     /// Angle of the travel direction out of the plane perpendicular to the pan axis
     /// (elevation check), degrees.
     pub elevation_check_deg: f64,
@@ -160,16 +182,18 @@ pub struct SteeringOptions {
     /// Drive per steering setting, metres. Default 0.3.
     pub drive_m: f64,
     /// Steering settings relative to the current reading, degrees (known differences).
-    /// Default `[-20, 20, 30]`.
+    /// Default `[-20, 20, 30, -30]` (three suffice; a fourth halves the RMS steering
+    /// error at 60 deg pan zeros, measured 0.44 -> 0.20 deg over seeds 1-20).
     pub settings_deg: Vec<f64>,
     /// Smallest turn whose axis is trusted, degrees. Default 2.
     pub min_turn_deg: f64,
-    /// Largest angle between a screw axis and the pan axis, degrees. Default 25 (the
-    /// free screw axis of a 10 deg turn measured from 1 px stereo wanders by up to about
-    /// 15 deg; the centre itself is taken from the planar motion).
+    /// Largest angle between a screw axis and the pan axis, degrees. Default 10 (the
+    /// maximum-likelihood motion of a 10-15 deg turn puts it 0.03-4.1 deg from the
+    /// calibrated pan axis at 1 px, seeds 1-20; the calibration's own axis error and its
+    /// depth bias are part of that).
     pub max_axis_tilt_deg: f64,
     /// Largest translation along the screw axis, as a fraction of the displacement.
-    /// Default 0.6 (same reason).
+    /// Default 0.2 (measured up to 0.074 at 1 px, seeds 1-20).
     pub max_pitch_ratio: f64,
     /// Wheelbase in metres if known (then converted with `baseline_m`). Default none.
     pub wheelbase_m: Option<f64>,
@@ -183,10 +207,10 @@ impl Default for SteeringOptions {
     fn default() -> Self {
         Self {
             drive_m: 0.3,
-            settings_deg: vec![-20.0, 20.0, 30.0],
+            settings_deg: vec![-20.0, 20.0, 30.0, -30.0],
             min_turn_deg: 2.0,
-            max_axis_tilt_deg: 25.0,
-            max_pitch_ratio: 0.6,
+            max_axis_tilt_deg: 10.0,
+            max_pitch_ratio: 0.2,
             wheelbase_m: None,
             baseline_m: 0.25,
             registration: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
@@ -229,6 +253,8 @@ pub struct TurnStep {
     pub axis_tilt_deg: f64,
     /// Registration inliers.
     pub inliers: usize,
+    /// Turning centre, left camera frame at the stage's start, stereo baselines.
+    pub centre: [f64; 3],
 }
 
 /// Result of [`zero_steering`].
@@ -255,6 +281,7 @@ struct Rig {
     p_right: ProjectiveCamera,
     ref_from_left: Isometry3<f64>,
     left_from_right: Isometry3<f64>,
+    stereo: StereoRig,
 }
 
 fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) -> Result<Rig, AlignError> {
@@ -267,6 +294,7 @@ fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) -> Result<R
         p_right: ProjectiveCamera::from_pose(&st.right, &left_from_right.inverse()),
         ref_from_left,
         left_from_right,
+        stereo: StereoRig { left: st.left, right: st.right, right_from_left: left_from_right.inverse() },
     })
 }
 
@@ -292,8 +320,8 @@ fn triangulate(rig: &Rig, cap: &StereoCapture) -> HashMap<u64, Point3<f64>> {
 struct Moved {
     before: Point3<f64>,
     after: Point3<f64>,
-    left: Point2<f64>,
-    right: Point2<f64>,
+    /// Pixels left/right before, left/right after.
+    pixels: RigTrack,
 }
 
 struct DriveEstimator<'a> {
@@ -321,86 +349,9 @@ impl Estimator for DriveEstimator<'_> {
         self.fit(data, inliers)
     }
     fn residual(&self, m: &Isometry3<f64>, d: &Moved) -> f64 {
-        let y = m * d.before;
-        let h = nalgebra::Vector4::new(y.x, y.y, y.z, 1.0);
-        let (Some(l), Some(r)) = (self.rig.p_left.project(&h), self.rig.p_right.project(&h)) else {
-            return f64::INFINITY;
-        };
-        (l - d.left).norm().max((r - d.right).norm())
+        let cams = four_cameras(&self.rig.stereo, m);
+        track_error(&self.rig.stereo, m, &cams, &d.pixels).map_or(f64::INFINITY, |(_, e)| e)
     }
-}
-
-/// Pixel residuals of a drive motion: the points before projected into both images
-/// after, and the points after projected back into both images before (8 per track;
-/// symmetric so that the depth noise of either reconstruction is not favoured).
-fn drive_residuals(rig: &Rig, data: &[Moved], m: &Isometry3<f64>, out: &mut Vec<f64>) {
-    out.clear();
-    let inv = m.inverse();
-    let proj =
-        |p: &Point3<f64>, cam: &ProjectiveCamera| cam.project(&nalgebra::Vector4::new(p.x, p.y, p.z, 1.0));
-    for d in data {
-        let y = m * d.before;
-        let x = inv * d.after;
-        let before_l = proj(&d.before, &rig.p_left);
-        let before_r = proj(&d.before, &rig.p_right);
-        for (a, b) in [
-            (proj(&y, &rig.p_left), Some(d.left)),
-            (proj(&y, &rig.p_right), Some(d.right)),
-            (proj(&x, &rig.p_left), before_l),
-            (proj(&x, &rig.p_right), before_r),
-        ] {
-            match (a, b) {
-                (Some(a), Some(b)) => {
-                    out.push(a.x - b.x);
-                    out.push(a.y - b.y);
-                }
-                _ => {
-                    out.push(0.0);
-                    out.push(0.0);
-                }
-            }
-        }
-    }
-}
-
-/// Levenberg-Marquardt polish of a drive motion on [`drive_residuals`] (6 parameters,
-/// central-difference Jacobian, step 1e-7).
-fn refine_drive(rig: &Rig, data: &[Moved], start: Isometry3<f64>) -> Isometry3<f64> {
-    use nalgebra::{SMatrix, SVector, Translation3};
-    let retract = |m: &Isometry3<f64>, d: &SVector<f64, 6>| {
-        let dr = UnitQuaternion::from_scaled_axis(Vector3::new(d[0], d[1], d[2]));
-        Some(Isometry3::from_parts(Translation3::new(d[3], d[4], d[5]), dr) * m)
-    };
-    let cost = |m: &Isometry3<f64>| {
-        let mut r = Vec::new();
-        drive_residuals(rig, data, m, &mut r);
-        r.iter().map(|v| v * v).sum::<f64>()
-    };
-    let normal = |m: &Isometry3<f64>| -> Option<(SMatrix<f64, 6, 6>, SVector<f64, 6>)> {
-        let mut r0 = Vec::new();
-        drive_residuals(rig, data, m, &mut r0);
-        let h = 1e-7;
-        let mut cols: Vec<Vec<f64>> = Vec::with_capacity(6);
-        let (mut rp, mut rm) = (Vec::new(), Vec::new());
-        for j in 0..6 {
-            let mut d = SVector::<f64, 6>::zeros();
-            d[j] = h;
-            drive_residuals(rig, data, &retract(m, &d)?, &mut rp);
-            d[j] = -h;
-            drive_residuals(rig, data, &retract(m, &d)?, &mut rm);
-            cols.push(rp.iter().zip(&rm).map(|(a, b)| (a - b) / (2.0 * h)).collect());
-        }
-        let mut jtj = SMatrix::<f64, 6, 6>::zeros();
-        let mut jtr = SVector::<f64, 6>::zeros();
-        for i in 0..r0.len() {
-            let row = SVector::<f64, 6>::from_fn(|j, _| cols[j][i]);
-            jtj += row * row.transpose();
-            jtr += row * r0[i];
-        }
-        Some((jtj, jtr))
-    };
-    let c0 = cost(&start);
-    crate::lm_polish(start, c0, normal, retract, cost)
 }
 
 /// The measured rigid motion of one drive.
@@ -408,8 +359,8 @@ struct DriveMotion {
     cam2_from_cam1: Isometry3<f64>,
     before: HashMap<u64, Point3<f64>>,
     inliers: usize,
-    /// Residual variance of the 3D fit per coordinate, centre units squared.
-    sigma3_sq: f64,
+    /// The maximum-likelihood refinement (covariance of the centre's displacement).
+    ml: RigMotionEstimate,
 }
 
 fn drive_motion(
@@ -421,26 +372,40 @@ fn drive_motion(
     let xb = triangulate(rig, before);
     let xa = triangulate(rig, after);
     let (la, ra) = (by_track(&after.left), by_track(&after.right));
+    let (lb, rb) = (by_track(&before.left), by_track(&before.right));
     let mut data = Vec::new();
     let mut tracks: Vec<&u64> = xb.keys().collect();
     tracks.sort_unstable();
     for t in tracks {
-        if let (Some(b), Some(a), Some(l), Some(r)) = (xb.get(t), xa.get(t), la.get(t), ra.get(t)) {
-            data.push(Moved { before: *b, after: *a, left: *l, right: *r });
+        if let (Some(b), Some(a), Some(l), Some(r), Some(bl), Some(br)) =
+            (xb.get(t), xa.get(t), la.get(t), ra.get(t), lb.get(t), rb.get(t))
+        {
+            data.push(Moved { before: *b, after: *a, pixels: [*bl, *br, *l, *r] });
         }
     }
     let est = DriveEstimator { rig };
     let rep = ransac(&est, &data, options).step("drive registration")?;
     let n = rep.inliers.len();
-    let inl: Vec<Moved> = rep.inliers.iter().map(|&i| data[i]).collect();
-    let m = refine_drive(rig, &inl, rep.model);
-    let ss: f64 = rep.inliers.iter().map(|&i| (m * data[i].before - data[i].after).norm_squared()).sum();
-    Ok(DriveMotion {
-        cam2_from_cam1: m,
-        before: xb,
-        inliers: n,
-        sigma3_sq: ss / (3.0 * n.saturating_sub(2).max(1) as f64),
-    })
+    let obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
+    let pts: Vec<Point3<f64>> = rep.inliers.iter().map(|&i| data[i].before).collect();
+    let mut ml = refine_rig_motion(&rig.stereo, &obs, &rep.model, &pts, &RigMotionOptions::default())
+        .step("drive motion")?;
+    let all: Vec<RigTrack> = data.iter().map(|d| d.pixels).collect();
+    let mut n = n;
+    // Guided re-selection: the refined motion is far better than the 3-point RANSAC
+    // model that chose the inliers (whose threshold must allow for its depth noise).
+    for _ in 0..2 {
+        let kept = consistent_tracks(&rig.stereo, &ml.cam2_from_cam1, &all, options.threshold);
+        if kept.len() < n {
+            break;
+        }
+        let obs: Vec<RigTrack> = kept.iter().map(|(i, _)| all[*i]).collect();
+        let pts: Vec<Point3<f64>> = kept.iter().map(|(_, x)| *x).collect();
+        ml = refine_rig_motion(&rig.stereo, &obs, &ml.cam2_from_cam1, &pts, &RigMotionOptions::default())
+            .step("drive motion")?;
+        n = kept.len();
+    }
+    Ok(DriveMotion { cam2_from_cam1: ml.cam2_from_cam1, before: xb, inliers: n, ml })
 }
 
 /// Signed angle about `up` from `a` to `b` (both projected onto the plane perpendicular
@@ -495,8 +460,16 @@ pub fn pan_step(
     let motion = drive_motion(&rig, before, after, &options.registration)?;
     let r_stereo = motion.cam2_from_cam1.rotation.to_rotation_matrix().into_inner();
     let r = if options.use_stereo_rotation { r_stereo } else { Matrix3::identity() };
-    let c = -(r.transpose() * motion.cam2_from_cam1.translation.vector);
-    let heading_stereo = (motion.cam2_from_cam1.rotation.inverse().scaled_axis()).dot(&up);
+    let c = motion.ml.centre_displacement;
+    let w = motion.cam2_from_cam1.rotation.inverse().scaled_axis();
+    let heading_stereo = w.dot(&up);
+    let off_axis = (w - up * heading_stereo).norm().to_degrees();
+    if off_axis > options.max_off_axis_deg {
+        return Err(AlignError::NotPlanar(format!(
+            "pan drive: the robot rotated {off_axis:.2} deg about an axis perpendicular to the pan axis (max {})",
+            options.max_off_axis_deg
+        )));
+    }
     let heading = if options.use_stereo_rotation { heading_stereo } else { 0.0 };
 
     // Image estimate on guided, derotated left-left matches.
@@ -531,7 +504,7 @@ pub fn pan_step(
     let g_img = grad(&f_img);
     let var_img = c.norm_squared() * (g_img.transpose() * image.covariance * g_img)[(0, 0)];
     let g_st = grad(&f_st);
-    let var_st = g_st.norm_squared() * motion.sigma3_sq / motion.inliers.max(1) as f64;
+    let var_st = (g_st.transpose() * motion.ml.centre_covariance * g_st)[(0, 0)];
     let a_img = angle_about(&up, &h, &f_img);
     let a_st = angle_about(&up, &h, &f_st);
     let (w_i, w_s) = (1.0 / var_img.max(1e-30), 1.0 / var_st.max(1e-30));
@@ -545,6 +518,7 @@ pub fn pan_step(
         sigma_stereo_deg: var_st.sqrt().to_degrees(),
         pan_correction_deg: combined.to_degrees(),
         turn_deg: heading_stereo.to_degrees(),
+        off_axis_deg: off_axis,
         elevation_check_deg: fc.dot(&up).clamp(-1.0, 1.0).asin().to_degrees(),
         median_flow_px: image.median_flow_px,
         inliers: [image.inliers.len(), motion.inliers],
@@ -615,6 +589,7 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
             turn_deg: screw.angle.to_degrees(),
             axis_tilt_deg: tilt,
             inliers: motion.inliers,
+            centre: [centre.x, centre.y, centre.z],
         });
     }
     let scale = options.baseline_m;
@@ -664,6 +639,78 @@ mod tests {
         assert!(matches!(
             zero_steering(&mut robot, cal, verge, &small),
             Err(AlignError::TurnTooSmall { .. })
+        ));
+    }
+
+    /// A robot on a ramp: every drive also pitches it about its own x axis (a motion
+    /// that is not planar).
+    struct Ramp {
+        inner: SimulatedRobot,
+        pitch_deg: f64,
+    }
+
+    impl StereoHead for Ramp {
+        fn image_size(&self) -> [u32; 2] {
+            self.inner.image_size()
+        }
+        fn read_encoders(&mut self) -> Result<Encoders, headalign_platform::PlatformError> {
+            self.inner.read_encoders()
+        }
+        fn move_to(&mut self, target: &Encoders) -> Result<(), headalign_platform::PlatformError> {
+            self.inner.move_to(target)
+        }
+        fn capture(&mut self) -> Result<StereoCapture, headalign_platform::PlatformError> {
+            self.inner.capture()
+        }
+    }
+
+    impl Vehicle for Ramp {
+        fn drive(&mut self, d: f64) -> Result<(), headalign_platform::PlatformError> {
+            self.inner.drive(d)?;
+            let pitch = Isometry3::rotation(Vector3::x() * self.pitch_deg.to_radians() * d.signum());
+            let pose = self.inner.head().world_from_robot() * pitch;
+            self.inner.head_mut().set_world_from_robot(pose);
+            Ok(())
+        }
+        fn steer_to(&mut self, e: f64) -> Result<(), headalign_platform::PlatformError> {
+            self.inner.steer_to(e)
+        }
+        fn read_steering(&mut self) -> Result<f64, headalign_platform::PlatformError> {
+            self.inner.read_steering()
+        }
+    }
+
+    /// Non-planar drives are named, in both stages (noise-free, so only the pitch can
+    /// trip the checks: 3 deg against the pan stage's 1 deg; 5 deg with a 10-15 deg turn
+    /// tilts the screw axis by about 20 deg against the steering stage's 10).
+    #[test]
+    fn non_planar_motion_is_named() {
+        let s = Scenario {
+            seed: 2,
+            noise_px: 0.0,
+            outlier_fraction: 0.0,
+            near_panels: Scenario::ROBOT_NEAR_PANELS,
+            ..Scenario::default()
+        };
+        let mut robot = SimulatedRobot::new(s).unwrap();
+        let opts = VergeTiltOptions {
+            estimation: EstimationOptions { seed: 2, ..EstimationOptions::default() },
+            ..VergeTiltOptions::default()
+        };
+        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        let (cal, verge) = (&vt.calibration, &vt.verge_axes);
+        // Planar: fine, and the pan stage reports its planarity check near zero.
+        let flat = align_pan(&mut robot, cal, verge, &PanOptions::default()).unwrap();
+        assert!(flat.steps.iter().all(|s| s.off_axis_deg < 1e-3), "{flat:?}");
+        let mut ramp = Ramp { inner: robot, pitch_deg: 3.0 };
+        assert!(matches!(
+            align_pan(&mut ramp, cal, verge, &PanOptions::default()),
+            Err(AlignError::NotPlanar(_))
+        ));
+        ramp.pitch_deg = 5.0;
+        assert!(matches!(
+            zero_steering(&mut ramp, cal, verge, &SteeringOptions::default()),
+            Err(AlignError::NotPlanar(_))
         ));
     }
 }
