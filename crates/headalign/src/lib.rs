@@ -11,9 +11,12 @@
 //!   self-calibration, rig bundle adjustment).
 //! - [`alignment`]: exact aligned encoder readings from the calibrated head, measurement of
 //!   cameras by resection.
+//! - [`calibrate`]: self-calibration of a stereo rig from general rig motions (one
+//!   general motion with constraints, or two rotations about different axes).
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
 
 pub mod alignment;
+pub mod calibrate;
 pub mod error;
 pub mod estimate;
 pub mod export;
