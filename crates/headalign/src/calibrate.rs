@@ -1039,6 +1039,32 @@ mod tests {
         );
     }
 
+    /// Two head rotations about different axes need no constraint (noise-free: exact);
+    /// the vergence view (rig changed) is left out and said so.
+    #[test]
+    fn two_rotations_calibrate_without_constraints() {
+        let scenario = Scenario { noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
+        let mut head = SimulatedHead::new(scenario).unwrap();
+        let e0 = head.encoders();
+        let mut views = Vec::new();
+        for (name, enc) in [
+            ("initial", e0),
+            ("elevation", e0.moved(Joint::Elevation, 5.0)),
+            ("pan", e0.moved(Joint::Pan, 5.0)),
+            ("verge", Encoders { verge_left: e0.verge_left + 3.0, ..e0 }),
+        ] {
+            head.move_to(&enc).unwrap();
+            views.push(View { name: name.into(), capture: head.capture().unwrap() });
+        }
+        let cal = calibrate_rig(&views, &CalibrateOptions::default()).unwrap();
+        let (st, t) = (&cal.bundle.state, head.truth());
+        // 1e-4 % and 1e-3 px: noise-free, the adjustment converges to rounding.
+        assert!(f_err_pct(&st.left, &t.left) < 1e-4, "{:?} vs {:?}", st.left, t.left);
+        assert!((st.left.fy - t.left.fy).abs() < 1e-3 && (st.right.fx - t.right.fx).abs() < 1e-3);
+        assert_eq!(cal.report.views, ["initial", "elevation", "pan"]);
+        assert!(cal.report.skipped[0].contains("verge"));
+    }
+
     #[test]
     fn too_few_views_is_an_error() {
         assert!(calibrate_rig(&[], &CalibrateOptions::default()).is_err());
