@@ -5,7 +5,9 @@
 //! - `headalign align --observations FILE`: the estimation on an observation session.
 //! - `headalign simulate --out FILE`: record an observation session from the simulator.
 //! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
+//! - `headalign calibrate DIR`: self-calibration from rig motions ([`calibrate`]).
 
+mod calibrate;
 mod experiment;
 mod images;
 
@@ -57,6 +59,9 @@ enum Command {
     Simulate(SimulateArgs),
     /// Run a Monte-Carlo experiment (CSV, PNG/SVG plots, Markdown summary).
     Experiment(experiment::ExperimentArgs),
+    /// Self-calibrate a stereo rig from a folder of views related by rigid motions of the
+    /// whole rig (head rotations, robot drives, a hand-held rig).
+    Calibrate(calibrate::CalibrateArgs),
 }
 
 #[derive(Args, Clone)]
@@ -169,9 +174,17 @@ struct AlignArgs {
 struct SimulateArgs {
     #[command(flatten)]
     scenario: ScenarioArgs,
-    /// Output file.
+    /// Output file (an observation session), or with --images the session folder.
     #[arg(long)]
     out: PathBuf,
+    /// Record rendered images (an image session folder for `calibrate`) instead of point
+    /// observations.
+    #[arg(long)]
+    images: bool,
+    /// With --images: `rotations` (initial, elevation, pan) or `general` (one general
+    /// motion of the whole rig: 20 deg about an oblique axis with 0.3 m along it).
+    #[arg(long, default_value = "rotations", requires = "images")]
+    motion: String,
 }
 
 fn main() -> ExitCode {
@@ -181,6 +194,7 @@ fn main() -> ExitCode {
         Command::Align(a) => align(&a),
         Command::Simulate(a) => simulate(&a),
         Command::Experiment(a) => experiment::run(&a),
+        Command::Calibrate(a) => calibrate::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -646,6 +660,9 @@ fn align(args: &AlignArgs) -> Result<()> {
 
 fn simulate(args: &SimulateArgs) -> Result<()> {
     let scenario = args.scenario.scenario()?;
+    if args.images {
+        return calibrate::simulate_to_disk(&scenario, &args.motion, &args.out);
+    }
     let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
     let e0 = head.read_encoders()?;
     let options = VergeTiltOptions {

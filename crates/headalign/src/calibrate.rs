@@ -878,6 +878,60 @@ pub fn require_depth(views: &[View], options: &CalibrateOptions) -> Result<Vec<P
     Ok(checks)
 }
 
+/// The rig from known intrinsics (no self-calibration): what a planar target or a single
+/// stereo pair still gives. The views' observations must already be undistorted.
+#[derive(Debug, Clone)]
+pub struct KnownIntrinsicsRig {
+    /// The fundamental matrix from the stereo matches of all views (pixels,
+    /// `x_R^T F x_L = 0`).
+    pub fundamental: FundamentalMatrix,
+    /// `right_from_left` with a unit translation, from `E = K_R^T F K_L`.
+    pub right_from_left: Isometry3<f64>,
+    /// Stereo matches over all views.
+    pub stereo_matches: usize,
+    /// Inliers of F.
+    pub stereo_inliers: usize,
+    /// RMS Sampson distance of the inliers, pixels.
+    pub stereo_rms_px: f64,
+    /// The inlier matches (left, right).
+    pub inlier_pairs: Vec<(Point2<f64>, Point2<f64>)>,
+}
+
+/// F by RANSAC from the stereo matches of every view (the rig is fixed, so matches on
+/// different board poses together are not planar), then the rig from `E` with the known
+/// intrinsics `k_left`, `k_right` (cheirality vote over the inliers).
+pub fn rig_from_known_intrinsics(
+    views: &[View],
+    k_left: &Intrinsics,
+    k_right: &Intrinsics,
+    options: &EstimationOptions,
+) -> Result<KnownIntrinsicsRig, AlignError> {
+    options.validate()?;
+    let pairs: Vec<(Point2<f64>, Point2<f64>)> =
+        views.iter().flat_map(|v| stereo_matches(&v.capture)).map(|m| (m.1, m.2)).collect();
+    if pairs.len() < options.min_tracks {
+        return Err(AlignError::TooFewTracks {
+            what: "matched between left and right".into(),
+            needed: options.min_tracks,
+            got: pairs.len(),
+        });
+    }
+    let f_report = estimate_fundamental(&pairs, &RansacOptions { seed: options.seed, ..options.fundamental })
+        .step("fundamental matrix")?;
+    let f = f_report.model;
+    let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = f_report.inliers.iter().map(|&i| pairs[i]).collect();
+    let right_from_left = headalign_geometry::frame::relative_pose(&f.0, k_left, k_right, &inlier_pairs)
+        .step("relative pose from E")?;
+    Ok(KnownIntrinsicsRig {
+        stereo_rms_px: rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r))),
+        fundamental: f,
+        right_from_left,
+        stereo_matches: pairs.len(),
+        stereo_inliers: inlier_pairs.len(),
+        inlier_pairs,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
