@@ -466,6 +466,16 @@ fn fit_motion(
     })
 }
 
+/// The error of views that show the scene from (nearly) the same rig pose.
+fn no_rotation(motions: &[ViewMotion], options: &CalibrateOptions) -> AlignError {
+    let largest = motions.iter().map(|m| m.report.homography_rotation_deg).fold(0.0, f64::max);
+    AlignError::MissingMotion(format!(
+        "no view is rotated by {} deg or more relative to the first (largest {largest:.2} deg over {} views): the matches between views see the scene from the same rig pose. A fixed rig looking at a moving target sees a static background, and a planar target (a chessboard) has no projective reconstruction to relate between views: self-calibration needs the rig itself to move in a scene with depth (with known intrinsics, --intrinsics gives the rig from the fundamental matrix)",
+        options.min_rotation_deg,
+        motions.len()
+    ))
+}
+
 /// Everything the starts need.
 struct Problem<'a> {
     recon: &'a [Reconstruction],
@@ -695,10 +705,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
             .collect::<Result<_, _>>()
             .step("3D homography")?;
         if hs.is_empty() {
-            return Err(AlignError::MissingMotion(format!(
-                "no motion rotates the rig by {} deg or more",
-                options.min_rotation_deg
-            )));
+            return Err(no_rotation(&motions, options));
         }
         let (plane, cond) = plane_at_infinity_general(&hs).step("plane at infinity")?;
         plane_conditioning = Some(cond);
@@ -749,6 +756,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
         Err(e @ AlignError::Geometry { cause: GeometryError::Degenerate(_), .. }) => {
             return Err(AlignError::MissingMotion(e.to_string()));
         }
+        Err(AlignError::MissingMotion(m)) => return Err(AlignError::MissingMotion(m.clone())),
         Err(e) => (None, Some(e.to_string())),
     };
     // The rigid start: K = K0, the frame's rig, each view's rigid motion in the frame.
