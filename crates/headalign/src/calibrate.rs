@@ -1127,6 +1127,67 @@ mod tests {
         assert!(cal.report.skipped[0].contains("verge"));
     }
 
+    /// A scene that is one plane (every point on z = 3 m) is refused by the scene-depth
+    /// check, naming the views and the degeneracy.
+    #[test]
+    fn planar_scene_is_named() {
+        let k = Intrinsics::new(700.0, 700.0, 384.0, 288.0);
+        let right_from_left = Isometry3::translation(-0.25, 0.0, 0.0);
+        let motion = general_motion(10.0, 0.2);
+        let view = |name: &str, cam_from_world: Isometry3<f64>| {
+            let (mut left, mut right) = (Vec::new(), Vec::new());
+            for i in 0..400u64 {
+                let p = Point3::new(
+                    -1.5 + 3.0 * ((i * 37) % 100) as f64 / 100.0,
+                    -1.0 + 2.0 * (i / 20) as f64 / 20.0,
+                    3.0,
+                );
+                let pc = cam_from_world * p;
+                if let (Some(l), Some(r)) = (k.project(&pc), k.project(&(right_from_left * pc))) {
+                    left.push(TrackObservation { track: i, pixel: l });
+                    right.push(TrackObservation { track: i, pixel: r });
+                }
+            }
+            View {
+                name: name.into(),
+                capture: StereoCapture { encoders: Encoders::default(), image_size: [768, 576], left, right },
+            }
+        };
+        let views = [view("a", Isometry3::identity()), view("b", motion.inverse())];
+        let e = calibrate_rig(&views, &CalibrateOptions::default()).unwrap_err().to_string();
+        assert!(e.contains("one plane") && e.contains("'a'") && e.contains("'b'"), "{e}");
+        assert!(require_depth(&views, &CalibrateOptions::default()).is_err());
+    }
+
+    /// Known lens distortion (barrel, k1 = -0.2, k2 = 0.05, as a lens file would give it)
+    /// is removed before self-calibration: noise-free, K comes out exact; ignoring the
+    /// lens costs percent.
+    #[test]
+    fn known_distortion_is_removed() {
+        let mut scenario = Scenario { noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
+        scenario.render.distortion = headalign_sim::RadialDistortion { k1: -0.2, k2: 0.05 };
+        let mut head = SimulatedHead::new(scenario).unwrap();
+        let e0 = head.encoders();
+        let mut views = Vec::new();
+        for (name, enc) in [
+            ("initial", e0),
+            ("elevation", e0.moved(Joint::Elevation, 5.0)),
+            ("pan", e0.moved(Joint::Pan, 5.0)),
+        ] {
+            head.move_to(&enc).unwrap();
+            views.push(View { name: name.into(), capture: head.capture().unwrap() });
+        }
+        let t = head.truth().clone();
+        let lens = |k: Intrinsics| LensModel { k, distortion: Distortion::radial(-0.2, 0.05) };
+        let undistorted = undistort_views(&views, &[lens(t.left), lens(t.right)]);
+        let cal = calibrate_rig(&undistorted, &CalibrateOptions::default()).unwrap();
+        // 1e-4 %: noise-free (undistortion is exact to 1e-9 px).
+        assert!(f_err_pct(&cal.bundle.state.left, &t.left) < 1e-4, "{:?}", cal.bundle.state.left);
+        let ignored = calibrate_rig(&views, &CalibrateOptions::default());
+        let off = ignored.map_or(f64::INFINITY, |c| f_err_pct(&c.bundle.state.left, &t.left));
+        assert!(off > 0.5, "ignoring the lens only cost {off} %");
+    }
+
     #[test]
     fn too_few_views_is_an_error() {
         assert!(calibrate_rig(&[], &CalibrateOptions::default()).is_err());
