@@ -1043,7 +1043,7 @@ mod tests {
 
     /// The bar of issue 6: one general motion (20 deg about an oblique axis, 0.3 m along
     /// it), zero skew and square pixels, 0.5 px noise, 400 points: focal length within 1 %.
-    /// Seeds 1 and 3-5 (all four pass with margin: 0.12-0.47 %). Seed 2 is left out on
+    /// Seeds 1 and 3-5 (all four pass with margin: 0.04-0.47 %). Seed 2 is left out on
     /// purpose: 89 % of its reference view lies on one wall and the maximum-likelihood
     /// estimate itself is 5.9 % off (an adjustment started at the truth ends at the same
     /// minimum); its reported sigma (1.1 %) flags it. The statistics over 20 seeds are in
