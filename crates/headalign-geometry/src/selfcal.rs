@@ -284,7 +284,7 @@ pub fn calibrate_from_infinite_homographies(
     order.sort_by(|&i, &j| eig.eigenvalues[i].total_cmp(&eig.eigenvalues[j]));
     let largest = eig.eigenvalues[order[p - 1]].max(f64::MIN_POSITIVE);
     let ratio = eig.eigenvalues[order[1]].max(0.0) / largest;
-    if !(ratio >= CONIC_DEGENERACY_RATIO) {
+    if ratio.is_nan() || ratio < CONIC_DEGENERACY_RATIO {
         return Err(GeometryError::Degenerate(format!(
             "the motions leave the calibration undetermined (conic solution space of dimension > 1, ratio {ratio:.1e}): one rotation needs a constraint (zero skew, square pixels) or a second motion about another axis"
         )));

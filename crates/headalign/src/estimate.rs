@@ -730,7 +730,7 @@ pub(crate) fn adjust_from_starts(
     // by its residual under the first solution.
     let mut first = first;
     retriangulate_lost_points(&mut first.state, point_tracks, origin_slot, recon);
-    let sigma = robust_sigma(&first.state, &first_obs).max(0.05);
+    let sigma = robust_sigma(&first.state, first_obs).max(0.05);
     let gate = options.reselect_sigmas * sigma;
     let gated: Vec<BundleObservation> = all_obs
         .iter()
