@@ -222,15 +222,17 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
     // The scene-depth check on each view's own matches first: a planar target fails here
     // with the degeneracy named, not later in matching across views.
     require_depth(&undistort(stereo_only(views, &front)?), &opts)?;
-    let recorded: Vec<headalign::session::RecordedView> = views
+    // The front end over the views in order, the first the tracking reference (what
+    // `session::track_session` does, without depending on the session's view type).
+    let mut tracker = Tracker::new(front.clone())?;
+    let tracked = views
         .iter()
-        .map(|(n, images)| headalign::session::RecordedView {
-            name: n.clone(),
-            folder: PathBuf::new(),
-            images: images.clone(),
+        .map(|(name, images)| {
+            let (capture, _) = tracker.track(images, name).with_context(|| format!("view '{name}'"))?;
+            Ok(View { name: name.clone(), capture })
         })
-        .collect();
-    let tracked = undistort(headalign::session::track_session(&recorded, &front)?);
+        .collect::<Result<Vec<_>>>()?;
+    let tracked = undistort(tracked);
     let cal = calibrate_rig(&tracked, &opts)?;
     let st = &cal.bundle.state;
     let distortion = lenses.map_or([Distortion::default(); 2], |l| [l[0].distortion, l[1].distortion]);
