@@ -184,6 +184,11 @@ fn k_json(k: &Intrinsics) -> Value {
 /// Run `calibrate` on named views (from disk or memory alike).
 pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
     let t0 = Instant::now();
+    if let Some(r) = args.search_px
+        && !(r.is_finite() && r > 0.0)
+    {
+        bail!("--search-px must be a positive number of pixels, got {r}");
+    }
     let front = front_end(args);
     let Some((_, first)) = views.first() else { bail!("no views") };
     let image_size = first.image_size();
