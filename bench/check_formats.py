@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
-"""Read every calibration file `headalign align --out DIR` writes with its ecosystem's
-reader and check it against calibration.json.
+"""Read every calibration file `headalign align --out DIR` or `headalign calibrate --out
+DIR` writes with its ecosystem's reader and check it against calibration.json (head.json
+and alignment.json only where align wrote them; calibrate writes calibrate_report.json).
 
 usage: bench/check_formats.py DIR
 needs: pip install opencv-python-headless pyyaml numpy (for this script only)
@@ -29,6 +30,8 @@ check("opencv M1 == left K", m["M1"], cal["left"]["K"])
 check("opencv M2 == right K", m["M2"], cal["right"]["K"])
 check("opencv R", m["R"], cal["right_from_left"]["R"])
 check("opencv T", m["T"].ravel(), cal["right_from_left"]["t"])
+check("opencv D1 == left distortion", m["D1"].ravel(), cal["left"]["distortion_coefficients"])
+check("opencv D2 == right distortion", m["D2"].ravel(), cal["right"]["distortion_coefficients"])
 for k in ["R1", "R2", "P1", "P2", "Q"]:
     check(f"opencv {k}", m[k], cal["rectification"][k])
 w, h = int(fs.getNode("image_width").real()), int(fs.getNode("image_height").real())
@@ -53,6 +56,7 @@ for side in ["left", "right"]:
             ok = False
             print(f"BAD ros {side} missing {key}")
     check(f"ros {side} camera_matrix", np.reshape(ci["camera_matrix"]["data"], (3, 3)), cal[side]["K"])
+    check(f"ros {side} distortion_coefficients", ci["distortion_coefficients"]["data"], cal[side]["distortion_coefficients"])
     P = cal["rectification"]["P1" if side == "left" else "P2"]
     check(f"ros {side} projection_matrix", np.reshape(ci["projection_matrix"]["data"], (3, 4)), P)
 
@@ -62,10 +66,13 @@ for i, side in enumerate(["left", "right"]):
     c = kc[f"cam{i}"]
     K = cal[side]["K"]
     check(f"kalibr cam{i} intrinsics", c["intrinsics"], [K[0][0], K[1][1], K[0][2], K[1][2]])
+    check(f"kalibr cam{i} distortion_coeffs (k1 k2 p1 p2)", c["distortion_coeffs"], cal[side]["distortion_coefficients"][:4])
 T = np.array(kc["cam1"]["T_cn_cnm1"])
 check("kalibr T_cn_cnm1 rotation", T[:3, :3], cal["right_from_left"]["R"])
 check("kalibr T_cn_cnm1 translation", T[:3, 3], cal["right_from_left"]["t"])
-for f in ["head.json", "alignment.json"]:
+import os
+written_by_align = os.path.exists(f"{d}/head.json") or os.path.exists(f"{d}/alignment.json")
+for f in ["head.json", "alignment.json"] if written_by_align else ["calibrate_report.json"]:
     try:
         json.load(open(f"{d}/{f}"))
         print(f"ok  {f} parses")

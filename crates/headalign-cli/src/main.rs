@@ -7,7 +7,9 @@
 //! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
 //! - `headalign replay DIR`: re-run a recorded session offline ([`replay`]).
 //! - `headalign run --head-cmd CMD`: the image procedure on a driver process ([`headcmd`]).
+//! - `headalign calibrate DIR`: self-calibration from rig motions ([`calibrate`]).
 
+mod calibrate;
 mod experiment;
 mod headcmd;
 mod images;
@@ -68,6 +70,9 @@ enum Command {
     /// Verge, calibrate and align a head driven through the JSON-lines protocol
     /// (docs/head-protocol.md), recording the session.
     Run(headcmd::RunArgs),
+    /// Self-calibrate a stereo rig from a folder of views related by rigid motions of the
+    /// whole rig (head rotations, robot drives, a hand-held rig).
+    Calibrate(calibrate::CalibrateArgs),
 }
 
 #[derive(Args, Clone)]
@@ -204,9 +209,17 @@ struct AlignArgs {
 struct SimulateArgs {
     #[command(flatten)]
     scenario: ScenarioArgs,
-    /// Output file.
+    /// Output file (an observation session), or with --images the session folder.
     #[arg(long)]
     out: PathBuf,
+    /// Record rendered images (an image session folder for `calibrate`) instead of point
+    /// observations.
+    #[arg(long)]
+    images: bool,
+    /// With --images: `rotations` (initial, elevation, pan) or `general` (one general
+    /// motion of the whole rig: 20 deg about an oblique axis with 0.3 m along it).
+    #[arg(long, default_value = "rotations", requires = "images")]
+    motion: String,
 }
 
 fn main() -> ExitCode {
@@ -218,6 +231,7 @@ fn main() -> ExitCode {
         Command::Experiment(a) => experiment::run(&a),
         Command::Replay(a) => replay::run(&a),
         Command::Run(a) => headcmd::run(&a),
+        Command::Calibrate(a) => calibrate::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -737,6 +751,9 @@ fn align(args: &AlignArgs) -> Result<()> {
 
 fn simulate(args: &SimulateArgs) -> Result<()> {
     let scenario = args.scenario.scenario()?;
+    if args.images {
+        return calibrate::simulate_to_disk(&scenario, &args.motion, &args.out);
+    }
     let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
     let e0 = head.read_encoders()?;
     let options = VergeTiltOptions {

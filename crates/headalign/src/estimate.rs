@@ -59,9 +59,9 @@ use crate::error::{AlignError, StepContext};
 use crate::observations::View;
 
 /// A stereo match: track id, left pixel, right pixel.
-type StereoMatch = (u64, Point2<f64>, Point2<f64>);
+pub(crate) type StereoMatch = (u64, Point2<f64>, Point2<f64>);
 /// One view's reconstruction in the projective frame: track -> (X, left pixel, right pixel).
-type Reconstruction = BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>;
+pub(crate) type Reconstruction = BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>;
 /// The plane homographies (left, right) of one rotation.
 type PlanePair = (Matrix3<f64>, Matrix3<f64>);
 
@@ -350,7 +350,7 @@ fn to_map(obs: &[headalign_platform::TrackObservation]) -> HashMap<u64, Point2<f
 }
 
 /// Stereo matches (track, left, right) of a capture, sorted by track id.
-fn stereo_matches(c: &StereoCapture) -> Vec<StereoMatch> {
+pub(crate) fn stereo_matches(c: &StereoCapture) -> Vec<StereoMatch> {
     let right = to_map(&c.right);
     let mut m: Vec<_> =
         c.left.iter().filter_map(|o| right.get(&o.track).map(|r| (o.track, o.pixel, *r))).collect();
@@ -604,10 +604,84 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         })
         .collect();
 
+    let adjusted = adjust_from_starts(
+        vec![linear, rotation, rough],
+        &first_obs,
+        &all_obs,
+        &point_tracks,
+        &origin_slot,
+        &recon,
+        options,
+    )?;
+    let Adjustment { first, last: final_result, observations: second_obs, linear_focal, .. } = adjusted;
+    let report = EstimationReport {
+        stereo_matches: pairs.len(),
+        stereo_inliers: f_report.inliers.len(),
+        stereo_rms_px: stereo_rms,
+        homographies: h_reports,
+        linear_focal,
+        bundle_observations: second_obs.len(),
+        bundle_points: point_tracks.len(),
+        bundle_iterations: final_result.report.iterations,
+        initial_rms_px: first.report.initial_rms_px,
+        final_rms_px: final_result.report.final_rms_px,
+        sigma_px: final_result.report.sigma_px,
+    };
+    let mut point_observations = vec![0usize; point_tracks.len()];
+    let mut point_sides = vec![[false; 2]; point_tracks.len()];
+    for o in &second_obs {
+        point_observations[o.point] += 1;
+        point_sides[o.point][usize::from(o.side == Side::Right)] = true;
+    }
+    // A point seen by one camera only has its depth fixed by tiny rotation parallax: it is
+    // not counted as reconstructed.
+    for (n, sides) in point_observations.iter_mut().zip(&point_sides) {
+        if !(sides[0] && sides[1]) {
+            *n = 0;
+        }
+    }
+    Ok(RigCalibration {
+        bundle: final_result,
+        point_tracks,
+        point_observations,
+        observations: second_obs,
+        reference_encoders: views[0].capture.encoders,
+        report,
+    })
+}
+
+/// What [`adjust_from_starts`] returns.
+pub(crate) struct Adjustment {
+    /// The screened adjustment of the best start.
+    pub first: BundleResult,
+    /// The final adjustment.
+    pub last: BundleResult,
+    /// The observations of the final adjustment.
+    pub observations: Vec<BundleObservation>,
+    /// Focal lengths of the first start that existed (left fx, fy; right fx, fy).
+    pub linear_focal: [f64; 4],
+    /// Index of the start that won.
+    pub start_index: usize,
+}
+
+/// The adjustment stage (module docs, steps 5-6), shared with the calibration from
+/// general rig motions ([`crate::calibrate`]): each start screened by a short adjustment
+/// on `first_obs` (gross residuals left out), the best one re-selected over `all_obs` by
+/// residual, adjusted to convergence, wild points removed and adjusted once more.
+pub(crate) fn adjust_from_starts(
+    starts: Vec<Result<RigState, AlignError>>,
+    first_obs: &[BundleObservation],
+    all_obs: &[BundleObservation],
+    point_tracks: &[u64],
+    origin_slot: &[usize],
+    recon: &[Reconstruction],
+    options: &EstimationOptions,
+) -> Result<Adjustment, AlignError> {
     let mut linear_focal = [f64::NAN; 4];
     let mut best: Option<BundleResult> = None;
     let mut last_err = None;
-    for init in [linear, rotation, rough] {
+    let mut start_index = 0;
+    for (index, init) in starts.into_iter().enumerate() {
         let state = match init {
             Ok(s) => s,
             Err(e) => {
@@ -641,6 +715,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
             Ok(r) => {
                 if best.as_ref().is_none_or(|b| r.report.final_rms_px < b.report.final_rms_px) {
                     best = Some(r);
+                    start_index = index;
                 }
             }
             Err(e) => last_err = Some(e),
@@ -654,8 +729,8 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     // re-triangulated with the calibrated rig, then every raw observation is re-selected
     // by its residual under the first solution.
     let mut first = first;
-    retriangulate_lost_points(&mut first.state, &point_tracks, &origin_slot, &recon);
-    let sigma = robust_sigma(&first.state, &first_obs).max(0.05);
+    retriangulate_lost_points(&mut first.state, point_tracks, origin_slot, recon);
+    let sigma = robust_sigma(&first.state, first_obs).max(0.05);
     let gate = options.reselect_sigmas * sigma;
     let gated: Vec<BundleObservation> = all_obs
         .iter()
@@ -694,44 +769,10 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
                 .step("bundle adjustment (wild points removed)")?;
         }
     }
-
-    let report = EstimationReport {
-        stereo_matches: pairs.len(),
-        stereo_inliers: f_report.inliers.len(),
-        stereo_rms_px: stereo_rms,
-        homographies: h_reports,
-        linear_focal,
-        bundle_observations: second_obs.len(),
-        bundle_points: point_tracks.len(),
-        bundle_iterations: final_result.report.iterations,
-        initial_rms_px: first.report.initial_rms_px,
-        final_rms_px: final_result.report.final_rms_px,
-        sigma_px: final_result.report.sigma_px,
-    };
-    let mut point_observations = vec![0usize; point_tracks.len()];
-    let mut point_sides = vec![[false; 2]; point_tracks.len()];
-    for o in &second_obs {
-        point_observations[o.point] += 1;
-        point_sides[o.point][usize::from(o.side == Side::Right)] = true;
-    }
-    // A point seen by one camera only has its depth fixed by tiny rotation parallax: it is
-    // not counted as reconstructed.
-    for (n, sides) in point_observations.iter_mut().zip(&point_sides) {
-        if !(sides[0] && sides[1]) {
-            *n = 0;
-        }
-    }
-    Ok(RigCalibration {
-        bundle: final_result,
-        point_tracks,
-        point_observations,
-        observations: second_obs,
-        reference_encoders: views[0].capture.encoders,
-        report,
-    })
+    Ok(Adjustment { first, last: final_result, observations: second_obs, linear_focal, start_index })
 }
 
-fn rms(values: impl Iterator<Item = f64>) -> f64 {
+pub(crate) fn rms(values: impl Iterator<Item = f64>) -> f64 {
     let (mut s, mut n) = (0.0, 0usize);
     for v in values {
         s += v * v;
@@ -984,7 +1025,7 @@ fn rotation_initial_state(
 /// optimisation and the guided loop) is the DLT polished by Levenberg-Marquardt on
 /// transfer error: the algebraic DLT over-weights far points, whose triangulated depth is
 /// poor, and under 1 px noise its consensus is only about half the true inliers.
-struct PolishedHomography<'a>(&'a Homography3Estimator);
+pub(crate) struct PolishedHomography<'a>(pub(crate) &'a Homography3Estimator);
 
 impl Estimator for PolishedHomography<'_> {
     type Datum = Quadruplet;
@@ -1040,7 +1081,7 @@ fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> (Vec<u
 
 /// `start` polished by Levenberg-Marquardt on the transfer error of `subset`; `None` if the
 /// result is not a rigid conjugate (det <= 0).
-fn polish(
+pub(crate) fn polish(
     start: &TransferModel,
     quads: &[Quadruplet],
     subset: &[usize],

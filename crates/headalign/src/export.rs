@@ -15,13 +15,16 @@
 //! is written by hand, as are the other YAML files (small, fixed layouts). Numbers are
 //! written with Rust's shortest round-trip formatting, so reading them back gives the same
 //! `f64`; a non-finite number is an error, never written. Kalibr's pinhole model has no
-//! skew: a non-zero skew is reported in a comment and dropped there only. Distortion is
-//! zero (plumb_bob / radtan with zero coefficients) until the lens model is estimated.
+//! skew: a non-zero skew is reported in a comment and dropped there only. Distortion is the
+//! given lens model (`plumb_bob`; Kalibr's `radtan` takes `k1 k2 p1 p2`, a `k3` is noted in
+//! a comment), zero when none was given.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
+use headalign_geometry::bundle::BundleResult;
 use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::distortion::Distortion;
 use headalign_geometry::rectify::{Rectification, rectify_stereo};
 use nalgebra::{DMatrix, Isometry3, Matrix3};
 use serde_json::{Value, json};
@@ -77,6 +80,9 @@ pub struct StereoCalibration {
     pub right_from_left: Isometry3<f64>,
     /// Unit of `right_from_left`'s translation.
     pub unit: TranslationUnit,
+    /// Lens distortion of each camera (OpenCV `plumb_bob` `k1 k2 p1 p2 k3`; zero when no
+    /// lens model was given).
+    pub distortion: [Distortion; 2],
 }
 
 impl StereoCalibration {
@@ -87,7 +93,17 @@ impl StereoCalibration {
         image_size: [u32; 2],
         baseline_m: Option<f64>,
     ) -> Result<Self, AlignError> {
-        let state = &calib.bundle.state;
+        Self::from_bundle(&calib.bundle, image_size, baseline_m)
+    }
+
+    /// From any rig bundle adjustment (its state's cameras and rig, its covariance's
+    /// sigmas); distortion zero. With `baseline_m` the translation is scaled to metres.
+    pub fn from_bundle(
+        bundle: &BundleResult,
+        image_size: [u32; 2],
+        baseline_m: Option<f64>,
+    ) -> Result<Self, AlignError> {
+        let state = &bundle.state;
         let mut right_from_left = state.right_from_left;
         let norm = right_from_left.translation.vector.norm();
         if !norm.is_finite() || norm <= 0.0 {
@@ -104,7 +120,7 @@ impl StereoCalibration {
                 TranslationUnit::Baselines
             }
         };
-        let c = &calib.bundle.covariance;
+        let c = &bundle.covariance;
         let sig = |side: &str| IntrinsicSigmas {
             fx: c.sigma(&format!("{side}.fx")),
             fy: c.sigma(&format!("{side}.fy")),
@@ -119,6 +135,7 @@ impl StereoCalibration {
             sigmas: [sig("left"), sig("right")],
             right_from_left,
             unit,
+            distortion: [Distortion::default(); 2],
         })
     }
 
@@ -135,20 +152,20 @@ impl StereoCalibration {
     /// JSON: both cameras (K, sigmas, distortion), the rig, the rectification.
     pub fn json(&self) -> Result<Value, AlignError> {
         let r = self.rectification()?;
-        let cam = |k: &Intrinsics, s: &IntrinsicSigmas| {
+        let cam = |k: &Intrinsics, s: &IntrinsicSigmas, d: &Distortion| {
             json!({
                 "K": rows(&k.matrix()),
                 "fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy,
                 "sigma": {"fx": s.fx, "fy": s.fy, "cx": s.cx, "cy": s.cy, "skew": s.skew},
                 "distortion_model": "plumb_bob",
-                "distortion_coefficients": [0.0, 0.0, 0.0, 0.0, 0.0],
+                "distortion_coefficients": d.to_opencv(),
             })
         };
         let v = json!({
             "format": "headalign-calibration/1",
             "image_size": self.image_size,
-            "left": cam(&self.left, &self.sigmas[0]),
-            "right": cam(&self.right, &self.sigmas[1]),
+            "left": cam(&self.left, &self.sigmas[0], &self.distortion[0]),
+            "right": cam(&self.right, &self.sigmas[1], &self.distortion[1]),
             "right_from_left": {
                 "R": rows(&self.rotation()),
                 "t": self.right_from_left.translation.vector.as_slice(),
@@ -172,13 +189,13 @@ impl StereoCalibration {
         let _ = writeln!(s, "# headalign stereo calibration; translation unit: {}", self.unit.name());
         let _ = writeln!(s, "image_width: {}", self.image_size[0]);
         let _ = writeln!(s, "image_height: {}", self.image_size[1]);
-        let zeros5 = DMatrix::zeros(1, 5);
+        let d = |i: usize| DMatrix::from_row_slice(1, 5, &self.distortion[i].to_opencv());
         let t = self.right_from_left.translation.vector;
         let entries: [(&str, DMatrix<f64>); 11] = [
             ("M1", dyn3(&self.left.matrix())),
-            ("D1", zeros5.clone()),
+            ("D1", d(0)),
             ("M2", dyn3(&self.right.matrix())),
-            ("D2", zeros5),
+            ("D2", d(1)),
             ("R", dyn3(&self.rotation())),
             ("T", DMatrix::from_column_slice(3, 1, t.as_slice())),
             ("R1", dyn3(&r.rect_from_left)),
@@ -203,9 +220,9 @@ impl StereoCalibration {
     /// of the pair (`rectification_matrix`, `projection_matrix`).
     pub fn ros_camera_info(&self, index: usize, camera_name: &str) -> Result<String, AlignError> {
         let r = self.rectification()?;
-        let (k, rect, p) = match index {
-            0 => (&self.left, r.rect_from_left, r.p_left),
-            1 => (&self.right, r.rect_from_right, r.p_right),
+        let (k, rect, p, dist) = match index {
+            0 => (&self.left, r.rect_from_left, r.p_left, self.distortion[0]),
+            1 => (&self.right, r.rect_from_right, r.p_right, self.distortion[1]),
             _ => return Err(AlignError::Output(format!("camera index {index} (0 = left, 1 = right)"))),
         };
         let block = |name: &str, m: &DMatrix<f64>| -> Result<String, AlignError> {
@@ -225,7 +242,7 @@ impl StereoCalibration {
         );
         s += &block("camera_matrix", &dyn3(&k.matrix()))?;
         s += "distortion_model: plumb_bob\n";
-        s += &block("distortion_coefficients", &DMatrix::zeros(1, 5))?;
+        s += &block("distortion_coefficients", &DMatrix::from_row_slice(1, 5, &dist.to_opencv()))?;
         s += &block("rectification_matrix", &dyn3(&rect))?;
         s += &block("projection_matrix", &DMatrix::from_column_slice(3, 4, p.as_slice()))?;
         Ok(s)
@@ -234,14 +251,21 @@ impl StereoCalibration {
     /// Kalibr `camchain.yaml`: `cam0` (left), `cam1` (right) with `T_cn_cnm1` =
     /// `right_from_left` as a 4x4 matrix.
     pub fn kalibr_camchain(&self) -> Result<String, AlignError> {
-        let cam = |k: &Intrinsics, topic: &str| -> Result<String, AlignError> {
+        let cam = |k: &Intrinsics, d: &Distortion, topic: &str| -> Result<String, AlignError> {
+            let coeffs: Result<Vec<String>, _> = [d.k1, d.k2, d.p1, d.p2].iter().map(|&v| num(v)).collect();
+            let coeffs = coeffs?.join(", ");
+            let k3 = if d.k3 != 0.0 {
+                format!("  # k3 = {} is not representable in Kalibr's radtan model\n", num(d.k3)?)
+            } else {
+                String::new()
+            };
             let skew = if k.skew.abs() > 1e-9 {
                 format!("  # skew {} px is not representable in Kalibr's pinhole model\n", num(k.skew)?)
             } else {
                 String::new()
             };
             Ok(format!(
-                "{skew}  camera_model: pinhole\n  intrinsics: [{}, {}, {}, {}]\n  distortion_model: radtan\n  distortion_coeffs: [0.0, 0.0, 0.0, 0.0]\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
+                "{skew}{k3}  camera_model: pinhole\n  intrinsics: [{}, {}, {}, {}]\n  distortion_model: radtan\n  distortion_coeffs: [{coeffs}]\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
                 num(k.fx)?,
                 num(k.fy)?,
                 num(k.cx)?,
@@ -251,14 +275,14 @@ impl StereoCalibration {
             ))
         };
         let mut s = format!("# headalign; translation unit: {}\ncam0:\n", self.unit.name());
-        s += &cam(&self.left, "/left/image_raw")?;
+        s += &cam(&self.left, &self.distortion[0], "/left/image_raw")?;
         s += "cam1:\n  T_cn_cnm1:\n";
         let m = self.right_from_left.to_homogeneous();
         for i in 0..4 {
             let row: Result<Vec<String>, _> = (0..4).map(|j| num(m[(i, j)])).collect();
             let _ = writeln!(s, "  - [{}]", row?.join(", "));
         }
-        s += &cam(&self.right, "/right/image_raw")?;
+        s += &cam(&self.right, &self.distortion[1], "/right/image_raw")?;
         Ok(s)
     }
 
@@ -361,6 +385,10 @@ mod tests {
                 UnitQuaternion::from_euler_angles(0.01, -0.05, 0.002),
             ),
             unit: TranslationUnit::Metres,
+            distortion: [
+                Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.0 },
+                Distortion::default(),
+            ],
         }
     }
 

@@ -11,12 +11,15 @@
 //!   self-calibration, rig bundle adjustment).
 //! - [`alignment`]: exact aligned encoder readings from the calibrated head, measurement of
 //!   cameras by resection.
+//! - [`calibrate`]: self-calibration of a stereo rig from general rig motions (one
+//!   general motion with constraints, or two rotations about different axes).
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
 //! - [`session`]: sessions on disk (recording head, replay head, the format).
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
 //! - [`panfix`]: pan alignment without calibration, by fixating a drive's epipole.
 
 pub mod alignment;
+pub mod calibrate;
 pub mod error;
 pub mod estimate;
 pub mod export;
