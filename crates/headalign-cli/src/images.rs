@@ -1,21 +1,25 @@
 //! `headalign demo --images`: the verge/tilt procedure on rendered images with the real
 //! front end (no simulator-provided correspondences): verging (paper section 6), then the
 //! captures, tracking, estimation, alignment and checks of the point-mode procedure, and
-//! with `--save DIR` every captured view (PNG + `view.json`) and the annotated images of
-//! the paper's Figure 6.
+//! with `--save DIR` every captured view (PNG + `view.json`), the annotated images of
+//! the paper's Figure 6 and `report.html`.
 
 use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use headalign::estimate::EstimationOptions;
+use headalign::alignment::AlignmentSolution;
+use headalign::estimate::{EstimationOptions, RigCalibration};
 use headalign::frontend::{FrontEndOptions, TrackingHead};
 use headalign::imaging::{VergingOptions, verge_to_common_view};
+use headalign::observations::View;
 use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
 use headalign_platform::StereoImages;
 use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedHead, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
 use serde_json::{Value, json};
+
+use crate::report_html::{AlignmentResults, HtmlReport, REPORT_FILE};
 
 /// What the image-mode demo measured, for the caller's report.
 pub struct ImageDemo {
@@ -58,10 +62,14 @@ pub fn run(scenario: &Scenario, save: Option<&Path>) -> Result<ImageDemo> {
     let cal = calibration_errors(&truth.left, &truth.right, &st.left, &st.right);
     let true_aligned = head.aligned_encoders();
     let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
+    let (errors, before) = (errors_json(&after, unavoidable_r, &cal, None), before_json(&before));
+    if let Some(dir) = save {
+        write_report(dir, scenario, &run, &outcome, &before, &errors)?;
+    }
     let json = json!({
         "mode": "images",
-        "errors": errors_json(&after, unavoidable_r, &cal, None),
-        "before": before_json(&before),
+        "errors": errors,
+        "before": before,
         "estimate": {
             "left": {"fx": st.left.fx, "fy": st.left.fy, "cx": st.left.cx, "cy": st.left.cy},
             "right": {"fx": st.right.fx, "fy": st.right.fy, "cx": st.right.cx, "cy": st.right.cy},
@@ -144,20 +152,18 @@ fn save_views(dir: &Path, run: &VergeTiltRun, images: &[StereoImages]) -> Result
 
 /// The paper's Figure 6 on the reference view (stereo pair side by side): features used by
 /// the adjustment (green; others red), the invariant lines of the pan (horizon, blue) and
-/// elevation (yellow) rotations, and the fixation point (magenta); and the last check view
-/// with the image centres marked.
-fn annotate(
-    dir: &Path,
-    run: &VergeTiltRun,
-    images: &[StereoImages],
-    outcome: &VergeTiltOutcome,
-) -> Result<()> {
-    let (Some(first), Some(view0)) = (images.first(), run.views.first()) else { return Ok(()) };
-    let calib = &outcome.calibration;
+/// elevation (yellow) rotations, and the fixation point (magenta). `view0` is the tracked
+/// reference view, `first` its images.
+pub fn figure6(
+    first: &StereoImages,
+    view0: &View,
+    calib: &RigCalibration,
+    solution: &AlignmentSolution,
+) -> Canvas {
     let used: std::collections::HashSet<u64> =
         calib.observations.iter().filter(|o| o.view == 0).map(|o| calib.point_tracks[o.point]).collect();
-    let lines = &outcome.solution.invariant_lines;
-    let fixation = [outcome.solution.fixation_px_left, outcome.solution.fixation_px_right];
+    let lines = &solution.invariant_lines;
+    let fixation = [solution.fixation_px_left, solution.fixation_px_right];
     let mut halves = Vec::new();
     for (k, (image, list)) in
         [(&first.left, &view0.capture.left), (&first.right, &view0.capture.right)].into_iter().enumerate()
@@ -178,8 +184,22 @@ fn annotate(
         c.cross(fixation[k], 18.0, MAGENTA, 2);
         halves.push(c);
     }
-    let canvas = Canvas::beside(&halves[0], &halves[1]);
-    canvas.save(&dir.join("figure6.png"))?;
+    Canvas::beside(&halves[0], &halves[1])
+}
+
+/// Caption of `figure6.png` in the reports.
+pub const FIGURE6_CAPTION: &str = "figure6.png: the first view (left | right) as the paper's Figure 6: features the bundle adjustment used (green) and not (red), the invariant lines of the pan (blue) and elevation (yellow) rotations, and the fixation point (magenta).";
+
+/// `figure6.png` (see [`figure6`]) and `aligned.png`, the last check view with the image
+/// centres marked.
+fn annotate(
+    dir: &Path,
+    run: &VergeTiltRun,
+    images: &[StereoImages],
+    outcome: &VergeTiltOutcome,
+) -> Result<()> {
+    let (Some(first), Some(view0)) = (images.first(), run.views.first()) else { return Ok(()) };
+    figure6(first, view0, &outcome.calibration, &outcome.solution).save(&dir.join("figure6.png"))?;
     if let Some(last) = images.last() {
         let mut c = Canvas::side_by_side(&last.left, &last.right);
         let [w, h] = last.image_size();
@@ -191,4 +211,61 @@ fn annotate(
         c.save(&dir.join("aligned.png"))?;
     }
     Ok(())
+}
+
+/// `DIR/report.html`: the numbers, the errors against the truth, the annotated images
+/// and links to every saved view.
+fn write_report(
+    dir: &Path,
+    scenario: &Scenario,
+    run: &VergeTiltRun,
+    outcome: &VergeTiltOutcome,
+    before: &serde_json::Map<String, Value>,
+    errors: &serde_json::Map<String, Value>,
+) -> Result<()> {
+    let mut rep = HtmlReport::new("headalign demo --images");
+    rep.intro(&format!(
+        "Simulated head, seed {}, rendered {} x {} images, vision front end (verging, FAST+BRIEF features, matching); {} deg rotations; {} views captured.",
+        scenario.seed,
+        scenario.image_size[0],
+        scenario.image_size[1],
+        scenario.rotation_deg,
+        run.views.len()
+    ));
+    rep.alignment_results(&AlignmentResults {
+        calibration: &outcome.calibration,
+        image_size: scenario.image_size,
+        baseline_m: None,
+        verge_axes: &outcome.verge_axes,
+        reference: outcome.calibration.reference_encoders,
+        solution: &outcome.solution,
+        sigmas: &outcome.sigmas,
+    })?;
+    rep.errors_vs_truth(before, errors);
+    rep.figures(
+        "Annotated images",
+        &[
+            ("figure6.png".into(), FIGURE6_CAPTION.into()),
+            (
+                "aligned.png".into(),
+                "aligned.png: the last view, after alignment, with the image centres marked (magenta)."
+                    .into(),
+            ),
+        ],
+    );
+    let links = run
+        .views
+        .iter()
+        .enumerate()
+        .flat_map(|(i, v)| {
+            ["left", "right"]
+                .map(|side| (format!("{i:02}-{}/{side}.png", v.name), format!("{i:02} {} {side}", v.name)))
+        })
+        .collect();
+    rep.links(
+        "Captured views",
+        "Every captured view (PNG and view.json in each folder): headalign align --images DIR replays them.",
+        links,
+    );
+    rep.write(&dir.join(REPORT_FILE))
 }

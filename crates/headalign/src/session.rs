@@ -6,8 +6,11 @@
 //! live run did (same images, same order, same tracker: the same observations).
 //!
 //! Every bad input is an error naming the file and the problem: a missing or unreadable
-//! image, a malformed `view.json`, left and right images of different sizes, a view whose
-//! size differs from the first, a blank (textureless) image.
+//! image, a malformed `view.json` (wrong types, missing fields, an empty or repeated view
+//! name, non-finite encoder readings or readings beyond +-3600 deg), left and right
+//! images of different sizes, a view whose size differs from the first, a blank
+//! (textureless) image. [`parse_view_json`] and [`check_image`] are the pure parts of the
+//! reader (fuzzed without files: `fuzz/`, targets `view_json` and `png_decode`).
 
 use std::path::{Path, PathBuf};
 
@@ -33,24 +36,58 @@ pub struct RecordedView {
     pub images: StereoImages,
 }
 
-#[derive(Deserialize)]
-struct ViewFile {
-    name: String,
-    encoders: Encoders,
+/// Largest encoder reading a `view.json` may hold, degrees (ten turns, as the
+/// observation reader allows: larger values are corrupt data, and differences of huge
+/// readings overflow).
+pub const MAX_ENCODER_DEG: f64 = 3600.0;
+
+/// The contents of a `view.json` that the reader uses (other keys, e.g. `image_size`
+/// and `tracked` written by `--save`, are ignored).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+pub struct ViewMeta {
+    /// The view's name (non-empty, trimmed).
+    pub name: String,
+    /// Encoder readings, degrees.
+    pub encoders: Encoders,
 }
 
-fn load(path: &Path) -> Result<GrayImage, AlignError> {
-    let img = GrayImage::load(path).map_err(|e| AlignError::Images(e.to_string()))?;
+/// Parse and validate the text of a `view.json`; `origin` names it in messages.
+pub fn parse_view_json(text: &str, origin: &str) -> Result<ViewMeta, AlignError> {
+    let mut meta: ViewMeta =
+        serde_json::from_str(text).map_err(|e| AlignError::Images(format!("'{origin}': {e}")))?;
+    meta.name = meta.name.trim().to_string();
+    if meta.name.is_empty() {
+        return Err(AlignError::Images(format!("'{origin}': the view name is empty")));
+    }
+    if !meta.encoders.is_finite() {
+        return Err(AlignError::Images(format!("'{origin}': encoder readings must be finite")));
+    }
+    if headalign_platform::Joint::ALL.iter().any(|&j| meta.encoders.get(j).abs() > MAX_ENCODER_DEG) {
+        return Err(AlignError::Images(format!(
+            "'{origin}': encoder reading beyond +-{MAX_ENCODER_DEG} deg"
+        )));
+    }
+    Ok(meta)
+}
+
+/// Check that a decoded image has texture to match (grey-level standard deviation at
+/// least [`MIN_IMAGE_STD`]); `origin` names it in messages.
+pub fn check_image(img: &GrayImage, origin: &str) -> Result<(), AlignError> {
     let n = img.pixels().len() as f64;
     let mean = img.pixels().iter().map(|&v| f64::from(v)).sum::<f64>() / n;
     let var = img.pixels().iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / n;
     if var.sqrt() < MIN_IMAGE_STD {
         return Err(AlignError::Images(format!(
-            "'{}' is blank: grey-level standard deviation {:.2} (< {MIN_IMAGE_STD}), nothing to match",
-            path.display(),
+            "'{origin}' is blank: grey-level standard deviation {:.2} (< {MIN_IMAGE_STD}), nothing to match",
             var.sqrt()
         )));
     }
+    Ok(())
+}
+
+fn load(path: &Path) -> Result<GrayImage, AlignError> {
+    let img = GrayImage::load(path).map_err(|e| AlignError::Images(e.to_string()))?;
+    check_image(&img, &path.display().to_string())?;
     Ok(img)
 }
 
@@ -75,12 +112,13 @@ pub fn read_image_session(dir: &Path) -> Result<Vec<RecordedView>, AlignError> {
         let meta_path = folder.join("view.json");
         let text = std::fs::read_to_string(&meta_path)
             .map_err(|e| AlignError::Images(format!("cannot read '{}': {e}", meta_path.display())))?;
-        let meta: ViewFile = serde_json::from_str(&text)
-            .map_err(|e| AlignError::Images(format!("'{}': {e}", meta_path.display())))?;
-        if !meta.encoders.is_finite() {
+        let meta = parse_view_json(&text, &meta_path.display().to_string())?;
+        if let Some(other) = views.iter().find(|v| v.name == meta.name) {
             return Err(AlignError::Images(format!(
-                "'{}': encoder readings must be finite",
-                meta_path.display()
+                "'{}': view name '{}' is also the name of '{}'",
+                meta_path.display(),
+                meta.name,
+                other.folder.display()
             )));
         }
         let (lp, rp) = (folder.join("left.png"), folder.join("right.png"));
@@ -146,6 +184,36 @@ mod tests {
     }
 
     #[test]
+    fn view_json_bad_input_is_named() {
+        let enc = |pan: &str| {
+            format!(
+                r#"{{"name": "a", "encoders": {{"pan": {pan}, "elevation": 0, "verge_left": 0, "verge_right": 0}}}}"#
+            )
+        };
+        let ok = parse_view_json(&enc("1.5"), "v.json").unwrap();
+        assert_eq!((ok.name.as_str(), ok.encoders.pan), ("a", 1.5));
+        let cases: Vec<(String, &str)> = vec![
+            (String::new(), "EOF"),
+            ("{\"name\": \"a\", \"enc".into(), "EOF"),
+            ("[1, 2]".into(), "invalid type"),
+            ("{\"name\": 3}".into(), "invalid type"),
+            ("{\"name\": \"a\"}".into(), "missing field `encoders`"),
+            (enc("1.5").replace("\"a\"", "\"  \""), "name is empty"),
+            (enc("\"x\""), "invalid type"),
+            (enc("1e999"), "number out of range"),
+            (enc("1e308"), "beyond"),
+            (enc("-3600.5"), "beyond"),
+            (enc("99999999999999999999999"), "beyond"),
+            (enc("NaN"), "expected value"),
+        ];
+        for (text, expect) in cases {
+            let e = parse_view_json(&text, "v.json").unwrap_err().to_string();
+            assert!(e.contains("v.json") && e.contains(expect), "'{text}': '{e}' lacks '{expect}'");
+            assert!(!e.contains('\n'), "one line: {e}");
+        }
+    }
+
+    #[test]
     fn bad_sessions_name_the_file_and_the_problem() {
         let base = std::env::temp_dir().join(format!("headalign-session-{}", std::process::id()));
         let ok_json = r#"{"name": "initial", "encoders": {"pan": 0, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#;
@@ -197,6 +265,24 @@ mod tests {
                 write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), j)
             },
             &["view.json"],
+        );
+        case(
+            "duplicate-name",
+            &|d| {
+                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
+                write_view(d, "01-again", &textured(64, 48), &textured(64, 48), ok_json);
+            },
+            &["01-again", "view.json", "'initial' is also the name of", "00-initial"],
+        );
+        case(
+            "directory-image",
+            &|d| {
+                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
+                let p = d.join("00-initial").join("left.png");
+                std::fs::remove_file(&p).unwrap();
+                std::fs::create_dir_all(&p).unwrap();
+            },
+            &["left.png", "directory"],
         );
         // A good one reads back.
         let dir = base.join("good");
