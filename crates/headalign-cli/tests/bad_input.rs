@@ -221,20 +221,42 @@ fn image_session(dir: &Path) {
     }
 }
 
-/// A valid PNG signature and header declaring `w x h` 8-bit grey, then nothing.
-fn png_header(w: u32, h: u32) -> Vec<u8> {
-    let mut png = b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR".to_vec();
-    png.extend_from_slice(&w.to_be_bytes());
-    png.extend_from_slice(&h.to_be_bytes());
-    png.extend_from_slice(&[8, 0, 0, 0, 0]);
+fn crc32(data: &[u8]) -> u32 {
     let mut c = 0xffff_ffffu32;
-    for &b in &png[12..] {
+    for &b in data {
         c ^= u32::from(b);
         for _ in 0..8 {
             c = if c & 1 != 0 { 0xedb8_8320 ^ (c >> 1) } else { c >> 1 };
         }
     }
-    png.extend_from_slice(&(!c).to_be_bytes());
+    !c
+}
+
+fn png_chunk(png: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+    png.extend_from_slice(&(data.len() as u32).to_be_bytes());
+    let start = png.len();
+    png.extend_from_slice(kind);
+    png.extend_from_slice(data);
+    let crc = crc32(&png[start..]);
+    png.extend_from_slice(&crc.to_be_bytes());
+}
+
+/// A valid PNG signature and header declaring `w x h` 8-bit grey, then nothing.
+fn png_header(w: u32, h: u32) -> Vec<u8> {
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut ihdr = w.to_be_bytes().to_vec();
+    ihdr.extend_from_slice(&h.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 0, 0, 0, 0]);
+    png_chunk(&mut png, b"IHDR", &ihdr);
+    png
+}
+
+/// A PNG declaring `w x h` with a few bytes of (zlib-stored, empty) image data: a tiny
+/// file that would decode to a huge image.
+fn png_bomb(w: u32, h: u32) -> Vec<u8> {
+    let mut png = png_header(w, h);
+    png_chunk(&mut png, b"IDAT", &[0x78, 0x01, 0x01, 0x00, 0x00, 0xff, 0xff, 0x00, 0x00, 0x00, 0x01]);
+    png_chunk(&mut png, b"IEND", &[]);
     png
 }
 
@@ -354,6 +376,11 @@ fn align_images_bad_input_table() {
             "PNG declaring 1e6 x 1e6",
             write("00-initial/left.png", png_header(1_000_000, 1_000_000)),
             vec!["00-initial/left.png", "limit"],
+        ),
+        (
+            "PNG declaring 8000 x 8000 (a decompression bomb)",
+            write("00-initial/left.png", png_bomb(8000, 8000)),
+            vec!["00-initial/left.png", "declares 8000x8000 pixels"],
         ),
         (
             "PNG declaring zero width",

@@ -4,9 +4,11 @@
 //! Pitfalls: colour files are converted to luma on load (ITU-R BT.601 weights, as the
 //! `image` crate does); 16-bit files are scaled to 8 bits. Files are untrusted input: a
 //! header claiming a huge image is refused before anything is allocated (at most
-//! [`MAX_SIDE`] pixels a side and [`MAX_DECODE_BYTES`] of decoder memory), so a corrupt
-//! or hostile PNG is an error, never an out-of-memory abort (the decoders are fuzzed:
-//! `fuzz/`, target `png_decode`).
+//! [`MAX_SIDE`] pixels a side, [`MAX_PIXELS`] pixels and [`MAX_DECODE_BYTES`] of decoder
+//! memory; [`DecodeLimits`]), so a corrupt or hostile PNG is an error, never an
+//! out-of-memory abort. Decoding time grows with the declared size, not the file size: a
+//! 673-byte progressive JPEG declaring 4099 x 12336 pixels took 10 s to decode (found by
+//! fuzzing: `fuzz/`, target `png_decode`); the pixel limit bounds that.
 
 use std::path::Path;
 
@@ -15,9 +17,31 @@ use crate::VisionError;
 /// Largest width or height a file may declare, pixels (16384: four times a 4K frame).
 pub const MAX_SIDE: u32 = 16_384;
 
+/// Largest number of pixels a file may declare (36 million: an 8K UHD frame, 7680 x 4320,
+/// fits; the simulated cameras have 0.44 million).
+pub const MAX_PIXELS: u64 = 36_000_000;
+
 /// Most memory the decoder may allocate for one file, bytes (512 MiB, the `image`
 /// crate's own default).
 pub const MAX_DECODE_BYTES: u64 = 512 * 1024 * 1024;
+
+/// Limits on what a decoded file may declare; defaults [`MAX_SIDE`], [`MAX_PIXELS`],
+/// [`MAX_DECODE_BYTES`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DecodeLimits {
+    /// Largest width or height, pixels.
+    pub max_side: u32,
+    /// Largest `width * height`.
+    pub max_pixels: u64,
+    /// Most memory the decoder may allocate, bytes.
+    pub max_bytes: u64,
+}
+
+impl Default for DecodeLimits {
+    fn default() -> Self {
+        Self { max_side: MAX_SIDE, max_pixels: MAX_PIXELS, max_bytes: MAX_DECODE_BYTES }
+    }
+}
 
 /// An 8-bit grey image, row-major.
 #[derive(Clone, PartialEq, Eq)]
@@ -106,19 +130,35 @@ impl GrayImage {
     }
 
     /// Decode a PNG or JPEG held in memory (the format is guessed from the bytes; colour
-    /// is converted to grey). Bad, truncated or oversized data is
-    /// [`VisionError::InvalidImage`], never a panic or a huge allocation.
+    /// is converted to grey) within the default [`DecodeLimits`]. Bad, truncated or
+    /// oversized data is [`VisionError::InvalidImage`], never a panic or a huge allocation.
     pub fn decode(bytes: &[u8]) -> Result<Self, VisionError> {
+        Self::decode_with_limits(bytes, &DecodeLimits::default())
+    }
+
+    /// [`GrayImage::decode`] within the given limits (the header is read first; a
+    /// declared size beyond them is an error before any pixel is decoded).
+    pub fn decode_with_limits(bytes: &[u8], limits: &DecodeLimits) -> Result<Self, VisionError> {
         let bad = |why: String| VisionError::InvalidImage(why);
-        let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
-            .with_guessed_format()
-            .map_err(|e| bad(e.to_string()))?;
-        let mut limits = image::Limits::default();
-        limits.max_image_width = Some(MAX_SIDE);
-        limits.max_image_height = Some(MAX_SIDE);
-        limits.max_alloc = Some(MAX_DECODE_BYTES);
-        reader.limits(limits);
-        let img = reader.decode().map_err(|e| bad(e.to_string()))?.into_luma8();
+        let reader = || -> Result<_, VisionError> {
+            let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
+                .with_guessed_format()
+                .map_err(|e| bad(e.to_string()))?;
+            let mut l = image::Limits::default();
+            l.max_image_width = Some(limits.max_side);
+            l.max_image_height = Some(limits.max_side);
+            l.max_alloc = Some(limits.max_bytes);
+            reader.limits(l);
+            Ok(reader)
+        };
+        let (w, h) = reader()?.into_dimensions().map_err(|e| bad(e.to_string()))?;
+        if u64::from(w) * u64::from(h) > limits.max_pixels {
+            return Err(bad(format!(
+                "the file declares {w}x{h} pixels, more than the limit of {} million",
+                limits.max_pixels as f64 / 1e6
+            )));
+        }
+        let img = reader()?.decode().map_err(|e| bad(e.to_string()))?.into_luma8();
         let (w, h) = img.dimensions();
         Self::new(w, h, img.into_raw()).map_err(|e| bad(e.to_string()))
     }
@@ -170,6 +210,8 @@ mod tests {
         png.extend_from_slice(&crc.to_be_bytes());
         let e = GrayImage::decode(&png).unwrap_err().to_string();
         assert!(e.contains("invalid image"), "{e}");
+        // Within the side limit but beyond the pixel limit: refused from the header.
+        let small = DecodeLimits { max_pixels: 19, ..DecodeLimits::default() };
         let img = GrayImage::new(5, 4, (0..20).map(|i| (i * 13) as u8).collect()).unwrap();
         let dir = std::env::temp_dir().join(format!("headalign-vision-trunc-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
@@ -177,6 +219,10 @@ mod tests {
         img.save(&p).unwrap();
         let bytes = std::fs::read(&p).unwrap();
         assert_eq!(GrayImage::decode(&bytes).unwrap(), img);
+        let e = GrayImage::decode_with_limits(&bytes, &small).unwrap_err().to_string();
+        assert!(e.contains("declares 5x4 pixels"), "{e}");
+        let tight = DecodeLimits { max_pixels: 20, max_side: 5, ..DecodeLimits::default() };
+        assert_eq!(GrayImage::decode_with_limits(&bytes, &tight).unwrap(), img);
         // A prefix is an error, or (cut only after the image data, e.g. in IEND) the image.
         for n in 0..bytes.len() {
             if let Ok(got) = GrayImage::decode(&bytes[..n]) {
