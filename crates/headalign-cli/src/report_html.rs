@@ -163,7 +163,7 @@ impl HtmlReport {
     pub fn alignment_results(&mut self, r: &AlignmentResults) -> Result<()> {
         let stereo = StereoCalibration::from_rig(r.calibration, r.image_size, r.baseline_m)
             .context("report: calibration")?;
-        self.calibration(&stereo);
+        self.stereo_calibration(&stereo);
         self.head(r)?;
         self.alignment(r);
         let rep = &r.calibration.report;
@@ -191,7 +191,9 @@ impl HtmlReport {
         Ok(())
     }
 
-    fn calibration(&mut self, c: &StereoCalibration) {
+    /// The calibration sections alone (both `K`s with sigmas, the rig): for commands
+    /// that calibrate without a head (e.g. a fixed rig).
+    pub fn stereo_calibration(&mut self, c: &StereoCalibration) {
         let rows = |k: &headalign_geometry::camera::Intrinsics, s: &IntrinsicSigmas| {
             [
                 pm(k.fx, s.fx, 2),
