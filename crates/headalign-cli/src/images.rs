@@ -3,7 +3,7 @@
 //! captures, tracking, estimation, alignment and checks of the point-mode procedure. Every
 //! captured view is recorded to a session folder as it is captured (format: the
 //! `headalign::session` module documentation), with the results in `report.json` and the
-//! annotated images of the paper's Figure 6.
+//! annotated images of the paper's Figure 6 and a `report.html` with the numbers.
 //!
 //! [`procedure`] is the one image-mode procedure: the demo runs it on the simulator, `run
 //! --head-cmd` on a driver, `replay` on a recorded session; the same code on the same
@@ -13,9 +13,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use headalign::estimate::EstimationOptions;
+use headalign::alignment::AlignmentSolution;
+use headalign::estimate::{EstimationOptions, RigCalibration};
 use headalign::frontend::{FrontEndOptions, TrackingHead, ViewTracking};
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
+use headalign::observations::View;
 use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan};
 use headalign::session::{
     RecordingHead, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter, default_session_dir,
@@ -24,6 +26,8 @@ use headalign_platform::{Encoders, ImagingHead, StereoImages};
 use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedHead, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
 use serde_json::{Value, json};
+
+use crate::report_html::{AlignmentResults, HtmlReport, REPORT_FILE};
 
 /// The procedure name in `session.json` for image mode.
 pub const PROCEDURE: &str = "verge-tilt-images";
@@ -136,6 +140,7 @@ pub fn recorded<H: ImagingHead>(
             m.insert("session".into(), json!(writer.dir().display().to_string()));
         }
         annotate(writer.dir(), &run, &o)?;
+        write_report(writer.dir(), &info_title(&json), &run, &o, &json)?;
         Ok((o, json))
     });
     match result {
@@ -286,17 +291,18 @@ pub fn before_json(e: &AlignmentErrors) -> serde_json::Map<String, Value> {
 
 /// The paper's Figure 6 on the reference view (stereo pair side by side): features used by
 /// the adjustment (green; others red), the invariant lines of the pan (horizon, blue) and
-/// elevation (yellow) rotations, and the fixation point (magenta); and the last check view
-/// with the image centres marked.
-fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()> {
-    let images = &run.images;
-    let run = &run.run;
-    let (Some(first), Some(view0)) = (images.first(), run.views.first()) else { return Ok(()) };
-    let calib = &outcome.calibration;
+/// elevation (yellow) rotations, and the fixation point (magenta). `view0` is the tracked
+/// reference view, `first` its images.
+pub fn figure6(
+    first: &StereoImages,
+    view0: &View,
+    calib: &RigCalibration,
+    solution: &AlignmentSolution,
+) -> Canvas {
     let used: std::collections::HashSet<u64> =
         calib.observations.iter().filter(|o| o.view == 0).map(|o| calib.point_tracks[o.point]).collect();
-    let lines = &outcome.solution.invariant_lines;
-    let fixation = [outcome.solution.fixation_px_left, outcome.solution.fixation_px_right];
+    let lines = &solution.invariant_lines;
+    let fixation = [solution.fixation_px_left, solution.fixation_px_right];
     let mut halves = Vec::new();
     for (k, (image, list)) in
         [(&first.left, &view0.capture.left), (&first.right, &view0.capture.right)].into_iter().enumerate()
@@ -317,8 +323,18 @@ fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()
         c.cross(fixation[k], 18.0, MAGENTA, 2);
         halves.push(c);
     }
-    let canvas = Canvas::beside(&halves[0], &halves[1]);
-    canvas.save(&dir.join("figure6.png"))?;
+    Canvas::beside(&halves[0], &halves[1])
+}
+
+/// Caption of `figure6.png` in the reports.
+pub const FIGURE6_CAPTION: &str = "figure6.png: the first view (left | right) as the paper's Figure 6: features the bundle adjustment used (green) and not (red), the invariant lines of the pan (blue) and elevation (yellow) rotations, and the fixation point (magenta).";
+
+/// `figure6.png` (see [`figure6`]) and `aligned.png`, the last check view with the image
+/// centres marked.
+fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()> {
+    let images = &run.images;
+    let (Some(first), Some(view0)) = (images.first(), run.run.views.first()) else { return Ok(()) };
+    figure6(first, view0, &outcome.calibration, &outcome.solution).save(&dir.join("figure6.png"))?;
     if let Some(last) = images.last() {
         let mut c = Canvas::side_by_side(&last.left, &last.right);
         let [w, h] = last.image_size();
@@ -330,4 +346,79 @@ fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()
         c.save(&dir.join("aligned.png"))?;
     }
     Ok(())
+}
+
+/// The report's title line from the run's JSON (simulated or not).
+fn info_title(json: &Value) -> String {
+    if json.get("truth").is_some() {
+        "headalign demo --images (simulated head)".into()
+    } else {
+        "headalign: verge/tilt alignment on images".into()
+    }
+}
+
+/// `DIR/report.html`: the numbers, the errors against the truth when the run was
+/// simulated (the JSON's `before` and `errors` members), the annotated images and links
+/// to every captured view of the session.
+fn write_report(
+    dir: &Path,
+    title: &str,
+    run: &ImageRun,
+    outcome: &VergeTiltOutcome,
+    json: &Value,
+) -> Result<()> {
+    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
+    let mut rep = HtmlReport::new(title);
+    rep.intro(&format!(
+        "{} x {} images, vision front end (verging, FAST+BRIEF features, matching); {} verge/tilt views captured; session folder {}.",
+        image_size[0],
+        image_size[1],
+        run.run.views.len(),
+        dir.display()
+    ));
+    rep.alignment_results(&AlignmentResults {
+        calibration: &outcome.calibration,
+        image_size,
+        baseline_m: None,
+        verge_axes: &outcome.verge_axes,
+        reference: outcome.calibration.reference_encoders,
+        solution: &outcome.solution,
+        sigmas: &outcome.sigmas,
+    })?;
+    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
+        (json.get("before"), json.get("errors"))
+    {
+        rep.errors_vs_truth(before, errors);
+    }
+    rep.figures(
+        "Annotated images",
+        &[
+            ("figure6.png".into(), FIGURE6_CAPTION.into()),
+            (
+                "aligned.png".into(),
+                "aligned.png: the last view, after alignment, with the image centres marked (magenta)."
+                    .into(),
+            ),
+        ],
+    );
+    let mut folders: Vec<String> = std::fs::read_dir(dir)
+        .map(|entries| {
+            entries
+                .filter_map(Result::ok)
+                .filter(|e| e.path().join("view.json").is_file())
+                .filter_map(|e| e.file_name().to_str().map(str::to_string))
+                .collect()
+        })
+        .unwrap_or_default();
+    folders.sort();
+    let links = folders
+        .iter()
+        .flat_map(|f| ["left", "right"].map(|side| (format!("{f}/{side}.png"), format!("{f} {side}"))))
+        .collect();
+    rep.links(
+        "Captured views",
+        "Every captured view (PNG and view.json in each folder): headalign replay DIR re-runs them.",
+        links,
+    );
+    rep.write(&dir.join(REPORT_FILE))
 }

@@ -15,6 +15,7 @@ mod headcmd;
 mod images;
 mod points;
 mod replay;
+mod report_html;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -196,7 +197,8 @@ struct AlignArgs {
     json: bool,
     /// Write the calibration files here: calibration.json, opencv_stereo.yaml (OpenCV
     /// FileStorage), left.yaml and right.yaml (ROS camera_info), camchain.yaml (Kalibr),
-    /// head.json (axes with sigmas) and alignment.json (aligned readings with sigmas).
+    /// head.json (axes with sigmas) and alignment.json (aligned readings with sigmas), and
+    /// report.html (the numbers; with --images also figure6.png, the annotated first view).
     #[arg(long)]
     out: Option<PathBuf>,
     /// Baseline length in metres, to write the rig translation in metres (without it the
@@ -236,8 +238,12 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            // One line naming the problem (the chain joined by ": ").
-            eprintln!("error: {}", images::one_line(&e));
+            // One line naming the problem (the chain joined by ": ", repeated causes left
+            // out; a cause that spans lines, e.g. a third-party parser's message, is folded
+            // onto one).
+            let msg = images::one_line(&e);
+            let one_line: Vec<&str> = msg.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
+            eprintln!("error: {}", one_line.join(" "));
             ExitCode::FAILURE
         }
     }
@@ -619,28 +625,39 @@ fn demo_images(args: &DemoArgs, scenario: &Scenario) -> Result<()> {
 }
 
 fn align(args: &AlignArgs) -> Result<()> {
+    let mut recorded = None;
     let views = match (&args.observations, &args.images) {
         (Some(file), _) => read_session(file)?,
         (None, Some(dir)) => {
             // The verge/tilt views (verging captures are recorded too, but the rig is not
             // rigid there).
-            let recorded: Vec<_> = headalign::session::read_image_session(dir)?
+            let r: Vec<_> = headalign::session::read_image_session(dir)?
                 .into_iter()
                 .filter(headalign::session::RecordedView::is_verge_tilt)
                 .collect();
-            headalign::session::track_session(&recorded, &headalign::frontend::FrontEndOptions::default())?
+            let views =
+                headalign::session::track_session(&r, &headalign::frontend::FrontEndOptions::default())?;
+            recorded = Some(r);
+            views
         }
         (None, None) => bail!("give --observations FILE or --images DIR"),
     };
+    // Errors past reading name the session too.
+    let session = args
+        .observations
+        .as_ref()
+        .or(args.images.as_ref())
+        .map_or(String::new(), |p| p.display().to_string());
+    let in_session = || format!("session {session}");
     let t0 = Instant::now();
-    let roles = classify_views(&views)?;
+    let roles = classify_views(&views).with_context(in_session)?;
     let rig: Vec<View> = views
         .iter()
         .zip(&roles)
         .filter(|(_, r)| !matches!(r, ViewRole::Verge))
         .map(|(v, _)| v.clone())
         .collect();
-    let calib = estimate_rig(&rig, &EstimationOptions::default())?;
+    let calib = estimate_rig(&rig, &EstimationOptions::default()).with_context(in_session)?;
     let state = &calib.bundle.state;
     let reference = views[0].capture.encoders;
     // Vergence axes from the first view where a vergence moved, if any.
@@ -648,13 +665,15 @@ fn align(args: &AlignArgs) -> Result<()> {
     if let Some((v, _)) = views.iter().zip(&roles).find(|(_, r)| matches!(r, ViewRole::Verge)) {
         let d = |j: Joint| (v.capture.encoders.get(j) - reference.get(j)).to_radians();
         let chain = headalign::alignment::head_motion(state, d(Joint::Pan), d(Joint::Elevation))
-            .context("head model")?;
+            .with_context(|| format!("session {session}: head model"))?;
         let measured =
-            measure_cameras(&calib, &v.capture, &chain, &(chain * state.right_from_left.inverse()))?;
-        verge = verge_axes_from_motion(state, &reference, &v.capture.encoders, &measured)?;
+            measure_cameras(&calib, &v.capture, &chain, &(chain * state.right_from_left.inverse()))
+                .with_context(in_session)?;
+        verge = verge_axes_from_motion(state, &reference, &v.capture.encoders, &measured)
+            .with_context(in_session)?;
     }
-    let solution = solve_alignment(state, &verge, &reference)?;
-    let sig = alignment_sigmas(&calib, &verge, &reference)?;
+    let solution = solve_alignment(state, &verge, &reference).with_context(in_session)?;
+    let sig = alignment_sigmas(&calib, &verge, &reference).with_context(in_session)?;
     let seconds = t0.elapsed().as_secs_f64();
     let (pan, elev) = headalign::estimate::axes_of(state).context("axes")?;
     let axes = json!({
@@ -689,6 +708,17 @@ fn align(args: &AlignArgs) -> Result<()> {
                 .with_context(|| format!("cannot write {}", path.display()))?;
             written.push(path);
         }
+        let results = report_html::AlignmentResults {
+            calibration: &calib,
+            image_size: views[0].capture.image_size,
+            baseline_m: args.baseline_m,
+            verge_axes: &verge,
+            reference,
+            solution: &solution,
+            sigmas: &sig,
+        };
+        let source = args.observations.as_ref().or(args.images.as_ref());
+        written.extend(report_html::write_align_report(dir, source, &views, recorded.as_deref(), &results)?);
     }
     if args.json {
         let out = json!({

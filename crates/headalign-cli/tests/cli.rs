@@ -109,7 +109,7 @@ fn align_writes_the_calibration_files() {
     ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let v: Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(v["files"].as_array().unwrap().len(), 7);
+    assert_eq!(v["files"].as_array().unwrap().len(), 8);
     let cal: Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("calibration.json")).unwrap()).unwrap();
     assert_eq!(cal["translation_unit"], "m");
@@ -126,6 +126,21 @@ fn align_writes_the_calibration_files() {
     for f in ["left.yaml", "right.yaml", "camchain.yaml", "head.json", "alignment.json"] {
         assert!(dir.join(f).exists(), "{f}");
     }
+    // report.html shows the same numbers (2 decimals for K, 3 for the aligned readings).
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    let al: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("alignment.json")).unwrap()).unwrap();
+    for needle in [
+        format!("{:.2} ± ", cal["left"]["fx"].as_f64().unwrap()),
+        format!("{:.2} ± ", cal["right"]["cy"].as_f64().unwrap()),
+        format!("{:.3} ± ", al["aligned_encoders"]["elevation"].as_f64().unwrap()),
+        format!("{:.3} ± ", al["aligned_encoders"]["verge_right"].as_f64().unwrap()),
+        "translation (m)".to_string(),
+        "Head geometry".to_string(),
+    ] {
+        assert!(html.contains(&needle), "report.html lacks '{needle}'");
+    }
+    assert!(html.starts_with("<!DOCTYPE html>") && !html.contains("<script"));
     // A bad baseline is a clean error.
     let out = run(&[
         "align",
@@ -164,14 +179,38 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
         }
     }
     assert!(dir.join("figure6.png").exists() && dir.join("aligned.png").exists());
-    // Replaying the recorded images offline gives the same calibration, bit for bit.
-    let out = run(&["align", "--images", dir.to_str().unwrap(), "--json"]);
+    // report.html beside them: the numbers, the errors against the truth, the images.
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap();
+    let fx = v["estimate"]["left"]["fx"].as_f64().unwrap();
+    let verge_err = v["errors"]["verge_err_l_deg"].as_f64().unwrap();
+    for needle in [
+        format!("{fx:.2} ± "),
+        format!("{verge_err:.4}"),
+        "src=\"figure6.png\"".into(),
+        "src=\"aligned.png\"".into(),
+        format!("href=\"00-{}/left.png\"", views[0].as_str().unwrap()),
+        "Errors against the simulator&#39;s truth".into(),
+    ] {
+        assert!(html.contains(&needle), "report.html lacks '{needle}'");
+    }
+    // Replaying the recorded images offline gives the same calibration, bit for bit, and
+    // with --out the same annotated first view and a report.
+    let out_dir = tmp("images-align-out");
+    let out =
+        run(&["align", "--images", dir.to_str().unwrap(), "--json", "--out", out_dir.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let r: Value = serde_json::from_slice(&out.stdout).unwrap();
     for k in ["fx", "fy", "cx", "cy"] {
         assert_eq!(r["left"][k], v["estimate"]["left"][k], "left {k}");
         assert_eq!(r["right"][k], v["estimate"]["right"][k], "right {k}");
     }
+    assert_eq!(
+        std::fs::read(out_dir.join("figure6.png")).unwrap(),
+        std::fs::read(dir.join("figure6.png")).unwrap()
+    );
+    let html = std::fs::read_to_string(out_dir.join("report.html")).unwrap();
+    assert!(html.contains(&format!("{fx:.2} ± ")) && html.contains("src=\"figure6.png\""));
+    std::fs::remove_dir_all(&out_dir).ok();
     // A damaged image is a one-line error naming the file.
     let bad = dir.join(format!("{:02}-{}", verging + 1, views[1].as_str().unwrap())).join("right.png");
     std::fs::write(&bad, b"truncated").unwrap();

@@ -15,6 +15,12 @@ use serde::{Deserialize, Serialize};
 use crate::SimError;
 use crate::render::RenderOptions;
 
+/// Largest image side a scenario may ask for, pixels (the image reader's limit).
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+
+/// Most scene points a scenario may ask for (the default is 200).
+pub const MAX_POINTS: usize = 1_000_000;
+
 /// All parameters of a simulation. See the module docs for units.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -154,6 +160,11 @@ impl Scenario {
         };
         let [w, h] = self.image_size;
         check(w > 0 && h > 0, format!("image_size must be positive, got [{w}, {h}]"));
+        // Bounds against absurd allocations from a corrupt or hostile scenario file.
+        check(
+            w <= MAX_IMAGE_SIDE && h <= MAX_IMAGE_SIDE,
+            format!("image_size must be at most {MAX_IMAGE_SIDE} a side, got [{w}, {h}]"),
+        );
         for (name, k) in [("left", &self.left), ("right", &self.right)] {
             check(k.is_finite(), format!("{name} intrinsics must be finite, got {k:?}"));
             check(
@@ -186,7 +197,10 @@ impl Scenario {
             finite_pos(self.head_height_m),
             format!("head_height_m must be positive, got {}", self.head_height_m),
         );
-        check(self.points > 0, "points must be at least 1, got 0".to_string());
+        check(
+            (1..=MAX_POINTS).contains(&self.points),
+            format!("points must be in 1..={MAX_POINTS}, got {}", self.points),
+        );
         check(
             finite_pos(self.scene_min_m),
             format!("scene_min_m must be positive, got {}", self.scene_min_m),
@@ -235,7 +249,7 @@ impl Scenario {
 
     /// Parse a scenario from TOML (missing keys take the default) and validate it.
     pub fn from_toml_str(s: &str) -> Result<Self, SimError> {
-        let scenario: Scenario = toml::from_str(s).map_err(|e| SimError::Toml(e.to_string()))?;
+        let scenario: Scenario = toml::from_str(s).map_err(|e| SimError::Toml(one_line_toml_error(s, &e)))?;
         scenario.validate()?;
         Ok(scenario)
     }
@@ -246,9 +260,33 @@ impl Scenario {
     }
 }
 
+/// A TOML error as one line: ``line L, column C (`the line`): message`` (the `toml`
+/// crate's own display spans several lines with a caret drawing).
+fn one_line_toml_error(text: &str, e: &toml::de::Error) -> String {
+    let message = e.message().split_whitespace().collect::<Vec<_>>().join(" ");
+    match e.span() {
+        Some(span) => {
+            let before = text.get(..span.start.min(text.len())).unwrap_or("");
+            let line = before.matches('\n').count() + 1;
+            let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+            let source: String = text.lines().nth(line - 1).unwrap_or("").trim().chars().take(60).collect();
+            format!("line {line}, column {column} (`{source}`): {message}")
+        }
+        None => message,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn toml_errors_are_one_line_with_the_position() {
+        let e = Scenario::from_toml_str("seed = 1\nnoise_px = \n").unwrap_err().to_string();
+        assert!(e.contains("line 2, column 12") && !e.contains('\n'), "{e}");
+        let e = Scenario::from_toml_str("noise_px = \"x\"").unwrap_err().to_string();
+        assert!(e.contains("line 1") && e.contains("invalid type") && !e.contains('\n'), "{e}");
+    }
 
     #[test]
     fn default_is_valid_yorick() {

@@ -20,6 +20,7 @@
 //!   report.json         the results (the command's `--json` object), written at the end;
 //!                       on failure {"status": "failed", "error": "..."}
 //!   figure6.png aligned.png   annotated images (image mode, after success)
+//!   report.html         the results and the annotated images for a browser (image mode)
 //!   observations.json   point mode: the views as an observation session
 //!                       (`headalign-observations/1`, [`crate::observations`])
 //! ```
@@ -49,8 +50,12 @@
 //! front end over them, giving the views the estimation consumes.
 //!
 //! Every bad input is an error naming the file and the problem: a missing or unreadable
-//! image, a malformed `view.json`, left and right images of different sizes, a view whose
-//! size differs from the first, a blank (textureless) image, a malformed event line.
+//! image, a malformed `view.json` (wrong types, missing fields, an empty or repeated view
+//! name, non-finite encoder readings or readings beyond +-3600 deg), left and right
+//! images of different sizes, a view whose size differs from the first, a blank
+//! (textureless) image, a malformed event line. [`parse_view_json`] and [`check_image`]
+//! are the pure parts of the reader (fuzzed without files: `fuzz/`, targets `view_json`
+//! and `png_decode`).
 
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
@@ -494,13 +499,7 @@ pub fn read_session_info(dir: &Path) -> Result<SessionInfo, AlignError> {
 pub fn read_view_meta(path: &Path) -> Result<ViewMeta, AlignError> {
     let text = std::fs::read_to_string(path)
         .map_err(|e| AlignError::Images(format!("cannot read '{}': {e}", path.display())))?;
-    let meta: ViewMeta =
-        serde_json::from_str(&text).map_err(|e| AlignError::Images(format!("'{}': {e}", path.display())))?;
-    let finite = |e: &Option<Encoders>| e.as_ref().is_none_or(Encoders::is_finite);
-    if !meta.encoders.is_finite() || !finite(&meta.commanded) {
-        return Err(AlignError::Images(format!("'{}': encoder readings must be finite", path.display())));
-    }
-    Ok(meta)
+    parse_view_json(&text, &path.display().to_string())
 }
 
 /// A recorded session played back as a head (see the module documentation).
@@ -652,18 +651,51 @@ impl RecordedView {
     }
 }
 
-fn load(path: &Path) -> Result<GrayImage, AlignError> {
-    let img = GrayImage::load(path).map_err(|e| AlignError::Images(e.to_string()))?;
+/// Largest encoder reading a `view.json` may hold, degrees (ten turns, as the
+/// observation reader allows: larger values are corrupt data, and differences of huge
+/// readings overflow).
+pub const MAX_ENCODER_DEG: f64 = 3600.0;
+
+/// Parse and validate the text of a `view.json`; `origin` names it in messages.
+pub fn parse_view_json(text: &str, origin: &str) -> Result<ViewMeta, AlignError> {
+    let mut meta: ViewMeta =
+        serde_json::from_str(text).map_err(|e| AlignError::Images(format!("'{origin}': {e}")))?;
+    meta.name = meta.name.trim().to_string();
+    if meta.name.is_empty() {
+        return Err(AlignError::Images(format!("'{origin}': the view name is empty")));
+    }
+    let finite = |e: &Option<Encoders>| e.as_ref().is_none_or(Encoders::is_finite);
+    if !meta.encoders.is_finite() || !finite(&meta.commanded) {
+        return Err(AlignError::Images(format!("'{origin}': encoder readings must be finite")));
+    }
+    let huge =
+        |e: &Encoders| headalign_platform::Joint::ALL.iter().any(|&j| e.get(j).abs() > MAX_ENCODER_DEG);
+    if huge(&meta.encoders) || meta.commanded.as_ref().is_some_and(huge) {
+        return Err(AlignError::Images(format!(
+            "'{origin}': encoder reading beyond +-{MAX_ENCODER_DEG} deg"
+        )));
+    }
+    Ok(meta)
+}
+
+/// Check that a decoded image has texture to match (grey-level standard deviation at
+/// least [`MIN_IMAGE_STD`]); `origin` names it in messages.
+pub fn check_image(img: &GrayImage, origin: &str) -> Result<(), AlignError> {
     let n = img.pixels().len() as f64;
     let mean = img.pixels().iter().map(|&v| f64::from(v)).sum::<f64>() / n;
     let var = img.pixels().iter().map(|&v| (f64::from(v) - mean).powi(2)).sum::<f64>() / n;
     if var.sqrt() < MIN_IMAGE_STD {
         return Err(AlignError::Images(format!(
-            "'{}' is blank: grey-level standard deviation {:.2} (< {MIN_IMAGE_STD}), nothing to match",
-            path.display(),
+            "'{origin}' is blank: grey-level standard deviation {:.2} (< {MIN_IMAGE_STD}), nothing to match",
             var.sqrt()
         )));
     }
+    Ok(())
+}
+
+fn load(path: &Path) -> Result<GrayImage, AlignError> {
+    let img = GrayImage::load(path).map_err(|e| AlignError::Images(e.to_string()))?;
+    check_image(&img, &path.display().to_string())?;
     Ok(img)
 }
 
@@ -719,7 +751,16 @@ pub fn read_image_session(dir: &Path) -> Result<Vec<RecordedView>, AlignError> {
     }
     let mut views: Vec<RecordedView> = Vec::new();
     for folder in folders {
-        let meta = read_view_meta(&folder.join("view.json"))?;
+        let meta_path = folder.join("view.json");
+        let meta = read_view_meta(&meta_path)?;
+        if let Some(other) = views.iter().find(|v| v.name == meta.name) {
+            return Err(AlignError::Images(format!(
+                "'{}': view name '{}' is also the name of '{}'",
+                meta_path.display(),
+                meta.name,
+                other.folder.display()
+            )));
+        }
         let first = views.first().map(|v| v.images.image_size());
         views.push(load_view(&folder, meta, first)?);
     }
@@ -755,6 +796,36 @@ mod tests {
     fn textured(w: u32, h: u32) -> GrayImage {
         let data = (0..w * h).map(|i| ((i * 7919) % 251) as u8).collect();
         GrayImage::new(w, h, data).unwrap()
+    }
+
+    #[test]
+    fn view_json_bad_input_is_named() {
+        let enc = |pan: &str| {
+            format!(
+                r#"{{"name": "a", "encoders": {{"pan": {pan}, "elevation": 0, "verge_left": 0, "verge_right": 0}}}}"#
+            )
+        };
+        let ok = parse_view_json(&enc("1.5"), "v.json").unwrap();
+        assert_eq!((ok.name.as_str(), ok.encoders.pan), ("a", 1.5));
+        let cases: Vec<(String, &str)> = vec![
+            (String::new(), "EOF"),
+            ("{\"name\": \"a\", \"enc".into(), "EOF"),
+            ("[1, 2]".into(), "invalid type"),
+            ("{\"name\": 3}".into(), "invalid type"),
+            ("{\"name\": \"a\"}".into(), "missing field `encoders`"),
+            (enc("1.5").replace("\"a\"", "\"  \""), "name is empty"),
+            (enc("\"x\""), "invalid type"),
+            (enc("1e999"), "number out of range"),
+            (enc("1e308"), "beyond"),
+            (enc("-3600.5"), "beyond"),
+            (enc("99999999999999999999999"), "beyond"),
+            (enc("NaN"), "expected value"),
+        ];
+        for (text, expect) in cases {
+            let e = parse_view_json(&text, "v.json").unwrap_err().to_string();
+            assert!(e.contains("v.json") && e.contains(expect), "'{text}': '{e}' lacks '{expect}'");
+            assert!(!e.contains('\n'), "one line: {e}");
+        }
     }
 
     #[test]
@@ -809,6 +880,24 @@ mod tests {
                 write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), j)
             },
             &["view.json"],
+        );
+        case(
+            "duplicate-name",
+            &|d| {
+                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
+                write_view(d, "01-again", &textured(64, 48), &textured(64, 48), ok_json);
+            },
+            &["01-again", "view.json", "'initial' is also the name of", "00-initial"],
+        );
+        case(
+            "directory-image",
+            &|d| {
+                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
+                let p = d.join("00-initial").join("left.png");
+                std::fs::remove_file(&p).unwrap();
+                std::fs::create_dir_all(&p).unwrap();
+            },
+            &["left.png", "directory"],
         );
         // A good one reads back.
         let dir = base.join("good");

@@ -1,0 +1,515 @@
+//! Bad input of every kind, for every command that reads a file: `align --observations
+//! FILE`, `align --images DIR` and `demo --scenario FILE`. Each case must fail with a
+//! non-zero exit and exactly one line on stderr that names the file (or folder) and the
+//! problem; never a panic or a backtrace. The inputs that fuzzing (`fuzz/`) found are
+//! replayed here too, so CI checks them without a nightly toolchain.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use headalign_vision::GrayImage;
+use serde_json::{Value, json};
+
+fn run(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_headalign")).args(args).env("RUST_BACKTRACE", "1").output().unwrap()
+}
+
+fn base(test: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("headalign-bad-input-{}-{test}", std::process::id()));
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// Non-zero exit, one line on stderr, no panic or backtrace, and every `expected` part
+/// (case-insensitive) in the message.
+fn assert_clean_failure(case: &str, out: &Output, expected: &[&str]) {
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{case}: expected failure, got success; stderr: {stderr}");
+    assert_eq!(out.status.code(), Some(1), "{case}: exit code (a signal or abort is not clean): {stderr}");
+    assert!(!stderr.contains("panicked") && !stderr.contains("stack backtrace"), "{case}: panic: {stderr}");
+    assert_eq!(stderr.trim_end().lines().count(), 1, "{case}: one line expected: {stderr}");
+    for part in expected {
+        assert!(
+            stderr.to_lowercase().contains(&part.to_lowercase()),
+            "{case}: expected '{part}' in: {stderr}"
+        );
+    }
+}
+
+/// A small valid observation session (three views, eight tracks each side): valid JSON
+/// that the reader accepts; each case below breaks one thing.
+fn observations() -> Value {
+    let view = |name: &str, pan: f64, elev: f64| {
+        let pts: Vec<Value> = (0..8).map(|i| json!([i, 100.0 + 20.0 * f64::from(i), 200.0])).collect();
+        json!({"name": name, "encoders": {"pan": pan, "elevation": elev, "verge_left": 0.0, "verge_right": 0.0},
+               "left": pts, "right": pts})
+    };
+    json!({"format": "headalign-observations/1", "image_size": [768, 576],
+           "views": [view("initial", 0.0, 0.0), view("elevation", 0.0, 3.0), view("pan", 3.0, 0.0)]})
+}
+
+#[test]
+fn align_observations_bad_input_table() {
+    let dir = base("obs");
+    let good = serde_json::to_string(&observations()).unwrap();
+    let edit = |f: &dyn Fn(&mut Value)| {
+        let mut v = observations();
+        f(&mut v);
+        serde_json::to_string(&v).unwrap()
+    };
+    // (case, file contents, expected message parts besides the file name)
+    let cases: Vec<(&str, Vec<u8>, Vec<&str>)> = vec![
+        ("empty file", vec![], vec!["malformed JSON", "EOF"]),
+        ("whitespace only", b"  \n".to_vec(), vec!["malformed JSON"]),
+        ("truncated at a third", good.as_bytes()[..good.len() / 3].to_vec(), vec!["malformed JSON", "EOF"]),
+        ("truncated before the end", good.as_bytes()[..good.len() - 1].to_vec(), vec!["malformed JSON"]),
+        ("not JSON", b"views: 3".to_vec(), vec!["malformed JSON"]),
+        ("binary, not UTF-8", vec![0xff, 0xfe, 0x00, 0x89, b'P', b'N', b'G'], vec!["cannot read", "UTF-8"]),
+        ("an array, not an object", b"[1, 2, 3]".to_vec(), vec!["malformed JSON", "invalid type"]),
+        ("null", b"null".to_vec(), vec!["malformed JSON", "invalid type"]),
+        (
+            "wrong type: pan is a string",
+            edit(&|v| v["views"][0]["encoders"]["pan"] = json!("x")).into(),
+            vec!["invalid type"],
+        ),
+        ("wrong type: views is an object", edit(&|v| v["views"] = json!({})).into(), vec!["invalid type"]),
+        (
+            "wrong type: pixel is a string",
+            edit(&|v| v["views"][0]["left"][0][1] = json!("1")).into(),
+            vec!["invalid type"],
+        ),
+        (
+            "wrong type: observation has 2 numbers",
+            edit(&|v| v["views"][0]["left"][0] = json!([1, 2.0])).into(),
+            vec!["invalid length"],
+        ),
+        (
+            "missing field: format",
+            edit(&|v| drop(v.as_object_mut().unwrap().remove("format"))).into(),
+            vec!["missing field `format`"],
+        ),
+        (
+            "missing field: encoders",
+            edit(&|v| drop(v["views"][1].as_object_mut().unwrap().remove("encoders"))).into(),
+            vec!["missing field `encoders`"],
+        ),
+        (
+            "missing field: verge_right",
+            edit(&|v| drop(v["views"][1]["encoders"].as_object_mut().unwrap().remove("verge_right"))).into(),
+            vec!["missing field `verge_right`"],
+        ),
+        ("unknown field", edit(&|v| v["extra"] = json!(1)).into(), vec!["unknown field `extra`"]),
+        (
+            "wrong format tag",
+            edit(&|v| v["format"] = json!("headalign-observations/9")).into(),
+            vec!["unsupported format"],
+        ),
+        ("NaN literal", good.replacen("3.0", "NaN", 1).into_bytes(), vec!["malformed JSON"]),
+        (
+            "infinite encoder (1e999)",
+            good.replacen("3.0", "1e999", 1).into_bytes(),
+            vec!["number out of range"],
+        ),
+        (
+            "huge encoder 1e308",
+            edit(&|v| v["views"][1]["encoders"]["elevation"] = json!(1e308)).into(),
+            vec!["beyond +-3600"],
+        ),
+        ("huge pixel 1e308", edit(&|v| v["views"][1]["left"][0][1] = json!(1e308)).into(), vec!["outside"]),
+        ("negative pixel", edit(&|v| v["views"][1]["left"][0][2] = json!(-3.0)).into(), vec!["outside"]),
+        (
+            "track id beyond u64",
+            good.replacen("[0,", "[99999999999999999999,", 1).into_bytes(),
+            vec!["malformed JSON"],
+        ),
+        (
+            "negative track id",
+            edit(&|v| v["views"][0]["left"][0][0] = json!(-1)).into(),
+            vec!["malformed JSON"],
+        ),
+        (
+            "fractional track id",
+            edit(&|v| v["views"][0]["left"][0][0] = json!(1.5)).into(),
+            vec!["malformed JSON"],
+        ),
+        (
+            "negative image size",
+            edit(&|v| v["image_size"] = json!([-768, 576])).into(),
+            vec!["malformed JSON"],
+        ),
+        (
+            "zero image size",
+            edit(&|v| v["image_size"] = json!([0, 576])).into(),
+            vec!["not a valid image size"],
+        ),
+        (
+            "image size beyond u32",
+            edit(&|v| v["image_size"] = json!([1e10, 576])).into(),
+            vec!["malformed JSON"],
+        ),
+        (
+            "huge image size",
+            edit(&|v| v["image_size"] = json!([4_000_000_000u32, 576])).into(),
+            vec!["not a valid image size"],
+        ),
+        (
+            "image size with 3 numbers",
+            edit(&|v| v["image_size"] = json!([768, 576, 3])).into(),
+            vec!["malformed JSON"],
+        ),
+        ("no views", edit(&|v| v["views"] = json!([])).into(), vec!["needs at least 3"]),
+        ("empty view name", edit(&|v| v["views"][0]["name"] = json!(" ")).into(), vec!["empty name"]),
+        (
+            "duplicate view name",
+            edit(&|v| v["views"][1]["name"] = json!("initial")).into(),
+            vec!["appears twice"],
+        ),
+        ("duplicate track", edit(&|v| v["views"][0]["left"][1][0] = json!(0)).into(), vec!["appears twice"]),
+        (
+            "no tracks at all",
+            edit(&|v| {
+                for view in v["views"].as_array_mut().unwrap() {
+                    view["left"] = json!([]);
+                    view["right"] = json!([]);
+                }
+            })
+            .into(),
+            vec!["too few tracks"],
+        ),
+        (
+            "deeply nested",
+            format!("{}{}", "[".repeat(10_000), "]".repeat(10_000)).into_bytes(),
+            vec!["malformed JSON"],
+        ),
+    ];
+    for (i, (case, bytes, expected)) in cases.iter().enumerate() {
+        let path = dir.join(format!("case{i}.json"));
+        std::fs::write(&path, bytes).unwrap();
+        let p = path.to_str().unwrap();
+        let mut parts = expected.clone();
+        parts.push(p);
+        assert_clean_failure(case, &run(&["align", "--observations", p]), &parts);
+    }
+    // Not a readable file.
+    let d = dir.to_str().unwrap();
+    assert_clean_failure("a directory", &run(&["align", "--observations", d]), &[d, "cannot read"]);
+    let missing = dir.join("missing.json");
+    let m = missing.to_str().unwrap();
+    assert_clean_failure("missing file", &run(&["align", "--observations", m]), &[m, "cannot read"]);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+fn textured(w: u32, h: u32, seed: u32) -> GrayImage {
+    let data = (0..w * h).map(|i| ((i.wrapping_mul(7919).wrapping_add(seed * 31)) % 251) as u8).collect();
+    GrayImage::new(w, h, data).unwrap()
+}
+
+fn view_json(name: &str, elevation: f64) -> String {
+    json!({"name": name, "encoders": {"pan": 0.0, "elevation": elevation, "verge_left": 0.0, "verge_right": 0.0}})
+        .to_string()
+}
+
+/// Three 64 x 48 textured views, as `demo --images --save` lays them out.
+fn image_session(dir: &Path) {
+    for (i, (name, elev)) in [("initial", 0.0), ("elevation", 3.0), ("pan", 0.0)].into_iter().enumerate() {
+        let sub = dir.join(format!("{i:02}-{name}"));
+        std::fs::create_dir_all(&sub).unwrap();
+        textured(64, 48, i as u32).save(&sub.join("left.png")).unwrap();
+        textured(64, 48, i as u32 + 7).save(&sub.join("right.png")).unwrap();
+        std::fs::write(sub.join("view.json"), view_json(name, elev)).unwrap();
+    }
+}
+
+fn crc32(data: &[u8]) -> u32 {
+    let mut c = 0xffff_ffffu32;
+    for &b in data {
+        c ^= u32::from(b);
+        for _ in 0..8 {
+            c = if c & 1 != 0 { 0xedb8_8320 ^ (c >> 1) } else { c >> 1 };
+        }
+    }
+    !c
+}
+
+fn png_chunk(png: &mut Vec<u8>, kind: &[u8; 4], data: &[u8]) {
+    png.extend_from_slice(&(data.len() as u32).to_be_bytes());
+    let start = png.len();
+    png.extend_from_slice(kind);
+    png.extend_from_slice(data);
+    let crc = crc32(&png[start..]);
+    png.extend_from_slice(&crc.to_be_bytes());
+}
+
+/// A valid PNG signature and header declaring `w x h` 8-bit grey, then nothing.
+fn png_header(w: u32, h: u32) -> Vec<u8> {
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    let mut ihdr = w.to_be_bytes().to_vec();
+    ihdr.extend_from_slice(&h.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 0, 0, 0, 0]);
+    png_chunk(&mut png, b"IHDR", &ihdr);
+    png
+}
+
+/// A PNG declaring `w x h` with a few bytes of (zlib-stored, empty) image data: a tiny
+/// file that would decode to a huge image.
+fn png_bomb(w: u32, h: u32) -> Vec<u8> {
+    let mut png = png_header(w, h);
+    png_chunk(&mut png, b"IDAT", &[0x78, 0x01, 0x01, 0x00, 0x00, 0xff, 0xff, 0x00, 0x00, 0x00, 0x01]);
+    png_chunk(&mut png, b"IEND", &[]);
+    png
+}
+
+#[test]
+fn align_images_bad_input_table() {
+    let root = base("images");
+    type Setup = Box<dyn Fn(&Path)>;
+    let write = |rel: &'static str, bytes: Vec<u8>| -> Setup {
+        Box::new(move |d: &Path| std::fs::write(d.join(rel), &bytes).unwrap())
+    };
+    let json_case = |text: &'static str| write("01-elevation/view.json", text.as_bytes().to_vec());
+    let good_png = {
+        let p = root.join("good.png");
+        textured(64, 48, 3).save(&p).unwrap();
+        std::fs::read(&p).unwrap()
+    };
+    // (case, how to break a good session, expected parts: the file, then the problem)
+    let cases: Vec<(&str, Setup, Vec<&str>)> = vec![
+        ("view.json empty", json_case(""), vec!["01-elevation/view.json", "EOF"]),
+        (
+            "view.json truncated",
+            json_case("{\"name\": \"elevation\", \"encoders\": {\"pan\": 0"),
+            vec!["01-elevation/view.json", "EOF"],
+        ),
+        ("view.json not an object", json_case("[]"), vec!["01-elevation/view.json", "invalid length"]),
+        (
+            "view.json wrong type",
+            json_case(r#"{"name": 5, "encoders": {}}"#),
+            vec!["01-elevation/view.json", "invalid type"],
+        ),
+        (
+            "view.json missing encoders",
+            json_case(r#"{"name": "e"}"#),
+            vec!["01-elevation/view.json", "missing field `encoders`"],
+        ),
+        (
+            "view.json missing joint",
+            json_case(r#"{"name": "e", "encoders": {"pan": 0, "elevation": 0, "verge_left": 0}}"#),
+            vec!["01-elevation/view.json", "missing field `verge_right`"],
+        ),
+        (
+            "view.json NaN",
+            json_case(
+                r#"{"name": "e", "encoders": {"pan": NaN, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+            ),
+            vec!["01-elevation/view.json"],
+        ),
+        (
+            "view.json inf",
+            json_case(
+                r#"{"name": "e", "encoders": {"pan": -1e400, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+            ),
+            vec!["01-elevation/view.json", "out of range"],
+        ),
+        (
+            "view.json 1e308",
+            json_case(
+                r#"{"name": "e", "encoders": {"pan": 1e308, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+            ),
+            vec!["01-elevation/view.json", "beyond"],
+        ),
+        (
+            "view.json i64 overflow",
+            json_case(
+                r#"{"name": "e", "encoders": {"pan": 9223372036854775808000, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+            ),
+            vec!["01-elevation/view.json", "beyond"],
+        ),
+        (
+            "view.json empty name",
+            json_case(
+                r#"{"name": "", "encoders": {"pan": 0, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+            ),
+            vec!["01-elevation/view.json", "name is empty"],
+        ),
+        (
+            "view.json duplicate name",
+            json_case(
+                r#"{"name": "initial", "encoders": {"pan": 0, "elevation": 3, "verge_left": 0, "verge_right": 0}}"#,
+            ),
+            vec!["01-elevation/view.json", "also the name of"],
+        ),
+        (
+            "view.json is a directory",
+            Box::new(|d: &Path| {
+                std::fs::remove_file(d.join("01-elevation/view.json")).unwrap();
+                std::fs::create_dir(d.join("01-elevation/view.json")).unwrap();
+            }),
+            vec!["01-elevation/view.json", "cannot read"],
+        ),
+        (
+            "missing image",
+            Box::new(|d: &Path| std::fs::remove_file(d.join("02-pan/left.png")).unwrap()),
+            vec!["02-pan/left.png", "No such file"],
+        ),
+        (
+            "image is a directory",
+            Box::new(|d: &Path| {
+                std::fs::remove_file(d.join("02-pan/right.png")).unwrap();
+                std::fs::create_dir(d.join("02-pan/right.png")).unwrap();
+            }),
+            vec!["02-pan/right.png", "directory"],
+        ),
+        ("empty PNG", write("00-initial/left.png", vec![]), vec!["00-initial/left.png"]),
+        (
+            "not a PNG",
+            write("00-initial/left.png", b"hello, world".to_vec()),
+            vec!["00-initial/left.png", "format"],
+        ),
+        (
+            "truncated PNG",
+            write("00-initial/right.png", good_png[..good_png.len() / 2].to_vec()),
+            vec!["00-initial/right.png"],
+        ),
+        ("PNG header only", write("00-initial/right.png", png_header(64, 48)), vec!["00-initial/right.png"]),
+        (
+            "PNG declaring 1e6 x 1e6",
+            write("00-initial/left.png", png_header(1_000_000, 1_000_000)),
+            vec!["00-initial/left.png", "limit"],
+        ),
+        (
+            "PNG declaring 8000 x 8000 (a decompression bomb)",
+            write("00-initial/left.png", png_bomb(8000, 8000)),
+            vec!["00-initial/left.png", "declares 8000x8000 pixels"],
+        ),
+        (
+            "PNG declaring zero width",
+            write("00-initial/left.png", png_header(0, 48)),
+            vec!["00-initial/left.png"],
+        ),
+        (
+            "blank image",
+            Box::new(|d: &Path| {
+                GrayImage::filled(64, 48, 90).save(&d.join("01-elevation/left.png")).unwrap()
+            }),
+            vec!["01-elevation/left.png", "blank"],
+        ),
+        (
+            "left and right sizes differ",
+            Box::new(|d: &Path| textured(60, 48, 1).save(&d.join("01-elevation/right.png")).unwrap()),
+            vec!["01-elevation/left.png", "01-elevation/right.png", "same size"],
+        ),
+        (
+            "view size differs from the first",
+            Box::new(|d: &Path| {
+                textured(32, 48, 1).save(&d.join("02-pan/left.png")).unwrap();
+                textured(32, 48, 2).save(&d.join("02-pan/right.png")).unwrap();
+            }),
+            vec!["02-pan/left.png", "first view"],
+        ),
+        (
+            "no view folders",
+            Box::new(|d: &Path| {
+                for v in ["00-initial", "01-elevation", "02-pan"] {
+                    std::fs::remove_dir_all(d.join(v)).unwrap();
+                }
+            }),
+            vec!["holds no view folders"],
+        ),
+        (
+            "textured but too small to track",
+            Box::new(|d: &Path| {
+                for v in ["00-initial", "01-elevation", "02-pan"] {
+                    textured(4, 3, 1).save(&d.join(v).join("left.png")).unwrap();
+                    textured(4, 3, 2).save(&d.join(v).join("right.png")).unwrap();
+                }
+            }),
+            vec!["view 'initial'"],
+        ),
+        ("random texture: nothing matches", Box::new(|_: &Path| {}), vec!["view '"]),
+    ];
+    for (i, (case, setup, expected)) in cases.iter().enumerate() {
+        let dir = root.join(format!("case{i}"));
+        image_session(&dir);
+        setup(&dir);
+        let d = dir.to_str().unwrap();
+        let out = run(&["align", "--images", d]);
+        let mut parts = expected.clone();
+        parts.push(d);
+        assert_clean_failure(case, &out, &parts);
+    }
+    let missing = root.join("missing");
+    let m = missing.to_str().unwrap();
+    assert_clean_failure(
+        "missing folder",
+        &run(&["align", "--images", m]),
+        &[m, "cannot read session folder"],
+    );
+    let file = root.join("good.png");
+    let f = file.to_str().unwrap();
+    assert_clean_failure(
+        "a file, not a folder",
+        &run(&["align", "--images", f]),
+        &[f, "cannot read session folder"],
+    );
+    std::fs::remove_dir_all(&root).ok();
+}
+
+#[test]
+fn demo_scenario_bad_input_table() {
+    let dir = base("scenario");
+    let cases: Vec<(&str, &str, Vec<&str>)> = vec![
+        ("truncated TOML", "noise_px = ", vec!["TOML"]),
+        ("not TOML", "{\"noise_px\": 1}", vec!["TOML"]),
+        ("wrong type", "noise_px = \"loud\"", vec!["invalid type"]),
+        ("unknown key", "nosie_px = 1.0", vec!["unknown field `nosie_px`"]),
+        ("NaN", "noise_px = nan", vec!["noise_px"]),
+        ("inf", "rotation_deg = inf", vec!["rotation_deg"]),
+        ("i64 overflow", "points = 99999999999999999999", vec!["TOML"]),
+        ("too many points", "points = 1000000000000", vec!["points must be in"]),
+        ("negative size", "image_size = [-768, 576]", vec!["image_size"]),
+        ("huge image", "image_size = [4000000000, 576]", vec!["image_size must be at most"]),
+        ("negative seed", "seed = -1", vec!["seed"]),
+        ("wrong table type", "render = 3", vec!["render"]),
+        ("bad render option", "[render]\nsupersampling = 1000", vec!["supersampling"]),
+    ];
+    for (i, (case, text, expected)) in cases.iter().enumerate() {
+        let path = dir.join(format!("case{i}.toml"));
+        std::fs::write(&path, text).unwrap();
+        let p = path.to_str().unwrap();
+        let mut parts = expected.clone();
+        parts.push(p);
+        assert_clean_failure(case, &run(&["demo", "--scenario", p, "--json"]), &parts);
+    }
+    // Values the scenario accepts but the simulated run cannot use: a clean one-line
+    // error naming the problem (the scenario was read, so the file is not named).
+    for (case, text, expected) in [
+        ("noise 1e308", "noise_px = 1e308", "too few tracks"),
+        ("baseline 1e308", "baseline_m = 1e308", "could not place"),
+        ("drive 1e308", "drive_m = 1e308", "drive distance must be finite"),
+        ("encoder noise 1e308", "encoder_noise_deg = 1e308", "cannot reach"),
+    ] {
+        let path = dir.join("run.toml");
+        std::fs::write(&path, text).unwrap();
+        assert_clean_failure(
+            case,
+            &run(&["demo", "--scenario", path.to_str().unwrap(), "--json"]),
+            &[expected],
+        );
+    }
+    let d = dir.to_str().unwrap();
+    assert_clean_failure("a directory", &run(&["demo", "--scenario", d]), &[d, "cannot read"]);
+    let m = dir.join("missing.toml");
+    let m = m.to_str().unwrap();
+    assert_clean_failure("missing file", &run(&["demo", "--scenario", m]), &[m, "cannot read"]);
+    // Writing where it cannot.
+    let out = dir.join("no/such/dir/session.json");
+    let o = out.to_str().unwrap();
+    assert_clean_failure(
+        "simulate into a missing folder",
+        &run(&["simulate", "--out", o]),
+        &[o, "cannot write"],
+    );
+    assert_clean_failure("simulate onto a folder", &run(&["simulate", "--out", d]), &[d, "directory"]);
+    std::fs::remove_dir_all(&dir).ok();
+}
