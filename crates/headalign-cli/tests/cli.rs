@@ -188,7 +188,7 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
         format!("{verge_err:.4}"),
         "src=\"figure6.png\"".into(),
         "src=\"aligned.png\"".into(),
-        format!("href=\"00-{}/left.png\"", views[0].as_str().unwrap()),
+        format!("href=\"{verging:02}-{}/left.png\"", views[0].as_str().unwrap()),
         "Errors against the simulator&#39;s truth".into(),
     ] {
         assert!(html.contains(&needle), "report.html lacks '{needle}'");
