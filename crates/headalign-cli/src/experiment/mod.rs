@@ -62,6 +62,11 @@ pub struct ExperimentArgs {
     /// Print a JSON summary on stdout instead of the Markdown table.
     #[arg(long)]
     pub json: bool,
+    /// Run only the conditions whose swept value is in this comma-separated list (e.g.
+    /// `--only 2,3` for the 2 and 3 px rows of a noise sweep); `--trials` is then split
+    /// over the remaining conditions.
+    #[arg(long, value_delimiter = ',')]
+    pub only: Vec<f64>,
 }
 
 /// One condition: a point of the swept parameter.
@@ -114,8 +119,30 @@ fn elevation_left() -> Series {
     Series { label: "elevation left (deg)", value: |r| r.elev_err_l_deg, crb: Some(|r| q_crb(r, 8)) }
 }
 
+/// The paper's focal length: its cameras have a focal length `f` and an aspect ratio `a`
+/// (its Figure 6), so `f` is our `fx` (`fy = a f`); the per-trial value
+/// `sqrt((e_L^2 + e_R^2) / 2)` makes the RMS over trials the RMS pooled over both
+/// cameras, and its bound is pooled the same way.
+fn focal_pooled() -> Series {
+    Series {
+        label: "focal length f = fx, L/R pooled (%)",
+        value: |r| (0.5 * (q_rel_pct(r, 0).powi(2) + q_rel_pct(r, 4).powi(2))).sqrt(),
+        crb: Some(|r| (0.5 * (q_crb_pct(r, 0).powi(2) + q_crb_pct(r, 4).powi(2))).sqrt()),
+    }
+}
+
 fn worst_focal() -> Series {
     Series { label: "focal length, worst of 4 (%)", value: |r| r.f_err_pct, crb: None }
+}
+
+/// Reconstruction error, RMS over points per trial (then RMS over trials).
+fn recon_rms() -> Series {
+    Series { label: "reconstruction, RMS over points (%)", value: |r| r.recon_err_pct, crb: None }
+}
+
+/// Reconstruction error, median over points per trial (then RMS over trials).
+fn recon_median() -> Series {
+    Series { label: "reconstruction, median over points (%)", value: |r| r.recon_median_pct, crb: None }
 }
 
 fn alignment_series() -> Vec<Series> {
@@ -163,10 +190,12 @@ fn experiment(name: &str) -> Result<Experiment> {
             series: vec![
                 Series { label: "left fx (%)", value: |r| q_rel_pct(r, 0), crb: Some(|r| q_crb_pct(r, 0)) },
                 Series { label: "right fx (%)", value: |r| q_rel_pct(r, 4), crb: Some(|r| q_crb_pct(r, 4)) },
+                focal_pooled(),
                 worst_focal(),
                 Series { label: "aspect ratio, worst (%)", value: |r| r.aspect_err_pct, crb: None },
                 Series { label: "principal point, worst (% of f)", value: |r| r.pp_err_pct, crb: None },
-                Series { label: "reconstruction (%)", value: |r| r.recon_err_pct, crb: None },
+                recon_rms(),
+                recon_median(),
             ],
         },
         "points" => Experiment {
@@ -183,8 +212,10 @@ fn experiment(name: &str) -> Result<Experiment> {
             series: vec![
                 elevation_left(),
                 verge_left(),
+                focal_pooled(),
                 worst_focal(),
-                Series { label: "reconstruction (%)", value: |r| r.recon_err_pct, crb: None },
+                recon_rms(),
+                recon_median(),
             ],
         },
         "rotation" => {
@@ -216,6 +247,7 @@ fn experiment(name: &str) -> Result<Experiment> {
                         value: |r| q_rel_pct(r, 0),
                         crb: Some(|r| q_crb_pct(r, 0)),
                     },
+                    focal_pooled(),
                     worst_focal(),
                 ],
             }
@@ -354,8 +386,16 @@ fn summarise(exp: &Experiment, outcomes: &[Outcome]) -> Vec<ConditionSummary> {
             let quantities = (0..SIGMA_QUANTITIES.len())
                 .map(|i| (quantity_rms(&recs, i), quantity_crb(&recs, i)))
                 .collect();
+            // Noise-free trials: errors and sigmas are both at the solver's tolerance, so a
+            // coverage would count rounding, not statistics ("-").
             let coverage = (0..SIGMA_QUANTITIES.len())
-                .map(|i| coverage(recs.iter().filter_map(|r| r.quantities.get(i))))
+                .map(|i| {
+                    if c.scenario.noise_px > 0.0 {
+                        coverage(recs.iter().filter_map(|r| r.quantities.get(i)))
+                    } else {
+                        (f64::NAN, 0)
+                    }
+                })
                 .collect();
             // NaN (printed "-") when no trial succeeded.
             let n = if recs.is_empty() { f64::NAN } else { recs.len() as f64 };
@@ -379,7 +419,7 @@ fn f(v: f64, digits: usize) -> String {
 
 fn write_csv(path: &Path, exp: &Experiment, outcomes: &[Outcome]) -> Result<()> {
     let mut s = String::from(
-        "experiment,group,x,trial,seed,noise_px,points,outlier_fraction,rotation_mode,ok,error,rotation_deg,verge_err_l_deg,verge_err_r_deg,elev_err_l_deg,elev_err_r_deg,elev_err_r_excess_deg,f_err_pct,aspect_err_pct,pp_err_pct,recon_err_pct,seconds",
+        "experiment,group,x,trial,seed,noise_px,points,outlier_fraction,rotation_mode,ok,error,rotation_deg,verge_err_l_deg,verge_err_r_deg,elev_err_l_deg,elev_err_r_deg,elev_err_r_excess_deg,f_err_pct,aspect_err_pct,pp_err_pct,recon_err_pct,recon_median_pct,seconds",
     );
     for q in SIGMA_QUANTITIES {
         for p in ["est", "truth", "sigma", "crb"] {
@@ -399,7 +439,7 @@ fn write_csv(path: &Path, exp: &Experiment, outcomes: &[Outcome]) -> Result<()> 
             Ok(r) => {
                 let _ = write!(
                     s,
-                    "true,,{},{},{},{},{},{},{},{},{},{},{:.4}",
+                    "true,,{},{},{},{},{},{},{},{},{},{},{},{:.4}",
                     r.rotation_deg,
                     r.verge_err_l_deg,
                     r.verge_err_r_deg,
@@ -410,6 +450,7 @@ fn write_csv(path: &Path, exp: &Experiment, outcomes: &[Outcome]) -> Result<()> 
                     r.aspect_err_pct,
                     r.pp_err_pct,
                     r.recon_err_pct,
+                    r.recon_median_pct,
                     r.seconds
                 );
                 for q in &r.quantities {
@@ -419,7 +460,7 @@ fn write_csv(path: &Path, exp: &Experiment, outcomes: &[Outcome]) -> Result<()> 
             Err(e) => {
                 let msg = e.replace([',', '\n', '"'], ";");
                 let _ = write!(s, "false,{msg}");
-                s.push_str(&",".repeat(11 + 4 * SIGMA_QUANTITIES.len()));
+                s.push_str(&",".repeat(12 + 4 * SIGMA_QUANTITIES.len()));
             }
         }
         s.push('\n');
@@ -455,7 +496,12 @@ fn markdown(exp: &Experiment, trials: usize, seed: u64, sums: &[ConditionSummary
         }
         m.push('\n');
     }
-    let _ = writeln!(m, "\nRMS error / Cramer-Rao bound per reported quantity (1.00 = efficient):\n");
+    let n_ok = sums.iter().map(|c| c.ok).max().unwrap_or(0);
+    let (lo, hi) = stats::ratio_interval(n_ok);
+    let _ = writeln!(
+        m,
+        "\nRMS error / Cramer-Rao bound per reported quantity (1.00 = efficient). With {n_ok} trials an efficient estimator's ratio lies in [{lo:.2}, {hi:.2}] with 95 % probability (chi-square with n degrees of freedom).\n"
+    );
     let mut head = format!("| group | {} |", exp.x_label);
     let mut rule = String::from("|---|---|");
     for q in SIGMA_QUANTITIES {
@@ -472,7 +518,9 @@ fn markdown(exp: &Experiment, trials: usize, seed: u64, sums: &[ConditionSummary
     }
     let _ = writeln!(
         m,
-        "\n95 % coverage of the reported sigmas (fraction of trials with |est - truth| <= 1.96 sigma):\n"
+        "\n95 % coverage of the reported sigmas (fraction of trials with |est - truth| <= 1.96 sigma; with {n_ok} trials a calibrated sigma gives {:.0}-{:.0} % with 95 % probability; '-' at noise 0):\n",
+        100.0 * stats::coverage_interval(n_ok).0,
+        100.0 * stats::coverage_interval(n_ok).1
     );
     let _ = writeln!(m, "{head}\n{rule}");
     for c in sums {
@@ -518,7 +566,13 @@ struct Produced {
 }
 
 fn run_one(name: &str, args: &ExperimentArgs) -> Result<Produced> {
-    let exp = experiment(name)?;
+    let mut exp = experiment(name)?;
+    if !args.only.is_empty() {
+        exp.conditions.retain(|c| args.only.iter().any(|x| (x - c.x).abs() <= 1e-9 * x.abs().max(1.0)));
+        if exp.conditions.is_empty() {
+            bail!("--only {:?} matches no condition of experiment '{}'", args.only, exp.name);
+        }
+    }
     let total = args.trials.unwrap_or(exp.default_trials);
     if total == 0 {
         bail!("--trials must be at least 1");

@@ -105,8 +105,10 @@ pub struct TrialRecord {
     pub aspect_err_pct: f64,
     /// Largest principal point error, percent of f.
     pub pp_err_pct: f64,
-    /// Reconstruction error, percent (NaN if not computable).
+    /// Reconstruction error, RMS over points, percent (NaN if not computable).
     pub recon_err_pct: f64,
+    /// Reconstruction error, median over points, percent (NaN if not computable).
+    pub recon_median_pct: f64,
     /// Rotation used, degrees.
     pub rotation_deg: f64,
     /// The quantities of [`SIGMA_QUANTITIES`], same order.
@@ -237,9 +239,8 @@ fn record_from(
     let truth = head.truth().clone();
     let st = &outcome.calibration.bundle.state;
     let cal = calibration_errors(&truth.left, &truth.right, &st.left, &st.right);
-    let recon = head
-        .recon_err_pct(&outcome.calibration.reference_encoders, &outcome.calibration.points())
-        .unwrap_or(f64::NAN);
+    let recon =
+        head.recon_errors(&outcome.calibration.reference_encoders, &outcome.calibration.points()).ok();
     let aligned = head.aligned_encoders();
     let unavoidable_r = head.alignment_errors(&aligned).elev_err_r_deg;
     let truths = [
@@ -275,7 +276,8 @@ fn record_from(
         f_err_pct: cal.f_err_pct,
         aspect_err_pct: cal.aspect_err_pct,
         pp_err_pct: cal.pp_err_pct,
-        recon_err_pct: recon,
+        recon_err_pct: recon.map_or(f64::NAN, |r| r.rms_pct),
+        recon_median_pct: recon.map_or(f64::NAN, |r| r.median_pct),
         rotation_deg: outcome.rotation_deg,
         quantities,
         seconds,
