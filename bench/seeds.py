@@ -22,14 +22,17 @@ for seed in range(first, last + 1):
     rows.append(v["errors"])
     est, tru = v["estimate"], v["truth"]
     for cam in ("left", "right"):
-        K = tru[cam]["K"]
-        truth_k = {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]}
+        if "K" in tru[cam]:
+            K = tru[cam]["K"]
+            truth_k = {"fx": K[0][0], "fy": K[1][1], "cx": K[0][2], "cy": K[1][2]}
+        else:  # image mode: the truth as fx, fy, cx, cy
+            truth_k = {k: tru[cam][k] for k in ("fx", "fy", "cx", "cy")}
         for k, t in truth_k.items():
-            sig = est[cam]["sigma"].get(k)
+            sig = est[cam].get("sigma", {}).get(k)
             if sig:
                 zs.setdefault(f"{cam}.{k}", []).append((est[cam][k] - t) / sig)
     for j in ("elevation", "verge_left", "verge_right"):
-        sig = est["aligned_sigma_deg"].get(f"{j}_deg")
+        sig = (est.get("aligned_sigma_deg") or {}).get(f"{j}_deg")
         if sig:
             zs.setdefault(f"aligned.{j}", []).append((est["aligned_encoders"][j] - tru["aligned_encoders"][j]) / sig)
     times.append(v["timings"]["total_s"])
