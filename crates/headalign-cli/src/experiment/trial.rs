@@ -111,6 +111,8 @@ pub struct TrialRecord {
     pub recon_median_pct: f64,
     /// Rotation used, degrees.
     pub rotation_deg: f64,
+    /// Pan error after the robot stages, degrees (signed; NaN when they did not run).
+    pub pan_err_deg: f64,
     /// The quantities of [`SIGMA_QUANTITIES`], same order.
     pub quantities: Vec<Quantity>,
     /// Wall time of the trial, seconds.
@@ -145,10 +147,15 @@ fn procedure_options(spec: &TrialSpec) -> VergeTiltOptions {
 
 fn run_procedure(spec: &TrialSpec) -> Result<(SimulatedHead, VergeTiltOutcome)> {
     let mut head = SimulatedHead::new(spec.scenario.clone()).map_err(|e| anyhow!("simulator: {e}"))?;
+    let outcome = verge_tilt_on(&mut head, spec)?;
+    Ok((head, outcome))
+}
+
+/// The verge/tilt procedure on `head`, which first moves to `spec.initial`.
+pub(super) fn verge_tilt_on(head: &mut SimulatedHead, spec: &TrialSpec) -> Result<VergeTiltOutcome> {
     head.move_to(&spec.initial).map_err(|e| anyhow!("simulator: {e}"))?;
     let mut run = VergeTiltRun::default();
-    let outcome = run.run(&mut head, &procedure_options(spec)).context("verge/tilt procedure")?;
-    Ok((head, outcome))
+    run.run(head, &procedure_options(spec)).context("verge/tilt procedure")
 }
 
 /// The values of [`SIGMA_QUANTITIES`] of an outcome: estimates and reported sigmas.
@@ -229,7 +236,7 @@ pub fn run_trial(spec: &TrialSpec, crb: Option<&[f64]>) -> Result<TrialRecord> {
 }
 
 /// Score an outcome against the head's truth.
-fn record_from(
+pub(super) fn record_from(
     head: &SimulatedHead,
     outcome: &VergeTiltOutcome,
     crb: Option<&[f64]>,
@@ -279,6 +286,7 @@ fn record_from(
         recon_err_pct: recon.map_or(f64::NAN, |r| r.rms_pct),
         recon_median_pct: recon.map_or(f64::NAN, |r| r.median_pct),
         rotation_deg: outcome.rotation_deg,
+        pan_err_deg: f64::NAN,
         quantities,
         seconds,
     }

@@ -1,0 +1,117 @@
+//! One trial of the robot stages (paper section 4, Figure 5 right: pan alignment by a
+//! forward drive) on the simulated robot, scored against the truth.
+//!
+//! A trial runs what `headalign demo` runs by default, in point mode: the verge/tilt
+//! procedure (as in [`super::trial`], thresholds scaled with the noise), then the pan
+//! stage, the steering stage and the pan stage again ([`align_pan`], [`zero_steering`];
+//! the second pan drive runs with the wheel straight, where the pan estimate is exact
+//! wherever the pan axis stands). The scenario sets the noise (pixels), the initial pan
+//! error (`pan_zero_max_deg`: the pan zero is drawn in +-this, degrees), the drive
+//! (`drive_m`, metres) and the near panels (the paper's robot faced a scene about 1 m
+//! away; [`Scenario::ROBOT_NEAR_PANELS`] unless the scenario has some).
+//!
+//! Recorded: the pan error after the last drive (degrees, signed: the true pan of the
+//! head from the direction of travel at the final readings), the alignment errors of
+//! both cameras after all stages (elevation left/right, degrees), and one reported
+//! quantity, `pan.aligned`: the final pan reading, its truth (final reading minus the
+//! pan error) and the sigma of the last drive's correction (the inverse-variance
+//! combination of the image and stereo estimates, `1 / sqrt(1/s_i^2 + 1/s_s^2)`: the
+//! remaining error after the last correction is that correction's error). The two
+//! estimates share the left images, so this sigma is optimistic by construction
+//! (`robot` module docs); the coverage shows by how much.
+//!
+//! No Cramer-Rao bound: the pan stage has no joint likelihood of both drives, steering
+//! and calibration whose covariance could be evaluated at the truth (the image and stereo
+//! estimates are correlated and their correlation is not modelled), so the bound is NaN
+//! and printed "-" rather than invented.
+
+use std::time::Instant;
+
+use anyhow::{Context, Result, anyhow};
+use headalign::robot::{PanOptions, PanOutcome, SteeringOptions, align_pan, zero_steering};
+use headalign_sim::{Scenario, SimulatedRobot};
+
+use super::trial::{Quantity, TrialRecord, TrialSpec, record_from, verge_tilt_on};
+
+/// The quantity the pan experiment reports with a sigma.
+pub const PAN_QUANTITIES: [&str; 1] = ["pan.aligned"];
+
+/// Pan options for a scenario: its drive, the RANSAC and guide thresholds scaled by
+/// `max(1, noise_px)` (as [`super::trial::estimation_options`] does for the verge/tilt
+/// stage: the defaults are tuned for about 1 px).
+pub fn pan_options(scenario: &Scenario) -> PanOptions {
+    let s = scenario.noise_px.max(1.0);
+    let mut o = PanOptions { drive_m: scenario.drive_m, ..PanOptions::default() };
+    o.translation.ransac.threshold *= s;
+    o.registration.threshold *= s;
+    o.guide_px *= s;
+    o
+}
+
+fn steering_options(scenario: &Scenario) -> SteeringOptions {
+    let mut o = SteeringOptions { baseline_m: scenario.baseline_m, ..SteeringOptions::default() };
+    o.registration.threshold *= scenario.noise_px.max(1.0);
+    o
+}
+
+/// Sigma of the last drive's combined pan correction, degrees (NaN without a drive).
+pub fn last_correction_sigma_deg(outcome: &PanOutcome) -> f64 {
+    outcome.steps.last().map_or(f64::NAN, |s| {
+        let inv = s.sigma_image_deg.powi(-2) + s.sigma_stereo_deg.powi(-2);
+        if inv.is_finite() && inv > 0.0 { inv.sqrt().recip() } else { f64::NAN }
+    })
+}
+
+/// Run one trial of the robot stages (module docs).
+pub fn run_pan_trial(spec: &TrialSpec) -> Result<TrialRecord> {
+    let t0 = Instant::now();
+    let mut scenario = spec.scenario.clone();
+    if scenario.near_panels == 0 {
+        scenario.near_panels = Scenario::ROBOT_NEAR_PANELS;
+    }
+    let mut robot = SimulatedRobot::new(scenario.clone()).map_err(|e| anyhow!("simulator: {e}"))?;
+    let vt = verge_tilt_on(robot.head_mut(), spec)?;
+    let (cal, verge) = (&vt.calibration, &vt.verge_axes);
+    let pan = pan_options(&scenario);
+    align_pan(&mut robot, cal, verge, &pan).context("pan stage")?;
+    zero_steering(&mut robot, cal, verge, &steering_options(&scenario)).context("steering stage")?;
+    let last = align_pan(&mut robot, cal, verge, &pan).context("pan stage, wheel straight")?;
+    let enc = robot.head().encoders();
+    let pan_err = robot.pan_err_deg(&enc);
+    let mut rec = record_from(robot.head(), &vt, None, t0.elapsed().as_secs_f64());
+    rec.pan_err_deg = pan_err;
+    rec.quantities = vec![Quantity {
+        est: enc.pan,
+        truth: enc.pan - pan_err,
+        sigma: last_correction_sigma_deg(&last),
+        crb: f64::NAN,
+    }];
+    Ok(rec)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::trial::RotationMode;
+    use super::*;
+    use headalign_platform::Encoders;
+
+    fn spec(noise: f64) -> TrialSpec {
+        TrialSpec {
+            scenario: Scenario { seed: 2, noise_px: noise, ..Scenario::default() },
+            initial: Encoders::default(),
+            rotation: RotationMode::Fixed,
+        }
+    }
+
+    /// Noise-free: the pan error is at the verge/tilt solver's tolerance (1e-3 deg, as
+    /// `robot::tests`), and the reported quantity's truth is consistent with the error.
+    #[test]
+    fn noise_free_pan_trial_is_exact() {
+        let r = run_pan_trial(&spec(0.0)).unwrap();
+        assert!(r.pan_err_deg.abs() < 1e-3, "{r:?}");
+        assert!(r.elev_err_l_deg.abs() < 1e-3, "{r:?}");
+        let q = r.quantities[0];
+        assert!((q.est - q.truth - r.pan_err_deg).abs() < 1e-12);
+        assert!(q.crb.is_nan());
+    }
+}
