@@ -518,7 +518,15 @@ impl Problem<'_> {
                 got: in_front,
             });
         }
-        Ok(RigState { left, right, right_from_left, motions: Motions::Free { ref_from_cam }, points })
+        Ok(RigState {
+            left,
+            right,
+            left_distortion: Distortion::default(),
+            right_distortion: Distortion::default(),
+            right_from_left,
+            motions: Motions::Free { ref_from_cam },
+            points,
+        })
     }
 }
 
