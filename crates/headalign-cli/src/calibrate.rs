@@ -478,6 +478,28 @@ mod tests {
         assert!(err < 0.03, "left fx {} vs {}", memory.stereo.left.fx, t.left.fx);
     }
 
+    /// A barrel lens (k1 = -0.2, k2 = 0.05, the simulator's radial model is OpenCV's
+    /// plumb_bob with p1 = p2 = k3 = 0) on rendered images: without the distortion in the
+    /// model the focal length is tens of percent off; estimated in the adjustment it is
+    /// within 2 % (measured 0.4 %) and the coefficients within 0.02 (measured sigma 0.003).
+    #[test]
+    fn estimated_distortion_recovers_the_focal_length() {
+        let mut scenario = Scenario { seed: 2, ..Scenario::default() };
+        scenario.render.distortion = headalign_sim::RadialDistortion { k1: -0.2, k2: 0.05 };
+        let (views, head) = simulate_views(&scenario, "rotations").unwrap();
+        let t = head.truth();
+        let dir = Path::new("unused");
+        let pinhole = calibrate_views(&views, &args(dir)).unwrap();
+        let est = calibrate_views(&views, &CalibrateArgs { estimate_distortion: true, ..args(dir) }).unwrap();
+        let err = |s: &StereoCalibration| (s.left.fx - t.left.fx).abs() / t.left.fx;
+        assert!(err(&pinhole.stereo) > 0.1, "pinhole fx {}", pinhole.stereo.left.fx);
+        assert!(err(&est.stereo) < 0.02, "fx {} vs {}", est.stereo.left.fx, t.left.fx);
+        for d in est.stereo.distortion {
+            assert!((d.k1 + 0.2).abs() < 0.02 && (d.k2 - 0.05).abs() < 0.03, "{d:?}");
+        }
+        assert_eq!(pinhole.stereo.distortion, [Distortion::default(); 2]);
+    }
+
     #[test]
     fn bad_folders_are_errors() {
         let e = load_views(Path::new("/nonexistent/headalign")).unwrap_err().to_string();
