@@ -51,9 +51,13 @@ pub struct CalibrateArgs {
     /// distortion_coefficients (one camera, used for both).
     #[arg(long)]
     pub distortion: Option<PathBuf>,
+    /// Estimate each camera's radial distortion (k1, k2, OpenCV plumb_bob) in the bundle
+    /// adjustment; written to every calibration file.
+    #[arg(long, conflicts_with = "distortion")]
+    pub estimate_distortion: bool,
     /// Known intrinsics and distortion (same file formats): no self-calibration; the rig
     /// from the fundamental matrix of all views (works with a planar target).
-    #[arg(long, conflicts_with_all = ["distortion", "zero_skew", "square_pixels", "fix_principal_point"])]
+    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "zero_skew", "square_pixels", "fix_principal_point"])]
     pub intrinsics: Option<PathBuf>,
     /// Write the calibration files here (calibration.json, opencv_stereo.yaml, left.yaml,
     /// right.yaml, camchain.yaml, calibrate_report.json).
@@ -80,6 +84,7 @@ fn options(args: &CalibrateArgs) -> CalibrateOptions {
         zero_skew: args.zero_skew,
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
+        estimate_distortion: args.estimate_distortion,
         ..CalibrateOptions::default()
     };
     o.estimation.seed = args.seed;
@@ -240,7 +245,10 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
     let tracked = undistort(tracked);
     let cal = calibrate_rig(&tracked, &opts)?;
     let st = &cal.bundle.state;
-    let distortion = lenses.map_or([Distortion::default(); 2], |l| [l[0].distortion, l[1].distortion]);
+    let distortion = match lenses {
+        Some(l) => [l[0].distortion, l[1].distortion],
+        None => [st.left_distortion, st.right_distortion],
+    };
     let mut stereo = StereoCalibration::from_bundle(&cal.bundle, image_size, args.baseline_m)?;
     stereo.distortion = distortion;
     let c = &cal.bundle.covariance;
@@ -254,6 +262,12 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         "constraints": {"zero_skew": args.zero_skew, "square_pixels": args.square_pixels, "fix_principal_point": args.fix_principal_point},
         "left": cam("left", &st.left), "right": cam("right", &st.right),
         "right_from_left": rig_json(&st.right_from_left),
+        "distortion": {
+            "estimated": args.estimate_distortion,
+            "left": distortion[0].to_opencv(), "right": distortion[1].to_opencv(),
+            "sigma": {"left.k1": c.sigma("left.k1"), "left.k2": c.sigma("left.k2"),
+                      "right.k1": c.sigma("right.k1"), "right.k2": c.sigma("right.k2")},
+        },
         "translation_unit": match stereo.unit { TranslationUnit::Metres => "m", TranslationUnit::Baselines => "baselines" },
         "report": serde_json::to_value(&cal.report)?,
         "seconds": t0.elapsed().as_secs_f64(),
@@ -433,6 +447,7 @@ mod tests {
             square_pixels: false,
             fix_principal_point: false,
             distortion: None,
+            estimate_distortion: false,
             intrinsics: None,
             out: None,
             json: false,
@@ -461,6 +476,28 @@ mod tests {
         let t = head.truth();
         let err = (memory.stereo.left.fx - t.left.fx).abs() / t.left.fx;
         assert!(err < 0.03, "left fx {} vs {}", memory.stereo.left.fx, t.left.fx);
+    }
+
+    /// A barrel lens (k1 = -0.2, k2 = 0.05, the simulator's radial model is OpenCV's
+    /// plumb_bob with p1 = p2 = k3 = 0) on rendered images: without the distortion in the
+    /// model the focal length is tens of percent off; estimated in the adjustment it is
+    /// within 2 % (measured 0.4 %) and the coefficients within 0.02 (measured sigma 0.003).
+    #[test]
+    fn estimated_distortion_recovers_the_focal_length() {
+        let mut scenario = Scenario { seed: 2, ..Scenario::default() };
+        scenario.render.distortion = headalign_sim::RadialDistortion { k1: -0.2, k2: 0.05 };
+        let (views, head) = simulate_views(&scenario, "rotations").unwrap();
+        let t = head.truth();
+        let dir = Path::new("unused");
+        let pinhole = calibrate_views(&views, &args(dir)).unwrap();
+        let est = calibrate_views(&views, &CalibrateArgs { estimate_distortion: true, ..args(dir) }).unwrap();
+        let err = |s: &StereoCalibration| (s.left.fx - t.left.fx).abs() / t.left.fx;
+        assert!(err(&pinhole.stereo) > 0.1, "pinhole fx {}", pinhole.stereo.left.fx);
+        assert!(err(&est.stereo) < 0.02, "fx {} vs {}", est.stereo.left.fx, t.left.fx);
+        for d in est.stereo.distortion {
+            assert!((d.k1 + 0.2).abs() < 0.02 && (d.k2 - 0.05).abs() < 0.03, "{d:?}");
+        }
+        assert_eq!(pinhole.stereo.distortion, [Distortion::default(); 2]);
     }
 
     #[test]

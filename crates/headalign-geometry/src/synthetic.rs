@@ -10,6 +10,7 @@ use rand_distr::StandardNormal;
 
 use crate::bundle::{BundleObservation, Motions, RigState, Side, residual_pixels};
 use crate::camera::Intrinsics;
+use crate::distortion::Distortion;
 use crate::so3::Line;
 
 /// Image width of the synthetic cameras, pixels.
@@ -80,7 +81,15 @@ pub fn synth(seed: u64, n_points: usize, noise_px: f64, outlier_frac: f64, free:
         let depth = rng.random_range(1.5..6.0);
         points.push(Point3::from(left.unproject(&Point2::new(u, v)) * depth));
     }
-    let truth = RigState { left, right, right_from_left, motions, points };
+    let truth = RigState {
+        left,
+        right,
+        left_distortion: Distortion::default(),
+        right_distortion: Distortion::default(),
+        right_from_left,
+        motions,
+        points,
+    };
     let mut obs = Vec::new();
     for (p, _) in truth.points.iter().enumerate() {
         for view in 0..3 {

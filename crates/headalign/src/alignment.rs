@@ -367,6 +367,8 @@ mod tests {
         let state = RigState {
             left: Intrinsics::new(700.0, 720.0, 390.0, 284.0),
             right: Intrinsics::new(705.0, 716.0, 380.0, 290.0),
+            left_distortion: Default::default(),
+            right_distortion: Default::default(),
             right_from_left: Isometry3::from_parts(
                 Translation3::new(-1.0, 0.01, 0.02),
                 UnitQuaternion::from_euler_angles(0.01, 0.1, -0.02),

@@ -34,8 +34,13 @@
 //!
 //! Lens distortion: a known model ([`LensModel`], e.g. read from an OpenCV YAML file with
 //! [`read_opencv_lenses`]) is removed from the observations first ([`undistort_views`]);
-//! everything after is pinhole. Estimating distortion in the adjustment is not
-//! implemented.
+//! everything after is pinhole. Alternatively `estimate_distortion` adds the radial
+//! coefficients `k1, k2` of each camera to the final adjustment (step 5;
+//! [`BundleOptions::estimate_distortion`](headalign_geometry::bundle::BundleOptions)):
+//! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
+//! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
+//! with sigmas `left.k1` ... in the covariance. With small rotations `k1` correlates with
+//! the focal length: without it a barrel lens biases `f` (see README).
 //!
 //! Pitfalls: a pure rotation, or a planar motion (translation perpendicular to the axis),
 //! fixes a pencil of planes: with one such motion the plane at infinity is undetermined
@@ -88,6 +93,9 @@ pub struct CalibrateOptions {
     pub square_pixels: bool,
     /// Hold both principal points at the image centre (default false).
     pub fix_principal_point: bool,
+    /// Estimate each camera's radial distortion `k1, k2` in the adjustment (default false:
+    /// pinhole, or a known lens removed beforehand with [`undistort_views`]).
+    pub estimate_distortion: bool,
     /// Motions rotating less than this (degrees) do not enter the linear
     /// self-calibration (default 0.5: below it `H - I` is mostly noise); they still enter
     /// the adjustment.
@@ -107,6 +115,7 @@ impl Default for CalibrateOptions {
             zero_skew: false,
             square_pixels: false,
             fix_principal_point: false,
+            estimate_distortion: false,
             min_rotation_deg: 0.5,
             planar_threshold_px: 2.0,
             planar_fraction: 0.98,
@@ -518,7 +527,15 @@ impl Problem<'_> {
                 got: in_front,
             });
         }
-        Ok(RigState { left, right, right_from_left, motions: Motions::Free { ref_from_cam }, points })
+        Ok(RigState {
+            left,
+            right,
+            left_distortion: Distortion::default(),
+            right_distortion: Distortion::default(),
+            right_from_left,
+            motions: Motions::Free { ref_from_cam },
+            points,
+        })
     }
 }
 
@@ -793,6 +810,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     adjust_options.bundle.zero_skew = options.zero_skew;
     adjust_options.bundle.square_pixels = options.square_pixels;
     adjust_options.bundle.fix_principal_point = options.fix_principal_point;
+    adjust_options.bundle.estimate_distortion = options.estimate_distortion;
     // Each start is adjusted to convergence; the two results are compared on the same
     // observations (all of them, each squared residual truncated at the re-selection gate
     // of the noisier result), since each adjustment re-selects its own inliers and a

@@ -1015,6 +1015,8 @@ impl InitContext<'_> {
         Ok(RigState {
             left,
             right,
+            left_distortion: Default::default(),
+            right_distortion: Default::default(),
             right_from_left,
             motions: Motions::Joints {
                 axes: vec![pan_axis, elev_axis],
