@@ -492,6 +492,18 @@ ul.links { columns: 3; font-size: .9em; }
 footer { margin-top: 3em; font-size: .8em; color: #888; }
 ";
 
+/// How the report names the lens model: none, or each camera's OpenCV `plumb_bob`
+/// coefficients.
+fn lens_note(d: &[headalign_geometry::distortion::Distortion; 2]) -> String {
+    if d.iter().all(|x| x.is_zero()) {
+        return "no lens distortion".into();
+    }
+    let one = |x: &headalign_geometry::distortion::Distortion| {
+        format!("k1 {:.5}, k2 {:.5}, p1 {:.5}, p2 {:.5}, k3 {:.5}", x.k1, x.k2, x.p1, x.p2, x.k3)
+    };
+    format!("lens distortion (OpenCV plumb_bob): left {}; right {}", one(&d[0]), one(&d[1]))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -512,16 +524,4 @@ mod tests {
         assert!(h.contains("<td>&lt;k&gt;</td><td class=\"n\">1.5</td>"));
         assert!(h.starts_with("<!DOCTYPE html>") && h.trim_end().ends_with("</html>"));
     }
-}
-
-/// How the report names the lens model: none, or each camera's OpenCV `plumb_bob`
-/// coefficients.
-fn lens_note(d: &[headalign_geometry::distortion::Distortion; 2]) -> String {
-    if d.iter().all(|x| x.is_zero()) {
-        return "no lens distortion".into();
-    }
-    let one = |x: &headalign_geometry::distortion::Distortion| {
-        format!("k1 {:.5}, k2 {:.5}, p1 {:.5}, p2 {:.5}, k3 {:.5}", x.k1, x.k2, x.p1, x.p2, x.k3)
-    };
-    format!("lens distortion (OpenCV plumb_bob): left {}; right {}", one(&d[0]), one(&d[1]))
 }
