@@ -27,6 +27,7 @@ use headalign::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_ax
 use headalign::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
 use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
+use headalign::onemotion::{Horizon, OneMotionOptions, align_one_motion};
 use headalign::panfix::{PanFixationOptions, align_pan_by_fixation};
 use headalign::procedure::{VergeTiltOptions, VergeTiltRun, alignment_sigmas, capture_plan};
 use headalign::robot::{PanOptions, SteeringOptions, align_pan, zero_steering};
@@ -130,8 +131,9 @@ impl ScenarioArgs {
 struct DemoArgs {
     #[command(flatten)]
     scenario: ScenarioArgs,
-    /// Stages to run, in order, comma separated: verge-tilt, pan, steering, pan-fixate
-    /// (pan and steering need the verge-tilt calibration; pan-fixate, the calibration-free
+    /// Stages to run, in order, comma separated: verge-tilt, pan, steering, pan-fixate,
+    /// one-motion (drive and tilt at once: pan and elevation; pan, steering and one-motion
+    /// need the verge-tilt calibration; pan-fixate, the calibration-free
     /// route, fixates the epipole and needs a straight wheel; a stage may repeat). Default: pan first
     /// (coarse: the drive is derotated, so a bent wheel is tolerated, and it turns the
     /// head to the near scene for steering), steering, then pan again with the wheel
@@ -141,6 +143,10 @@ struct DemoArgs {
     /// axis (0.58 with this order); steering,pan 0.53 / 0.26 (0.48 / 0.54).
     #[arg(long, default_value = "verge-tilt,pan,steering,pan")]
     stages: String,
+    /// one-motion stage: level the elevation with the measured drive direction instead of
+    /// the calibrated pan axis (the paper's one-motion elevation; less precise here).
+    #[arg(long)]
+    horizon_from_drive: bool,
     /// Largest initial pan error (pan zero offset), degrees (the paper used 20 and 60).
     #[arg(long)]
     pan_zero_max: Option<f64>,
@@ -308,8 +314,10 @@ fn demo(args: &DemoArgs) -> Result<()> {
     }
     let stages: Vec<&str> = args.stages.split(',').map(str::trim).filter(|s| !s.is_empty()).collect();
     for st in &stages {
-        if !["verge-tilt", "pan", "steering", "pan-fixate"].contains(st) {
-            anyhow::bail!("unknown stage '{st}' (expected verge-tilt, pan, steering, pan-fixate)");
+        if !["verge-tilt", "pan", "steering", "pan-fixate", "one-motion"].contains(st) {
+            anyhow::bail!(
+                "unknown stage '{st}' (expected verge-tilt, pan, steering, pan-fixate, one-motion)"
+            );
         }
     }
     match args.near_panels {
@@ -346,6 +354,7 @@ fn demo(args: &DemoArgs) -> Result<()> {
     let (outcome, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session, plan)?;
     let mut pan_outcomes = Vec::new();
     let mut fixate_outcomes = Vec::new();
+    let mut one_motion_outcomes = Vec::new();
     let mut steer_outcome = None;
     for st in &stages {
         match *st {
@@ -354,6 +363,15 @@ fn demo(args: &DemoArgs) -> Result<()> {
                 pan_outcomes.push(
                     align_pan(&mut robot, &outcome.calibration, &outcome.verge_axes, &o)
                         .context("pan stage")?,
+                );
+            }
+            "one-motion" => {
+                let horizon = if args.horizon_from_drive { Horizon::Drive } else { Horizon::PanAxis };
+                let o =
+                    OneMotionOptions { drive_m: scenario.drive_m, horizon, ..OneMotionOptions::default() };
+                one_motion_outcomes.push(
+                    align_one_motion(&mut robot, &outcome.calibration, &outcome.verge_axes, &o)
+                        .context("one-motion stage")?,
                 );
             }
             "pan-fixate" => {
@@ -379,7 +397,8 @@ fn demo(args: &DemoArgs) -> Result<()> {
     let total = t0.elapsed().as_secs_f64();
     let final_enc = robot.head().encoders();
     let pan_after =
-        (!pan_outcomes.is_empty() || !fixate_outcomes.is_empty()).then(|| robot.pan_err_deg(&final_enc));
+        (!pan_outcomes.is_empty() || !fixate_outcomes.is_empty() || !one_motion_outcomes.is_empty())
+            .then(|| robot.pan_err_deg(&final_enc));
     let steer_after = steer_outcome.as_ref().map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
     let head = robot.head();
     let after = head.alignment_errors(&head.encoders());
@@ -406,6 +425,7 @@ fn demo(args: &DemoArgs) -> Result<()> {
             "before": before_j,
             "pan": serde_json::to_value(&pan_outcomes)?,
             "pan_fixate": serde_json::to_value(&fixate_outcomes)?,
+            "one_motion": serde_json::to_value(&one_motion_outcomes)?,
             "steering": serde_json::to_value(&steer_outcome)?,
             "stages": stages,
             "estimate": {
@@ -511,6 +531,20 @@ fn demo(args: &DemoArgs) -> Result<()> {
     say!("checks after moving: {}", outcome.checks.len());
     if !pan_outcomes.is_empty() {
         say!();
+    }
+    for (i, s) in one_motion_outcomes.iter().flat_map(|p| &p.steps).enumerate() {
+        let e = &s.estimate;
+        say!(
+            "one motion {}: pan {:+.3} deg, elevation {:+.3} deg; tilt {:+.3} deg, robot turn {:+.3} deg, verge check {:+.3} / {:+.3} deg, {} tracks",
+            i + 1,
+            e.pan_correction_deg,
+            e.elevation_correction_deg,
+            e.tilt_deg,
+            e.turn_deg,
+            e.verge_check_deg[0],
+            e.verge_check_deg[1],
+            s.inliers
+        );
     }
     for (i, s) in fixate_outcomes.iter().flat_map(|p| &p.steps).enumerate() {
         say!(

@@ -77,6 +77,24 @@ pub enum AlignError {
         /// Required turn, degrees.
         min_deg: f64,
     },
+    /// The one-motion stage's drive moved the rig too little to give a direction.
+    #[error(
+        "one motion: no drive: pan-axis displacement {displacement:.4} baselines, need at least {min}; drive farther"
+    )]
+    NoDrive {
+        /// Length of the displacement left after removing the tilt, stereo baselines.
+        displacement: f64,
+        /// Required length, stereo baselines.
+        min: f64,
+    },
+    /// The one-motion stage's motion rotated too little to locate the elevation axis.
+    #[error("one motion: no tilt: rotation {angle_deg:.3} deg, need at least {min_deg} deg; tilt more")]
+    NoTilt {
+        /// Measured rotation, degrees.
+        angle_deg: f64,
+        /// Required rotation, degrees.
+        min_deg: f64,
+    },
     /// The robot's motion was not planar (screw axis not parallel to the pan axis, or
     /// translation along it).
     #[error("motion not planar: {0}")]

@@ -26,6 +26,7 @@ pub mod export;
 pub mod frontend;
 pub mod imaging;
 pub mod observations;
+pub mod onemotion;
 pub mod panfix;
 pub mod procedure;
 pub mod process_head;

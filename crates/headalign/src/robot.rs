@@ -275,16 +275,16 @@ pub struct SteeringOutcome {
 
 /// The calibrated stereo cameras at readings `enc`, in the current left camera frame,
 /// plus `ref_from_left` (to move calibrated axes into that frame).
-struct Rig {
+pub(crate) struct Rig {
     k_left: Intrinsics,
     p_left: ProjectiveCamera,
     p_right: ProjectiveCamera,
-    ref_from_left: Isometry3<f64>,
-    left_from_right: Isometry3<f64>,
+    pub(crate) ref_from_left: Isometry3<f64>,
+    pub(crate) left_from_right: Isometry3<f64>,
     stereo: StereoRig,
 }
 
-fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) -> Result<Rig, AlignError> {
+pub(crate) fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) -> Result<Rig, AlignError> {
     let (ref_from_left, ref_from_right) = predicted_poses(calib, verge, &calib.reference_encoders, enc)?;
     let left_from_right = ref_from_left.inverse() * ref_from_right;
     let st = &calib.bundle.state;
@@ -355,15 +355,15 @@ impl Estimator for DriveEstimator<'_> {
 }
 
 /// The measured rigid motion of one drive.
-struct DriveMotion {
-    cam2_from_cam1: Isometry3<f64>,
+pub(crate) struct DriveMotion {
+    pub(crate) cam2_from_cam1: Isometry3<f64>,
     before: HashMap<u64, Point3<f64>>,
-    inliers: usize,
+    pub(crate) inliers: usize,
     /// The maximum-likelihood refinement (covariance of the centre's displacement).
     ml: RigMotionEstimate,
 }
 
-fn drive_motion(
+pub(crate) fn drive_motion(
     rig: &Rig,
     before: &StereoCapture,
     after: &StereoCapture,
@@ -410,14 +410,14 @@ fn drive_motion(
 
 /// Signed angle about `up` from `a` to `b` (both projected onto the plane perpendicular
 /// to `up`), radians.
-fn angle_about(up: &Vector3<f64>, a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+pub(crate) fn angle_about(up: &Vector3<f64>, a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
     let ah = a - up * up.dot(a);
     let bh = b - up * up.dot(b);
     up.dot(&ah.cross(&bh)).atan2(ah.dot(&bh))
 }
 
 /// Head forward direction (mean of optical axes) in the current left frame.
-fn head_forward(rig: &Rig) -> Vector3<f64> {
+pub(crate) fn head_forward(rig: &Rig) -> Vector3<f64> {
     Vector3::z() + rig.left_from_right.rotation * Vector3::z()
 }
 
