@@ -61,7 +61,7 @@ use headalign_geometry::homography2d::Homography2Estimator;
 use headalign_geometry::homography3d::{
     Homography3, Homography3Estimator, Quadruplet, TransferModel, symmetric_transfer_error,
 };
-use headalign_geometry::ransac::{RansacOptions, ransac};
+use headalign_geometry::ransac::{RansacOptions, RansacReport, ransac};
 use headalign_geometry::registration::RigidFrameEstimator;
 use headalign_geometry::selfcal::{
     IntrinsicConstraints, calibrate_from_infinite_homographies, decompose_camera, euclidean_upgrade,
@@ -603,15 +603,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     // --- 2. F from all views, frame, triangulation.
     let per_view: Vec<Vec<StereoMatch>> = rig.iter().map(|v| stereo_matches(&v.capture)).collect();
     let pairs: Vec<(Point2<f64>, Point2<f64>)> = per_view.iter().flatten().map(|m| (m.1, m.2)).collect();
-    if pairs.len() < est.min_tracks {
-        return Err(AlignError::TooFewTracks {
-            what: "matched between left and right".into(),
-            needed: est.min_tracks,
-            got: pairs.len(),
-        });
-    }
-    let f_report = estimate_fundamental(&pairs, &RansacOptions { seed: est.seed, ..est.fundamental })
-        .step("fundamental matrix")?;
+    let f_report = stereo_fundamental(&pairs, est)?;
     let f: FundamentalMatrix = f_report.model;
     let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = f_report.inliers.iter().map(|&i| pairs[i]).collect();
     let stereo_rms = rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r)));
@@ -932,6 +924,23 @@ pub struct KnownIntrinsicsRig {
     pub inlier_pairs: Vec<(Point2<f64>, Point2<f64>)>,
 }
 
+/// F by RANSAC (the estimation's options and seed) from the stereo matches `pairs`
+/// (left, right) of all views together; too few matches is an error.
+fn stereo_fundamental(
+    pairs: &[(Point2<f64>, Point2<f64>)],
+    options: &EstimationOptions,
+) -> Result<RansacReport<FundamentalMatrix>, AlignError> {
+    if pairs.len() < options.min_tracks {
+        return Err(AlignError::TooFewTracks {
+            what: "matched between left and right".into(),
+            needed: options.min_tracks,
+            got: pairs.len(),
+        });
+    }
+    estimate_fundamental(pairs, &RansacOptions { seed: options.seed, ..options.fundamental })
+        .step("fundamental matrix")
+}
+
 /// F by RANSAC from the stereo matches of every view (the rig is fixed, so matches on
 /// different board poses together are not planar), then the rig from `E` with the known
 /// intrinsics `k_left`, `k_right` (cheirality vote over the inliers).
@@ -944,15 +953,7 @@ pub fn rig_from_known_intrinsics(
     options.validate()?;
     let pairs: Vec<(Point2<f64>, Point2<f64>)> =
         views.iter().flat_map(|v| stereo_matches(&v.capture)).map(|m| (m.1, m.2)).collect();
-    if pairs.len() < options.min_tracks {
-        return Err(AlignError::TooFewTracks {
-            what: "matched between left and right".into(),
-            needed: options.min_tracks,
-            got: pairs.len(),
-        });
-    }
-    let f_report = estimate_fundamental(&pairs, &RansacOptions { seed: options.seed, ..options.fundamental })
-        .step("fundamental matrix")?;
+    let f_report = stereo_fundamental(&pairs, options)?;
     let f = f_report.model;
     let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = f_report.inliers.iter().map(|&i| pairs[i]).collect();
     let right_from_left = headalign_geometry::frame::relative_pose(&f.0, k_left, k_right, &inlier_pairs)
