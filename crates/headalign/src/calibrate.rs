@@ -1150,6 +1150,16 @@ mod tests {
         );
     }
 
+    /// One point-mode view per `(name, encoders)`, captured after moving there.
+    fn capture_views(head: &mut SimulatedHead, at: &[(&str, Encoders)]) -> Vec<View> {
+        at.iter()
+            .map(|(name, enc)| {
+                head.move_to(enc).unwrap();
+                View { name: (*name).into(), capture: head.capture().unwrap() }
+            })
+            .collect()
+    }
+
     /// Two head rotations about different axes need no constraint (noise-free: exact);
     /// the vergence view (rig changed) is left out and said so.
     #[test]
@@ -1157,16 +1167,15 @@ mod tests {
         let scenario = Scenario { noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
         let mut head = SimulatedHead::new(scenario).unwrap();
         let e0 = head.encoders();
-        let mut views = Vec::new();
-        for (name, enc) in [
-            ("initial", e0),
-            ("elevation", e0.moved(Joint::Elevation, 5.0)),
-            ("pan", e0.moved(Joint::Pan, 5.0)),
-            ("verge", Encoders { verge_left: e0.verge_left + 3.0, ..e0 }),
-        ] {
-            head.move_to(&enc).unwrap();
-            views.push(View { name: name.into(), capture: head.capture().unwrap() });
-        }
+        let views = capture_views(
+            &mut head,
+            &[
+                ("initial", e0),
+                ("elevation", e0.moved(Joint::Elevation, 5.0)),
+                ("pan", e0.moved(Joint::Pan, 5.0)),
+                ("verge", Encoders { verge_left: e0.verge_left + 3.0, ..e0 }),
+            ],
+        );
         let cal = calibrate_rig(&views, &CalibrateOptions::default()).unwrap();
         let (st, t) = (&cal.bundle.state, head.truth());
         // 1e-4 % and 1e-3 px: noise-free, the adjustment converges to rounding.
@@ -1217,15 +1226,14 @@ mod tests {
         scenario.render.distortion = headalign_sim::RadialDistortion { k1: -0.2, k2: 0.05 };
         let mut head = SimulatedHead::new(scenario).unwrap();
         let e0 = head.encoders();
-        let mut views = Vec::new();
-        for (name, enc) in [
-            ("initial", e0),
-            ("elevation", e0.moved(Joint::Elevation, 5.0)),
-            ("pan", e0.moved(Joint::Pan, 5.0)),
-        ] {
-            head.move_to(&enc).unwrap();
-            views.push(View { name: name.into(), capture: head.capture().unwrap() });
-        }
+        let views = capture_views(
+            &mut head,
+            &[
+                ("initial", e0),
+                ("elevation", e0.moved(Joint::Elevation, 5.0)),
+                ("pan", e0.moved(Joint::Pan, 5.0)),
+            ],
+        );
         let t = head.truth().clone();
         let lens = |k: Intrinsics| LensModel { k, distortion: Distortion::radial(-0.2, 0.05) };
         let undistorted = undistort_views(&views, &[lens(t.left), lens(t.right)]);
