@@ -55,8 +55,14 @@ pub struct VergeTiltOptions {
     pub check_tolerance_deg: f64,
     /// Maximum number of corrective moves after the first (default 2).
     pub max_corrections: usize,
+    /// Also rotate pan and elevation together by this much, degrees (default 0: no such
+    /// views): the diagonal views `(pan, elevation) = (+d, +d), (+d, -d), (-d, +d), (-d, -d)`
+    /// (only `(+d, +d)` without `both_directions`). Each joint still turns by at most `d`;
+    /// the combined rotations add the most information per view (module docs). The auto
+    /// mode sets it.
+    pub diagonal_rotation_deg: f64,
     /// Let the procedure choose the elevation/pan rotation itself (default `None`: use
-    /// `rotation_deg`).
+    /// `rotation_deg` and `diagonal_rotation_deg`).
     pub auto_rotation: Option<AutoRotation>,
 }
 
@@ -72,11 +78,21 @@ pub struct AutoRotation {
     pub min_overlap_fraction: f64,
     /// Minimum number of such shared tracks (default 60).
     pub min_tracks: usize,
+    /// After choosing the single-joint rotation `r`, also add the four diagonal views
+    /// (pan and elevation together, each by the largest candidate `d <= r` whose four
+    /// probed views keep the overlap; none if the smallest candidate does not) (default
+    /// true).
+    pub diagonals: bool,
 }
 
 impl Default for AutoRotation {
     fn default() -> Self {
-        Self { candidates_deg: vec![3.0, 6.0, 10.0], min_overlap_fraction: 0.6, min_tracks: 60 }
+        Self {
+            candidates_deg: vec![3.0, 6.0, 10.0],
+            min_overlap_fraction: 0.5,
+            min_tracks: 60,
+            diagonals: true,
+        }
     }
 }
 
@@ -115,6 +131,7 @@ impl Default for VergeTiltOptions {
             estimation: EstimationOptions::default(),
             check_tolerance_deg: 0.2,
             max_corrections: 2,
+            diagonal_rotation_deg: 0.0,
             auto_rotation: None,
         }
     }
@@ -131,6 +148,12 @@ impl VergeTiltOptions {
                     "{name} must be between 0.1 and 45 degrees in magnitude, got {v}"
                 )));
             }
+        }
+        let d = self.diagonal_rotation_deg;
+        if !(d == 0.0 || (d.abs() >= 0.1 && d.abs() <= 45.0)) {
+            return Err(AlignError::InvalidOption(format!(
+                "diagonal_rotation_deg must be 0 or between 0.1 and 45 degrees in magnitude, got {d}"
+            )));
         }
         if !self.check_tolerance_deg.is_finite() || self.check_tolerance_deg <= 0.0 {
             return Err(AlignError::InvalidOption("check_tolerance_deg must be positive".into()));
@@ -181,6 +204,9 @@ pub struct VergeTiltOutcome {
     pub final_encoders: Encoders,
     /// Elevation/pan rotation used for calibration, degrees (chosen if auto).
     pub rotation_deg: f64,
+    /// Diagonal (pan and elevation together) rotation used, degrees; 0 if none (chosen if
+    /// auto).
+    pub diagonal_rotation_deg: f64,
     /// Seconds spent estimating (excluding head motion and capture).
     pub estimation_seconds: f64,
 }
@@ -207,11 +233,16 @@ impl VergeTiltRun {
     ) -> Result<VergeTiltOutcome, AlignError> {
         options.validate()?;
         let e0 = head.read_encoders()?;
-        let rotation_deg = match &options.auto_rotation {
+        let choice = match &options.auto_rotation {
             Some(auto) => choose_rotation(head, &e0, options.both_directions, auto)?,
-            None => options.rotation_deg,
+            None => RotationChoice {
+                rotation_deg: options.rotation_deg,
+                diagonal_rotation_deg: options.diagonal_rotation_deg,
+            },
         };
-        let plan = capture_plan(&e0, &VergeTiltOptions { rotation_deg, ..options.clone() });
+        let RotationChoice { rotation_deg, diagonal_rotation_deg } = choice;
+        let plan =
+            capture_plan(&e0, &VergeTiltOptions { rotation_deg, diagonal_rotation_deg, ..options.clone() });
         for (name, encoders) in &plan {
             head.move_to(encoders)?;
             self.capture(head, name)?;
@@ -256,10 +287,21 @@ impl VergeTiltRun {
                 estimation_seconds += t1.elapsed().as_secs_f64();
                 break;
             }
-            // Re-measure the vergence axes from this larger move and solve again.
+            // Re-measure a vergence axis from this move only if its vergence turned at
+            // least as far as the procedure's own vergence move: the axis is the screw of
+            // the measured pose against the modelled pan/elevation chain, so a small
+            // vergence turn on top of a large elevation turn measures mostly the chain's
+            // error (at 3 px, a 0.9 deg turn after 8 deg of elevation gave an axis 80 deg
+            // off and an 8 deg alignment error). No axis re-measured: nothing to correct.
+            let big = |j: Joint| (enc.get(j) - reference.get(j)).abs() >= options.verge_rotation_deg.abs();
             let better = verge_axes_from_motion(state, &reference, &enc, &measured)?;
-            verge_axes =
-                VergeAxes { left: better.left.or(verge_axes.left), right: better.right.or(verge_axes.right) };
+            let left = better.left.filter(|_| big(Joint::VergeLeft));
+            let right = better.right.filter(|_| big(Joint::VergeRight));
+            if left.is_none() && right.is_none() {
+                estimation_seconds += t1.elapsed().as_secs_f64();
+                break;
+            }
+            verge_axes = VergeAxes { left: left.or(verge_axes.left), right: right.or(verge_axes.right) };
             solution = solve_alignment(state, &verge_axes, &reference)?;
             estimation_seconds += t1.elapsed().as_secs_f64();
         }
@@ -273,6 +315,7 @@ impl VergeTiltRun {
             checks,
             final_encoders,
             rotation_deg,
+            diagonal_rotation_deg,
             estimation_seconds,
         })
     }
@@ -294,55 +337,111 @@ pub fn shared_stereo_tracks(
     (r.intersection(&c).count(), r.len())
 }
 
-/// Choose the largest candidate rotation at which every probed elevation/pan view keeps
-/// enough of the reference view's stereo tracks (module docs). Returns to `e0`.
+/// The calibration rotations the procedure uses, degrees.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RotationChoice {
+    /// Single-joint (elevation, pan) rotation.
+    pub rotation_deg: f64,
+    /// Diagonal rotation (pan and elevation together); 0 for none.
+    pub diagonal_rotation_deg: f64,
+}
+
+/// The (pan, elevation) offsets of the single-joint views at rotation `r` (elevation
+/// first), each both ways if `both_directions`.
+fn single_joint_offsets(r: f64, both_directions: bool) -> Vec<(&'static str, f64, f64)> {
+    if both_directions {
+        vec![("elevation+", 0.0, r), ("elevation-", 0.0, -r), ("pan+", r, 0.0), ("pan-", -r, 0.0)]
+    } else {
+        vec![("elevation", 0.0, r), ("pan", r, 0.0)]
+    }
+}
+
+/// The (pan, elevation) offsets of the diagonal views at rotation `d` (none if `d` is 0).
+fn diagonal_offsets(d: f64, both_directions: bool) -> Vec<(&'static str, f64, f64)> {
+    if d == 0.0 {
+        Vec::new()
+    } else if both_directions {
+        vec![
+            ("pan+elevation+", d, d),
+            ("pan+elevation-", d, -d),
+            ("pan-elevation+", -d, d),
+            ("pan-elevation-", -d, -d),
+        ]
+    } else {
+        vec![("pan+elevation+", d, d)]
+    }
+}
+
+/// The choice logic of the auto mode, pure (module docs): `keeps_overlap(pan, elevation)`
+/// says whether the view at those offsets (degrees) from the initial readings keeps enough
+/// of the reference view's tracks. The single-joint rotation is the largest candidate whose
+/// views all keep it, probing in increasing order and stopping at the first failure (the
+/// first candidate is used regardless); then, if `auto.diagonals`, the diagonal rotation is
+/// the largest candidate not above it whose diagonal views all keep it, probing in
+/// decreasing order (0 if none does). Probes are requested in the order they are needed,
+/// and none twice.
+pub fn choose_rotations<E>(
+    auto: &AutoRotation,
+    both_directions: bool,
+    mut keeps_overlap: impl FnMut(f64, f64) -> Result<bool, E>,
+) -> Result<RotationChoice, E> {
+    let mut chosen = auto.candidates_deg.first().copied().unwrap_or(3.0);
+    'candidates: for &r in auto.candidates_deg.iter().skip(1) {
+        for (_, pan, elevation) in single_joint_offsets(r, both_directions) {
+            if !keeps_overlap(pan, elevation)? {
+                break 'candidates;
+            }
+        }
+        chosen = r;
+    }
+    let mut diagonal = 0.0;
+    if auto.diagonals {
+        'diagonals: for &d in auto.candidates_deg.iter().rev().filter(|&&d| d <= chosen) {
+            for (_, pan, elevation) in diagonal_offsets(d, both_directions) {
+                if !keeps_overlap(pan, elevation)? {
+                    continue 'diagonals;
+                }
+            }
+            diagonal = d;
+            break;
+        }
+    }
+    Ok(RotationChoice { rotation_deg: chosen, diagonal_rotation_deg: diagonal })
+}
+
+/// Probe the head for [`choose_rotations`]: capture a reference view at `e0`, then each
+/// requested view; count its shared stereo tracks. Returns to `e0`.
 fn choose_rotation<H: StereoHead>(
     head: &mut H,
     e0: &Encoders,
     both_directions: bool,
     auto: &AutoRotation,
-) -> Result<f64, AlignError> {
+) -> Result<RotationChoice, AlignError> {
     head.move_to(e0)?;
     let reference = head.capture()?;
-    let mut chosen = auto.candidates_deg.first().copied().unwrap_or(3.0);
-    'candidates: for &r in auto.candidates_deg.iter().skip(1) {
-        let signs: &[f64] = if both_directions { &[1.0, -1.0] } else { &[1.0] };
-        for joint in [Joint::Elevation, Joint::Pan] {
-            for &sign in signs {
-                head.move_to(&e0.moved(joint, sign * r))?;
-                let probe = head.capture()?;
-                let (shared, total) = shared_stereo_tracks(&reference, &probe);
-                let enough =
-                    shared >= auto.min_tracks && (shared as f64) >= auto.min_overlap_fraction * total as f64;
-                if !enough {
-                    break 'candidates;
-                }
-            }
-        }
-        chosen = r;
-    }
+    let choice = choose_rotations(auto, both_directions, |pan, elevation| {
+        head.move_to(&e0.moved(Joint::Pan, pan).moved(Joint::Elevation, elevation))?;
+        let probe = head.capture()?;
+        let (shared, total) = shared_stereo_tracks(&reference, &probe);
+        Ok::<bool, AlignError>(
+            shared >= auto.min_tracks && (shared as f64) >= auto.min_overlap_fraction * total as f64,
+        )
+    })?;
     head.move_to(e0)?;
-    Ok(chosen)
+    Ok(choice)
 }
 
 /// The views the procedure captures, in order, from the initial readings `e0`: the
-/// initial view; elevation and pan rotations (each both ways if `both_directions`); and
-/// last, both vergences rotated (to measure the vergence axes).
+/// initial view; elevation and pan rotations (each both ways if `both_directions`); the
+/// diagonal views if `diagonal_rotation_deg` is not 0; and last, both vergences rotated
+/// (to measure the vergence axes).
 pub fn capture_plan(e0: &Encoders, options: &VergeTiltOptions) -> Vec<(String, Encoders)> {
-    let r = options.rotation_deg;
     let mut plan = vec![("initial".to_string(), *e0)];
-    let moves: &[(&str, Joint, f64)] = if options.both_directions {
-        &[
-            ("elevation+", Joint::Elevation, r),
-            ("elevation-", Joint::Elevation, -r),
-            ("pan+", Joint::Pan, r),
-            ("pan-", Joint::Pan, -r),
-        ]
-    } else {
-        &[("elevation", Joint::Elevation, r), ("pan", Joint::Pan, r)]
-    };
-    for &(name, joint, angle) in moves {
-        plan.push((name.to_string(), e0.moved(joint, angle)));
+    let moves = single_joint_offsets(options.rotation_deg, options.both_directions)
+        .into_iter()
+        .chain(diagonal_offsets(options.diagonal_rotation_deg, options.both_directions));
+    for (name, pan, elevation) in moves {
+        plan.push((name.to_string(), e0.moved(Joint::Pan, pan).moved(Joint::Elevation, elevation)));
     }
     let v = options.verge_rotation_deg;
     plan.push(("verge".to_string(), e0.moved(Joint::VergeLeft, v).moved(Joint::VergeRight, v)));
@@ -490,12 +589,178 @@ mod tests {
         let mut head = SimulatedHead::new(scenario.clone()).unwrap();
         let e0 = head.read_encoders().unwrap();
         let loose = AutoRotation::default();
-        let r = choose_rotation(&mut head, &e0, true, &loose).unwrap();
-        assert!(r > 3.0, "chose {r}");
+        let c = choose_rotation(&mut head, &e0, true, &loose).unwrap();
+        assert!(c.rotation_deg > 3.0 && c.diagonal_rotation_deg > 3.0, "chose {c:?}");
         assert_eq!(head.read_encoders().unwrap(), e0, "returns to the initial readings");
         let strict = AutoRotation { min_overlap_fraction: 1.0, ..AutoRotation::default() };
-        assert_eq!(choose_rotation(&mut head, &e0, true, &strict).unwrap(), 3.0);
+        let c = choose_rotation(&mut head, &e0, true, &strict).unwrap();
+        assert_eq!(c, RotationChoice { rotation_deg: 3.0, diagonal_rotation_deg: 0.0 });
         let bad = AutoRotation { candidates_deg: vec![6.0, 3.0], ..AutoRotation::default() };
+        assert!(bad.validate().is_err());
+    }
+
+    /// A field of view as the overlap test: a view keeps the overlap while each joint
+    /// turns at most `joint_max` and both together at most `sum_max` (degrees).
+    fn field(joint_max: f64, sum_max: f64) -> impl Fn(f64, f64) -> bool {
+        move |p: f64, e: f64| p.abs() <= joint_max && e.abs() <= joint_max && p.abs() + e.abs() <= sum_max
+    }
+
+    /// Run the pure choice on `keeps`, recording the probes.
+    fn choose(
+        auto: &AutoRotation,
+        both: bool,
+        keeps: impl Fn(f64, f64) -> bool,
+    ) -> (RotationChoice, Vec<(f64, f64)>) {
+        let mut probes = Vec::new();
+        let c = choose_rotations(auto, both, |p, e| {
+            probes.push((p, e));
+            Ok::<bool, ()>(keeps(p, e))
+        })
+        .unwrap();
+        (c, probes)
+    }
+
+    /// End to end with the auto mode (1 px, 10 % outliers): 10 deg each way and 10 deg
+    /// diagonals on the default room, every view estimated. Limits: the bars of the
+    /// issue's auto condition (0.15 deg, 0.5 %) with a factor 3 for one run.
+    #[test]
+    fn auto_rotation_with_diagonals_end_to_end() {
+        let scenario = Scenario { seed: 4, ..Scenario::default() };
+        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+        let options = VergeTiltOptions {
+            estimation: EstimationOptions { seed: scenario.seed, ..EstimationOptions::default() },
+            auto_rotation: Some(AutoRotation::default()),
+            ..VergeTiltOptions::default()
+        };
+        let mut run = VergeTiltRun::default();
+        let outcome = run.run(&mut head, &options).unwrap();
+        assert_eq!((outcome.rotation_deg, outcome.diagonal_rotation_deg), (10.0, 10.0));
+        assert_eq!(run.views.len(), 10 + outcome.checks.len(), "probes are not kept");
+        assert_eq!(outcome.calibration.report.homographies.len(), 8, "every rotated view is estimated");
+        let e = head.alignment_errors(&head.encoders());
+        for v in [e.verge_err_l_deg, e.verge_err_r_deg, e.elev_err_l_deg] {
+            assert!(v.abs() < 0.45, "{e:?}");
+        }
+        let st = &outcome.calibration.bundle.state;
+        let cal = calibration_errors(&head.truth().left, &head.truth().right, &st.left, &st.right);
+        assert!(cal.f_err_pct < 1.5, "{cal:?}");
+    }
+
+    /// Regression (3 px, seed 29, the former auto plan without diagonals): the first check
+    /// measured 0.41 deg, above the tolerance, and the correction re-measured the left
+    /// vergence axis from a 0.9 deg vergence turn after 8 deg of elevation: the axis came
+    /// out 80 deg off and the head ended 8 deg from aligned. Now an axis is re-measured only
+    /// from a vergence turn at least as large as the procedure's own (3 deg). Limit 1 deg:
+    /// this run ends at 0.04 deg elevation and 0.44 deg vergence (3 px).
+    #[test]
+    fn small_vergence_turns_do_not_remeasure_the_axis() {
+        let scenario = Scenario { seed: 29, noise_px: 3.0, ..Scenario::default() };
+        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+        let d = EstimationOptions::default();
+        let mut estimation = EstimationOptions { seed: 29, prefilter_px: d.prefilter_px * 3.0, ..d };
+        estimation.fundamental.threshold *= 3.0;
+        estimation.homography.threshold *= 3.0;
+        let auto = AutoRotation { diagonals: false, min_overlap_fraction: 0.6, ..AutoRotation::default() };
+        let options =
+            VergeTiltOptions { estimation, auto_rotation: Some(auto), ..VergeTiltOptions::default() };
+        let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+        assert_eq!(outcome.rotation_deg, 10.0);
+        let e = head.alignment_errors(&head.encoders());
+        assert!(e.elev_err_l_deg.abs() < 1.0 && e.verge_err_l_deg.abs() < 1.0, "{e:?}");
+    }
+
+    #[test]
+    fn choice_takes_the_largest_rotations_the_field_allows() {
+        let auto = AutoRotation::default();
+        let rc = |r, d| RotationChoice { rotation_deg: r, diagonal_rotation_deg: d };
+        // Everything in view: 10 deg each way and 10 deg diagonals; 12 probes, none twice.
+        let (c, probes) = choose(&auto, true, field(90.0, 180.0));
+        assert_eq!(c, rc(10.0, 10.0));
+        assert_eq!(probes.len(), 12);
+        let mut unique = probes.clone();
+        unique.sort_by(|a, b| a.partial_cmp(b).unwrap());
+        unique.dedup();
+        assert_eq!(unique.len(), probes.len(), "no view probed twice");
+        // Diagonals lose the corners first: 10 deg single-joint views, 6 deg diagonals.
+        assert_eq!(choose(&auto, true, field(12.0, 14.0)).0, rc(10.0, 6.0));
+        // A narrow field: 3 deg (the fixed protocol) and 3 deg diagonals.
+        assert_eq!(choose(&auto, true, field(4.0, 6.0)).0, rc(3.0, 3.0));
+        // Nothing in view: the first candidate, no diagonals.
+        assert_eq!(choose(&auto, true, field(1.0, 1.0)).0, rc(3.0, 0.0));
+        // One direction only fails: the elevation-down view at 10 deg.
+        let (c, _) = choose(&auto, true, |p: f64, e: f64| e > -8.0 && field(90.0, 180.0)(p, e));
+        assert_eq!(c, rc(6.0, 6.0));
+        // Diagonals off: none probed.
+        let off = AutoRotation { diagonals: false, ..AutoRotation::default() };
+        let (c, probes) = choose(&off, true, field(90.0, 180.0));
+        assert_eq!(c, rc(10.0, 0.0));
+        assert!(probes.iter().all(|(p, e)| *p == 0.0 || *e == 0.0));
+        // One direction: only positive offsets are probed.
+        let (c, probes) = choose(&auto, false, field(90.0, 180.0));
+        assert_eq!(c, rc(10.0, 10.0));
+        assert!(probes.iter().all(|(p, e)| *p >= 0.0 && *e >= 0.0));
+        // A failing probe (the head) stops the choice with its error.
+        let mut n = 0;
+        let err = choose_rotations(&auto, true, |_, _| {
+            n += 1;
+            if n == 3 { Err("head") } else { Ok(true) }
+        });
+        assert_eq!(err, Err("head"));
+    }
+
+    proptest::proptest! {
+        /// For any field of view: the chosen single-joint views all keep the overlap (or
+        /// it is the first candidate) and the next candidate's do not; the chosen
+        /// diagonals keep it and every larger candidate up to the rotation does not.
+        #[test]
+        fn choice_is_the_largest_allowed(joint_max in 0.0f64..20.0, sum_max in 0.0f64..30.0, both: bool) {
+            let auto = AutoRotation::default();
+            let keeps = field(joint_max, sum_max);
+            let (c, _) = choose(&auto, both, &keeps);
+            let cross_ok = |r: f64| single_joint_offsets(r, both).iter().all(|&(_, p, e)| keeps(p, e));
+            let diag_ok = |d: f64| diagonal_offsets(d, both).iter().all(|&(_, p, e)| keeps(p, e));
+            let cands = &auto.candidates_deg;
+            let i = cands.iter().position(|&x| x == c.rotation_deg).unwrap();
+            proptest::prop_assert!(i == 0 || cross_ok(c.rotation_deg));
+            if let Some(&next) = cands.get(i + 1) {
+                proptest::prop_assert!(!cross_ok(next));
+            }
+            proptest::prop_assert!(c.diagonal_rotation_deg == 0.0 || diag_ok(c.diagonal_rotation_deg));
+            proptest::prop_assert!(c.diagonal_rotation_deg <= c.rotation_deg);
+            for &d in cands.iter().filter(|&&d| d > c.diagonal_rotation_deg && d <= c.rotation_deg) {
+                proptest::prop_assert!(!diag_ok(d));
+            }
+        }
+    }
+
+    #[test]
+    fn capture_plan_adds_the_diagonals_before_the_verge_view() {
+        let e0 = Encoders::default();
+        let o = VergeTiltOptions {
+            rotation_deg: 10.0,
+            diagonal_rotation_deg: 6.0,
+            ..VergeTiltOptions::default()
+        };
+        let plan = capture_plan(&e0, &o);
+        let names: Vec<&str> = plan.iter().map(|p| p.0.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "initial",
+                "elevation+",
+                "elevation-",
+                "pan+",
+                "pan-",
+                "pan+elevation+",
+                "pan+elevation-",
+                "pan-elevation+",
+                "pan-elevation-",
+                "verge"
+            ]
+        );
+        assert_eq!((plan[6].1.pan, plan[6].1.elevation), (6.0, -6.0));
+        assert_eq!(plan[3].1.elevation, 0.0);
+        let bad = VergeTiltOptions { diagonal_rotation_deg: 0.05, ..VergeTiltOptions::default() };
         assert!(bad.validate().is_err());
     }
 
