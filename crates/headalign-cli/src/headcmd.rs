@@ -41,6 +41,11 @@ pub struct RunArgs {
     /// Rotation of the procedure's moves, degrees.
     #[arg(long, default_value_t = 3.0)]
     pub rotation: f64,
+    /// Let the procedure choose its elevation/pan rotations (up to 10 deg each way, plus
+    /// pan and elevation together, as far as the scene stays in view); `--rotation` is then
+    /// only the vergence move.
+    #[arg(long)]
+    pub auto_rotation: bool,
     /// Print one JSON object instead of the summary.
     #[arg(long)]
     pub json: bool,
@@ -62,12 +67,18 @@ pub fn run(args: &RunArgs) -> Result<()> {
         None => images::SessionTarget::Default,
     };
     let description = json!({"kind": "process", "command": head.command(), "name": head.name()});
-    let session =
-        target.resolve().map(|d| (d, images::session_info(args.rotation, head.image_size(), description)));
+    let session = target.resolve().map(|d| {
+        (d, images::session_info(args.rotation, args.auto_rotation, head.image_size(), description))
+    });
     let seed = headalign::estimate::EstimationOptions::default().seed;
-    let (run, _, v) = images::recorded(&mut head, session, args.rotation, seed, &mut |_, run, outcome| {
-        images::run_json(run, outcome, t0.elapsed().as_secs_f64())
-    })?;
+    let (run, _, v) = images::recorded(
+        &mut head,
+        session,
+        args.rotation,
+        args.auto_rotation,
+        seed,
+        &mut |_, run, outcome| images::run_json(run, outcome, t0.elapsed().as_secs_f64()),
+    )?;
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
     } else {

@@ -18,9 +18,12 @@ use headalign::estimate::{EstimationOptions, RigCalibration};
 use headalign::frontend::{FrontEndOptions, TrackingHead, ViewTracking};
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
 use headalign::observations::View;
-use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan};
+use headalign::procedure::{
+    AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
+};
 use headalign::session::{
-    RecordingHead, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter, default_session_dir,
+    RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter,
+    default_session_dir,
 };
 use headalign_platform::{Encoders, ImagingHead, StereoImages};
 use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedHead, calibration_errors};
@@ -76,10 +79,16 @@ pub type OnStage<'a, H> = dyn FnMut(&mut H, &str, Vec<(String, Encoders)>, &str)
 
 /// Verging, then the verge/tilt procedure on images through the front end, on any
 /// imaging head. `on_stage` is called with the stage name and the planned captures before
-/// each stage (a recording head names its folders with them).
+/// each stage (a recording head names its folders with them). With `auto_rotation` the
+/// elevation/pan rotations are chosen first by probing ([`resolve_rotation`], default
+/// [`AutoRotation`]: up to 10 deg each way plus diagonal views, while the tracker keeps
+/// the reference view's tracks), in stage `rotation-probe` through a tracking head of its
+/// own; the verge/tilt stage then starts a fresh tracker at its initial view, so `align
+/// --images` on the recorded verge/tilt views sees the same tracks.
 pub fn procedure<H: ImagingHead>(
     head: &mut H,
     rotation_deg: f64,
+    auto_rotation: bool,
     estimation_seed: u64,
     on_stage: &mut OnStage<'_, H>,
 ) -> (ImageRun, Result<VergeTiltOutcome>) {
@@ -95,7 +104,24 @@ pub fn procedure<H: ImagingHead>(
         // The session records the seed: a replay reproduces this run bit for bit (and
         // `align --images`, which uses the default seed, too when the run did).
         estimation: EstimationOptions { seed: estimation_seed, ..EstimationOptions::default() },
+        auto_rotation: auto_rotation.then(AutoRotation::default),
         ..VergeTiltOptions::default()
+    };
+    let options = if auto_rotation {
+        on_stage(head, STAGE_ROTATION_PROBE, Vec::new(), "probe");
+        let resolved = TrackingHead::new(head, FrontEndOptions::default())
+            .map_err(anyhow::Error::from)
+            .and_then(|mut probing| resolve_rotation(&mut probing, &options).map_err(anyhow::Error::from))
+            .context("choosing the rotations");
+        match resolved {
+            Ok(o) => o,
+            Err(e) => {
+                out.verging = Some(verging);
+                return (out, Err(e));
+            }
+        }
+    } else {
+        options
     };
     on_stage(head, STAGE_VERGE_TILT, capture_plan(&verging.encoders, &options), "check");
     out.verging = Some(verging);
@@ -117,11 +143,12 @@ pub fn recorded<H: ImagingHead>(
     head: &mut H,
     session: Option<(PathBuf, SessionInfo)>,
     rotation_deg: f64,
+    auto_rotation: bool,
     seed: u64,
     report: &mut dyn FnMut(&mut H, &ImageRun, &VergeTiltOutcome) -> Result<Value>,
 ) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
     let Some((dir, info)) = session else {
-        let (run, outcome) = procedure(head, rotation_deg, seed, &mut |_, _, _, _| {});
+        let (run, outcome) = procedure(head, rotation_deg, auto_rotation, seed, &mut |_, _, _, _| {});
         let outcome = outcome?;
         let json = report(head, &run, &outcome)?;
         return Ok((run, outcome, json));
@@ -129,7 +156,9 @@ pub fn recorded<H: ImagingHead>(
     let writer = SessionWriter::create(&dir, &info).context("session")?;
     let mut rec = RecordingHead::new(head, writer);
     let (run, outcome) =
-        procedure(&mut rec, rotation_deg, seed, &mut |h, stage, plan, other| h.set_stage(stage, plan, other));
+        procedure(&mut rec, rotation_deg, auto_rotation, seed, &mut |h, stage, plan, other| {
+            h.set_stage(stage, plan, other)
+        });
     let writer = rec.into_writer();
     let kept = |writer: &SessionWriter| {
         format!("session with {} captured view(s) kept in {}", writer.views(), writer.dir().display())
@@ -171,8 +200,14 @@ pub fn one_line(e: &anyhow::Error) -> String {
 }
 
 /// The session description of an image-mode run.
-pub fn session_info(rotation_deg: f64, image_size: [u32; 2], head: Value) -> SessionInfo {
+pub fn session_info(
+    rotation_deg: f64,
+    auto_rotation: bool,
+    image_size: [u32; 2],
+    head: Value,
+) -> SessionInfo {
     let mut info = SessionInfo::new(PROCEDURE, rotation_deg, EstimationOptions::default().seed, image_size);
+    info.auto_rotation = auto_rotation;
     info.head = head;
     info
 }
@@ -199,6 +234,7 @@ pub fn run_json(run: &ImageRun, outcome: &VergeTiltOutcome, total_s: f64) -> Res
         "report": serde_json::to_value(&outcome.calibration.report)?,
         "checks": serde_json::to_value(&outcome.checks)?,
         "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total_s},
+        "rotations": {"rotation_deg": outcome.rotation_deg, "diagonal_rotation_deg": outcome.diagonal_rotation_deg, "verge_rotation_deg": outcome.verge_rotation_deg},
     }))
 }
 
@@ -212,19 +248,20 @@ fn images_json(run: &ImageRun) -> Result<Value> {
 
 /// Run verging and the verge/tilt procedure on rendered images (the demo), recording to
 /// `session`; the JSON has the estimate against the simulator's truth.
-pub fn run(scenario: &Scenario, session: &SessionTarget) -> Result<Value> {
+pub fn run(scenario: &Scenario, auto_rotation: bool, session: &SessionTarget) -> Result<Value> {
     let t0 = Instant::now();
     let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
     let before = head.alignment_errors(&head.encoders());
     let description = json!({"kind": "simulator", "scenario": serde_json::to_value(scenario)?});
-    let session = session
-        .resolve()
-        .map(|dir| (dir, session_info(scenario.rotation_deg, scenario.image_size, description)));
+    let session = session.resolve().map(|dir| {
+        (dir, session_info(scenario.rotation_deg, auto_rotation, scenario.image_size, description))
+    });
     let seed = EstimationOptions::default().seed;
     let (_, _, json) = recorded(
         &mut head,
         session,
         scenario.rotation_deg,
+        auto_rotation,
         seed,
         &mut |head, run, outcome| {
             let total = t0.elapsed().as_secs_f64();

@@ -10,31 +10,39 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use headalign::observations::session_to_json;
-use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
-use headalign::session::{RecordingHead, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
-use headalign_platform::{Encoders, StereoHead};
+use headalign::procedure::{
+    AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
+};
+use headalign::session::{RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
+use headalign_platform::StereoHead;
 use serde_json::json;
 
 /// The procedure name in `session.json` for point mode.
 pub const PROCEDURE: &str = "verge-tilt-points";
 
-/// Run the verge/tilt procedure on `head`, recording into `session` if given (`plan`
-/// names the view folders). On failure the session keeps the views and the message says
+/// Run the verge/tilt procedure on `head`, recording into `session` if given (the view
+/// folders are named by [`capture_plan`]; with the auto mode its probes are recorded first,
+/// in stage `rotation-probe`). On failure the session keeps the views and the message says
 /// where.
 pub fn verge_tilt<H: StereoHead>(
     run: &mut VergeTiltRun,
     head: &mut H,
     options: &VergeTiltOptions,
     session: Option<(PathBuf, SessionInfo)>,
-    plan: Vec<(String, Encoders)>,
 ) -> Result<(VergeTiltOutcome, Option<SessionWriter>)> {
     let Some((dir, info)) = session else {
         return Ok((run.run(head, options).context("verge/tilt procedure")?, None));
     };
     let writer = SessionWriter::create(&dir, &info).context("session")?;
     let mut rec = RecordingHead::new(head, writer);
-    rec.set_stage(STAGE_VERGE_TILT, plan, "check");
-    let outcome = run.run(&mut rec, options).context("verge/tilt procedure");
+    let outcome = (|| {
+        rec.set_stage(STAGE_ROTATION_PROBE, Vec::new(), "probe");
+        let options = resolve_rotation(&mut rec, options).context("choosing the rotations")?;
+        // Not recorded: a replay re-runs `run`, which makes no such read.
+        let plan = capture_plan(&rec.inner().read_encoders()?, &options);
+        rec.set_stage(STAGE_VERGE_TILT, plan, "check");
+        run.run(&mut rec, &options).context("verge/tilt procedure")
+    })();
     let writer = rec.into_writer();
     let observations = dir.join("observations.json");
     let saved = session_to_json(&run.views)
@@ -62,6 +70,7 @@ pub fn session_info(
     head: serde_json::Value,
 ) -> SessionInfo {
     let mut info = SessionInfo::new(PROCEDURE, options.rotation_deg, options.estimation.seed, image_size);
+    info.auto_rotation = options.auto_rotation.is_some();
     info.head = head;
     info
 }
@@ -71,6 +80,7 @@ pub fn options(info: &SessionInfo) -> VergeTiltOptions {
     VergeTiltOptions {
         rotation_deg: info.rotation_deg,
         verge_rotation_deg: info.rotation_deg,
+        auto_rotation: info.auto_rotation.then(AutoRotation::default),
         estimation: headalign::estimate::EstimationOptions {
             seed: info.estimation_seed,
             ..headalign::estimate::EstimationOptions::default()

@@ -40,8 +40,13 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let mut head = ReplayHead::open(&args.dir)?;
     let context = || format!("replay of '{}'", args.dir.display());
     let (mut v, views) = if info.procedure == images::PROCEDURE {
-        let (run, outcome) =
-            images::procedure(&mut head, info.rotation_deg, info.estimation_seed, &mut |_, _, _, _| {});
+        let (run, outcome) = images::procedure(
+            &mut head,
+            info.rotation_deg,
+            info.auto_rotation,
+            info.estimation_seed,
+            &mut |_, _, _, _| {},
+        );
         let outcome = outcome.with_context(context)?;
         (images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
     } else if info.procedure == points::PROCEDURE {

@@ -78,6 +78,9 @@ pub const VIEW_FORMAT: &str = "headalign-view/1";
 pub const STAGE_VERGING: &str = "verging";
 /// The stage of the verge/tilt procedure's captures.
 pub const STAGE_VERGE_TILT: &str = "verge-tilt";
+/// Stage name of the auto mode's probe captures (`procedure::resolve_rotation`): not
+/// estimated from, so `align --images` leaves them out.
+pub const STAGE_ROTATION_PROBE: &str = "rotation-probe";
 /// A replayed move may differ from the recorded target by this much per joint, degrees
 /// (recorded numbers round-trip exactly, so this only absorbs hand-edited files).
 pub const REPLAY_MOVE_TOLERANCE_DEG: f64 = 1e-9;
@@ -96,8 +99,13 @@ pub struct SessionInfo {
     /// The procedure: `verge-tilt-images` (verging, then verge/tilt on images through the
     /// front end) or `verge-tilt-points` (verge/tilt on the head's tracked points).
     pub procedure: String,
-    /// Rotation of the procedure's moves, degrees.
+    /// Rotation of the procedure's moves, degrees (with `auto_rotation`, the vergence
+    /// move's; the elevation/pan rotations were chosen by probing).
     pub rotation_deg: f64,
+    /// The procedure chose its elevation/pan rotations itself (probe captures in stage
+    /// `rotation-probe` before the verge/tilt stage); absent in older sessions: false.
+    #[serde(default)]
+    pub auto_rotation: bool,
     /// Seed of the estimation's random choices.
     pub estimation_seed: u64,
     /// Image size `[width, height]`, pixels.
@@ -115,6 +123,7 @@ impl SessionInfo {
             created_utc: utc_timestamp(SystemTime::now(), true),
             procedure: procedure.to_string(),
             rotation_deg,
+            auto_rotation: false,
             estimation_seed,
             image_size,
             head: serde_json::Value::Null,
@@ -154,7 +163,7 @@ pub struct ViewMeta {
     pub index: Option<usize>,
     /// The view's name.
     pub name: String,
-    /// The procedure stage ([`STAGE_VERGING`], [`STAGE_VERGE_TILT`]); absent: verge-tilt.
+    /// The procedure stage ([`STAGE_VERGING`], [`STAGE_ROTATION_PROBE`], [`STAGE_VERGE_TILT`]); absent: verge-tilt.
     #[serde(default)]
     pub stage: Option<String>,
     /// Encoder readings at capture time, degrees.
@@ -635,7 +644,7 @@ impl ImagingHead for ReplayHead {
 pub struct RecordedView {
     /// The view's name (from `view.json`).
     pub name: String,
-    /// Its stage ([`STAGE_VERGING`], [`STAGE_VERGE_TILT`]; absent in older sessions).
+    /// Its stage ([`STAGE_VERGING`], [`STAGE_ROTATION_PROBE`], [`STAGE_VERGE_TILT`]; absent in older sessions).
     pub stage: Option<String>,
     /// Its folder.
     pub folder: PathBuf,
