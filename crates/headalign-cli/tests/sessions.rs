@@ -213,3 +213,45 @@ fn point_mode_sessions_record_the_verge_tilt_stage_and_replay() {
     std::fs::remove_dir_all(&dir).ok();
     std::fs::remove_dir_all(&dir2).ok();
 }
+
+/// `--auto-rotation` in point mode: the probes are recorded in their own stage (not
+/// estimated from, not in observations.json), the verge/tilt stage has the chosen
+/// rotations, and replay (which probes again on the recorded captures) is bit for bit.
+#[test]
+fn auto_rotation_sessions_record_the_probes_and_replay() {
+    let dir = tmp("points-auto");
+    let live = ok_json(
+        &bin()
+            .args(["demo", "--seed", "3", "--stages", "verge-tilt", "--auto-rotation", "--json", "--session"])
+            .arg(&dir)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(live["rotations"]["rotation_deg"], 10.0, "{}", live["rotations"]);
+    assert_eq!(live["rotations"]["verge_rotation_deg"], 10.0, "{}", live["rotations"]);
+    let info: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("session.json")).unwrap()).unwrap();
+    assert_eq!(info["auto_rotation"], true);
+    let folders = view_folders(&dir);
+    let stage = |f: &String| -> String {
+        let meta: Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join(f).join("view.json")).unwrap()).unwrap();
+        meta["stage"].as_str().unwrap_or("").to_string()
+    };
+    let probes = folders.iter().filter(|f| stage(f) == "rotation-probe").count();
+    let first_vt = folders.iter().position(|f| stage(f) == "verge-tilt").unwrap();
+    assert!(probes >= 9 && first_vt == probes, "probes first: {folders:?}");
+    assert!(folders[first_vt].ends_with("-initial"), "{folders:?}");
+    let observations: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("observations.json")).unwrap()).unwrap();
+    let n_views = observations["views"].as_array().map_or(0, Vec::len);
+    assert_eq!(n_views, folders.len() - probes, "observations.json holds the verge/tilt views only");
+    let r = replay(&dir);
+    for side in ["left", "right"] {
+        for k in ["fx", "fy", "cx", "cy"] {
+            assert_eq!(r["estimate"][side][k], live["estimate"][side][k], "{side} {k}");
+        }
+    }
+    assert_eq!(r["estimate"]["aligned_encoders"], live["estimate"]["aligned_encoders"]);
+    std::fs::remove_dir_all(&dir).ok();
+}

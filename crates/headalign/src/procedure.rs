@@ -5,18 +5,37 @@
 //! ([`crate::estimate`]), measure the vergence axes by resection, compute the aligned
 //! readings exactly ([`crate::alignment`]), move there, capture again and check the result
 //! by vision; if the measured error exceeds the tolerance, re-measure the vergence axes from
-//! that larger move and correct (at most `max_corrections` times).
+//! that larger move and correct (at most `max_corrections` times). A vergence axis is
+//! re-measured only from a vergence turn at least as large as the procedure's own vergence
+//! move: the axis is the screw of the measured pose against the modelled pan/elevation
+//! chain, and a small turn on top of a large elevation turn measures mostly the chain's
+//! error (one 3 px trial ended 8 deg off before this rule).
 //!
-//! Rotation size: fixed (`rotation_deg`, default 3 deg, the paper's protocol) or, with
-//! [`VergeTiltOptions::auto_rotation`], chosen by the procedure "when the scene allows":
-//! it probes the elevation and pan moves (both ways) at growing candidate sizes (e.g. 3, 6,
-//! 10 deg) and keeps the largest at which every probed view still sees, in both cameras, at
-//! least `min_overlap_fraction` of the reference view's stereo tracks and at least
-//! `min_tracks` of them. Calibration error falls roughly as 1/rotation (the plane at
-//! infinity is found from the rotations' screws), so larger is better while enough of the
-//! scene stays in view. Probe captures are discarded (they are not in `views`). Pitfall: the
+//! Rotation size: fixed (`rotation_deg`, default 3 deg, the paper's protocol; optional
+//! diagonal views `diagonal_rotation_deg`) or, with [`VergeTiltOptions::auto_rotation`],
+//! chosen by the procedure "when the scene allows" ([`choose_rotations`], pure, and
+//! [`resolve_rotation`], which probes the head): it probes the elevation and pan moves
+//! (both ways) at growing candidate sizes (3, 6, 10 deg) and keeps the largest at which
+//! every probed view still sees, in both cameras, at least `min_overlap_fraction` (0.5) of
+//! the reference view's stereo tracks and at least `min_tracks` of them; then the diagonal
+//! views (pan and elevation turned together, each by at most that size: 4 more views) and
+//! the vergence move at the largest candidate that keeps the same overlap. Calibration
+//! error falls roughly as 1/rotation (the plane at infinity is found from the rotations'
+//! screws), so larger is better while enough of the scene stays in view; each joint still
+//! turns at most 10 deg. Why diagonals: the Cramer-Rao bound of the focal length at 3 px
+//! (`f = fx` pooled over both cameras, default room, 8 seeds, `cargo run --release -p
+//! headalign --example crb_plans`) is 1.76 % with 3 deg single-joint views, 0.71 % at
+//! 10 deg, 0.56 % adding 5 deg single-joint views (9 views), 0.47 / 0.39 / 0.31 % adding
+//! diagonals of 5 / 7 / 10 deg (9 views), 0.27-0.28 % with 13 views: a combined rotation
+//! moves the image along both axes at once and decorrelates the focal lengths from the
+//! axes, where more of the same single-joint views add little. The diagonal views keep
+//! 56-70 % of the reference tracks at 10 deg (hence 0.5 rather than the former 0.6, which
+//! only single-joint views had to meet; 0.5 of about 200 tracks is still 5 times
+//! `min_tracks`). Probe captures are discarded (they are not in `views`); a recording
+//! caller calls [`resolve_rotation`] itself to record them as their own stage. Pitfall: the
 //! overlap is counted by track id, which in image mode means the tracker's matches; a
-//! tracker that loses tracks at larger rotations shrinks the choice, as it should.
+//! tracker that loses tracks at larger rotations shrinks the choice, as it should (seed 1
+//! on rendered images: 10 deg single-joint views, 3 deg diagonals).
 //!
 //! Every captured view is kept in the outcome (and in the error path the caller still has
 //! them through [`VergeTiltRun::views`]). Angles in degrees.

@@ -58,7 +58,8 @@ pub const SIGMA_QUANTITIES: [&str; 11] = [
 pub enum RotationMode {
     /// The scenario's `rotation_deg`.
     Fixed,
-    /// The procedure chooses (default [`AutoRotation`], up to 10 deg).
+    /// The procedure chooses (default [`AutoRotation`]: up to 10 deg each way, diagonal
+    /// views and the vergence move, as far as the scene stays in view).
     Auto,
 }
 
