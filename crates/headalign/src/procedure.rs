@@ -15,7 +15,7 @@
 //! diagonal views `diagonal_rotation_deg`) or, with [`VergeTiltOptions::auto_rotation`],
 //! chosen by the procedure "when the scene allows" ([`choose_rotations`], pure, and
 //! [`resolve_rotation`], which probes the head): it probes the elevation and pan moves
-//! (both ways) at growing candidate sizes (3, 6, 10 deg) and keeps the largest at which
+//! (both ways) at candidate sizes (10, 6, 3 deg, largest first) and keeps the largest at which
 //! every probed view still sees, in both cameras, at least `min_overlap_fraction` (0.5) of
 //! the reference view's stereo tracks and at least `min_tracks` of them; then the diagonal
 //! views (pan and elevation turned together, each by at most that size: 4 more views) and
@@ -399,9 +399,12 @@ fn diagonal_offsets(d: f64, both_directions: bool) -> Vec<(&'static str, f64, f6
 
 /// The choice logic of the auto mode, pure (module docs): `keeps_overlap(pan, elevation,
 /// verge)` says whether the view at those offsets (degrees; `verge` turns both vergences)
-/// from the initial readings keeps enough of the reference view's tracks. The single-joint rotation is the largest candidate whose
-/// views all keep it, probing in increasing order and stopping at the first failure (the
-/// first candidate is used regardless); then, if `auto.diagonals`, the diagonal rotation is
+/// from the initial readings keeps enough of the reference view's tracks. The single-joint
+/// rotation is the largest candidate whose views all keep it, probing in decreasing order
+/// (a view that fails moves on to the next smaller candidate; the first candidate is used
+/// regardless, unprobed: the fixed protocol); largest first costs 4 probes when the scene
+/// allows the largest (8 probing upwards, which matters on images, where each probe is a
+/// capture and tracking); then, if `auto.diagonals`, the diagonal rotation is
 /// the largest candidate not above it whose diagonal views all keep it, probing in
 /// decreasing order (0 if none does); then, if `auto.choose_verge`, the vergence move
 /// likewise (`None` if none does). Probes are requested in the order they are needed, and
@@ -412,13 +415,14 @@ pub fn choose_rotations<E>(
     mut keeps_overlap: impl FnMut(f64, f64, f64) -> Result<bool, E>,
 ) -> Result<RotationChoice, E> {
     let mut chosen = auto.candidates_deg.first().copied().unwrap_or(3.0);
-    'candidates: for &r in auto.candidates_deg.iter().skip(1) {
+    'candidates: for &r in auto.candidates_deg.iter().skip(1).rev() {
         for (_, pan, elevation) in single_joint_offsets(r, both_directions) {
             if !keeps_overlap(pan, elevation, 0.0)? {
-                break 'candidates;
+                continue 'candidates;
             }
         }
         chosen = r;
+        break;
     }
     let mut diagonal = 0.0;
     if auto.diagonals {
@@ -752,11 +756,11 @@ mod tests {
         let auto = AutoRotation::default();
         let rc =
             |r, d, v| RotationChoice { rotation_deg: r, diagonal_rotation_deg: d, verge_rotation_deg: v };
-        // Everything in view: 10 deg each way, 10 deg diagonals and vergence; 13 probes,
-        // none twice.
+        // Everything in view: 10 deg each way, 10 deg diagonals and vergence; 9 probes
+        // (largest first), none twice.
         let (c, probes) = choose(&auto, true, field(90.0, 180.0));
         assert_eq!(c, rc(10.0, 10.0, Some(10.0)));
-        assert_eq!(probes.len(), 13);
+        assert_eq!(probes.len(), 9);
         let mut unique = probes.clone();
         unique.sort_by(|a, b| a.partial_cmp(b).unwrap());
         unique.dedup();
@@ -805,8 +809,8 @@ mod tests {
             let cands = &auto.candidates_deg;
             let i = cands.iter().position(|&x| x == c.rotation_deg).unwrap();
             proptest::prop_assert!(i == 0 || cross_ok(c.rotation_deg));
-            if let Some(&next) = cands.get(i + 1) {
-                proptest::prop_assert!(!cross_ok(next));
+            for &larger in &cands[i + 1..] {
+                proptest::prop_assert!(!cross_ok(larger));
             }
             proptest::prop_assert!(c.diagonal_rotation_deg == 0.0 || diag_ok(c.diagonal_rotation_deg));
             proptest::prop_assert!(c.diagonal_rotation_deg <= c.rotation_deg);
