@@ -62,7 +62,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use headalign_platform::{
-    Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages,
+    Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages, Vehicle,
 };
 use serde::{Deserialize, Serialize};
 
@@ -105,6 +105,10 @@ pub struct SessionInfo {
     /// Free-form description of the head (simulator scenario, driver command, ...).
     #[serde(default)]
     pub head: serde_json::Value,
+    /// The stages run after the verge/tilt procedure and their settings (procedure
+    /// `robot-images`); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stages: Option<serde_json::Value>,
 }
 
 impl SessionInfo {
@@ -118,6 +122,7 @@ impl SessionInfo {
             estimation_seed,
             image_size,
             head: serde_json::Value::Null,
+            stages: None,
         }
     }
 }
@@ -141,6 +146,31 @@ pub enum Event {
         /// The folder name (`NN-name`), relative to the session.
         folder: String,
     },
+    /// `Vehicle::drive` succeeded with this signed distance.
+    Drive {
+        /// Metres (negative: backwards).
+        distance_m: f64,
+    },
+    /// `Vehicle::steer_to` succeeded with this steering encoder target.
+    Steer {
+        /// Degrees.
+        encoder_deg: f64,
+    },
+    /// `Vehicle::read_steering` returned this reading.
+    ReadSteering {
+        /// Degrees.
+        encoder_deg: f64,
+    },
+}
+
+/// What the vehicle did since the previous capture (`view.json` member `vehicle`, only in
+/// sessions whose head is a vehicle).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+pub struct VehicleActions {
+    /// Every drive since the previous capture, signed metres, in order.
+    pub drives_m: Vec<f64>,
+    /// The steering encoder, degrees: the last reading or target (`None`: not known yet).
+    pub steering_deg: Option<f64>,
 }
 
 /// The contents of a `view.json`.
@@ -174,6 +204,9 @@ pub struct ViewMeta {
     /// Point mode: the tracked points of the capture.
     #[serde(default)]
     pub capture: Option<StereoCapture>,
+    /// A head on a vehicle: the drives since the previous capture and the steering.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vehicle: Option<VehicleActions>,
 }
 
 /// `YYYY-MM-DDTHH:MM:SSZ` (or `YYYYMMDDTHHMMSSZ` when `separators` is false), UTC.
@@ -295,6 +328,7 @@ impl SessionWriter {
         encoders: Encoders,
         images: Option<&StereoImages>,
         capture: Option<&StereoCapture>,
+        vehicle: Option<&VehicleActions>,
     ) -> Result<String, AlignError> {
         let safe: String = name
             .chars()
@@ -322,6 +356,7 @@ impl SessionWriter {
             unix_time_s: SystemTime::now().duration_since(UNIX_EPOCH).ok().map(|d| d.as_secs_f64()),
             image_size,
             capture: capture.cloned(),
+            vehicle: vehicle.cloned(),
         };
         write_atomic(&sub.join("view.json"), to_json(&meta)?.as_bytes())?;
         self.views += 1;
@@ -348,6 +383,7 @@ pub struct RecordingHead<'a, H> {
     names: Vec<(String, Encoders)>,
     other_name: String,
     others: usize,
+    vehicle: Option<VehicleActions>,
 }
 
 impl<'a, H> RecordingHead<'a, H> {
@@ -361,6 +397,7 @@ impl<'a, H> RecordingHead<'a, H> {
             names: Vec::new(),
             other_name: STAGE_VERGE_TILT.to_string(),
             others: 0,
+            vehicle: None,
         }
     }
 
@@ -415,8 +452,19 @@ impl<'a, H> RecordingHead<'a, H> {
             |e: AlignError, dir: &Path| PlatformError::Device(format!("session '{}': {e}", dir.display()));
         let folder = self
             .writer
-            .write_view(&name, &self.stage.clone(), self.commanded, encoders, images, capture)
+            .write_view(
+                &name,
+                &self.stage.clone(),
+                self.commanded,
+                encoders,
+                images,
+                capture,
+                self.vehicle.as_ref(),
+            )
             .map_err(|e| fail(e, &self.writer.dir))?;
+        if let Some(v) = &mut self.vehicle {
+            v.drives_m.clear();
+        }
         self.writer.log(&Event::Capture { folder }).map_err(|e| fail(e, &self.writer.dir))
     }
 
@@ -448,6 +496,29 @@ impl<H: StereoHead> StereoHead for RecordingHead<'_, H> {
         let capture = self.head.capture()?;
         self.record(capture.encoders, None, Some(&capture))?;
         Ok(capture)
+    }
+}
+
+/// A vehicle's calls are logged (`drive`, `steer`, `read_steering` events) and the next
+/// capture's `view.json` records the drives since the previous one and the steering.
+impl<H: Vehicle> Vehicle for RecordingHead<'_, H> {
+    fn drive(&mut self, distance_m: f64) -> Result<(), PlatformError> {
+        self.head.drive(distance_m)?;
+        self.vehicle.get_or_insert_with(VehicleActions::default).drives_m.push(distance_m);
+        self.log(Event::Drive { distance_m })
+    }
+
+    fn steer_to(&mut self, encoder_deg: f64) -> Result<(), PlatformError> {
+        self.head.steer_to(encoder_deg)?;
+        self.vehicle.get_or_insert_with(VehicleActions::default).steering_deg = Some(encoder_deg);
+        self.log(Event::Steer { encoder_deg })
+    }
+
+    fn read_steering(&mut self) -> Result<f64, PlatformError> {
+        let encoder_deg = self.head.read_steering()?;
+        self.vehicle.get_or_insert_with(VehicleActions::default).steering_deg = Some(encoder_deg);
+        self.log(Event::ReadSteering { encoder_deg })?;
+        Ok(encoder_deg)
     }
 }
 
@@ -533,6 +604,9 @@ impl ReplayHead {
                 Event::Capture { folder } => {
                     !folder.is_empty() && !folder.contains(['/', '\\']) && folder != ".." && folder != "."
                 }
+                Event::Drive { distance_m: v }
+                | Event::Steer { encoder_deg: v }
+                | Event::ReadSteering { encoder_deg: v } => v.is_finite(),
             };
             if !finite {
                 return Err(AlignError::Images(format!(
@@ -619,6 +693,34 @@ impl StereoHead for ReplayHead {
                 sub.join("view.json").display()
             ))
         })
+    }
+}
+
+/// Replaying a vehicle: drives and steering targets must equal the recorded ones (within
+/// [`REPLAY_MOVE_TOLERANCE_DEG`], metres or degrees), steering reads return the recorded
+/// readings.
+impl Vehicle for ReplayHead {
+    fn drive(&mut self, distance_m: f64) -> Result<(), PlatformError> {
+        let asked = format!("drive {distance_m} m");
+        match self.next_event(&asked)? {
+            Event::Drive { distance_m: d } if (d - distance_m).abs() <= REPLAY_MOVE_TOLERANCE_DEG => Ok(()),
+            other => Err(self.diverged(&asked, &other)),
+        }
+    }
+
+    fn steer_to(&mut self, encoder_deg: f64) -> Result<(), PlatformError> {
+        let asked = format!("steer to {encoder_deg} deg");
+        match self.next_event(&asked)? {
+            Event::Steer { encoder_deg: e } if (e - encoder_deg).abs() <= REPLAY_MOVE_TOLERANCE_DEG => Ok(()),
+            other => Err(self.diverged(&asked, &other)),
+        }
+    }
+
+    fn read_steering(&mut self) -> Result<f64, PlatformError> {
+        match self.next_event("read the steering")? {
+            Event::ReadSteering { encoder_deg } => Ok(encoder_deg),
+            other => Err(self.diverged("read the steering", &other)),
+        }
     }
 }
 
