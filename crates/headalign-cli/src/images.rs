@@ -350,13 +350,7 @@ pub fn run(scenario: &Scenario, session: &SessionTarget, plan: &RobotPlan) -> Re
                     errors.insert("steer_err_deg".into(), json!(steer_after));
                     before_j.insert("pan_err_deg".into(), json!(pan_before));
                     before_j.insert("steer_err_deg".into(), json!(steer_before));
-                    m.insert("stages".into(), json!(plan.stages));
-                    let o = &robot_run.outcomes;
-                    m.insert("pan".into(), serde_json::to_value(&o.pan)?);
-                    m.insert("pan_fixate".into(), serde_json::to_value(&o.pan_fixate)?);
-                    m.insert("one_motion".into(), serde_json::to_value(&o.one_motion)?);
-                    m.insert("steering".into(), serde_json::to_value(&o.steering)?);
-                    m.insert("robot_tracking".into(), serde_json::to_value(&robot_run.tracking)?);
+                    m.extend(robot_json(plan, robot_run)?);
                 }
                 m.insert("errors".into(), Value::Object(errors));
                 m.insert("before".into(), Value::Object(before_j));
@@ -375,6 +369,21 @@ pub fn run(scenario: &Scenario, session: &SessionTarget, plan: &RobotPlan) -> Re
         },
     )?;
     Ok(json)
+}
+
+/// The robot stages' members of an image-mode run's JSON (no truth): `stages`, `pan`,
+/// `pan_fixate`, `one_motion`, `steering` (as in point mode) and `robot_tracking` (the
+/// front end's report per robot-stage capture).
+pub fn robot_json(plan: &RobotPlan, robot: &RobotRun) -> Result<serde_json::Map<String, Value>> {
+    let o = &robot.outcomes;
+    let mut m = serde_json::Map::new();
+    m.insert("stages".into(), json!(plan.stages));
+    m.insert("pan".into(), serde_json::to_value(&o.pan)?);
+    m.insert("pan_fixate".into(), serde_json::to_value(&o.pan_fixate)?);
+    m.insert("one_motion".into(), serde_json::to_value(&o.one_motion)?);
+    m.insert("steering".into(), serde_json::to_value(&o.steering)?);
+    m.insert("robot_tracking".into(), serde_json::to_value(&robot.tracking)?);
+    Ok(m)
 }
 
 /// The `errors` member of the demo's JSON: the alignment errors after alignment, the

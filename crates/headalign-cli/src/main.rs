@@ -154,7 +154,8 @@ struct DemoArgs {
     /// Forward drive of the pan stage, metres.
     #[arg(long)]
     drive: Option<f64>,
-    /// Drive per steering setting of the steering stage, metres (default 0.3).
+    /// Drive per steering setting of the steering stage, metres (default 0.3; 0.2 with
+    /// --images).
     #[arg(long)]
     steer_drive: Option<f64>,
     /// Steering settings of the steering stage relative to the start reading, degrees,
@@ -302,7 +303,8 @@ fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan>
         stages: stages::RobotPlan::parse_stages(&args.stages)?,
         drive_m: scenario.drive_m,
         horizon_from_drive: args.horizon_from_drive,
-        steer_drive_m: args.steer_drive,
+        // On images a shorter steering drive: see `stages::IMAGE_STEER_DRIVE_M`.
+        steer_drive_m: args.steer_drive.or(args.images.then_some(stages::IMAGE_STEER_DRIVE_M)),
         steer_settings_deg: args.steer_settings.clone(),
         baseline_m: scenario.baseline_m,
     })

@@ -14,13 +14,22 @@ use headalign::onemotion::{Horizon, OneMotionOptions, OneMotionOutcome, align_on
 use headalign::panfix::{PanFixationOptions, PanFixationOutcome, align_pan_by_fixation};
 use headalign::robot::{PanOptions, PanOutcome, SteeringOptions, SteeringOutcome, align_pan, zero_steering};
 use headalign_platform::{StereoHead, Vehicle};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
+
+/// Steering drive of the image-mode demo, metres (point mode: 0.3, the library default).
+/// A 0.3 m drive with the wheel at 30 deg turns the robot by about 15 deg and brings the
+/// near panels 30 % closer; the single-scale corners and binary descriptors of the front
+/// end then link few tracks across it (51-84 of about 500 stereo pairs, seed 1) and the
+/// turning centres suffer: steering error 1.1 deg on seeds 1 and 2 against 0.43 and
+/// 0.07 deg with 0.2 m (turns of 5-12 deg, still well above the 2 deg minimum).
+pub const IMAGE_STEER_DRIVE_M: f64 = 0.2;
 
 /// Every stage name `--stages` accepts.
 pub const STAGES: [&str; 5] = ["verge-tilt", "pan", "steering", "pan-fixate", "one-motion"];
 
-/// The stages to run and their settings (from the demo's flags).
-#[derive(Debug, Clone, Serialize)]
+/// The stages to run and their settings (from the demo's flags; recorded in an image
+/// session's `session.json` as `stages`, so `replay` runs the same).
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RobotPlan {
     /// Stage names in order (`verge-tilt` entries are skipped here).
     pub stages: Vec<String>,

@@ -90,6 +90,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     );
     let (al, ar) = map(&after);
     let mut errs = Vec::new();
+    let (mut along, mut across, mut mean) = (Vec::new(), Vec::new(), nalgebra::Vector2::zeros());
     for (id, xl) in &bl {
         let (Some(xr), Some(yl), Some(yr)) = (br.get(id), al.get(id), ar.get(id)) else { continue };
         let Ok(x) = triangulate_linear(&pl0, &pr0, xl, xr) else { continue };
@@ -98,8 +99,28 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let (Some(ql), Some(qr)) = (pl1.project(&h), pr1.project(&h)) else { continue };
         let e = (ql - yl).norm().max((qr - yr).norm());
         errs.push((e, (yl - xl).norm(), p.coords.norm()));
+        let flow = ql - xl;
+        if flow.norm() > 3.0 {
+            let d = yl - ql;
+            let u = flow / flow.norm();
+            along.push(d.dot(&u));
+            across.push(d.x * -u.y + d.y * u.x);
+            mean += d;
+        }
     }
     errs.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let stats = |v: &[f64]| {
+        let m = v.iter().sum::<f64>() / v.len().max(1) as f64;
+        let r = (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
+        (m, r)
+    };
+    println!(
+        "left residual after the drive (measured - true, tracks with flow > 3 px: {}): mean {:.3?}; along flow mean/RMS {:.3?}, across {:.3?}",
+        along.len(),
+        mean / along.len().max(1) as f64,
+        stats(&along),
+        stats(&across)
+    );
     let n = errs.len();
     let bad = errs.iter().filter(|e| e.0 > 3.0).count();
     println!("four-image tracks {n}, error > 3 px: {bad}");

@@ -262,6 +262,19 @@ fn to_json<T: Serialize>(v: &T) -> Result<String, AlignError> {
         .map_err(|e| AlignError::Output(format!("cannot encode JSON: {e}")))
 }
 
+/// What a view folder records besides the capture itself.
+#[derive(Debug, Clone, Copy)]
+pub struct ViewLabel<'a> {
+    /// The view's name (the folder is `NN-name`).
+    pub name: &'a str,
+    /// The procedure stage.
+    pub stage: &'a str,
+    /// The last commanded move before the capture.
+    pub commanded: Option<Encoders>,
+    /// A vehicle's actions since the previous capture.
+    pub vehicle: Option<&'a VehicleActions>,
+}
+
 /// Writes a session as it happens: `session.json` at creation, one view folder per
 /// capture, `events.jsonl` line by line, `report.json` at the end.
 #[derive(Debug)]
@@ -322,14 +335,12 @@ impl SessionWriter {
     /// returns the folder name.
     pub fn write_view(
         &mut self,
-        name: &str,
-        stage: &str,
-        commanded: Option<Encoders>,
+        label: &ViewLabel<'_>,
         encoders: Encoders,
         images: Option<&StereoImages>,
         capture: Option<&StereoCapture>,
-        vehicle: Option<&VehicleActions>,
     ) -> Result<String, AlignError> {
+        let ViewLabel { name, stage, commanded, vehicle } = *label;
         let safe: String = name
             .chars()
             .map(|c| if c.is_ascii_alphanumeric() || "+-_.".contains(c) { c } else { '_' })
@@ -453,13 +464,15 @@ impl<'a, H> RecordingHead<'a, H> {
         let folder = self
             .writer
             .write_view(
-                &name,
-                &self.stage.clone(),
-                self.commanded,
+                &ViewLabel {
+                    name: &name,
+                    stage: &self.stage,
+                    commanded: self.commanded,
+                    vehicle: self.vehicle.as_ref(),
+                },
                 encoders,
                 images,
                 capture,
-                self.vehicle.as_ref(),
             )
             .map_err(|e| fail(e, &self.writer.dir))?;
         if let Some(v) = &mut self.vehicle {
