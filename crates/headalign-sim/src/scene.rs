@@ -413,6 +413,16 @@ mod tests {
             (truth, pts)
         };
         let (truth, pts) = draw(&near);
+        // The renderer textures exactly the panels' faces finer: the last 5 per panel.
+        let mut rng = ChaCha8Rng::seed_from_u64(near.seed);
+        let (room, _) = generate_room_and_scene(&near, &HeadTruth::draw(&near, &mut rng), &mut rng).unwrap();
+        let flags = room.near_quads();
+        assert_eq!(flags.len(), room.quads().len());
+        let n_near = 5 * Scenario::ROBOT_NEAR_PANELS;
+        assert!(
+            flags[..flags.len() - n_near].iter().all(|f| !f)
+                && flags[flags.len() - n_near..].iter().all(|f| *f)
+        );
         let (left, _) = truth.world_from_cameras(&Encoders::default());
         let close = pts
             .iter()
