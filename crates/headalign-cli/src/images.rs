@@ -153,6 +153,14 @@ pub struct RobotRun {
     pub tracking: Vec<ViewTracking>,
 }
 
+/// Corners per image in the robot stages (the verge/tilt stage uses the front end's
+/// 1500). A forward drive's pan is sensitive to the drive's measured rotation (an error
+/// `d` moves the epipole by about `d Z / D`: 15 d for a 0.10 m drive at 1.5 m), so the
+/// rigid motion needs many tracks: seed 11 linked 63-69 tracks per drive with 1500
+/// corners and ended 4.2 deg off; with 3000, 285-296 tracks and 0.26 deg (seed 20: 2.9
+/// -> 0.7 deg).
+pub const ROBOT_FEATURES: usize = 3000;
+
 /// The robot stages on images: the front end in [`TrackingMode::Previous`] (the captures
 /// before and after each drive share track ids) over `head`; `on_stage` as in
 /// [`run_robot_stages`].
@@ -162,7 +170,8 @@ pub fn robot_stages<H: ImagingHead + Vehicle>(
     outcome: &VergeTiltOutcome,
     on_stage: &mut dyn FnMut(&mut H, &str),
 ) -> Result<RobotRun> {
-    let options = FrontEndOptions { mode: TrackingMode::Previous, ..FrontEndOptions::default() };
+    let mut options = FrontEndOptions { mode: TrackingMode::Previous, ..FrontEndOptions::default() };
+    options.features.max_features = ROBOT_FEATURES;
     // Stereo matching guided by the calibrated rig: with parallel cameras and the near
     // scene 1 m away, disparities reach 200 px and free matching finds mostly wrong pairs.
     let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
