@@ -1,6 +1,8 @@
 //! `headalign demo --images`: the verge/tilt procedure on rendered images with the real
 //! front end (no simulator-provided correspondences): verging (paper section 6), then the
-//! captures, tracking, estimation, alignment and checks of the point-mode procedure. Every
+//! captures, tracking, estimation, alignment and checks of the point-mode procedure; then
+//! the robot stages (`--stages`, [`robot_stages`]) on the simulated robot's renders,
+//! through the front end in its drive mode with the calibrated rig guiding stereo. Every
 //! captured view is recorded to a session folder as it is captured (format: the
 //! `headalign::session` module documentation), with the results in `report.json` and the
 //! annotated images of the paper's Figure 6 and a `report.html` with the numbers.

@@ -57,7 +57,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Run the verge/tilt procedure on the simulated head and compare with the truth.
+    /// Run the verge/tilt procedure and the robot stages on the simulated robot (points or,
+    /// with --images, rendered images) and compare with the truth.
     Demo(DemoArgs),
     /// Estimate calibration, axes and aligned readings from an observation session.
     Align(AlignArgs),
