@@ -1,6 +1,8 @@
 //! `headalign demo --images`: the verge/tilt procedure on rendered images with the real
 //! front end (no simulator-provided correspondences): verging (paper section 6), then the
-//! captures, tracking, estimation, alignment and checks of the point-mode procedure. Every
+//! captures, tracking, estimation, alignment and checks of the point-mode procedure; then
+//! the robot stages (`--stages`, [`robot_stages`]) on the simulated robot's renders,
+//! through the front end in its drive mode with the calibrated rig guiding stereo. Every
 //! captured view is recorded to a session folder as it is captured (format: the
 //! `headalign::session` module documentation), with the results in `report.json` and the
 //! annotated images of the paper's Figure 6 and a `report.html` with the numbers.
@@ -15,25 +17,31 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use headalign::alignment::AlignmentSolution;
 use headalign::estimate::{EstimationOptions, RigCalibration};
-use headalign::frontend::{FrontEndOptions, TrackingHead, ViewTracking};
+use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking};
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
 use headalign::observations::View;
 use headalign::procedure::{
     AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
 };
+use headalign::robot::stereo_fundamental;
 use headalign::session::{
     RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter,
     default_session_dir,
 };
-use headalign_platform::{Encoders, ImagingHead, StereoImages};
-use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedHead, calibration_errors};
+use headalign_platform::{Encoders, ImagingHead, StereoImages, Vehicle};
+use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
 use serde_json::{Value, json};
 
 use crate::report_html::{AlignmentResults, HtmlReport, REPORT_FILE};
+use crate::stages::{RobotOutcomes, RobotPlan, run_robot_stages};
 
 /// The procedure name in `session.json` for image mode.
 pub const PROCEDURE: &str = "verge-tilt-images";
+
+/// The procedure name in `session.json` for image mode followed by robot stages (the
+/// stages and their settings in `session.json`'s `stages`).
+pub const PROCEDURE_ROBOT: &str = "robot-images";
 
 /// Where sessions go when the user names none: `./headalign-sessions/<UTC time>`.
 pub const DEFAULT_SESSION_BASE: &str = "headalign-sessions";
@@ -160,11 +168,105 @@ pub fn recorded<H: ImagingHead>(
             h.set_stage(stage, plan, other)
         });
     let writer = rec.into_writer();
+    let result = outcome.and_then(|o| {
+        let json = report(head, &run, &o)?;
+        Ok((o, json))
+    });
+    finish(&writer, run, result)
+}
+
+/// What the robot stages of an image-mode run found, and the front end's report per
+/// capture of theirs.
+pub struct RobotRun {
+    /// The stages' outcomes.
+    pub outcomes: RobotOutcomes,
+    /// The front end's report per robot-stage capture, in order.
+    pub tracking: Vec<ViewTracking>,
+}
+
+/// Corners per image in the robot stages (the verge/tilt stage uses the front end's
+/// 1500). A forward drive's pan is sensitive to the drive's measured rotation (an error
+/// `d` moves the epipole by about `d Z / D`: 15 d for a 0.10 m drive at 1.5 m), so the
+/// rigid motion needs many tracks: seed 11 linked 63-69 tracks per drive with 1500
+/// corners and ended 4.2 deg off; with 3000, 285-296 tracks and 0.26 deg (seed 20: 2.9
+/// -> 0.7 deg).
+pub const ROBOT_FEATURES: usize = 3000;
+
+/// The robot stages on images: the front end in [`TrackingMode::Previous`] (the captures
+/// before and after each drive share track ids) over `head`; `on_stage` as in
+/// [`run_robot_stages`].
+pub fn robot_stages<H: ImagingHead + Vehicle>(
+    head: &mut H,
+    plan: &RobotPlan,
+    outcome: &VergeTiltOutcome,
+    on_stage: &mut dyn FnMut(&mut H, &str),
+) -> Result<RobotRun> {
+    let mut options = FrontEndOptions { mode: TrackingMode::Previous, ..FrontEndOptions::default() };
+    options.features.max_features = ROBOT_FEATURES;
+    // Stereo matching guided by the calibrated rig: with parallel cameras and the near
+    // scene 1 m away, disparities reach 200 px and free matching finds mostly wrong pairs.
+    let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
+    let prior = move |enc: &Encoders| stereo_fundamental(calib, verge, enc).ok();
+    let mut tracking_head = TrackingHead::new(head, options)?.with_stereo_prior(Box::new(prior));
+    let outcomes = run_robot_stages(
+        &mut tracking_head,
+        plan,
+        &outcome.calibration,
+        &outcome.verge_axes,
+        &mut |t, stage| on_stage(t.inner(), stage),
+    )
+    .context("robot stages on images")?;
+    Ok(RobotRun { outcomes, tracking: std::mem::take(&mut tracking_head.tracking) })
+}
+
+/// [`recorded`] followed by the robot stages of `plan` on the same (recording) head, for
+/// a head that is also a vehicle; `report` also sees the robot stages' results.
+pub fn recorded_robot<H: ImagingHead + Vehicle>(
+    head: &mut H,
+    session: Option<(PathBuf, SessionInfo)>,
+    rotation_deg: f64,
+    auto_rotation: bool,
+    seed: u64,
+    plan: &RobotPlan,
+    report: &mut dyn FnMut(&mut H, &ImageRun, &VergeTiltOutcome, &RobotRun) -> Result<Value>,
+) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
+    let Some((dir, info)) = session else {
+        let (run, outcome) = procedure(head, rotation_deg, auto_rotation, seed, &mut |_, _, _, _| {});
+        let outcome = outcome?;
+        let robot = robot_stages(head, plan, &outcome, &mut |_, _| {})?;
+        let json = report(head, &run, &outcome, &robot)?;
+        return Ok((run, outcome, json));
+    };
+    let writer = SessionWriter::create(&dir, &info).context("session")?;
+    let mut rec = RecordingHead::new(head, writer);
+    let (run, outcome) =
+        procedure(&mut rec, rotation_deg, auto_rotation, seed, &mut |h, stage, plan, other| {
+            h.set_stage(stage, plan, other)
+        });
+    let robot = outcome.and_then(|o| {
+        let r = robot_stages(&mut rec, plan, &o, &mut |h, stage| h.set_stage(stage, Vec::new(), stage))?;
+        Ok((o, r))
+    });
+    let writer = rec.into_writer();
+    let result = robot.and_then(|(o, r)| {
+        let json = report(head, &run, &o, &r)?;
+        Ok((o, json))
+    });
+    finish(&writer, run, result)
+}
+
+/// The end of a recorded run: on success the session path in the JSON, the annotated
+/// images, `report.html` and `report.json`; on failure `report.json` says so and the
+/// error names where the session is.
+fn finish(
+    writer: &SessionWriter,
+    run: ImageRun,
+    result: Result<(VergeTiltOutcome, Value)>,
+) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
     let kept = |writer: &SessionWriter| {
         format!("session with {} captured view(s) kept in {}", writer.views(), writer.dir().display())
     };
-    let result = outcome.and_then(|o| {
-        let mut json = report(head, &run, &o)?;
+    let result = result.and_then(|(o, mut json)| {
         if let Some(m) = json.as_object_mut() {
             m.insert("session".into(), json!(writer.dir().display().to_string()));
         }
@@ -180,7 +282,7 @@ pub fn recorded<H: ImagingHead>(
         Err(e) => {
             // Best effort: the error itself is what the user must see.
             let _ = writer.write_report(&json!({"status": "failed", "error": one_line(&e)}));
-            Err(e.context(kept(&writer)))
+            Err(e.context(kept(writer)))
         }
     }
 }
@@ -246,48 +348,98 @@ fn images_json(run: &ImageRun) -> Result<Value> {
     }))
 }
 
-/// Run verging and the verge/tilt procedure on rendered images (the demo), recording to
-/// `session`; the JSON has the estimate against the simulator's truth.
-pub fn run(scenario: &Scenario, auto_rotation: bool, session: &SessionTarget) -> Result<Value> {
+/// Run verging, the verge/tilt procedure and then the robot stages of `plan` on rendered
+/// images of the simulated robot (the demo), recording to `session`; the JSON has the
+/// estimate against the simulator's truth, and with robot stages their results, the
+/// front end's report per robot capture and the pan and steering errors (`errors`
+/// `pan_err_deg`, `steer_err_deg`, as in point mode).
+pub fn run(
+    scenario: &Scenario,
+    auto_rotation: bool,
+    session: &SessionTarget,
+    plan: &RobotPlan,
+) -> Result<Value> {
     let t0 = Instant::now();
-    let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
-    let before = head.alignment_errors(&head.encoders());
+    let mut robot = SimulatedRobot::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
+    let start = robot.head().encoders();
+    let before = robot.head().alignment_errors(&start);
+    let pan_before = robot.pan_err_deg(&start);
+    let steer_before = robot.steer_err_deg(robot.steering_encoder_deg());
     let description = json!({"kind": "simulator", "scenario": serde_json::to_value(scenario)?});
     let session = session.resolve().map(|dir| {
-        (dir, session_info(scenario.rotation_deg, auto_rotation, scenario.image_size, description))
+        let mut info = session_info(scenario.rotation_deg, auto_rotation, scenario.image_size, description);
+        if plan.drives() {
+            info.procedure = PROCEDURE_ROBOT.to_string();
+            info.stages = serde_json::to_value(plan).ok();
+        }
+        (dir, info)
     });
     let seed = EstimationOptions::default().seed;
-    let (_, _, json) = recorded(
-        &mut head,
+    let (_, _, json) = recorded_robot(
+        &mut robot,
         session,
         scenario.rotation_deg,
         auto_rotation,
         seed,
-        &mut |head, run, outcome| {
+        plan,
+        &mut |robot, run, outcome, robot_run| {
             let total = t0.elapsed().as_secs_f64();
+            let head = robot.head();
             let after = head.alignment_errors(&head.encoders());
             let st = &outcome.calibration.bundle.state;
             let truth = head.truth().clone();
             let cal = calibration_errors(&truth.left, &truth.right, &st.left, &st.right);
             let true_aligned = head.aligned_encoders();
             let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
+            let pan_after = robot_run.outcomes.panned().then(|| robot.pan_err_deg(&head.encoders()));
+            let steer_after = robot_run
+                .outcomes
+                .steering
+                .as_ref()
+                .map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
             let mut json = run_json(run, outcome, total)?;
             if let Some(m) = json.as_object_mut() {
-                m.insert("errors".into(), Value::Object(errors_json(&after, unavoidable_r, &cal, None)));
-                m.insert("before".into(), Value::Object(before_json(&before)));
+                let mut errors = errors_json(&after, unavoidable_r, &cal, None);
+                let mut before_j = before_json(&before);
+                if plan.drives() {
+                    errors.insert("pan_err_deg".into(), json!(pan_after));
+                    errors.insert("steer_err_deg".into(), json!(steer_after));
+                    before_j.insert("pan_err_deg".into(), json!(pan_before));
+                    before_j.insert("steer_err_deg".into(), json!(steer_before));
+                    m.extend(robot_json(plan, robot_run)?);
+                }
+                m.insert("errors".into(), Value::Object(errors));
+                m.insert("before".into(), Value::Object(before_j));
                 m.insert(
-                "truth".into(),
-                json!({
-                    "left": {"fx": truth.left.fx, "fy": truth.left.fy, "cx": truth.left.cx, "cy": truth.left.cy},
-                    "right": {"fx": truth.right.fx, "fy": truth.right.fy, "cx": truth.right.cx, "cy": truth.right.cy},
-                    "aligned_encoders": serde_json::to_value(true_aligned)?,
-                }),
-            );
+                    "truth".into(),
+                    json!({
+                        "left": {"fx": truth.left.fx, "fy": truth.left.fy, "cx": truth.left.cx, "cy": truth.left.cy},
+                        "right": {"fx": truth.right.fx, "fy": truth.right.fy, "cx": truth.right.cx, "cy": truth.right.cy},
+                        "aligned_encoders": serde_json::to_value(true_aligned)?,
+                        "steer_zero_deg": robot.truth().steer_zero_deg,
+                        "wheelbase_m": robot.truth().wheelbase_m,
+                    }),
+                );
             }
             Ok(json)
         },
     )?;
     Ok(json)
+}
+
+/// The robot stages' members of an image-mode run's JSON (no truth): `stages`, `pan`,
+/// `pan_fixate`, `one_motion`, `steering` (as in point mode) and `robot_tracking` (the
+/// front end's report per robot-stage capture).
+pub fn robot_json(plan: &RobotPlan, robot: &RobotRun) -> Result<serde_json::Map<String, Value>> {
+    let o = &robot.outcomes;
+    let mut m = serde_json::Map::new();
+    m.insert("stages".into(), json!(plan.stages));
+    m.insert("pan".into(), serde_json::to_value(&o.pan)?);
+    m.insert("pan_fixate".into(), serde_json::to_value(&o.pan_fixate)?);
+    m.insert("one_motion".into(), serde_json::to_value(&o.one_motion)?);
+    m.insert("steering".into(), serde_json::to_value(&o.steering)?);
+    m.insert("robot_tracking".into(), serde_json::to_value(&robot.tracking)?);
+    Ok(m)
 }
 
 /// The `errors` member of the demo's JSON: the alignment errors after alignment, the

@@ -16,6 +16,7 @@ mod images;
 mod points;
 mod replay;
 mod report_html;
+mod stages;
 
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -27,10 +28,7 @@ use headalign::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_ax
 use headalign::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
 use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
-use headalign::onemotion::{Horizon, OneMotionOptions, align_one_motion};
-use headalign::panfix::{PanFixationOptions, align_pan_by_fixation};
 use headalign::procedure::{AutoRotation, VergeTiltOptions, VergeTiltRun, alignment_sigmas, capture_plan};
-use headalign::robot::{PanOptions, SteeringOptions, align_pan, zero_steering};
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::so3::Line;
 use headalign_platform::{Joint, StereoHead};
@@ -59,7 +57,8 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Run the verge/tilt procedure on the simulated head and compare with the truth.
+    /// Run the verge/tilt procedure and the robot stages on the simulated robot (points or,
+    /// with --images, rendered images) and compare with the truth.
     Demo(DemoArgs),
     /// Estimate calibration, axes and aligned readings from an observation session.
     Align(AlignArgs),
@@ -156,7 +155,8 @@ struct DemoArgs {
     /// Forward drive of the pan stage, metres.
     #[arg(long)]
     drive: Option<f64>,
-    /// Drive per steering setting of the steering stage, metres (default 0.3).
+    /// Drive per steering setting of the steering stage, metres (default 0.3; 0.2 with
+    /// --images).
     #[arg(long)]
     steer_drive: Option<f64>,
     /// Steering settings of the steering stage relative to the start reading, degrees,
@@ -306,6 +306,19 @@ fn encoders_json(e: &headalign_platform::Encoders) -> Value {
     json!({"pan": e.pan, "elevation": e.elevation, "verge_left": e.verge_left, "verge_right": e.verge_right})
 }
 
+/// The robot stages and their settings from the demo's flags.
+fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan> {
+    Ok(stages::RobotPlan {
+        stages: stages::RobotPlan::parse_stages(&args.stages)?,
+        drive_m: scenario.drive_m,
+        horizon_from_drive: args.horizon_from_drive,
+        // On images a shorter steering drive: see `stages::IMAGE_STEER_DRIVE_M`.
+        steer_drive_m: args.steer_drive.or(args.images.then_some(stages::IMAGE_STEER_DRIVE_M)),
+        steer_settings_deg: args.steer_settings.clone(),
+        baseline_m: scenario.baseline_m,
+    })
+}
+
 fn demo(args: &DemoArgs) -> Result<()> {
     let mut scenario = args.scenario.scenario()?;
     if let Some(v) = args.pan_zero_max {
@@ -317,30 +330,26 @@ fn demo(args: &DemoArgs) -> Result<()> {
     if let Some(v) = args.drive {
         scenario.drive_m = v;
     }
-    if args.images {
-        return demo_images(args, &scenario);
-    }
-    let stages: Vec<&str> = args.stages.split(',').map(str::trim).filter(|s| !s.is_empty()).collect();
-    for st in &stages {
-        if !["verge-tilt", "pan", "steering", "pan-fixate", "one-motion"].contains(st) {
-            anyhow::bail!(
-                "unknown stage '{st}' (expected verge-tilt, pan, steering, pan-fixate, one-motion)"
-            );
+    let rplan = robot_plan(args, &scenario)?;
+    if rplan.drives() {
+        match args.near_panels {
+            Some(n) => scenario.near_panels = n,
+            None if scenario.near_panels == 0 => scenario.near_panels = Scenario::ROBOT_NEAR_PANELS,
+            None => {}
         }
-    }
-    match args.near_panels {
-        Some(n) => scenario.near_panels = n,
-        None if scenario.near_panels == 0 && stages.iter().any(|s| *s != "verge-tilt") => {
-            scenario.near_panels = Scenario::ROBOT_NEAR_PANELS;
-        }
-        None => {}
+    } else if let Some(n) = args.near_panels {
+        scenario.near_panels = n;
     }
     scenario.validate().map_err(|e| anyhow::anyhow!("invalid scenario: {e}"))?;
-    if !stages.contains(&"verge-tilt") {
+    if !rplan.stages.iter().any(|s| s == "verge-tilt") {
         anyhow::bail!(
-            "the pan and steering stages need the calibration of the verge-tilt stage (the calibration-free fixation route is not implemented)"
+            "the robot stages need the calibration of the verge-tilt stage (list it first in --stages)"
         );
     }
+    if args.images {
+        return demo_images(args, &scenario, &rplan);
+    }
+    let stages = &rplan.stages;
     let t0 = Instant::now();
     let mut robot = SimulatedRobot::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
     let start = robot.head().encoders();
@@ -360,48 +369,19 @@ fn demo(args: &DemoArgs) -> Result<()> {
         (dir.clone(), points::session_info(&options, robot.head().image_size(), head))
     });
     let (outcome, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session)?;
-    let mut pan_outcomes = Vec::new();
-    let mut fixate_outcomes = Vec::new();
-    let mut one_motion_outcomes = Vec::new();
-    let mut steer_outcome = None;
-    for st in &stages {
-        match *st {
-            "pan" => {
-                let o = PanOptions { drive_m: scenario.drive_m, ..PanOptions::default() };
-                pan_outcomes.push(
-                    align_pan(&mut robot, &outcome.calibration, &outcome.verge_axes, &o)
-                        .context("pan stage")?,
-                );
-            }
-            "one-motion" => {
-                let horizon = if args.horizon_from_drive { Horizon::Drive } else { Horizon::PanAxis };
-                let o =
-                    OneMotionOptions { drive_m: scenario.drive_m, horizon, ..OneMotionOptions::default() };
-                one_motion_outcomes.push(
-                    align_one_motion(&mut robot, &outcome.calibration, &outcome.verge_axes, &o)
-                        .context("one-motion stage")?,
-                );
-            }
-            "pan-fixate" => {
-                let o = PanFixationOptions { drive_m: scenario.drive_m, ..PanFixationOptions::default() };
-                fixate_outcomes.push(align_pan_by_fixation(&mut robot, &o).context("pan fixation stage")?);
-            }
-            "steering" => {
-                let mut o = SteeringOptions { baseline_m: scenario.baseline_m, ..SteeringOptions::default() };
-                if let Some(d) = args.steer_drive {
-                    o.drive_m = d;
-                }
-                if let Some(v) = &args.steer_settings {
-                    o.settings_deg = v.clone();
-                }
-                steer_outcome = Some(
-                    zero_steering(&mut robot, &outcome.calibration, &outcome.verge_axes, &o)
-                        .context("steering stage")?,
-                );
-            }
-            _ => {}
-        }
-    }
+    let robot_out = stages::run_robot_stages(
+        &mut robot,
+        &rplan,
+        &outcome.calibration,
+        &outcome.verge_axes,
+        &mut |_, _| {},
+    )?;
+    let stages::RobotOutcomes {
+        pan: pan_outcomes,
+        pan_fixate: fixate_outcomes,
+        one_motion: one_motion_outcomes,
+        steering: steer_outcome,
+    } = robot_out;
     let total = t0.elapsed().as_secs_f64();
     let final_enc = robot.head().encoders();
     let pan_after =
@@ -605,13 +585,13 @@ fn demo(args: &DemoArgs) -> Result<()> {
     Ok(())
 }
 
-fn demo_images(args: &DemoArgs, scenario: &Scenario) -> Result<()> {
+fn demo_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) -> Result<()> {
     let target = match (&args.session, args.no_session) {
         (Some(d), _) => images::SessionTarget::Dir(d.clone()),
         (None, true) => images::SessionTarget::None,
         (None, false) => images::SessionTarget::Default,
     };
-    let v = images::run(scenario, args.auto_rotation, &target)?;
+    let v = images::run(scenario, args.auto_rotation, &target, plan)?;
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());

@@ -12,6 +12,7 @@ use clap::Args;
 use headalign::session::{ReplayHead, read_session_info};
 use serde_json::{Value, json};
 
+use crate::stages::RobotPlan;
 use crate::{images, points};
 use headalign::procedure::VergeTiltRun;
 
@@ -49,6 +50,34 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         );
         let outcome = outcome.with_context(context)?;
         (images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
+    } else if info.procedure == images::PROCEDURE_ROBOT {
+        let plan: RobotPlan = info
+            .stages
+            .clone()
+            .map(serde_json::from_value)
+            .transpose()
+            .with_context(|| format!("'{}': stages", args.dir.join("session.json").display()))?
+            .with_context(|| {
+                format!(
+                    "'{}' names no stages for procedure '{}'",
+                    args.dir.join("session.json").display(),
+                    info.procedure
+                )
+            })?;
+        let (run, outcome) = images::procedure(
+            &mut head,
+            info.rotation_deg,
+            info.auto_rotation,
+            info.estimation_seed,
+            &mut |_, _, _, _| {},
+        );
+        let outcome = outcome.with_context(context)?;
+        let robot = images::robot_stages(&mut head, &plan, &outcome, &mut |_, _| {}).with_context(context)?;
+        let mut v = images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
+        if let Some(m) = v.as_object_mut() {
+            m.extend(images::robot_json(&plan, &robot)?);
+        }
+        (v, run.run.views.len() + robot.tracking.len())
     } else if info.procedure == points::PROCEDURE {
         let mut run = VergeTiltRun::default();
         let outcome = run.run(&mut head, &points::options(&info)).with_context(context)?;
@@ -62,10 +91,11 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         (v, run.views.len())
     } else {
         bail!(
-            "'{}': cannot replay procedure '{}' (this version replays '{}' and '{}')",
+            "'{}': cannot replay procedure '{}' (this version replays '{}', '{}' and '{}')",
             args.dir.join("session.json").display(),
             info.procedure,
             images::PROCEDURE,
+            images::PROCEDURE_ROBOT,
             points::PROCEDURE
         );
     };

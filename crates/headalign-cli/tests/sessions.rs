@@ -62,7 +62,12 @@ fn demo_records_to_the_default_place_and_replays_bit_for_bit() {
     // No --session: ./headalign-sessions/<UTC time> in the working directory.
     let cwd = tmp("cwd");
     std::fs::create_dir_all(&cwd).unwrap();
-    let out = bin().current_dir(&cwd).args(["demo", "--images", "--seed", "1", "--json"]).output().unwrap();
+    // A short robot run: verge/tilt, then the pan stage (drives recorded as events).
+    let out = bin()
+        .current_dir(&cwd)
+        .args(["demo", "--images", "--seed", "1", "--stages", "verge-tilt,pan", "--json"])
+        .output()
+        .unwrap();
     let live = ok_json(&out);
     let base = cwd.join("headalign-sessions");
     let sessions: Vec<_> = std::fs::read_dir(&base).unwrap().filter_map(Result::ok).collect();
@@ -92,6 +97,18 @@ fn demo_records_to_the_default_place_and_replays_bit_for_bit() {
     assert_eq!(r["checks"], live["checks"]);
     assert_eq!(r["images"]["views"], live["images"]["views"]);
     assert_eq!(r["unplayed_events"], 0);
+    // The robot stage too: the same drives, the same pan corrections, bit for bit; its
+    // views record the drives since the capture before.
+    assert_eq!(r["pan"], live["pan"]);
+    assert!(live["pan"][0]["steps"].as_array().is_some_and(|s| s.len() == 2), "{}", live["pan"]);
+    assert!(live["errors"]["pan_err_deg"].is_number());
+    let pan2 = folders.iter().find(|f| f.ends_with("-pan-2")).expect("a pan-2 view");
+    let meta: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join(pan2).join("view.json")).unwrap()).unwrap();
+    assert_eq!(meta["stage"], "pan");
+    assert_eq!(meta["vehicle"]["drives_m"], serde_json::json!([0.1]));
+    let events = std::fs::read_to_string(dir.join("events.jsonl")).unwrap();
+    assert!(events.contains("{\"op\":\"drive\",\"distance_m\":0.1}"), "no drive event");
     // A session is never overwritten.
     let out = bin().args(["demo", "--images", "--session", dir.to_str().unwrap()]).output().unwrap();
     assert_clean_failure(&out, &["already holds a session"]);
@@ -106,7 +123,7 @@ fn a_driver_process_runs_the_procedure_like_the_simulator() {
     let demo_dir = tmp("demo-2");
     let demo = ok_json(
         &bin()
-            .args(["demo", "--images", "--seed", "2", "--json", "--session"])
+            .args(["demo", "--images", "--stages", "verge-tilt", "--seed", "2", "--json", "--session"])
             .arg(&demo_dir)
             .output()
             .unwrap(),

@@ -40,7 +40,7 @@ use crate::kinematics::HeadTruth;
 use crate::render::{CameraView, RenderOptions, project, render_view};
 use crate::scenario::Scenario;
 use crate::scene::{Room, ScenePoint, generate_room_and_scene, pixel_in_image, visible_pixel};
-use crate::texture::{TexturedScene, bake_textures};
+use crate::texture::{TexturedScene, bake_textures_scaled};
 
 /// Commanded encoder readings must lie in `+-JOINT_RANGE_DEG`.
 pub const JOINT_RANGE_DEG: f64 = 180.0;
@@ -216,9 +216,15 @@ impl SimulatedHead {
         }
         let r = &self.scenario.render;
         let data_dir = r.resolved_data_dir();
+        let scales: Vec<f64> = self
+            .room
+            .near_quads()
+            .into_iter()
+            .map(|near| if near { r.near_metres_per_texel } else { r.metres_per_texel })
+            .collect();
         let mut rng = rng_stream(self.scenario.seed, STREAM_TEXTURE);
         let (quads, report) =
-            bake_textures(&self.room.quads(), r.metres_per_texel, data_dir.as_deref(), &mut rng);
+            bake_textures_scaled(&self.room.quads(), &scales, data_dir.as_deref(), &mut rng);
         let t = Arc::new(TexturedScene { quads, report });
         self.textured = Some(t.clone());
         t

@@ -143,8 +143,14 @@ pub struct RenderOptions {
     /// Radial distortion of both cameras. Default zero. The point captures of the
     /// simulated head use it too, so both modes see the same cameras.
     pub distortion: RadialDistortion,
-    /// Texture resolution, metres per texel. Default 0.005.
+    /// Texture resolution, metres per texel. Default 0.005 (the room is seen from 1.5 to
+    /// 6 m: one pixel covers 2 to 9 mm).
     pub metres_per_texel: f64,
+    /// Texture resolution of the near panels (`near_panels`), metres per texel. Default
+    /// 0.0015: they are seen from about 1 m, where one pixel covers 1.4 mm; at 5 mm a
+    /// photograph's pixel would be magnified to 4-7 image pixels and its corners blurred
+    /// away (a poster at reading distance shows its print, not a magnified blur).
+    pub near_metres_per_texel: f64,
     /// Use the texture photographs (else procedural textures only). Default true.
     pub use_photos: bool,
     /// Data directory holding `opencv_samples/textures` and `skimage_data/textures`;
@@ -161,6 +167,7 @@ impl Default for RenderOptions {
             noise_sigma_grey: 2.0,
             distortion: RadialDistortion::default(),
             metres_per_texel: 0.005,
+            near_metres_per_texel: 0.0015,
             use_photos: true,
             data_dir: None,
         }
@@ -191,6 +198,12 @@ impl RenderOptions {
         }
         if !(self.metres_per_texel.is_finite() && (1e-4..=0.1).contains(&self.metres_per_texel)) {
             p.push(format!("render.metres_per_texel must be in [1e-4, 0.1], got {}", self.metres_per_texel));
+        }
+        if !(self.near_metres_per_texel.is_finite() && (1e-4..=0.1).contains(&self.near_metres_per_texel)) {
+            p.push(format!(
+                "render.near_metres_per_texel must be in [1e-4, 0.1], got {}",
+                self.near_metres_per_texel
+            ));
         }
         p
     }

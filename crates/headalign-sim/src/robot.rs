@@ -1,5 +1,6 @@
-//! The simulated robot: a tricycle AGV carrying the simulated head, implementing both
-//! [`StereoHead`] (delegated to [`SimulatedHead`]) and [`Vehicle`].
+//! The simulated robot: a tricycle AGV carrying the simulated head, implementing
+//! [`StereoHead`] and [`ImagingHead`] (delegated to [`SimulatedHead`]: point observations,
+//! or renders of the textured room seen from the robot's current pose) and [`Vehicle`].
 //!
 //! Geometry (robot frame = the frame of [`crate::HeadTruth`]: origin on the pan axis at
 //! the ground, x right, y down, z forward; DESIGN.md section 1):
@@ -22,7 +23,9 @@
 //! (no wheel slip); reading the steering encoder is exact.
 
 use headalign_geometry::so3::{Line, rotation_about_line};
-use headalign_platform::{Encoders, PlatformError, StereoCapture, StereoHead, Vehicle};
+use headalign_platform::{
+    Encoders, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages, Vehicle,
+};
 use nalgebra::{Isometry3, Point3, Translation3, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -145,6 +148,15 @@ impl StereoHead for SimulatedRobot {
     }
     fn capture(&mut self) -> Result<StereoCapture, PlatformError> {
         self.head.capture()
+    }
+}
+
+impl ImagingHead for SimulatedRobot {
+    /// Renders both cameras of the head where the robot now stands (the renderer draws the
+    /// same room, near panels included, from the robot pose composed with the head's
+    /// kinematics; [`SimulatedHead::capture_images`]).
+    fn capture_images(&mut self) -> Result<StereoImages, PlatformError> {
+        self.head.capture_images()
     }
 }
 

@@ -111,6 +111,8 @@ pub struct Room {
     min: Vector3<f64>,
     max: Vector3<f64>,
     boxes: Vec<FloorBox>,
+    /// The last `near` boxes are the near panels.
+    near: usize,
 }
 
 /// A planar rectangle in the world frame: `corner + a * u + b * v` for `a` in
@@ -178,7 +180,12 @@ impl Room {
                 box_from_world: Rotation3::from_axis_angle(&Vector3::y_axis(), -yaw),
             });
         }
-        Self { min: Vector3::new(-left, -ceiling, -back), max: Vector3::new(right, 0.0, front), boxes }
+        Self {
+            min: Vector3::new(-left, -ceiling, -back),
+            max: Vector3::new(right, 0.0, front),
+            boxes,
+            near: 0,
+        }
     }
 
     /// Add `scenario.near_panels` tall panels about `near_distance_m` in front of the pan
@@ -198,7 +205,17 @@ impl Room {
                 half,
                 box_from_world: Rotation3::from_axis_angle(&Vector3::y_axis(), -yaw),
             });
+            self.near += 1;
         }
+    }
+
+    /// For each quad of [`Self::quads`], in order: true for the faces of the near panels
+    /// (the renderer textures them finer: they are seen from about 1 m).
+    pub fn near_quads(&self) -> Vec<bool> {
+        let far_boxes = self.boxes.len() - self.near;
+        let mut v = vec![false; 6 + 5 * far_boxes];
+        v.resize(6 + 5 * self.boxes.len(), true);
+        v
     }
 
     /// The surfaces as visible-side-oriented quads: floor, ceiling, the four walls (in
@@ -396,6 +413,16 @@ mod tests {
             (truth, pts)
         };
         let (truth, pts) = draw(&near);
+        // The renderer textures exactly the panels' faces finer: the last 5 per panel.
+        let mut rng = ChaCha8Rng::seed_from_u64(near.seed);
+        let (room, _) = generate_room_and_scene(&near, &HeadTruth::draw(&near, &mut rng), &mut rng).unwrap();
+        let flags = room.near_quads();
+        assert_eq!(flags.len(), room.quads().len());
+        let n_near = 5 * Scenario::ROBOT_NEAR_PANELS;
+        assert!(
+            flags[..flags.len() - n_near].iter().all(|f| !f)
+                && flags[flags.len() - n_near..].iter().all(|f| *f)
+        );
         let (left, _) = truth.world_from_cameras(&Encoders::default());
         let close = pts
             .iter()

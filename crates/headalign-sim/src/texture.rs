@@ -318,12 +318,25 @@ pub fn bake_textures(
     data_dir: Option<&Path>,
     rng: &mut ChaCha8Rng,
 ) -> (Vec<TexturedQuad>, TextureReport) {
+    let scales = vec![metres_per_texel; quads.len()];
+    bake_textures_scaled(quads, &scales, data_dir, rng)
+}
+
+/// [`bake_textures`] with a texel size per quad (`metres_per_texel[i]` for `quads[i]`;
+/// missing entries take the last). The random draws are the same whatever the sizes.
+pub fn bake_textures_scaled(
+    quads: &[PlanarQuad],
+    metres_per_texel: &[f64],
+    data_dir: Option<&Path>,
+    rng: &mut ChaCha8Rng,
+) -> (Vec<TexturedQuad>, TextureReport) {
     let mut report = TextureReport { data_dir: data_dir.map(Path::to_path_buf), ..Default::default() };
     let photos = data_dir.map(|d| load_photos(d, &mut report)).unwrap_or_default();
     report.procedural_fallback = photos.is_empty();
     let mut out = Vec::with_capacity(quads.len());
-    for quad in quads {
-        let mpt = metres_per_texel.max(quad.size_m[0].max(quad.size_m[1]) / (MAX_SIDE - 2) as f64);
+    for (i, quad) in quads.iter().enumerate() {
+        let wanted = metres_per_texel.get(i).or(metres_per_texel.last()).copied().unwrap_or(0.005);
+        let mpt = wanted.max(quad.size_m[0].max(quad.size_m[1]) / (MAX_SIDE - 2) as f64);
         let width = (quad.size_m[0] / mpt).ceil() as usize + 1;
         let height = (quad.size_m[1] / mpt).ceil() as usize + 1;
         let mut quad_rng = ChaCha8Rng::seed_from_u64(rng.random::<u64>());

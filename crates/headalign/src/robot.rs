@@ -298,6 +298,24 @@ pub(crate) fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) 
     })
 }
 
+/// The fundamental matrix `F` (`x_right^T F x_left = 0`, pixels) of the calibrated stereo
+/// rig at readings `enc`: `K_r^-T [t]x R K_l^-1` with `(R, t)` = `right_from_left`
+/// predicted by the calibrated kinematics (vergence axes included). The image front end
+/// uses it to guide stereo matching where free matching fails (near, wide-disparity
+/// scenes: [`crate::frontend::TrackingHead::with_stereo_prior`]).
+pub fn stereo_fundamental(
+    calib: &RigCalibration,
+    verge: &VergeAxes,
+    enc: &Encoders,
+) -> Result<Matrix3<f64>, AlignError> {
+    let rig = rig_at(calib, verge, enc)?;
+    let right_from_left = rig.stereo.right_from_left;
+    let t = right_from_left.translation.vector;
+    let r = right_from_left.rotation.to_rotation_matrix().into_inner();
+    let e = t.cross_matrix() * r;
+    Ok(rig.stereo.right.inverse_matrix().transpose() * e * rig.stereo.left.inverse_matrix())
+}
+
 fn by_track(obs: &[headalign_platform::TrackObservation]) -> HashMap<u64, Point2<f64>> {
     obs.iter().map(|o| (o.track, o.pixel)).collect()
 }

@@ -62,7 +62,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use headalign_platform::{
-    Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages,
+    Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages, Vehicle,
 };
 use serde::{Deserialize, Serialize};
 
@@ -113,6 +113,10 @@ pub struct SessionInfo {
     /// Free-form description of the head (simulator scenario, driver command, ...).
     #[serde(default)]
     pub head: serde_json::Value,
+    /// The stages run after the verge/tilt procedure and their settings (procedure
+    /// `robot-images`); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stages: Option<serde_json::Value>,
 }
 
 impl SessionInfo {
@@ -127,6 +131,7 @@ impl SessionInfo {
             estimation_seed,
             image_size,
             head: serde_json::Value::Null,
+            stages: None,
         }
     }
 }
@@ -150,6 +155,31 @@ pub enum Event {
         /// The folder name (`NN-name`), relative to the session.
         folder: String,
     },
+    /// `Vehicle::drive` succeeded with this signed distance.
+    Drive {
+        /// Metres (negative: backwards).
+        distance_m: f64,
+    },
+    /// `Vehicle::steer_to` succeeded with this steering encoder target.
+    Steer {
+        /// Degrees.
+        encoder_deg: f64,
+    },
+    /// `Vehicle::read_steering` returned this reading.
+    ReadSteering {
+        /// Degrees.
+        encoder_deg: f64,
+    },
+}
+
+/// What the vehicle did since the previous capture (`view.json` member `vehicle`, only in
+/// sessions whose head is a vehicle).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+pub struct VehicleActions {
+    /// Every drive since the previous capture, signed metres, in order.
+    pub drives_m: Vec<f64>,
+    /// The steering encoder, degrees: the last reading or target (`None`: not known yet).
+    pub steering_deg: Option<f64>,
 }
 
 /// The contents of a `view.json`.
@@ -183,6 +213,9 @@ pub struct ViewMeta {
     /// Point mode: the tracked points of the capture.
     #[serde(default)]
     pub capture: Option<StereoCapture>,
+    /// A head on a vehicle: the drives since the previous capture and the steering.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vehicle: Option<VehicleActions>,
 }
 
 /// `YYYY-MM-DDTHH:MM:SSZ` (or `YYYYMMDDTHHMMSSZ` when `separators` is false), UTC.
@@ -236,6 +269,19 @@ fn to_json<T: Serialize>(v: &T) -> Result<String, AlignError> {
     serde_json::to_string_pretty(v)
         .map(|s| s + "\n")
         .map_err(|e| AlignError::Output(format!("cannot encode JSON: {e}")))
+}
+
+/// What a view folder records besides the capture itself.
+#[derive(Debug, Clone, Copy)]
+pub struct ViewLabel<'a> {
+    /// The view's name (the folder is `NN-name`).
+    pub name: &'a str,
+    /// The procedure stage.
+    pub stage: &'a str,
+    /// The last commanded move before the capture.
+    pub commanded: Option<Encoders>,
+    /// A vehicle's actions since the previous capture.
+    pub vehicle: Option<&'a VehicleActions>,
 }
 
 /// Writes a session as it happens: `session.json` at creation, one view folder per
@@ -298,13 +344,12 @@ impl SessionWriter {
     /// returns the folder name.
     pub fn write_view(
         &mut self,
-        name: &str,
-        stage: &str,
-        commanded: Option<Encoders>,
+        label: &ViewLabel<'_>,
         encoders: Encoders,
         images: Option<&StereoImages>,
         capture: Option<&StereoCapture>,
     ) -> Result<String, AlignError> {
+        let ViewLabel { name, stage, commanded, vehicle } = *label;
         let safe: String = name
             .chars()
             .map(|c| if c.is_ascii_alphanumeric() || "+-_.".contains(c) { c } else { '_' })
@@ -331,6 +376,7 @@ impl SessionWriter {
             unix_time_s: SystemTime::now().duration_since(UNIX_EPOCH).ok().map(|d| d.as_secs_f64()),
             image_size,
             capture: capture.cloned(),
+            vehicle: vehicle.cloned(),
         };
         write_atomic(&sub.join("view.json"), to_json(&meta)?.as_bytes())?;
         self.views += 1;
@@ -357,6 +403,7 @@ pub struct RecordingHead<'a, H> {
     names: Vec<(String, Encoders)>,
     other_name: String,
     others: usize,
+    vehicle: Option<VehicleActions>,
 }
 
 impl<'a, H> RecordingHead<'a, H> {
@@ -370,6 +417,7 @@ impl<'a, H> RecordingHead<'a, H> {
             names: Vec::new(),
             other_name: STAGE_VERGE_TILT.to_string(),
             others: 0,
+            vehicle: None,
         }
     }
 
@@ -424,8 +472,21 @@ impl<'a, H> RecordingHead<'a, H> {
             |e: AlignError, dir: &Path| PlatformError::Device(format!("session '{}': {e}", dir.display()));
         let folder = self
             .writer
-            .write_view(&name, &self.stage.clone(), self.commanded, encoders, images, capture)
+            .write_view(
+                &ViewLabel {
+                    name: &name,
+                    stage: &self.stage,
+                    commanded: self.commanded,
+                    vehicle: self.vehicle.as_ref(),
+                },
+                encoders,
+                images,
+                capture,
+            )
             .map_err(|e| fail(e, &self.writer.dir))?;
+        if let Some(v) = &mut self.vehicle {
+            v.drives_m.clear();
+        }
         self.writer.log(&Event::Capture { folder }).map_err(|e| fail(e, &self.writer.dir))
     }
 
@@ -457,6 +518,29 @@ impl<H: StereoHead> StereoHead for RecordingHead<'_, H> {
         let capture = self.head.capture()?;
         self.record(capture.encoders, None, Some(&capture))?;
         Ok(capture)
+    }
+}
+
+/// A vehicle's calls are logged (`drive`, `steer`, `read_steering` events) and the next
+/// capture's `view.json` records the drives since the previous one and the steering.
+impl<H: Vehicle> Vehicle for RecordingHead<'_, H> {
+    fn drive(&mut self, distance_m: f64) -> Result<(), PlatformError> {
+        self.head.drive(distance_m)?;
+        self.vehicle.get_or_insert_with(VehicleActions::default).drives_m.push(distance_m);
+        self.log(Event::Drive { distance_m })
+    }
+
+    fn steer_to(&mut self, encoder_deg: f64) -> Result<(), PlatformError> {
+        self.head.steer_to(encoder_deg)?;
+        self.vehicle.get_or_insert_with(VehicleActions::default).steering_deg = Some(encoder_deg);
+        self.log(Event::Steer { encoder_deg })
+    }
+
+    fn read_steering(&mut self) -> Result<f64, PlatformError> {
+        let encoder_deg = self.head.read_steering()?;
+        self.vehicle.get_or_insert_with(VehicleActions::default).steering_deg = Some(encoder_deg);
+        self.log(Event::ReadSteering { encoder_deg })?;
+        Ok(encoder_deg)
     }
 }
 
@@ -542,6 +626,9 @@ impl ReplayHead {
                 Event::Capture { folder } => {
                     !folder.is_empty() && !folder.contains(['/', '\\']) && folder != ".." && folder != "."
                 }
+                Event::Drive { distance_m: v }
+                | Event::Steer { encoder_deg: v }
+                | Event::ReadSteering { encoder_deg: v } => v.is_finite(),
             };
             if !finite {
                 return Err(AlignError::Images(format!(
@@ -628,6 +715,34 @@ impl StereoHead for ReplayHead {
                 sub.join("view.json").display()
             ))
         })
+    }
+}
+
+/// Replaying a vehicle: drives and steering targets must equal the recorded ones (within
+/// [`REPLAY_MOVE_TOLERANCE_DEG`], metres or degrees), steering reads return the recorded
+/// readings.
+impl Vehicle for ReplayHead {
+    fn drive(&mut self, distance_m: f64) -> Result<(), PlatformError> {
+        let asked = format!("drive {distance_m} m");
+        match self.next_event(&asked)? {
+            Event::Drive { distance_m: d } if (d - distance_m).abs() <= REPLAY_MOVE_TOLERANCE_DEG => Ok(()),
+            other => Err(self.diverged(&asked, &other)),
+        }
+    }
+
+    fn steer_to(&mut self, encoder_deg: f64) -> Result<(), PlatformError> {
+        let asked = format!("steer to {encoder_deg} deg");
+        match self.next_event(&asked)? {
+            Event::Steer { encoder_deg: e } if (e - encoder_deg).abs() <= REPLAY_MOVE_TOLERANCE_DEG => Ok(()),
+            other => Err(self.diverged(&asked, &other)),
+        }
+    }
+
+    fn read_steering(&mut self) -> Result<f64, PlatformError> {
+        match self.next_event("read the steering")? {
+            Event::ReadSteering { encoder_deg } => Ok(encoder_deg),
+            other => Err(self.diverged("read the steering", &other)),
+        }
     }
 }
 

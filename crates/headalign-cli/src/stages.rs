@@ -1,0 +1,129 @@
+//! The robot stages after the verge/tilt calibration (`demo --stages ...`), run in order
+//! over the platform traits: the same code in point mode (the simulated robot's tracked
+//! points) and in image mode (the robot's renders through the image front end,
+//! [`headalign::frontend::TrackingHead`] in [`headalign::frontend::TrackingMode::Previous`]).
+//!
+//! Stage names: `verge-tilt` (run before, by the caller), `pan` ([`align_pan`]),
+//! `steering` ([`zero_steering`]), `pan-fixate` ([`align_pan_by_fixation`]), `one-motion`
+//! ([`align_one_motion`]). A stage may repeat.
+
+use anyhow::{Context, Result, bail};
+use headalign::alignment::VergeAxes;
+use headalign::estimate::RigCalibration;
+use headalign::onemotion::{Horizon, OneMotionOptions, OneMotionOutcome, align_one_motion};
+use headalign::panfix::{PanFixationOptions, PanFixationOutcome, align_pan_by_fixation};
+use headalign::robot::{PanOptions, PanOutcome, SteeringOptions, SteeringOutcome, align_pan, zero_steering};
+use headalign_platform::{StereoHead, Vehicle};
+use serde::{Deserialize, Serialize};
+
+/// Steering drive of the image-mode demo, metres (point mode: 0.3, the library default).
+/// A 0.3 m drive with the wheel at 30 deg turns the robot by about 15 deg and brings the
+/// near panels 30 % closer; the single-scale corners and binary descriptors of the front
+/// end then link few tracks across it (51-84 of about 500 stereo pairs, seed 1) and the
+/// turning centres suffer: steering error 1.1 deg on seeds 1 and 2 against 0.43 and
+/// 0.07 deg with 0.2 m (turns of 5-12 deg, still well above the 2 deg minimum).
+pub const IMAGE_STEER_DRIVE_M: f64 = 0.2;
+
+/// Every stage name `--stages` accepts.
+pub const STAGES: [&str; 5] = ["verge-tilt", "pan", "steering", "pan-fixate", "one-motion"];
+
+/// The stages to run and their settings (from the demo's flags; recorded in an image
+/// session's `session.json` as `stages`, so `replay` runs the same).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RobotPlan {
+    /// Stage names in order (`verge-tilt` entries are skipped here).
+    pub stages: Vec<String>,
+    /// Forward drive of the pan, pan-fixate and one-motion stages, metres.
+    pub drive_m: f64,
+    /// One-motion: level with the drive direction instead of the calibrated pan axis.
+    pub horizon_from_drive: bool,
+    /// Drive per steering setting, metres (`None`: [`SteeringOptions::default`]).
+    pub steer_drive_m: Option<f64>,
+    /// Steering settings relative to the start reading, degrees (`None`: the default).
+    pub steer_settings_deg: Option<Vec<f64>>,
+    /// Stereo baseline, metres (to express the wheelbase in metres).
+    pub baseline_m: f64,
+}
+
+impl RobotPlan {
+    /// Parse a comma-separated stage list; unknown names are errors.
+    pub fn parse_stages(list: &str) -> Result<Vec<String>> {
+        let stages: Vec<String> =
+            list.split(',').map(str::trim).filter(|s| !s.is_empty()).map(str::to_string).collect();
+        for st in &stages {
+            if !STAGES.contains(&st.as_str()) {
+                bail!("unknown stage '{st}' (expected {})", STAGES.join(", "));
+            }
+        }
+        Ok(stages)
+    }
+
+    /// True when a stage after the verge/tilt calibration drives the robot.
+    pub fn drives(&self) -> bool {
+        self.stages.iter().any(|s| s != "verge-tilt")
+    }
+}
+
+/// What the robot stages found.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct RobotOutcomes {
+    /// Every `pan` stage.
+    pub pan: Vec<PanOutcome>,
+    /// Every `pan-fixate` stage.
+    pub pan_fixate: Vec<PanFixationOutcome>,
+    /// Every `one-motion` stage.
+    pub one_motion: Vec<OneMotionOutcome>,
+    /// The last `steering` stage.
+    pub steering: Option<SteeringOutcome>,
+}
+
+impl RobotOutcomes {
+    /// True when some stage moved the pan joint.
+    pub fn panned(&self) -> bool {
+        !self.pan.is_empty() || !self.pan_fixate.is_empty() || !self.one_motion.is_empty()
+    }
+}
+
+/// Run the plan's robot stages in order on `robot`; `on_stage(robot, name)` is called
+/// before each (a recording head names the stage's captures with it).
+pub fn run_robot_stages<R: StereoHead + Vehicle>(
+    robot: &mut R,
+    plan: &RobotPlan,
+    calib: &RigCalibration,
+    verge: &VergeAxes,
+    on_stage: &mut dyn FnMut(&mut R, &str),
+) -> Result<RobotOutcomes> {
+    let mut out = RobotOutcomes::default();
+    for st in &plan.stages {
+        if st != "verge-tilt" {
+            on_stage(robot, st);
+        }
+        match st.as_str() {
+            "pan" => {
+                let o = PanOptions { drive_m: plan.drive_m, ..PanOptions::default() };
+                out.pan.push(align_pan(robot, calib, verge, &o).context("pan stage")?);
+            }
+            "one-motion" => {
+                let horizon = if plan.horizon_from_drive { Horizon::Drive } else { Horizon::PanAxis };
+                let o = OneMotionOptions { drive_m: plan.drive_m, horizon, ..OneMotionOptions::default() };
+                out.one_motion.push(align_one_motion(robot, calib, verge, &o).context("one-motion stage")?);
+            }
+            "pan-fixate" => {
+                let o = PanFixationOptions { drive_m: plan.drive_m, ..PanFixationOptions::default() };
+                out.pan_fixate.push(align_pan_by_fixation(robot, &o).context("pan fixation stage")?);
+            }
+            "steering" => {
+                let mut o = SteeringOptions { baseline_m: plan.baseline_m, ..SteeringOptions::default() };
+                if let Some(d) = plan.steer_drive_m {
+                    o.drive_m = d;
+                }
+                if let Some(v) = &plan.steer_settings_deg {
+                    o.settings_deg = v.clone();
+                }
+                out.steering = Some(zero_steering(robot, calib, verge, &o).context("steering stage")?);
+            }
+            _ => {}
+        }
+    }
+    Ok(out)
+}
