@@ -25,10 +25,9 @@ use headalign::observations::View;
 use headalign::session::read_image_session;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::Distortion;
-use headalign_geometry::so3::{Line, rotation_about_line};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::{Isometry3, Point3, Unit, Vector3};
+use nalgebra::Isometry3;
 use serde_json::{Value, json};
 
 /// Arguments of `headalign calibrate`.
@@ -317,6 +316,12 @@ fn stereo_calibration(
 pub fn run(args: &CalibrateArgs) -> Result<()> {
     let views = load_views(&args.dir)?;
     let outcome = calibrate_views(&views, args)?;
+    // Warnings go to stderr in both modes (and are in the JSON report).
+    if let Some(cal) = &outcome.calibration {
+        for w in &cal.report.warnings {
+            eprintln!("warning: {w}");
+        }
+    }
     let mut written = Vec::new();
     if let Some(dir) = &args.out {
         written = outcome.stereo.write_all(dir)?;
@@ -374,18 +379,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     Ok(())
 }
 
-/// The general motion of `simulate --motion general`: 20 deg about an oblique axis
-/// through the head (direction (0.8, -1, 0.3)), with 0.3 m along the axis: a hand-held rig
-/// turned, tilted and raised at once.
-pub fn general_motion() -> Isometry3<f64> {
-    let axis = Line::new(Unit::new_normalize(Vector3::new(0.8, -1.0, 0.3)), Point3::new(0.0, -1.2, 0.0));
-    let r = rotation_about_line(&axis, 20f64.to_radians());
-    Isometry3::from_parts((r.translation.vector + axis.direction.into_inner() * 0.3).into(), r.rotation)
-}
-
 /// Render the views of a calibration session in memory: `rotations` (initial, elevation
 /// and pan by the scenario's rotation) or `general` (initial, then the whole rig moved by
-/// [`general_motion`]).
+/// [`headalign_sim::rigmotion::general_rig_motion`]: 25 deg about the vertical, 0.3 m
+/// along it).
 pub fn simulate_views(
     scenario: &Scenario,
     motion: &str,
@@ -401,7 +398,7 @@ pub fn simulate_views(
             }
         }
         "general" => {
-            head.set_world_from_robot(general_motion());
+            head.set_world_from_robot(headalign_sim::rigmotion::general_rig_motion());
             views.push(("moved".to_string(), head.capture_images()?));
         }
         other => bail!("unknown motion '{other}' (expected rotations or general)"),

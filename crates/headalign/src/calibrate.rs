@@ -113,6 +113,12 @@ pub struct CalibrateOptions {
     /// planar (default 0.98: the simulated rooms put up to 92 % of a view's matches on
     /// one wall and still calibrate).
     pub planar_fraction: f64,
+    /// Relative sigma of either focal length, percent, above which the report carries a
+    /// warning that the motions and scene determine the calibration poorly (default 0.5:
+    /// on the one-general-motion session at 0.5 px the well-conditioned seeds give
+    /// 0.14-0.44 %; near-critical motions gave 0.9-1.0 % with errors of 2.5 %: there the
+    /// linearised sigma is itself optimistic).
+    pub warn_focal_sigma_pct: f64,
 }
 
 impl Default for CalibrateOptions {
@@ -126,6 +132,7 @@ impl Default for CalibrateOptions {
             min_rotation_deg: 0.5,
             planar_threshold_px: 2.0,
             planar_fraction: 0.98,
+            warn_focal_sigma_pct: 0.5,
         }
     }
 }
@@ -142,6 +149,9 @@ impl CalibrateOptions {
         }
         if !(self.planar_fraction > 0.0 && self.planar_fraction <= 1.0) {
             return Err(AlignError::InvalidOption("planar_fraction must be in (0, 1]".into()));
+        }
+        if !(self.warn_focal_sigma_pct.is_finite() && self.warn_focal_sigma_pct > 0.0) {
+            return Err(AlignError::InvalidOption("warn_focal_sigma_pct must be positive".into()));
         }
         Ok(())
     }
@@ -360,6 +370,11 @@ pub struct CalibrateReport {
     pub final_rms_px: f64,
     /// Estimated image noise, pixels.
     pub sigma_px: f64,
+    /// Sigma of the focal length (`fx`) of the left and right camera, percent of it.
+    pub focal_sigma_pct: [Option<f64>; 2],
+    /// Warnings: a poorly determined calibration (focal sigma above
+    /// [`CalibrateOptions::warn_focal_sigma_pct`]) with what to do about it.
+    pub warnings: Vec<String>,
 }
 
 /// The calibrated rig and its motions, in the reference view's left camera frame.
@@ -874,6 +889,19 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     if largest < options.min_rotation_deg {
         return Err(no_rotation(&motions, largest, options));
     }
+    let cov = &adjusted.last.covariance;
+    let focal_sigma_pct = [("left", &state.left), ("right", &state.right)]
+        .map(|(side, k)| cov.sigma(&format!("{side}.fx")).map(|s| 100.0 * s / k.fx));
+    let mut warnings = Vec::new();
+    let worst = focal_sigma_pct.iter().flatten().copied().fold(0.0, f64::max);
+    if worst > options.warn_focal_sigma_pct {
+        warnings.push(format!(
+            "the focal length is poorly determined: sigma {} (left) / {} (right) of f, above {} %. These motions and this scene are close to a critical configuration, where the estimate can be off by several sigmas. Add a motion about another axis, or turn the rig 20-30 deg about an axis perpendicular to both the baseline and the optical axis (the vertical, for a side-by-side rig) while moving it 0.2-0.3 m along that axis, in a scene with depth (not one wall); avoid turning about the baseline or the optical axis",
+            fmt_pct(focal_sigma_pct[0]),
+            fmt_pct(focal_sigma_pct[1]),
+            options.warn_focal_sigma_pct
+        ));
+    }
     let report = CalibrateReport {
         views: rig.iter().map(|v| v.name.clone()).collect(),
         skipped,
@@ -893,6 +921,8 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
         initial_rms_px: adjusted.first.report.initial_rms_px,
         final_rms_px: adjusted.last.report.final_rms_px,
         sigma_px: adjusted.last.report.sigma_px,
+        focal_sigma_pct,
+        warnings,
     };
     Ok(MotionCalibration {
         bundle: adjusted.last,
@@ -1015,6 +1045,10 @@ fn every_point_pass(
         best = crate::estimate::Adjustment { last: result, observations: obs, ..best };
     }
     best
+}
+
+fn fmt_pct(v: Option<f64>) -> String {
+    v.map_or_else(|| "unknown".to_string(), |v| format!("{v:.2} %"))
 }
 
 /// Whether a set of views can be calibrated by general-motion self-calibration at all
@@ -1155,22 +1189,27 @@ mod tests {
 
     use headalign_geometry::so3::{Line, rotation_about_line};
     use headalign_platform::{Encoders, StereoHead};
+    use headalign_sim::rigmotion::general_rig_motion;
     use headalign_sim::{Scenario, SimulatedHead};
     use nalgebra::{Unit, Vector3};
 
-    /// A general screw motion of the whole rig about an oblique axis through the head, with
-    /// a translation along the axis (a hand-held rig turned, tilted and raised).
-    pub(crate) fn general_motion(angle_deg: f64, along_m: f64) -> Isometry3<f64> {
-        let axis = Line::new(Unit::new_normalize(Vector3::new(0.8, -1.0, 0.3)), Point3::new(0.0, -1.2, 0.0));
-        let r = rotation_about_line(&axis, angle_deg.to_radians());
-        Isometry3::from_parts(
-            (r.translation.vector + axis.direction.into_inner() * along_m).into(),
-            r.rotation,
-        )
+    /// The oblique screw motion `simulate --motion general` used before: 20 deg about
+    /// `(0.8, -1, 0.3)` with 0.3 m along it (its axis has a large component along the
+    /// baseline: near-critical on some scenes, see `headalign_sim::rigmotion`).
+    fn oblique_motion() -> Isometry3<f64> {
+        headalign_sim::rigmotion::screw_motion(Vector3::new(0.8, -1.0, 0.3), 20.0, 0.3)
     }
 
     /// Square-pixel cameras, no outliers; the reference view and the moved one.
     fn general_session(seed: u64, noise_px: f64) -> (Vec<View>, Intrinsics, Intrinsics) {
+        session_with_motion(seed, noise_px, &headalign_sim::rigmotion::general_rig_motion())
+    }
+
+    fn session_with_motion(
+        seed: u64,
+        noise_px: f64,
+        motion: &Isometry3<f64>,
+    ) -> (Vec<View>, Intrinsics, Intrinsics) {
         let scenario = Scenario {
             seed,
             noise_px,
@@ -1182,7 +1221,7 @@ mod tests {
         };
         let mut head = SimulatedHead::new(scenario).unwrap();
         let v0 = View { name: "initial".into(), capture: head.capture().unwrap() };
-        head.set_world_from_robot(general_motion(20.0, 0.3));
+        head.set_world_from_robot(*motion);
         let v1 = View { name: "moved".into(), capture: head.capture().unwrap() };
         let t = head.truth();
         (vec![v0, v1], t.left, t.right)
@@ -1190,6 +1229,24 @@ mod tests {
 
     fn f_err_pct(est: &Intrinsics, truth: &Intrinsics) -> f64 {
         100.0 * (est.mean_focal() - truth.mean_focal()).abs() / truth.mean_focal()
+    }
+
+    /// The oblique motion on seed 2 (its Cramer-Rao bound of f at the truth is 4.1 %;
+    /// the estimate is 2.5 % off with a sigma of 0.94 %) is flagged with a warning that
+    /// says what to do; the default general motion on the same scene is not (its sigma is
+    /// 0.42 %).
+    #[test]
+    fn near_critical_motion_is_flagged() {
+        let options = CalibrateOptions { zero_skew: true, square_pixels: true, ..Default::default() };
+        let (views, _, _) = session_with_motion(2, 0.5, &oblique_motion());
+        let cal = calibrate_rig(&views, &options).unwrap();
+        let s = cal.report.focal_sigma_pct[0].unwrap();
+        assert!(s > 0.5, "sigma {s} %");
+        assert_eq!(cal.report.warnings.len(), 1);
+        assert!(cal.report.warnings[0].contains("poorly determined"), "{:?}", cal.report.warnings);
+        let (views, _, _) = general_session(2, 0.5);
+        let cal = calibrate_rig(&views, &options).unwrap();
+        assert!(cal.report.warnings.is_empty(), "{:?}", cal.report.warnings);
     }
 
     #[test]
@@ -1213,22 +1270,21 @@ mod tests {
         assert!(e.contains("missing motion") && e.contains("constraint"), "{e}");
     }
 
-    /// The bar of issue 6: one general motion (20 deg about an oblique axis, 0.3 m along
-    /// it), zero skew and square pixels, 0.5 px noise, 400 points: focal length within 1 %.
-    /// Seeds 1 and 3-5 (all four pass with margin: 0.04-0.47 %). Seed 2 is left out on
-    /// purpose: 89 % of its reference view lies on one wall and the maximum-likelihood
-    /// estimate itself is 5.9 % off (an adjustment started at the truth ends at the same
-    /// minimum); its reported sigma (1.1 %) flags it. The statistics over 20 seeds are in
-    /// docs/real-data.md (`general_motion_seeds`).
+    /// The bar of issue 6: one general motion (`headalign_sim::rigmotion`: 25 deg about
+    /// the vertical, 0.3 m along it), zero skew and square pixels, 0.5 px noise, 400
+    /// points: focal length within 1 %. Seeds 1-20 all pass (measured 0.001-0.85 %, the
+    /// worst seed 14 with a sigma of 0.44 %; `general_motion_seeds`); the test runs the
+    /// first 8 and seed 14 (time), and checks that none of them warns.
     #[test]
     fn one_general_motion_half_pixel_within_one_percent() {
-        for seed in [1, 3, 4, 5] {
+        for seed in [1, 2, 3, 4, 5, 6, 7, 8, 14] {
             let (views, l, r) = general_session(seed, 0.5);
             let options = CalibrateOptions { zero_skew: true, square_pixels: true, ..Default::default() };
             let cal = calibrate_rig(&views, &options).unwrap();
             let st = &cal.bundle.state;
             let (el, er) = (f_err_pct(&st.left, &l), f_err_pct(&st.right, &r));
             assert!(el < 1.0 && er < 1.0, "seed {seed}: f errors {el:.3} % / {er:.3} %");
+            assert!(cal.report.warnings.is_empty(), "seed {seed}: {:?}", cal.report.warnings);
         }
     }
 
@@ -1324,25 +1380,6 @@ mod tests {
         };
         let r = bundle_adjust(&state, &obs, &options).unwrap();
         let c = &r.covariance;
-        if std::env::var("CRB_EIG").is_ok() {
-            let n = c.matrix.nrows();
-            // correlation matrix eigen
-            let d: Vec<f64> = (0..n).map(|i| c.matrix[(i, i)].sqrt()).collect();
-            let corr = nalgebra::DMatrix::from_fn(n, n, |i, j| c.matrix[(i, j)] / (d[i] * d[j]));
-            let e = corr.clone().symmetric_eigen();
-            let mut idx: Vec<usize> = (0..n).collect();
-            idx.sort_by(|&a, &b| e.eigenvalues[a].total_cmp(&e.eigenvalues[b]));
-            for &k in idx.iter().rev().take(2) {
-                eprintln!("  eig {:.3e}", e.eigenvalues[k]);
-            }
-            let fi = c.index("left.fx").unwrap();
-            let row: Vec<String> = (0..n).map(|j| format!("{}:{:+.2}", c.names[j], corr[(fi, j)])).collect();
-            eprintln!("  corr f: {}", row.join(" "));
-            eprintln!(
-                "  sigmas: {}",
-                (0..n).map(|j| format!("{}:{:.2e}", c.names[j], d[j])).collect::<Vec<_>>().join(" ")
-            );
-        }
         (100.0 * c.sigma("left.fx").unwrap_or(f64::NAN) / t.left.fx, c.sigma("left.k1").unwrap_or(f64::NAN))
     }
 
@@ -1360,8 +1397,8 @@ mod tests {
                 right: Intrinsics::new(705.0, 705.0, 380.0, 290.0),
                 ..Scenario::default()
             };
-            let (sf, _) = crb_one_motion(&scenario, &general_motion(20.0, 0.3), 0.5, false);
-            let (sfd, sk) = crb_one_motion(&scenario, &general_motion(20.0, 0.3), 0.5, true);
+            let (sf, _) = crb_one_motion(&scenario, &general_rig_motion(), 0.5, false);
+            let (sfd, sk) = crb_one_motion(&scenario, &general_rig_motion(), 0.5, true);
             eprintln!("seed {seed}: CRB f {sf:.3} %, with k1 k2: f {sfd:.3} % k1 {sk:.4}");
         }
     }
@@ -1369,19 +1406,20 @@ mod tests {
     #[test]
     #[ignore = "experiment"]
     fn general_motion_grid() {
+        let first: u64 = std::env::var("FIRST").ok().and_then(|s| s.parse().ok()).unwrap_or(1);
+        let last: u64 = std::env::var("LAST").ok().and_then(|s| s.parse().ok()).unwrap_or(20);
         let axes = [
             ("obl", Vector3::new(0.8, -1.0, 0.3)),
             ("vert", Vector3::new(0.0, -1.0, 0.0)),
-            ("horiz", Vector3::new(1.0, 0.0, 0.0)),
-            ("diag", Vector3::new(1.0, -1.0, 0.0)),
-            ("diagfwd", Vector3::new(1.0, -1.0, 0.5)),
+            ("vert+x", Vector3::new(0.3, -1.0, 0.0)),
+            ("vert+z", Vector3::new(0.0, -1.0, 0.3)),
         ];
         for (name, axis_dir) in axes {
             for (angle, along) in
-                [(20.0, 0.3), (20.0, 0.6), (30.0, 0.3), (30.0, 0.6), (10.0, 0.3), (15.0, 0.5)]
+                [(20.0, 0.3), (25.0, 0.3), (30.0, 0.3), (25.0, 0.2), (30.0, 0.2), (30.0, 0.4)]
             {
                 let mut out = Vec::new();
-                for seed in 1..=20 {
+                for seed in first..=last {
                     let scenario = Scenario {
                         seed,
                         points: 400,
@@ -1399,135 +1437,17 @@ mod tests {
                     let (sf, _) = crb_one_motion(&scenario, &m, 0.5, false);
                     out.push(sf);
                 }
-                let worst = out.iter().copied().fold(0.0, f64::max);
                 let mut sorted = out.clone();
                 sorted.sort_by(f64::total_cmp);
+                let n = sorted.len();
                 eprintln!(
-                    "{name} {angle} deg {along} m: median {:.3} %, worst {worst:.3} %, all {}",
-                    sorted[10],
-                    out.iter().map(|v| format!("{v:.2}")).collect::<Vec<_>>().join(" ")
+                    "{name} {angle} deg {along} m: median {:.3} %, 90th {:.3} %, worst {:.3} %, above 0.5 %: {}",
+                    sorted[n / 2],
+                    sorted[n * 9 / 10],
+                    sorted[n - 1],
+                    out.iter().filter(|v| **v > 0.5).count()
                 );
             }
-        }
-    }
-
-    #[test]
-    #[ignore = "experiment"]
-    fn general_motion_one_seed() {
-        let seed: u64 = std::env::var("SEED").ok().and_then(|s| s.parse().ok()).unwrap_or(17);
-        let (views, l, _r) = general_session(seed, 0.5);
-        let options = CalibrateOptions { zero_skew: true, square_pixels: true, ..Default::default() };
-        let cal = calibrate_rig(&views, &options).unwrap();
-        eprintln!("seed {seed}: f {:.2} truth {:.2}", cal.bundle.state.left.fx, l.fx);
-    }
-
-    #[test]
-    #[ignore = "experiment"]
-    fn general_motion_from_truth() {
-        use headalign_geometry::bundle::{BundleOptions, RobustLoss, bundle_adjust};
-        for seed in [2u64, 6, 14, 16, 17, 19] {
-            let (views, l, _r) = general_session(seed, 0.5);
-            let scenario = Scenario {
-                seed,
-                noise_px: 0.5,
-                points: 400,
-                outlier_fraction: 0.0,
-                left: Intrinsics::new(700.0, 700.0, 390.0, 284.0),
-                right: Intrinsics::new(705.0, 705.0, 380.0, 290.0),
-                ..Scenario::default()
-            };
-            let mut head = SimulatedHead::new(scenario).unwrap();
-            let enc = head.encoders();
-            let (wl0, wr0) = head.scene_from_cameras(&enc);
-            head.set_world_from_robot(general_motion(20.0, 0.3));
-            let (wl1, _) = head.scene_from_cameras(&enc);
-            let index: BTreeMap<u64, usize> =
-                head.scene_points().iter().enumerate().map(|(i, (t, _))| (*t, i)).collect();
-            let points: Vec<Point3<f64>> =
-                head.scene_points().iter().map(|(_, p)| wl0.inverse() * p).collect();
-            let mut obs = Vec::new();
-            for (view, v) in views.iter().enumerate() {
-                for (side, list) in [(Side::Left, &v.capture.left), (Side::Right, &v.capture.right)] {
-                    for o in list {
-                        obs.push(BundleObservation { point: index[&o.track], view, side, pixel: o.pixel });
-                    }
-                }
-            }
-            let t = head.truth();
-            let state = RigState {
-                left: t.left,
-                right: t.right,
-                left_distortion: Distortion::default(),
-                right_distortion: Distortion::default(),
-                right_from_left: wr0.inverse() * wl0,
-                motions: Motions::Free { ref_from_cam: vec![Isometry3::identity(), wl0.inverse() * wl1] },
-                points,
-            };
-            let ba_opts = BundleOptions {
-                robust: RobustLoss::None,
-                zero_skew: true,
-                square_pixels: true,
-                angle_prior_sigma: None,
-                ..BundleOptions::default()
-            };
-            let r = bundle_adjust(&state, &obs, &ba_opts).unwrap();
-            let mut counts = vec![0usize; state.points.len()];
-            for o in &obs {
-                counts[o.point] += 1;
-            }
-            let obs4: Vec<BundleObservation> = obs.iter().copied().filter(|o| counts[o.point] >= 4).collect();
-            let r4 = bundle_adjust(&state, &obs4, &ba_opts).unwrap();
-            eprintln!(
-                "seed {seed}: 4-obs points only from truth: f err {:.3} % (sigma {:.3} %), {} obs",
-                100.0 * (r4.state.left.fx - l.fx) / l.fx,
-                100.0 * r4.covariance.sigma("left.fx").unwrap() / l.fx,
-                obs4.len()
-            );
-            let options = CalibrateOptions { zero_skew: true, square_pixels: true, ..Default::default() };
-            let cal = calibrate_rig(&views, &options).unwrap();
-            // calibrate's solution, then all observations from there
-            let cal_index: BTreeMap<u64, usize> =
-                cal.point_tracks.iter().enumerate().map(|(i, t)| (*t, i)).collect();
-            let mut from_cal = cal.bundle.state.clone();
-            from_cal.points = head
-                .scene_points()
-                .iter()
-                .enumerate()
-                .map(|(i, (t, _))| cal_index.get(t).map_or(state.points[i], |&j| cal.bundle.state.points[j]))
-                .collect();
-            // scale: calibrate's baseline is 1, the truth's 0.25 m: rescale points of the truth
-            let sc = from_cal.right_from_left.translation.vector.norm()
-                / state.right_from_left.translation.vector.norm();
-            for (i, (t, _)) in head.scene_points().iter().enumerate() {
-                if !cal_index.contains_key(t) {
-                    from_cal.points[i] = Point3::from(state.points[i].coords * sc);
-                }
-            }
-            let rc = bundle_adjust(&from_cal, &obs, &ba_opts).unwrap();
-            eprintln!(
-                "seed {seed}: from calibrate's solution, all obs: f err {:.3} %, rms {:.4}; truth-start rms {:.4}",
-                100.0 * (rc.state.left.fx - l.fx) / l.fx,
-                rc.report.final_rms_px,
-                r.report.final_rms_px
-            );
-            let cost = |st: &RigState| -> f64 {
-                obs.iter()
-                    .map(|o| {
-                        headalign_geometry::bundle::residual_pixels(st, o).map_or(0.0, |v| v.norm_squared())
-                    })
-                    .sum()
-            };
-            eprintln!(
-                "seed {seed}: from truth f err {:.3} % (sigma {:.3} %) rms {:.4} cost {:.2}; calibrate f err {:.3} % rms {:.4}, obs {} vs {}",
-                100.0 * (r.state.left.fx - l.fx) / l.fx,
-                100.0 * r.covariance.sigma("left.fx").unwrap() / l.fx,
-                r.report.final_rms_px,
-                cost(&r.state),
-                100.0 * (cal.bundle.state.left.fx - l.fx) / l.fx,
-                cal.bundle.report.final_rms_px,
-                obs.len(),
-                cal.observations.len(),
-            );
         }
     }
 
@@ -1572,7 +1492,7 @@ mod tests {
     fn planar_scene_is_named() {
         let k = Intrinsics::new(700.0, 700.0, 384.0, 288.0);
         let right_from_left = Isometry3::translation(-0.25, 0.0, 0.0);
-        let motion = general_motion(10.0, 0.2);
+        let motion = headalign_sim::rigmotion::screw_motion(Vector3::new(0.8, -1.0, 0.3), 10.0, 0.2);
         let view = |name: &str, cam_from_world: Isometry3<f64>| {
             let (mut left, mut right) = (Vec::new(), Vec::new());
             for i in 0..400u64 {
