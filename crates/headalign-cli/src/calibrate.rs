@@ -22,7 +22,7 @@ use headalign::calibrate::{
 use headalign::export::{StereoCalibration, TranslationUnit};
 use headalign::frontend::{FrontEndOptions, Tracker};
 use headalign::observations::View;
-use headalign::session::read_image_session;
+use headalign::session::{SessionInfo, SessionWriter, read_image_session};
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::Distortion;
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
@@ -406,31 +406,79 @@ pub fn simulate_views(
     Ok((views, head))
 }
 
-/// Write views as an image session (`NN-name/left.png`, `right.png`, `view.json`).
-pub fn write_session(dir: &Path, views: &[(String, StereoImages)]) -> Result<()> {
-    for (i, (name, pair)) in views.iter().enumerate() {
-        let sub = dir.join(format!("{i:02}-{name}"));
-        std::fs::create_dir_all(&sub).with_context(|| format!("cannot create {}", sub.display()))?;
-        pair.left.save(&sub.join("left.png"))?;
-        pair.right.save(&sub.join("right.png"))?;
-        let meta = json!({"name": name, "encoders": serde_json::to_value(pair.encoders)?, "image_size": pair.image_size()});
-        let path = sub.join("view.json");
-        std::fs::write(&path, serde_json::to_string_pretty(&meta)? + "\n")
-            .with_context(|| format!("cannot write {}", path.display()))?;
+/// The `procedure` of a session `simulate --images` records: views for `calibrate`
+/// (`replay` runs `calibrate` on it with the constraints in `session.json`'s `head.calibrate`).
+pub const PROCEDURE: &str = "calibrate-images";
+
+/// The stage name of the views of such a session.
+pub const STAGE: &str = "calibrate";
+
+/// The session description of a simulated calibration session: the scenario, the motion,
+/// and the `calibrate` constraints it is meant for (`general`: zero skew and square pixels,
+/// which one motion needs; `rotations`: none).
+pub fn session_info(scenario: &Scenario, motion: &str) -> Result<SessionInfo> {
+    let general = motion == "general";
+    let mut info = SessionInfo::new(
+        PROCEDURE,
+        scenario.rotation_deg,
+        CalibrateOptions::default().estimation.seed,
+        scenario.image_size,
+    );
+    info.head = json!({
+        "simulator": serde_json::to_value(scenario)?,
+        "motion": motion,
+        "calibrate": {"zero_skew": general, "square_pixels": general},
+    });
+    Ok(info)
+}
+
+/// Write views as an image session with the one session writer
+/// ([`headalign::session::SessionWriter`]: `session.json`, `NN-name/left.png`,
+/// `right.png`, `view.json`, `events.jsonl`); refuses a folder that already holds a session.
+pub fn write_session(
+    dir: &Path,
+    views: &[(String, StereoImages)],
+    info: &SessionInfo,
+) -> Result<SessionWriter> {
+    let mut writer = SessionWriter::create(dir, info)?;
+    for (name, pair) in views {
+        writer.write_view(name, STAGE, None, pair.encoders, Some(pair), None)?;
     }
-    Ok(())
+    Ok(writer)
 }
 
 /// `headalign simulate --images --motion M --out DIR`: the session, and `truth.json`
 /// beside it (the simulator's intrinsics, for comparison; `calibrate` never reads it).
 pub fn simulate_to_disk(scenario: &Scenario, motion: &str, out: &Path) -> Result<()> {
     let (views, head) = simulate_views(scenario, motion)?;
-    write_session(out, &views)?;
+    let writer = write_session(out, &views, &session_info(scenario, motion)?)?;
     let t = head.truth();
     let truth = json!({"left": k_json(&t.left), "right": k_json(&t.right), "motion": motion, "baseline_m": scenario.baseline_m});
     std::fs::write(out.join("truth.json"), serde_json::to_string_pretty(&truth)? + "\n")?;
+    writer.write_report(&json!({"recorded": views.len(), "motion": motion}))?;
     eprintln!("wrote {} views to {}", views.len(), out.display());
     Ok(())
+}
+
+/// `replay DIR` of a [`PROCEDURE`] session: `calibrate` with the session's constraints,
+/// the JSON of `calibrate --json`.
+pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
+    let flag = |name: &str| info.head["calibrate"][name].as_bool().unwrap_or(false);
+    let args = CalibrateArgs {
+        dir: dir.to_path_buf(),
+        zero_skew: flag("zero_skew"),
+        square_pixels: flag("square_pixels"),
+        fix_principal_point: flag("fix_principal_point"),
+        distortion: None,
+        estimate_distortion: flag("estimate_distortion"),
+        intrinsics: None,
+        out: None,
+        json: true,
+        baseline_m: None,
+        seed: info.estimation_seed,
+        search_px: None,
+    };
+    Ok(calibrate_views(&load_views(dir)?, &args)?.json)
 }
 
 #[cfg(test)]
@@ -462,12 +510,21 @@ mod tests {
         let (views, head) = simulate_views(&scenario, "rotations").unwrap();
         let dir = std::env::temp_dir().join(format!("headalign-calibrate-{}", std::process::id()));
         std::fs::remove_dir_all(&dir).ok();
-        write_session(&dir, &views).unwrap();
+        let info = session_info(&scenario, "rotations").unwrap();
+        write_session(&dir, &views, &info).unwrap();
         let a = args(&dir);
         let memory = calibrate_views(&views, &a).unwrap();
         let disk = calibrate_views(&load_views(&dir).unwrap(), &a).unwrap();
+        // The one session writer made it: a session.json that replay reads, and replay is
+        // calibrate on the same views.
+        let read = headalign::session::read_session_info(&dir).unwrap();
+        assert_eq!(read.procedure, PROCEDURE);
+        let replayed = replay(&dir, &read).unwrap();
+        // A second session into the same folder is refused (never mixed or overwritten).
+        assert!(write_session(&dir, &views, &info).is_err());
         std::fs::remove_dir_all(&dir).ok();
         assert_eq!(memory.stereo, disk.stereo);
+        assert_eq!(replayed["left"]["fx"], disk.json["left"]["fx"]);
         // And it is a calibration: within 3 % of the truth in focal length (rendered
         // images, two 5 deg rotations, full K with skew free).
         let t = head.truth();
