@@ -119,6 +119,11 @@ pub struct CalibrateOptions {
     /// 0.14-0.44 %; near-critical motions gave 0.9-1.0 % with errors of 2.5 %: there the
     /// linearised sigma is itself optimistic).
     pub warn_focal_sigma_pct: f64,
+    /// With one motion, the mean fraction of the views' stereo matches on one plane above
+    /// which the report warns that the scene is close to degenerate (default 0.85: the
+    /// one-motion failures seen were at 0.88-0.92; the well-conditioned seeds mostly
+    /// below 0.8).
+    pub warn_plane_fraction: f64,
 }
 
 impl Default for CalibrateOptions {
@@ -133,6 +138,7 @@ impl Default for CalibrateOptions {
             planar_threshold_px: 2.0,
             planar_fraction: 0.98,
             warn_focal_sigma_pct: 0.5,
+            warn_plane_fraction: 0.85,
         }
     }
 }
@@ -149,6 +155,9 @@ impl CalibrateOptions {
         }
         if !(self.planar_fraction > 0.0 && self.planar_fraction <= 1.0) {
             return Err(AlignError::InvalidOption("planar_fraction must be in (0, 1]".into()));
+        }
+        if !(self.warn_plane_fraction > 0.0 && self.warn_plane_fraction <= 1.0) {
+            return Err(AlignError::InvalidOption("warn_plane_fraction must be in (0, 1]".into()));
         }
         if !(self.warn_focal_sigma_pct.is_finite() && self.warn_focal_sigma_pct > 0.0) {
             return Err(AlignError::InvalidOption("warn_focal_sigma_pct must be positive".into()));
@@ -373,7 +382,8 @@ pub struct CalibrateReport {
     /// Sigma of the focal length (`fx`) of the left and right camera, percent of it.
     pub focal_sigma_pct: [Option<f64>; 2],
     /// Warnings: a poorly determined calibration (focal sigma above
-    /// [`CalibrateOptions::warn_focal_sigma_pct`]) with what to do about it.
+    /// [`CalibrateOptions::warn_focal_sigma_pct`]), one motion in a mostly planar scene
+    /// ([`CalibrateOptions::warn_plane_fraction`]), with what to do about it.
     pub warnings: Vec<String>,
 }
 
@@ -901,6 +911,24 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
             fmt_pct(focal_sigma_pct[1]),
             options.warn_focal_sigma_pct
         ));
+        if options.estimate_distortion {
+            warnings.push(
+                "the lens distortion is estimated: k1 correlates with f (one motion, 0.5 px: the bound of f grows from 0.14-0.40 % to 0.32-0.65 %); a known lens (a lens file) or a second motion tightens it".into(),
+            );
+        }
+    }
+    // One motion in a scene that is mostly one plane: the cost can have its minimum far
+    // from the truth, further than the linearised sigma says (rendered seed 20: 92 % and
+    // 87 % of the matches on one wall, f 20 % off with a sigma of 0.9 %).
+    let used_checks: Vec<&PlaneCheck> = planarity.iter().filter(|c| !c.planar).collect();
+    let plane_share =
+        used_checks.iter().map(|c| c.on_one_plane as f64 / c.stereo_matches.max(1) as f64).sum::<f64>()
+            / used_checks.len().max(1) as f64;
+    if motions.len() == 1 && plane_share > options.warn_plane_fraction {
+        warnings.push(format!(
+            "one motion in a scene that is mostly one plane ({:.0} % of the stereo matches on one plane, on average over the views): self-calibration is close to degenerate and the focal length can be off by far more than its sigma; record a second motion, or a scene with more depth",
+            100.0 * plane_share
+        ));
     }
     let report = CalibrateReport {
         views: rig.iter().map(|v| v.name.clone()).collect(),
@@ -1232,9 +1260,8 @@ mod tests {
     }
 
     /// The oblique motion on seed 2 (its Cramer-Rao bound of f at the truth is 4.1 %;
-    /// the estimate is 2.5 % off with a sigma of 0.94 %) is flagged with a warning that
-    /// says what to do; the default general motion on the same scene is not (its sigma is
-    /// 0.42 %).
+    /// the estimate is 2.5 % off with a sigma of 0.94 %) is flagged with warnings that
+    /// say what to do; the default general motion on seed 1 is not (sigma 0.16 %).
     #[test]
     fn near_critical_motion_is_flagged() {
         let options = CalibrateOptions { zero_skew: true, square_pixels: true, ..Default::default() };
@@ -1242,9 +1269,8 @@ mod tests {
         let cal = calibrate_rig(&views, &options).unwrap();
         let s = cal.report.focal_sigma_pct[0].unwrap();
         assert!(s > 0.5, "sigma {s} %");
-        assert_eq!(cal.report.warnings.len(), 1);
         assert!(cal.report.warnings[0].contains("poorly determined"), "{:?}", cal.report.warnings);
-        let (views, _, _) = general_session(2, 0.5);
+        let (views, _, _) = general_session(1, 0.5);
         let cal = calibrate_rig(&views, &options).unwrap();
         assert!(cal.report.warnings.is_empty(), "{:?}", cal.report.warnings);
     }
@@ -1274,7 +1300,9 @@ mod tests {
     /// the vertical, 0.3 m along it), zero skew and square pixels, 0.5 px noise, 400
     /// points: focal length within 1 %. Seeds 1-20 all pass (measured 0.001-0.85 %, the
     /// worst seed 14 with a sigma of 0.44 %; `general_motion_seeds`); the test runs the
-    /// first 8 and seed 14 (time), and checks that none of them warns.
+    /// first 8 and seed 14 (time), and checks that none of them has the sigma warning
+    /// and that seeds 2 and 14 (88 % and 92 % of the matches on one wall) have the
+    /// scene warning.
     #[test]
     fn one_general_motion_half_pixel_within_one_percent() {
         for seed in [1, 2, 3, 4, 5, 6, 7, 8, 14] {
@@ -1284,7 +1312,12 @@ mod tests {
             let st = &cal.bundle.state;
             let (el, er) = (f_err_pct(&st.left, &l), f_err_pct(&st.right, &r));
             assert!(el < 1.0 && er < 1.0, "seed {seed}: f errors {el:.3} % / {er:.3} %");
-            assert!(cal.report.warnings.is_empty(), "seed {seed}: {:?}", cal.report.warnings);
+            let sigma_warning = cal.report.warnings.iter().any(|w| w.contains("poorly determined"));
+            assert!(!sigma_warning, "seed {seed}: {:?}", cal.report.warnings);
+            // Seed 14 has 89 % and 94 % of its views' matches on one wall: the scene
+            // warning (it is still within 1 %, at 0.85 %, its worst).
+            let plane_warning = cal.report.warnings.iter().any(|w| w.contains("mostly one plane"));
+            assert_eq!(plane_warning, seed == 14 || seed == 2, "seed {seed}: {:?}", cal.report.warnings);
         }
     }
 
