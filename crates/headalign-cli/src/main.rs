@@ -233,7 +233,7 @@ struct SimulateArgs {
     #[arg(long)]
     images: bool,
     /// With --images: `rotations` (initial, elevation, pan) or `general` (one general
-    /// motion of the whole rig: 20 deg about an oblique axis with 0.3 m along it).
+    /// motion of the whole rig: 25 deg about the vertical with 0.3 m along it).
     #[arg(long, default_value = "rotations", requires = "images")]
     motion: String,
 }

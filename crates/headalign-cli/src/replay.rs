@@ -13,7 +13,7 @@ use headalign::session::{ReplayHead, read_session_info};
 use serde_json::{Value, json};
 
 use crate::stages::RobotPlan;
-use crate::{images, points};
+use crate::{calibrate, images, points};
 use headalign::procedure::VergeTiltRun;
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
@@ -89,14 +89,33 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             "views": run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
         });
         (v, run.views.len())
+    } else if info.procedure == calibrate::PROCEDURE {
+        // A calibration session (`simulate --images`): no head calls to play back; the
+        // result is `calibrate --json` with the recorded constraints.
+        let v = calibrate::replay(&args.dir, &info).with_context(context)?;
+        let n = v["report"]["views"].as_array().map_or(0, Vec::len);
+        if args.json {
+            say!("{}", serde_json::to_string_pretty(&v)?);
+        } else {
+            say!("replayed {} ({n} views): calibrate {}", args.dir.display(), v["constraints"]);
+            say!(
+                "left fx {} fy {}, right fx {} fy {}",
+                v["left"]["fx"],
+                v["left"]["fy"],
+                v["right"]["fx"],
+                v["right"]["fy"]
+            );
+        }
+        return Ok(());
     } else {
         bail!(
-            "'{}': cannot replay procedure '{}' (this version replays '{}', '{}' and '{}')",
+            "'{}': cannot replay procedure '{}' (this version replays '{}', '{}', '{}' and '{}')",
             args.dir.join("session.json").display(),
             info.procedure,
             images::PROCEDURE,
             images::PROCEDURE_ROBOT,
-            points::PROCEDURE
+            points::PROCEDURE,
+            calibrate::PROCEDURE
         );
     };
     if let Some(m) = v.as_object_mut() {

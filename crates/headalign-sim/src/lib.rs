@@ -19,6 +19,8 @@
 //!   shared data folder plus procedural detail; procedural only if the folder is missing).
 //! - [`render`]: ray-cast renderer of the textured room with radial distortion,
 //!   supersampling, blur and sensor noise ([`RenderOptions`]).
+//! - [`rigmotion`]: the general rigid motion of the whole rig that `simulate --motion
+//!   general` records, and why it is chosen so.
 //! - [`robot`]: [`SimulatedRobot`], a tricycle AGV carrying the head ([`headalign_platform::Vehicle`]).
 //! - [`metrics`]: ground-truth error metrics (alignment, calibration, reconstruction,
 //!   axes).
@@ -31,6 +33,7 @@ pub mod head;
 pub mod kinematics;
 pub mod metrics;
 pub mod render;
+pub mod rigmotion;
 pub mod robot;
 pub mod scenario;
 pub mod scene;

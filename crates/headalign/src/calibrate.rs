@@ -24,9 +24,13 @@
 //!    constraints (zero skew, square pixels, principal point at the image centre); the
 //!    right camera by decomposition, the motions `D_i`;
 //! 5. the maximum-likelihood rig bundle adjustment with free 6-dof view poses (the
-//!    constraints held exactly), robust loss, re-selection, covariance, from the better of
-//!    two starts (the linear chain, and `K = K0` with the rigid motions of step 3), as in
-//!    [`crate::estimate`] (shared code).
+//!    constraints held exactly), robust loss, re-selection, covariance, from each of two
+//!    starts (the linear chain, and `K = K0` with the rigid motions of step 3), as in
+//!    [`crate::estimate`] (shared code);
+//! 6. per start, an adjustment over every point seen at least twice (also the points
+//!    seen by one stereo view only), robust first, then least squares on the re-selected
+//!    observations ([`every_point_pass`]); the start with the lower truncated cost over
+//!    all observations is kept.
 //!
 //! Degrees of freedom: per camera 5 intrinsics minus the constraints; rig 5 (the baseline
 //! length is the scale gauge: the scene is in baselines); 6 per moved view; 3 per point.
@@ -52,8 +56,11 @@
 use std::collections::BTreeMap;
 
 use headalign_geometry::GeometryError;
-use headalign_geometry::bundle::{BundleObservation, BundleResult, Motions, RigState, Side};
-use headalign_geometry::camera::{Intrinsics, dehomogenise3};
+use headalign_geometry::bundle::{
+    BundleObservation, BundleOptions, BundleResult, Motions, RigState, RobustLoss, Side, bundle_adjust,
+    residual_pixels,
+};
+use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use headalign_geometry::distortion::Distortion;
 use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame};
 use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
@@ -68,15 +75,15 @@ use headalign_geometry::selfcal::{
     infinite_homography, motion_from_homography, plane_at_infinity_general,
 };
 use headalign_geometry::so3::screw_from_isometry;
-use headalign_geometry::triangulation::triangulate_optimal;
+use headalign_geometry::triangulation::{triangulate_linear, triangulate_optimal};
 use headalign_platform::{Joint, StereoCapture, TrackObservation};
 use nalgebra::{Isometry3, Point2, Point3, UnitQuaternion};
 use serde::Serialize;
 
 use crate::error::{AlignError, StepContext};
 use crate::estimate::{
-    EstimationOptions, MOVED_DEG, PolishedHomography, Reconstruction, StereoMatch, adjust_from_starts,
-    polish, rms, stereo_matches,
+    DEPTH_RATIO, EstimationOptions, FINAL_ITERATIONS, MOVED_DEG, PolishedHomography, Reconstruction,
+    StereoMatch, adjust_from_starts, polish, rms, stereo_matches,
 };
 use crate::observations::View;
 
@@ -106,6 +113,17 @@ pub struct CalibrateOptions {
     /// planar (default 0.98: the simulated rooms put up to 92 % of a view's matches on
     /// one wall and still calibrate).
     pub planar_fraction: f64,
+    /// Relative sigma of either focal length, percent, above which the report carries a
+    /// warning that the motions and scene determine the calibration poorly (default 0.5:
+    /// on the one-general-motion session at 0.5 px the well-conditioned seeds give
+    /// 0.14-0.44 %; near-critical motions gave 0.9-1.0 % with errors of 2.5 %: there the
+    /// linearised sigma is itself optimistic).
+    pub warn_focal_sigma_pct: f64,
+    /// With one motion, the mean fraction of the views' stereo matches on one plane above
+    /// which the report warns that the scene is close to degenerate (default 0.85: the
+    /// one-motion failures seen were at 0.88-0.92; the well-conditioned seeds mostly
+    /// below 0.8).
+    pub warn_plane_fraction: f64,
 }
 
 impl Default for CalibrateOptions {
@@ -119,6 +137,8 @@ impl Default for CalibrateOptions {
             min_rotation_deg: 0.5,
             planar_threshold_px: 2.0,
             planar_fraction: 0.98,
+            warn_focal_sigma_pct: 0.5,
+            warn_plane_fraction: 0.85,
         }
     }
 }
@@ -135,6 +155,12 @@ impl CalibrateOptions {
         }
         if !(self.planar_fraction > 0.0 && self.planar_fraction <= 1.0) {
             return Err(AlignError::InvalidOption("planar_fraction must be in (0, 1]".into()));
+        }
+        if !(self.warn_plane_fraction > 0.0 && self.warn_plane_fraction <= 1.0) {
+            return Err(AlignError::InvalidOption("warn_plane_fraction must be in (0, 1]".into()));
+        }
+        if !(self.warn_focal_sigma_pct.is_finite() && self.warn_focal_sigma_pct > 0.0) {
+            return Err(AlignError::InvalidOption("warn_focal_sigma_pct must be positive".into()));
         }
         Ok(())
     }
@@ -353,6 +379,12 @@ pub struct CalibrateReport {
     pub final_rms_px: f64,
     /// Estimated image noise, pixels.
     pub sigma_px: f64,
+    /// Sigma of the focal length (`fx`) of the left and right camera, percent of it.
+    pub focal_sigma_pct: [Option<f64>; 2],
+    /// Warnings: a poorly determined calibration (focal sigma above
+    /// [`CalibrateOptions::warn_focal_sigma_pct`]), one motion in a mostly planar scene
+    /// ([`CalibrateOptions::warn_plane_fraction`]), with what to do about it.
+    pub warnings: Vec<String>,
 }
 
 /// The calibrated rig and its motions, in the reference view's left camera frame.
@@ -828,13 +860,15 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
             Err(e) => last_error = Some(e),
         }
     }
+    let sources = PointSources { point_tracks: &point_tracks, origin_slot: &origin_slot, recon: &recon };
+    let results: Vec<crate::estimate::Adjustment> =
+        results.into_iter().map(|a| every_point_pass(a, &all_obs, &sources, &adjust_options)).collect();
     let gate = est.reselect_sigmas * results.iter().map(|a| a.last.report.sigma_px).fold(0.05, f64::max);
     let truncated_cost = |a: &crate::estimate::Adjustment| -> f64 {
         all_obs
             .iter()
             .map(|o| {
-                headalign_geometry::bundle::residual_pixels(&a.last.state, o)
-                    .map_or(gate * gate, |r| r.norm_squared().min(gate * gate))
+                residual_pixels(&a.last.state, o).map_or(gate * gate, |r| r.norm_squared().min(gate * gate))
             })
             .sum()
     };
@@ -865,6 +899,37 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     if largest < options.min_rotation_deg {
         return Err(no_rotation(&motions, largest, options));
     }
+    let cov = &adjusted.last.covariance;
+    let focal_sigma_pct = [("left", &state.left), ("right", &state.right)]
+        .map(|(side, k)| cov.sigma(&format!("{side}.fx")).map(|s| 100.0 * s / k.fx));
+    let mut warnings = Vec::new();
+    let worst = focal_sigma_pct.iter().flatten().copied().fold(0.0, f64::max);
+    if worst > options.warn_focal_sigma_pct {
+        warnings.push(format!(
+            "the focal length is poorly determined: sigma {} (left) / {} (right) of f, above {} %. These motions and this scene are close to a critical configuration, where the estimate can be off by several sigmas. Add a motion about another axis, or turn the rig 20-30 deg about an axis perpendicular to both the baseline and the optical axis (the vertical, for a side-by-side rig) while moving it 0.2-0.3 m along that axis, in a scene with depth (not one wall); avoid turning about the baseline or the optical axis",
+            fmt_pct(focal_sigma_pct[0]),
+            fmt_pct(focal_sigma_pct[1]),
+            options.warn_focal_sigma_pct
+        ));
+        if options.estimate_distortion {
+            warnings.push(
+                "the lens distortion is estimated: k1 correlates with f (one motion, 0.5 px: the bound of f grows from 0.14-0.40 % to 0.32-0.65 %); a known lens (a lens file) or a second motion tightens it".into(),
+            );
+        }
+    }
+    // One motion in a scene that is mostly one plane: the cost can have its minimum far
+    // from the truth, further than the linearised sigma says (rendered seed 20: 92 % and
+    // 87 % of the matches on one wall, f 20 % off with a sigma of 0.9 %).
+    let used_checks: Vec<&PlaneCheck> = planarity.iter().filter(|c| !c.planar).collect();
+    let plane_share =
+        used_checks.iter().map(|c| c.on_one_plane as f64 / c.stereo_matches.max(1) as f64).sum::<f64>()
+            / used_checks.len().max(1) as f64;
+    if motions.len() == 1 && plane_share > options.warn_plane_fraction {
+        warnings.push(format!(
+            "one motion in a scene that is mostly one plane ({:.0} % of the stereo matches on one plane, on average over the views): self-calibration is close to degenerate and the focal length can be off by far more than its sigma; record a second motion, or a scene with more depth",
+            100.0 * plane_share
+        ));
+    }
     let report = CalibrateReport {
         views: rig.iter().map(|v| v.name.clone()).collect(),
         skipped,
@@ -884,6 +949,8 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
         initial_rms_px: adjusted.first.report.initial_rms_px,
         final_rms_px: adjusted.last.report.final_rms_px,
         sigma_px: adjusted.last.report.sigma_px,
+        focal_sigma_pct,
+        warnings,
     };
     Ok(MotionCalibration {
         bundle: adjusted.last,
@@ -892,6 +959,124 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
         image_size: [w, h],
         report,
     })
+}
+
+/// Where each bundle point came from: its track, the rig view that first reconstructed
+/// it, and the per-view stereo reconstructions.
+struct PointSources<'a> {
+    point_tracks: &'a [u64],
+    origin_slot: &'a [usize],
+    recon: &'a [Reconstruction],
+}
+
+/// A point the adjustment did not use, triangulated (linear, undistorted pixels) from the
+/// stereo match of the view that first reconstructed it with the calibrated rig of
+/// `state`, in the reference frame; `None` if it does not lie in front of both cameras.
+fn triangulate_in_state(state: &RigState, src: &PointSources<'_>, i: usize) -> Option<Point3<f64>> {
+    let slot = *src.origin_slot.get(i)?;
+    let (_, l, r) = src.recon.get(slot)?.get(src.point_tracks.get(i)?)?;
+    let l = state.left_distortion.undistort_pixel(&state.left, l).ok()?;
+    let r = state.right_distortion.undistort_pixel(&state.right, r).ok()?;
+    let p_l = ProjectiveCamera::from_pose(&state.left, &Isometry3::identity());
+    let p_r = ProjectiveCamera::from_pose(&state.right, &state.right_from_left);
+    let x = triangulate_linear(&p_l, &p_r, &l, &r).ok()?;
+    let p = dehomogenise3(&x)?;
+    (p.z > 0.0 && (state.right_from_left * p).z > 0.0).then(|| state.motions.ref_from_cam(slot) * p)
+}
+
+/// Width of the first gate of [`every_point_pass`], in re-selection gates (about 14
+/// sigmas, 7 px at 0.5 px noise). Measured: 3, 4 and 6 give the same one-motion results
+/// (seeds 1-20, point mode) and keep the rendered barrel-lens session within 0.5 %.
+const FIRST_PASS_GATE: f64 = 4.0;
+
+/// Step 6 (module docs): the adjustment over the observations of every point seen at
+/// least twice. The shared adjustment ([`adjust_from_starts`]) keeps only points seen in
+/// at least four images, which for one motion of a rig leaves out the points seen by one
+/// stereo view only (more than half of the observations, and with them the rig's
+/// epipolar geometry over the whole image), and its re-selection gate, applied at a
+/// solution in a wrong valley of the shallow one-motion cost, drops exactly the
+/// observations that disagree with that valley. So: the points it left out are
+/// triangulated with its calibration, one adjustment under the robust loss takes every
+/// observation within [`FIRST_PASS_GATE`] re-selection gates (points with at least 2,
+/// depths within `DEPTH_RATIO` of the median), then
+/// plain least squares on those within `reselect_sigmas` of it, re-selected until stable
+/// (at most 3 times). Measured on the one-general-motion session (point mode, 0.5 px,
+/// seeds 1-20): the sigma of f falls by up to 2x, and seed 17 (the robust stage 7.2 %
+/// off, bound 0.26 %) ends at 0.41 %, the minimum an adjustment started at the truth
+/// reaches. Stereo-only points cannot bend to a wrong match beyond the epipolar residual
+/// F already checked. A failed adjustment keeps the previous result.
+fn every_point_pass(
+    adjusted: crate::estimate::Adjustment,
+    all_obs: &[BundleObservation],
+    src: &PointSources<'_>,
+    options: &EstimationOptions,
+) -> crate::estimate::Adjustment {
+    let mut state = adjusted.last.state.clone();
+    let mut used = vec![false; state.points.len()];
+    for o in &adjusted.observations {
+        if let Some(u) = used.get_mut(o.point) {
+            *u = true;
+        }
+    }
+    for (i, u) in used.iter().enumerate() {
+        if !u && let Some(p) = triangulate_in_state(&state, src, i) {
+            state.points[i] = p;
+        }
+    }
+    let ls = BundleOptions {
+        robust: RobustLoss::None,
+        noise_sigma_px: None,
+        max_iterations: options.bundle.max_iterations.max(FINAL_ITERATIONS),
+        ..options.bundle.clone()
+    };
+    let key = |o: &BundleObservation| (o.point, o.view, o.side == Side::Left);
+    let mut best = adjusted;
+    let mut sigma = best.last.report.sigma_px;
+    let mut previous: Vec<(usize, usize, bool)> = Vec::new();
+    for pass in 0..4 {
+        // The first pass takes the observations within FIRST_PASS_GATE re-selection gates
+        // under the robust loss, so that those that disagree with a solution in a wrong
+        // valley can pull it out (the re-selection gate at once would drop exactly those
+        // and keep the valley); gross outliers stay out (with every observation under the
+        // Huber loss, the rendered barrel-lens session moved f by 2.3 %).
+        let gate = options.reselect_sigmas * sigma.max(0.05) * if pass == 0 { FIRST_PASS_GATE } else { 1.0 };
+        let gated: Vec<BundleObservation> = all_obs
+            .iter()
+            .copied()
+            .filter(|o| residual_pixels(&state, o).is_some_and(|r| r.norm() <= gate))
+            .collect();
+        let mut counts = vec![0usize; state.points.len()];
+        for o in &gated {
+            counts[o.point] += 1;
+        }
+        let mut dist: Vec<f64> = (0..state.points.len())
+            .filter(|&i| counts[i] >= 2)
+            .map(|i| state.points[i].coords.norm())
+            .collect();
+        dist.sort_by(f64::total_cmp);
+        let Some(&median) = dist.get(dist.len() / 2) else { break };
+        let tame = |i: usize| {
+            let d = state.points[i].coords.norm();
+            d.is_finite() && d <= median * DEPTH_RATIO && d >= median / DEPTH_RATIO
+        };
+        let obs: Vec<BundleObservation> =
+            gated.into_iter().filter(|o| counts[o.point] >= 2 && tame(o.point)).collect();
+        let keys: Vec<(usize, usize, bool)> = obs.iter().map(key).collect();
+        if (keys == previous && pass > 1) || obs.len() < options.min_tracks {
+            break;
+        }
+        let robust = BundleOptions { robust: options.bundle.robust, ..ls.clone() };
+        let Ok(result) = bundle_adjust(&state, &obs, if pass == 0 { &robust } else { &ls }) else { break };
+        sigma = result.report.sigma_px;
+        state = result.state.clone();
+        previous = keys;
+        best = crate::estimate::Adjustment { last: result, observations: obs, ..best };
+    }
+    best
+}
+
+fn fmt_pct(v: Option<f64>) -> String {
+    v.map_or_else(|| "unknown".to_string(), |v| format!("{v:.2} %"))
 }
 
 /// Whether a set of views can be calibrated by general-motion self-calibration at all
@@ -1032,22 +1217,27 @@ mod tests {
 
     use headalign_geometry::so3::{Line, rotation_about_line};
     use headalign_platform::{Encoders, StereoHead};
+    use headalign_sim::rigmotion::general_rig_motion;
     use headalign_sim::{Scenario, SimulatedHead};
     use nalgebra::{Unit, Vector3};
 
-    /// A general screw motion of the whole rig about an oblique axis through the head, with
-    /// a translation along the axis (a hand-held rig turned, tilted and raised).
-    pub(crate) fn general_motion(angle_deg: f64, along_m: f64) -> Isometry3<f64> {
-        let axis = Line::new(Unit::new_normalize(Vector3::new(0.8, -1.0, 0.3)), Point3::new(0.0, -1.2, 0.0));
-        let r = rotation_about_line(&axis, angle_deg.to_radians());
-        Isometry3::from_parts(
-            (r.translation.vector + axis.direction.into_inner() * along_m).into(),
-            r.rotation,
-        )
+    /// The oblique screw motion `simulate --motion general` used before: 20 deg about
+    /// `(0.8, -1, 0.3)` with 0.3 m along it (its axis has a large component along the
+    /// baseline: near-critical on some scenes, see `headalign_sim::rigmotion`).
+    fn oblique_motion() -> Isometry3<f64> {
+        headalign_sim::rigmotion::screw_motion(Vector3::new(0.8, -1.0, 0.3), 20.0, 0.3)
     }
 
     /// Square-pixel cameras, no outliers; the reference view and the moved one.
     fn general_session(seed: u64, noise_px: f64) -> (Vec<View>, Intrinsics, Intrinsics) {
+        session_with_motion(seed, noise_px, &headalign_sim::rigmotion::general_rig_motion())
+    }
+
+    fn session_with_motion(
+        seed: u64,
+        noise_px: f64,
+        motion: &Isometry3<f64>,
+    ) -> (Vec<View>, Intrinsics, Intrinsics) {
         let scenario = Scenario {
             seed,
             noise_px,
@@ -1059,7 +1249,7 @@ mod tests {
         };
         let mut head = SimulatedHead::new(scenario).unwrap();
         let v0 = View { name: "initial".into(), capture: head.capture().unwrap() };
-        head.set_world_from_robot(general_motion(20.0, 0.3));
+        head.set_world_from_robot(*motion);
         let v1 = View { name: "moved".into(), capture: head.capture().unwrap() };
         let t = head.truth();
         (vec![v0, v1], t.left, t.right)
@@ -1067,6 +1257,22 @@ mod tests {
 
     fn f_err_pct(est: &Intrinsics, truth: &Intrinsics) -> f64 {
         100.0 * (est.mean_focal() - truth.mean_focal()).abs() / truth.mean_focal()
+    }
+
+    /// The oblique motion on seed 2 (its Cramer-Rao bound of f at the truth is 4.1 %;
+    /// the estimate is 2.5 % off with a sigma of 0.94 %) is flagged with warnings that
+    /// say what to do; the default general motion on seed 1 is not (sigma 0.16 %).
+    #[test]
+    fn near_critical_motion_is_flagged() {
+        let options = CalibrateOptions { zero_skew: true, square_pixels: true, ..Default::default() };
+        let (views, _, _) = session_with_motion(2, 0.5, &oblique_motion());
+        let cal = calibrate_rig(&views, &options).unwrap();
+        let s = cal.report.focal_sigma_pct[0].unwrap();
+        assert!(s > 0.5, "sigma {s} %");
+        assert!(cal.report.warnings[0].contains("poorly determined"), "{:?}", cal.report.warnings);
+        let (views, _, _) = general_session(1, 0.5);
+        let cal = calibrate_rig(&views, &options).unwrap();
+        assert!(cal.report.warnings.is_empty(), "{:?}", cal.report.warnings);
     }
 
     #[test]
@@ -1090,22 +1296,28 @@ mod tests {
         assert!(e.contains("missing motion") && e.contains("constraint"), "{e}");
     }
 
-    /// The bar of issue 6: one general motion (20 deg about an oblique axis, 0.3 m along
-    /// it), zero skew and square pixels, 0.5 px noise, 400 points: focal length within 1 %.
-    /// Seeds 1 and 3-5 (all four pass with margin: 0.04-0.47 %). Seed 2 is left out on
-    /// purpose: 89 % of its reference view lies on one wall and the maximum-likelihood
-    /// estimate itself is 5.9 % off (an adjustment started at the truth ends at the same
-    /// minimum); its reported sigma (1.1 %) flags it. The statistics over 20 seeds are in
-    /// docs/real-data.md (`general_motion_seeds`).
+    /// The bar of issue 6: one general motion (`headalign_sim::rigmotion`: 25 deg about
+    /// the vertical, 0.3 m along it), zero skew and square pixels, 0.5 px noise, 400
+    /// points: focal length within 1 %. Seeds 1-20 all pass (measured 0.001-0.85 %, the
+    /// worst seed 14 with a sigma of 0.44 %; `general_motion_seeds`); the test runs the
+    /// first 8 and seed 14 (time), and checks that none of them has the sigma warning
+    /// and that seeds 2 and 14 (88 % and 92 % of the matches on one wall) have the
+    /// scene warning.
     #[test]
     fn one_general_motion_half_pixel_within_one_percent() {
-        for seed in [1, 3, 4, 5] {
+        for seed in [1, 2, 3, 4, 5, 6, 7, 8, 14] {
             let (views, l, r) = general_session(seed, 0.5);
             let options = CalibrateOptions { zero_skew: true, square_pixels: true, ..Default::default() };
             let cal = calibrate_rig(&views, &options).unwrap();
             let st = &cal.bundle.state;
             let (el, er) = (f_err_pct(&st.left, &l), f_err_pct(&st.right, &r));
             assert!(el < 1.0 && er < 1.0, "seed {seed}: f errors {el:.3} % / {er:.3} %");
+            let sigma_warning = cal.report.warnings.iter().any(|w| w.contains("poorly determined"));
+            assert!(!sigma_warning, "seed {seed}: {:?}", cal.report.warnings);
+            // Seed 14 has 89 % and 94 % of its views' matches on one wall: the scene
+            // warning (it is still within 1 %, at 0.85 %, its worst).
+            let plane_warning = cal.report.warnings.iter().any(|w| w.contains("mostly one plane"));
+            assert_eq!(plane_warning, seed == 14 || seed == 2, "seed {seed}: {:?}", cal.report.warnings);
         }
     }
 
@@ -1150,6 +1362,128 @@ mod tests {
         );
     }
 
+    /// The Cramer-Rao bound of the focal length for one rig motion: the marginal
+    /// covariance of the bundle adjustment at the true state with exact observations and
+    /// the given noise (the adjustment starts at its minimum, so the covariance is
+    /// `sigma^2 (J^T J)^-1` at the truth). Returns (sigma of left f in %, of left k1 if
+    /// `distortion`).
+    pub(crate) fn crb_one_motion(
+        scenario: &Scenario,
+        motion: &Isometry3<f64>,
+        noise_px: f64,
+        distortion: bool,
+    ) -> (f64, f64) {
+        use headalign_geometry::bundle::{BundleOptions, RobustLoss, bundle_adjust};
+        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+        let enc = head.encoders();
+        let (wl0, wr0) = head.scene_from_cameras(&enc);
+        let c0 = head.exact_capture(&enc);
+        head.set_world_from_robot(*motion);
+        let (wl1, _) = head.scene_from_cameras(&enc);
+        let c1 = head.exact_capture(&enc);
+        let index: BTreeMap<u64, usize> =
+            head.scene_points().iter().enumerate().map(|(i, (t, _))| (*t, i)).collect();
+        let points: Vec<Point3<f64>> = head.scene_points().iter().map(|(_, p)| wl0.inverse() * p).collect();
+        let mut obs = Vec::new();
+        for (view, c) in [&c0, &c1].into_iter().enumerate() {
+            for (side, list) in [(Side::Left, &c.left), (Side::Right, &c.right)] {
+                for o in list {
+                    obs.push(BundleObservation { point: index[&o.track], view, side, pixel: o.pixel });
+                }
+            }
+        }
+        let t = head.truth();
+        let state = RigState {
+            left: t.left,
+            right: t.right,
+            left_distortion: Distortion::default(),
+            right_distortion: Distortion::default(),
+            right_from_left: wr0.inverse() * wl0,
+            motions: Motions::Free { ref_from_cam: vec![Isometry3::identity(), wl0.inverse() * wl1] },
+            points,
+        };
+        let options = BundleOptions {
+            robust: RobustLoss::None,
+            zero_skew: true,
+            square_pixels: true,
+            estimate_distortion: distortion,
+            angle_prior_sigma: None,
+            noise_sigma_px: Some(noise_px),
+            ..BundleOptions::default()
+        };
+        let r = bundle_adjust(&state, &obs, &options).unwrap();
+        let c = &r.covariance;
+        (100.0 * c.sigma("left.fx").unwrap_or(f64::NAN) / t.left.fx, c.sigma("left.k1").unwrap_or(f64::NAN))
+    }
+
+    /// The Cramer-Rao bound per seed of the one-general-motion session:
+    /// `cargo test --release -p headalign --lib calibrate::tests::general_motion_bound -- --ignored --nocapture`.
+    #[test]
+    #[ignore = "experiment: prints the bound over 20 seeds"]
+    fn general_motion_bound() {
+        for seed in 1..=20 {
+            let scenario = Scenario {
+                seed,
+                points: 400,
+                outlier_fraction: 0.0,
+                left: Intrinsics::new(700.0, 700.0, 390.0, 284.0),
+                right: Intrinsics::new(705.0, 705.0, 380.0, 290.0),
+                ..Scenario::default()
+            };
+            let (sf, _) = crb_one_motion(&scenario, &general_rig_motion(), 0.5, false);
+            let (sfd, sk) = crb_one_motion(&scenario, &general_rig_motion(), 0.5, true);
+            eprintln!("seed {seed}: CRB f {sf:.3} %, with k1 k2: f {sfd:.3} % k1 {sk:.4}");
+        }
+    }
+
+    #[test]
+    #[ignore = "experiment"]
+    fn general_motion_grid() {
+        let first: u64 = std::env::var("FIRST").ok().and_then(|s| s.parse().ok()).unwrap_or(1);
+        let last: u64 = std::env::var("LAST").ok().and_then(|s| s.parse().ok()).unwrap_or(20);
+        let axes = [
+            ("obl", Vector3::new(0.8, -1.0, 0.3)),
+            ("vert", Vector3::new(0.0, -1.0, 0.0)),
+            ("vert+x", Vector3::new(0.3, -1.0, 0.0)),
+            ("vert+z", Vector3::new(0.0, -1.0, 0.3)),
+        ];
+        for (name, axis_dir) in axes {
+            for (angle, along) in
+                [(20.0, 0.3), (25.0, 0.3), (30.0, 0.3), (25.0, 0.2), (30.0, 0.2), (30.0, 0.4)]
+            {
+                let mut out = Vec::new();
+                for seed in first..=last {
+                    let scenario = Scenario {
+                        seed,
+                        points: 400,
+                        outlier_fraction: 0.0,
+                        left: Intrinsics::new(700.0, 700.0, 390.0, 284.0),
+                        right: Intrinsics::new(705.0, 705.0, 380.0, 290.0),
+                        ..Scenario::default()
+                    };
+                    let axis = Line::new(Unit::new_normalize(axis_dir), Point3::new(0.0, -1.2, 0.0));
+                    let r = rotation_about_line(&axis, f64::to_radians(angle));
+                    let m = Isometry3::from_parts(
+                        (r.translation.vector + axis.direction.into_inner() * along).into(),
+                        r.rotation,
+                    );
+                    let (sf, _) = crb_one_motion(&scenario, &m, 0.5, false);
+                    out.push(sf);
+                }
+                let mut sorted = out.clone();
+                sorted.sort_by(f64::total_cmp);
+                let n = sorted.len();
+                eprintln!(
+                    "{name} {angle} deg {along} m: median {:.3} %, 90th {:.3} %, worst {:.3} %, above 0.5 %: {}",
+                    sorted[n / 2],
+                    sorted[n * 9 / 10],
+                    sorted[n - 1],
+                    out.iter().filter(|v| **v > 0.5).count()
+                );
+            }
+        }
+    }
+
     /// One point-mode view per `(name, encoders)`, captured after moving there.
     fn capture_views(head: &mut SimulatedHead, at: &[(&str, Encoders)]) -> Vec<View> {
         at.iter()
@@ -1191,7 +1525,7 @@ mod tests {
     fn planar_scene_is_named() {
         let k = Intrinsics::new(700.0, 700.0, 384.0, 288.0);
         let right_from_left = Isometry3::translation(-0.25, 0.0, 0.0);
-        let motion = general_motion(10.0, 0.2);
+        let motion = headalign_sim::rigmotion::screw_motion(Vector3::new(0.8, -1.0, 0.3), 10.0, 0.2);
         let view = |name: &str, cam_from_world: Isometry3<f64>| {
             let (mut left, mut right) = (Vec::new(), Vec::new());
             for i in 0..400u64 {
