@@ -13,10 +13,13 @@
 //!    each image almost by `K R K^-1`), then the 3D homography: polished on symmetric
 //!    transfer error from a rigid or DLT start (the 5-point DLT RANSAC as fallback), and
 //!    guided re-selection of quadruplets until the set is stable;
-//! 5. three starts for the adjustment: the linear self-calibration chain (plane at
+//! 5. five starts for the adjustment: the linear self-calibration chain (plane at
 //!    infinity, `w*`, `K_L`, the right camera, motions); each camera's `K` by
 //!    rotating-camera self-calibration from its plane homographies with the rig from
-//!    `E`; and a rough guess. Each is screened by a short adjustment, the best MSAC score
+//!    `E`; a rough guess; with those `K`s, the rig pose estimated directly (5 dof,
+//!    [`headalign_geometry::essential`]), not from `F`, whose epipole nearly parallel
+//!    cameras and walls leave ill-determined; and the same from the rough guess and the
+//!    stereo-head prior (baseline along x) alone. Each is screened by a short adjustment, the best MSAC score
 //!    over one common set of observations wins (not the RMS: each start fits its own subset);
 //! 6. the rig bundle adjustment, motions modelled as rotations about two fixed axes with
 //!    the commanded encoder differences as priors, robust loss; re-selection of every
@@ -603,6 +606,10 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     let linear = linear_initial_state(&ctx, &homographies, &k0, &p_r);
     let rough = rough_initial_state(&ctx, &frame);
     let rotation = rotation_initial_state(&ctx, &f, &inlier_pairs, &image_rotations, &k0);
+    let threshold = options.fundamental.threshold;
+    let rotation_k = rotation_intrinsics(&image_rotations, &k0);
+    let calibrated = calibrated_initial_state(&ctx, &f, &pairs, rotation_k, threshold, false);
+    let lateral = calibrated_initial_state(&ctx, &f, &pairs, (k0, k0), threshold, true);
     let point_index: BTreeMap<u64, usize> = point_tracks.iter().enumerate().map(|(i, &t)| (t, i)).collect();
 
     // All raw observations of these tracks in the rig views.
@@ -631,7 +638,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         .collect();
 
     let adjusted = adjust_from_starts(
-        vec![linear, rotation, rough],
+        vec![linear, rotation, rough, calibrated, lateral],
         &first_obs,
         &all_obs,
         &point_tracks,
@@ -925,8 +932,13 @@ fn maximum_likelihood_pass(
 /// the set is stable after 2-3 at 1-3 px).
 pub const ML_ROUNDS: usize = 5;
 
-/// Observations of points that keep at least [`MIN_POINT_OBSERVATIONS`] and lie at a
-/// plausible depth (within [`DEPTH_RATIO`] of the median point distance).
+/// Observations of points that keep at least [`MIN_POINT_OBSERVATIONS`] and are not
+/// nearer than the median point distance over [`DEPTH_RATIO`]. Far points are kept: at
+/// 2-3 px the depth of a far point is ill-determined and its least-squares position can
+/// lie beyond `DEPTH_RATIO` times the median, or near infinity, with every residual
+/// within the noise; dropping them (as the robust pass does, against wrong tracks)
+/// removed 20-40 of 200 points in some trials at 3 px, selected by their noise. Wrong
+/// tracks are left to the studentised gate.
 fn plausible_points(state: &RigState, gated: Vec<BundleObservation>) -> Vec<BundleObservation> {
     let mut counts = vec![0usize; state.points.len()];
     for o in &gated {
@@ -940,7 +952,7 @@ fn plausible_points(state: &RigState, gated: Vec<BundleObservation>) -> Vec<Bund
     let median = dist.get(dist.len() / 2).copied().unwrap_or(f64::NAN);
     let tame = |i: usize| {
         let d = state.points[i].coords.norm();
-        d.is_finite() && d <= median * DEPTH_RATIO && d >= median / DEPTH_RATIO
+        !d.is_nan() && d >= median / DEPTH_RATIO
     };
     gated.into_iter().filter(|o| counts[o.point] >= MIN_POINT_OBSERVATIONS && tame(o.point)).collect()
 }
@@ -1235,10 +1247,27 @@ fn rotation_initial_state(
     image_rotations: &[PlanePair],
     k0: &Intrinsics,
 ) -> Result<RigState, AlignError> {
+    let (k_left, k_right) = rotation_intrinsics(image_rotations, k0);
+    let right_from_left = relative_pose(&f.0, &k_left, &k_right, matches).step("relative pose of the rig")?;
+    rig_start(ctx, f, k_left, k_right, right_from_left)
+}
+
+/// Each camera's `K` by rotating-camera self-calibration from its plane homographies.
+fn rotation_intrinsics(image_rotations: &[PlanePair], k0: &Intrinsics) -> (Intrinsics, Intrinsics) {
     let gl: Vec<Matrix3<f64>> = image_rotations.iter().map(|g| g.0).collect();
     let gr: Vec<Matrix3<f64>> = image_rotations.iter().map(|g| g.1).collect();
-    let (k_left, k_right) = (k_from_rotations(&gl, k0), k_from_rotations(&gr, k0));
-    let right_from_left = relative_pose(&f.0, &k_left, &k_right, matches).step("relative pose of the rig")?;
+    (k_from_rotations(&gl, k0), k_from_rotations(&gr, k0))
+}
+
+/// A start from intrinsics and a rig pose: points triangulated (optimal, under `f`) in
+/// the view that first reconstructed them, views resected against the reference points.
+fn rig_start(
+    ctx: &InitContext<'_>,
+    f: &FundamentalMatrix,
+    k_left: Intrinsics,
+    k_right: Intrinsics,
+    right_from_left: Isometry3<f64>,
+) -> Result<RigState, AlignError> {
     let p_l = ProjectiveCamera::from_pose(&k_left, &Isometry3::identity());
     let p_r = ProjectiveCamera::from_pose(&k_right, &right_from_left);
     let triangulate = |slot: usize, track: u64| -> Option<Point3<f64>> {
@@ -1252,6 +1281,46 @@ fn rotation_initial_state(
     let reference: HashMap<u64, Point3<f64>> = reference.into_iter().collect();
     let ref_from_cam = ctx.resect_views(&k_left, &reference)?;
     ctx.state(k_left, k_right, right_from_left, &ref_from_cam, triangulate)
+}
+
+/// The calibrated start: the rotation start's intrinsics, but the rig pose estimated
+/// directly with them ([`headalign_geometry::essential::calibrated_relative_pose`], 5 dof,
+/// MSAC over all stereo matches at the F threshold) from the pose decomposed from `F` and
+/// from generic stereo-head poses (identity rotation, baseline along x or y), instead of
+/// taken from `F`. With nearly parallel cameras `F`'s epipole is ill-determined: at 3 px
+/// the best-supported `F` of some seeds had its epipole inside the image (true: thousands
+/// of pixels outside), and every `F`-based start put the near points behind the cameras.
+/// With `lateral_only`, the only start is the stereo-head prior (identity rotation,
+/// baseline along x) and the rough intrinsics are used: a scene dominated by a wall facing
+/// the head admits, like a plane homography, a second relative pose with the baseline
+/// along the wall's normal, which the stereo matches alone cannot reject at 3 px (seed 87:
+/// every stereo-only start ended with the baseline forward); the rotations in the
+/// adjustment can, so this start goes to the screening whatever its stereo cost.
+fn calibrated_initial_state(
+    ctx: &InitContext<'_>,
+    f: &FundamentalMatrix,
+    matches: &[(Point2<f64>, Point2<f64>)],
+    (k_left, k_right): (Intrinsics, Intrinsics),
+    threshold_px: f64,
+    lateral_only: bool,
+) -> Result<RigState, AlignError> {
+    use headalign_geometry::essential::{calibrated_relative_pose, fundamental_from_pose};
+    use nalgebra::{Translation3, UnitQuaternion};
+    let lateral = Isometry3::from_parts(Translation3::new(1.0, 0.0, 0.0), UnitQuaternion::identity());
+    let mut starts = vec![lateral];
+    if !lateral_only {
+        starts.push(Isometry3::from_parts(Translation3::new(0.0, 1.0, 0.0), UnitQuaternion::identity()));
+        if let Ok(p) = relative_pose(&f.0, &k_left, &k_right, matches) {
+            starts.push(p);
+            for t in [Translation3::new(1.0, 0.0, 0.0), Translation3::new(0.0, 1.0, 0.0)] {
+                starts.push(Isometry3::from_parts(t, p.rotation));
+            }
+        }
+    }
+    let (right_from_left, _) = calibrated_relative_pose(&k_left, &k_right, &starts, matches, threshold_px)
+        .step("calibrated relative pose of the rig")?;
+    let f_cal = fundamental_from_pose(&k_left, &k_right, &right_from_left);
+    rig_start(ctx, &f_cal, k_left, k_right, right_from_left)
 }
 
 /// RANSAC adapter for 3D homographies whose least-squares fit (used by local
