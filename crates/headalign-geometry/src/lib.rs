@@ -16,6 +16,7 @@
 //! - [`fundamental`]: normalised 8-point and 7-point F, Sampson refinement.
 //! - [`triangulation`]: optimal correction of a match, then linear triangulation.
 //! - [`frame`]: a well-conditioned (quasi-Euclidean) projective frame from F.
+//! - [`essential`]: calibrated relative pose (5 dof) by Sampson ML from several starts.
 //! - [`homography2d`]: plane homographies (4-point DLT), a robust prefilter for rotations.
 //! - [`homography3d`]: 4x4 projective homographies of 3D space, 5-point DLT,
 //!   symmetric transfer error over four images.
@@ -37,6 +38,7 @@ pub mod bundle;
 pub mod camera;
 pub mod distortion;
 pub mod error;
+pub mod essential;
 pub mod frame;
 pub mod fundamental;
 pub mod homography2d;
