@@ -56,21 +56,30 @@ use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
 use headalign_geometry::registration::similarity_fit;
 use headalign_geometry::rigmotion::{
-    RigMotionEstimate, RigMotionOptions, RigTrack, StereoRig, consistent_tracks, four_cameras,
-    refine_rig_motion, track_error,
+    RigMotionEstimate, RigMotionOptions, RigTrack, StereoRig, consistent_tracks, four_cameras, perturb,
+    refine_rig_motion, track_error, track_residuals,
 };
 use headalign_geometry::so3::screw_from_isometry;
 use headalign_geometry::steering::{Turn, steering_from_turns};
-use headalign_geometry::translation::{TranslationOptions, derotate, translation_from_flow};
+use headalign_geometry::translation::{
+    FlowMatch, TranslationOptions, derotate, refit_translation, translation_from_flow,
+};
 use headalign_geometry::triangulation::triangulate_linear;
 use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead, Vehicle};
-use nalgebra::{Isometry3, Matrix3, Point2, Point3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{
+    DMatrix, DVector, Isometry3, Matrix2, Matrix3, Point2, Point3, SMatrix, SVector, Unit, UnitQuaternion,
+    Vector2, Vector3, Vector6,
+};
 use serde::Serialize;
 
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
 use crate::estimate::RigCalibration;
 use crate::procedure::predicted_poses;
+
+/// The 99.9 % quantile of a chi-square with 3 degrees of freedom (planarity tests:
+/// false alarm rate 1e-3).
+pub const PLANARITY_CHI2_999: f64 = 16.266;
 
 /// Options of [`align_pan`].
 #[derive(Debug, Clone, PartialEq)]
@@ -94,10 +103,13 @@ pub struct PanOptions {
     /// the image by 2 px, a third of the flow of a far scene (false assumes a pure
     /// translation, as the paper, which needs a straight wheel).
     pub use_stereo_rotation: bool,
-    /// Largest rotation of a drive about any axis perpendicular to the pan axis, degrees
-    /// (more is [`AlignError::NotPlanar`]: the robot pitched or rolled, or the pan axis is
-    /// not perpendicular to the ground). Default 1 (measured noise about 0.02 deg).
-    pub max_off_axis_deg: f64,
+    /// Planarity test: largest chi-square (3 degrees of freedom) of a drive's rotation
+    /// about the two axes perpendicular to the pan axis and its translation along it,
+    /// against their covariance (the motion's and the calibration's); more is
+    /// [`AlignError::NotPlanar`] (the robot pitched or rolled, or the pan axis is not
+    /// perpendicular to the ground). Default 16.27, the 99.9 % quantile: a false alarm
+    /// rate of 1e-3 per drive when the covariance is right.
+    pub planarity_chi2_max: f64,
 }
 
 impl Default for PanOptions {
@@ -110,7 +122,7 @@ impl Default for PanOptions {
             guide_px: 6.0,
             min_flow_px: 2.0,
             use_stereo_rotation: true,
-            max_off_axis_deg: 1.0,
+            planarity_chi2_max: PLANARITY_CHI2_999,
         }
     }
 }
@@ -125,8 +137,8 @@ impl PanOptions {
         if self.iterations == 0 {
             return bad("iterations must be at least 1".into());
         }
-        if !(self.max_off_axis_deg.is_finite() && self.max_off_axis_deg > 0.0) {
-            return bad(format!("max_off_axis_deg must be positive, got {}", self.max_off_axis_deg));
+        if !(self.planarity_chi2_max > 0.0) {
+            return bad(format!("planarity_chi2_max must be positive, got {}", self.planarity_chi2_max));
         }
         if !(self.guide_px > 0.0 && self.min_flow_px >= 0.0) {
             return bad(format!(
@@ -154,10 +166,21 @@ pub struct PanStep {
     pub sigma_stereo_deg: f64,
     /// Combined correction applied, degrees.
     pub pan_correction_deg: f64,
+    /// Weight of the image estimate in the combination (the stereo one has `1 - w`).
+    pub weight_image: f64,
+    /// Standard deviation of the combined correction due to the verge/tilt calibration's
+    /// uncertainty alone, degrees (NaN if it could not be propagated).
+    pub sigma_calibration_deg: f64,
+    /// Standard deviation of the combined correction: calibration and image noise
+    /// (module docs), degrees.
+    pub sigma_deg: f64,
     /// Heading change measured during the drive, degrees.
     pub turn_deg: f64,
     /// Rotation about axes perpendicular to the pan axis (planarity check), degrees.
     pub off_axis_deg: f64,
+    /// Chi-square (3 degrees of freedom) of the drive's out-of-plane rotation and
+    /// translation against their covariance (planarity test).
+    pub planarity_chi2: f64,
     /// Angle of the travel direction out of the plane perpendicular to the pan axis
     /// (elevation check), degrees.
     pub elevation_check_deg: f64,
@@ -361,6 +384,8 @@ pub(crate) struct DriveMotion {
     pub(crate) inliers: usize,
     /// The maximum-likelihood refinement (covariance of the centre's displacement).
     ml: RigMotionEstimate,
+    /// The tracks of that refinement (same order as `ml.points`).
+    tracks: Vec<RigTrack>,
 }
 
 pub(crate) fn drive_motion(
@@ -386,7 +411,7 @@ pub(crate) fn drive_motion(
     let est = DriveEstimator { rig };
     let rep = ransac(&est, &data, options).step("drive registration")?;
     let n = rep.inliers.len();
-    let obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
+    let mut obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
     let pts: Vec<Point3<f64>> = rep.inliers.iter().map(|&i| data[i].before).collect();
     let mut ml = refine_rig_motion(&rig.stereo, &obs, &rep.model, &pts, &RigMotionOptions::default())
         .step("drive motion")?;
@@ -399,13 +424,58 @@ pub(crate) fn drive_motion(
         if kept.len() < n {
             break;
         }
-        let obs: Vec<RigTrack> = kept.iter().map(|(i, _)| all[*i]).collect();
+        obs = kept.iter().map(|(i, _)| all[*i]).collect();
         let pts: Vec<Point3<f64>> = kept.iter().map(|(_, x)| *x).collect();
         ml = refine_rig_motion(&rig.stereo, &obs, &ml.cam2_from_cam1, &pts, &RigMotionOptions::default())
             .step("drive motion")?;
         n = kept.len();
     }
-    Ok(DriveMotion { cam2_from_cam1: ml.cam2_from_cam1, before: xb, inliers: n, ml })
+    // Maximum-likelihood pass (as the verge/tilt estimator's): the Huber loss bounds an
+    // outlier's influence but does not remove it, and a wrong track within the RANSAC
+    // threshold biased even noise-free drives (0.006 deg of pan, seed 1). The noise is
+    // estimated robustly from the median residual, tracks within `ML_GATE_SIGMAS` of it
+    // are kept, and plain least squares gives the estimate and its covariance.
+    let sigma = robust_sigma_px(&rig.stereo, &ml, &obs).max(ML_GATE_FLOOR_PX);
+    let kept = consistent_tracks(&rig.stereo, &ml.cam2_from_cam1, &all, ML_GATE_SIGMAS * sigma);
+    if kept.len() >= MIN_ML_TRACKS {
+        obs = kept.iter().map(|(i, _)| all[*i]).collect();
+        let pts: Vec<Point3<f64>> = kept.iter().map(|(_, x)| *x).collect();
+        let ls = RigMotionOptions { huber_px: LEAST_SQUARES_HUBER_PX, ..RigMotionOptions::default() };
+        ml = refine_rig_motion(&rig.stereo, &obs, &ml.cam2_from_cam1, &pts, &ls)
+            .step("drive motion (least squares)")?;
+        n = kept.len();
+    }
+    Ok(DriveMotion { cam2_from_cam1: ml.cam2_from_cam1, before: xb, inliers: n, ml, tracks: obs })
+}
+
+/// Gate of the maximum-likelihood pass, in robust standard deviations of one pixel
+/// coordinate: a track is kept when its largest 2D residual is within this (a Gaussian
+/// 2D residual exceeds 3.5 sigma with probability 0.2 %, like the verge/tilt estimator's
+/// `reselect_sigmas`).
+const ML_GATE_SIGMAS: f64 = 3.5;
+/// Smallest noise the gate assumes, pixels (noise-free data: keeps the gate above
+/// rounding, far below any wrong track).
+const ML_GATE_FLOOR_PX: f64 = 0.01;
+/// Fewest tracks for the least-squares pass (else the Huber estimate stands).
+const MIN_ML_TRACKS: usize = 8;
+/// A Huber threshold far beyond any residual: plain least squares.
+const LEAST_SQUARES_HUBER_PX: f64 = 1e9;
+
+/// Robust noise of a rig motion fit, pixels per coordinate: the median 2D residual norm
+/// over the four images of every track, divided by `sqrt(2 ln 2)` (the median of a
+/// Rayleigh variable), so outliers still in the fit do not inflate it.
+fn robust_sigma_px(rig: &StereoRig, ml: &RigMotionEstimate, obs: &[RigTrack]) -> f64 {
+    let mut norms: Vec<f64> = Vec::new();
+    for (x, o) in ml.points.iter().zip(obs) {
+        if let Some(r) = track_residuals(rig, &ml.cam2_from_cam1, x, o) {
+            norms.extend((0..4).map(|j| r[2 * j].hypot(r[2 * j + 1])));
+        }
+    }
+    if norms.is_empty() {
+        return f64::INFINITY;
+    }
+    norms.sort_by(f64::total_cmp);
+    norms[norms.len() / 2] / (2.0 * std::f64::consts::LN_2).sqrt()
 }
 
 /// Signed angle about `up` from `a` to `b` (both projected onto the plane perpendicular
@@ -444,6 +514,135 @@ pub fn align_pan<R: StereoHead + Vehicle>(
     Ok(PanOutcome { steps, final_encoders: robot.read_encoders()? })
 }
 
+/// The pan axis (direction, a point) in the left camera frame of `rig`.
+fn pan_axis_in(calib: &RigCalibration, rig: &Rig) -> Result<(Vector3<f64>, Vector3<f64>), AlignError> {
+    let axis = calib.pan_axis().ok_or_else(|| AlignError::MissingMotion("pan axis".into()))?;
+    let axis = axis.transformed(&rig.ref_from_left.inverse());
+    Ok((axis.direction.into_inner(), axis.point.coords))
+}
+
+/// The two pan estimates of a drive (module docs) from its measured motion and image
+/// direction: `(a_img, a_st, f_img, f_st)`, angles in radians from the head's forward
+/// direction about `up`, and the two travel directions of the pan axis.
+fn pan_geometry(
+    rig: &Rig,
+    up: &Vector3<f64>,
+    o: &Vector3<f64>,
+    motion: &Isometry3<f64>,
+    c: &Vector3<f64>,
+    direction: &Vector3<f64>,
+    use_stereo_rotation: bool,
+) -> (f64, f64, Vector3<f64>, Vector3<f64>) {
+    let (r, heading) = if use_stereo_rotation {
+        let w = motion.rotation.inverse().scaled_axis();
+        (motion.rotation.to_rotation_matrix().into_inner(), w.dot(up))
+    } else {
+        (Matrix3::identity(), 0.0)
+    };
+    let half_back = UnitQuaternion::from_axis_angle(&Unit::new_normalize(*up), -0.5 * heading);
+    let forward_of = |c: &Vector3<f64>| half_back * ((r.transpose() - Matrix3::identity()) * o + c);
+    let f_img = forward_of(&(direction * c.norm()));
+    let f_st = forward_of(c);
+    let h = head_forward(rig);
+    (angle_about(up, &h, &f_img), angle_about(up, &h, &f_st), f_img, f_st)
+}
+
+/// An orthonormal pair perpendicular to `up`.
+fn perpendicular_basis(up: &Vector3<f64>) -> [Vector3<f64>; 2] {
+    let helper = if up.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+    let e1 = up.cross(&helper).normalize();
+    [e1, up.cross(&e1).normalize()]
+}
+
+/// The out-of-plane part of a drive `cam2_from_cam1` (zero for a motion on the plane
+/// perpendicular to `up`): its rotation vector's components along `basis` (radians) and
+/// the centre's displacement along `up` (baselines).
+fn out_of_plane(motion: &Isometry3<f64>, up: &Vector3<f64>, basis: &[Vector3<f64>; 2]) -> Vector3<f64> {
+    let w = motion.rotation.inverse().scaled_axis();
+    let c = -(motion.rotation.inverse() * motion.translation.vector);
+    Vector3::new(w.dot(&basis[0]), w.dot(&basis[1]), c.dot(up))
+}
+
+/// Covariance of [`out_of_plane`] from the motion's own covariance (left perturbation,
+/// rotation first; Jacobian by central differences, step 1e-6: the map is smooth and
+/// O(1) in these units).
+fn out_of_plane_covariance(
+    ml: &RigMotionEstimate,
+    up: &Vector3<f64>,
+    basis: &[Vector3<f64>; 2],
+) -> Matrix3<f64> {
+    let h = 1e-6;
+    let mut j = SMatrix::<f64, 3, 6>::zeros();
+    for k in 0..6 {
+        let mut d = Vector6::zeros();
+        d[k] = h;
+        let p = out_of_plane(&perturb(&ml.cam2_from_cam1, &d), up, basis);
+        d[k] = -h;
+        let m = out_of_plane(&perturb(&ml.cam2_from_cam1, &d), up, basis);
+        j.set_column(k, &((p - m) / (2.0 * h)));
+    }
+    j * ml.covariance * j.transpose()
+}
+
+/// Variance floor added to the out-of-plane covariance's diagonal (radians squared /
+/// baselines squared): rounding of noise-free data, far below any real tilt (1e-6 rad is
+/// 0.00006 deg).
+const PLANARITY_FLOOR: f64 = 1e-12;
+
+/// Chi-square of the out-of-plane part `v` with covariance `cov` (plus the floor).
+fn planarity_chi2(v: &Vector3<f64>, cov: &Matrix3<f64>) -> f64 {
+    let c = cov + Matrix3::identity() * PLANARITY_FLOOR;
+    c.try_inverse().map_or(f64::INFINITY, |inv| (v.transpose() * inv * v)[(0, 0)])
+}
+
+/// Calibration parameters that move the rig or the head axes (the bundle's per-view
+/// angles and poses do not enter the robot stages), with a usable standard deviation.
+fn calibration_parameters(calib: &RigCalibration) -> Vec<usize> {
+    let cov = &calib.bundle.covariance;
+    (0..cov.names.len())
+        .filter(|&i| {
+            let v = cov.matrix[(i, i)];
+            !cov.names[i].starts_with("view") && v.is_finite() && v > 0.0
+        })
+        .collect()
+}
+
+/// Covariance of a quantity `q(calibration)` from the verge/tilt calibration's
+/// covariance: `J C J^T` over [`calibration_parameters`], `J` by central differences of
+/// `q` along each parameter, step half its standard deviation (as
+/// [`crate::procedure::alignment_sigmas`]). `None` if `q` fails at a perturbed
+/// calibration.
+pub(crate) fn calibration_covariance<const N: usize>(
+    calib: &RigCalibration,
+    mut q: impl FnMut(&RigCalibration) -> Option<SVector<f64, N>>,
+) -> Option<SMatrix<f64, N, N>> {
+    let cov = &calib.bundle.covariance;
+    let idx = calibration_parameters(calib);
+    let mut scratch = calib.clone();
+    let mut jac = DMatrix::<f64>::zeros(N, idx.len());
+    for (col, &i) in idx.iter().enumerate() {
+        let h = 0.5 * cov.matrix[(i, i)].sqrt();
+        let mut delta = DVector::zeros(cov.names.len());
+        delta[i] = h;
+        scratch.bundle.state = calib.bundle.perturbed(&delta).ok()?;
+        let plus = q(&scratch)?;
+        delta[i] = -h;
+        scratch.bundle.state = calib.bundle.perturbed(&delta).ok()?;
+        let minus = q(&scratch)?;
+        for r in 0..N {
+            jac[(r, col)] = (plus[r] - minus[r]) / (2.0 * h);
+        }
+    }
+    let sub = cov.matrix.select_rows(idx.iter()).select_columns(idx.iter());
+    let c = &jac * sub * jac.transpose();
+    Some(SMatrix::<f64, N, N>::from_fn(|r, k| c[(r, k)]))
+}
+
+/// Options of the least-squares refits under a perturbed calibration (warm start).
+fn refit_options() -> RigMotionOptions {
+    RigMotionOptions { huber_px: LEAST_SQUARES_HUBER_PX, max_iterations: 10 }
+}
+
 /// One pan measurement from the captures before and after a forward drive.
 pub fn pan_step(
     calib: &RigCalibration,
@@ -454,34 +653,31 @@ pub fn pan_step(
 ) -> Result<PanStep, AlignError> {
     let enc = before.encoders;
     let rig = rig_at(calib, verge, &enc)?;
-    let pan_axis = calib.pan_axis().ok_or_else(|| AlignError::MissingMotion("pan axis".into()))?;
-    let pan_axis = pan_axis.transformed(&rig.ref_from_left.inverse());
-    let up = pan_axis.direction.into_inner();
+    let (up, o) = pan_axis_in(calib, &rig)?;
     let motion = drive_motion(&rig, before, after, &options.registration)?;
-    let r_stereo = motion.cam2_from_cam1.rotation.to_rotation_matrix().into_inner();
-    let r = if options.use_stereo_rotation { r_stereo } else { Matrix3::identity() };
+    let use_rot = options.use_stereo_rotation;
+    let r = if use_rot {
+        motion.cam2_from_cam1.rotation.to_rotation_matrix().into_inner()
+    } else {
+        Matrix3::identity()
+    };
     let c = motion.ml.centre_displacement;
     let w = motion.cam2_from_cam1.rotation.inverse().scaled_axis();
     let heading_stereo = w.dot(&up);
     let off_axis = (w - up * heading_stereo).norm().to_degrees();
-    if off_axis > options.max_off_axis_deg {
-        return Err(AlignError::NotPlanar(format!(
-            "pan drive: the robot rotated {off_axis:.2} deg about an axis perpendicular to the pan axis (max {})",
-            options.max_off_axis_deg
-        )));
-    }
-    let heading = if options.use_stereo_rotation { heading_stereo } else { 0.0 };
 
     // Image estimate on guided, derotated left-left matches.
     let k = rig.k_left;
     let la = by_track(&after.left);
     let mut flow = Vec::new();
+    let mut raw = Vec::new();
     for o in &before.left {
         let (Some(x2), Some(xb)) = (la.get(&o.track), motion.before.get(&o.track)) else { continue };
         let Some(d2) = derotate(&k, &r, x2) else { continue };
         let Some(pred) = k.project(&Point3::from(xb.coords - c)) else { continue };
-        if !options.use_stereo_rotation || (pred - d2).norm() <= options.guide_px {
+        if !use_rot || (pred - d2).norm() <= options.guide_px {
             flow.push((o.pixel, d2));
+            raw.push((o.pixel, *x2));
         }
     }
     let image = translation_from_flow(&k, &flow, &options.translation).step("pan epipole")?;
@@ -491,12 +687,11 @@ pub fn pan_step(
             min_flow_px: options.min_flow_px,
         });
     }
-    let o = pan_axis.point.coords;
-    let half_back = UnitQuaternion::from_axis_angle(&Unit::new_normalize(up), -0.5 * heading);
-    let forward_of = |c: &Vector3<f64>| half_back * ((r.transpose() - Matrix3::identity()) * o + c);
-    let f_img = forward_of(&(image.direction.into_inner() * c.norm()));
-    let f_st = forward_of(&c);
-    let h = head_forward(&rig);
+    let raw: Vec<FlowMatch> = image.inliers.iter().map(|&i| raw[i]).collect();
+    let dir = image.direction.into_inner();
+    let (a_img, a_st, f_img, f_st) = pan_geometry(&rig, &up, &o, &motion.cam2_from_cam1, &c, &dir, use_rot);
+
+    // Data variances of the two estimates (first order).
     let grad = |f: &Vector3<f64>| {
         let fh = f - up * up.dot(f);
         up.cross(&fh) / fh.norm_squared().max(1e-300)
@@ -505,10 +700,64 @@ pub fn pan_step(
     let var_img = c.norm_squared() * (g_img.transpose() * image.covariance * g_img)[(0, 0)];
     let g_st = grad(&f_st);
     let var_st = (g_st.transpose() * motion.ml.centre_covariance * g_st)[(0, 0)];
-    let a_img = angle_about(&up, &h, &f_img);
-    let a_st = angle_about(&up, &h, &f_st);
-    let (w_i, w_s) = (1.0 / var_img.max(1e-30), 1.0 / var_st.max(1e-30));
-    let combined = (a_img * w_i + a_st * w_s) / (w_i + w_s);
+
+    // Calibration covariance of both estimates and of the out-of-plane part: the whole
+    // computation after the data selections, re-run under each perturbed calibration.
+    let basis = perpendicular_basis(&up);
+    let v = out_of_plane(&motion.cam2_from_cam1, &up, &basis);
+    let iterations = options.translation.max_iterations;
+    let cal = calibration_covariance(calib, |cp| {
+        let rig_p = rig_at(cp, verge, &enc).ok()?;
+        let (up_p, o_p) = pan_axis_in(cp, &rig_p).ok()?;
+        let ml_p = refine_rig_motion(
+            &rig_p.stereo,
+            &motion.tracks,
+            &motion.cam2_from_cam1,
+            &motion.ml.points,
+            &refit_options(),
+        )
+        .ok()?;
+        let m_p = ml_p.cam2_from_cam1;
+        let r_p = if use_rot { m_p.rotation.to_rotation_matrix().into_inner() } else { Matrix3::identity() };
+        let flow_p: Vec<FlowMatch> =
+            raw.iter().filter_map(|(x1, x2)| Some((*x1, derotate(&rig_p.k_left, &r_p, x2)?))).collect();
+        let dir_p = refit_translation(&rig_p.k_left, &flow_p, &image.direction, iterations).ok()?;
+        let c_p = ml_p.centre_displacement;
+        let (ai, as_, _, _) = pan_geometry(&rig_p, &up_p, &o_p, &m_p, &c_p, &dir_p, use_rot);
+        // Out-of-plane part about the perturbed axis, in the nominal basis moved with it.
+        let q = UnitQuaternion::rotation_between(&up, &up_p).unwrap_or_else(UnitQuaternion::identity);
+        let v_p = out_of_plane(&m_p, &up_p, &[q * basis[0], q * basis[1]]);
+        Some(SVector::<f64, 5>::from([ai, as_, v_p.x, v_p.y, v_p.z]))
+    });
+    let cal = cal.unwrap_or_else(|| SMatrix::<f64, 5, 5>::from_diagonal_element(f64::NAN));
+
+    let v_cov = out_of_plane_covariance(&motion.ml, &up, &basis) + cal.fixed_view::<3, 3>(2, 2);
+    let chi2 = planarity_chi2(&v, &v_cov);
+    if chi2 > options.planarity_chi2_max {
+        return Err(AlignError::NotPlanar(format!(
+            "pan drive: the robot rotated {off_axis:.3} deg about an axis perpendicular to the pan axis and moved {:.4} baselines along it; chi-square {chi2:.1} (3 dof) above {}",
+            v.z, options.planarity_chi2_max
+        )));
+    }
+
+    // Combination: weights minimising the variance of `w_i a_img + w_s a_st` under the
+    // calibration covariance plus the data variances taken as uncorrelated (clamped to
+    // [0, 1]: a convex combination); its stated variance is the calibration part plus a
+    // bound on the data part valid for any correlation of the two (they share the left
+    // images): `(w_i s_i + w_s s_s)^2`.
+    let c_cal = cal.fixed_view::<2, 2>(0, 0).into_owned();
+    let c_all = c_cal + Matrix2::new(var_img, 0.0, 0.0, var_st);
+    let w_i = match c_all.try_inverse() {
+        Some(inv) if c_all.iter().all(|x| x.is_finite()) => {
+            let u = inv * Vector2::new(1.0, 1.0);
+            (u.x / (u.x + u.y)).clamp(0.0, 1.0)
+        }
+        _ => var_st / (var_img + var_st).max(1e-300),
+    };
+    let wv = Vector2::new(w_i, 1.0 - w_i);
+    let combined = w_i * a_img + (1.0 - w_i) * a_st;
+    let var_cal = (wv.transpose() * c_cal * wv)[(0, 0)];
+    let data_sd = w_i * var_img.sqrt() + (1.0 - w_i) * var_st.sqrt();
     let fc = f_st.normalize();
     Ok(PanStep {
         encoders: enc,
@@ -517,8 +766,12 @@ pub fn pan_step(
         pan_stereo_deg: a_st.to_degrees(),
         sigma_stereo_deg: var_st.sqrt().to_degrees(),
         pan_correction_deg: combined.to_degrees(),
+        weight_image: w_i,
+        sigma_calibration_deg: var_cal.sqrt().to_degrees(),
+        sigma_deg: (var_cal + data_sd * data_sd).sqrt().to_degrees(),
         turn_deg: heading_stereo.to_degrees(),
         off_axis_deg: off_axis,
+        planarity_chi2: chi2,
         elevation_check_deg: fc.dot(&up).clamp(-1.0, 1.0).asin().to_degrees(),
         median_flow_px: image.median_flow_px,
         inliers: [image.inliers.len(), motion.inliers],

@@ -54,12 +54,10 @@ fn steering_options(scenario: &Scenario) -> SteeringOptions {
     o
 }
 
-/// Sigma of the last drive's combined pan correction, degrees (NaN without a drive).
+/// Sigma of the last drive's pan correction, degrees (NaN without a drive): the
+/// calibration and image-noise sigma the stage reports ([`headalign::robot::PanStep::sigma_deg`]).
 pub fn last_correction_sigma_deg(outcome: &PanOutcome) -> f64 {
-    outcome.steps.last().map_or(f64::NAN, |s| {
-        let inv = s.sigma_image_deg.powi(-2) + s.sigma_stereo_deg.powi(-2);
-        if inv.is_finite() && inv > 0.0 { inv.sqrt().recip() } else { f64::NAN }
-    })
+    outcome.steps.last().map_or(f64::NAN, |s| s.sigma_deg)
 }
 
 /// Run one trial of the robot stages (module docs).
