@@ -210,14 +210,11 @@ pub struct SteeringOptions {
     pub settings_deg: Vec<f64>,
     /// Smallest turn whose axis is trusted, degrees. Default 2.
     pub min_turn_deg: f64,
-    /// Largest angle between a screw axis and the pan axis, degrees. Default 10 (the
-    /// maximum-likelihood motion of a 10-15 deg turn puts it 0.03-4.1 deg from the
-    /// calibrated pan axis at 1 px, seeds 1-20; the calibration's own axis error and its
-    /// depth bias are part of that).
-    pub max_axis_tilt_deg: f64,
-    /// Largest translation along the screw axis, as a fraction of the displacement.
-    /// Default 0.2 (measured up to 0.074 at 1 px, seeds 1-20).
-    pub max_pitch_ratio: f64,
+    /// Planarity test of each drive, as [`PanOptions::planarity_chi2_max`]: chi-square
+    /// (3 dof) of the rotation about axes perpendicular to the pan axis and the
+    /// translation along it, against the motion's and the calibration's covariance.
+    /// Default [`PLANARITY_CHI2_999`] (false alarm rate 1e-3 per drive).
+    pub planarity_chi2_max: f64,
     /// Wheelbase in metres if known (then converted with `baseline_m`). Default none.
     pub wheelbase_m: Option<f64>,
     /// Stereo baseline, metres, to express lengths in metres. Default 0.25.
@@ -232,8 +229,7 @@ impl Default for SteeringOptions {
             drive_m: 0.3,
             settings_deg: vec![-20.0, 20.0, 30.0, -30.0],
             min_turn_deg: 2.0,
-            max_axis_tilt_deg: 10.0,
-            max_pitch_ratio: 0.2,
+            planarity_chi2_max: PLANARITY_CHI2_999,
             wheelbase_m: None,
             baseline_m: 0.25,
             registration: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
@@ -258,8 +254,8 @@ impl SteeringOptions {
                 self.settings_deg
             ));
         }
-        if !(self.min_turn_deg >= 0.0 && self.max_axis_tilt_deg > 0.0 && self.max_pitch_ratio > 0.0) {
-            return bad("min_turn_deg >= 0, max_axis_tilt_deg > 0 and max_pitch_ratio > 0 required".into());
+        if !(self.min_turn_deg >= 0.0 && self.planarity_chi2_max > 0.0) {
+            return bad("min_turn_deg >= 0 and planarity_chi2_max > 0 required".into());
         }
         self.registration.validate().step("steering options")
     }
@@ -274,6 +270,8 @@ pub struct TurnStep {
     pub turn_deg: f64,
     /// Angle of the screw axis from the pan axis, degrees.
     pub axis_tilt_deg: f64,
+    /// Chi-square (3 dof) of the planarity test (options).
+    pub planarity_chi2: f64,
     /// Registration inliers.
     pub inliers: usize,
     /// Turning centre, left camera frame at the stage's start, stereo baselines.
@@ -287,6 +285,9 @@ pub struct SteeringOutcome {
     pub turns: Vec<TurnStep>,
     /// Estimated steering zero (encoder reading of a straight wheel), degrees.
     pub steer_zero_deg: f64,
+    /// Its standard deviation: the drives' noise and the calibration's uncertainty
+    /// (module docs), degrees (NaN if it could not be propagated).
+    pub sigma_steer_zero_deg: f64,
     /// Estimated wheelbase, metres (via the baseline).
     pub wheelbase_m: f64,
     /// Pan correction implied by the forward direction found here (a check on the pan
@@ -607,19 +608,20 @@ fn calibration_parameters(calib: &RigCalibration) -> Vec<usize> {
         .collect()
 }
 
-/// Covariance of a quantity `q(calibration)` from the verge/tilt calibration's
-/// covariance: `J C J^T` over [`calibration_parameters`], `J` by central differences of
-/// `q` along each parameter, step half its standard deviation (as
+/// Covariance of a quantity `q(calibration)` (`n_out` values) from the verge/tilt
+/// calibration's covariance: `J C J^T` over [`calibration_parameters`], `J` by central
+/// differences of `q` along each parameter, step half its standard deviation (as
 /// [`crate::procedure::alignment_sigmas`]). `None` if `q` fails at a perturbed
 /// calibration.
-pub(crate) fn calibration_covariance<const N: usize>(
+pub(crate) fn calibration_covariance_dyn(
     calib: &RigCalibration,
-    mut q: impl FnMut(&RigCalibration) -> Option<SVector<f64, N>>,
-) -> Option<SMatrix<f64, N, N>> {
+    n_out: usize,
+    mut q: impl FnMut(&RigCalibration) -> Option<DVector<f64>>,
+) -> Option<DMatrix<f64>> {
     let cov = &calib.bundle.covariance;
     let idx = calibration_parameters(calib);
     let mut scratch = calib.clone();
-    let mut jac = DMatrix::<f64>::zeros(N, idx.len());
+    let mut jac = DMatrix::<f64>::zeros(n_out, idx.len());
     for (col, &i) in idx.iter().enumerate() {
         let h = 0.5 * cov.matrix[(i, i)].sqrt();
         let mut delta = DVector::zeros(cov.names.len());
@@ -629,12 +631,21 @@ pub(crate) fn calibration_covariance<const N: usize>(
         delta[i] = -h;
         scratch.bundle.state = calib.bundle.perturbed(&delta).ok()?;
         let minus = q(&scratch)?;
-        for r in 0..N {
-            jac[(r, col)] = (plus[r] - minus[r]) / (2.0 * h);
+        if plus.len() != n_out || minus.len() != n_out {
+            return None;
         }
+        jac.set_column(col, &((plus - minus) / (2.0 * h)));
     }
     let sub = cov.matrix.select_rows(idx.iter()).select_columns(idx.iter());
-    let c = &jac * sub * jac.transpose();
+    Some(&jac * sub * jac.transpose())
+}
+
+/// [`calibration_covariance_dyn`] for a fixed-size quantity.
+pub(crate) fn calibration_covariance<const N: usize>(
+    calib: &RigCalibration,
+    mut q: impl FnMut(&RigCalibration) -> Option<SVector<f64, N>>,
+) -> Option<SMatrix<f64, N, N>> {
+    let c = calibration_covariance_dyn(calib, N, |cp| q(cp).map(|v| DVector::from_column_slice(v.as_slice())))?;
     Some(SMatrix::<f64, N, N>::from_fn(|r, k| c[(r, k)]))
 }
 
@@ -778,6 +789,36 @@ pub fn pan_step(
     })
 }
 
+/// The turning centre of a drive `m = cam1_from_cam2` seen as a planar motion about
+/// `up`: rotation about `up` by the measured angle's component along it; centre from the
+/// horizontal translation (`(I - R + u u^T) p = t_perp`). The free 3D screw axis is too
+/// noisy in direction (depth noise of the stereo points) to place the centre well.
+fn turn_centre(m: &Isometry3<f64>, up: &Unit<Vector3<f64>>) -> Option<Point3<f64>> {
+    let u = up.into_inner();
+    let phi = m.rotation.scaled_axis().dot(&u);
+    let r_planar = UnitQuaternion::from_axis_angle(up, phi).to_rotation_matrix().into_inner();
+    let t = m.translation.vector;
+    let t_perp = t - u * u.dot(&t);
+    let a = Matrix3::identity() - r_planar + u * u.transpose();
+    a.try_inverse().map(|inv| Point3::from(inv * t_perp))
+}
+
+/// Steering zero (degrees) from the drives' motions `cam2_from_cam1` under `up`.
+fn steer_zero_of(
+    up: &Unit<Vector3<f64>>,
+    motions: &[Isometry3<f64>],
+    settings: &[f64],
+    hint: &Vector3<f64>,
+    wheelbase: Option<f64>,
+) -> Option<f64> {
+    let turns: Option<Vec<Turn>> = motions
+        .iter()
+        .zip(settings)
+        .map(|(m, s)| Some(Turn { steer_encoder_deg: *s, centre: turn_centre(&m.inverse(), up)? }))
+        .collect();
+    steering_from_turns(up, &turns?, hint, wheelbase).ok().map(|s| s.steer_zero_deg)
+}
+
 /// Find the steering zero from drives at known steering differences and straighten the
 /// wheel (module docs).
 pub fn zero_steering<R: StereoHead + Vehicle>(
@@ -794,6 +835,8 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     let s0 = robot.read_steering()?;
     let mut turns = Vec::new();
     let mut steps = Vec::new();
+    let mut motions = Vec::new();
+    let mut settings = Vec::new();
     let mut hint = Vector3::zeros();
     for s in &options.settings_deg {
         robot.steer_to(s0 + s)?;
@@ -812,47 +855,83 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
             .ok_or(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg })?
             .oriented_along(&up);
         let tilt = screw.axis.direction.angle(&up).to_degrees();
-        let disp = m.translation.vector.norm();
-        if tilt > options.max_axis_tilt_deg || screw.pitch.abs() > options.max_pitch_ratio * disp {
-            return Err(AlignError::NotPlanar(format!(
-                "steering {:+.1} deg: screw axis {tilt:.2} deg from the pan axis (max {}), translation along it {:.4} of the displacement (max {})",
-                s0 + s,
-                options.max_axis_tilt_deg,
-                screw.pitch.abs() / disp.max(1e-300),
-                options.max_pitch_ratio
-            )));
-        }
-        // The turning centre of the planar motion: rotation about `up` by the measured
-        // angle's component along it; centre from the horizontal translation
-        // ((I - R + u u^T) p = t_perp). The free 3D screw axis is too noisy in direction
-        // (depth noise of the stereo points) to place the centre well.
-        let u = up.into_inner();
-        let phi = m.rotation.scaled_axis().dot(&u);
-        let r_planar = UnitQuaternion::from_axis_angle(&up, phi).to_rotation_matrix().into_inner();
-        let t = m.translation.vector;
-        let t_perp = t - u * u.dot(&t);
-        let a = Matrix3::identity() - r_planar + u * u.transpose();
-        let centre = a
-            .try_inverse()
-            .map(|inv| Point3::from(inv * t_perp))
+        let centre = turn_centre(&m, &up)
             .ok_or(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg })?;
         turns.push(Turn { steer_encoder_deg: s0 + s, centre });
         steps.push(TurnStep {
             steer_encoder_deg: s0 + s,
             turn_deg: screw.angle.to_degrees(),
             axis_tilt_deg: tilt,
+            planarity_chi2: f64::NAN,
             inliers: motion.inliers,
             centre: [centre.x, centre.y, centre.z],
         });
+        settings.push(s0 + s);
+        motions.push(motion);
     }
     let scale = options.baseline_m;
-    let sol = steering_from_turns(&up, &turns, &hint, options.wheelbase_m.map(|l| l / scale))
-        .step("steering zero")?;
+    let wheelbase = options.wheelbase_m.map(|l| l / scale);
+    let sol = steering_from_turns(&up, &turns, &hint, wheelbase).step("steering zero")?;
+
+    // Uncertainty: every drive's motion covariance (independent drives) and the
+    // calibration's (each drive refitted under each perturbed calibration), propagated by
+    // central differences to the out-of-plane parts and the steering zero.
+    let basis = perpendicular_basis(&up);
+    let nominal: Vec<Isometry3<f64>> = motions.iter().map(|m| m.cam2_from_cam1).collect();
+    let n = motions.len();
+    let cal = calibration_covariance_dyn(calib, 3 * n + 1, |cp| {
+        let rig_p = rig_at(cp, verge, &enc).ok()?;
+        let up_p = cp.pan_axis()?.transformed(&rig_p.ref_from_left.inverse()).direction;
+        let q = UnitQuaternion::rotation_between(&up, &up_p).unwrap_or_else(UnitQuaternion::identity);
+        let basis_p = [q * basis[0], q * basis[1]];
+        let mut out = DVector::zeros(3 * n + 1);
+        let mut refits = Vec::with_capacity(n);
+        for (k, d) in motions.iter().enumerate() {
+            let ml = refine_rig_motion(&rig_p.stereo, &d.tracks, &d.cam2_from_cam1, &d.ml.points, &refit_options())
+                .ok()?;
+            out.fixed_rows_mut::<3>(3 * k).copy_from(&out_of_plane(&ml.cam2_from_cam1, &up_p, &basis_p));
+            refits.push(ml.cam2_from_cam1);
+        }
+        out[3 * n] = steer_zero_of(&up_p, &refits, &settings, &hint, wheelbase)?;
+        Some(out)
+    })
+    .unwrap_or_else(|| DMatrix::from_element(3 * n + 1, 3 * n + 1, f64::NAN));
+    let mut var_zero = cal[(3 * n, 3 * n)];
+    for (k, d) in motions.iter().enumerate() {
+        let v = out_of_plane(&d.cam2_from_cam1, &up, &basis);
+        let v_cov = out_of_plane_covariance(&d.ml, &up, &basis) + cal.fixed_view::<3, 3>(3 * k, 3 * k);
+        let chi2 = planarity_chi2(&v, &v_cov);
+        steps[k].planarity_chi2 = chi2;
+        if chi2 > options.planarity_chi2_max {
+            return Err(AlignError::NotPlanar(format!(
+                "steering {:+.1} deg: screw axis {:.2} deg from the pan axis, translation along it {:.4} baselines; chi-square {chi2:.1} (3 dof) above {}",
+                settings[k], steps[k].axis_tilt_deg, v.z, options.planarity_chi2_max
+            )));
+        }
+        // The drive's own noise, through its centre to the zero.
+        let h = 1e-6;
+        let mut j = SMatrix::<f64, 1, 6>::zeros();
+        for p in 0..6 {
+            let mut delta = Vector6::zeros();
+            let mut at = |sign: f64| {
+                delta[p] = sign * h;
+                let mut ms = nominal.clone();
+                ms[k] = perturb(&nominal[k], &delta);
+                steer_zero_of(&up, &ms, &settings, &hint, wheelbase)
+            };
+            match (at(1.0), at(-1.0)) {
+                (Some(a), Some(b)) => j[p] = (a - b) / (2.0 * h),
+                _ => j[p] = f64::NAN,
+            }
+        }
+        var_zero += (j * d.ml.covariance * j.transpose())[(0, 0)];
+    }
     robot.steer_to(sol.steer_zero_deg)?;
     let pan_check = angle_about(&up, &head_forward(&rig), &sol.forward);
     Ok(SteeringOutcome {
         turns: steps,
         steer_zero_deg: sol.steer_zero_deg,
+        sigma_steer_zero_deg: var_zero.sqrt(),
         wheelbase_m: sol.wheelbase * scale,
         pan_check_deg: pan_check.to_degrees(),
         across_rms_m: sol.across_rms * scale,

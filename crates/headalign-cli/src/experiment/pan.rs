@@ -31,10 +31,29 @@ use anyhow::{Context, Result, anyhow};
 use headalign::robot::{PanOptions, PanOutcome, SteeringOptions, align_pan, zero_steering};
 use headalign_sim::{Scenario, SimulatedRobot};
 
-use super::trial::{Quantity, TrialRecord, TrialSpec, record_from, verge_tilt_on};
+use super::trial::{Quantity, SIGMA_QUANTITIES, TrialRecord, TrialSpec, record_from, verge_tilt_on};
 
-/// The quantity the pan experiment reports with a sigma.
-pub const PAN_QUANTITIES: [&str; 1] = ["pan.aligned"];
+/// The quantities a robot trial reports with a sigma, in record order: the verge/tilt
+/// stage's ([`SIGMA_QUANTITIES`], in the robot's scene), then the final pan reading and
+/// the steering zero (degrees).
+pub const ROBOT_QUANTITIES: [&str; 13] = [
+    SIGMA_QUANTITIES[0],
+    SIGMA_QUANTITIES[1],
+    SIGMA_QUANTITIES[2],
+    SIGMA_QUANTITIES[3],
+    SIGMA_QUANTITIES[4],
+    SIGMA_QUANTITIES[5],
+    SIGMA_QUANTITIES[6],
+    SIGMA_QUANTITIES[7],
+    SIGMA_QUANTITIES[8],
+    SIGMA_QUANTITIES[9],
+    SIGMA_QUANTITIES[10],
+    "pan.aligned",
+    "steer.zero",
+];
+
+/// Index of `pan.aligned` in [`ROBOT_QUANTITIES`].
+pub const PAN_INDEX: usize = 11;
 
 /// Pan options for a scenario: its drive, the RANSAC and guide thresholds scaled by
 /// `max(1, noise_px)` (as [`super::trial::estimation_options`] does for the verge/tilt
@@ -72,18 +91,25 @@ pub fn run_pan_trial(spec: &TrialSpec) -> Result<TrialRecord> {
     let (cal, verge) = (&vt.calibration, &vt.verge_axes);
     let pan = pan_options(&scenario);
     align_pan(&mut robot, cal, verge, &pan).context("pan stage")?;
-    zero_steering(&mut robot, cal, verge, &steering_options(&scenario)).context("steering stage")?;
+    let steer = zero_steering(&mut robot, cal, verge, &steering_options(&scenario)).context("steering stage")?;
+    let steer_err = robot.steer_err_deg(robot.steering_encoder_deg());
     let last = align_pan(&mut robot, cal, verge, &pan).context("pan stage, wheel straight")?;
     let enc = robot.head().encoders();
     let pan_err = robot.pan_err_deg(&enc);
     let mut rec = record_from(robot.head(), &vt, None, t0.elapsed().as_secs_f64());
     rec.pan_err_deg = pan_err;
-    rec.quantities = vec![Quantity {
+    rec.quantities.push(Quantity {
         est: enc.pan,
         truth: enc.pan - pan_err,
         sigma: last_correction_sigma_deg(&last),
         crb: f64::NAN,
-    }];
+    });
+    rec.quantities.push(Quantity {
+        est: steer.steer_zero_deg,
+        truth: steer.steer_zero_deg - steer_err,
+        sigma: steer.sigma_steer_zero_deg,
+        crb: f64::NAN,
+    });
     Ok(rec)
 }
 
@@ -108,8 +134,13 @@ mod tests {
         let r = run_pan_trial(&spec(0.0)).unwrap();
         assert!(r.pan_err_deg.abs() < 1e-3, "{r:?}");
         assert!(r.elev_err_l_deg.abs() < 1e-3, "{r:?}");
-        let q = r.quantities[0];
+        assert_eq!(r.quantities.len(), ROBOT_QUANTITIES.len());
+        let q = r.quantities[PAN_INDEX];
         assert!((q.est - q.truth - r.pan_err_deg).abs() < 1e-12);
+        // Noise-free: both robot sigmas are tiny and the truths are matched to rounding.
+        for q in &r.quantities[PAN_INDEX..] {
+            assert!((q.est - q.truth).abs() < 1e-9 && q.sigma < 1e-3, "{q:?}");
+        }
         assert!(q.crb.is_nan());
     }
 }
