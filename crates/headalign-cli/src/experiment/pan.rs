@@ -91,7 +91,8 @@ pub fn run_pan_trial(spec: &TrialSpec) -> Result<TrialRecord> {
     let (cal, verge) = (&vt.calibration, &vt.verge_axes);
     let pan = pan_options(&scenario);
     align_pan(&mut robot, cal, verge, &pan).context("pan stage")?;
-    let steer = zero_steering(&mut robot, cal, verge, &steering_options(&scenario)).context("steering stage")?;
+    let steer =
+        zero_steering(&mut robot, cal, verge, &steering_options(&scenario)).context("steering stage")?;
     let steer_err = robot.steer_err_deg(robot.steering_encoder_deg());
     let last = align_pan(&mut robot, cal, verge, &pan).context("pan stage, wheel straight")?;
     let enc = robot.head().encoders();
