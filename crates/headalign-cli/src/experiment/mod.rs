@@ -16,8 +16,9 @@
 //! `fig5-pan-tilt` (paper Figure 5 right, section 4) runs the robot stages instead
 //! ([`pan`] module: verge/tilt, pan, steering, pan on the simulated robot) over three
 //! groups of conditions (noise, largest initial pan, drive distance); it has no
-//! Cramer-Rao bound (printed "-", the reason is in its summary), and its one reported
-//! sigma (the last pan correction's) gets a coverage.
+//! Cramer-Rao bound (printed "-", the reason is in its summary), and its reported sigmas
+//! (the last pan correction's, the steering zero's, the verge/tilt ones) get a coverage.
+//! `coverage` adds a `robot` condition (1 px) that runs the same robot trial.
 //!
 //! Outputs in `--out DIR`: `<name>.csv` (every trial, failures included with their error
 //! message), `<name>.png` and `<name>.svg` (RMS error against the parameter, with the
@@ -342,7 +343,7 @@ fn experiment(name: &str) -> Result<Experiment> {
                 default_trials: 260,
                 robot: true,
                 quantities: &ROBOT_QUANTITIES,
-                note: "Groups: `noise` sweeps the image noise (pan zeros up to 20 deg, 0.10 m drive); `pan zero` sweeps the largest initial pan error (1 px, 0.10 m); `drive` sweeps the forward drive in metres (1 px, up to 20 deg). Each trial runs the demo's default stages (verge-tilt, pan, steering, pan) in point mode with 6 near panels about 1 m ahead; errors are measured after the last stage. The plot shows the `noise` group. No Cramer-Rao bound for the pan: the pan stage has no joint likelihood whose covariance could be evaluated at the truth (its image and stereo estimates share the left images and their correlation is not modelled), so the bound columns are '-'. The reported pan sigma is the last drive's combined correction sigma. The paper's real robot: 1.7 deg RMS pan for initial pans up to 20 deg, 3.5 deg up to 60 deg.",
+                note: "Groups: `noise` sweeps the image noise (pan zeros up to 20 deg, 0.10 m drive); `pan zero` sweeps the largest initial pan error (1 px, 0.10 m); `drive` sweeps the forward drive in metres (1 px, up to 20 deg). Each trial runs the demo's default stages (verge-tilt, pan, steering, pan) in point mode with 6 near panels about 1 m ahead; errors are measured after the last stage. The plot shows the `noise` group. No Cramer-Rao bound for the pan: the pan stage has no joint likelihood whose covariance could be evaluated at the truth, so the bound columns are '-'. The reported pan sigma is the last drive's correction sigma: the verge/tilt calibration's covariance propagated through the pan computation plus the image noise (bounded for the unmodelled correlation of the image and stereo estimates); the trials also report the steering zero with its sigma (`steer.zero`) and the verge/tilt quantities in the robot's scene. The paper's real robot: 1.7 deg RMS pan for initial pans up to 20 deg, 3.5 deg up to 60 deg.",
                 positions: vec![Encoders::default()],
                 conditions,
                 series: vec![

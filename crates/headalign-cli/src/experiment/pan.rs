@@ -12,17 +12,16 @@
 //!
 //! Recorded: the pan error after the last drive (degrees, signed: the true pan of the
 //! head from the direction of travel at the final readings), the alignment errors of
-//! both cameras after all stages (elevation left/right, degrees), and one reported
-//! quantity, `pan.aligned`: the final pan reading, its truth (final reading minus the
-//! pan error) and the sigma of the last drive's correction (the inverse-variance
-//! combination of the image and stereo estimates, `1 / sqrt(1/s_i^2 + 1/s_s^2)`: the
-//! remaining error after the last correction is that correction's error). The two
-//! estimates share the left images, so this sigma is optimistic by construction
-//! (`robot` module docs); the coverage shows by how much.
+//! both cameras after all stages (elevation left/right, degrees), and the reported
+//! quantities [`ROBOT_QUANTITIES`]: the verge/tilt stage's (in the robot's scene), then
+//! `pan.aligned`, the final pan reading, its truth (final reading minus the pan error)
+//! and the sigma of the last drive's correction ([`headalign::robot::PanStep::sigma_deg`]:
+//! the verge/tilt calibration's uncertainty propagated, plus the image noise; the
+//! remaining error after the last correction is that correction's error), and
+//! `steer.zero`, the steering zero with its sigma.
 //!
 //! No Cramer-Rao bound: the pan stage has no joint likelihood of both drives, steering
-//! and calibration whose covariance could be evaluated at the truth (the image and stereo
-//! estimates are correlated and their correlation is not modelled), so the bound is NaN
+//! and calibration whose covariance could be evaluated at the truth, so the bound is NaN
 //! and printed "-" rather than invented.
 
 use std::time::Instant;
