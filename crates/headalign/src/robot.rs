@@ -164,7 +164,7 @@ impl PanOptions {
         if self.iterations == 0 {
             return bad("iterations must be at least 1".into());
         }
-        if !(self.planarity_chi2_max > 0.0) {
+        if self.planarity_chi2_max.is_nan() || self.planarity_chi2_max <= 0.0 {
             return bad(format!("planarity_chi2_max must be positive, got {}", self.planarity_chi2_max));
         }
         if !(self.guide_px > 0.0 && self.min_flow_px >= 0.0) {
