@@ -543,8 +543,15 @@ fn write_csv(path: &Path, exp: &Experiment, outcomes: &[Outcome]) -> Result<()> 
                     r.pan_err_deg,
                     r.seconds
                 );
-                for q in &r.quantities {
-                    let _ = write!(s, ",{},{},{},{}", q.est, q.truth, q.sigma, q.crb);
+                // One column group per quantity of the experiment (a verge/tilt trial in
+                // `coverage` has no robot quantities: NaN).
+                for i in 0..exp.quantities.len() {
+                    match r.quantities.get(i) {
+                        Some(q) => {
+                            let _ = write!(s, ",{},{},{},{}", q.est, q.truth, q.sigma, q.crb);
+                        }
+                        None => s.push_str(",NaN,NaN,NaN,NaN"),
+                    }
                 }
             }
             Err(e) => {
