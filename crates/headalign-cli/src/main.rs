@@ -553,13 +553,15 @@ fn demo(args: &DemoArgs) -> Result<()> {
     for (i, s) in pan_outcomes.iter().flat_map(|p| &p.steps).enumerate() {
         {
             say!(
-                "pan drive {}: image {:+.3} (sigma {:.3}), stereo {:+.3} (sigma {:.3}) -> correction {:+.3} deg; turn {:+.3} deg, median flow {:.1} px, elevation check {:+.3} deg",
+                "pan drive {}: image {:+.3} (sigma {:.3}), stereo {:+.3} (sigma {:.3}) -> correction {:+.3} deg (sigma {:.3}, {:.3} of it from the calibration); turn {:+.3} deg, median flow {:.1} px, elevation check {:+.3} deg",
                 i + 1,
                 s.pan_image_deg,
                 s.sigma_image_deg,
                 s.pan_stereo_deg,
                 s.sigma_stereo_deg,
                 s.pan_correction_deg,
+                s.sigma_deg,
+                s.sigma_calibration_deg,
                 s.turn_deg,
                 s.median_flow_px,
                 s.elevation_check_deg

@@ -16,8 +16,9 @@
 //! `fig5-pan-tilt` (paper Figure 5 right, section 4) runs the robot stages instead
 //! ([`pan`] module: verge/tilt, pan, steering, pan on the simulated robot) over three
 //! groups of conditions (noise, largest initial pan, drive distance); it has no
-//! Cramer-Rao bound (printed "-", the reason is in its summary), and its one reported
-//! sigma (the last pan correction's) gets a coverage.
+//! Cramer-Rao bound (printed "-", the reason is in its summary), and its reported sigmas
+//! (the last pan correction's, the steering zero's, the verge/tilt ones) get a coverage.
+//! `coverage` adds a `robot` condition (1 px) that runs the same robot trial.
 //!
 //! Outputs in `--out DIR`: `<name>.csv` (every trial, failures included with their error
 //! message), `<name>.png` and `<name>.svg` (RMS error against the parameter, with the
@@ -42,7 +43,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 use serde_json::json;
 
-use self::pan::{PAN_QUANTITIES, run_pan_trial};
+use self::pan::{PAN_INDEX, ROBOT_QUANTITIES, run_pan_trial};
 use self::plot::{Curve, write_plots};
 use self::stats::{coverage, quantity_crb, quantity_rms, rms};
 use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
@@ -87,6 +88,9 @@ struct Condition {
     x: f64,
     scenario: Scenario,
     rotation: RotationMode,
+    /// Run the robot stages ([`pan`] module) in this condition even when the experiment
+    /// is not a robot one.
+    robot: bool,
 }
 
 type Extract = fn(&TrialRecord) -> f64;
@@ -174,7 +178,7 @@ fn base(noise: f64) -> Scenario {
 }
 
 fn fixed(x: f64, scenario: Scenario) -> Condition {
-    Condition { group: "fixed", x, scenario, rotation: RotationMode::Fixed }
+    Condition { group: "fixed", x, scenario, rotation: RotationMode::Fixed, robot: false }
 }
 
 fn experiment(name: &str) -> Result<Experiment> {
@@ -253,6 +257,7 @@ fn experiment(name: &str) -> Result<Experiment> {
                     x: n,
                     scenario: base(n),
                     rotation: RotationMode::Auto,
+                    robot: false,
                 });
             }
             Experiment {
@@ -300,12 +305,22 @@ fn experiment(name: &str) -> Result<Experiment> {
             title: "Reported sigma vs actual error (3 deg, 200 points)",
             x_label: "image noise (px)",
             y_label: "RMS error (deg)",
-            default_trials: 300,
+            default_trials: 400,
             robot: false,
-            quantities: &SIGMA_QUANTITIES,
-            note: "",
+            quantities: &ROBOT_QUANTITIES,
+            note: "Groups: `fixed` runs the verge/tilt procedure in the plain room at each noise level; `robot` runs the robot stages at 1 px as `fig5-pan-tilt` does (verge/tilt, pan, steering, pan; 6 near panels, pan zeros up to 20 deg), which adds the final pan reading (`pan.aligned`: its sigma is the last drive's, with the verge/tilt calibration's uncertainty propagated) and the steering zero (`steer.zero`), and repeats the verge/tilt quantities in the robot's scene.",
             positions: vec![Encoders::default()],
-            conditions: [0.5, 1.0, 2.0].iter().map(|&n| fixed(n, base(n))).collect(),
+            conditions: {
+                let mut c: Vec<Condition> = [0.5, 1.0, 2.0].iter().map(|&n| fixed(n, base(n))).collect();
+                c.push(Condition {
+                    group: "robot",
+                    x: 1.0,
+                    scenario: base(1.0),
+                    rotation: RotationMode::Fixed,
+                    robot: true,
+                });
+                c
+            },
             series: alignment_series(),
         },
         "fig5-pan-tilt" => {
@@ -314,6 +329,7 @@ fn experiment(name: &str) -> Result<Experiment> {
                 x,
                 scenario: Scenario { pan_zero_max_deg: pan_max, drive_m: drive, ..base(noise) },
                 rotation: RotationMode::Fixed,
+                robot: true,
             };
             let mut conditions: Vec<Condition> =
                 noise_grid.iter().map(|&n| robot("noise", n, n, 20.0, 0.10)).collect();
@@ -326,15 +342,15 @@ fn experiment(name: &str) -> Result<Experiment> {
                 y_label: "RMS error (deg)",
                 default_trials: 260,
                 robot: true,
-                quantities: &PAN_QUANTITIES,
-                note: "Groups: `noise` sweeps the image noise (pan zeros up to 20 deg, 0.10 m drive); `pan zero` sweeps the largest initial pan error (1 px, 0.10 m); `drive` sweeps the forward drive in metres (1 px, up to 20 deg). Each trial runs the demo's default stages (verge-tilt, pan, steering, pan) in point mode with 6 near panels about 1 m ahead; errors are measured after the last stage. The plot shows the `noise` group. No Cramer-Rao bound for the pan: the pan stage has no joint likelihood whose covariance could be evaluated at the truth (its image and stereo estimates share the left images and their correlation is not modelled), so the bound columns are '-'. The reported pan sigma is the last drive's combined correction sigma. The paper's real robot: 1.7 deg RMS pan for initial pans up to 20 deg, 3.5 deg up to 60 deg.",
+                quantities: &ROBOT_QUANTITIES,
+                note: "Groups: `noise` sweeps the image noise (pan zeros up to 20 deg, 0.10 m drive); `pan zero` sweeps the largest initial pan error (1 px, 0.10 m); `drive` sweeps the forward drive in metres (1 px, up to 20 deg). Each trial runs the demo's default stages (verge-tilt, pan, steering, pan) in point mode with 6 near panels about 1 m ahead; errors are measured after the last stage. The plot shows the `noise` group. No Cramer-Rao bound for the pan: the pan stage has no joint likelihood whose covariance could be evaluated at the truth, so the bound columns are '-'. The reported pan sigma is the last drive's correction sigma: the verge/tilt calibration's covariance propagated through the pan computation plus the image noise (bounded for the unmodelled correlation of the image and stereo estimates); the trials also report the steering zero with its sigma (`steer.zero`) and the verge/tilt quantities in the robot's scene. The paper's real robot: 1.7 deg RMS pan for initial pans up to 20 deg, 3.5 deg up to 60 deg.",
                 positions: vec![Encoders::default()],
                 conditions,
                 series: vec![
                     Series { label: "pan (deg)", value: |r| r.pan_err_deg, crb: None },
                     Series {
                         label: "reported pan sigma (deg)",
-                        value: |r| r.quantities.first().map_or(f64::NAN, |q| q.sigma),
+                        value: |r| r.quantities.get(PAN_INDEX).map_or(f64::NAN, |q| q.sigma),
                         crb: None,
                     },
                     Series { label: "elevation left (deg)", value: |r| r.elev_err_l_deg, crb: None },
@@ -367,15 +383,13 @@ fn spec(exp: &Experiment, c: &Condition, trial: usize, seed: u64) -> TrialSpec {
 /// All trials of one seed: conditions that differ only in noise share one noise-free run.
 fn run_seed(exp: &Experiment, trial: usize, seed: u64) -> Vec<Outcome> {
     let mut out = Vec::new();
-    if exp.robot {
-        for (ci, c) in exp.conditions.iter().enumerate() {
-            let result = run_pan_trial(&spec(exp, c, trial, seed)).map_err(|e| format!("{e:#}"));
-            out.push(Outcome { condition: ci, trial, seed, result });
-        }
-        return out;
-    }
     let mut clean: Vec<(TrialSpec, Result<CleanRun, String>)> = Vec::new();
     for (ci, c) in exp.conditions.iter().enumerate() {
+        if exp.robot || c.robot {
+            let result = run_pan_trial(&spec(exp, c, trial, seed)).map_err(|e| format!("{e:#}"));
+            out.push(Outcome { condition: ci, trial, seed, result });
+            continue;
+        }
         let s = spec(exp, c, trial, seed);
         let mut key = s.clone();
         key.scenario.noise_px = 0.0;
@@ -529,8 +543,15 @@ fn write_csv(path: &Path, exp: &Experiment, outcomes: &[Outcome]) -> Result<()> 
                     r.pan_err_deg,
                     r.seconds
                 );
-                for q in &r.quantities {
-                    let _ = write!(s, ",{},{},{},{}", q.est, q.truth, q.sigma, q.crb);
+                // One column group per quantity of the experiment (a verge/tilt trial in
+                // `coverage` has no robot quantities: NaN).
+                for i in 0..exp.quantities.len() {
+                    match r.quantities.get(i) {
+                        Some(q) => {
+                            let _ = write!(s, ",{},{},{},{}", q.est, q.truth, q.sigma, q.crb);
+                        }
+                        None => s.push_str(",NaN,NaN,NaN,NaN"),
+                    }
                 }
             }
             Err(e) => {

@@ -12,17 +12,16 @@
 //!
 //! Recorded: the pan error after the last drive (degrees, signed: the true pan of the
 //! head from the direction of travel at the final readings), the alignment errors of
-//! both cameras after all stages (elevation left/right, degrees), and one reported
-//! quantity, `pan.aligned`: the final pan reading, its truth (final reading minus the
-//! pan error) and the sigma of the last drive's correction (the inverse-variance
-//! combination of the image and stereo estimates, `1 / sqrt(1/s_i^2 + 1/s_s^2)`: the
-//! remaining error after the last correction is that correction's error). The two
-//! estimates share the left images, so this sigma is optimistic by construction
-//! (`robot` module docs); the coverage shows by how much.
+//! both cameras after all stages (elevation left/right, degrees), and the reported
+//! quantities [`ROBOT_QUANTITIES`]: the verge/tilt stage's (in the robot's scene), then
+//! `pan.aligned`, the final pan reading, its truth (final reading minus the pan error)
+//! and the sigma of the last drive's correction ([`headalign::robot::PanStep::sigma_deg`]:
+//! the verge/tilt calibration's uncertainty propagated, plus the image noise; the
+//! remaining error after the last correction is that correction's error), and
+//! `steer.zero`, the steering zero with its sigma.
 //!
 //! No Cramer-Rao bound: the pan stage has no joint likelihood of both drives, steering
-//! and calibration whose covariance could be evaluated at the truth (the image and stereo
-//! estimates are correlated and their correlation is not modelled), so the bound is NaN
+//! and calibration whose covariance could be evaluated at the truth, so the bound is NaN
 //! and printed "-" rather than invented.
 
 use std::time::Instant;
@@ -31,10 +30,29 @@ use anyhow::{Context, Result, anyhow};
 use headalign::robot::{PanOptions, PanOutcome, SteeringOptions, align_pan, zero_steering};
 use headalign_sim::{Scenario, SimulatedRobot};
 
-use super::trial::{Quantity, TrialRecord, TrialSpec, record_from, verge_tilt_on};
+use super::trial::{Quantity, SIGMA_QUANTITIES, TrialRecord, TrialSpec, record_from, verge_tilt_on};
 
-/// The quantity the pan experiment reports with a sigma.
-pub const PAN_QUANTITIES: [&str; 1] = ["pan.aligned"];
+/// The quantities a robot trial reports with a sigma, in record order: the verge/tilt
+/// stage's ([`SIGMA_QUANTITIES`], in the robot's scene), then the final pan reading and
+/// the steering zero (degrees).
+pub const ROBOT_QUANTITIES: [&str; 13] = [
+    SIGMA_QUANTITIES[0],
+    SIGMA_QUANTITIES[1],
+    SIGMA_QUANTITIES[2],
+    SIGMA_QUANTITIES[3],
+    SIGMA_QUANTITIES[4],
+    SIGMA_QUANTITIES[5],
+    SIGMA_QUANTITIES[6],
+    SIGMA_QUANTITIES[7],
+    SIGMA_QUANTITIES[8],
+    SIGMA_QUANTITIES[9],
+    SIGMA_QUANTITIES[10],
+    "pan.aligned",
+    "steer.zero",
+];
+
+/// Index of `pan.aligned` in [`ROBOT_QUANTITIES`].
+pub const PAN_INDEX: usize = 11;
 
 /// Pan options for a scenario: its drive, the RANSAC and guide thresholds scaled by
 /// `max(1, noise_px)` (as [`super::trial::estimation_options`] does for the verge/tilt
@@ -54,12 +72,10 @@ fn steering_options(scenario: &Scenario) -> SteeringOptions {
     o
 }
 
-/// Sigma of the last drive's combined pan correction, degrees (NaN without a drive).
+/// Sigma of the last drive's pan correction, degrees (NaN without a drive): the
+/// calibration and image-noise sigma the stage reports ([`headalign::robot::PanStep::sigma_deg`]).
 pub fn last_correction_sigma_deg(outcome: &PanOutcome) -> f64 {
-    outcome.steps.last().map_or(f64::NAN, |s| {
-        let inv = s.sigma_image_deg.powi(-2) + s.sigma_stereo_deg.powi(-2);
-        if inv.is_finite() && inv > 0.0 { inv.sqrt().recip() } else { f64::NAN }
-    })
+    outcome.steps.last().map_or(f64::NAN, |s| s.sigma_deg)
 }
 
 /// Run one trial of the robot stages (module docs).
@@ -74,18 +90,26 @@ pub fn run_pan_trial(spec: &TrialSpec) -> Result<TrialRecord> {
     let (cal, verge) = (&vt.calibration, &vt.verge_axes);
     let pan = pan_options(&scenario);
     align_pan(&mut robot, cal, verge, &pan).context("pan stage")?;
-    zero_steering(&mut robot, cal, verge, &steering_options(&scenario)).context("steering stage")?;
+    let steer =
+        zero_steering(&mut robot, cal, verge, &steering_options(&scenario)).context("steering stage")?;
+    let steer_err = robot.steer_err_deg(robot.steering_encoder_deg());
     let last = align_pan(&mut robot, cal, verge, &pan).context("pan stage, wheel straight")?;
     let enc = robot.head().encoders();
     let pan_err = robot.pan_err_deg(&enc);
     let mut rec = record_from(robot.head(), &vt, None, t0.elapsed().as_secs_f64());
     rec.pan_err_deg = pan_err;
-    rec.quantities = vec![Quantity {
+    rec.quantities.push(Quantity {
         est: enc.pan,
         truth: enc.pan - pan_err,
         sigma: last_correction_sigma_deg(&last),
         crb: f64::NAN,
-    }];
+    });
+    rec.quantities.push(Quantity {
+        est: steer.steer_zero_deg,
+        truth: steer.steer_zero_deg - steer_err,
+        sigma: steer.sigma_steer_zero_deg,
+        crb: f64::NAN,
+    });
     Ok(rec)
 }
 
@@ -110,8 +134,13 @@ mod tests {
         let r = run_pan_trial(&spec(0.0)).unwrap();
         assert!(r.pan_err_deg.abs() < 1e-3, "{r:?}");
         assert!(r.elev_err_l_deg.abs() < 1e-3, "{r:?}");
-        let q = r.quantities[0];
+        assert_eq!(r.quantities.len(), ROBOT_QUANTITIES.len());
+        let q = r.quantities[PAN_INDEX];
         assert!((q.est - q.truth - r.pan_err_deg).abs() < 1e-12);
+        // Noise-free: both robot sigmas are tiny and the truths are matched to rounding.
+        for q in &r.quantities[PAN_INDEX..] {
+            assert!((q.est - q.truth).abs() < 1e-9 && q.sigma < 1e-3, "{q:?}");
+        }
         assert!(q.crb.is_nan());
     }
 }
