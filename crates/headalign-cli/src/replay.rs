@@ -40,14 +40,18 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let info = read_session_info(&args.dir)?;
     let mut head = ReplayHead::open(&args.dir)?;
     let context = || format!("replay of '{}'", args.dir.display());
-    let (mut v, views) = if info.procedure == images::PROCEDURE {
-        let (run, outcome) = images::procedure(
-            &mut head,
+    // The verge/tilt part of an image session, as recorded (seed and rotation choice).
+    let verge_tilt = |head: &mut ReplayHead| {
+        images::procedure(
+            head,
             info.rotation_deg,
             info.auto_rotation,
             info.estimation_seed,
             &mut |_, _, _, _| {},
-        );
+        )
+    };
+    let (mut v, views) = if info.procedure == images::PROCEDURE {
+        let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
         (images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
     } else if info.procedure == images::PROCEDURE_ROBOT {
@@ -64,13 +68,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
                     info.procedure
                 )
             })?;
-        let (run, outcome) = images::procedure(
-            &mut head,
-            info.rotation_deg,
-            info.auto_rotation,
-            info.estimation_seed,
-            &mut |_, _, _, _| {},
-        );
+        let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
         let robot = images::robot_stages(&mut head, &plan, &outcome, &mut |_, _| {}).with_context(context)?;
         let mut v = images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?;

@@ -1416,20 +1416,25 @@ mod tests {
         (100.0 * c.sigma("left.fx").unwrap_or(f64::NAN) / t.left.fx, c.sigma("left.k1").unwrap_or(f64::NAN))
     }
 
+    /// The scene of the bound experiments: 400 points, no outliers, two distinct cameras.
+    fn bound_scenario(seed: u64) -> Scenario {
+        Scenario {
+            seed,
+            points: 400,
+            outlier_fraction: 0.0,
+            left: Intrinsics::new(700.0, 700.0, 390.0, 284.0),
+            right: Intrinsics::new(705.0, 705.0, 380.0, 290.0),
+            ..Scenario::default()
+        }
+    }
+
     /// The Cramer-Rao bound per seed of the one-general-motion session:
     /// `cargo test --release -p headalign --lib calibrate::tests::general_motion_bound -- --ignored --nocapture`.
     #[test]
     #[ignore = "experiment: prints the bound over 20 seeds"]
     fn general_motion_bound() {
         for seed in 1..=20 {
-            let scenario = Scenario {
-                seed,
-                points: 400,
-                outlier_fraction: 0.0,
-                left: Intrinsics::new(700.0, 700.0, 390.0, 284.0),
-                right: Intrinsics::new(705.0, 705.0, 380.0, 290.0),
-                ..Scenario::default()
-            };
+            let scenario = bound_scenario(seed);
             let (sf, _) = crb_one_motion(&scenario, &general_rig_motion(), 0.5, false);
             let (sfd, sk) = crb_one_motion(&scenario, &general_rig_motion(), 0.5, true);
             eprintln!("seed {seed}: CRB f {sf:.3} %, with k1 k2: f {sfd:.3} % k1 {sk:.4}");
@@ -1453,14 +1458,7 @@ mod tests {
             {
                 let mut out = Vec::new();
                 for seed in first..=last {
-                    let scenario = Scenario {
-                        seed,
-                        points: 400,
-                        outlier_fraction: 0.0,
-                        left: Intrinsics::new(700.0, 700.0, 390.0, 284.0),
-                        right: Intrinsics::new(705.0, 705.0, 380.0, 290.0),
-                        ..Scenario::default()
-                    };
+                    let scenario = bound_scenario(seed);
                     let axis = Line::new(Unit::new_normalize(axis_dir), Point3::new(0.0, -1.2, 0.0));
                     let r = rotation_about_line(&axis, f64::to_radians(angle));
                     let m = Isometry3::from_parts(
