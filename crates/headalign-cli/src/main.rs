@@ -316,6 +316,8 @@ fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan>
         steer_drive_m: args.steer_drive.or(args.images.then_some(stages::IMAGE_STEER_DRIVE_M)),
         steer_settings_deg: args.steer_settings.clone(),
         baseline_m: scenario.baseline_m,
+        // On images a wider planarity limit: see `stages::IMAGE_PLANARITY_CHI2_MAX`.
+        planarity_chi2_max: args.images.then_some(stages::IMAGE_PLANARITY_CHI2_MAX),
     })
 }
 
