@@ -531,10 +531,12 @@ fn demo(args: &DemoArgs) -> Result<()> {
     for (i, s) in one_motion_outcomes.iter().flat_map(|p| &p.steps).enumerate() {
         let e = &s.estimate;
         say!(
-            "one motion {}: pan {:+.3} deg, elevation {:+.3} deg; tilt {:+.3} deg, robot turn {:+.3} deg, verge check {:+.3} / {:+.3} deg, {} tracks",
+            "one motion {}: pan {:+.3} deg, elevation {:+.3} deg, verge {:+.3} / {:+.3} deg; tilt {:+.3} deg, robot turn {:+.3} deg, verge check {:+.3} / {:+.3} deg, {} tracks",
             i + 1,
             e.pan_correction_deg,
             e.elevation_correction_deg,
+            e.verge_correction_deg[0].unwrap_or(f64::NAN),
+            e.verge_correction_deg[1].unwrap_or(f64::NAN),
             e.tilt_deg,
             e.turn_deg,
             e.verge_check_deg[0],

@@ -1,6 +1,6 @@
 //! One-motion alignment (end of paper section 4): a single motion that drives the robot
-//! forward and turns the elevation joint at the same time aligns the pan and the
-//! elevation, and checks the vergence, in point mode.
+//! forward and turns the elevation joint at the same time aligns the vergence, the
+//! elevation and the pan together.
 //!
 //! **Model.** Let `cam1_from_cam2` be the rigid motion of the left camera (its pose after
 //! the motion in its frame before), measured from the calibrated stereo reconstruction
@@ -28,9 +28,14 @@
 //!   elevation axis horizontal; the simulator mounts it a few degrees off, so its angle
 //!   from `u` is only reported (`horizon_tilt_deg`). The heading is taken after the
 //!   elevation correction (an elevation axis off the horizontal turns the head);
-//! - *vergence*: reported, not moved: the angle of each optical axis out of the plane
-//!   perpendicular to `a` (zero for aligned vergence, the sim's `verge_err`); the
-//!   verge/tilt stage has already zeroed them with the same calibrated axis.
+//! - *vergence*: the angle of each optical axis out of the plane perpendicular to `a` is
+//!   reported (`verge_check_deg`, the sim's `verge_err`), and the turn of each camera
+//!   about its calibrated vergence axis (direction `g`, fixed in its camera frame) that
+//!   brings its optical axis into that plane is solved exactly (the paper: the motion's
+//!   invariant line at infinity aligns the vergence axes). The elevation and the heading
+//!   are then computed for the verge-corrected optical axes, so one motion's corrections
+//!   are consistent (noise-free: exact together). After a verge/tilt stage the vergence
+//!   correction is small (that stage zeroed it about the same calibrated axis).
 //!
 //! **A turning robot** (steering wheel not straight, as before the steering stage): the
 //! rotation is then `Rot(u, phi) Rot(a, r)` (robot turn about the pan axis `u` after the
@@ -76,6 +81,9 @@ pub struct HeadFrame {
     pub pan_axis: Unit<Vector3<f64>>,
     /// Right optical axis (unit).
     pub right_optical_axis: Vector3<f64>,
+    /// Left and right vergence axis directions, directed like their encoders (calibrated;
+    /// `None`: that camera's vergence is not corrected).
+    pub verge_axes: [Option<Unit<Vector3<f64>>>; 2],
 }
 
 /// Which horizon the elevation correction levels the left optical axis with.
@@ -143,8 +151,12 @@ pub struct OneMotionEstimate {
     /// Angle of the drive out of the plane perpendicular to the pan axis, degrees.
     pub elevation_check_deg: f64,
     /// Angle of the left / right optical axis out of the plane perpendicular to the
-    /// calibrated elevation axis (vergence errors, not corrected here), degrees.
+    /// calibrated elevation axis before the motion's corrections (vergence errors),
+    /// degrees.
     pub verge_check_deg: [f64; 2],
+    /// Vergence corrections (move the left / right vergence joint by this), degrees;
+    /// `None` where the vergence axis is unknown or no turn about it reaches the plane.
+    pub verge_correction_deg: [Option<f64>; 2],
     /// Angle between the paper's horizon normal (elevation axis x drive) and the
     /// calibrated pan axis, degrees: zero when the elevation axis is perpendicular to the
     /// pan axis (the paper's assumption; the simulator mounts it up to a few degrees off).
@@ -211,16 +223,28 @@ pub fn one_motion_from_motion(
         Horizon::Drive => (up - v * v.dot(&up)).normalize(),
         Horizon::PanAxis => up,
     };
-    let elev = elevation_into_plane(&a, &Vector3::z(), &n).ok_or_else(|| {
+    // Vergence first: each optical axis into the plane perpendicular to the elevation axis
+    // by a turn about its own vergence axis.
+    let zl = Vector3::z();
+    let zr = head.right_optical_axis.normalize();
+    let verge_turn = |g: Option<Unit<Vector3<f64>>>, z: &Vector3<f64>| {
+        let angle = g.and_then(|g| elevation_into_plane(&g, z, &a));
+        let turned = match (g, angle) {
+            (Some(g), Some(t)) => UnitQuaternion::from_axis_angle(&g, t) * z,
+            _ => *z,
+        };
+        (angle, turned)
+    };
+    let (verge_l, zl_aligned) = verge_turn(head.verge_axes[0], &zl);
+    let (verge_r, zr_aligned) = verge_turn(head.verge_axes[1], &zr);
+    let elev = elevation_into_plane(&a, &zl_aligned, &n).ok_or_else(|| {
         AlignError::NotPlanar("one motion: no elevation brings the optical axis into the horizon".into())
     })?;
     // The elevation joint carries both cameras; its axis need not be perpendicular to the
     // pan axis, so the heading is taken after the elevation correction.
-    let h = UnitQuaternion::from_axis_angle(&Unit::new_unchecked(a), elev)
-        * (Vector3::z() + head.right_optical_axis);
+    let h = UnitQuaternion::from_axis_angle(&Unit::new_unchecked(a), elev) * (zl_aligned + zr_aligned);
     let pan = angle_about(&up, &h, &v);
     let asin_deg = |x: f64| x.clamp(-1.0, 1.0).asin().to_degrees();
-    let zr = head.right_optical_axis.normalize();
     Ok(OneMotionEstimate {
         drive_direction: [v.x, v.y, v.z],
         displacement,
@@ -231,6 +255,7 @@ pub fn one_motion_from_motion(
         elevation_correction_deg: elev.to_degrees(),
         elevation_check_deg: asin_deg(v.dot(&up)),
         verge_check_deg: [asin_deg(a.z), asin_deg(zr.dot(&a))],
+        verge_correction_deg: [verge_l.map(f64::to_degrees), verge_r.map(f64::to_degrees)],
         horizon_tilt_deg: paper_normal.angle(&up).to_degrees(),
     })
 }
@@ -264,6 +289,8 @@ pub struct OneMotionOptions {
     pub iterations: usize,
     /// Move the elevation joint too (else only the pan). Default true.
     pub correct_elevation: bool,
+    /// Move the vergence joints too (where their axes are calibrated). Default true.
+    pub correct_vergence: bool,
     /// Horizon of the elevation correction. Default [`Horizon::PanAxis`] (the more
     /// precise, see [`Horizon`]).
     pub horizon: Horizon,
@@ -280,6 +307,7 @@ impl Default for OneMotionOptions {
             tilt_deg: 5.0,
             iterations: 2,
             correct_elevation: true,
+            correct_vergence: true,
             horizon: Horizon::PanAxis,
             thresholds: OneMotionThresholds::default(),
             registration: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
@@ -352,12 +380,25 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
         let about_pan = Isometry3::from_parts((pan_axis.point.coords - q * pan_axis.point.coords).into(), q);
         let elev_axis = elev_axis.transformed(&(left_from_ref * about_pan));
         let pan_axis = pan_axis.transformed(&left_from_ref);
+        // A vergence axis is fixed in its camera's frame (the camera turns about it, pan and
+        // elevation carry both): the left one as calibrated (reference left frame), the
+        // right one through the right camera's frame at the reference readings.
+        let right_from_ref = calib.bundle.state.right_from_left.rotation;
+        let verge_axes = [
+            verge.left.map(|l| l.direction),
+            verge.right.map(|l| {
+                Unit::new_normalize(
+                    rig.left_from_right.rotation * (right_from_ref * l.direction.into_inner()),
+                )
+            }),
+        ];
         let head = HeadFrame {
             elevation_point: elev_axis.point,
             elevation_axis: elev_axis.direction,
             pan_point: pan_axis.point,
             pan_axis: pan_axis.direction,
             right_optical_axis: head_forward(&rig) - Vector3::z(),
+            verge_axes: if options.correct_vergence { verge_axes } else { [None, None] },
         };
         let motion = drive_motion(&rig, &before, &after, &options.registration)?;
         let estimate = one_motion_from_motion(
@@ -370,6 +411,12 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
         let mut target = enc.moved(Joint::Pan, estimate.pan_correction_deg);
         if options.correct_elevation {
             target = target.moved(Joint::Elevation, estimate.elevation_correction_deg);
+        }
+        for (joint, c) in [Joint::VergeLeft, Joint::VergeRight].into_iter().zip(estimate.verge_correction_deg)
+        {
+            if let Some(c) = c {
+                target = target.moved(joint, c);
+            }
         }
         robot.move_to(&target)?;
         steps.push(OneMotionStep { encoders: enc, estimate, inliers: motion.inliers });
@@ -409,6 +456,8 @@ mod tests {
             r_deg in 2.0f64..10.0, neg in any::<bool>(), d in 0.05f64..1.0,
             zr in prop::array::uniform3(-0.2f64..0.2), turn_deg in -3.0f64..3.0,
             pp in prop::array::uniform3(-2.0f64..2.0),
+            gl in prop::array::uniform3(-0.2f64..0.2), gr in prop::array::uniform3(-0.2f64..0.2),
+            verge in any::<bool>(),
         ) {
             let up = unit(up0);
             prop_assume!(up.norm() > 0.0 && up.z.abs() < 0.7);
@@ -426,9 +475,12 @@ mod tests {
             let robot = Isometry3::from_parts((p.coords - turn * p.coords + half * v * d).into(), turn);
             let m = robot * motion(&a, r, &Point3::from(o), &Vector3::zeros());
             let right = (Vector3::z() + Vector3::from(zr)).normalize();
+            // Vergence axes near the pan axis (as on a head), a few degrees off.
+            let g = |d: [f64; 3]| Unit::new_normalize(up.into_inner() + Vector3::from(d));
+            let verge_axes = if verge { [Some(g(gl)), Some(g(gr))] } else { [None, None] };
             let head = HeadFrame {
                 elevation_point: Point3::from(o), elevation_axis: a, pan_point: p, pan_axis: up,
-                right_optical_axis: right,
+                right_optical_axis: right, verge_axes,
             };
             let horizon = if neg { Horizon::Drive } else { Horizon::PanAxis };
             let e = one_motion_from_motion(&m, r, &head, horizon, &OneMotionThresholds::default()).unwrap();
@@ -436,12 +488,23 @@ mod tests {
             prop_assert!((e.displacement - d).abs() < 1e-9 && (e.tilt_deg - r).abs() < 1e-7);
             prop_assert!((e.turn_deg - turn_deg).abs() < 1e-7);
             prop_assert!(e.elevation_check_deg.abs() < 1e-7 && e.horizon_tilt_deg < 1e-5);
+            // The vergence turns, then elevation and pan, as joint rotations.
+            let turn_about = |g: Option<Unit<Vector3<f64>>>, c: Option<f64>, z: Vector3<f64>| match (g, c) {
+                (Some(g), Some(c)) => UnitQuaternion::from_axis_angle(&g, c.to_radians()) * z,
+                (None, None) => z,
+                _ => Vector3::from_element(f64::NAN),
+            };
+            let zl = turn_about(verge_axes[0], e.verge_correction_deg[0], Vector3::z());
+            let zr = turn_about(verge_axes[1], e.verge_correction_deg[1], right);
+            if verge {
+                prop_assert!(zl.dot(&a).abs() < 1e-9 && zr.dot(&a).abs() < 1e-9);
+            }
             let pan = UnitQuaternion::from_axis_angle(&up, e.pan_correction_deg.to_radians());
             let el = UnitQuaternion::from_axis_angle(&a, e.elevation_correction_deg.to_radians());
-            let h = pan * el * (Vector3::z() + right);
+            let h = pan * el * (zl + zr);
             let hh = h - up.into_inner() * up.dot(&h);
             prop_assert!(hh.normalize().cross(&v).norm() < 1e-9 && hh.dot(&v) > 0.0);
-            prop_assert!((el * Vector3::z()).dot(&up).abs() < 1e-9);
+            prop_assert!((el * zl).dot(&up).abs() < 1e-9);
         }
     }
 
@@ -456,6 +519,7 @@ mod tests {
             pan_point: Point3::new(0.5, 0.1, -0.3),
             pan_axis: -Vector3::y_axis(),
             right_optical_axis: Vector3::z(),
+            verge_axes: [None, None],
         };
         let th = OneMotionThresholds::default();
         let no_tilt = motion(&a, 0.2, &o, &Vector3::new(0.0, 0.0, 0.4));
@@ -477,11 +541,11 @@ mod tests {
         assert!(matches!(bad.validate(), Err(AlignError::InvalidOption(_))));
     }
 
-    /// Noise-free end to end after the verge/tilt stage: pan and left elevation errors
-    /// below 1e-3 deg (the verge/tilt calibration's convergence limit, as the pan stage's
-    /// test); a 0.2 deg tilt is the named error.
+    /// Noise-free end to end after the verge/tilt stage: pan, left elevation and both
+    /// vergence errors below 1e-3 deg (the verge/tilt calibration's convergence limit, as
+    /// the pan stage's test); a 0.2 deg tilt is the named error.
     #[test]
-    fn noise_free_stage_aligns_pan_and_elevation() {
+    fn noise_free_stage_aligns_pan_elevation_and_vergence() {
         let s = Scenario { seed: 2, noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
         let mut robot = SimulatedRobot::new(s).unwrap();
         let opts = VergeTiltOptions {
@@ -489,8 +553,10 @@ mod tests {
             ..VergeTiltOptions::default()
         };
         let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
-        // Spoil the elevation the verge/tilt stage aligned, so the stage has work to do.
+        // Spoil the elevation and vergence the verge/tilt stage aligned, so the stage has
+        // work to do on every joint.
         let enc = robot.head().encoders().moved(Joint::Elevation, 3.0);
+        let enc = enc.moved(Joint::VergeLeft, 2.0).moved(Joint::VergeRight, -1.5);
         robot.move_to(&enc).unwrap();
         let out = align_one_motion(&mut robot, &vt.calibration, &vt.verge_axes, &OneMotionOptions::default())
             .unwrap();
@@ -498,6 +564,7 @@ mod tests {
         let errs = robot.head().alignment_errors(&enc);
         assert!(robot.pan_err_deg(&enc).abs() < 1e-3, "{out:?}");
         assert!(errs.elev_err_l_deg.abs() < 1e-3, "{errs:?} {out:?}");
+        assert!(errs.verge_err_l_deg.abs() < 1e-3 && errs.verge_err_r_deg.abs() < 1e-3, "{errs:?} {out:?}");
         let small = OneMotionOptions { tilt_deg: 0.2, ..OneMotionOptions::default() };
         assert!(matches!(
             align_one_motion(&mut robot, &vt.calibration, &vt.verge_axes, &small),
