@@ -368,16 +368,14 @@ fn demo(args: &DemoArgs) -> Result<()> {
     let mut run = VergeTiltRun::default();
     let session = args.session.as_ref().map(|dir| {
         let head = json!({"kind": "simulator", "scenario": serde_json::to_value(&scenario).ok()});
-        (dir.clone(), points::session_info(&options, robot.head().image_size(), head))
+        let mut info = points::session_info(&options, robot.head().image_size(), head);
+        // The robot stages are recorded too (their captures after the verge/tilt views);
+        // `replay` runs them from `stages`.
+        info.stages = rplan.drives().then(|| serde_json::to_value(&rplan).ok()).flatten();
+        (dir.clone(), info)
     });
     let (outcome, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session)?;
-    let robot_out = stages::run_robot_stages(
-        &mut robot,
-        &rplan,
-        &outcome.calibration,
-        &outcome.verge_axes,
-        &mut |_, _| {},
-    )?;
+    let (robot_out, writer) = points::robot_stages(&mut robot, &rplan, &outcome, writer)?;
     let stages::RobotOutcomes {
         pan: pan_outcomes,
         pan_fixate: fixate_outcomes,

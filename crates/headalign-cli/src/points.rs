@@ -3,8 +3,9 @@
 //! points in its `capture` member, no images; `events.jsonl`), the views so far as an
 //! observation session (`observations.json`, format `headalign-observations/1`, readable
 //! by `align --observations`) and the demo's JSON as `report.json`. The robot stages
-//! (steering, pan) that follow are not recorded (their drives are not head calls);
-//! `replay` re-runs the verge/tilt stage.
+//! that follow are recorded too ([`robot_stages`]: their captures in folders named by
+//! stage, drives and steering as events, the stage plan in `session.json` `stages`), and
+//! `replay` re-runs the verge/tilt stage and then those stages.
 
 use std::path::PathBuf;
 
@@ -14,8 +15,10 @@ use headalign::procedure::{
     AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
 };
 use headalign::session::{RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
-use headalign_platform::StereoHead;
+use headalign_platform::{StereoHead, Vehicle};
 use serde_json::json;
+
+use crate::stages::{RobotOutcomes, RobotPlan, run_robot_stages};
 
 /// The procedure name in `session.json` for point mode.
 pub const PROCEDURE: &str = "verge-tilt-points";
@@ -86,5 +89,36 @@ pub fn options(info: &SessionInfo) -> VergeTiltOptions {
             ..headalign::estimate::EstimationOptions::default()
         },
         ..VergeTiltOptions::default()
+    }
+}
+
+/// The robot stages of `plan` on `robot` after the verge/tilt stage, recorded into
+/// `writer` when the run has a session (each stage's captures under its name, drives and
+/// steering as events); a failure writes `report.json` and says where the session is.
+pub fn robot_stages<R: StereoHead + Vehicle>(
+    robot: &mut R,
+    plan: &RobotPlan,
+    outcome: &VergeTiltOutcome,
+    writer: Option<SessionWriter>,
+) -> Result<(RobotOutcomes, Option<SessionWriter>)> {
+    let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
+    let Some(writer) = writer else {
+        return Ok((run_robot_stages(robot, plan, calib, verge, &mut |_, _| {})?, None));
+    };
+    let mut rec = RecordingHead::new(robot, writer);
+    let result =
+        run_robot_stages(&mut rec, plan, calib, verge, &mut |h, stage| h.set_stage(stage, Vec::new(), stage));
+    let writer = rec.into_writer();
+    match result {
+        Ok(r) => Ok((r, Some(writer))),
+        Err(e) => {
+            let _ = writer.write_report(&json!({"status": "failed", "error": crate::images::one_line(&e)}));
+            let kept = format!(
+                "session with {} captured view(s) kept in {}",
+                writer.views(),
+                writer.dir().display()
+            );
+            Err(e.context(kept))
+        }
     }
 }

@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::session::{ReplayHead, read_session_info};
+use headalign::session::{ReplayHead, SessionInfo, read_session_info};
 use serde_json::{Value, json};
 
 use crate::stages::RobotPlan;
@@ -55,19 +55,13 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         let outcome = outcome.with_context(context)?;
         (images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
     } else if info.procedure == images::PROCEDURE_ROBOT {
-        let plan: RobotPlan = info
-            .stages
-            .clone()
-            .map(serde_json::from_value)
-            .transpose()
-            .with_context(|| format!("'{}': stages", args.dir.join("session.json").display()))?
-            .with_context(|| {
-                format!(
-                    "'{}' names no stages for procedure '{}'",
-                    args.dir.join("session.json").display(),
-                    info.procedure
-                )
-            })?;
+        let plan = session_plan(&args.dir, &info)?.with_context(|| {
+            format!(
+                "'{}' names no stages for procedure '{}'",
+                args.dir.join("session.json").display(),
+                info.procedure
+            )
+        })?;
         let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
         let robot = images::robot_stages(&mut head, &plan, &outcome, &mut |_, _| {}).with_context(context)?;
@@ -79,13 +73,21 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     } else if info.procedure == points::PROCEDURE {
         let mut run = VergeTiltRun::default();
         let outcome = run.run(&mut head, &points::options(&info)).with_context(context)?;
-        let v = json!({
+        let mut v = json!({
             "mode": "points",
             "estimate": images::estimate_json(&outcome)?,
             "report": serde_json::to_value(&outcome.calibration.report)?,
             "checks": serde_json::to_value(&outcome.checks)?,
             "views": run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
         });
+        // The robot stages recorded after the verge/tilt stage (sessions that have them).
+        if let Some(plan) = session_plan(&args.dir, &info)? {
+            let (robot, _) = points::robot_stages(&mut head, &plan, &outcome, None).with_context(context)?;
+            if let Some(m) = v.as_object_mut() {
+                m.insert("stages".into(), serde_json::to_value(&plan.stages)?);
+                m.insert("robot".into(), serde_json::to_value(&robot)?);
+            }
+        }
         (v, run.views.len())
     } else if info.procedure == calibrate::PROCEDURE {
         // A calibration session (`simulate --images`): no head calls to play back; the
@@ -157,4 +159,13 @@ pub fn print_summary(v: &Value) {
     if let Some(dir) = v["session"].as_str() {
         say!("session (views, report.json, figure6.png, aligned.png): {dir}");
     }
+}
+
+/// The robot stages a session recorded (`session.json` `stages`), if any.
+fn session_plan(dir: &std::path::Path, info: &SessionInfo) -> Result<Option<RobotPlan>> {
+    info.stages
+        .clone()
+        .map(serde_json::from_value)
+        .transpose()
+        .with_context(|| format!("'{}': stages", dir.join("session.json").display()))
 }

@@ -197,7 +197,7 @@ fn driver_failures_stop_the_run_and_keep_the_session() {
 }
 
 #[test]
-fn point_mode_sessions_record_the_verge_tilt_stage_and_replay() {
+fn point_mode_sessions_record_every_stage_and_replay() {
     let dir = tmp("points-3");
     let live =
         ok_json(&bin().args(["demo", "--seed", "3", "--json", "--session"]).arg(&dir).output().unwrap());
@@ -218,6 +218,13 @@ fn point_mode_sessions_record_the_verge_tilt_stage_and_replay() {
         }
     }
     assert_eq!(r["estimate"]["aligned_encoders"], live["estimate"]["aligned_encoders"]);
+    // The robot stages (default: pan, steering, pan) are recorded and replayed too: their
+    // captures are folders named by stage, every recorded event is played back, and the
+    // corrections are the live run's, bit for bit.
+    assert!(folders.iter().any(|f| f.ends_with("steering-1")), "{folders:?}");
+    assert_eq!(r["unplayed_events"], 0, "{r}");
+    assert_eq!(r["robot"]["pan"], live["pan"]);
+    assert_eq!(r["robot"]["steering"], live["steering"]);
     // The views are also an observation session.
     let out = bin().args(["align", "--observations"]).arg(dir.join("observations.json")).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
