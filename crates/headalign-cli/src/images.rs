@@ -263,9 +263,6 @@ fn finish(
     run: ImageRun,
     result: Result<(VergeTiltOutcome, Value)>,
 ) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
-    let kept = |writer: &SessionWriter| {
-        format!("session with {} captured view(s) kept in {}", writer.views(), writer.dir().display())
-    };
     let result = result.and_then(|(o, mut json)| {
         if let Some(m) = json.as_object_mut() {
             m.insert("session".into(), json!(writer.dir().display().to_string()));
@@ -279,12 +276,16 @@ fn finish(
             writer.write_report(&json).context("session")?;
             Ok((run, o, json))
         }
-        Err(e) => {
-            // Best effort: the error itself is what the user must see.
-            let _ = writer.write_report(&json!({"status": "failed", "error": one_line(&e)}));
-            Err(e.context(kept(writer)))
-        }
+        Err(e) => Err(failed_in_session(writer, e)),
     }
+}
+
+/// A failure of a recorded run: `report.json` says so (best effort: the error itself is
+/// what the user must see) and the error ends with where the captured views are kept.
+pub fn failed_in_session(writer: &SessionWriter, e: anyhow::Error) -> anyhow::Error {
+    let _ = writer.write_report(&json!({"status": "failed", "error": one_line(&e)}));
+    let kept = format!("session with {} captured view(s) kept in {}", writer.views(), writer.dir().display());
+    e.context(kept)
 }
 
 /// An error and its causes on one line, joined by ": ", leaving out a cause whose text

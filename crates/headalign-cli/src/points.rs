@@ -16,7 +16,6 @@ use headalign::procedure::{
 };
 use headalign::session::{RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
 use headalign_platform::{StereoHead, Vehicle};
-use serde_json::json;
 
 use crate::stages::{RobotOutcomes, RobotPlan, run_robot_stages};
 
@@ -54,15 +53,7 @@ pub fn verge_tilt<H: StereoHead>(
         .with_context(|| format!("cannot write {}", observations.display()));
     match outcome.and_then(|o| saved.map(|()| o)) {
         Ok(o) => Ok((o, Some(writer))),
-        Err(e) => {
-            let _ = writer.write_report(&json!({"status": "failed", "error": crate::images::one_line(&e)}));
-            let kept = format!(
-                "session with {} captured view(s) kept in {}",
-                writer.views(),
-                writer.dir().display()
-            );
-            Err(e.context(kept))
-        }
+        Err(e) => Err(crate::images::failed_in_session(&writer, e)),
     }
 }
 
@@ -111,14 +102,6 @@ pub fn robot_stages<R: StereoHead + Vehicle>(
     let writer = rec.into_writer();
     match result {
         Ok(r) => Ok((r, Some(writer))),
-        Err(e) => {
-            let _ = writer.write_report(&json!({"status": "failed", "error": crate::images::one_line(&e)}));
-            let kept = format!(
-                "session with {} captured view(s) kept in {}",
-                writer.views(),
-                writer.dir().display()
-            );
-            Err(e.context(kept))
-        }
+        Err(e) => Err(crate::images::failed_in_session(&writer, e)),
     }
 }

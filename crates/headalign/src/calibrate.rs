@@ -83,7 +83,7 @@ use serde::Serialize;
 use crate::error::{AlignError, StepContext};
 use crate::estimate::{
     DEPTH_RATIO, EstimationOptions, FINAL_ITERATIONS, MOVED_DEG, PolishedHomography, Reconstruction,
-    StereoMatch, adjust_from_starts, polish, rms, stereo_matches,
+    StereoMatch, adjust_from_starts, points_in_ref, polish, rms, stereo_matches,
 };
 use crate::observations::View;
 
@@ -537,28 +537,8 @@ impl Problem<'_> {
         ref_from_cam: Vec<Isometry3<f64>>,
         point_in_cam: impl Fn(usize, u64) -> Option<Point3<f64>>,
     ) -> Result<RigState, AlignError> {
-        let mut points = Vec::with_capacity(self.point_tracks.len());
-        let mut in_front = 0;
-        for (i, &track) in self.point_tracks.iter().enumerate() {
-            let slot = self.origin_slot[i];
-            let p = match point_in_cam(slot, track) {
-                Some(p) if p.coords.iter().all(|v| v.is_finite()) => {
-                    if p.z > 0.0 {
-                        in_front += 1;
-                    }
-                    p
-                }
-                _ => Point3::new(0.0, 0.0, 1e3),
-            };
-            points.push(ref_from_cam[slot] * p);
-        }
-        if in_front < self.min_tracks {
-            return Err(AlignError::TooFewTracks {
-                what: "reconstructed in front of the cameras".into(),
-                needed: self.min_tracks,
-                got: in_front,
-            });
-        }
+        let points =
+            points_in_ref(self.point_tracks, self.origin_slot, &ref_from_cam, self.min_tracks, point_in_cam)?;
         Ok(RigState {
             left,
             right,

@@ -1128,30 +1128,8 @@ impl InitContext<'_> {
         let (Some((pan_axis, _)), Some((elev_axis, _))) = (axes[0], axes[1]) else {
             return Err(AlignError::MissingMotion("single-joint rotations about pan and elevation".into()));
         };
-        let mut points = Vec::with_capacity(self.point_tracks.len());
-        let mut in_front = 0;
-        for (i, track) in self.point_tracks.iter().enumerate() {
-            let slot = self.origin_slot[i];
-            let p = point_in_cam(slot, *track);
-            let p = match p {
-                Some(p) if p.coords.iter().all(|v| v.is_finite()) => {
-                    if p.z > 0.0 {
-                        in_front += 1;
-                    }
-                    p
-                }
-                // Keep the index layout; a point with no position starts far ahead.
-                _ => Point3::new(0.0, 0.0, 1e3),
-            };
-            points.push(ref_from_cam[slot] * p);
-        }
-        if in_front < self.min_tracks {
-            return Err(AlignError::TooFewTracks {
-                what: "reconstructed in front of the cameras".into(),
-                needed: self.min_tracks,
-                got: in_front,
-            });
-        }
+        let points =
+            points_in_ref(self.point_tracks, self.origin_slot, ref_from_cam, self.min_tracks, point_in_cam)?;
         let angles: Vec<Vec<f64>> = self.commanded.iter().map(|c| c.to_vec()).collect();
         Ok(RigState {
             left,
@@ -1167,6 +1145,42 @@ impl InitContext<'_> {
             points,
         })
     }
+}
+
+/// The start's points in the reference frame: track `point_tracks[i]` as reconstructed
+/// by the view in slot `origin_slot[i]` (`point_in_cam(slot, track)`, that view's camera
+/// frame), moved by `ref_from_cam[slot]`. A point with no finite position keeps the index
+/// layout and starts far ahead; fewer than `min_tracks` points in front of their camera
+/// is [`AlignError::TooFewTracks`].
+pub(crate) fn points_in_ref(
+    point_tracks: &[u64],
+    origin_slot: &[usize],
+    ref_from_cam: &[Isometry3<f64>],
+    min_tracks: usize,
+    point_in_cam: impl Fn(usize, u64) -> Option<Point3<f64>>,
+) -> Result<Vec<Point3<f64>>, AlignError> {
+    let mut points = Vec::with_capacity(point_tracks.len());
+    let mut in_front = 0;
+    for (&track, &slot) in point_tracks.iter().zip(origin_slot) {
+        let p = match point_in_cam(slot, track) {
+            Some(p) if p.coords.iter().all(|v| v.is_finite()) => {
+                if p.z > 0.0 {
+                    in_front += 1;
+                }
+                p
+            }
+            _ => Point3::new(0.0, 0.0, 1e3),
+        };
+        points.push(ref_from_cam[slot] * p);
+    }
+    if in_front < min_tracks {
+        return Err(AlignError::TooFewTracks {
+            what: "reconstructed in front of the cameras".into(),
+            needed: min_tracks,
+            got: in_front,
+        });
+    }
+    Ok(points)
 }
 
 /// Initial state from the linear self-calibration chain (module docs, step 5).
