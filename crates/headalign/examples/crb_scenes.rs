@@ -1,0 +1,75 @@
+//! Experiment: how the Cramer-Rao bounds of the issue-5 bars depend on the simulated
+//! scene the paper leaves open (depth range of the points, near structure).
+//! `cargo run --release -p headalign --example crb_scenes -- [SEEDS]`
+//!
+//! Per scene variant and seed: the verge/tilt procedure noise-free (3 deg rotations,
+//! 3 deg vergence move), then the bundle covariance at that state (zero iterations, no
+//! robust loss) for the bar's noise, propagated to the aligned elevation as the procedure
+//! does ([`alignment_sigmas`]) — the same bound as `headalign experiment`. Prints the RMS
+//! over seeds of the bound of `f = fx` (percent, L/R pooled; 200 points, 3 px) and of the
+//! aligned elevation (degrees; 50 points, 1.5 px).
+use headalign::estimate::{EstimationOptions, RigCalibration};
+use headalign::procedure::{VergeTiltOptions, VergeTiltRun, alignment_sigmas};
+use headalign_geometry::bundle::{RobustLoss, bundle_adjust};
+use headalign_sim::{Scenario, SimulatedHead};
+
+/// (bound of f pooled in percent, bound of the aligned elevation in degrees) at `noise`.
+fn bounds(s: &Scenario, noise: f64) -> Result<(f64, f64), Box<dyn std::error::Error>> {
+    let mut head = SimulatedHead::new(Scenario { noise_px: 0.0, ..s.clone() })?;
+    let opts = VergeTiltOptions {
+        rotation_deg: 3.0,
+        verge_rotation_deg: 3.0,
+        estimation: EstimationOptions { seed: s.seed, ..EstimationOptions::default() },
+        ..VergeTiltOptions::default()
+    };
+    let out = VergeTiltRun::default().run(&mut head, &opts)?;
+    let calib = &out.calibration;
+    let mut o = EstimationOptions::default().bundle;
+    o.max_iterations = 0;
+    o.robust = RobustLoss::None;
+    o.noise_sigma_px = Some(noise);
+    let bundle = bundle_adjust(&calib.bundle.state, &calib.observations, &o)?;
+    let at_truth = RigCalibration { bundle, ..calib.clone() };
+    let sig = alignment_sigmas(&at_truth, &out.verge_axes, &calib.reference_encoders)?;
+    let st = &at_truth.bundle.state;
+    let c = &at_truth.bundle.covariance;
+    let fl = c.sigma("left.fx").unwrap_or(f64::NAN) / st.left.fx * 100.0;
+    let fr = c.sigma("right.fx").unwrap_or(f64::NAN) / st.right.fx * 100.0;
+    Ok(((0.5 * (fl * fl + fr * fr)).sqrt(), sig.elevation_deg))
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let args: Vec<String> = std::env::args().collect();
+    let seeds: u64 = args.get(1).map_or(Ok(10), |s| s.parse())?;
+    let d = Scenario::default();
+    let range = |lo: f64, hi: f64| Scenario { scene_min_m: lo, scene_max_m: hi, ..Scenario::default() };
+    let mut variants: Vec<(String, Scenario)> = vec![("default 1.5-6 m".into(), d.clone())];
+    for (lo, hi) in [(3.0, 6.0), (1.5, 10.0), (1.0, 6.0), (1.5, 3.0), (1.0, 3.0), (0.7, 2.0), (0.7, 1.5), (0.5, 1.2)] {
+        variants.push((format!("{lo}-{hi} m"), range(lo, hi)));
+    }
+    variants.push((
+        "default + 6 near panels at 1 m".into(),
+        Scenario { near_panels: Scenario::ROBOT_NEAR_PANELS, ..d.clone() },
+    ));
+    variants.push(("paper_lab preset".into(), Scenario::paper_lab()));
+    println!("| scene | f bound, 200 pts, 3 px (%) | elevation bound, 50 pts, 1.5 px (deg) | ok seeds |");
+    println!("|---|---|---|---|");
+    for (name, s) in variants {
+        let (mut sf, mut se, mut n) = (0.0, 0.0, 0usize);
+        for seed in 1..=seeds {
+            let f200 = bounds(&Scenario { seed, points: 200, ..s.clone() }, 3.0);
+            let e50 = bounds(&Scenario { seed, points: 50, ..s.clone() }, 1.5);
+            match (f200, e50) {
+                (Ok((f, _)), Ok((_, e))) => {
+                    sf += f * f;
+                    se += e * e;
+                    n += 1;
+                }
+                (a, b) => eprintln!("{name} seed {seed}: {:?} {:?}", a.err(), b.err()),
+            }
+        }
+        let nf = n.max(1) as f64;
+        println!("| {name} | {:.2} | {:.3} | {n}/{seeds} |", (sf / nf).sqrt(), (se / nf).sqrt());
+    }
+    Ok(())
+}
