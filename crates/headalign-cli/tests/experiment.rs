@@ -51,10 +51,13 @@ fn json_summary_and_clean_errors() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v[0]["experiment"], "points");
-    assert_eq!(v[0]["conditions"].as_array().map(|a| a.len()), Some(4));
+    // 4 point counts with 3 deg rotations, and 50 points with the procedure's own.
+    assert_eq!(v[0]["conditions"].as_array().map(|a| a.len()), Some(5));
+    assert_eq!(v[0]["scene"], "default");
     for (args, expected) in [
         (vec!["experiment", "nope"], "unknown experiment"),
         (vec!["experiment", "points", "--trials", "0"], "at least 1"),
+        (vec!["experiment", "points", "--scene", "moon"], "unknown scene 'moon'"),
     ] {
         let out = bin().args(&args).arg("--out").arg(dir.to_str().unwrap()).output().unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
@@ -106,4 +109,27 @@ fn pan_tilt_writes_finite_numbers_and_is_exact_without_noise() {
             assert!(num("elev_err_r_excess_deg").abs() < 0.01, "{r:?}");
         }
     }
+}
+
+/// `--scene paper`: the files are named `<experiment>-paper`, the summary names the scene,
+/// and the trials ran in the near room (reconstruction and bounds finite).
+#[test]
+fn paper_scene_writes_its_own_files() {
+    let dir = out_dir("paper");
+    let out = bin()
+        .args(["experiment", "points", "--scene", "paper", "--only", "50", "--trials", "2"])
+        .arg("--out")
+        .arg(dir.to_str().unwrap())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for ext in ["csv", "png", "svg", "md"] {
+        let f = dir.join(format!("points-paper.{ext}"));
+        assert!(std::fs::metadata(&f).map(|m| m.len()).unwrap_or(0) > 100, "{} missing", f.display());
+    }
+    assert!(!dir.join("points.csv").exists());
+    let md = std::fs::read_to_string(dir.join("points-paper.md")).unwrap();
+    assert!(md.contains("## points-paper — scene `paper`") && md.contains("](points-paper.png)"), "{md}");
+    // One seed per condition: the fixed and the auto group at 50 points, both succeeded.
+    assert!(md.contains("| fixed | 50 | 1/1 |") && md.contains("| auto | 50 | 1/1 |"), "{md}");
 }

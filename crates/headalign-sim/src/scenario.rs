@@ -377,6 +377,26 @@ mod tests {
         }
     }
 
+    /// The presets: `default` is `Scenario::default()`, `paper` differs only in the depth
+    /// range and its head sees its points within it; unknown names are a clean error.
+    #[test]
+    fn presets() {
+        assert_eq!(Scenario::preset("default").unwrap(), Scenario::default());
+        let p = Scenario::preset("paper").unwrap();
+        assert_eq!(p, Scenario { scene_min_m: 0.6, scene_max_m: 1.5, ..Scenario::default() });
+        p.validate().unwrap();
+        let head = crate::SimulatedHead::new(p.clone()).unwrap();
+        let (world_from_left, _) = head.scene_from_cameras(&Default::default());
+        let centre = world_from_left.translation.vector;
+        let r: Vec<f64> = head.scene_points().iter().map(|(_, q)| (q.coords - centre).norm()).collect();
+        assert!(r.len() > 100, "{}", r.len());
+        // Points are kept between min and max from the head centre; a camera is a few cm
+        // from it (0.03 m forward offset, half the 0.25 m baseline, 0.06 m elevation).
+        assert!(r.iter().all(|d| *d > 0.6 - 0.2 && *d < 1.5 + 0.2), "{r:?}");
+        let e = Scenario::preset("far").unwrap_err().to_string();
+        assert!(e.contains("unknown scene preset 'far'") && e.contains("paper"), "{e}");
+    }
+
     #[test]
     fn toml_round_trip() {
         let s = Scenario { seed: 42, noise_px: 0.5, points: 50, ..Scenario::default() };

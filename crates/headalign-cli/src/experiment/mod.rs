@@ -76,6 +76,13 @@ pub struct ExperimentArgs {
     /// over the remaining conditions.
     #[arg(long, value_delimiter = ',')]
     pub only: Vec<f64>,
+    /// Scene preset of every condition: `default` (the "yorick" room, points 1.5-6 m) or
+    /// `paper` (`Scenario::paper_lab`: points 0.6-1.5 m, the paper's ~1 m lab scene).
+    /// Outputs of a non-default scene are named `<experiment>-<scene>`. `all` always runs
+    /// the default scene, then the bars' conditions (calibration at 3 px, points at 50)
+    /// in the paper scene too.
+    #[arg(long, default_value = "default")]
+    pub scene: String,
 }
 
 /// One condition: a point of the swept parameter.
@@ -173,15 +180,17 @@ fn alignment_series() -> Vec<Series> {
     ]
 }
 
-fn base(noise: f64) -> Scenario {
-    Scenario { noise_px: noise, ..Scenario::default() }
+fn base(scene: &Scenario, noise: f64) -> Scenario {
+    Scenario { noise_px: noise, ..scene.clone() }
 }
 
 fn fixed(x: f64, scenario: Scenario) -> Condition {
     Condition { group: "fixed", x, scenario, rotation: RotationMode::Fixed, robot: false }
 }
 
-fn experiment(name: &str) -> Result<Experiment> {
+/// Experiment `name` with every condition in `scene` (a preset, any seed).
+fn experiment(name: &str, scene: &Scenario) -> Result<Experiment> {
+    let base = |noise: f64| base(scene, noise);
     let noise_grid = [0.0, 0.5, 1.0, 2.0, 3.0];
     Ok(match name {
         "fig5-verge-tilt" => Experiment {
@@ -228,15 +237,26 @@ fn experiment(name: &str) -> Result<Experiment> {
             title: "Error vs number of points (1.5 px, 3 deg)",
             x_label: "points",
             y_label: "RMS error (deg, %)",
-            default_trials: 120,
+            default_trials: 150,
             robot: false,
             quantities: &SIGMA_QUANTITIES,
             note: "",
             positions: vec![Encoders::default()],
-            conditions: [50usize, 100, 200, 400]
-                .iter()
-                .map(|&p| fixed(p as f64, Scenario { points: p, ..base(1.5) }))
-                .collect(),
+            conditions: {
+                let mut c: Vec<Condition> = [50usize, 100, 200, 400]
+                    .iter()
+                    .map(|&p| fixed(p as f64, Scenario { points: p, ..base(1.5) }))
+                    .collect();
+                // The 50-point bar with the rotations the procedure chooses itself.
+                c.push(Condition {
+                    group: "auto",
+                    x: 50.0,
+                    scenario: Scenario { points: 50, ..base(1.5) },
+                    rotation: RotationMode::Auto,
+                    robot: false,
+                });
+                c
+            },
             series: vec![
                 elevation_left(),
                 verge_left(),
@@ -667,37 +687,75 @@ fn curves(exp: &Experiment, sums: &[ConditionSummary]) -> Vec<Curve> {
 /// What one experiment produced, for `all`'s report.
 struct Produced {
     name: &'static str,
+    /// Scene preset the experiment ran in.
+    scene: &'static str,
+    /// Output file stem (`name`, or `name-scene` for a non-default scene).
+    stem: String,
     markdown: String,
     sums: Vec<ConditionSummary>,
     series_labels: Vec<&'static str>,
     quantities: &'static [&'static str],
 }
 
-fn run_one(name: &str, args: &ExperimentArgs) -> Result<Produced> {
-    let mut exp = experiment(name)?;
-    if !args.only.is_empty() {
-        exp.conditions.retain(|c| args.only.iter().any(|x| (x - c.x).abs() <= 1e-9 * x.abs().max(1.0)));
+/// Which trials [`run_one`] runs: the scene preset, the swept values kept (empty: all)
+/// and the seeds per condition (`None`: `--trials` or the experiment's default, split over
+/// the conditions kept).
+struct Selection<'a> {
+    scene: &'static str,
+    only: &'a [f64],
+    seeds: Option<usize>,
+}
+
+/// The `&'static` name of a scene preset (rejects unknown names with the list).
+fn scene_name(name: &str) -> Result<&'static str> {
+    Scenario::PRESETS
+        .iter()
+        .copied()
+        .find(|p| *p == name)
+        .map_or_else(|| bail!("unknown scene '{name}'; expected one of {}", Scenario::PRESETS.join(", ")), Ok)
+}
+
+fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Produced> {
+    let scene = Scenario::preset(sel.scene).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut exp = experiment(name, &scene)?;
+    if !sel.only.is_empty() {
+        exp.conditions.retain(|c| sel.only.iter().any(|x| (x - c.x).abs() <= 1e-9 * x.abs().max(1.0)));
         if exp.conditions.is_empty() {
-            bail!("--only {:?} matches no condition of experiment '{}'", args.only, exp.name);
+            bail!("--only {:?} matches no condition of experiment '{}'", sel.only, exp.name);
         }
     }
-    let total = args.trials.unwrap_or(exp.default_trials);
-    if total == 0 {
-        bail!("--trials must be at least 1");
-    }
-    let trials = total.div_ceil(exp.conditions.len().max(1));
+    let trials = match sel.seeds {
+        Some(n) => n,
+        None => {
+            let total = args.trials.unwrap_or(exp.default_trials);
+            if total == 0 {
+                bail!("--trials must be at least 1");
+            }
+            total.div_ceil(exp.conditions.len().max(1))
+        }
+    };
+    // Files of a non-default scene: `<experiment>-<scene>`.
+    let stem =
+        if sel.scene == "default" { exp.name.to_string() } else { format!("{}-{}", exp.name, sel.scene) };
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
     let t0 = Instant::now();
     let outcomes = run_experiment(&exp, trials, args.seed);
     let seconds = t0.elapsed().as_secs_f64();
     let sums = summarise(&exp, &outcomes);
-    write_csv(&args.out.join(format!("{}.csv", exp.name)), &exp, &outcomes)?;
-    write_plots(&args.out.join(exp.name), exp.title, exp.x_label, exp.y_label, &curves(&exp, &sums))?;
-    let md = markdown(&exp, trials, args.seed, &sums, seconds);
-    std::fs::write(args.out.join(format!("{}.md", exp.name)), &md)
-        .with_context(|| format!("cannot write {}.md", exp.name))?;
+    write_csv(&args.out.join(format!("{stem}.csv")), &exp, &outcomes)?;
+    write_plots(&args.out.join(&stem), exp.title, exp.x_label, exp.y_label, &curves(&exp, &sums))?;
+    let mut md = markdown(&exp, trials, args.seed, &sums, seconds);
+    if sel.scene != "default" {
+        md = md
+            .replacen(&format!("## {} — ", exp.name), &format!("## {stem} — scene `{}`: ", sel.scene), 1)
+            .replace(&format!("]({}.png)", exp.name), &format!("]({stem}.png)"));
+    }
+    std::fs::write(args.out.join(format!("{stem}.md")), &md)
+        .with_context(|| format!("cannot write {stem}.md"))?;
     Ok(Produced {
         name: exp.name,
+        scene: sel.scene,
+        stem,
         markdown: md,
         sums,
         series_labels: exp.series.iter().map(|s| s.label).collect(),
@@ -727,24 +785,39 @@ fn summary_json(p: &Produced) -> serde_json::Value {
             json!({"group": c.group, "x": c.x, "ok": c.ok, "total": c.total, "series": series, "quantities": quantities})
         })
         .collect();
-    json!({"experiment": p.name, "conditions": conds})
+    json!({"experiment": p.name, "scene": p.scene, "conditions": conds})
 }
 
 fn nan_null(v: f64) -> serde_json::Value {
     if v.is_finite() { json!(v) } else { serde_json::Value::Null }
 }
 
+/// (experiment, swept value) that `all` also runs in the paper-like scene
+/// (`Scenario::paper_lab`): the focal length bar at 3 px and the 50-point bars.
+const PAPER_SCENE_BARS: [(&str, f64); 2] = [("calibration", 3.0), ("points", 50.0)];
+
 /// Entry point of `headalign experiment`.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
+    let scene = scene_name(&args.scene)?;
     let names: Vec<&str> = if args.name == "all" {
         NAMES.iter().copied().filter(|n| *n != "all").collect()
     } else {
-        experiment(&args.name)?;
+        experiment(&args.name, &Scenario::default())?;
         vec![args.name.as_str()]
     };
     let mut produced = Vec::new();
+    let sel = Selection { scene, only: &args.only, seeds: None };
     for n in names {
-        produced.push(run_one(n, args)?);
+        produced.push(run_one(n, args, &sel)?);
+    }
+    if args.name == "all" && scene == "default" {
+        // The bars' conditions again in the paper-like scene, with as many seeds per
+        // condition as the default run used.
+        for (n, x) in PAPER_SCENE_BARS {
+            let seeds = produced.iter().find(|p| p.name == n).map(|p| p.sums.iter().map(|c| c.total).max());
+            let sel = Selection { scene: "paper", only: &[x], seeds: seeds.flatten() };
+            produced.push(run_one(n, args, &sel)?);
+        }
     }
     if args.name == "all" {
         let path = results_path(&args.out);
@@ -776,9 +849,41 @@ mod report;
 mod tests {
     use super::*;
 
+    /// `results.md` rows of the bars in both scenes: the 50-point rows of the fixed and
+    /// the auto group, each with its bound, and the scene named (one seed, 50 points).
+    #[test]
+    fn bar_rows_name_their_scene_and_bound() {
+        let args = ExperimentArgs {
+            name: "points".into(),
+            trials: None,
+            seed: 3,
+            out: std::env::temp_dir().join(format!("headalign-scene-rows-{}", std::process::id())),
+            json: false,
+            only: vec![],
+            scene: "default".into(),
+        };
+        let mut ps = Vec::new();
+        for scene in ["default", "paper"] {
+            let sel = Selection { scene, only: &[50.0], seeds: Some(1) };
+            ps.push(run_one("points", &args, &sel).unwrap());
+        }
+        let md = report::results_md(&ps, &args.out);
+        for words in ["default scene (points 1.5-6 m)", "paper-like scene (`--scene paper`"] {
+            for rot in ["3 deg rotations", "rotations chosen by the procedure"] {
+                let row = md
+                    .lines()
+                    .find(|l| l.contains(words) && l.contains(rot) && l.contains("elevation error"))
+                    .unwrap_or_else(|| panic!("no row for {words} / {rot} in {md}"));
+                assert!(row.contains("1/1 trials succeeded; bound 0."), "{row}");
+            }
+        }
+        assert!(md.contains("](results/points-paper.png)") || md.contains("points-paper.png)"), "{md}");
+        assert!(scene_name("moon").is_err());
+    }
+
     #[test]
     fn unknown_is_a_clean_error() {
-        let e = experiment("nope").err().map(|e| e.to_string()).unwrap_or_default();
+        let e = experiment("nope", &Scenario::default()).err().map(|e| e.to_string()).unwrap_or_default();
         assert!(e.contains("unknown experiment"), "{e}");
         assert_eq!(results_path(Path::new("docs/results")), Path::new("docs/results.md"));
     }

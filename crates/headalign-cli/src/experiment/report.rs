@@ -8,8 +8,71 @@ use super::stats::{coverage_interval, ratio_interval};
 use super::trial::SIGMA_QUANTITIES;
 use super::{ConditionSummary, Produced, f};
 
+/// Experiment `name` in the default scene.
 fn find<'a>(ps: &'a [Produced], name: &str) -> Option<&'a Produced> {
-    ps.iter().find(|p| p.name == name)
+    find_in(ps, name, "default")
+}
+
+/// Experiment `name` in scene preset `scene`.
+fn find_in<'a>(ps: &'a [Produced], name: &str, scene: &str) -> Option<&'a Produced> {
+    ps.iter().find(|p| p.name == name && p.scene == scene)
+}
+
+/// "in the default scene (points 1.5-6 m)" / "in the paper-like scene (...)".
+fn scene_words(scene: &str) -> &'static str {
+    if scene == "paper" {
+        "paper-like scene (`--scene paper`, points 0.6-1.5 m)"
+    } else {
+        "default scene (points 1.5-6 m)"
+    }
+}
+
+/// The focal length bar at 3 px (3 deg rotations, 200 points) of one scene.
+fn focal_row(m: &mut String, p: &Produced) {
+    let Some(c) = cond(p, "fixed", 3.0) else { return };
+    let pooled = series(p, c, "focal length f = fx, L/R pooled (%)");
+    let bound = series_crb(p, c, "focal length f = fx, L/R pooled (%)");
+    let _ = writeln!(
+        m,
+        "| focal length error at 3 px, {}: the paper's f (= fx; fy = a f), both cameras pooled; bound {} % | 1.7 % | {} % | <= 1.7 % | {} |",
+        scene_words(p.scene),
+        f(bound, 2),
+        f(pooled, 2),
+        bounded_verdict(pooled, 1.7, bound, c.ok)
+    );
+}
+
+/// The 50-point bars (1.5 px) of one scene and rotation group (`fixed`: 3 deg; `auto`:
+/// chosen by the procedure).
+fn fifty_point_rows(m: &mut String, p: &Produced, group: &str) {
+    let Some(c) = cond(p, group, 50.0) else { return };
+    let rot = if group == "auto" {
+        format!("rotations chosen by the procedure (mean {} deg)", f(c.mean_rotation_deg, 1))
+    } else {
+        "3 deg rotations".to_string()
+    };
+    let e = series(p, c, "elevation left (deg)");
+    let eb = series_crb(p, c, "elevation left (deg)");
+    let r = series(p, c, "reconstruction, RMS over points (%)");
+    let rm = series(p, c, "reconstruction, median over points (%)");
+    let _ = writeln!(
+        m,
+        "| 50 points, 1.5 px, {rot}, {}: RMS elevation error ({}/{} trials succeeded; bound {} deg) | 0.6 deg | {} deg | <= 0.6 deg | {} |",
+        scene_words(p.scene),
+        c.ok,
+        c.total,
+        f(eb, 3),
+        f(e, 3),
+        bounded_verdict(e, 0.6, eb, c.ok)
+    );
+    let _ = writeln!(
+        m,
+        "| 50 points, 1.5 px, {rot}, {}: RMS reconstruction error (per trial RMS over points; median over points {} %) | 5.7 % | {} % | <= 5.7 % | {} |",
+        scene_words(p.scene),
+        f(rm, 2),
+        f(r, 2),
+        verdict(r <= 5.7)
+    );
 }
 
 fn cond<'a>(p: &'a Produced, group: &str, x: f64) -> Option<&'a ConditionSummary> {
@@ -135,48 +198,27 @@ show.\n"
             f(r, 2),
             verdict(r <= 1.15)
         );
-        if let Some(c) = cond(p, "fixed", 3.0) {
-            let pooled = series(p, c, "focal length f = fx, L/R pooled (%)");
-            let bound = series_crb(p, c, "focal length f = fx, L/R pooled (%)");
-            let w = series(p, c, "focal length, worst of 4 (%)");
-            let _ = writeln!(
-                m,
-                "| focal length error at 3 px: the paper's f (= fx; fy = a f), both cameras pooled; bound {} % | 1.7 % | {} % | <= 1.7 % | {} |",
-                f(bound, 2),
-                f(pooled, 2),
-                bounded_verdict(pooled, 1.7, bound, c.ok)
-            );
-            let _ = writeln!(
-                m,
-                "| focal length error at 3 px, stricter reading: RMS of the worst of the 4 focal lengths | 1.7 % | {} % | <= 1.7 % | {} |",
-                f(w, 2),
-                verdict(w <= 1.7)
-            );
+        let w = cond(p, "fixed", 3.0).map_or(f64::NAN, |c| series(p, c, "focal length, worst of 4 (%)"));
+        focal_row(&mut m, p);
+        let _ = writeln!(
+            m,
+            "| focal length error at 3 px, default scene, stricter reading: RMS of the worst of the 4 focal lengths | 1.7 % | {} % | <= 1.7 % | {} |",
+            f(w, 2),
+            verdict(w <= 1.7)
+        );
+    }
+    if let Some(p) = find_in(ps, "calibration", "paper") {
+        focal_row(&mut m, p);
+    }
+    for scene in ["default", "paper"] {
+        if let Some(p) = find_in(ps, "points", scene) {
+            fifty_point_rows(&mut m, p, "fixed");
         }
     }
-    if let Some(p) = find(ps, "points")
-        && let Some(c) = cond(p, "fixed", 50.0)
-    {
-        let e = series(p, c, "elevation left (deg)");
-        let eb = series_crb(p, c, "elevation left (deg)");
-        let r = series(p, c, "reconstruction, RMS over points (%)");
-        let rm = series(p, c, "reconstruction, median over points (%)");
-        let _ = writeln!(
-            m,
-            "| 50 points, 1.5 px: RMS elevation error ({}/{} trials succeeded; bound {} deg) | 0.6 deg | {} deg | <= 0.6 deg | {} |",
-            c.ok,
-            c.total,
-            f(eb, 3),
-            f(e, 3),
-            bounded_verdict(e, 0.6, eb, c.ok)
-        );
-        let _ = writeln!(
-            m,
-            "| 50 points, 1.5 px: RMS reconstruction error (per trial RMS over points; median over points {} %) | 5.7 % | {} % | <= 5.7 % | {} |",
-            f(rm, 2),
-            f(r, 2),
-            verdict(r <= 5.7)
-        );
+    for scene in ["default", "paper"] {
+        if let Some(p) = find_in(ps, "points", scene) {
+            fifty_point_rows(&mut m, p, "auto");
+        }
     }
     if let Some(p) = find(ps, "rotation") {
         if let Some(c) = cond(p, "auto", 1.0) {
@@ -262,7 +304,7 @@ show.\n"
         let _ = writeln!(
             m,
             "{}",
-            p.markdown.replace(&format!("]({}.png)", p.name), &format!("]({dir}/{}.png)", p.name))
+            p.markdown.replace(&format!("]({}.png)", p.stem), &format!("]({dir}/{}.png)", p.stem))
         );
     }
     m
