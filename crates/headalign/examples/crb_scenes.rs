@@ -44,7 +44,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let d = Scenario::default();
     let range = |lo: f64, hi: f64| Scenario { scene_min_m: lo, scene_max_m: hi, ..Scenario::default() };
     let mut variants: Vec<(String, Scenario)> = vec![("default 1.5-6 m".into(), d.clone())];
-    for (lo, hi) in [(3.0, 6.0), (1.5, 10.0), (1.0, 6.0), (1.5, 3.0), (1.0, 3.0), (0.7, 2.0), (0.7, 1.5), (0.5, 1.2)] {
+    for (lo, hi) in
+        [(3.0, 6.0), (1.5, 10.0), (1.0, 6.0), (1.5, 3.0), (1.0, 3.0), (0.7, 2.0), (0.7, 1.5), (0.5, 1.2)]
+    {
         variants.push((format!("{lo}-{hi} m"), range(lo, hi)));
     }
     variants.push((
