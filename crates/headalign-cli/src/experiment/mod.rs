@@ -240,7 +240,7 @@ fn experiment(name: &str, scene: &Scenario) -> Result<Experiment> {
             default_trials: 150,
             robot: false,
             quantities: &SIGMA_QUANTITIES,
-            note: "",
+            note: "Group `auto`: 50 points with the rotations the procedure chooses itself (`--auto-rotation`, default `AutoRotation`). Its overlap rule needs at least 60 stereo tracks shared with the reference view (`AutoRotation::min_tracks`), which a 50-point scene never has, so it keeps the 3 deg protocol (no diagonal views, 3 deg vergence move) and differs from `fixed` only by the random draws of its probe captures. The reconstruction error's tail is the likelihood's own, not the estimator's: started from the truth on the same inliers, the bundle adjustment ends at the estimate's cost (`cargo run --release -p headalign --example recon_ml`); the worst trials have their points on one wall 3-6 m away, where the baseline direction is known to 15-20 deg and far points are reconstructed near infinity.",
             positions: vec![Encoders::default()],
             conditions: {
                 let mut c: Vec<Condition> = [50usize, 100, 200, 400]
