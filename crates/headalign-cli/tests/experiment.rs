@@ -58,6 +58,7 @@ fn json_summary_and_clean_errors() {
         (vec!["experiment", "nope"], "unknown experiment"),
         (vec!["experiment", "points", "--trials", "0"], "at least 1"),
         (vec!["experiment", "points", "--scene", "moon"], "unknown scene 'moon'"),
+        (vec!["experiment", "all", "--scene", "paper"], "--scene is for single experiments"),
     ] {
         let out = bin().args(&args).arg("--out").arg(dir.to_str().unwrap()).output().unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);

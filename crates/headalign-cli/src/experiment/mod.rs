@@ -799,6 +799,11 @@ const PAPER_SCENE_BARS: [(&str, f64); 2] = [("calibration", 3.0), ("points", 50.
 /// Entry point of `headalign experiment`.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
     let scene = scene_name(&args.scene)?;
+    if args.name == "all" && scene != "default" {
+        bail!(
+            "`experiment all` runs the default scene and the bars in the paper-like scene itself; --scene is for single experiments"
+        );
+    }
     let names: Vec<&str> = if args.name == "all" {
         NAMES.iter().copied().filter(|n| *n != "all").collect()
     } else {
@@ -810,7 +815,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     for n in names {
         produced.push(run_one(n, args, &sel)?);
     }
-    if args.name == "all" && scene == "default" {
+    if args.name == "all" {
         // The bars' conditions again in the paper-like scene, with as many seeds per
         // condition as the default run used.
         for (n, x) in PAPER_SCENE_BARS {
