@@ -318,9 +318,14 @@ pub fn session_info(
 /// The estimate as every image-mode command reports it (`estimate` member).
 pub fn estimate_json(outcome: &VergeTiltOutcome) -> Result<Value> {
     let st = &outcome.calibration.bundle.state;
+    let cov = &outcome.calibration.bundle.covariance;
+    let s = |side: &str| {
+        let g = |p: &str| cov.sigma(&format!("{side}.{p}"));
+        json!({"fx": g("fx"), "fy": g("fy"), "cx": g("cx"), "cy": g("cy")})
+    };
     Ok(json!({
-        "left": {"fx": st.left.fx, "fy": st.left.fy, "cx": st.left.cx, "cy": st.left.cy},
-        "right": {"fx": st.right.fx, "fy": st.right.fy, "cx": st.right.cx, "cy": st.right.cy},
+        "left": {"fx": st.left.fx, "fy": st.left.fy, "cx": st.left.cx, "cy": st.left.cy, "sigma": s("left")},
+        "right": {"fx": st.right.fx, "fy": st.right.fy, "cx": st.right.cx, "cy": st.right.cy, "sigma": s("right")},
         "aligned_encoders": serde_json::to_value(outcome.solution.aligned_encoders)?,
         "aligned_sigma_deg": serde_json::to_value(outcome.sigmas)?,
         "fixation_px": {"left": outcome.solution.fixation_px_left, "right": outcome.solution.fixation_px_right},
