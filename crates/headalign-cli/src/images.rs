@@ -17,6 +17,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use headalign::alignment::AlignmentSolution;
 use headalign::estimate::{EstimationOptions, RigCalibration};
+use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
 use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking};
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
 use headalign::observations::View;
@@ -111,7 +112,7 @@ pub fn procedure<H: ImagingHead>(
         verge_rotation_deg: rotation_deg,
         // The session records the seed: a replay reproduces this run bit for bit (and
         // `align --images`, which uses the default seed, too when the run did).
-        estimation: EstimationOptions { seed: estimation_seed, ..EstimationOptions::default() },
+        estimation: tracked_estimation(estimation_seed),
         auto_rotation: auto_rotation.then(AutoRotation::default),
         ..VergeTiltOptions::default()
     };
@@ -142,6 +143,18 @@ pub fn procedure<H: ImagingHead>(
     out.images = std::mem::take(&mut tracking_head.images);
     out.tracking = std::mem::take(&mut tracking_head.tracking);
     (out, outcome)
+}
+
+/// The estimation options of image mode: the default ones with the covariance clustered
+/// by track ([`CovarianceModel::PointClustered`]). A tracked feature carries the same
+/// localisation error into every view it is seen in (the detector's sub-pixel offset on
+/// the same texture), so its errors are correlated across views and the Gaussian model's
+/// sigmas were 1.6-2.3x optimistic (z-score RMS, seeds 1-20; `bench/seeds.py 1 20
+/// --images`); the clustered (sandwich) covariance measures that from the residuals.
+pub fn tracked_estimation(seed: u64) -> EstimationOptions {
+    let d = EstimationOptions::default();
+    let bundle = BundleOptions { covariance_model: CovarianceModel::PointClustered, ..d.bundle.clone() };
+    EstimationOptions { seed, bundle, ..d }
 }
 
 /// Run [`procedure`] on `head`, recording into `session` (if any): `report.json` holds
