@@ -17,7 +17,6 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use headalign::alignment::AlignmentSolution;
 use headalign::estimate::{EstimationOptions, RigCalibration};
-use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
 use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking};
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
 use headalign::observations::View;
@@ -29,6 +28,7 @@ use headalign::session::{
     RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter,
     default_session_dir,
 };
+use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
 use headalign_platform::{Encoders, ImagingHead, StereoImages, Vehicle};
 use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};

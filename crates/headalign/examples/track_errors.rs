@@ -87,10 +87,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             let svd = a.svd(false, true);
             let Some(vt) = svd.v_t else { continue };
             let x = Vector4::from_iterator(vt.row(3).iter().copied());
-            let res: Vec<Option<Vector2<f64>>> = obs
-                .iter()
-                .map(|(v, side, px)| cams[*v][*side].project(&x).map(|q| px - q))
-                .collect();
+            let res: Vec<Option<Vector2<f64>>> =
+                obs.iter().map(|(v, side, px)| cams[*v][*side].project(&x).map(|q| px - q)).collect();
             if res.iter().any(|r| r.is_none_or(|r| r.norm() > 3.0)) {
                 continue; // a wrong track: not localisation noise
             }
