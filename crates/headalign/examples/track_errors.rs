@@ -101,9 +101,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             for i in 0..obs.len() {
                 for j in i + 1..obs.len() {
                     if obs[i].1 == obs[j].1 {
-                        for c in 0..2 {
-                            sxy += res[i][c] * res[j][c];
-                            sxx += 0.5 * (res[i][c] * res[i][c] + res[j][c] * res[j][c]);
+                        for (a, b) in res[i].iter().zip(res[j].iter()) {
+                            sxy += a * b;
+                            sxx += 0.5 * (a * a + b * b);
                             pairs += 1;
                         }
                     }
