@@ -75,6 +75,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         // Pairs of residuals (same track, same side, same component, different views).
         let (mut sxy, mut sxx, mut pairs) = (0.0, 0.0, 0usize);
         let mut per_track: Vec<f64> = Vec::new();
+        // (view, side) -> (sum of residuals, count): an error common to a view's tracks.
+        let mut view_mean: BTreeMap<(usize, usize), (Vector2<f64>, usize)> = BTreeMap::new();
         for obs in tracks.values().filter(|o| o.len() >= 4) {
             let mut a = DMatrix::zeros(2 * obs.len(), 4);
             for (i, (v, side, px)) in obs.iter().enumerate() {
@@ -93,6 +95,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 continue; // a wrong track: not localisation noise
             }
             let res: Vec<Vector2<f64>> = res.into_iter().flatten().collect();
+            for ((v, side, _), r) in obs.iter().zip(&res) {
+                let e = view_mean.entry((*v, *side)).or_insert((Vector2::zeros(), 0usize));
+                e.0 += r;
+                e.1 += 1;
+            }
             let t: f64 = res.iter().map(|r| r.norm_squared()).sum();
             ss += t;
             comps += 2 * res.len();
@@ -138,6 +145,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 }
             }
         }
+        let common: Vec<String> = view_mean
+            .iter()
+            .map(|((v, side), (sum, n))| {
+                let m = sum / (*n).max(1) as f64;
+                format!("v{v}{}({:+.3},{:+.3})", if *side == 0 { "L" } else { "R" }, m.x, m.y)
+            })
+            .collect();
+        println!("seed {seed}: mean true-camera residual per view and camera, px: {}", common.join(" "));
         let d = EstimationOptions { seed, ..EstimationOptions::default() };
         let gauss = estimate_rig(&views, &d)?;
         let clustered = EstimationOptions {
