@@ -319,6 +319,10 @@ pub struct EstimationReport {
     pub final_rms_px: f64,
     /// Estimated image noise, pixels.
     pub sigma_px: f64,
+    /// How much the covariance model widened the sigmas over the Gaussian one
+    /// ([`headalign_geometry::bundle::BundleReport::sigma_inflation`]; 1 with the default
+    /// Gaussian model).
+    pub sigma_inflation: f64,
 }
 
 /// The calibrated rig and head, in the reference view's left camera frame.
@@ -668,6 +672,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         initial_rms_px: first.report.initial_rms_px,
         final_rms_px: final_result.report.final_rms_px,
         sigma_px: final_result.report.sigma_px,
+        sigma_inflation: final_result.report.sigma_inflation,
     };
     let mut point_observations = vec![0usize; point_tracks.len()];
     let mut point_sides = vec![[false; 2]; point_tracks.len()];
