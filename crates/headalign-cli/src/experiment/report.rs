@@ -106,8 +106,8 @@ both ways, unless the experiment varies it. Point mode (exact track ids, Gaussia
 The pan stage (`fig5-pan-tilt`, the paper's robot experiment) runs on the simulated robot \
 (tricycle, 6 near panels about 1 m ahead) after the verge/tilt procedure, as `headalign demo` does.\n\n\
 The Cramer-Rao bound of a quantity is the standard deviation the bundle adjustment's covariance \
-predicts at the true parameters (evaluated on the noise-free run of the same seed, with the \
-scenario's pixel noise), propagated to the aligned readings like the procedure's own sigmas. \
+predicts at the true parameters (evaluated on the noise-free run of the same seed, which has \
+the trial's outliers, with the scenario's pixel noise), propagated to the aligned readings like the procedure's own sigmas. \
 It ignores the vergence axes' own measurement noise (taken as exact, like the reported sigmas).\n\n\
 Metrics (our reading of the paper's where it is ambiguous; both readings are shown where they differ): \
 alignment errors are the angles of each optical axis from true after the head moved to the \
