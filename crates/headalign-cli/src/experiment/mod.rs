@@ -108,10 +108,12 @@ struct Experiment {
     x_label: &'static str,
     y_label: &'static str,
     /// Trials of `--trials` when not given. The two grids that judge the ratio bar
-    /// (`fig5-verge-tilt`, `calibration`) run 300 seeds per noise level: an RMS over `n`
-    /// trials is known to `1 / sqrt(2 n)` (4 % at 300; 95 % interval of the ratio about
-    /// +-8 %), against 13 % at the former 30 seeds, where single seeds made 1.24-1.40 of
-    /// an estimator that is 1.0-1.2 over 300. `outliers`, where nothing is judged, runs 10.
+    /// (`fig5-verge-tilt`, `calibration`) run 250 seeds per noise level: an RMS over `n`
+    /// trials is known to `1 / sqrt(2 n)` (4.5 % at 250; 95 % interval of the ratio about
+    /// +-9 %), against 13 % at the former 30 seeds, where single seeds made 1.24-1.40 of
+    /// an estimator at 1.0-1.18 over 300 (docs/efficiency.md). 250 rather than 300 keeps
+    /// `experiment all` near 15 min on an idle 2-core machine. `outliers`, where nothing
+    /// is judged, runs 10 seeds.
     default_trials: usize,
     positions: Vec<Encoders>,
     conditions: Vec<Condition>,
@@ -194,7 +196,7 @@ fn experiment(name: &str) -> Result<Experiment> {
             title: "Verge/tilt alignment error vs noise (3 deg, 200 points)",
             x_label: "image noise (px)",
             y_label: "RMS error (deg)",
-            default_trials: 1500,
+            default_trials: 1250,
             robot: false,
             quantities: &SIGMA_QUANTITIES,
             note: "",
@@ -211,7 +213,7 @@ fn experiment(name: &str) -> Result<Experiment> {
             title: "Calibration error vs noise (3 deg, 200 points)",
             x_label: "image noise (px)",
             y_label: "RMS error (%)",
-            default_trials: 1500,
+            default_trials: 1250,
             robot: false,
             quantities: &SIGMA_QUANTITIES,
             note: "",
