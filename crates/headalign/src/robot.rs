@@ -194,11 +194,12 @@ pub struct PanStep {
     pub encoders: Encoders,
     /// Pan correction from the image epipole, degrees.
     pub pan_image_deg: f64,
-    /// Its standard deviation, degrees.
+    /// Its standard deviation from the image noise (the drive motion's, through the
+    /// derotation, and the flow's), degrees.
     pub sigma_image_deg: f64,
     /// Pan correction from the stereo reconstruction's motion, degrees.
     pub pan_stereo_deg: f64,
-    /// Its standard deviation, degrees.
+    /// Its standard deviation from the image noise (the drive motion's), degrees.
     pub sigma_stereo_deg: f64,
     /// Combined correction applied, degrees.
     pub pan_correction_deg: f64,

@@ -327,6 +327,36 @@ show.\n"
 mod tests {
     use super::*;
 
+    /// The coverage rows name the extreme entries and judge every entry, robot ones too:
+    /// a pan coverage of 89 % fails the bar even when the verge/tilt ones pass.
+    #[test]
+    fn coverage_rows_name_the_extremes() {
+        let sum = |group: &'static str, x: f64, cov: Vec<f64>| ConditionSummary {
+            group,
+            x,
+            ok: 300,
+            total: 300,
+            series: Vec::new(),
+            quantities: Vec::new(),
+            coverage: cov.into_iter().map(|v| (v, 300)).collect(),
+            mean_rotation_deg: 3.0,
+        };
+        let mut robot = vec![0.95; super::super::pan::ROBOT_QUANTITIES.len()];
+        robot[super::super::pan::PAN_INDEX] = 0.89;
+        let p = Produced {
+            name: "coverage",
+            markdown: String::new(),
+            sums: vec![sum("fixed", 1.0, vec![0.93; 11]), sum("robot", 3.0, robot)],
+            series_labels: Vec::new(),
+            quantities: &super::super::pan::ROBOT_QUANTITIES,
+        };
+        let m = results_md(&[p], Path::new("results"));
+        let row = m.lines().find(|l| l.contains("coverage of every reported sigma")).unwrap_or_default();
+        assert!(row.contains("lowest pan.aligned at 3 px (robot)") && row.ends_with("**no** |"), "{row}");
+        let pan = m.lines().find(|l| l.contains("pan and steering-zero")).unwrap_or_default();
+        assert!(pan.contains("3 px: pan 89.0 %, steering zero 95.0 %"), "{pan}");
+    }
+
     /// A value under a bar that lies below the bound is luck, and the verdict says so.
     #[test]
     fn bounded_verdicts() {
