@@ -75,7 +75,15 @@ pub struct CalibrateArgs {
     /// rotations; a hand-held rig that moved a lot needs more, e.g. 40).
     #[arg(long)]
     pub search_px: Option<f64>,
+    /// Corners detected per image (default 3000, as the robot stages: with one motion
+    /// only the points seen in both views calibrate, and on a scene dominated by one
+    /// textured wall 1500 corners left too few off that wall; see README).
+    #[arg(long, default_value_t = CORNERS)]
+    pub corners: usize,
 }
+
+/// Default of `calibrate --corners`.
+pub const CORNERS: usize = 3000;
 
 /// The options of the library from the flags.
 fn options(args: &CalibrateArgs) -> CalibrateOptions {
@@ -92,6 +100,7 @@ fn options(args: &CalibrateArgs) -> CalibrateOptions {
 
 fn front_end(args: &CalibrateArgs) -> FrontEndOptions {
     let mut f = FrontEndOptions::default();
+    f.features.max_features = args.corners;
     if let Some(r) = args.search_px {
         f.guided_radius_px = r;
         f.motion.threshold = r;
@@ -478,6 +487,7 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         baseline_m: None,
         seed: info.estimation_seed,
         search_px: None,
+        corners: CORNERS,
     };
     Ok(calibrate_views(&load_views(dir)?, &args)?.json)
 }
@@ -500,6 +510,7 @@ mod tests {
             baseline_m: None,
             seed: 0,
             search_px: None,
+            corners: CORNERS,
         }
     }
 
@@ -554,6 +565,30 @@ mod tests {
             assert!((d.k1 + 0.2).abs() < 0.02 && (d.k2 - 0.05).abs() < 0.03, "{d:?}");
         }
         assert_eq!(pinhole.stereo.distortion, [Distortion::default(); 2]);
+    }
+
+    /// One general motion on rendered images of a scene dominated by one textured wall
+    /// (seed 20: 92 % of the stereo matches on one plane with the photographs). With the
+    /// former 1500 corners the few points off the wall let the adjustment settle 19.7 %
+    /// off in f; with the 3000 of `--corners` it is -0.06 % (sigma 0.3 %). Without
+    /// ../shared/data (a clean clone) the renderer's procedural textures give other images
+    /// (measured within 0.4 %). Tolerance 1 %: the bar.
+    #[test]
+    fn one_general_motion_on_a_wall_dominated_scene() {
+        let scenario = Scenario {
+            seed: 20,
+            left: Intrinsics::new(700.0, 700.0, 390.0, 284.0),
+            right: Intrinsics::new(705.0, 705.0, 380.0, 290.0),
+            ..Scenario::default()
+        };
+        let (views, head) = simulate_views(&scenario, "general").unwrap();
+        let a = CalibrateArgs { zero_skew: true, square_pixels: true, ..args(Path::new("unused")) };
+        let c = calibrate_views(&views, &a).unwrap();
+        let t = head.truth();
+        for (est, truth) in [(&c.stereo.left, &t.left), (&c.stereo.right, &t.right)] {
+            let err = 100.0 * (est.fx - truth.fx).abs() / truth.fx;
+            assert!(err < 1.0, "fx {} vs {} ({err:.2} %)", est.fx, truth.fx);
+        }
     }
 
     #[test]
