@@ -32,6 +32,11 @@
 //!    observations ([`every_point_pass`]); the start with the lower truncated cost over
 //!    all observations is kept.
 //!
+//! Steps 3 and 5 are seeded (RANSAC samples): when no 3D homography fits or the
+//! adjustment fails from every start, steps 1-6 run again with the next estimation seeds
+//! ([`CalibrateOptions::restarts`]); the report names the seed used, and the final error
+//! the seeds tried and the tracks the views share.
+//!
 //! Degrees of freedom: per camera 5 intrinsics minus the constraints; rig 5 (the baseline
 //! length is the scale gauge: the scene is in baselines); 6 per moved view; 3 per point.
 //! Units: pixels for thresholds and residuals, degrees in reports, baselines for lengths.
@@ -618,7 +623,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     Err(AlignError::Geometry {
         step: "self-calibration".into(),
         cause: GeometryError::Degenerate(format!(
-            "the adjustment failed from every start with {} estimation seeds: {}. Too few points are seen in both views, or they lie close to one plane: record views that overlap more (turn the rig less, 15-25 deg), in a textured scene with depth, or add a motion",
+            "self-calibration failed in its robust stages with {} estimation seeds: {}. Too few points are seen in both views, or they lie close to one plane: record views that overlap more (turn the rig less, 15-25 deg), in a textured scene with depth, or add a motion",
             failures.len(),
             failures.join("; ")
         )),
