@@ -32,6 +32,11 @@
 //!    observations ([`every_point_pass`]); the start with the lower truncated cost over
 //!    all observations is kept.
 //!
+//! Steps 3 and 5 are seeded (RANSAC samples): when no 3D homography fits or the
+//! adjustment fails from every start, steps 1-6 run again with the next estimation seeds
+//! ([`CalibrateOptions::restarts`]); the report names the seed used, and the final error
+//! the seeds tried and the tracks the views share.
+//!
 //! Degrees of freedom: per camera 5 intrinsics minus the constraints; rig 5 (the baseline
 //! length is the scale gauge: the scene is in baselines); 6 per moved view; 3 per point.
 //! Units: pixels for thresholds and residuals, degrees in reports, baselines for lengths.
@@ -124,6 +129,15 @@ pub struct CalibrateOptions {
     /// one-motion failures seen were at 0.88-0.92; the well-conditioned seeds mostly
     /// below 0.8).
     pub warn_plane_fraction: f64,
+    /// When the adjustment fails from every start (or no 3D homography fits), the chain
+    /// runs again from step 2 with the next estimation seeds (`seed + 1`, ...), at most
+    /// this many more times (default 3). The robust stages are seeded: with one motion and
+    /// few common tracks (rendered seed 19: 82 points seen in both views) the 3-point
+    /// RANSAC's rigid motion, the rigid start's only input, can be poor enough that its
+    /// screening adjustment diverges while the linear start's conic is not positive
+    /// definite; other seeds converge to the same minimum (estimation seeds 1 and 2:
+    /// f 701.2 for a true 700).
+    pub restarts: usize,
 }
 
 impl Default for CalibrateOptions {
@@ -139,6 +153,7 @@ impl Default for CalibrateOptions {
             planar_fraction: 0.98,
             warn_focal_sigma_pct: 0.5,
             warn_plane_fraction: 0.85,
+            restarts: 3,
         }
     }
 }
@@ -381,6 +396,11 @@ pub struct CalibrateReport {
     pub sigma_px: f64,
     /// Sigma of the focal length (`fx`) of the left and right camera, percent of it.
     pub focal_sigma_pct: [Option<f64>; 2],
+    /// The estimation seed of the run that gave this result (the options' seed plus
+    /// [`CalibrateReport::restarts`]).
+    pub estimation_seed: u64,
+    /// Runs that failed before this one with earlier seeds ([`CalibrateOptions::restarts`]).
+    pub restarts: usize,
     /// Warnings: a poorly determined calibration (focal sigma above
     /// [`CalibrateOptions::warn_focal_sigma_pct`]), one motion in a mostly planar scene
     /// ([`CalibrateOptions::warn_plane_fraction`]), with what to do about it.
@@ -573,6 +593,59 @@ fn constrain(k: &Intrinsics, options: &CalibrateOptions, k0: &Intrinsics) -> Int
 /// differ from the first view's are left out (the rig changed).
 pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<MotionCalibration, AlignError> {
     options.validate()?;
+    let mut failures = Vec::new();
+    for restart in 0..=options.restarts {
+        let mut o = options.clone();
+        o.estimation.seed = options.estimation.seed.wrapping_add(restart as u64);
+        let mut seeded = None;
+        match calibrate_once(views, &o, &mut seeded) {
+            Ok(mut c) => {
+                c.report.restarts = restart;
+                if restart > 0 {
+                    c.report.warnings.push(format!(
+                        "the run with estimation seed {} failed ({}); estimation seed {} gave this result: the robust stages are close to their limits (few tracks common to the views?)",
+                        options.estimation.seed,
+                        failures.first().map_or("", String::as_str),
+                        o.estimation.seed
+                    ));
+                }
+                return Ok(c);
+            }
+            Err(error) => match seeded {
+                Some(Seeded { common_tracks, fitting }) => failures.push(format!(
+                    "seed {}: {error} ({common_tracks} tracks seen in the reference and a moved view, {fitting} fitting its 3D homography)",
+                    o.estimation.seed
+                )),
+                None => return Err(error),
+            },
+        }
+    }
+    Err(AlignError::Geometry {
+        step: "self-calibration".into(),
+        cause: GeometryError::Degenerate(format!(
+            "self-calibration failed in its robust stages with {} estimation seeds: {}. Too few points are seen in both views, or they lie close to one plane: record views that overlap more (turn the rig less, 15-25 deg), in a textured scene with depth, or add a motion",
+            failures.len(),
+            failures.join("; ")
+        )),
+    })
+}
+
+/// Set by [`calibrate_once`] when it failed in a seeded stage (the 3D homography RANSAC,
+/// the adjustment from its starts), which another seed may pass: the fewest tracks common
+/// to the reference and a moved view, and the fewest fitting that view's 3D homography
+/// (0 if none fits). Other failures (planar scene, missing motion, options) leave it unset.
+#[derive(Debug, Clone, Copy)]
+struct Seeded {
+    common_tracks: usize,
+    fitting: usize,
+}
+
+/// One run of the chain with the options' estimation seed ([`calibrate_rig`]).
+fn calibrate_once(
+    views: &[View],
+    options: &CalibrateOptions,
+    seeded: &mut Option<Seeded>,
+) -> Result<MotionCalibration, AlignError> {
     let Some(first) = views.first() else {
         return Err(AlignError::Observations("no views".into()));
     };
@@ -651,14 +724,11 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
                 got: quads.len(),
             });
         }
-        motions.push(fit_motion(
-            &quads,
-            &tracks,
-            &frame,
-            options,
-            &v.name,
-            est.seed.wrapping_add(slot as u64),
-        )?);
+        let common = quads.len();
+        let fitted =
+            fit_motion(&quads, &tracks, &frame, options, &v.name, est.seed.wrapping_add(slot as u64))
+                .inspect_err(|_| *seeded = Some(Seeded { common_tracks: common, fitting: 0 }))?;
+        motions.push(fitted);
     }
     if motions.is_empty() {
         return Err(AlignError::MissingMotion(
@@ -854,6 +924,10 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     };
     let adjusted = results.into_iter().min_by(|a, b| truncated_cost(a).total_cmp(&truncated_cost(b)));
     let Some(adjusted) = adjusted else {
+        *seeded = motions
+            .iter()
+            .map(|m| Seeded { common_tracks: m.report.candidates, fitting: m.report.inliers })
+            .min_by_key(|x| x.fitting);
         return Err(last_error.unwrap_or_else(|| AlignError::MissingMotion("no initialisation".into())));
     };
 
@@ -930,6 +1004,8 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
         final_rms_px: adjusted.last.report.final_rms_px,
         sigma_px: adjusted.last.report.sigma_px,
         focal_sigma_pct,
+        estimation_seed: est.seed,
+        restarts: 0,
         warnings,
     };
     Ok(MotionCalibration {
@@ -1560,5 +1636,47 @@ mod tests {
     #[test]
     fn too_few_views_is_an_error() {
         assert!(calibrate_rig(&[], &CalibrateOptions::default()).is_err());
+    }
+
+    /// A failure of the seeded stages is retried with the next seeds, and when every seed
+    /// fails the error says how many were tried, how many tracks the views share and what
+    /// to record instead. Here the moved view's track ids are rotated among its stereo
+    /// pairs except for 8, so every pair is a good stereo match but at most 8 are the same
+    /// point as in the reference: no 3D homography has the 12 inliers it needs, whatever
+    /// the seed.
+    #[test]
+    fn seeded_failures_are_retried_and_named() {
+        let (mut views, _, _) = general_session(3, 0.5);
+        let ids: std::collections::BTreeSet<u64> = views[1].capture.left.iter().map(|o| o.track).collect();
+        let both: Vec<u64> =
+            views[1].capture.right.iter().map(|o| o.track).filter(|t| ids.contains(t)).collect();
+        let moved = &both[8..];
+        let relabel: BTreeMap<u64, u64> =
+            moved.iter().zip(moved.iter().cycle().skip(1)).map(|(&a, &b)| (a, b)).collect();
+        let capture = &mut views[1].capture;
+        for o in capture.left.iter_mut().chain(capture.right.iter_mut()) {
+            if let Some(&t) = relabel.get(&o.track) {
+                o.track = t;
+            }
+        }
+        for (restarts, tried) in [(3, "4 estimation seeds"), (0, "1 estimation seeds")] {
+            let options = CalibrateOptions {
+                zero_skew: true,
+                square_pixels: true,
+                restarts,
+                ..CalibrateOptions::default()
+            };
+            let e = calibrate_rig(&views, &options).unwrap_err().to_string();
+            assert!(
+                e.contains(tried) && e.contains("tracks seen in the reference") && e.contains("overlap"),
+                "{e}"
+            );
+        }
+        // The intact session needs no restart and reports the seed it used.
+        let (views, _, _) = general_session(3, 0.5);
+        let options =
+            CalibrateOptions { zero_skew: true, square_pixels: true, ..CalibrateOptions::default() };
+        let c = calibrate_rig(&views, &options).unwrap();
+        assert_eq!((c.report.restarts, c.report.estimation_seed), (0, options.estimation.seed));
     }
 }
