@@ -1002,8 +1002,10 @@ fn maximum_likelihood_pass(
         if next.len() < options.min_tracks || (stable && !moved) {
             break;
         }
-        let trial = bundle_adjust(&result.state, &next, &ls(refit))
-            .step("bundle adjustment (maximum likelihood, re-classified)")?;
+        // A re-classification that leaves a parameter unobservable (a 50-point trial at
+        // 1.5 px in 150: its reduced camera system became singular) ends the rounds at the
+        // last classification that fitted, instead of failing the whole estimate.
+        let Ok(trial) = bundle_adjust(&result.state, &next, &ls(refit)) else { break };
         obs = next;
         sigma = refit;
         result = trial;
