@@ -522,6 +522,12 @@ fn demo(args: &DemoArgs) -> Result<()> {
         report.final_rms_px,
         report.sigma_px
     );
+    for d in &report.dropped_views {
+        eprintln!(
+            "warning: view '{}' was left out of the estimate (its capture is kept): {}",
+            d.view, d.reason
+        );
+    }
     say!("checks after moving: {}", outcome.checks.len());
     if !pan_outcomes.is_empty() {
         say!();

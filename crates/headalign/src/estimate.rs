@@ -140,6 +140,15 @@ pub struct EstimationOptions {
     /// weighted against the estimated pixel noise (module docs, step 7). Off, the result
     /// is the robust (Huber) adjustment with the prior weighted as if the noise were 1 px.
     pub final_least_squares: bool,
+    /// Leave out a rotated rig view whose 3D homography cannot be estimated (too few
+    /// tracks shared with the reference view, none consistent with a rotation, no fit)
+    /// when the remaining views still contain a pan-only and an elevation-only rotation,
+    /// instead of failing the whole estimate (default true). Each view left out is named
+    /// with its reason in [`EstimationReport::dropped_views`]; its capture is untouched.
+    /// Why: a large diagonal view of a 50-point scene can keep 11 usable tracks of the 12
+    /// needed (1 trial in 150 with the procedure's own rotations) while the other nine
+    /// views calibrate the head well.
+    pub drop_weak_views: bool,
 }
 
 impl Default for EstimationOptions {
@@ -157,6 +166,7 @@ impl Default for EstimationOptions {
             min_tracks: 12,
             seed: 0,
             final_least_squares: true,
+            drop_weak_views: true,
         }
     }
 }
@@ -323,6 +333,18 @@ pub struct EstimationReport {
     /// ([`headalign_geometry::bundle::BundleReport::sigma_inflation`]; 1 with the default
     /// Gaussian model).
     pub sigma_inflation: f64,
+    /// Rotated views left out of the estimate ([`EstimationOptions::drop_weak_views`]), in
+    /// the order they were dropped; empty when every view was used.
+    pub dropped_views: Vec<DroppedView>,
+}
+
+/// A rig view [`estimate_rig`] left out, and why.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct DroppedView {
+    /// The view's name.
+    pub view: String,
+    /// The error its 3D homography gave.
+    pub reason: String,
 }
 
 /// The calibrated rig and head, in the reference view's left camera frame.
@@ -336,7 +358,7 @@ pub struct RigCalibration {
     /// for points not seen by both cameras.
     pub point_observations: Vec<usize>,
     /// The observations the final adjustment used (the inliers); `view` indexes the rig
-    /// views in input order, `point` the points.
+    /// views in input order (without those in `report.dropped_views`), `point` the points.
     pub observations: Vec<BundleObservation>,
     /// Encoder readings of the reference view.
     pub reference_encoders: Encoders,
@@ -391,9 +413,41 @@ pub(crate) fn stereo_matches(c: &StereoCapture) -> Vec<StereoMatch> {
 }
 
 /// Run the whole chain on the views (the first is the reference; verge views are
-/// ignored here).
+/// ignored here). A rotated view whose 3D homography fails is left out and the chain run
+/// again without it while a pan-only and an elevation-only rotation remain
+/// ([`EstimationOptions::drop_weak_views`]); otherwise its error is returned.
 pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCalibration, AlignError> {
     options.validate()?;
+    let mut kept: Vec<View> = Vec::new();
+    let mut dropped: Vec<DroppedView> = Vec::new();
+    loop {
+        let current: &[View] = if dropped.is_empty() { views } else { &kept };
+        let mut at_view = None;
+        let error = match estimate_rig_once(current, options, &mut at_view) {
+            Ok(mut calibration) => {
+                calibration.report.dropped_views = dropped;
+                return Ok(calibration);
+            }
+            Err(e) => e,
+        };
+        let Some(vi) = at_view.filter(|_| options.drop_weak_views) else { return Err(error) };
+        let rest: Vec<View> =
+            current.iter().enumerate().filter(|&(i, _)| i != vi).map(|(_, v)| v.clone()).collect();
+        if classify_views(&rest).is_err() {
+            return Err(error);
+        }
+        dropped.push(DroppedView { view: current[vi].name.clone(), reason: error.to_string() });
+        kept = rest;
+    }
+}
+
+/// [`estimate_rig`] on exactly these views; `at_view` names the view (index into
+/// `views`) whose 3D homography step failed, if that is where it failed.
+fn estimate_rig_once(
+    views: &[View],
+    options: &EstimationOptions,
+    at_view: &mut Option<usize>,
+) -> Result<RigCalibration, AlignError> {
     let roles = classify_views(views)?;
     let rig: Vec<usize> = (0..views.len()).filter(|&i| !matches!(roles[i], ViewRole::Verge)).collect();
     let [w, h] = views[0].capture.image_size;
@@ -443,6 +497,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     // Plane homographies (left, right) of each rotation, for the rotation-based start.
     let mut image_rotations: Vec<PlanePair> = Vec::new();
     for (slot, &vi) in rig.iter().enumerate().skip(1) {
+        *at_view = Some(vi);
         let mut tracks = Vec::new();
         let mut quads = Vec::new();
         for (track, (x, l0, r0)) in &recon[0] {
@@ -578,6 +633,8 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         quad_inliers[slot] = inliers.iter().map(|&i| tracks[i]).collect();
     }
 
+    *at_view = None;
+
     // --- 4. The point set: tracks reconstructed in the reference view, then those first
     // reconstructed in another rig view.
     let mut point_tracks: Vec<u64> = recon[0].keys().copied().collect();
@@ -673,6 +730,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         final_rms_px: final_result.report.final_rms_px,
         sigma_px: final_result.report.sigma_px,
         sigma_inflation: final_result.report.sigma_inflation,
+        dropped_views: Vec::new(),
     };
     let mut point_observations = vec![0usize; point_tracks.len()];
     let mut point_sides = vec![[false; 2]; point_tracks.len()];
@@ -944,8 +1002,10 @@ fn maximum_likelihood_pass(
         if next.len() < options.min_tracks || (stable && !moved) {
             break;
         }
-        let trial = bundle_adjust(&result.state, &next, &ls(refit))
-            .step("bundle adjustment (maximum likelihood, re-classified)")?;
+        // A re-classification that leaves a parameter unobservable (a 50-point trial at
+        // 1.5 px in 150: its reduced camera system became singular) ends the rounds at the
+        // last classification that fitted, instead of failing the whole estimate.
+        let Ok(trial) = bundle_adjust(&result.state, &next, &ls(refit)) else { break };
         obs = next;
         sigma = refit;
         result = trial;
@@ -1553,6 +1613,43 @@ mod tests {
         }
         out.pop();
         out
+    }
+
+    /// A rotated view with too few tracks (8 of the 12 needed) is left out, named, and the
+    /// other four calibrate the rig (1 px: f within 2 %, about 5 times the sigma of this
+    /// plan); without `drop_weak_views` its error stands; and a view the remaining plan
+    /// cannot do without (both pan views weak: no pan-only rotation would remain) fails
+    /// with the error of the first weak view.
+    #[test]
+    fn a_weak_rotated_view_is_left_out() {
+        let scenario = headalign_sim::Scenario { seed: 5, ..Default::default() };
+        let mut views = sim_views(scenario.clone());
+        let names: Vec<String> = views.iter().map(|v| v.name.clone()).collect();
+        let weaken = |v: &mut View| {
+            v.capture.left.truncate(8);
+            v.capture.right.truncate(8);
+        };
+        let elevation_down = names.iter().position(|n| n.contains("elevation-")).unwrap();
+        weaken(&mut views[elevation_down]);
+        let options = EstimationOptions { seed: 5, ..Default::default() };
+        let calib = estimate_rig(&views, &options).unwrap();
+        assert_eq!(calib.report.dropped_views.len(), 1);
+        assert_eq!(calib.report.dropped_views[0].view, names[elevation_down]);
+        assert!(calib.report.dropped_views[0].reason.contains("need at least 12"), "{:?}", calib.report);
+        assert_eq!(calib.report.homographies.len(), views.len() - 2);
+        assert!(calib.observations.iter().all(|o| o.view < views.len() - 1));
+        let truth = headalign_sim::SimulatedHead::new(scenario).unwrap().truth().left.fx;
+        let fx = calib.bundle.state.left.fx;
+        assert!((fx / truth - 1.0).abs() < 0.02, "{fx} vs {truth}");
+        let strict = EstimationOptions { drop_weak_views: false, ..options.clone() };
+        assert!(matches!(estimate_rig(&views, &strict), Err(AlignError::TooFewTracks { .. })));
+        for (i, n) in names.iter().enumerate() {
+            if n.starts_with("pan") {
+                weaken(&mut views[i]);
+            }
+        }
+        let err = estimate_rig(&views, &options).unwrap_err().to_string();
+        assert!(err.contains("need at least 12"), "{err}");
     }
 
     /// The maximum-likelihood pass at 2 px: the noise it weights the prior with and
