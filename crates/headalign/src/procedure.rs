@@ -42,14 +42,15 @@
 
 use std::time::Instant;
 
+use headalign_geometry::bundle::RigState;
 use headalign_geometry::so3::Line;
 use headalign_platform::{Encoders, Joint, StereoHead};
 use nalgebra::DVector;
 use serde::Serialize;
 
 use crate::alignment::{
-    AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors,
-    solve_alignment, verge_axes_from_motion,
+    AlignmentSolution, MeasuredCameras, MeasuredErrors, VergeAxes, head_motion, measure_cameras,
+    measured_errors, solve_alignment, verge_axes_from_motion,
 };
 use crate::error::AlignError;
 use crate::estimate::{EstimationOptions, RigCalibration, estimate_rig};
@@ -202,8 +203,8 @@ pub struct CheckStep {
 }
 
 /// 1-sigma uncertainties of the aligned readings, degrees, propagated from the bundle
-/// adjustment's covariance (vergence axes taken as exact: resection against hundreds of
-/// points is far more precise than the calibration).
+/// adjustment's covariance and, in the procedure ([`alignment_sigmas_measured`]), from the
+/// resections that measured the vergence axes.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct AlignmentSigmas {
     /// Elevation reading.
@@ -221,6 +222,8 @@ pub struct VergeTiltOutcome {
     pub calibration: RigCalibration,
     /// Vergence axes measured by resection.
     pub verge_axes: VergeAxes,
+    /// The views (and resected poses) each vergence axis was measured from.
+    pub axis_sources: AxisSources,
     /// The final alignment solution.
     pub solution: AlignmentSolution,
     /// Uncertainty of the aligned readings.
@@ -283,6 +286,11 @@ impl VergeTiltRun {
         let measured = measure_cameras(&calibration, &self.views[verge_view].capture, &left0, &right0)?;
         let mut verge_axes =
             verge_axes_from_motion(state, &reference, &self.views[verge_view].capture.encoders, &measured)?;
+        let source = AxisMeasurement { capture: self.views[verge_view].capture.clone(), measured };
+        let mut axis_sources = AxisSources {
+            left: verge_axes.left.map(|_| source.clone()),
+            right: verge_axes.right.map(|_| source.clone()),
+        };
         let mut solution = solve_alignment(state, &verge_axes, &reference)?;
         let mut estimation_seconds = t0.elapsed().as_secs_f64();
 
@@ -323,15 +331,23 @@ impl VergeTiltRun {
                 estimation_seconds += t1.elapsed().as_secs_f64();
                 break;
             }
+            let source = AxisMeasurement { capture: self.views[idx].capture.clone(), measured };
+            if left.is_some() {
+                axis_sources.left = Some(source.clone());
+            }
+            if right.is_some() {
+                axis_sources.right = Some(source);
+            }
             verge_axes = VergeAxes { left: left.or(verge_axes.left), right: right.or(verge_axes.right) };
             solution = solve_alignment(state, &verge_axes, &reference)?;
             estimation_seconds += t1.elapsed().as_secs_f64();
         }
-        let sigmas = alignment_sigmas(&calibration, &verge_axes, &reference)?;
+        let sigmas = alignment_sigmas_measured(&calibration, &verge_axes, &axis_sources, &reference, None)?;
         let final_encoders = head.read_encoders()?;
         Ok(VergeTiltOutcome {
             calibration,
             verge_axes,
+            axis_sources,
             solution,
             sigmas,
             checks,
@@ -571,6 +587,190 @@ pub fn alignment_sigmas(
     })
 }
 
+/// One measurement of the vergence axes: the capture after a vergence move and the
+/// cameras resected from it.
+#[derive(Debug, Clone)]
+pub struct AxisMeasurement {
+    /// The capture (its encoders give the joint turns).
+    pub capture: headalign_platform::StereoCapture,
+    /// Both cameras resected from it.
+    pub measured: MeasuredCameras,
+}
+
+/// Where each vergence axis came from (`None`: not measured, nominal).
+#[derive(Debug, Clone, Default)]
+pub struct AxisSources {
+    /// Source of the left vergence axis.
+    pub left: Option<AxisMeasurement>,
+    /// Source of the right vergence axis.
+    pub right: Option<AxisMeasurement>,
+}
+
+/// Covariance (6x6, tangent `ref_from_cam * Exp([w; t])`, radians and scene units) of a
+/// camera pose resected from `obs` against `points` by [`crate::alignment::measure_cameras`]:
+/// `sigma^2 (J^T J)^-1` over the observations within the resection's outlier threshold,
+/// `J` by central differences. `sigma` is `noise_px` or, if `None`, the residuals' own
+/// estimate `sqrt(sum r^2 / (2n - 6))`. `None` if fewer than 4 points or `J^T J` is
+/// singular.
+pub fn resection_pose_covariance(
+    k: &headalign_geometry::camera::Intrinsics,
+    points: &std::collections::HashMap<u64, nalgebra::Point3<f64>>,
+    obs: &[headalign_platform::TrackObservation],
+    ref_from_cam: &nalgebra::Isometry3<f64>,
+    noise_px: Option<f64>,
+) -> Option<nalgebra::Matrix6<f64>> {
+    let outlier_px = headalign_geometry::resection::ResectionOptions::default().outlier_px;
+    let project = |pose: &nalgebra::Isometry3<f64>, x: &nalgebra::Point3<f64>| {
+        k.project(&pose.inverse_transform_point(x)).map(|p| p.coords)
+    };
+    let pairs: Vec<(nalgebra::Point3<f64>, nalgebra::Vector2<f64>)> = obs
+        .iter()
+        .filter_map(|o| {
+            let x = points.get(&o.track)?;
+            let r = project(ref_from_cam, x)? - o.pixel.coords;
+            (r.norm() <= outlier_px).then_some((*x, r))
+        })
+        .collect();
+    if pairs.len() < 4 {
+        return None;
+    }
+    let dof = (2 * pairs.len() - 6) as f64;
+    let sigma =
+        noise_px.unwrap_or_else(|| (pairs.iter().map(|(_, r)| r.norm_squared()).sum::<f64>() / dof).sqrt());
+    let h = 1e-6;
+    let mut jtj = nalgebra::Matrix6::<f64>::zeros();
+    for (x, _) in &pairs {
+        let mut j = nalgebra::Matrix2x6::<f64>::zeros();
+        for c in 0..6 {
+            let mut d = nalgebra::Vector6::<f64>::zeros();
+            d[c] = h;
+            let plus = project(&(ref_from_cam * tangent_step(&d)), x)?;
+            let minus = project(&(ref_from_cam * tangent_step(&-d)), x)?;
+            j.set_column(c, &((plus - minus) / (2.0 * h)));
+        }
+        jtj += j.transpose() * j;
+    }
+    jtj.try_inverse().map(|inv| inv * (sigma * sigma))
+}
+
+/// `Exp([w; t])` as an isometry (rotation vector `w`, translation `t`).
+fn tangent_step(d: &nalgebra::Vector6<f64>) -> nalgebra::Isometry3<f64> {
+    nalgebra::Isometry3::new(
+        nalgebra::Vector3::new(d[3], d[4], d[5]),
+        nalgebra::Vector3::new(d[0], d[1], d[2]),
+    )
+}
+
+/// [`alignment_sigmas`] with the vergence axes' own measurement uncertainty: the aligned
+/// readings are a function of the calibration (bundle covariance) and of the poses
+/// resected after the vergence move (covariance [`resection_pose_covariance`], pixel noise
+/// `noise_px` or the resection residuals' estimate), independent because the vergence
+/// view is not in the bundle. Each axis is re-derived by [`verge_axes_from_motion`] from
+/// the perturbed calibration (its pan/elevation chain and stereo pose) and the perturbed
+/// resected pose, then [`solve_alignment`] is differentiated centrally. An axis without a
+/// source is held as given. Pitfall: the resection's dependence on the calibrated scene
+/// points and intrinsics (points held, correlated with the calibration) is ignored.
+pub fn alignment_sigmas_measured(
+    calib: &RigCalibration,
+    verge: &VergeAxes,
+    sources: &AxisSources,
+    reference: &Encoders,
+    noise_px: Option<f64>,
+) -> Result<AlignmentSigmas, AlignError> {
+    // Aligned deltas from a state and the two axis-measuring poses (left camera of the left
+    // source, right camera of the right source).
+    let deltas = |state: &RigState,
+                  left: Option<&nalgebra::Isometry3<f64>>,
+                  right: Option<&nalgebra::Isometry3<f64>>|
+     -> Option<[f64; 3]> {
+        let axis = |src: &Option<AxisMeasurement>, pose: Option<&nalgebra::Isometry3<f64>>, is_left: bool| {
+            let (Some(src), Some(pose)) = (src, pose) else {
+                return Some(if is_left { verge.left } else { verge.right });
+            };
+            let mut m = src.measured;
+            if is_left {
+                m.ref_from_left = *pose;
+            } else {
+                m.ref_from_right = *pose;
+            }
+            let axes = verge_axes_from_motion(state, reference, &src.capture.encoders, &m).ok()?;
+            Some(if is_left { axes.left } else { axes.right })
+        };
+        let axes =
+            VergeAxes { left: axis(&sources.left, left, true)?, right: axis(&sources.right, right, false)? };
+        let s = solve_alignment(state, &axes, reference).ok()?;
+        Some([s.delta_elevation_deg, s.delta_verge_left_deg, s.delta_verge_right_deg])
+    };
+    let left0 = sources.left.as_ref().map(|s| s.measured.ref_from_left);
+    let right0 = sources.right.as_ref().map(|s| s.measured.ref_from_right);
+    let cov = &calib.bundle.covariance;
+    let n = cov.matrix.nrows();
+    let mut jac = nalgebra::DMatrix::<f64>::zeros(3, n);
+    for i in 0..n {
+        let s = cov.matrix[(i, i)].max(0.0).sqrt();
+        if s.is_nan() || s <= 0.0 {
+            continue;
+        }
+        let h = 0.5 * s;
+        let mut delta = DVector::zeros(n);
+        delta[i] = h;
+        let plus =
+            calib.bundle.perturbed(&delta).ok().and_then(|st| deltas(&st, left0.as_ref(), right0.as_ref()));
+        delta[i] = -h;
+        let minus =
+            calib.bundle.perturbed(&delta).ok().and_then(|st| deltas(&st, left0.as_ref(), right0.as_ref()));
+        if let (Some(p), Some(m)) = (plus, minus) {
+            for r in 0..3 {
+                jac[(r, i)] = (p[r] - m[r]) / (2.0 * h);
+            }
+        }
+    }
+    let mut out = &jac * &cov.matrix * jac.transpose();
+    // The resected poses' own noise.
+    let state = &calib.bundle.state;
+    let points: std::collections::HashMap<u64, nalgebra::Point3<f64>> = calib.points().into_iter().collect();
+    for is_left in [true, false] {
+        let (src, pose0) = if is_left { (&sources.left, left0) } else { (&sources.right, right0) };
+        let (Some(src), Some(pose0)) = (src, pose0) else { continue };
+        let (k, obs) =
+            if is_left { (&state.left, &src.capture.left) } else { (&state.right, &src.capture.right) };
+        let Some(pcov) = resection_pose_covariance(k, &points, obs, &pose0, noise_px) else { continue };
+        let mut jp = nalgebra::Matrix3x6::<f64>::zeros();
+        for c in 0..6 {
+            let h = 0.5 * pcov[(c, c)].max(0.0).sqrt();
+            if h.is_nan() || h <= 0.0 {
+                continue;
+            }
+            let mut d = nalgebra::Vector6::<f64>::zeros();
+            d[c] = h;
+            let eval = |d: &nalgebra::Vector6<f64>| {
+                let p = pose0 * tangent_step(d);
+                if is_left {
+                    deltas(state, Some(&p), right0.as_ref())
+                } else {
+                    deltas(state, left0.as_ref(), Some(&p))
+                }
+            };
+            if let (Some(p), Some(m)) = (eval(&d), eval(&-d)) {
+                for r in 0..3 {
+                    jp[(r, c)] = (p[r] - m[r]) / (2.0 * h);
+                }
+            }
+        }
+        let add = jp * pcov * jp.transpose();
+        for r in 0..3 {
+            for c in 0..3 {
+                out[(r, c)] += add[(r, c)];
+            }
+        }
+    }
+    Ok(AlignmentSigmas {
+        elevation_deg: out[(0, 0)].max(0.0).sqrt(),
+        verge_left_deg: out[(1, 1)].max(0.0).sqrt(),
+        verge_right_deg: out[(2, 2)].max(0.0).sqrt(),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -633,6 +833,38 @@ mod tests {
         for v in [s.elevation_deg, s.verge_left_deg, s.verge_right_deg] {
             assert!(v > 0.01 && v < 2.0, "sigma {v}");
         }
+    }
+
+    /// The vergence axes' own measurement adds uncertainty: with no axis source the
+    /// measured-axis sigmas equal [`alignment_sigmas`] (same finite differences, 1e-12 is
+    /// rounding); with the procedure's sources the vergence sigmas grow, and the pose
+    /// variance scales with the pixel noise squared (resection covariance is sigma^2 (J^T J)^-1).
+    #[test]
+    fn measured_axes_add_their_own_uncertainty() {
+        let (_, outcome) = run(Scenario { seed: 11, ..Scenario::default() });
+        let calib = &outcome.calibration;
+        let reference = calib.reference_encoders;
+        let fixed = alignment_sigmas(calib, &outcome.verge_axes, &reference).unwrap();
+        let none =
+            alignment_sigmas_measured(calib, &outcome.verge_axes, &AxisSources::default(), &reference, None)
+                .unwrap();
+        assert!((fixed.verge_left_deg - none.verge_left_deg).abs() < 1e-12);
+        assert!((fixed.elevation_deg - none.elevation_deg).abs() < 1e-12);
+        let src = &outcome.axis_sources;
+        assert!(src.left.is_some() && src.right.is_some());
+        let measured = outcome.sigmas;
+        assert!(measured.verge_left_deg > fixed.verge_left_deg, "{measured:?} vs {fixed:?}");
+        assert!(measured.verge_right_deg > fixed.verge_right_deg, "{measured:?} vs {fixed:?}");
+        // Variance = calibration part + pose part * sigma^2: (v3 - v2) / (v2 - v1) = 5/3
+        // (the finite differences are at 0.5 sigma of a nearly linear map: 2 % is generous).
+        let var = |px: f64| {
+            alignment_sigmas_measured(calib, &outcome.verge_axes, src, &reference, Some(px))
+                .unwrap()
+                .verge_left_deg
+                .powi(2)
+        };
+        let ratio = (var(3.0) - var(2.0)) / (var(2.0) - var(1.0));
+        assert!((ratio - 5.0 / 3.0).abs() < 0.035, "ratio {ratio}");
     }
 
     #[test]
