@@ -33,8 +33,8 @@
 //! expected size: right on average, but not the bound of that trial's data).
 //!
 //! Pitfalls: the bound ignores the outlier-rejection's randomness and the vergence-axis
-//! resections' dependence on the calibrated scene points (held, as in the procedure's
-//! sigmas); at noise 0 it is 0.
+//! resections' share of the scene points' own noise (as in the procedure's sigmas); at
+//! noise 0 it is 0.
 
 use std::time::Instant;
 
