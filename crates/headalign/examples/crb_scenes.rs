@@ -30,12 +30,15 @@ enum Spread {
     Thinned,
 }
 
-/// (bound of f pooled in percent, bound of the aligned elevation in degrees) at `noise`.
-fn bounds(s: &Scenario, noise: f64) -> Result<(f64, f64), Box<dyn std::error::Error>> {
+/// (bound of f pooled in percent, bound of the aligned elevation in degrees), or why not.
+type Bounds = Result<(f64, f64), Box<dyn std::error::Error>>;
+
+/// [`Bounds`] of scenario `s` at `noise`.
+fn bounds(s: &Scenario, noise: f64) -> Bounds {
     bounds_with(s, noise, Spread::All)
 }
 
-fn bounds_with(s: &Scenario, noise: f64, spread: Spread) -> Result<(f64, f64), Box<dyn std::error::Error>> {
+fn bounds_with(s: &Scenario, noise: f64, spread: Spread) -> Bounds {
     let mut head = SimulatedHead::new(Scenario { noise_px: 0.0, ..s.clone() })?;
     let opts = VergeTiltOptions {
         rotation_deg: 3.0,
@@ -81,6 +84,24 @@ fn bounds_with(s: &Scenario, noise: f64, spread: Spread) -> Result<(f64, f64), B
     Ok(((0.5 * (fl * fl + fr * fr)).sqrt(), sig.elevation_deg))
 }
 
+/// RMS over seeds `1..=seeds` of the focal bound of the first and the elevation bound of
+/// the second of `two(seed)`, and how many seeds gave both (failures are printed).
+fn rms_over_seeds(name: &str, seeds: u64, mut two: impl FnMut(u64) -> (Bounds, Bounds)) -> (f64, f64, usize) {
+    let (mut sf, mut se, mut n) = (0.0, 0.0, 0usize);
+    for seed in 1..=seeds {
+        match two(seed) {
+            (Ok((f, _)), Ok((_, e))) => {
+                sf += f * f;
+                se += e * e;
+                n += 1;
+            }
+            (a, b) => eprintln!("{name} seed {seed}: {:?} {:?}", a.err(), b.err()),
+        }
+    }
+    let nf = n.max(1) as f64;
+    ((sf / nf).sqrt(), (se / nf).sqrt(), n)
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     let seeds: u64 = args.get(1).map_or(Ok(10), |s| s.parse())?;
@@ -100,21 +121,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!("| scene | f bound, 200 pts, 3 px (%) | elevation bound, 50 pts, 1.5 px (deg) | ok seeds |");
     println!("|---|---|---|---|");
     for (name, s) in variants {
-        let (mut sf, mut se, mut n) = (0.0, 0.0, 0usize);
-        for seed in 1..=seeds {
+        let (f, e, n) = rms_over_seeds(&name, seeds, |seed| {
             let f200 = bounds(&Scenario { seed, points: 200, ..s.clone() }, 3.0);
-            let e50 = bounds(&Scenario { seed, points: 50, ..s.clone() }, 1.5);
-            match (f200, e50) {
-                (Ok((f, _)), Ok((_, e))) => {
-                    sf += f * f;
-                    se += e * e;
-                    n += 1;
-                }
-                (a, b) => eprintln!("{name} seed {seed}: {:?} {:?}", a.err(), b.err()),
-            }
-        }
-        let nf = n.max(1) as f64;
-        println!("| {name} | {:.2} | {:.3} | {n}/{seeds} |", (sf / nf).sqrt(), (se / nf).sqrt());
+            (f200, bounds(&Scenario { seed, points: 50, ..s.clone() }, 1.5))
+        });
+        println!("| {name} | {f:.2} | {e:.3} | {n}/{seeds} |");
     }
     // Point spread over the image: the default scene's 200 points, all of them, only the
     // central quarter of the image, or as many spread over the whole image.
@@ -125,20 +136,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ("central half of the image (w/2 x h/2)", Spread::Central),
         ("same count, whole image", Spread::Thinned),
     ] {
-        let (mut sf, mut se, mut n) = (0.0, 0.0, 0usize);
-        for seed in 1..=seeds {
+        let (f, e, _) = rms_over_seeds(name, seeds, |seed| {
             let sc = Scenario { seed, ..d.clone() };
-            match (bounds_with(&sc, 3.0, spread), bounds_with(&sc, 1.5, spread)) {
-                (Ok((f, _)), Ok((_, e))) => {
-                    sf += f * f;
-                    se += e * e;
-                    n += 1;
-                }
-                (a, b) => eprintln!("{name} seed {seed}: {:?} {:?}", a.err(), b.err()),
-            }
-        }
-        let nf = n.max(1) as f64;
-        println!("| {name} | {:.2} | {:.3} |", (sf / nf).sqrt(), (se / nf).sqrt());
+            (bounds_with(&sc, 3.0, spread), bounds_with(&sc, 1.5, spread))
+        });
+        println!("| {name} | {f:.2} | {e:.3} |");
     }
     Ok(())
 }

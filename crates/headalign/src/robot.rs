@@ -1051,6 +1051,18 @@ mod tests {
     use crate::procedure::{VergeTiltOptions, VergeTiltRun};
     use headalign_sim::{Scenario, SimulatedRobot};
 
+    /// A simulated robot for `s` and its verge/tilt calibration (estimation seed = the
+    /// scenario's seed), as every test here starts.
+    fn calibrated_robot(s: Scenario) -> (SimulatedRobot, crate::procedure::VergeTiltOutcome) {
+        let opts = VergeTiltOptions {
+            estimation: EstimationOptions { seed: s.seed, ..EstimationOptions::default() },
+            ..VergeTiltOptions::default()
+        };
+        let mut robot = SimulatedRobot::new(s).unwrap();
+        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        (robot, vt)
+    }
+
     /// Noise-free end to end: steering zero then pan, both exact to 1e-9 deg (rounding
     /// through triangulation, two least-squares fits and the epipole; before the
     /// maximum-likelihood passes a wrong track inside the RANSAC threshold left 0.006
@@ -1058,12 +1070,7 @@ mod tests {
     #[test]
     fn noise_free_steering_and_pan_and_degenerate_cases() {
         let s = Scenario { seed: 1, noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
-        let mut robot = SimulatedRobot::new(s).unwrap();
-        let opts = VergeTiltOptions {
-            estimation: EstimationOptions { seed: 1, ..EstimationOptions::default() },
-            ..VergeTiltOptions::default()
-        };
-        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        let (mut robot, vt) = calibrated_robot(s);
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
         let st = zero_steering(&mut robot, cal, verge, &SteeringOptions::default()).unwrap();
         let now = robot.steering_encoder_deg();
@@ -1090,12 +1097,7 @@ mod tests {
     #[test]
     fn calibration_covariance_matches_the_covariance_block() {
         let s = Scenario { seed: 3, noise_px: 1.0, ..Scenario::default() };
-        let mut robot = SimulatedRobot::new(s).unwrap();
-        let opts = VergeTiltOptions {
-            estimation: EstimationOptions { seed: 3, ..EstimationOptions::default() },
-            ..VergeTiltOptions::default()
-        };
-        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        let (_, vt) = calibrated_robot(s);
         let cal = &vt.calibration;
         let c = calibration_covariance(cal, |cp| {
             let k = cp.bundle.state.left;
@@ -1159,12 +1161,7 @@ mod tests {
     #[test]
     fn pan_data_sigma_covers_repeated_drives() {
         let base = Scenario { seed: 4, near_panels: Scenario::ROBOT_NEAR_PANELS, ..Scenario::default() };
-        let mut exact = SimulatedRobot::new(Scenario { noise_px: 0.0, ..base.clone() }).unwrap();
-        let opts = VergeTiltOptions {
-            estimation: EstimationOptions { seed: 4, ..EstimationOptions::default() },
-            ..VergeTiltOptions::default()
-        };
-        let vt = VergeTiltRun::default().run(exact.head_mut(), &opts).unwrap();
+        let (exact, vt) = calibrated_robot(Scenario { noise_px: 0.0, ..base.clone() });
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
         let mut robot = SimulatedRobot::new(Scenario { noise_px: 1.0, ..base }).unwrap();
         let enc = exact.head().encoders();
@@ -1236,12 +1233,7 @@ mod tests {
             near_panels: Scenario::ROBOT_NEAR_PANELS,
             ..Scenario::default()
         };
-        let mut robot = SimulatedRobot::new(s).unwrap();
-        let opts = VergeTiltOptions {
-            estimation: EstimationOptions { seed: 2, ..EstimationOptions::default() },
-            ..VergeTiltOptions::default()
-        };
-        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        let (mut robot, vt) = calibrated_robot(s);
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
         // Planar: fine, and the pan stage reports its planarity check near zero.
         let flat = align_pan(&mut robot, cal, verge, &PanOptions::default()).unwrap();
@@ -1276,12 +1268,7 @@ mod tests {
             near_panels: Scenario::ROBOT_NEAR_PANELS,
             ..Scenario::default()
         };
-        let mut robot = SimulatedRobot::new(s).unwrap();
-        let opts = VergeTiltOptions {
-            estimation: EstimationOptions { seed: 6, ..EstimationOptions::default() },
-            ..VergeTiltOptions::default()
-        };
-        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        let (mut robot, vt) = calibrated_robot(s);
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
         align_pan(&mut robot, cal, verge, &PanOptions::default()).unwrap();
         let st = zero_steering(&mut robot, cal, verge, &SteeringOptions::default()).unwrap();
