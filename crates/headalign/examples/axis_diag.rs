@@ -101,8 +101,57 @@ fn line(seed: u64, noise: f64) -> Option<String> {
     Some(out)
 }
 
+/// The Cramer-Rao bound's parts as `experiment` evaluates them (noise-free run, covariance
+/// at its state for `noise` px; position `(seed - 1) mod 3` as trial `seed - 1` of
+/// `fig5-verge-tilt --seed 1`): axes held, calibration part, total.
+fn crb_line(seed: u64, noise: f64) -> Option<String> {
+    let positions = [
+        Encoders::default(),
+        Encoders { pan: 4.0, elevation: 4.0, verge_left: 2.0, verge_right: -2.0 },
+        Encoders { pan: -4.0, elevation: -4.0, verge_left: -2.0, verge_right: 2.0 },
+    ];
+    let initial = positions[((seed - 1) % 3) as usize];
+    let sc = Scenario { seed, noise_px: 1e-300, ..Scenario::default() };
+    let (_, clean) = run(&sc, &initial)?;
+    let calib = &clean.calibration;
+    let mut options = EstimationOptions::default().bundle;
+    options.max_iterations = 0;
+    options.robust = headalign_geometry::bundle::RobustLoss::None;
+    options.noise_sigma_px = Some(noise);
+    let bundle =
+        headalign_geometry::bundle::bundle_adjust(&calib.bundle.state, &calib.observations, &options).ok()?;
+    let at = headalign::estimate::RigCalibration { bundle, ..calib.clone() };
+    let r = calib.reference_encoders;
+    let held = alignment_sigmas(&at, &clean.verge_axes, &r).ok()?;
+    let part = alignment_sigmas_measured(&at, &clean.verge_axes, &clean.axis_sources, &r, Some(1e-9)).ok()?;
+    let total =
+        alignment_sigmas_measured(&at, &clean.verge_axes, &clean.axis_sources, &r, Some(noise)).ok()?;
+    let src = |s: &Option<headalign::procedure::AxisMeasurement>| {
+        s.as_ref().map_or(f64::NAN, |s| s.capture.encoders.elevation - r.elevation)
+    };
+    Some(format!(
+        "{seed},{:.3},{:.3},{},{:.6},{:.6},{:.6}",
+        src(&clean.axis_sources.left),
+        src(&clean.axis_sources.right),
+        clean.checks.len(),
+        held.elevation_deg,
+        part.elevation_deg,
+        total.elevation_deg
+    ))
+}
+
 fn main() {
     let a: Vec<String> = std::env::args().collect();
+    if a.get(4).is_some_and(|m| m == "crb") {
+        let noise: f64 = a[3].parse().unwrap();
+        println!("seed,src_el_l,src_el_r,checks,held_el,calib_el,total_el");
+        for sd in a[1].parse::<u64>().unwrap()..=a[2].parse().unwrap() {
+            if let Some(l) = crb_line(sd, noise) {
+                println!("{l}");
+            }
+        }
+        return;
+    }
     let (from, to): (u64, u64) = (a[1].parse().unwrap(), a[2].parse().unwrap());
     let noise: f64 = a[3].parse().unwrap();
     let names = ["total", "fixed", "clean", "sig_main", "sig_calib", "sig_rep"];
