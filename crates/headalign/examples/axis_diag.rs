@@ -1,6 +1,7 @@
 //! Diagnostic (not a test): where the aligned readings' error comes from, split by cause,
 //! against the sigma each propagation predicts. For seeds A..=B at pixel noise N (initial
-//! head position `seed mod 3`, as in `experiment fig5-verge-tilt`), each line gives, for
+//! head position `seed mod 3` of `experiment fig5-verge-tilt`'s three, which that
+//! experiment assigns by trial, `(seed - 1) mod 3` from `--seed 1`), each line gives, for
 //! the aligned elevation, left and right vergence (degrees):
 //! - `fixed`: error with the estimated calibration and the TRUE vergence axes (what
 //!   `alignment_sigmas` describes: axes exact);
@@ -10,7 +11,10 @@
 //! - the sigmas: `alignment_sigmas` (main), `alignment_sigmas_measured` with the pose
 //!   noise at ~0 (calibration part) and as reported (total).
 //!
-//! `cargo run --release -p headalign --example axis_diag -- A B N`
+//! `cargo run --release -p headalign --example axis_diag -- A B N` (CSV on stdout).
+//! `... -- A B N crb`: the Cramer-Rao bound's elevation parts at N px as `experiment`
+//! would evaluate them with the axes' measurement (axes held, calibration part, total) and
+//! where the noise-free run's axes came from.
 use headalign::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_axes_from_motion};
 use headalign::estimate::EstimationOptions;
 use headalign::procedure::{
