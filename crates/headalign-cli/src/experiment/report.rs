@@ -171,7 +171,7 @@ The pan stage (`fig5-pan-tilt`, the paper's robot experiment) runs on the simula
 The Cramer-Rao bound of a quantity is the standard deviation the bundle adjustment's covariance \
 predicts at the true parameters (evaluated on the noise-free run of the same seed, which has \
 the trial's outliers, with the scenario's pixel noise), propagated to the aligned readings like the procedure's own sigmas. \
-It ignores the vergence axes' own measurement noise (taken as exact, like the reported sigmas).\n\n\
+It ignores the vergence axes' own measurement noise (taken as exact; the reported sigmas include it, `alignment_sigmas_measured`).\n\n\
 Metrics (our reading of the paper's where it is ambiguous; both readings are shown where they differ): \
 alignment errors are the angles of each optical axis from true after the head moved to the \
 aligned readings; the focal length is the paper's `f` (its cameras have `f` and an aspect \
