@@ -15,7 +15,9 @@ default scenario's cameras, calibrated with no constraints). Flags after `--` go
 procedural textures (as a clone without ../shared/data); `--near N` adds N near
 panels (Scenario::near_panels) to the scene; `--reuse` keeps the sessions already in
 the --keep folder (compare calibrate flags on the same images). Prints one line per seed and a summary; a seed whose calibrate
-warns is marked "warned".
+warns is marked "warned", and one that `calibrate` re-detected with more corners (its
+first calibration weak or failed; the JSON's `density`) names the first result and the
+corners kept.
 """
 import json, math, os, subprocess, sys, tempfile
 
@@ -78,6 +80,11 @@ for seed in range(first, last + 1):
         dl, dr = v["distortion"]["left"], v["distortion"]["right"]
         sk = v["distortion"]["sigma"]
         line += f", k1 {dl[0]:+.4f}/{dr[0]:+.4f} (sigma {sk['left.k1'] or float('nan'):.4f}), k2 {dl[1]:+.4f}/{dr[1]:+.4f}"
+    d = v.get("density") or {}
+    if len(d.get("trials", [])) > 1:
+        first = d["trials"][0]
+        was = "failed" if first["error"] else f"f {100.0 * (first['focal_px'][0] - truth['left']['fx']) / truth['left']['fx']:+.3f} %"
+        line += f", re-detected ({first['corners']} corners: {was}), kept {d['trials'][d['kept']]['corners']}"
     if w:
         line += " warned"
     print(line, flush=True)

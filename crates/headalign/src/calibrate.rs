@@ -396,6 +396,9 @@ pub struct CalibrateReport {
     pub sigma_px: f64,
     /// Sigma of the focal length (`fx`) of the left and right camera, percent of it.
     pub focal_sigma_pct: [Option<f64>; 2],
+    /// Mean fraction of the used views' stereo matches on one plane (the scene-depth
+    /// check's `on_one_plane / stereo_matches`, averaged over the views not left out).
+    pub plane_share: f64,
     /// The estimation seed of the run that gave this result (the options' seed plus
     /// [`CalibrateReport::restarts`]).
     pub estimation_seed: u64,
@@ -957,8 +960,7 @@ fn calibrate_once(
     let focal_sigma_pct = [("left", &state.left), ("right", &state.right)]
         .map(|(side, k)| cov.sigma(&format!("{side}.fx")).map(|s| 100.0 * s / k.fx));
     let mut warnings = Vec::new();
-    let worst = focal_sigma_pct.iter().flatten().copied().fold(0.0, f64::max);
-    if worst > options.warn_focal_sigma_pct {
+    if focal_sigma_weak(&focal_sigma_pct, options) {
         warnings.push(format!(
             "the focal length is poorly determined: sigma {} (left) / {} (right) of f, above {} %. These motions and this scene are close to a critical configuration, where the estimate can be off by several sigmas. Add a motion about another axis, or turn the rig 20-30 deg about an axis perpendicular to both the baseline and the optical axis (the vertical, for a side-by-side rig) while moving it 0.2-0.3 m along that axis, in a scene with depth (not one wall); avoid turning about the baseline or the optical axis",
             fmt_pct(focal_sigma_pct[0]),
@@ -978,7 +980,7 @@ fn calibrate_once(
     let plane_share =
         used_checks.iter().map(|c| c.on_one_plane as f64 / c.stereo_matches.max(1) as f64).sum::<f64>()
             / used_checks.len().max(1) as f64;
-    if motions.len() == 1 && plane_share > options.warn_plane_fraction {
+    if plane_weak(motions.len(), plane_share, options) {
         warnings.push(format!(
             "one motion in a scene that is mostly one plane ({:.0} % of the stereo matches on one plane, on average over the views): self-calibration is close to degenerate and the focal length can be off by far more than its sigma; record a second motion, or a scene with more depth",
             100.0 * plane_share
@@ -1004,6 +1006,7 @@ fn calibrate_once(
         final_rms_px: adjusted.last.report.final_rms_px,
         sigma_px: adjusted.last.report.sigma_px,
         focal_sigma_pct,
+        plane_share,
         estimation_seed: est.seed,
         restarts: 0,
         warnings,
@@ -1131,6 +1134,238 @@ fn every_point_pass(
     best
 }
 
+/// Either focal sigma above [`CalibrateOptions::warn_focal_sigma_pct`] (the warning of a
+/// poorly determined focal length).
+fn focal_sigma_weak(focal_sigma_pct: &[Option<f64>; 2], options: &CalibrateOptions) -> bool {
+    focal_sigma_pct.iter().flatten().copied().fold(0.0, f64::max) > options.warn_focal_sigma_pct
+}
+
+/// The larger of the two focal sigmas, percent; infinite if either is unknown (a singular
+/// covariance determines nothing).
+fn worst_focal_sigma_pct(focal_sigma_pct: &[Option<f64>; 2]) -> f64 {
+    focal_sigma_pct.iter().map(|s| s.filter(|v| v.is_finite()).unwrap_or(f64::INFINITY)).fold(0.0, f64::max)
+}
+
+/// One motion in a scene mostly on one plane (the warning of
+/// [`CalibrateOptions::warn_plane_fraction`]).
+fn plane_weak(motions: usize, plane_share: f64, options: &CalibrateOptions) -> bool {
+    motions == 1 && plane_share > options.warn_plane_fraction
+}
+
+/// True if a calibration carries a warning about its data (the focal length poorly
+/// determined, or one motion in a mostly planar scene; not the note that a restart was
+/// needed): the data may give more if the images are read more densely ([`Density`]).
+pub fn weak_data(report: &CalibrateReport, options: &CalibrateOptions) -> bool {
+    focal_sigma_weak(&report.focal_sigma_pct, options)
+        || plane_weak(report.motions.len(), report.plane_share, options)
+}
+
+/// Corners per image for self-calibration from images: a first detection with `corners`
+/// and, when its calibration is weak ([`weak_data`]) or fails, a second one with
+/// `retry_corners` from the same images; [`prefer_denser`] keeps one of the two.
+///
+/// Why (measured on rendered one-general-motion sessions, 0.5 px, seeds 1-20, and
+/// two-rotation barrel-lens sessions, seeds 1-8): one motion calibrates only from the
+/// points seen in both views, and where one textured wall fills the views the strongest
+/// corners all lie on it; twice the corners puts enough off it (seed 20: f 19.7 % off
+/// with sigma 0.93 % at 1500, -0.16 % with sigma 0.30 % at 3000), and with `k1, k2`
+/// estimated it halves the focal error of two small rotations. But denser is not better
+/// everywhere (one motion with the distortion estimated: 2 of 10 seeds diverged at 3000
+/// from starts that converged at 1500, f +301 % with a sigma of 15 %, and +7.4 % with
+/// 1.5 %), and it costs 2-10x the time, so the dense run is only a retry of a weak
+/// result, and its own sigma decides.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Density {
+    /// Corners per image of the first detection (default 1500, the front end's).
+    pub corners: usize,
+    /// Corners per image of the retry (default 3000); equal to `corners`: no retry.
+    pub retry_corners: usize,
+}
+
+impl Default for Density {
+    fn default() -> Self {
+        Self { corners: 1500, retry_corners: 3000 }
+    }
+}
+
+impl Density {
+    /// One detection with `corners` per image, no retry (what the user asked for).
+    pub fn fixed(corners: usize) -> Self {
+        Self { corners, retry_corners: corners }
+    }
+
+    /// Check the counts.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        if self.corners == 0 || self.retry_corners < self.corners {
+            return Err(AlignError::InvalidOption(format!(
+                "corners per image must be positive and the retry's at least as many (got {} and {})",
+                self.corners, self.retry_corners
+            )));
+        }
+        Ok(())
+    }
+
+    /// True if the first trial (weak or failed) calls for the denser retry.
+    pub fn retry(&self, first: &DensityTrial) -> bool {
+        self.retry_corners > self.corners && (first.weak || first.error.is_some())
+    }
+}
+
+/// One calibration of a [`Density`] choice.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DensityTrial {
+    /// Corners per image.
+    pub corners: usize,
+    /// Left and right focal length `fx`, pixels (NaN if the run failed).
+    pub focal_px: [f64; 2],
+    /// Their sigmas, percent ([`CalibrateReport::focal_sigma_pct`]).
+    pub focal_sigma_pct: [Option<f64>; 2],
+    /// The result carries a warning about its data ([`weak_data`]).
+    pub weak: bool,
+    /// Why the run failed, if it did.
+    pub error: Option<String>,
+    /// Wall time of detection, tracking and calibration, seconds.
+    pub seconds: f64,
+}
+
+impl DensityTrial {
+    /// The trial of a calibration.
+    pub fn new(corners: usize, cal: &MotionCalibration, options: &CalibrateOptions, seconds: f64) -> Self {
+        let st = &cal.bundle.state;
+        Self {
+            corners,
+            focal_px: [st.left.fx, st.right.fx],
+            focal_sigma_pct: cal.report.focal_sigma_pct,
+            weak: weak_data(&cal.report, options),
+            error: None,
+            seconds,
+        }
+    }
+
+    /// The trial of a failed run.
+    pub fn failed(corners: usize, error: String, seconds: f64) -> Self {
+        Self {
+            corners,
+            focal_px: [f64::NAN; 2],
+            focal_sigma_pct: [None; 2],
+            weak: true,
+            error: Some(error),
+            seconds,
+        }
+    }
+}
+
+/// Keep the denser of two calibrations of the same images? Yes if the first failed and
+/// the denser did not, or if both ran and the denser one's worse focal sigma is smaller
+/// (an unknown sigma counts as infinite). The sigma is the calibration's own measure of
+/// how well its data fix it; a wrong minimum reached from a poor start shows as a wide
+/// sigma (the diverged dense runs above: 15 % and 1.5 % against 0.44 % and 0.39 %), and
+/// more observations of the same scene narrow it where the data agree.
+pub fn prefer_denser(first: &DensityTrial, denser: &DensityTrial) -> bool {
+    match (&first.error, &denser.error) {
+        (_, Some(_)) => false,
+        (Some(_), None) => true,
+        (None, None) => {
+            worst_focal_sigma_pct(&denser.focal_sigma_pct) < worst_focal_sigma_pct(&first.focal_sigma_pct)
+        }
+    }
+}
+
+/// How far apart two trials' focal lengths are, in combined sigmas (the larger over the
+/// two cameras); `None` if either failed or lacks a sigma.
+pub fn disagreement_sigmas(a: &DensityTrial, b: &DensityTrial) -> Option<f64> {
+    let mut worst: Option<f64> = None;
+    for i in 0..2 {
+        let (sa, sb) =
+            (a.focal_sigma_pct[i]? * a.focal_px[i] / 100.0, b.focal_sigma_pct[i]? * b.focal_px[i] / 100.0);
+        let z = (a.focal_px[i] - b.focal_px[i]).abs() / (sa * sa + sb * sb).sqrt();
+        if !z.is_finite() {
+            return None;
+        }
+        worst = Some(worst.map_or(z, |w: f64| w.max(z)));
+    }
+    worst
+}
+
+/// Above this many combined sigmas two detections' focal lengths disagree (a warning).
+pub const DISAGREEMENT_SIGMAS: f64 = 3.0;
+
+/// What [`Density`] did: every trial, the kept one, and the sentence that says so.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DensityReport {
+    /// True if the corner count was chosen (no `--corners`).
+    pub automatic: bool,
+    /// The runs in order.
+    pub trials: Vec<DensityTrial>,
+    /// Index of the kept trial.
+    pub kept: usize,
+    /// Focal disagreement of the two trials, combined sigmas ([`disagreement_sigmas`]).
+    pub disagreement_sigmas: Option<f64>,
+    /// What was done, for the user (empty with one trial).
+    pub note: String,
+    /// True if the note is a warning: the two trials disagree by more than
+    /// [`DISAGREEMENT_SIGMAS`], or the first failed.
+    pub warn: bool,
+}
+
+impl DensityReport {
+    /// The choice between a first trial and, if run, a denser one.
+    pub fn choose(automatic: bool, first: DensityTrial, denser: Option<DensityTrial>) -> Self {
+        let Some(denser) = denser else {
+            return Self {
+                automatic,
+                trials: vec![first],
+                kept: 0,
+                disagreement_sigmas: None,
+                note: String::new(),
+                warn: false,
+            };
+        };
+        let keep_denser = prefer_denser(&first, &denser);
+        let z = disagreement_sigmas(&first, &denser);
+        let describe = |t: &DensityTrial| match &t.error {
+            Some(e) => format!("failed ({e})"),
+            None => format!(
+                "f {:.1} / {:.1} px, sigma {} / {}",
+                t.focal_px[0],
+                t.focal_px[1],
+                fmt_pct(t.focal_sigma_pct[0]),
+                fmt_pct(t.focal_sigma_pct[1])
+            ),
+        };
+        let mut note = format!(
+            "{} with {} corners per image{}: re-detected with {}: {}; kept the {} corners result ({})",
+            describe(&first),
+            first.corners,
+            if first.error.is_none() { " (a weak calibration)" } else { "" },
+            denser.corners,
+            describe(&denser),
+            if keep_denser { denser.corners } else { first.corners },
+            if first.error.is_some() || denser.error.is_some() {
+                "the other failed"
+            } else {
+                "smaller focal sigma"
+            },
+        );
+        let disagree = z.is_some_and(|z| z > DISAGREEMENT_SIGMAS);
+        if let Some(z) = z {
+            note.push_str(&format!("; the two focal lengths differ by {z:.1} combined sigmas"));
+        }
+        if disagree {
+            note.push_str(": the scene supports more than one solution, and the kept one can be off by more than its sigma; record a second motion, or a scene with more depth");
+        }
+        let warn = disagree || first.error.is_some();
+        Self {
+            automatic,
+            trials: vec![first, denser],
+            kept: usize::from(keep_denser),
+            disagreement_sigmas: z,
+            note,
+            warn,
+        }
+    }
+}
+
 fn fmt_pct(v: Option<f64>) -> String {
     v.map_or_else(|| "unknown".to_string(), |v| format!("{v:.2} %"))
 }
@@ -1212,6 +1447,68 @@ pub fn rig_from_known_intrinsics(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A trial with focal lengths `f` (px) and sigmas `sigma` (percent).
+    fn trial(corners: usize, f: [f64; 2], sigma: [f64; 2], weak: bool) -> DensityTrial {
+        DensityTrial {
+            corners,
+            focal_px: f,
+            focal_sigma_pct: sigma.map(Some),
+            weak,
+            error: None,
+            seconds: 1.0,
+        }
+    }
+
+    /// The density choice on the trials measured on rendered sessions (docs/real-data.md):
+    /// seed 20 (one wall) is retried and the dense result kept, with the 17-sigma
+    /// disagreement as a warning; a sound first result is not retried; a dense run that
+    /// diverged (one motion with k1, k2 estimated, seed 1 at 3000: f 2805 px, sigma 15 %)
+    /// loses to the first; a failed first run is retried and a failed retry never kept;
+    /// `--corners N` never retries.
+    #[test]
+    fn density_retries_weak_results_and_keeps_the_better_determined() {
+        let d = Density::default();
+        d.validate().unwrap();
+        let weak = trial(1500, [838.1, 841.2], [0.93, 0.90], true);
+        let dense = trial(3000, [699.6, 703.9], [0.30, 0.29], true);
+        assert!(d.retry(&weak));
+        assert!(!Density::fixed(1500).retry(&weak));
+        assert!(!d.retry(&trial(1500, [700.6, 705.5], [0.44, 0.44], false)));
+        let z = disagreement_sigmas(&weak, &dense).unwrap();
+        // (838.1 - 699.6) / hypot(0.0093 * 838.1, 0.0030 * 699.6) = 17.1; the right
+        // camera's (841.2 - 703.9) / hypot(7.57, 2.04) = 17.5.
+        assert!((z - 17.5).abs() < 0.1, "{z}");
+        let r = DensityReport::choose(true, weak.clone(), Some(dense.clone()));
+        assert_eq!(r.kept, 1);
+        assert!(r.warn && r.note.contains("17.") && r.note.contains("3000"), "{}", r.note);
+        // Agreeing trials: the denser kept by its sigma, and only a note.
+        let agree = trial(3000, [839.0, 842.0], [0.60, 0.60], true);
+        let r = DensityReport::choose(true, weak.clone(), Some(agree));
+        assert_eq!(r.kept, 1);
+        assert!(!r.warn && r.disagreement_sigmas.is_some_and(|z| z < 1.0), "{r:?}");
+        // The diverged dense run loses.
+        let first = trial(1500, [701.3, 706.2], [0.50, 0.50], true);
+        let diverged = trial(3000, [2805.3, 2830.0], [15.4, 15.4], true);
+        assert!(!prefer_denser(&first, &diverged));
+        assert_eq!(DensityReport::choose(true, first.clone(), Some(diverged)).kept, 0);
+        // An unknown sigma counts as infinite.
+        let unknown = DensityTrial { focal_sigma_pct: [Some(0.1), None], ..dense.clone() };
+        assert!(!prefer_denser(&first, &unknown));
+        assert!(disagreement_sigmas(&first, &unknown).is_none());
+        // Failures.
+        let failed = DensityTrial::failed(1500, "not enough data".into(), 2.0);
+        assert!(d.retry(&failed));
+        assert!(prefer_denser(&failed, &dense));
+        let r = DensityReport::choose(true, failed.clone(), Some(dense.clone()));
+        assert!(r.kept == 1 && r.warn && r.note.contains("failed (not enough data)"), "{}", r.note);
+        assert!(!prefer_denser(&first, &DensityTrial::failed(3000, "x".into(), 2.0)));
+        // One trial: nothing to say.
+        let r = DensityReport::choose(false, first, None);
+        assert!(r.kept == 0 && !r.warn && r.note.is_empty() && r.trials.len() == 1);
+        assert!(Density { corners: 1500, retry_corners: 1000 }.validate().is_err());
+        assert!(Density::fixed(0).validate().is_err());
+    }
 
     #[test]
     fn reads_opencv_lenses() {
@@ -1326,9 +1623,12 @@ mod tests {
         let s = cal.report.focal_sigma_pct[0].unwrap();
         assert!(s > 0.5, "sigma {s} %");
         assert!(cal.report.warnings[0].contains("poorly determined"), "{:?}", cal.report.warnings);
+        // A weak result: an image front end retries it denser (Density).
+        assert!(weak_data(&cal.report, &options));
         let (views, _, _) = general_session(1, 0.5);
         let cal = calibrate_rig(&views, &options).unwrap();
         assert!(cal.report.warnings.is_empty(), "{:?}", cal.report.warnings);
+        assert!(!weak_data(&cal.report, &options));
     }
 
     #[test]
@@ -1374,6 +1674,8 @@ mod tests {
             // warning (it is still within 1 %, at 0.85 %, its worst).
             let plane_warning = cal.report.warnings.iter().any(|w| w.contains("mostly one plane"));
             assert_eq!(plane_warning, seed == 14 || seed == 2, "seed {seed}: {:?}", cal.report.warnings);
+            // weak_data is exactly the data warnings (no restart here).
+            assert_eq!(weak_data(&cal.report, &options), plane_warning, "seed {seed}");
         }
     }
 
