@@ -1,6 +1,10 @@
 //! Diagnostic (not a test): for one seed, noise and initial head position, the verge/tilt
 //! estimate's intrinsic errors, and the least-squares solution reached from the truth on
-//! the same inlier observations (is the estimate a worse local minimum?).
+//! the same inlier observations (is the estimate a worse local minimum?), and from the
+//! estimate with one part replaced by the truth (intrinsics, rig, motions, points: which
+//! part decides the basin), with the rig's rotation and baseline direction against the
+//! truth's (seed 39 at position 2: the rig decides; its baseline's x component was
+//! reversed, see `estimate::reversed_rig_restart`).
 //! `cargo run --release -p headalign --example ratio_diag -- SEED NOISE POSITION`
 //! (POSITION 0, 1, 2 as in `experiment fig5-verge-tilt`).
 use std::collections::HashMap;
