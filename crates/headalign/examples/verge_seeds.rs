@@ -6,6 +6,12 @@
 //! each aligned reading, over the squared reported sigma, is the share of the variance a
 //! bound on the data alone misses (a ratio `sqrt(1 + share)` above it at most).
 //! `cargo run --release -p headalign --example verge_seeds -- FIRST LAST NOISE RUNS`
+//!
+//! Measured (`-- 1 30 2 4`, 2 px, 30 seeds, 4 estimation seeds each): within-seed
+//! variance / sigma^2 0.017 (verge_left), 0.022 (verge_right), 0.051 (elevation), 0.036
+//! (right.cx), 0.185 (left.fx): the estimator's randomness explains at most 1 % of the
+//! vergences' 5-15 % ratio excess, but about 9 % of left.fx's (a factor sqrt(1.185); a
+//! few seeds carry it: 0.87 sigma of spread in seeds 13 and 14).
 use headalign::estimate::EstimationOptions;
 use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
 use headalign_platform::{Encoders, StereoHead};
