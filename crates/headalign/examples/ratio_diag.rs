@@ -1,6 +1,10 @@
 //! Diagnostic (not a test): for one seed, noise and initial head position, the verge/tilt
 //! estimate's intrinsic errors, and the least-squares solution reached from the truth on
-//! the same inlier observations (is the estimate a worse local minimum?).
+//! the same inlier observations (is the estimate a worse local minimum?), and from the
+//! estimate with one part replaced by the truth (intrinsics, rig, motions, points: which
+//! part decides the basin), with the rig's rotation and baseline direction against the
+//! truth's (seed 39 at position 2: the rig decides; its baseline's x component was
+//! reversed, see `estimate::reversed_rig_restart`).
 //! `cargo run --release -p headalign --example ratio_diag -- SEED NOISE POSITION`
 //! (POSITION 0, 1, 2 as in `experiment fig5-verge-tilt`).
 use std::collections::HashMap;
@@ -102,8 +106,51 @@ fn main() {
     let again = bundle_adjust(st, &c.observations, &o).unwrap();
     show("re-run", &again.state, again.report.final_rms_px, again.report.observations);
     match bundle_adjust(&start, &c.observations, &o) {
-        Ok(r) => show("fromtrue", &r.state, r.report.final_rms_px, r.report.observations),
+        Ok(r) => {
+            show("fromtrue", &r.state, r.report.final_rms_px, r.report.observations);
+            println!(
+                "   (from the truth: initial rms {:.5}, {} iterations, {})",
+                r.report.initial_rms_px, r.report.iterations, r.report.termination
+            );
+        }
         Err(e) => println!("from truth failed: {e}"),
+    }
+    for (tag, which) in [("truth K", 0), ("truth rig", 1), ("truth mot", 2), ("truth pts", 3), ("K+rig", 4)] {
+        let mut m = st.clone();
+        match which {
+            0 => {
+                m.left = cs.left;
+                m.right = cs.right;
+            }
+            1 => m.right_from_left = cs.right_from_left,
+            2 => m.motions = cs.motions.clone(),
+            3 => m.points = start.points.clone(),
+            _ => {
+                m.left = cs.left;
+                m.right = cs.right;
+                m.right_from_left = cs.right_from_left;
+            }
+        }
+        match bundle_adjust(&m, &c.observations, &o) {
+            Ok(r) => show(tag, &r.state, r.report.final_rms_px, r.report.observations),
+            Err(e) => println!("{tag} failed: {e}"),
+        }
+    }
+    {
+        let (a, b) = (st.right_from_left, cs.right_from_left);
+        let d = a.rotation.inverse() * b.rotation;
+        let ta = a.translation.vector.normalize();
+        let tb = b.translation.vector.normalize();
+        println!(
+            "   rig: est rot {:?} deg, truth rot {:?} deg, diff {:.3} deg about {:?}; t est {:?} truth {:?} angle {:.3} deg",
+            a.rotation.scaled_axis().map(f64::to_degrees),
+            b.rotation.scaled_axis().map(f64::to_degrees),
+            d.angle().to_degrees(),
+            d.axis().map(|x| x.into_inner()),
+            ta,
+            tb,
+            ta.angle(&tb).to_degrees()
+        );
     }
     let mut centred = st.clone();
     for k in [&mut centred.left, &mut centred.right] {
