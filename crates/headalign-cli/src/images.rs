@@ -16,7 +16,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use headalign::alignment::AlignmentSolution;
-use headalign::estimate::{EstimationOptions, RigCalibration};
+use headalign::estimate::{DepthStepGate, EstimationOptions, RigCalibration};
 use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking};
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
 use headalign::observations::View;
@@ -158,7 +158,7 @@ pub fn procedure<H: ImagingHead>(
 pub fn tracked_estimation(seed: u64) -> EstimationOptions {
     let d = EstimationOptions::default();
     let bundle = BundleOptions { covariance_model: CovarianceModel::PointClustered, ..d.bundle.clone() };
-    EstimationOptions { seed, bundle, ..d }
+    EstimationOptions { seed, bundle, depth_step: Some(DepthStepGate::IMAGES), ..d }
 }
 
 /// Run [`procedure`] on `head`, recording into `session` (if any): `report.json` holds

@@ -20,7 +20,7 @@
 //! Printed at the end: RMS z per variant over seeds and intrinsics.
 use std::collections::BTreeMap;
 
-use headalign::estimate::{EstimationOptions, estimate_rig};
+use headalign::estimate::{DepthStepGate, EstimationOptions, estimate_rig, near_depth_step};
 use headalign::frontend::{FrontEndOptions, TrackingHead};
 use headalign::imaging::{VergingOptions, verge_to_common_view};
 use headalign::observations::View;
@@ -37,6 +37,11 @@ use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
+
+/// A pixel and its localisation error.
+type PixelError = (Point2<f64>, Vector2<f64>);
+/// Tracks grouped by (category, the images they are seen in).
+type Groups = BTreeMap<(usize, Vec<(usize, usize)>), Vec<usize>>;
 
 const NAMES: [&str; 8] =
     ["left.fx", "left.fy", "left.cx", "left.cy", "right.fx", "right.fy", "right.cx", "right.cy"];
@@ -135,12 +140,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let errors: Vec<Option<Vector2<f64>>> = obs.iter().map(|o| proj(o).map(|q| o.pixel - q)).collect();
         // Cross-track correlation per image, binned by distance.
         let bins = [8.0, 20.0, 50.0, 120.0, 300.0, 2000.0];
-        let mut per_image: BTreeMap<(usize, usize), Vec<(Point2<f64>, Vector2<f64>)>> = BTreeMap::new();
+        let mut per_image: BTreeMap<(usize, usize), Vec<PixelError>> = BTreeMap::new();
         for (o, e) in obs.iter().zip(&errors) {
-            if let Some(e) = e {
-                if by_point[o.point].len() >= 3 {
-                    per_image.entry((o.view, side_of(o.side))).or_default().push((o.pixel, *e));
-                }
+            if let Some(e) = e
+                && by_point[o.point].len() >= 3
+            {
+                per_image.entry((o.view, side_of(o.side))).or_default().push((o.pixel, *e));
             }
         }
         let mut corr: BTreeMap<usize, (f64, f64, usize)> = BTreeMap::new();
@@ -276,7 +281,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         {
             let c = clustered_covariance(state, obs, &ml, sigma_px, &labels)?;
             let clusters = labels.iter().collect::<std::collections::HashSet<_>>().len();
-            record(&format!("{name}"), zs(state, &truth_state, &|n| c.sigma(n)), &mut line);
+            record(name, zs(state, &truth_state, &|n| c.sigma(n)), &mut line);
             line.push(format!("({clusters} clusters)"));
         }
         println!("seed {seed}: z RMS over the intrinsics: {}", line.join(" "));
@@ -304,7 +309,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         };
         let reg100 = region(100.0);
         let patterns_by = |cat: &dyn Fn(usize) -> usize| {
-            let mut patterns: BTreeMap<(usize, Vec<(usize, usize)>), Vec<usize>> = BTreeMap::new();
+            let mut patterns: Groups = BTreeMap::new();
             for (p, list) in by_point.iter().enumerate() {
                 if list.len() >= 2 && true_point[p].is_some() {
                     let mut key: Vec<(usize, usize)> =
@@ -315,7 +320,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             }
             patterns
         };
-        let shuffles: Vec<(&str, BTreeMap<(usize, Vec<(usize, usize)>), Vec<usize>>)> = vec![
+        let shuffles: Vec<(&str, Groups)> = vec![
             ("shuffled", patterns_by(&|_| 0)),
             ("shuf-in-region", patterns_by(&|p| reg100[p])),
             ("shuf-in-surface", patterns_by(&|p| surface[p])),
@@ -409,8 +414,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         sub.push(run("no-boundary", &|i, o| if boundary[o.point] { None } else { measured(i, o) }));
         // Run-time stand-in: a track whose image neighbours (first observations in the same
         // image within RADIUS px) lie at a depth differing by more than RATIO.
-        for (radius, ratio) in [(12.0, 1.25), (20.0, 1.15)] {
-            let flagged = near_depth_step(state, &first_pixel, radius, ratio);
+        for (radius, ratio) in [(25.0, 1.2), (40.0, 1.15)] {
+            let flagged = near_depth_step(state, obs, &DepthStepGate { radius_px: radius, ratio });
             let nf = (0..np).filter(|&p| flagged[p] && !by_point[p].is_empty()).count();
             let both = (0..np).filter(|&p| flagged[p] && boundary[p] && !by_point[p].is_empty()).count();
             let name = format!("no-flagged{radius}");
@@ -474,28 +479,4 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     println!("  cross-track correlation by distance bin (8/20/50/120/300/2000 px): {}", c.join(", "));
     Ok(())
-}
-
-/// Points whose first observation has a neighbour (first observation in the same image,
-/// within `radius` px) whose depth in the reference frame differs by more than `ratio`.
-fn near_depth_step(
-    state: &RigState,
-    first: &[Option<(usize, Point2<f64>)>],
-    radius: f64,
-    ratio: f64,
-) -> Vec<bool> {
-    let mut out = vec![false; first.len()];
-    for (p, fp) in first.iter().enumerate() {
-        let Some((img, px)) = fp else { continue };
-        let dp = state.points[p].coords.norm();
-        out[p] = first.iter().enumerate().any(|(q, fq)| {
-            let Some((iq, pq)) = fq else { return false };
-            if q == p || iq != img || (pq - px).norm() > radius {
-                return false;
-            }
-            let dq = state.points[q].coords.norm();
-            dp.max(dq) > ratio * dp.min(dq)
-        });
-    }
-    out
 }
