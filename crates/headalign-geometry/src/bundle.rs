@@ -119,7 +119,11 @@
 //! observations or differ in size between points (features tracked through images carry
 //! the same localisation bias into every view of a track: White 1980, Liang and Zeger
 //! 1986, the clustered form). It needs many more points than camera parameters (here
-//! hundreds against 20-40). [`BundleResult::perturbed`] moves the
+//! hundreds against 20-40). [`clustered_covariance`] computes the same sandwich with the
+//! clusters given by the caller (points sharing a label form one cluster: an image region,
+//! a surface), to test whether errors are correlated across points (diagnostics; coarse
+//! clusters are few, and a sandwich over few clusters is noisy and biased low).
+//! [`BundleResult::perturbed`] moves the
 //! state by a tangent step so callers can propagate the covariance to any derived
 //! quantity by finite differences.
 //!

@@ -24,7 +24,8 @@
 //! 6. the rig bundle adjustment, motions modelled as rotations about two fixed axes with
 //!    the commanded encoder differences as priors, robust loss; re-selection of every
 //!    observation by its residual; a final adjustment; points at implausible depth (wrong
-//!    tracks) removed and adjusted once more;
+//!    tracks) removed and adjusted once more; with [`EstimationOptions::depth_step`]
+//!    (image mode) the tracks at depth steps are left out too ([`near_depth_step`]);
 //! 7. the maximum-likelihood pass: the Huber loss of step 6 is robust but not the
 //!    likelihood of Gaussian pixel noise (with its fixed 2 px scale, at 2-3 px of noise
 //!    most inliers are down-weighted), and its angle prior is weighted as if the noise
@@ -141,9 +142,10 @@ pub struct EstimationOptions {
     /// is the robust (Huber) adjustment with the prior weighted as if the noise were 1 px.
     pub final_least_squares: bool,
     /// Leave out the tracks at depth steps before the maximum-likelihood pass
-    /// ([`near_depth_step`]; default `None`, off). Image mode sets it: a corner where a near
-    /// edge crosses the background is no fixed scene point, and its structured error moves
-    /// the calibration coherently (`examples/cluster_diag.rs`).
+    /// ([`near_depth_step`]; default `None`, off, also in image mode: see
+    /// [`DepthStepGate::IMAGES`]). A corner where a near edge crosses the background is no
+    /// fixed scene point, and its structured error moves the calibration coherently
+    /// (`examples/cluster_diag.rs`).
     pub depth_step: Option<DepthStepGate>,
 }
 
@@ -165,7 +167,11 @@ impl DepthStepGate {
     /// without the flagged tracks (`examples/cluster_diag.rs`, seeds 1-40): z-score RMS of
     /// the 8 intrinsics 1.29 -> 1.15 (seeds 1-20) and 2.27 -> 1.45 (seeds 21-40, three
     /// seeds at 3-7); radius 25 px and ratio 1.2 flagged fewer tracks and did less (1.17,
-    /// 1.90); dropping as many random tracks changed nothing (1.28, 2.18).
+    /// 1.90); dropping as many random tracks changed nothing (1.28, 2.18). In the full
+    /// pipeline (gate before the maximum-likelihood pass, `bench/seeds.py 1 20 --images`
+    /// with it set in `images::tracked_estimation`) it did not pay: the z-scores hardly
+    /// moved and the focal and elevation errors grew (README), so nothing sets it by
+    /// default.
     pub const IMAGES: DepthStepGate = DepthStepGate { radius_px: 40.0, ratio: 1.15 };
 }
 
