@@ -26,11 +26,7 @@ use headalign_sim::{Scenario, SimulatedHead};
 fn run(s: &Scenario, initial: &Encoders) -> Option<(SimulatedHead, VergeTiltOutcome)> {
     let mut head = SimulatedHead::new(s.clone()).ok()?;
     head.move_to(initial).ok()?;
-    let d = EstimationOptions::default();
-    let k = s.noise_px.max(1.0);
-    let mut o = EstimationOptions { seed: s.seed, prefilter_px: d.prefilter_px * k, ..d };
-    o.fundamental.threshold *= k;
-    o.homography.threshold *= k;
+    let o = EstimationOptions::scaled_for_noise(s.noise_px, s.seed);
     let opts = VergeTiltOptions {
         rotation_deg: s.rotation_deg,
         verge_rotation_deg: 3.0,

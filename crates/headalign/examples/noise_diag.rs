@@ -55,11 +55,7 @@ fn main() {
                 }
             }
         }
-        let s = noise.max(1.0);
-        let d = EstimationOptions::default();
-        let mut o = EstimationOptions { seed, prefilter_px: d.prefilter_px * s, ..d };
-        o.fundamental.threshold *= s;
-        o.homography.threshold *= s;
+        let o = EstimationOptions::scaled_for_noise(noise, seed);
         let Ok(c) = estimate_rig(&noisy, &o) else {
             println!("seed {seed} failed");
             continue;

@@ -69,10 +69,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let (mut sum_sq, mut sum_sq_w) = (0.0, 0.0);
     for seed in first..=last {
         let scenario = Scenario { seed, noise_px: 1.5, points: 50, ..Scenario::default() };
-        let d = EstimationOptions::default();
-        let mut estimation = EstimationOptions { seed, prefilter_px: d.prefilter_px * 1.5, ..d };
-        estimation.fundamental.threshold *= 1.5;
-        estimation.homography.threshold *= 1.5;
+        let estimation = EstimationOptions::scaled_for_noise(1.5, seed);
         let opts = VergeTiltOptions {
             rotation_deg: 3.0,
             verge_rotation_deg: 3.0,

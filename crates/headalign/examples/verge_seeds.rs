@@ -20,11 +20,7 @@ use headalign_sim::{Scenario, SimulatedHead};
 fn run(s: &Scenario, initial: &Encoders, estimation_seed: u64) -> Option<(SimulatedHead, VergeTiltOutcome)> {
     let mut head = SimulatedHead::new(s.clone()).ok()?;
     head.move_to(initial).ok()?;
-    let d = EstimationOptions::default();
-    let k = s.noise_px.max(1.0);
-    let mut o = EstimationOptions { seed: estimation_seed, prefilter_px: d.prefilter_px * k, ..d };
-    o.fundamental.threshold *= k;
-    o.homography.threshold *= k;
+    let o = EstimationOptions::scaled_for_noise(s.noise_px, estimation_seed);
     let opts = VergeTiltOptions {
         rotation_deg: s.rotation_deg,
         verge_rotation_deg: 3.0,

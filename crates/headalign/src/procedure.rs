@@ -1112,11 +1112,7 @@ mod tests {
     fn run_as_experiment(scenario: Scenario, initial: Encoders) -> (SimulatedHead, VergeTiltOutcome) {
         let mut head = SimulatedHead::new(scenario.clone()).unwrap();
         head.move_to(&initial).unwrap();
-        let d = EstimationOptions::default();
-        let s = scenario.noise_px.max(1.0);
-        let mut estimation = EstimationOptions { seed: scenario.seed, prefilter_px: d.prefilter_px * s, ..d };
-        estimation.fundamental.threshold *= s;
-        estimation.homography.threshold *= s;
+        let estimation = EstimationOptions::scaled_for_noise(scenario.noise_px, scenario.seed);
         let options = VergeTiltOptions { verge_rotation_deg: 3.0, estimation, ..VergeTiltOptions::default() };
         let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
         (head, outcome)
@@ -1389,10 +1385,7 @@ mod tests {
     fn a_singular_reclassification_keeps_the_last_fit() {
         let scenario = Scenario { seed: 97, points: 50, noise_px: 1.5, ..Scenario::default() };
         let mut head = SimulatedHead::new(scenario.clone()).unwrap();
-        let d = EstimationOptions::default();
-        let mut estimation = EstimationOptions { seed: 97, prefilter_px: d.prefilter_px * 1.5, ..d };
-        estimation.fundamental.threshold *= 1.5;
-        estimation.homography.threshold *= 1.5;
+        let estimation = EstimationOptions::scaled_for_noise(1.5, 97);
         let options = VergeTiltOptions { estimation, verge_rotation_deg: 3.0, ..VergeTiltOptions::default() };
         VergeTiltRun::default().run(&mut head, &options).unwrap();
         let e = head.alignment_errors(&head.encoders());
@@ -1409,10 +1402,7 @@ mod tests {
     fn small_vergence_turns_do_not_remeasure_the_axis() {
         let scenario = Scenario { seed: 29, noise_px: 3.0, ..Scenario::default() };
         let mut head = SimulatedHead::new(scenario.clone()).unwrap();
-        let d = EstimationOptions::default();
-        let mut estimation = EstimationOptions { seed: 29, prefilter_px: d.prefilter_px * 3.0, ..d };
-        estimation.fundamental.threshold *= 3.0;
-        estimation.homography.threshold *= 3.0;
+        let estimation = EstimationOptions::scaled_for_noise(3.0, 29);
         let auto = AutoRotation {
             diagonals: false,
             choose_verge: false,

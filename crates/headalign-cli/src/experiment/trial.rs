@@ -140,17 +140,10 @@ pub struct TrialRecord {
     pub seconds: f64,
 }
 
-/// Estimation options for a scenario: the defaults (tuned for about 1 px of noise), with
-/// the RANSAC and prefilter thresholds scaled by `max(1, noise_px)` as a user who knows
-/// the noise level would set them (at 3 px the 3-4 px defaults reject most inliers and
-/// the 3D homographies fail with too few tracks).
+/// Estimation options for a scenario: [`EstimationOptions::scaled_for_noise`] at its noise
+/// and seed.
 pub fn estimation_options(scenario: &Scenario) -> EstimationOptions {
-    let d = EstimationOptions::default();
-    let s = scenario.noise_px.max(1.0);
-    let mut o = EstimationOptions { seed: scenario.seed, prefilter_px: d.prefilter_px * s, ..d };
-    o.fundamental.threshold *= s;
-    o.homography.threshold *= s;
-    o
+    EstimationOptions::scaled_for_noise(scenario.noise_px, scenario.seed)
 }
 
 fn procedure_options(spec: &TrialSpec) -> VergeTiltOptions {
