@@ -17,24 +17,14 @@
 //! where the noise-free run's axes came from.
 use headalign::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_axes_from_motion};
 use headalign::estimate::EstimationOptions;
-use headalign::procedure::{
-    VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, alignment_sigmas, alignment_sigmas_measured,
-};
-use headalign_platform::{Encoders, StereoHead};
+use headalign::procedure::{VergeTiltOutcome, alignment_sigmas, alignment_sigmas_measured};
+use headalign_platform::Encoders;
 use headalign_sim::{Scenario, SimulatedHead};
 
+mod common;
+
 fn run(s: &Scenario, initial: &Encoders) -> Option<(SimulatedHead, VergeTiltOutcome)> {
-    let mut head = SimulatedHead::new(s.clone()).ok()?;
-    head.move_to(initial).ok()?;
-    let o = EstimationOptions::scaled_for_noise(s.noise_px, s.seed);
-    let opts = VergeTiltOptions {
-        rotation_deg: s.rotation_deg,
-        verge_rotation_deg: 3.0,
-        estimation: o,
-        ..VergeTiltOptions::default()
-    };
-    let out = VergeTiltRun::default().run(&mut head, &opts).ok()?;
-    Some((head, out))
+    common::verge_tilt_trial(s, initial, s.seed)
 }
 
 fn line(seed: u64, noise: f64) -> Option<String> {

@@ -10,23 +10,15 @@
 use std::collections::HashMap;
 
 use headalign::estimate::EstimationOptions;
-use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
+use headalign::procedure::VergeTiltOutcome;
 use headalign_geometry::bundle::{RobustLoss, bundle_adjust};
-use headalign_platform::{Encoders, StereoHead};
+use headalign_platform::Encoders;
 use headalign_sim::{Scenario, SimulatedHead};
 
+mod common;
+
 fn run(s: &Scenario, initial: &Encoders) -> (SimulatedHead, VergeTiltOutcome) {
-    let mut head = SimulatedHead::new(s.clone()).unwrap();
-    head.move_to(initial).unwrap();
-    let o = EstimationOptions::scaled_for_noise(s.noise_px, s.seed);
-    let opts = VergeTiltOptions {
-        rotation_deg: s.rotation_deg,
-        verge_rotation_deg: 3.0,
-        estimation: o,
-        ..VergeTiltOptions::default()
-    };
-    let out = VergeTiltRun::default().run(&mut head, &opts).unwrap();
-    (head, out)
+    common::verge_tilt_trial(s, initial, s.seed).expect("the simulator and the procedure run")
 }
 
 fn main() {

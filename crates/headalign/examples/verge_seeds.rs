@@ -12,24 +12,12 @@
 //! (right.cx), 0.185 (left.fx): the estimator's randomness explains at most 1 % of the
 //! vergences' 5-15 % ratio excess, but about 9 % of left.fx's (a factor sqrt(1.185); a
 //! few seeds carry it: 0.87 sigma of spread in seeds 13 and 14).
-use headalign::estimate::EstimationOptions;
-use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
-use headalign_platform::{Encoders, StereoHead};
-use headalign_sim::{Scenario, SimulatedHead};
+use headalign_platform::Encoders;
+use headalign_sim::Scenario;
 
-fn run(s: &Scenario, initial: &Encoders, estimation_seed: u64) -> Option<(SimulatedHead, VergeTiltOutcome)> {
-    let mut head = SimulatedHead::new(s.clone()).ok()?;
-    head.move_to(initial).ok()?;
-    let o = EstimationOptions::scaled_for_noise(s.noise_px, estimation_seed);
-    let opts = VergeTiltOptions {
-        rotation_deg: s.rotation_deg,
-        verge_rotation_deg: 3.0,
-        estimation: o,
-        ..VergeTiltOptions::default()
-    };
-    let out = VergeTiltRun::default().run(&mut head, &opts).ok()?;
-    Some((head, out))
-}
+mod common;
+
+use common::verge_tilt_trial as run;
 
 fn main() {
     let a: Vec<String> = std::env::args().collect();
