@@ -1,7 +1,7 @@
 //! Experiment: why `calibrate` on a rendered session is off, against the simulator's truth.
 //! `cargo run --release -p headalign --example onegen_diag -- SEED [procedural] [rotations] [lens K1 K2] [CORNERS...]`
 //! (`COV=clustered` in the environment: the track-clustered covariance instead of the
-//! Gaussian one.)
+//! Gaussian one; `RESELECT=G`: the re-selection gate in robust sigmas, default 3.5.)
 //!
 //! Per corner count (default 1500 and 3000): the session `headalign simulate --images`
 //! records (the reference view and one general motion, square-pixel cameras, zero skew
@@ -103,6 +103,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         ..CalibrateOptions::default()
     };
     options.estimation.seed = 0;
+    if let Some(g) = std::env::var("RESELECT").ok().and_then(|v| v.parse().ok()) {
+        options.estimation.reselect_sigmas = g;
+    }
     if std::env::var("COV").is_ok_and(|v| v == "clustered") {
         options.estimation.bundle.covariance_model =
             headalign_geometry::bundle::CovarianceModel::PointClustered;
@@ -231,6 +234,51 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 );
             }
         }
+        // The errors by image region (all views but the reference left): radial
+        // component (outward positive) by distance from the true principal point, and
+        // the vertical component by image third, with the share over 1 px.
+        let mut bins: BTreeMap<(usize, usize), (f64, f64, usize, usize)> = BTreeMap::new();
+        for (vi, view) in views.iter().enumerate() {
+            for (side, list, k) in
+                [(0, &view.capture.left, &truth.left), (1, &view.capture.right, &truth.right)]
+            {
+                for o in list {
+                    let Some(q) = truep.get(&(vi, side, o.track)) else { continue };
+                    let e = o.pixel - q;
+                    if e.norm() >= 3.0 || (vi == 0 && side == 0) {
+                        continue;
+                    }
+                    let r = nalgebra::Vector2::new(q.x - k.cx, q.y - k.cy);
+                    let rb = ((r.norm() / 100.0) as usize).min(4);
+                    let third = ((q.y / 192.0) as usize).min(2);
+                    for key in [(0, rb), (1, third)] {
+                        let b = bins.entry(key).or_insert((0.0, 0.0, 0, 0));
+                        b.0 += if key.0 == 0 { e.dot(&r) / r.norm().max(1e-9) } else { e.y };
+                        b.1 += e.norm_squared();
+                        b.2 += 1;
+                        b.3 += usize::from(e.norm() > 1.0);
+                    }
+                }
+            }
+        }
+        let show_bins = |kind: usize, label: &str| {
+            let parts: Vec<String> = bins
+                .iter()
+                .filter(|((k, _), _)| *k == kind)
+                .map(|((_, b), (m, ss, n, big))| {
+                    format!(
+                        "{b}: {:+.3} px, RMS {:.3}, {} obs, {:.0} % > 1 px",
+                        m / *n as f64,
+                        (ss / *n as f64).sqrt(),
+                        n,
+                        100.0 * *big as f64 / *n as f64
+                    )
+                })
+                .collect();
+            println!("  {label}: {}", parts.join("; "));
+        };
+        show_bins(0, "mean radial error by radius/100 px");
+        show_bins(1, "mean vertical error by image third (top first)");
         let all: Vec<f64> = err.values().copied().collect();
         println!("seed {seed} corners {n}: all tracked (with a reference-left pixel): {}", stats(&all));
         let show = |label: &str, views: &[View]| -> Option<()> {
