@@ -79,7 +79,8 @@ pub struct CalibrateArgs {
     /// Corners detected per image. Default: 1500, and when that calibration is weak (a
     /// focal sigma above 0.5 %, or one motion in a mostly planar scene) or fails, a
     /// second detection with 3000 from the same images; the result with the smaller
-    /// focal sigma is kept, and the report's `density` says what was done
+    /// focal sigma is kept (if the two disagree by more than 3 sigmas, the one whose
+    /// principal points lie nearer the image centre), and the report's `density` says what was done
     /// (headalign::calibrate::Density; docs/real-data.md). A number here fixes the
     /// count, with no retry.
     #[arg(long)]
