@@ -90,7 +90,7 @@ use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
 use headalign_geometry::registration::similarity_fit;
 use headalign_geometry::rigmotion::{
     RigMotionEstimate, RigMotionOptions, RigTrack, StereoRig, consistent_tracks, four_cameras, perturb,
-    refine_rig_motion, track_error, track_residuals,
+    refine_rig_motion, refine_rig_motion_dropping, track_error, track_residuals,
 };
 use headalign_geometry::so3::screw_from_isometry;
 use headalign_geometry::steering::{Turn, steering_from_turns};
@@ -466,13 +466,14 @@ pub(crate) fn drive_motion(
     }
     let est = DriveEstimator { rig };
     let rep = ransac(&est, &data, options).step("drive registration")?;
-    let n = rep.inliers.len();
-    let mut obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
+    let obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
     let pts: Vec<Point3<f64>> = rep.inliers.iter().map(|&i| data[i].before).collect();
-    let mut ml = refine_rig_motion(&rig.stereo, &obs, &rep.model, &pts, &RigMotionOptions::default())
-        .step("drive motion")?;
+    // Every refinement leaves out a track whose point ends behind a camera or at infinity
+    // (an outlier the gates let through) and re-fits, rather than failing the drive.
+    let (mut ml, mut obs) =
+        refine_dropping(rig, &obs, &rep.model, &pts, &RigMotionOptions::default()).step("drive motion")?;
     let all: Vec<RigTrack> = data.iter().map(|d| d.pixels).collect();
-    let mut n = n;
+    let mut n = obs.len();
     // Guided re-selection: the refined motion is far better than the 3-point RANSAC
     // model that chose the inliers (whose threshold must allow for its depth noise).
     for _ in 0..2 {
@@ -480,11 +481,11 @@ pub(crate) fn drive_motion(
         if kept.len() < n {
             break;
         }
-        obs = kept.iter().map(|(i, _)| all[*i]).collect();
+        let o: Vec<RigTrack> = kept.iter().map(|(i, _)| all[*i]).collect();
         let pts: Vec<Point3<f64>> = kept.iter().map(|(_, x)| *x).collect();
-        ml = refine_rig_motion(&rig.stereo, &obs, &ml.cam2_from_cam1, &pts, &RigMotionOptions::default())
+        (ml, obs) = refine_dropping(rig, &o, &ml.cam2_from_cam1, &pts, &RigMotionOptions::default())
             .step("drive motion")?;
-        n = kept.len();
+        n = obs.len();
     }
     // Maximum-likelihood pass (as the verge/tilt estimator's): the Huber loss bounds an
     // outlier's influence but does not remove it, and a wrong track within the RANSAC
@@ -494,14 +495,27 @@ pub(crate) fn drive_motion(
     let sigma = robust_sigma_px(&rig.stereo, &ml, &obs).max(ML_GATE_FLOOR_PX);
     let kept = consistent_tracks(&rig.stereo, &ml.cam2_from_cam1, &all, ML_GATE_SIGMAS * sigma);
     if kept.len() >= MIN_ML_TRACKS {
-        obs = kept.iter().map(|(i, _)| all[*i]).collect();
+        let o: Vec<RigTrack> = kept.iter().map(|(i, _)| all[*i]).collect();
         let pts: Vec<Point3<f64>> = kept.iter().map(|(_, x)| *x).collect();
         let ls = RigMotionOptions { huber_px: LEAST_SQUARES_HUBER_PX, ..RigMotionOptions::default() };
-        ml = refine_rig_motion(&rig.stereo, &obs, &ml.cam2_from_cam1, &pts, &ls)
-            .step("drive motion (least squares)")?;
-        n = kept.len();
+        (ml, obs) =
+            refine_dropping(rig, &o, &ml.cam2_from_cam1, &pts, &ls).step("drive motion (least squares)")?;
+        n = obs.len();
     }
     Ok(DriveMotion { cam2_from_cam1: ml.cam2_from_cam1, before: xb, inliers: n, ml, tracks: obs })
+}
+
+/// [`refine_rig_motion_dropping`] on `rig`: the estimate and the tracks it kept (same
+/// order as its points).
+fn refine_dropping(
+    rig: &Rig,
+    obs: &[RigTrack],
+    start: &Isometry3<f64>,
+    pts: &[Point3<f64>],
+    options: &RigMotionOptions,
+) -> Result<(RigMotionEstimate, Vec<RigTrack>), headalign_geometry::GeometryError> {
+    let (ml, kept) = refine_rig_motion_dropping(&rig.stereo, obs, start, pts, options)?;
+    Ok((ml, kept.iter().map(|&i| obs[i]).collect()))
 }
 
 /// Gate of the maximum-likelihood pass, in robust standard deviations of one pixel
