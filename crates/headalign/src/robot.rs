@@ -977,13 +977,13 @@ fn steering_fit(
     // Uncertainty: every drive's motion covariance (independent drives) and the
     // calibration's (each drive refitted under each perturbed calibration), propagated by
     // central differences to the out-of-plane parts and the steering zero.
-    let basis = perpendicular_basis(&up);
+    let basis = perpendicular_basis(up);
     let nominal: Vec<Isometry3<f64>> = motions.iter().map(|m| m.cam2_from_cam1).collect();
     let n = motions.len();
     let cal = calibration_covariance_dyn(calib, 3 * n + 1, |cp| {
         let rig_p = rig_at(cp, verge, ctx.enc).ok()?;
         let up_p = cp.pan_axis()?.transformed(&rig_p.ref_from_left.inverse()).direction;
-        let q = UnitQuaternion::rotation_between(&up, &up_p).unwrap_or_else(UnitQuaternion::identity);
+        let q = UnitQuaternion::rotation_between(up, &up_p).unwrap_or_else(UnitQuaternion::identity);
         let basis_p = [q * basis[0], q * basis[1]];
         let mut out = DVector::zeros(3 * n + 1);
         let mut refits = Vec::with_capacity(n);
@@ -999,7 +999,7 @@ fn steering_fit(
             out.fixed_rows_mut::<3>(3 * k).copy_from(&out_of_plane(&ml.cam2_from_cam1, &up_p, &basis_p));
             refits.push(ml.cam2_from_cam1);
         }
-        out[3 * n] = steer_zero_of(&up_p, &refits, &settings, &hint, wheelbase)?;
+        out[3 * n] = steer_zero_of(&up_p, &refits, settings, &hint, wheelbase)?;
         Some(out)
     })
     .unwrap_or_else(|| DMatrix::from_element(3 * n + 1, 3 * n + 1, f64::NAN));
@@ -1018,7 +1018,7 @@ fn steering_fit(
                 delta[p] = sign * h;
                 let mut ms = nominal.clone();
                 ms[k] = perturb(&nominal[k], &delta);
-                steer_zero_of(&up, &ms, &settings, &hint, wheelbase)
+                steer_zero_of(up, &ms, settings, &hint, wheelbase)
             };
             match (at(1.0), at(-1.0)) {
                 (Some(a), Some(b)) => j[p] = (a - b) / (2.0 * h),
@@ -1091,7 +1091,7 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     // A robot that really pitches or rolls, or a pan axis off perpendicular, shows in
     // every drive.
     let failing: Vec<usize> =
-        (0..steps.len()).filter(|&k| !(fit.chi2[k] <= options.planarity_chi2_max)).collect();
+        (0..steps.len()).filter(|&k| fit.chi2[k] > options.planarity_chi2_max).collect();
     let mut dropped = Vec::new();
     if let [k] = failing[..]
         && steps.len() > MIN_STEERING_DRIVES
@@ -1101,7 +1101,7 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         let s2: Vec<f64> = settings.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, x)| *x).collect();
         let t2: Vec<Turn> = turns.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, x)| *x).collect();
         let refit = steering_fit(&ctx, &m2, &s2, &t2)?;
-        if refit.chi2.iter().all(|c| *c <= options.planarity_chi2_max) {
+        if !refit.chi2.iter().any(|c| *c > options.planarity_chi2_max) {
             dropped.push(k);
             fit = refit;
         }
