@@ -141,7 +141,16 @@ pub fn run_robot_stages<R: StereoHead + Vehicle>(
                 if let Some(c) = plan.planarity_chi2_max {
                     o.planarity_chi2_max = c;
                 }
-                out.steering = Some(zero_steering(robot, calib, verge, &o).context("steering stage")?);
+                let st = zero_steering(robot, calib, verge, &o).context("steering stage")?;
+                for &k in &st.dropped_turns {
+                    if let Some(t) = st.turns.get(k) {
+                        eprintln!(
+                            "warning: steering drive at {:+.1} deg failed the planarity test (chi-square {:.1}) while the others passed; it was left out",
+                            t.steer_encoder_deg, t.planarity_chi2
+                        );
+                    }
+                }
+                out.steering = Some(st);
             }
             _ => {}
         }

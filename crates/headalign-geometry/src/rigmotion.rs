@@ -30,8 +30,11 @@
 //! separated by the parallax between near and far points.
 //!
 //! Pitfalls: needs a starting motion and points (e.g. 3-point RANSAC on triangulated
-//! points); points far away constrain only the rotation; a track whose point goes behind
-//! a camera during the iterations is given zero weight for that step.
+//! points); points far away constrain only the rotation; a step that would put a point
+//! behind a camera is rejected (infinite cost). A point unusable at the optimum (so far
+//! away that its 3x3 normal block is singular: a point that crept outwards) fails
+//! [`refine_rig_motion`]; [`refine_rig_motion_dropping`] leaves such a track out as an
+//! outlier and re-fits the rest (a 3 px robot drive failed this way on one tree).
 
 use nalgebra::{
     Isometry3, Matrix3, Matrix6, Point2, Point3, SMatrix, Translation3, UnitQuaternion, Vector3, Vector6,
@@ -259,6 +262,46 @@ fn robust_cost(rig: &StereoRig, m: &Isometry3<f64>, pts: &[Point3<f64>], obs: &[
     c
 }
 
+/// One track's weighted normal blocks at `(m, x)`: `U` (motion), `A` (point, undamped),
+/// `B` (cross), gradients `g_m`, `g_x`. `None` when the point is behind a camera.
+struct TrackNormal {
+    u: Matrix6<f64>,
+    a: Matrix3<f64>,
+    bb: SMatrix<f64, 6, 3>,
+    gm: Vector6<f64>,
+    gx: Vector3<f64>,
+}
+
+fn track_normal(
+    rig: &StereoRig,
+    m: &Isometry3<f64>,
+    x: &Point3<f64>,
+    o: &RigTrack,
+    k: f64,
+) -> Option<TrackNormal> {
+    let r = track_residuals(rig, m, x, o)?;
+    let (jm, jx) = track_jacobians(rig, m, x)?;
+    let w = weights(&r, k);
+    let mut t = TrackNormal {
+        u: Matrix6::zeros(),
+        a: Matrix3::zeros(),
+        bb: SMatrix::<f64, 6, 3>::zeros(),
+        gm: Vector6::zeros(),
+        gx: Vector3::zeros(),
+    };
+    for row in 0..8 {
+        let wi = w[row / 2];
+        let jmr = jm.row(row).transpose();
+        let jxr = jx.row(row).transpose();
+        t.u += wi * jmr * jmr.transpose();
+        t.a += wi * jxr * jxr.transpose();
+        t.bb += wi * jmr * jxr.transpose();
+        t.gm += wi * jmr * r[row];
+        t.gx += wi * jxr * r[row];
+    }
+    Some(t)
+}
+
 /// The Schur-reduced normal equations at `(m, pts)` with damping `lambda` (added to
 /// every diagonal element, scaled by it): returns `(S, b, per-point (A_i^-1, B_i, g_i))`.
 type PointBlock = (Matrix3<f64>, SMatrix<f64, 6, 3>, Vector3<f64>);
@@ -274,24 +317,7 @@ fn reduced_system(
     let mut b = Vector6::zeros();
     let mut blocks = Vec::with_capacity(pts.len());
     for (x, o) in pts.iter().zip(obs) {
-        let r = track_residuals(rig, m, x, o)?;
-        let (jm, jx) = track_jacobians(rig, m, x)?;
-        let w = weights(&r, k);
-        let mut u = Matrix6::zeros();
-        let mut a = Matrix3::zeros();
-        let mut bb = SMatrix::<f64, 6, 3>::zeros();
-        let mut gm = Vector6::zeros();
-        let mut gx = Vector3::zeros();
-        for row in 0..8 {
-            let wi = w[row / 2];
-            let jmr = jm.row(row).transpose();
-            let jxr = jx.row(row).transpose();
-            u += wi * jmr * jmr.transpose();
-            a += wi * jxr * jxr.transpose();
-            bb += wi * jmr * jxr.transpose();
-            gm += wi * jmr * r[row];
-            gx += wi * jxr * r[row];
-        }
+        let TrackNormal { u, mut a, bb, gm, gx } = track_normal(rig, m, x, o, k)?;
         for i in 0..3 {
             a[(i, i)] *= 1.0 + lambda;
         }
@@ -312,7 +338,9 @@ fn reduced_system(
 ///
 /// Errors: invalid options; [`GeometryError::NotEnoughData`] with fewer than 4 tracks or
 /// mismatched lengths; [`GeometryError::Degenerate`] when the start puts a point behind
-/// a camera or the normal equations are singular (no parallax at all).
+/// a camera, a point is unusable at the optimum (its 3x3 normal block singular: in
+/// practice a point that crept towards infinity) or the normal equations are singular
+/// (no parallax at all). [`refine_rig_motion_dropping`] leaves such tracks out instead.
 pub fn refine_rig_motion(
     rig: &StereoRig,
     obs: &[RigTrack],
@@ -320,6 +348,74 @@ pub fn refine_rig_motion(
     points: &[Point3<f64>],
     options: &RigMotionOptions,
 ) -> Result<RigMotionEstimate> {
+    check_inputs(obs, points, options)?;
+    let (m, pts, iterations) = optimise(rig, obs, start, points, options)?;
+    finish(rig, obs, m, pts, options.huber_px, iterations)
+}
+
+/// Most rounds of [`refine_rig_motion_dropping`] that leave tracks out.
+const MAX_DROP_ROUNDS: usize = 5;
+
+/// [`refine_rig_motion`], but a track whose point is unusable, at the start (behind a
+/// camera) or at the optimum (behind a camera, or its normal block singular: a point at
+/// numerical infinity), is left out as an outlier and the rest re-fitted from where the
+/// last fit ended (at most 5 rounds), instead of failing the whole motion for one point.
+/// Returns the estimate and the indices (into `obs`) of the tracks it kept, in order:
+/// `estimate.points[j]` belongs to `obs[kept[j]]`.
+///
+/// Errors: as [`refine_rig_motion`] when fewer than 4 tracks remain, the normal
+/// equations are singular or tracks still drop after the last round.
+pub fn refine_rig_motion_dropping(
+    rig: &StereoRig,
+    obs: &[RigTrack],
+    start: &Isometry3<f64>,
+    points: &[Point3<f64>],
+    options: &RigMotionOptions,
+) -> Result<(RigMotionEstimate, Vec<usize>)> {
+    check_inputs(obs, points, options)?;
+    let k = options.huber_px;
+    let mut kept: Vec<usize> = (0..obs.len()).collect();
+    let mut m = *start;
+    let mut pts = points.to_vec();
+    let mut optimised = false;
+    let mut iterations = 0;
+    for _ in 0..=MAX_DROP_ROUNDS {
+        let o: Vec<RigTrack> = kept.iter().map(|&i| obs[i]).collect();
+        let bad = unusable_tracks(rig, &m, &pts, &o, k);
+        if bad.is_empty() {
+            if optimised {
+                let est = finish(rig, &o, m, pts, k, iterations)?;
+                return Ok((est, kept));
+            }
+            let (m1, p1, it) = optimise(rig, &o, &m, &pts, options)?;
+            (m, pts, optimised, iterations) = (m1, p1, true, iterations + it);
+            continue;
+        }
+        let mut j = 0;
+        kept.retain(|_| {
+            j += 1;
+            !bad.contains(&(j - 1))
+        });
+        let mut j = 0;
+        pts.retain(|_| {
+            j += 1;
+            !bad.contains(&(j - 1))
+        });
+        if kept.len() < 4 {
+            return Err(GeometryError::NotEnoughData {
+                what: "rig motion tracks (after leaving out unusable points)",
+                needed: 4,
+                got: kept.len(),
+            });
+        }
+        optimised = false;
+    }
+    Err(GeometryError::Degenerate(format!(
+        "rig motion: points still unusable after {MAX_DROP_ROUNDS} rounds of leaving them out"
+    )))
+}
+
+fn check_inputs(obs: &[RigTrack], points: &[Point3<f64>], options: &RigMotionOptions) -> Result<()> {
     options.validate()?;
     if obs.len() < 4 || points.len() != obs.len() {
         return Err(GeometryError::NotEnoughData {
@@ -328,6 +424,34 @@ pub fn refine_rig_motion(
             got: obs.len().min(points.len()),
         });
     }
+    Ok(())
+}
+
+/// Indices of the tracks whose point is unusable at `(m, pts)`: behind a camera, or its
+/// (undamped) 3x3 normal block singular.
+fn unusable_tracks(
+    rig: &StereoRig,
+    m: &Isometry3<f64>,
+    pts: &[Point3<f64>],
+    obs: &[RigTrack],
+    k: f64,
+) -> Vec<usize> {
+    pts.iter()
+        .zip(obs)
+        .enumerate()
+        .filter(|(_, (x, o))| track_normal(rig, m, x, o, k).and_then(|t| t.a.try_inverse()).is_none())
+        .map(|(i, _)| i)
+        .collect()
+}
+
+/// Levenberg-Marquardt from a start: the motion, the points and the iterations run.
+fn optimise(
+    rig: &StereoRig,
+    obs: &[RigTrack],
+    start: &Isometry3<f64>,
+    points: &[Point3<f64>],
+    options: &RigMotionOptions,
+) -> Result<(Isometry3<f64>, Vec<Point3<f64>>, usize)> {
     let k = options.huber_px;
     let mut m = *start;
     let mut pts = points.to_vec();
@@ -368,8 +492,23 @@ pub fn refine_rig_motion(
             break;
         }
     }
-    let (s, _, _) = reduced_system(rig, &m, &pts, obs, k, 0.0)
-        .ok_or_else(|| GeometryError::Degenerate("a point behind a camera at the optimum".into()))?;
+    Ok((m, pts, iterations))
+}
+
+/// The estimate at an optimum `(m, pts)`: covariance, centre, noise.
+fn finish(
+    rig: &StereoRig,
+    obs: &[RigTrack],
+    m: Isometry3<f64>,
+    pts: Vec<Point3<f64>>,
+    k: f64,
+    iterations: usize,
+) -> Result<RigMotionEstimate> {
+    let (s, _, _) = reduced_system(rig, &m, &pts, obs, k, 0.0).ok_or_else(|| {
+        GeometryError::Degenerate(
+            "a point behind a camera or at infinity (singular normal block) at the optimum".into(),
+        )
+    })?;
     let s_inv = s
         .try_inverse()
         .ok_or_else(|| GeometryError::Degenerate("rig motion not determined (no parallax)".into()))?;
@@ -541,6 +680,33 @@ mod tests {
         let kept = consistent_tracks(&rig(), &m, &obs, 1e-6);
         assert_eq!(kept.len(), 29);
         assert!(kept.iter().all(|(i, x)| *i != 7 && (x - pts[*i]).norm() < 1e-8));
+    }
+
+    /// A point at numerical infinity (its normal block underflows to singular, as a point
+    /// that crept outwards does): the strict refinement fails the whole motion, the
+    /// dropping one leaves that track out and recovers the noise-free motion (to 1e-9, as
+    /// `noise_free_recovery`); so does a start point behind the camera.
+    #[test]
+    fn unusable_points_are_dropped() {
+        let m = motion(0.1, 0.01, Vector3::new(0.2, 0.0, -0.5));
+        let (obs, mut pts) = problem(5, &m, 30, 0.0);
+        pts[4] = Point3::new(0.0, 0.0, 1e120);
+        pts[9].z = -2.0;
+        let o = RigMotionOptions::default();
+        assert!(matches!(refine_rig_motion(&rig(), &obs, &m, &pts, &o), Err(GeometryError::Degenerate(_))));
+        let start = perturb(&m, &Vector6::new(0.01, -0.01, 0.005, 0.03, -0.02, 0.02));
+        let (est, kept) = refine_rig_motion_dropping(&rig(), &obs, &start, &pts, &o).unwrap();
+        assert_eq!(kept.len(), 28);
+        assert!(!kept.contains(&4) && !kept.contains(&9));
+        assert_eq!(est.points.len(), kept.len());
+        let err = est.cam2_from_cam1.inverse() * m;
+        assert!(err.translation.vector.norm() < 1e-9 && err.rotation.angle() < 1e-9, "{err:?}");
+        assert!(est.covariance.iter().all(|x| x.is_finite()));
+        // Too few usable tracks left: an error, not a panic.
+        let mut few = pts[..5].to_vec();
+        few[0].z = -1.0;
+        few[1].z = -1.0;
+        assert!(refine_rig_motion_dropping(&rig(), &obs[..5], &m, &few, &o).is_err());
     }
 
     #[test]

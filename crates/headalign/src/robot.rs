@@ -73,7 +73,12 @@
 //! **Steering**: drives at `settings_deg` relative to the current steering reading; each
 //! gives the motion `cam1_from_cam2` (the robot's motion in a robot-fixed frame): a turn
 //! below `min_turn_deg` is [`AlignError::TurnTooSmall`]; the planarity test above names
-//! a motion that is not planar. The turning centres (planar motion about the pan axis)
+//! a motion that is not planar. One drive failing it while the others pass is left out
+//! as an outlier when three remain and they all pass (`SteeringOutcome::dropped_turns`):
+//! at 3 px, seed 170's first drive saw far points only (depths 12-25 m), where the rig
+//! predicted at the readings (the vergence axes' error, about 0.5 deg after a 10 deg
+//! vergence move, is not propagated) skewed the motion 1.1 deg out of plane, chi-square
+//! 42.7; a robot that really pitches or rolls fails every drive. The turning centres (planar motion about the pan axis)
 //! give the steering zero, wheelbase and forward direction ([`steering_from_turns`]);
 //! the wheel is then set straight. The zero's sigma: each drive's motion covariance
 //! (independent drives) through its centre, plus the calibration's (every drive refitted
@@ -90,10 +95,10 @@ use headalign_geometry::ransac::{Estimator, RansacOptions, ransac};
 use headalign_geometry::registration::similarity_fit;
 use headalign_geometry::rigmotion::{
     RigMotionEstimate, RigMotionOptions, RigTrack, StereoRig, consistent_tracks, four_cameras, perturb,
-    refine_rig_motion, track_error, track_residuals,
+    refine_rig_motion, refine_rig_motion_dropping, track_error, track_residuals,
 };
 use headalign_geometry::so3::screw_from_isometry;
-use headalign_geometry::steering::{Turn, steering_from_turns};
+use headalign_geometry::steering::{SteeringSolution, Turn, steering_from_turns};
 use headalign_geometry::translation::{
     FlowMatch, TranslationOptions, derotate, refit_translation, translation_from_flow,
 };
@@ -332,6 +337,9 @@ pub struct SteeringOutcome {
     pub pan_check_deg: f64,
     /// RMS distance of the centres from the axle line, metres.
     pub across_rms_m: f64,
+    /// Indices into `turns` of drives left out: one drive failing the planarity test
+    /// while the rest pass (an outlier drive; module docs). Empty normally.
+    pub dropped_turns: Vec<usize>,
 }
 
 /// The calibrated stereo cameras at readings `enc`, in the current left camera frame,
@@ -434,6 +442,7 @@ impl Estimator for DriveEstimator<'_> {
 }
 
 /// The measured rigid motion of one drive.
+#[derive(Clone)]
 pub(crate) struct DriveMotion {
     pub(crate) cam2_from_cam1: Isometry3<f64>,
     before: HashMap<u64, Point3<f64>>,
@@ -466,13 +475,14 @@ pub(crate) fn drive_motion(
     }
     let est = DriveEstimator { rig };
     let rep = ransac(&est, &data, options).step("drive registration")?;
-    let n = rep.inliers.len();
-    let mut obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
+    let obs: Vec<RigTrack> = rep.inliers.iter().map(|&i| data[i].pixels).collect();
     let pts: Vec<Point3<f64>> = rep.inliers.iter().map(|&i| data[i].before).collect();
-    let mut ml = refine_rig_motion(&rig.stereo, &obs, &rep.model, &pts, &RigMotionOptions::default())
-        .step("drive motion")?;
+    // Every refinement leaves out a track whose point ends behind a camera or at infinity
+    // (an outlier the gates let through) and re-fits, rather than failing the drive.
+    let (mut ml, mut obs) =
+        refine_dropping(rig, &obs, &rep.model, &pts, &RigMotionOptions::default()).step("drive motion")?;
     let all: Vec<RigTrack> = data.iter().map(|d| d.pixels).collect();
-    let mut n = n;
+    let mut n = obs.len();
     // Guided re-selection: the refined motion is far better than the 3-point RANSAC
     // model that chose the inliers (whose threshold must allow for its depth noise).
     for _ in 0..2 {
@@ -480,11 +490,11 @@ pub(crate) fn drive_motion(
         if kept.len() < n {
             break;
         }
-        obs = kept.iter().map(|(i, _)| all[*i]).collect();
+        let o: Vec<RigTrack> = kept.iter().map(|(i, _)| all[*i]).collect();
         let pts: Vec<Point3<f64>> = kept.iter().map(|(_, x)| *x).collect();
-        ml = refine_rig_motion(&rig.stereo, &obs, &ml.cam2_from_cam1, &pts, &RigMotionOptions::default())
+        (ml, obs) = refine_dropping(rig, &o, &ml.cam2_from_cam1, &pts, &RigMotionOptions::default())
             .step("drive motion")?;
-        n = kept.len();
+        n = obs.len();
     }
     // Maximum-likelihood pass (as the verge/tilt estimator's): the Huber loss bounds an
     // outlier's influence but does not remove it, and a wrong track within the RANSAC
@@ -494,14 +504,27 @@ pub(crate) fn drive_motion(
     let sigma = robust_sigma_px(&rig.stereo, &ml, &obs).max(ML_GATE_FLOOR_PX);
     let kept = consistent_tracks(&rig.stereo, &ml.cam2_from_cam1, &all, ML_GATE_SIGMAS * sigma);
     if kept.len() >= MIN_ML_TRACKS {
-        obs = kept.iter().map(|(i, _)| all[*i]).collect();
+        let o: Vec<RigTrack> = kept.iter().map(|(i, _)| all[*i]).collect();
         let pts: Vec<Point3<f64>> = kept.iter().map(|(_, x)| *x).collect();
         let ls = RigMotionOptions { huber_px: LEAST_SQUARES_HUBER_PX, ..RigMotionOptions::default() };
-        ml = refine_rig_motion(&rig.stereo, &obs, &ml.cam2_from_cam1, &pts, &ls)
-            .step("drive motion (least squares)")?;
-        n = kept.len();
+        (ml, obs) =
+            refine_dropping(rig, &o, &ml.cam2_from_cam1, &pts, &ls).step("drive motion (least squares)")?;
+        n = obs.len();
     }
     Ok(DriveMotion { cam2_from_cam1: ml.cam2_from_cam1, before: xb, inliers: n, ml, tracks: obs })
+}
+
+/// [`refine_rig_motion_dropping`] on `rig`: the estimate and the tracks it kept (same
+/// order as its points).
+fn refine_dropping(
+    rig: &Rig,
+    obs: &[RigTrack],
+    start: &Isometry3<f64>,
+    pts: &[Point3<f64>],
+    options: &RigMotionOptions,
+) -> Result<(RigMotionEstimate, Vec<RigTrack>), headalign_geometry::GeometryError> {
+    let (ml, kept) = refine_rig_motion_dropping(&rig.stereo, obs, start, pts, options)?;
+    Ok((ml, kept.iter().map(|&i| obs[i]).collect()))
 }
 
 /// Gate of the maximum-likelihood pass, in robust standard deviations of one pixel
@@ -919,6 +942,94 @@ fn steer_zero_of(
     steering_from_turns(up, &turns?, hint, wheelbase).ok().map(|s| s.steer_zero_deg)
 }
 
+/// Fewest steering drives a solution keeps after leaving one out (three determine the
+/// zero, the wheelbase and the forward direction).
+const MIN_STEERING_DRIVES: usize = 3;
+
+/// What the steering solution of a set of drives needs besides the drives.
+struct SteeringContext<'a> {
+    calib: &'a RigCalibration,
+    verge: &'a VergeAxes,
+    enc: &'a Encoders,
+    up: &'a Unit<Vector3<f64>>,
+    wheelbase: Option<f64>,
+}
+
+/// The steering solution of a set of drives, the zero's variance (degrees squared) and
+/// each drive's planarity chi-square.
+struct SteeringFit {
+    solution: SteeringSolution,
+    var_zero: f64,
+    chi2: Vec<f64>,
+}
+
+/// Solve the steering from `motions` (drives at `settings`, centres `turns`) and
+/// propagate (module docs).
+fn steering_fit(
+    ctx: &SteeringContext,
+    motions: &[DriveMotion],
+    settings: &[f64],
+    turns: &[Turn],
+) -> Result<SteeringFit, AlignError> {
+    let (calib, verge, up, wheelbase) = (ctx.calib, ctx.verge, ctx.up, ctx.wheelbase);
+    let hint: Vector3<f64> = motions.iter().map(|m| m.cam2_from_cam1.inverse().translation.vector).sum();
+    let sol = steering_from_turns(up, turns, &hint, wheelbase).step("steering zero")?;
+    // Uncertainty: every drive's motion covariance (independent drives) and the
+    // calibration's (each drive refitted under each perturbed calibration), propagated by
+    // central differences to the out-of-plane parts and the steering zero.
+    let basis = perpendicular_basis(up);
+    let nominal: Vec<Isometry3<f64>> = motions.iter().map(|m| m.cam2_from_cam1).collect();
+    let n = motions.len();
+    let cal = calibration_covariance_dyn(calib, 3 * n + 1, |cp| {
+        let rig_p = rig_at(cp, verge, ctx.enc).ok()?;
+        let up_p = cp.pan_axis()?.transformed(&rig_p.ref_from_left.inverse()).direction;
+        let q = UnitQuaternion::rotation_between(up, &up_p).unwrap_or_else(UnitQuaternion::identity);
+        let basis_p = [q * basis[0], q * basis[1]];
+        let mut out = DVector::zeros(3 * n + 1);
+        let mut refits = Vec::with_capacity(n);
+        for (k, d) in motions.iter().enumerate() {
+            let ml = refine_rig_motion(
+                &rig_p.stereo,
+                &d.tracks,
+                &d.cam2_from_cam1,
+                &d.ml.points,
+                &refit_options(),
+            )
+            .ok()?;
+            out.fixed_rows_mut::<3>(3 * k).copy_from(&out_of_plane(&ml.cam2_from_cam1, &up_p, &basis_p));
+            refits.push(ml.cam2_from_cam1);
+        }
+        out[3 * n] = steer_zero_of(&up_p, &refits, settings, &hint, wheelbase)?;
+        Some(out)
+    })
+    .unwrap_or_else(|| DMatrix::from_element(3 * n + 1, 3 * n + 1, f64::NAN));
+    let mut var_zero = cal[(3 * n, 3 * n)];
+    let mut chi2s = Vec::with_capacity(n);
+    for (k, d) in motions.iter().enumerate() {
+        let v = out_of_plane(&d.cam2_from_cam1, up, &basis);
+        let v_cov = out_of_plane_covariance(&d.ml, up, &basis) + cal.fixed_view::<3, 3>(3 * k, 3 * k);
+        chi2s.push(planarity_chi2(&v, &v_cov));
+        // The drive's own noise, through its centre to the zero.
+        let h = 1e-6;
+        let mut j = SMatrix::<f64, 1, 6>::zeros();
+        for p in 0..6 {
+            let mut delta = Vector6::zeros();
+            let mut at = |sign: f64| {
+                delta[p] = sign * h;
+                let mut ms = nominal.clone();
+                ms[k] = perturb(&nominal[k], &delta);
+                steer_zero_of(up, &ms, settings, &hint, wheelbase)
+            };
+            match (at(1.0), at(-1.0)) {
+                (Some(a), Some(b)) => j[p] = (a - b) / (2.0 * h),
+                _ => j[p] = f64::NAN,
+            }
+        }
+        var_zero += (j * d.ml.covariance * j.transpose())[(0, 0)];
+    }
+    Ok(SteeringFit { solution: sol, var_zero, chi2: chi2s })
+}
+
 /// Find the steering zero from drives at known steering differences and straighten the
 /// wheel (module docs).
 pub fn zero_steering<R: StereoHead + Vehicle>(
@@ -937,7 +1048,6 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     let mut steps = Vec::new();
     let mut motions = Vec::new();
     let mut settings = Vec::new();
-    let mut hint = Vector3::zeros();
     for s in &options.settings_deg {
         robot.steer_to(s0 + s)?;
         let before = robot.capture()?;
@@ -946,7 +1056,6 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         robot.drive(-options.drive_m)?;
         let motion = drive_motion(&rig, &before, &after, &options.registration)?;
         let m = motion.cam2_from_cam1.inverse();
-        hint += m.translation.vector;
         let angle = m.rotation.angle().to_degrees();
         if angle < options.min_turn_deg {
             return Err(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg });
@@ -971,71 +1080,52 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     }
     let scale = options.baseline_m;
     let wheelbase = options.wheelbase_m.map(|l| l / scale);
-    let sol = steering_from_turns(&up, &turns, &hint, wheelbase).step("steering zero")?;
-
-    // Uncertainty: every drive's motion covariance (independent drives) and the
-    // calibration's (each drive refitted under each perturbed calibration), propagated by
-    // central differences to the out-of-plane parts and the steering zero.
-    let basis = perpendicular_basis(&up);
-    let nominal: Vec<Isometry3<f64>> = motions.iter().map(|m| m.cam2_from_cam1).collect();
-    let n = motions.len();
-    let cal = calibration_covariance_dyn(calib, 3 * n + 1, |cp| {
-        let rig_p = rig_at(cp, verge, &enc).ok()?;
-        let up_p = cp.pan_axis()?.transformed(&rig_p.ref_from_left.inverse()).direction;
-        let q = UnitQuaternion::rotation_between(&up, &up_p).unwrap_or_else(UnitQuaternion::identity);
-        let basis_p = [q * basis[0], q * basis[1]];
-        let mut out = DVector::zeros(3 * n + 1);
-        let mut refits = Vec::with_capacity(n);
-        for (k, d) in motions.iter().enumerate() {
-            let ml = refine_rig_motion(
-                &rig_p.stereo,
-                &d.tracks,
-                &d.cam2_from_cam1,
-                &d.ml.points,
-                &refit_options(),
-            )
-            .ok()?;
-            out.fixed_rows_mut::<3>(3 * k).copy_from(&out_of_plane(&ml.cam2_from_cam1, &up_p, &basis_p));
-            refits.push(ml.cam2_from_cam1);
-        }
-        out[3 * n] = steer_zero_of(&up_p, &refits, &settings, &hint, wheelbase)?;
-        Some(out)
-    })
-    .unwrap_or_else(|| DMatrix::from_element(3 * n + 1, 3 * n + 1, f64::NAN));
-    let mut var_zero = cal[(3 * n, 3 * n)];
-    for (k, d) in motions.iter().enumerate() {
-        let v = out_of_plane(&d.cam2_from_cam1, &up, &basis);
-        let v_cov = out_of_plane_covariance(&d.ml, &up, &basis) + cal.fixed_view::<3, 3>(3 * k, 3 * k);
-        let chi2 = planarity_chi2(&v, &v_cov);
-        steps[k].planarity_chi2 = chi2;
-        if chi2 > options.planarity_chi2_max {
-            return Err(AlignError::NotPlanar(format!(
-                "steering {:+.1} deg: screw axis {:.2} deg from the pan axis, translation along it {:.4} baselines; chi-square {chi2:.1} (3 dof) above {}",
-                settings[k], steps[k].axis_tilt_deg, v.z, options.planarity_chi2_max
-            )));
-        }
-        // The drive's own noise, through its centre to the zero.
-        let h = 1e-6;
-        let mut j = SMatrix::<f64, 1, 6>::zeros();
-        for p in 0..6 {
-            let mut delta = Vector6::zeros();
-            let mut at = |sign: f64| {
-                delta[p] = sign * h;
-                let mut ms = nominal.clone();
-                ms[k] = perturb(&nominal[k], &delta);
-                steer_zero_of(&up, &ms, &settings, &hint, wheelbase)
-            };
-            match (at(1.0), at(-1.0)) {
-                (Some(a), Some(b)) => j[p] = (a - b) / (2.0 * h),
-                _ => j[p] = f64::NAN,
-            }
-        }
-        var_zero += (j * d.ml.covariance * j.transpose())[(0, 0)];
+    let ctx = SteeringContext { calib, verge, enc: &enc, up: &up, wheelbase };
+    let mut fit = steering_fit(&ctx, &motions, &settings, &turns)?;
+    for (step, chi2) in steps.iter_mut().zip(&fit.chi2) {
+        step.planarity_chi2 = *chi2;
     }
+    // A drive that fails the planarity test while the others pass is an outlier (one
+    // drive's reconstruction, e.g. a view of far points only, under the rig predicted
+    // at the readings); it is left out when enough drives remain and the rest then pass.
+    // A robot that really pitches or rolls, or a pan axis off perpendicular, shows in
+    // every drive.
+    let failing: Vec<usize> =
+        (0..steps.len()).filter(|&k| fit.chi2[k] > options.planarity_chi2_max).collect();
+    let mut dropped = Vec::new();
+    if let [k] = failing[..]
+        && steps.len() > MIN_STEERING_DRIVES
+    {
+        let m2: Vec<DriveMotion> =
+            motions.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, m)| m.clone()).collect();
+        let s2: Vec<f64> = settings.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, x)| *x).collect();
+        let t2: Vec<Turn> = turns.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, x)| *x).collect();
+        let refit = steering_fit(&ctx, &m2, &s2, &t2)?;
+        if !refit.chi2.iter().any(|c| *c > options.planarity_chi2_max) {
+            dropped.push(k);
+            fit = refit;
+        }
+    }
+    if dropped.is_empty()
+        && let Some(&k) = failing.first()
+    {
+        return Err(AlignError::NotPlanar(format!(
+            "steering {:+.1} deg: screw axis {:.2} deg from the pan axis; chi-square {:.1} (3 dof) above {} ({} of {} drives failed the test)",
+            settings[k],
+            steps[k].axis_tilt_deg,
+            fit.chi2[k],
+            options.planarity_chi2_max,
+            failing.len(),
+            steps.len()
+        )));
+    }
+    let sol = fit.solution;
+    let var_zero = fit.var_zero;
     robot.steer_to(sol.steer_zero_deg)?;
     let pan_check = angle_about(&up, &head_forward(&rig), &sol.forward);
     Ok(SteeringOutcome {
         turns: steps,
+        dropped_turns: dropped,
         steer_zero_deg: sol.steer_zero_deg,
         sigma_steer_zero_deg: var_zero.sqrt(),
         wheelbase_m: sol.wheelbase * scale,
