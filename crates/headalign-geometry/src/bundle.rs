@@ -449,7 +449,21 @@ pub fn residual_pixels(state: &RigState, obs: &BundleObservation) -> Option<Vect
         return None;
     }
     let x = state.points.get(obs.point)?;
-    let xc = state.motions.ref_from_cam(obs.view).inverse_transform_point(x);
+    residual_pixels_at(state, &state.motions.ref_from_cam(obs.view), x, obs)
+}
+
+/// [`residual_pixels`] of the point `point_in_ref` (in place of the state's point
+/// `obs.point`) seen from the view pose `ref_from_cam` (the left camera of `obs.view`,
+/// `state.motions.ref_from_cam(obs.view)`, computed once by a caller that evaluates many
+/// observations or point positions in one view). Same arithmetic: the result is
+/// bit-identical to [`residual_pixels`] for the state's own pose and point.
+pub fn residual_pixels_at(
+    state: &RigState,
+    ref_from_cam: &Isometry3<f64>,
+    point_in_ref: &Point3<f64>,
+    obs: &BundleObservation,
+) -> Option<Vector2<f64>> {
+    let xc = ref_from_cam.inverse_transform_point(point_in_ref);
     let (k, d, xs) = match obs.side {
         Side::Left => (&state.left, &state.left_distortion, xc),
         Side::Right => (&state.right, &state.right_distortion, state.right_from_left * xc),

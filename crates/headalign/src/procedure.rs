@@ -736,31 +736,35 @@ fn retriangulated(
     state: &RigState,
     by_point: &[Vec<&headalign_geometry::bundle::BundleObservation>],
 ) -> RigState {
+    use headalign_geometry::bundle::residual_pixels_at;
     let mut out = state.clone();
-    let mut probe = state.clone();
+    // Each view's pose once (the residuals' own, so the arithmetic is unchanged).
+    let poses: Vec<nalgebra::Isometry3<f64>> =
+        (0..state.motions.view_count()).map(|v| state.motions.ref_from_cam(v)).collect();
     let h = 1e-6;
     for (j, obs) in by_point.iter().enumerate() {
         if obs.len() < 2 || j >= out.points.len() {
             continue;
         }
+        let x = state.points[j];
         let mut jtj = nalgebra::Matrix3::<f64>::zeros();
         let mut jtr = nalgebra::Vector3::<f64>::zeros();
         for o in obs {
-            let Some(r) = headalign_geometry::bundle::residual_pixels(state, o) else { continue };
+            let Some(pose) = poses.get(o.view) else { continue };
+            let Some(r) = residual_pixels_at(state, pose, &x, o) else { continue };
             let mut jm = nalgebra::Matrix2x3::<f64>::zeros();
             let mut ok = true;
             for c in 0..3 {
-                probe.points[j] = state.points[j];
-                probe.points[j][c] += h;
-                let p = headalign_geometry::bundle::residual_pixels(&probe, o);
-                probe.points[j][c] -= 2.0 * h;
-                let m = headalign_geometry::bundle::residual_pixels(&probe, o);
+                let mut probe = x;
+                probe[c] += h;
+                let p = residual_pixels_at(state, pose, &probe, o);
+                probe[c] -= 2.0 * h;
+                let m = residual_pixels_at(state, pose, &probe, o);
                 match (p, m) {
                     (Some(p), Some(m)) => jm.set_column(c, &((p - m) / (2.0 * h))),
                     _ => ok = false,
                 }
             }
-            probe.points[j] = state.points[j];
             if ok {
                 jtj += jm.transpose() * jm;
                 jtr += jm.transpose() * r;
