@@ -19,6 +19,8 @@
 //! - the estimate's `sigma_inflation` under the clustered covariance.
 use std::collections::BTreeMap;
 
+mod common;
+
 use headalign::estimate::{EstimationOptions, estimate_rig};
 use headalign::frontend::{FrontEndOptions, TrackingHead};
 use headalign::imaging::{VergingOptions, verge_to_common_view};
@@ -28,7 +30,7 @@ use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
 use headalign_geometry::camera::ProjectiveCamera;
 use headalign_platform::StereoHead;
 use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::{DMatrix, Point2, Vector2, Vector4};
+use nalgebra::{DMatrix, Vector2, Vector4};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
@@ -56,21 +58,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             .iter()
             .map(|e| {
                 let (l, r) = head.scene_from_cameras(e);
-                [
-                    ProjectiveCamera::from_pose(&truth.left, &l.inverse()),
-                    ProjectiveCamera::from_pose(&truth.right, &r.inverse()),
-                ]
+                common::true_cameras(&truth.left, &truth.right, &l, &r)
             })
             .collect();
         // track -> [(view, side, pixel)]
-        let mut tracks: BTreeMap<u64, Vec<(usize, usize, Point2<f64>)>> = BTreeMap::new();
-        for (vi, v) in views.iter().enumerate() {
-            for (side, list) in [(0, &v.capture.left), (1, &v.capture.right)] {
-                for o in list {
-                    tracks.entry(o.track).or_default().push((vi, side, o.pixel));
-                }
-            }
-        }
+        let tracks = common::tracks_by_id(&views);
         let (mut ss, mut comps, mut dof) = (0.0, 0usize, 0usize);
         // Pairs of residuals (same track, same side, same component, different views).
         let (mut sxy, mut sxx, mut pairs) = (0.0, 0.0, 0usize);
