@@ -78,9 +78,9 @@
 //! at 3 px, seed 170's first drive saw far points only (depths 12-25 m), where the rig
 //! predicted at the readings (the vergence axes' error, about 0.5 deg after a 10 deg
 //! vergence move, is not propagated) skewed the motion 1.1 deg out of plane, chi-square
-//! 42.7; a robot that really pitches or rolls fails every drive. The turning centres (planar motion about the pan axis)
-//! give the steering zero, wheelbase and forward direction ([`steering_from_turns`]);
-//! the wheel is then set straight. The zero's sigma: each drive's motion covariance
+//! 42.7; a robot that really pitches or rolls fails every drive. The turning centres
+//! (planar motion about the pan axis) give the steering zero, wheelbase and forward
+//! direction ([`steering_from_turns`]); the wheel is then set straight. The zero's sigma: each drive's motion covariance
 //! (independent drives) through its centre, plus the calibration's (every drive refitted
 //! under each perturbed calibration), by central differences (96 % coverage over 100
 //! trials at 1 px).
