@@ -26,18 +26,13 @@
 //! Printed at the end: RMS z per variant over seeds and intrinsics.
 use std::collections::BTreeMap;
 
+mod common;
+
 use headalign::estimate::{DepthStepGate, EstimationOptions, estimate_rig, near_depth_step};
-use headalign::frontend::{FrontEndOptions, TrackingHead};
-use headalign::imaging::{VergingOptions, verge_to_common_view};
-use headalign::observations::View;
-use headalign::procedure::{VergeTiltOptions, capture_plan};
 use headalign_geometry::bundle::{
     BundleObservation, BundleOptions, BundleResult, CovarianceModel, RigState, RobustLoss, Side,
     bundle_adjust, clustered_covariance,
 };
-use headalign_geometry::camera::ProjectiveCamera;
-use headalign_platform::StereoHead;
-use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::{DMatrix, Point2, Point3, Vector2, Vector4};
 use rand::seq::SliceRandom;
 use rand::{RngExt, SeedableRng};
@@ -76,33 +71,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let mut corr_all: BTreeMap<usize, (f64, f64, usize)> = BTreeMap::new();
     let mut chi_all: BTreeMap<String, (f64, usize)> = BTreeMap::new();
     for seed in s0..=s1 {
-        let s = Scenario { seed, near_panels: Scenario::ROBOT_NEAR_PANELS, ..Scenario::default() };
-        let mut head = SimulatedHead::new(s)?;
-        let verged = verge_to_common_view(&mut head, &VergingOptions::default())?;
-        let opts = VergeTiltOptions::default();
-        let mut plan = capture_plan(&verged.encoders, &opts);
-        plan.pop(); // the vergence move: not a rig view
-        let mut views = Vec::new();
-        let mut true_enc = Vec::new();
-        {
-            let mut th = TrackingHead::new(&mut head, FrontEndOptions::default())?;
-            for (name, enc) in &plan {
-                th.move_to(enc)?;
-                true_enc.push(th.inner().encoders());
-                views.push(View { name: name.clone(), capture: th.capture()? });
-            }
-        }
+        let (head, views, true_enc) = common::tracked_rig_views(seed)?;
         let truth = head.truth().clone();
-        let cams: Vec<[ProjectiveCamera; 2]> = true_enc
-            .iter()
-            .map(|e| {
-                let (l, r) = head.scene_from_cameras(e);
-                [
-                    ProjectiveCamera::from_pose(&truth.left, &l.inverse()),
-                    ProjectiveCamera::from_pose(&truth.right, &r.inverse()),
-                ]
-            })
-            .collect();
+        let cams = common::true_view_cameras(&head, &true_enc);
         let d = EstimationOptions::default();
         let options = EstimationOptions {
             seed,
@@ -127,18 +98,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             if list.len() < 2 {
                 continue;
             }
-            let mut a = DMatrix::zeros(2 * list.len(), 4);
-            for (i, o) in list.iter().enumerate() {
-                let m = cams[o.view][side_of(o.side)].0;
-                for c in 0..4 {
-                    a[(2 * i, c)] = o.pixel.x * m[(2, c)] - m[(0, c)];
-                    a[(2 * i + 1, c)] = o.pixel.y * m[(2, c)] - m[(1, c)];
-                }
-            }
-            let svd = a.svd(false, true);
-            if let Some(vt) = svd.v_t {
-                true_point[p] = Some(Vector4::from_iterator(vt.row(3).iter().copied()));
-            }
+            true_point[p] =
+                common::triangulate_track(&cams, list.iter().map(|o| (o.view, side_of(o.side), o.pixel)));
         }
         let proj = |o: &BundleObservation| -> Option<Point2<f64>> {
             true_point[o.point].and_then(|x| cams[o.view][side_of(o.side)].project(&x))

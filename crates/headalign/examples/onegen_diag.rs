@@ -38,7 +38,7 @@ use headalign_geometry::bundle::Side;
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera};
 use headalign_platform::{Encoders, ImagingHead, Joint, StereoHead, TrackObservation};
 use headalign_sim::{RadialDistortion, Scenario, SimulatedHead};
-use nalgebra::{DMatrix, Isometry3, Point2, Point3, Vector3, Vector4};
+use nalgebra::{DMatrix, Isometry3, Point2, Point3, Vector3};
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -162,17 +162,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let tracks = common::tracks_by_id(&views);
         let mut tres: BTreeMap<u64, f64> = BTreeMap::new();
         for (t, obs) in tracks.iter().filter(|(_, o)| o.len() >= 3) {
-            let mut a = DMatrix::zeros(2 * obs.len(), 4);
-            for (i, (v, side, px)) in obs.iter().enumerate() {
-                let p = cams[*v][*side].0;
-                for c in 0..4 {
-                    a[(2 * i, c)] = px.x * p[(2, c)] - p[(0, c)];
-                    a[(2 * i + 1, c)] = px.y * p[(2, c)] - p[(1, c)];
-                }
-            }
-            let svd = a.svd(false, true);
-            let Some(vt) = svd.v_t else { continue };
-            let x = Vector4::from_iterator(vt.row(3).iter().copied());
+            let Some(x) = common::triangulate_track(&cams, obs.iter().copied()) else { continue };
             let worst = obs
                 .iter()
                 .map(|(v, side, px)| cams[*v][*side].project(&x).map_or(f64::INFINITY, |q| (px - q).norm()))

@@ -22,45 +22,17 @@ use std::collections::BTreeMap;
 mod common;
 
 use headalign::estimate::{EstimationOptions, estimate_rig};
-use headalign::frontend::{FrontEndOptions, TrackingHead};
-use headalign::imaging::{VergingOptions, verge_to_common_view};
-use headalign::observations::View;
-use headalign::procedure::{VergeTiltOptions, capture_plan};
 use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
-use headalign_geometry::camera::ProjectiveCamera;
-use headalign_platform::StereoHead;
-use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::{DMatrix, Vector2, Vector4};
+use nalgebra::Vector2;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
     let s0: u64 = args.get(1).map_or(Ok(1), |s| s.parse())?;
     let s1: u64 = args.get(2).map_or(Ok(s0), |s| s.parse())?;
     for seed in s0..=s1 {
-        let s = Scenario { seed, near_panels: Scenario::ROBOT_NEAR_PANELS, ..Scenario::default() };
-        let mut head = SimulatedHead::new(s)?;
-        let verged = verge_to_common_view(&mut head, &VergingOptions::default())?;
-        let opts = VergeTiltOptions::default();
-        let mut plan = capture_plan(&verged.encoders, &opts);
-        plan.pop(); // the vergence move: not a rig view
-        let mut views = Vec::new();
-        let mut true_enc = Vec::new();
-        {
-            let mut th = TrackingHead::new(&mut head, FrontEndOptions::default())?;
-            for (name, enc) in &plan {
-                th.move_to(enc)?;
-                true_enc.push(th.inner().encoders());
-                views.push(View { name: name.clone(), capture: th.capture()? });
-            }
-        }
+        let (head, views, true_enc) = common::tracked_rig_views(seed)?;
         let truth = head.truth().clone();
-        let cams: Vec<[ProjectiveCamera; 2]> = true_enc
-            .iter()
-            .map(|e| {
-                let (l, r) = head.scene_from_cameras(e);
-                common::true_cameras(&truth.left, &truth.right, &l, &r)
-            })
-            .collect();
+        let cams = common::true_view_cameras(&head, &true_enc);
         // track -> [(view, side, pixel)]
         let tracks = common::tracks_by_id(&views);
         let (mut ss, mut comps, mut dof) = (0.0, 0usize, 0usize);
@@ -70,17 +42,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         // (view, side) -> (sum of residuals, count): an error common to a view's tracks.
         let mut view_mean: BTreeMap<(usize, usize), (Vector2<f64>, usize)> = BTreeMap::new();
         for obs in tracks.values().filter(|o| o.len() >= 4) {
-            let mut a = DMatrix::zeros(2 * obs.len(), 4);
-            for (i, (v, side, px)) in obs.iter().enumerate() {
-                let p = cams[*v][*side].0;
-                for c in 0..4 {
-                    a[(2 * i, c)] = px.x * p[(2, c)] - p[(0, c)];
-                    a[(2 * i + 1, c)] = px.y * p[(2, c)] - p[(1, c)];
-                }
-            }
-            let svd = a.svd(false, true);
-            let Some(vt) = svd.v_t else { continue };
-            let x = Vector4::from_iterator(vt.row(3).iter().copied());
+            let Some(x) = common::triangulate_track(&cams, obs.iter().copied()) else { continue };
             let res: Vec<Option<Vector2<f64>>> =
                 obs.iter().map(|(v, side, px)| cams[*v][*side].project(&x).map(|q| px - q)).collect();
             if res.iter().any(|r| r.is_none_or(|r| r.norm() > 3.0)) {

@@ -2,19 +2,23 @@
 //! it (`axis_diag`, `ratio_diag`, `verge_seeds`: the scenario's fixed rotation, a 3 deg
 //! vergence move, thresholds scaled by the noise via
 //! [`EstimationOptions::scaled_for_noise`]) on a simulated head started at `initial`;
-//! the views' observations grouped by track and the true projective cameras of each view
-//! (`track_errors`, `onegen_diag`). Each example uses only part of it.
+//! the views' observations grouped by track, the true projective cameras of each view and
+//! an N-view DLT with them (`track_errors`, `onegen_diag`, `cluster_diag`); the tracked
+//! verge/tilt rig views of a robot-scene seed (`track_errors`, `cluster_diag`). Each
+//! example uses only part of it.
 #![allow(dead_code)]
 
 use std::collections::BTreeMap;
 
 use headalign::estimate::EstimationOptions;
+use headalign::frontend::{FrontEndOptions, TrackingHead};
+use headalign::imaging::{VergingOptions, verge_to_common_view};
 use headalign::observations::View;
-use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
+use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan};
 use headalign_geometry::camera::ProjectiveCamera;
 use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::Point2;
+use nalgebra::{DMatrix, Point2, Vector4};
 
 /// The trial with estimation seed `estimation_seed`; `None` if the simulator or the
 /// procedure fails.
@@ -62,4 +66,61 @@ pub fn true_cameras(
         ProjectiveCamera::from_pose(left, &scene_from_left.inverse()),
         ProjectiveCamera::from_pose(right, &scene_from_right.inverse()),
     ]
+}
+
+/// The head, the views and each view's true encoder readings ([`tracked_rig_views`]).
+pub type TrackedViews = (SimulatedHead, Vec<View>, Vec<Encoders>);
+
+/// The verge/tilt rig views (the vergence move left out) of seed `seed`'s robot scene
+/// (`Scenario::ROBOT_NEAR_PANELS`), tracked by the image front end after verging to a
+/// common view: the head, the views and each view's true encoder readings.
+pub fn tracked_rig_views(seed: u64) -> Result<TrackedViews, Box<dyn std::error::Error>> {
+    let s = Scenario { seed, near_panels: Scenario::ROBOT_NEAR_PANELS, ..Scenario::default() };
+    let mut head = SimulatedHead::new(s)?;
+    let verged = verge_to_common_view(&mut head, &VergingOptions::default())?;
+    let mut plan = capture_plan(&verged.encoders, &VergeTiltOptions::default());
+    plan.pop(); // the vergence move: not a rig view
+    let mut views = Vec::new();
+    let mut true_enc = Vec::new();
+    {
+        let mut th = TrackingHead::new(&mut head, FrontEndOptions::default())?;
+        for (name, enc) in &plan {
+            th.move_to(enc)?;
+            true_enc.push(th.inner().encoders());
+            views.push(View { name: name.clone(), capture: th.capture()? });
+        }
+    }
+    Ok((head, views, true_enc))
+}
+
+/// The true cameras `[left, right]` of every view of [`tracked_rig_views`].
+pub fn true_view_cameras(head: &SimulatedHead, true_enc: &[Encoders]) -> Vec<[ProjectiveCamera; 2]> {
+    let truth = head.truth();
+    true_enc
+        .iter()
+        .map(|e| {
+            let (l, r) = head.scene_from_cameras(e);
+            true_cameras(&truth.left, &truth.right, &l, &r)
+        })
+        .collect()
+}
+
+/// N-view DLT of one track with the cameras `cams[view][side]` from its observations
+/// `(view, side, pixel)`, rows not normalised (the diagnostics' own, kept so their quoted
+/// numbers stay; the library's `triangulation::triangulate_views` normalises each row).
+/// `None` if the SVD gives no `V`.
+pub fn triangulate_track(
+    cams: &[[ProjectiveCamera; 2]],
+    obs: impl ExactSizeIterator<Item = (usize, usize, Point2<f64>)>,
+) -> Option<Vector4<f64>> {
+    let mut a = DMatrix::zeros(2 * obs.len(), 4);
+    for (i, (v, side, px)) in obs.enumerate() {
+        let p = cams[v][side].0;
+        for c in 0..4 {
+            a[(2 * i, c)] = px.x * p[(2, c)] - p[(0, c)];
+            a[(2 * i + 1, c)] = px.y * p[(2, c)] - p[(1, c)];
+        }
+    }
+    let vt = a.svd(false, true).v_t?;
+    Some(Vector4::from_iterator(vt.row(3).iter().copied()))
 }
