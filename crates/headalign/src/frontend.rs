@@ -319,7 +319,9 @@ fn tally(
 /// their scatter below 4 px^2 per point) or the map is implausible (determinant outside
 /// [1/4, 4]).
 fn affine_of(pairs: &[(Point2<f64>, Point2<f64>)], idx: &[usize]) -> Option<[[f64; 2]; 2]> {
-    let fit = |use_: &[usize]| -> Option<([[f64; 2]; 2], Point2<f64>, Point2<f64>)> {
+    // The 2x2 part and the two centroids.
+    type Fit = ([[f64; 2]; 2], Point2<f64>, Point2<f64>);
+    let fit = |use_: &[usize]| -> Option<Fit> {
         if use_.len() < 3 {
             return None;
         }
