@@ -12,7 +12,10 @@
 //!
 //! with Gaussian weights `w` (so the centre, where `A` is most accurate, counts most).
 //! Gauss-Newton on 2 (translation only) or 4 (with gain and bias) degrees of freedom;
-//! bilinear sampling, image gradients by central differences of the bilinear samples.
+//! bilinear sampling; the Jacobian from the reference patch's gradient (central
+//! differences) mapped through `A^-T`, computed once, as in the inverse-compositional
+//! algorithm, so each iteration samples the target once per window pixel (the cost is
+//! the same, so is its minimum; only the path there differs).
 //!
 //! Why: corners detected independently in two images are each localised to their own
 //! image's sub-pixel fit, so the two pixels are not the same physical point to sub-pixel
@@ -117,7 +120,8 @@ pub struct Refinement {
     pub shift_px: f64,
     /// ZNCC of the reference window and the warped target window at the refined point.
     pub zncc: f64,
-    /// Fitted gain and bias (1 and 0 when not photometric).
+    /// Fitted gain and bias, reference from target: `I_reference ~ gain I_target + bias`
+    /// (1 and 0 when not photometric).
     pub gain_bias: [f64; 2],
     /// Gauss-Newton iterations used.
     pub iterations: usize,
@@ -162,15 +166,6 @@ fn bilinear(img: &crate::GrayImage, x: f64, y: f64) -> Option<f64> {
     let top = at(x0, y0) + fx * (at(x1, y0) - at(x0, y0));
     let bottom = at(x0, y1) + fx * (at(x1, y1) - at(x0, y1));
     Some(top + fy * (bottom - top))
-}
-
-/// Value and central-difference gradient (one pixel either side) at `(x, y)`.
-#[inline]
-fn sample_with_gradient(img: &crate::GrayImage, x: f64, y: f64) -> Option<(f64, f64, f64)> {
-    let v = bilinear(img, x, y)?;
-    let gx = 0.5 * (bilinear(img, x + 1.0, y)? - bilinear(img, x - 1.0, y)?);
-    let gy = 0.5 * (bilinear(img, x, y + 1.0)? - bilinear(img, x, y - 1.0)?);
-    Some((v, gx, gy))
 }
 
 /// Solve the symmetric positive definite `n x n` system `m x = v` (n <= 4) by Cholesky;
@@ -225,17 +220,30 @@ pub fn refine_point_against_patch(
     let mut offsets = Vec::with_capacity(n);
     let mut weights = Vec::with_capacity(n);
     let mut templ = Vec::with_capacity(n);
+    let mut grads = Vec::with_capacity(n);
     let (mut sxx, mut sxy, mut syy, mut sw) = (0.0, 0.0, 0.0, 0.0);
-    for dy in -r..=r {
-        for dx in -r..=r {
-            let (ux, uy) = (dx as f64, dy as f64);
-            let (v, gx, gy) =
-                sample_with_gradient(reference, point_in_reference[0] + ux, point_in_reference[1] + uy)
-                    .ok_or(RefineFailure::OutsideImage)?;
+    // The reference sampled once on the window's grid plus a one-pixel rim: the central
+    // differences at integer offsets are the grid's neighbours.
+    let side = (2 * r + 3) as usize;
+    let mut grid = Vec::with_capacity(side * side);
+    for dy in -(r + 1)..=r + 1 {
+        for dx in -(r + 1)..=r + 1 {
+            let v = bilinear(reference, point_in_reference[0] + dx as f64, point_in_reference[1] + dy as f64)
+                .ok_or(RefineFailure::OutsideImage)?;
+            grid.push(v);
+        }
+    }
+    for iy in 1..side - 1 {
+        for ix in 1..side - 1 {
+            let (ux, uy) = ((ix as i64 - r - 1) as f64, (iy as i64 - r - 1) as f64);
+            let v = grid[iy * side + ix];
+            let gx = 0.5 * (grid[iy * side + ix + 1] - grid[iy * side + ix - 1]);
+            let gy = 0.5 * (grid[(iy + 1) * side + ix] - grid[(iy - 1) * side + ix]);
             let w = (-(ux * ux + uy * uy) * inv2s2).exp();
             offsets.push((ux, uy));
             weights.push(w);
             templ.push(v);
+            grads.push((gx, gy));
             sxx += w * gx * gx;
             sxy += w * gx * gy;
             syy += w * gy * gy;
@@ -249,22 +257,40 @@ pub fn refine_point_against_patch(
     }
     let np = if options.photometric { 4 } else { 2 };
     let [[a11, a12], [a21, a22]] = local_affine;
+    // The target's gradient at the aligned sample, from the template's: with
+    // `I(t + A u) = g T(u) + b`, `grad I = g A^-T grad T` (the inverse-compositional idea:
+    // the Jacobian comes from the template, once, and each iteration samples the target
+    // once per pixel; the cost minimised is unchanged, so its minimum is too).
+    let det = a11 * a22 - a12 * a21;
+    if det.abs() < 1e-6 {
+        return Err(RefineFailure::NotConverged);
+    }
+    let jt: Vec<(f64, f64)> =
+        grads.iter().map(|&(gx, gy)| ((a22 * gx - a21 * gy) / det, (-a12 * gx + a11 * gy) / det)).collect();
+    // Model: target = g template + b (g, b fitted when photometric).
     let mut t = initial_in_target;
     let (mut gain, mut bias) = (1.0, 0.0);
     let mut converged = false;
     let mut iterations = 0;
     let mut warped = vec![0.0; n];
+    // The window's extent in the target around `t`, for one bounds check per iteration.
+    let rf = r as f64;
+    let (ex, ey) = ((a11.abs() + a12.abs()) * rf, (a21.abs() + a22.abs()) * rf);
+    let (w_max, h_max) = (f64::from(target.width()) - 1.0, f64::from(target.height()) - 1.0);
     for it in 0..options.max_iterations {
         iterations = it + 1;
+        if !(t[0] - ex >= 0.0 && t[1] - ey >= 0.0 && t[0] + ex <= w_max && t[1] + ey <= h_max) {
+            return Err(RefineFailure::OutsideImage);
+        }
         let mut h = [[0.0; 4]; 4];
         let mut g = [0.0; 4];
         for (k, &(ux, uy)) in offsets.iter().enumerate() {
             let x = t[0] + a11 * ux + a12 * uy;
             let y = t[1] + a21 * ux + a22 * uy;
-            let (v, gx, gy) = sample_with_gradient(target, x, y).ok_or(RefineFailure::OutsideImage)?;
+            let v = bilinear(target, x, y).ok_or(RefineFailure::OutsideImage)?;
             warped[k] = v;
-            let res = gain * v + bias - templ[k];
-            let j = [gain * gx, gain * gy, v, 1.0];
+            let res = v - gain * templ[k] - bias;
+            let j = [gain * jt[k].0, gain * jt[k].1, -templ[k], -1.0];
             let w = weights[k];
             for p in 0..np {
                 g[p] += w * j[p] * res;
@@ -281,7 +307,7 @@ pub fn refine_point_against_patch(
             bias -= step[3];
         }
         let moved = (t[0] - initial_in_target[0]).hypot(t[1] - initial_in_target[1]);
-        if moved > options.max_shift_px + 2.0 {
+        if moved > options.max_shift_px + 2.0 || !moved.is_finite() {
             return Err(RefineFailure::MovedTooFar(moved));
         }
         if step[0].hypot(step[1]) < options.convergence_px {
@@ -307,7 +333,10 @@ pub fn refine_point_against_patch(
     if zncc.is_nan() || zncc < options.min_zncc {
         return Err(RefineFailure::LowZncc(zncc));
     }
-    Ok(Refinement { point: t, shift_px, zncc, gain_bias: [gain, bias], iterations })
+    if gain.is_nan() || gain.abs() <= 1e-9 {
+        return Err(RefineFailure::NotConverged);
+    }
+    Ok(Refinement { point: t, shift_px, zncc, gain_bias: [1.0 / gain, -bias / gain], iterations })
 }
 
 /// ZNCC of two equal-length sample lists (0 if either has no variance).

@@ -374,13 +374,33 @@ fn refine_against(
         pairs.iter().map(|&(i, j)| (point(earlier, i), point(current, j))).collect();
     let all: Vec<usize> = (0..pts.len()).collect();
     let global = affine_of(&pts, &all).unwrap_or([[1.0, 0.0], [0.0, 1.0]]);
-    let mut dist: Vec<(f64, usize)> = Vec::with_capacity(pts.len());
+    // Earlier points bucketed in square cells; a track's neighbours are searched in the
+    // 3x3 cells around it, then 5x5 if too few.
+    const CELL_PX: f64 = 40.0;
+    let cell = |p: &Point2<f64>| ((p.x / CELL_PX).floor() as i64, (p.y / CELL_PX).floor() as i64);
+    let mut grid: std::collections::HashMap<(i64, i64), Vec<usize>> = std::collections::HashMap::new();
+    for (m, (s, _)) in pts.iter().enumerate() {
+        grid.entry(cell(s)).or_default().push(m);
+    }
+    let mut dist: Vec<(f64, usize)> = Vec::new();
     let mut moved = Vec::with_capacity(pts.len());
     let ok = pts
         .iter()
         .map(|(s, d)| {
-            dist.clear();
-            dist.extend(pts.iter().enumerate().map(|(m, (t, _))| ((t - s).norm_squared(), m)));
+            let (cx, cy) = cell(s);
+            for reach in [1i64, 2] {
+                dist.clear();
+                for gx in cx - reach..=cx + reach {
+                    for gy in cy - reach..=cy + reach {
+                        if let Some(list) = grid.get(&(gx, gy)) {
+                            dist.extend(list.iter().map(|&m| ((pts[m].0 - s).norm_squared(), m)));
+                        }
+                    }
+                }
+                if dist.len() >= neighbours {
+                    break;
+                }
+            }
             let k = neighbours.min(dist.len());
             if k < dist.len() {
                 dist.select_nth_unstable_by(k, |a, b| a.0.total_cmp(&b.0));
