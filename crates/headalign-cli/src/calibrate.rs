@@ -76,11 +76,11 @@ pub struct CalibrateArgs {
     /// rotations; a hand-held rig that moved a lot needs more, e.g. 40).
     #[arg(long)]
     pub search_px: Option<f64>,
-    /// Patch refinement of tracked corners (the front end aligns every later observation
-    /// of a track against its reference patch, and each reference right corner against
-    /// its left partner's): `on` (default), `temporal` (later views only, not the stereo
-    /// partner) or `off` (the detector's own sub-pixel corners).
-    #[arg(long, value_enum, default_value_t = PatchRefinement::On)]
+    /// Patch refinement of tracked corners: `temporal` (default: the front end aligns every
+    /// later observation of a track against the same camera's reference patch), `stereo`
+    /// (also each reference right corner against its left partner's patch) or `off` (the
+    /// detector's own sub-pixel corners).
+    #[arg(long, value_enum, default_value_t = PatchRefinement::Temporal)]
     pub patch_refinement: PatchRefinement,
     /// Corners detected per image. Default: 1500, and when that calibration is weak (a
     /// focal sigma above 0.5 %, or one motion in a mostly planar scene) or fails, a
@@ -114,10 +114,10 @@ fn options(args: &CalibrateArgs) -> CalibrateOptions {
 /// `--patch-refinement`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum PatchRefinement {
-    /// Later observations against the reference patch, and stereo partners against the left.
-    On,
-    /// Later observations only.
+    /// Later observations against the same camera's reference patch (the default).
     Temporal,
+    /// Also stereo partners against the left patch.
+    Stereo,
     /// The detector's own corners.
     Off,
 }
@@ -126,8 +126,8 @@ fn front_end(args: &CalibrateArgs, corners: usize) -> FrontEndOptions {
     let mut f = FrontEndOptions::default();
     f.features.max_features = corners;
     match args.patch_refinement {
-        PatchRefinement::On => {}
-        PatchRefinement::Temporal => f.refine_stereo = false,
+        PatchRefinement::Temporal => {}
+        PatchRefinement::Stereo => f.refine_stereo = true,
         PatchRefinement::Off => f.refine = None,
     }
     if let Some(r) = args.search_px {
@@ -570,7 +570,7 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         baseline_m: None,
         seed: info.estimation_seed,
         search_px: None,
-        patch_refinement: PatchRefinement::On,
+        patch_refinement: PatchRefinement::Temporal,
         corners: None,
     };
     Ok(calibrate_views(&load_views(dir)?, &args)?.json)
@@ -594,7 +594,7 @@ mod tests {
             baseline_m: None,
             seed: 0,
             search_px: None,
-            patch_refinement: PatchRefinement::On,
+            patch_refinement: PatchRefinement::Temporal,
             corners: None,
         }
     }

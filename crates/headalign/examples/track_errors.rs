@@ -18,8 +18,8 @@
 //!   temporal tracking error; right: the stereo error);
 //! - the estimate's `sigma_inflation` under the clustered covariance.
 //!
-//! `REFINE=off|temporal` in the environment: the front end without patch refinement, or
-//! with it for later views only (`common::front_end_options`); unset: the default.
+//! `REFINE=off|stereo` in the environment: the front end without patch refinement, or
+//! with stereo partners refined too (`common::front_end_options`); unset: the default.
 use std::collections::BTreeMap;
 
 mod common;
