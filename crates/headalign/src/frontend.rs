@@ -27,15 +27,16 @@
 //!    affine map fitted to the track's nearest matches (least squares on up to
 //!    `refine_neighbours` correspondences, refitted without those off by more than 2 px;
 //!    the affine of all correspondences where the neighbours are too few or too
-//!    clustered). With [`FrontEndOptions::refine_stereo`] the first view's (and, in
-//!    [`TrackingMode::Previous`], each unlinked pair's) right corner is aligned in the same
-//!    way against its left partner's patch. An observation whose alignment fails (window
-//!    at the border, no texture, no convergence, moved more than `max_shift_px`, ZNCC
-//!    below `min_zncc`) is dropped. Why: corners are detected independently per image, so
-//!    a track's pixels in two images are each the detector's own sub-pixel fit, not the
-//!    same physical point (on rendered images 20-26 % of observations were more than
-//!    1 px off the truth, a heavy tail that biased self-calibration by 1-3 %); aligned
-//!    patches make every observation the reference corner's point.
+//!    clustered). With [`FrontEndOptions::refine_stereo`] (off by default: see there) the
+//!    first view's (and, in [`TrackingMode::Previous`], each unlinked pair's) right
+//!    corner is aligned in the same way against its left partner's patch. An observation
+//!    whose alignment fails (window at the border, no texture, no convergence, moved more
+//!    than `max_shift_px`, ZNCC below `min_zncc`) is dropped. Why: corners are detected
+//!    independently per image, so a track's pixels in two images are each the detector's
+//!    own sub-pixel fit, not the same physical point (on rendered images 20-26 % of
+//!    observations were more than 1 px off the truth, a heavy tail that biased
+//!    self-calibration by 1-3 %); aligned patches make every observation in a camera
+//!    that camera's reference corner's point (with `refine_stereo`, the left one's).
 //!
 //! Two tracking modes ([`TrackingMode`]):
 //! - [`TrackingMode::Reference`] (the verge/tilt procedure): every view is matched to the
