@@ -85,6 +85,8 @@ for seed in range(first, last + 1):
         first = d["trials"][0]
         was = "failed" if first["error"] else f"f {100.0 * (first['focal_px'][0] - truth['left']['fx']) / truth['left']['fx']:+.3f} %"
         line += f", re-detected ({first['corners']} corners: {was}), kept {d['trials'][d['kept']]['corners']}"
+        if d.get("disagreement_sigmas") is not None:
+            line += f" (the two differ by {d['disagreement_sigmas']:.1f} combined sigmas)"
     if w:
         line += " warned"
     print(line, flush=True)

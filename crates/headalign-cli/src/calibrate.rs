@@ -76,6 +76,12 @@ pub struct CalibrateArgs {
     /// rotations; a hand-held rig that moved a lot needs more, e.g. 40).
     #[arg(long)]
     pub search_px: Option<f64>,
+    /// Patch refinement of tracked corners: `temporal` (default: the front end aligns every
+    /// later observation of a track against the same camera's reference patch), `stereo`
+    /// (also each reference right corner against its left partner's patch) or `off` (the
+    /// detector's own sub-pixel corners).
+    #[arg(long, value_enum, default_value_t = PatchRefinement::Temporal)]
+    pub patch_refinement: PatchRefinement,
     /// Corners detected per image. Default: 1500, and when that calibration is weak (a
     /// focal sigma above 0.5 %, or one motion in a mostly planar scene) or fails, a
     /// second detection with 3000 from the same images; the result with the smaller
@@ -105,9 +111,25 @@ fn options(args: &CalibrateArgs) -> CalibrateOptions {
     o
 }
 
+/// `--patch-refinement`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum PatchRefinement {
+    /// Later observations against the same camera's reference patch (the default).
+    Temporal,
+    /// Also stereo partners against the left patch.
+    Stereo,
+    /// The detector's own corners.
+    Off,
+}
+
 fn front_end(args: &CalibrateArgs, corners: usize) -> FrontEndOptions {
     let mut f = FrontEndOptions::default();
     f.features.max_features = corners;
+    match args.patch_refinement {
+        PatchRefinement::Temporal => {}
+        PatchRefinement::Stereo => f.refine_stereo = true,
+        PatchRefinement::Off => f.refine = None,
+    }
     if let Some(r) = args.search_px {
         f.guided_radius_px = r;
         f.motion.threshold = r;
@@ -548,6 +570,7 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         baseline_m: None,
         seed: info.estimation_seed,
         search_px: None,
+        patch_refinement: PatchRefinement::Temporal,
         corners: None,
     };
     Ok(calibrate_views(&load_views(dir)?, &args)?.json)
@@ -571,6 +594,7 @@ mod tests {
             baseline_m: None,
             seed: 0,
             search_px: None,
+            patch_refinement: PatchRefinement::Temporal,
             corners: None,
         }
     }

@@ -13,6 +13,8 @@
 //!   256-bit BRIEF descriptors;
 //! - [`match_descriptors`], [`match_epipolar`], [`match_predicted`]: Hamming matching,
 //!   free or guided by a fundamental matrix or a predicting map;
+//! - [`refine_point_against_patch`]: sub-pixel Lucas-Kanade alignment of a point against a
+//!   reference patch under a local affine map (one physical point across images);
 //! - [`draw::Canvas`]: annotated images (features, lines, fixation points).
 
 pub mod correlation;
@@ -22,6 +24,7 @@ pub mod features;
 pub mod image;
 pub mod matching;
 pub mod pyramid;
+pub mod refine;
 
 pub use correlation::{
     PatchMatch, PatchSearchOptions, Registration, RegistrationOptions, locate_patch,
@@ -34,3 +37,4 @@ pub use matching::{
     Match, MatchOptions, match_descriptors, match_epipolar, match_homography, match_predicted,
 };
 pub use pyramid::{FloatImage, Pyramid, gaussian_blur};
+pub use refine::{PatchRefineOptions, RefineFailure, Refinement, refine_point_against_patch};

@@ -1,6 +1,7 @@
 //! Experiment: why `calibrate` on a rendered session is off, against the simulator's truth.
 //! `cargo run --release -p headalign --example onegen_diag -- SEED [procedural] [rotations] [lens K1 K2] [CORNERS...]`
-//! (`COV=clustered` in the environment: the track-clustered covariance instead of the
+//! (`REFINE=off|stereo` in the environment: the front end without patch refinement or
+//! with stereo partners refined too; `COV=clustered` in the environment: the track-clustered covariance instead of the
 //! Gaussian one; `RESELECT=G`: the re-selection gate in robust sigmas, default 3.5.)
 //!
 //! Per corner count (default 1500 and 3000): the session `headalign simulate --images`
@@ -32,7 +33,7 @@ use std::collections::BTreeMap;
 mod common;
 
 use headalign::calibrate::{CalibrateOptions, calibrate_rig};
-use headalign::frontend::{FrontEndOptions, Tracker};
+use headalign::frontend::Tracker;
 use headalign::observations::View;
 use headalign_geometry::bundle::Side;
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera};
@@ -113,7 +114,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             headalign_geometry::bundle::CovarianceModel::PointClustered;
     }
     for &n in &corners {
-        let mut front = FrontEndOptions::default();
+        let mut front = common::front_end_options();
         front.features.max_features = n;
         let mut tracker = Tracker::new(front)?;
         let names = ["initial", "moved", "pan"];

@@ -17,6 +17,9 @@
 //!   views: the error of each observation against that surface point (left: the
 //!   temporal tracking error; right: the stereo error);
 //! - the estimate's `sigma_inflation` under the clustered covariance.
+//!
+//! `REFINE=off|stereo` in the environment: the front end without patch refinement, or
+//! with stereo partners refined too (`common::front_end_options`); unset: the default.
 use std::collections::BTreeMap;
 
 mod common;
@@ -73,6 +76,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         }
         // Ray cast of the reference-left pixel onto the true surface.
         let (mut sl, mut nl, mut sr, mut nr) = (0.0, 0usize, 0.0, 0usize);
+        // All ray-cast errors (no 3 px cut): how many exceed 1 px, and the RMS of those
+        // under 3 px (both sides together).
+        let (mut n_all, mut n_over1) = (0usize, 0usize);
         let (wl0, _) = head.scene_from_cameras(&true_enc[0]);
         for obs in tracks.values().filter(|o| o.len() >= 4) {
             let Some((_, _, p0)) = obs.iter().find(|(v, s, _)| *v == 0 && *s == 0) else { continue };
@@ -87,6 +93,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 let q = if *side == 0 { ql } else { qr };
                 let Some(q) = q else { continue };
                 let e = (px - q).norm_squared();
+                n_all += 1;
+                n_over1 += usize::from(e > 1.0);
                 if e > 9.0 {
                     continue;
                 }
@@ -107,6 +115,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             })
             .collect();
         println!("seed {seed}: mean true-camera residual per view and camera, px: {}", common.join(" "));
+        println!(
+            "seed {seed}: ray-cast observations {n_all}, over 1 px {:.1} %, RMS/component under 3 px {:.3} px",
+            100.0 * n_over1 as f64 / n_all.max(1) as f64,
+            ((sl + sr) / (2 * (nl + nr).max(1)) as f64).sqrt()
+        );
         let d = EstimationOptions { seed, ..EstimationOptions::default() };
         let gauss = estimate_rig(&views, &d)?;
         let clustered = EstimationOptions {

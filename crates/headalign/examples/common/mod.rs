@@ -68,6 +68,19 @@ pub fn true_cameras(
     ]
 }
 
+/// The front end's default options, with patch refinement as the environment's `REFINE`
+/// says: `off` (the detector's corners), `stereo` (stereo partners too), anything else or
+/// unset the default (later views only): before/after in one build.
+pub fn front_end_options() -> FrontEndOptions {
+    let mut f = FrontEndOptions::default();
+    match std::env::var("REFINE").as_deref() {
+        Ok("off") => f.refine = None,
+        Ok("stereo") => f.refine_stereo = true,
+        _ => {}
+    }
+    f
+}
+
 /// The head, the views and each view's true encoder readings ([`tracked_rig_views`]).
 pub type TrackedViews = (SimulatedHead, Vec<View>, Vec<Encoders>);
 
@@ -83,7 +96,7 @@ pub fn tracked_rig_views(seed: u64) -> Result<TrackedViews, Box<dyn std::error::
     let mut views = Vec::new();
     let mut true_enc = Vec::new();
     {
-        let mut th = TrackingHead::new(&mut head, FrontEndOptions::default())?;
+        let mut th = TrackingHead::new(&mut head, front_end_options())?;
         for (name, enc) in &plan {
             th.move_to(enc)?;
             true_enc.push(th.inner().encoders());
