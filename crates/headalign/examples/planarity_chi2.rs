@@ -13,7 +13,7 @@
 //! 7.5 %, 7.5 % of drives; seed 170's first steering drive 42.7 (far points only, rig at
 //! the readings 0.47 deg off).
 use headalign::estimate::EstimationOptions;
-use headalign::procedure::{VergeTiltOptions, VergeTiltRun};
+use headalign::procedure::{VergeTiltOptions, VergeTiltRun, axis_perturbations};
 use headalign::robot::{PanOptions, SteeringOptions, align_pan, zero_steering};
 use headalign_sim::{Scenario, SimulatedRobot};
 
@@ -71,7 +71,24 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         };
         st.registration.threshold *= k;
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
-        let p1 = match align_pan(&mut robot, cal, verge, &pan) {
+        // The vergence axes' uncertainty (default) or, with `AXES=held`, the axes taken as
+        // exact (the robot stages before it was propagated).
+        let held = std::env::var("AXES").is_ok_and(|v| v == "held");
+        let perturbations = (!held).then(|| {
+            // The axis views' pixel noise: the bundle's estimate (`AXIS_NOISE=px` sets it,
+            // `AXIS_NOISE=resection` estimates it from the resections' truncated residuals).
+            let px = match std::env::var("AXIS_NOISE").ok() {
+                Some(v) if v == "resection" => None,
+                Some(v) => v.parse().ok(),
+                None => Some(cal.report.sigma_px),
+            };
+            if std::env::var("DETAIL").is_ok() {
+                eprintln!("  bundle noise {:.3} px", cal.report.sigma_px);
+            }
+            axis_perturbations(cal, verge, &vt.axis_sources, &cal.reference_encoders, px)
+        });
+        let axes = perturbations.as_ref();
+        let p1 = match align_pan(&mut robot, cal, verge, axes, &pan) {
             Ok(p) => p,
             Err(e) => {
                 println!("{seed} pan-failed {e}");
@@ -119,7 +136,31 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         for p in &p1.steps {
             println!("{seed} pan1 {:.3}", p.planarity_chi2);
         }
-        let sz = match zero_steering(&mut robot, cal, verge, &st) {
+        if std::env::var("RIGCHI").is_ok() {
+            // The rig predicted at the first steering drive's readings against the truth:
+            // chi-square (3 dof) of its rotation error under the covariance with the
+            // axes held and with the axes' uncertainty.
+            let enc = robot.head().encoders();
+            let (wl, wr) = robot.head().world_from_cameras(&enc);
+            let truth = wr.inverse() * wl;
+            let r0 = cal.reference_encoders;
+            let (wl0, wr0) = robot.head().world_from_cameras(&r0);
+            let truth0 = wr0.inverse() * wl0;
+            for (name, a, at, t) in [
+                ("ref", None, r0, truth0),
+                ("held", None, enc, truth),
+                ("axes", perturbations.as_ref(), enc, truth),
+            ] {
+                let (rig, cov) = headalign::robot::predicted_rig(cal, verge, a, &at)?;
+                let d = (t * rig.right_from_left.inverse()).rotation.scaled_axis();
+                let c = cov.map(|c| c.fixed_view::<3, 3>(0, 0).into_owned());
+                let chi =
+                    c.and_then(|c| c.try_inverse()).map_or(f64::NAN, |i| (d.transpose() * i * d)[(0, 0)]);
+                let sd = c.map_or(f64::NAN, |c| c.trace().sqrt().to_degrees());
+                println!("{seed} rigchi {name} {chi:.3} err {:.3} sd {sd:.3}", d.norm().to_degrees());
+            }
+        }
+        let sz = match zero_steering(&mut robot, cal, verge, axes, &st) {
             Ok(p) => p,
             Err(e) => {
                 println!("{seed} steer-failed {e}");
@@ -130,7 +171,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             println!("{seed} steer {:.3}", t.planarity_chi2);
         }
         let steer_err = robot.steer_err_deg(robot.steering_encoder_deg());
-        let p2 = match align_pan(&mut robot, cal, verge, &pan) {
+        let p2 = match align_pan(&mut robot, cal, verge, axes, &pan) {
             Ok(p) => p,
             Err(e) => {
                 println!("{seed} pan2-failed {e}");

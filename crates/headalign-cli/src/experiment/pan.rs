@@ -88,12 +88,14 @@ pub fn run_pan_trial(spec: &TrialSpec) -> Result<TrialRecord> {
     let mut robot = SimulatedRobot::new(scenario.clone()).map_err(|e| anyhow!("simulator: {e}"))?;
     let vt = verge_tilt_on(robot.head_mut(), spec)?;
     let (cal, verge) = (&vt.calibration, &vt.verge_axes);
+    let perturbations = vt.axis_perturbations();
+    let axes = Some(&perturbations);
     let pan = pan_options(&scenario);
-    align_pan(&mut robot, cal, verge, &pan).context("pan stage")?;
-    let steer =
-        zero_steering(&mut robot, cal, verge, &steering_options(&scenario)).context("steering stage")?;
+    align_pan(&mut robot, cal, verge, axes, &pan).context("pan stage")?;
+    let steer = zero_steering(&mut robot, cal, verge, axes, &steering_options(&scenario))
+        .context("steering stage")?;
     let steer_err = robot.steer_err_deg(robot.steering_encoder_deg());
-    let last = align_pan(&mut robot, cal, verge, &pan).context("pan stage, wheel straight")?;
+    let last = align_pan(&mut robot, cal, verge, axes, &pan).context("pan stage, wheel straight")?;
     let enc = robot.head().encoders();
     let pan_err = robot.pan_err_deg(&enc);
     let mut rec = record_from(robot.head(), &vt, None, t0.elapsed().as_secs_f64());
