@@ -38,7 +38,20 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             estimation: EstimationOptions::scaled_for_noise(noise, seed),
             ..VergeTiltOptions::default()
         };
-        let vt = match VergeTiltRun::default().run(robot.head_mut(), &opts) {
+        // EXACT_CAL=1: the calibration from a noise-free twin of the head (the robot then
+        // starts at the twin's final readings): the drives' own covariance alone.
+        let vt = if std::env::var("EXACT_CAL").is_ok() {
+            let mut twin = SimulatedRobot::new(Scenario { noise_px: 0.0, ..s.clone() })?;
+            let vt = VergeTiltRun::default().run(twin.head_mut(), &opts);
+            if let Ok(v) = &vt {
+                use headalign_platform::StereoHead;
+                robot.head_mut().move_to(&v.final_encoders)?;
+            }
+            vt
+        } else {
+            VergeTiltRun::default().run(robot.head_mut(), &opts)
+        };
+        let vt = match vt {
             Ok(v) => v,
             Err(e) => {
                 println!("{seed} verge-tilt-failed {e}");
