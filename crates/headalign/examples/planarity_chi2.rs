@@ -19,7 +19,8 @@
 //! Measured (3 px, seeds 1-120, 960 drives, one run each): mean chi-square, first pan
 //! stage / steering / second pan stage, 3.29 / 3.38 / 3.36 with the axes held (above the
 //! 95 % quantile 8.8 / 7.5 / 7.5 % of drives), 3.27 / 3.24 / 3.53 with their uncertainty
-//! (8.8 / 5.6 / 9.6 %), against 3 (standard error 0.16 / 0.11 / 0.16). `RIGCHI=1`, seeds
+//! (8.8 / 5.6 / 9.6 %), against 3 (standard error 0.16 / 0.11 / 0.16); at 1 px (seeds
+//! 1-100) 2.91 / 2.37 / 2.88 held, 2.88 / 2.32 / 2.87 propagated. `RIGCHI=1`, seeds
 //! 1-30: the rig at the readings 9.7 held, 3.5 propagated (at the reference 2.9; the
 //! least-squares pose covariance instead of the bootstrap gave 4.1). `EXACT_CAL=1`: 3.2 / 3.5 / 3.0 at 1 px (seeds 1-40), 3.9 / 4.9 / 4.3 at 3 px
 //! (seeds 1-60): the remaining excess at 3 px is the drive motions' own covariance. Seed
