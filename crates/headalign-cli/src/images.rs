@@ -233,6 +233,7 @@ pub fn robot_stages<H: ImagingHead + Vehicle>(
         plan,
         &outcome.calibration,
         &outcome.verge_axes,
+        Some(&outcome.axis_perturbations()),
         &mut |t, stage| on_stage(t.inner(), stage),
     )
     .context("robot stages on images")?;

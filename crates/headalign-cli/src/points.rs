@@ -93,12 +93,15 @@ pub fn robot_stages<R: StereoHead + Vehicle>(
     writer: Option<SessionWriter>,
 ) -> Result<(RobotOutcomes, Option<SessionWriter>)> {
     let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
+    let perturbations = outcome.axis_perturbations();
+    let axes = Some(&perturbations);
     let Some(writer) = writer else {
-        return Ok((run_robot_stages(robot, plan, calib, verge, &mut |_, _| {})?, None));
+        return Ok((run_robot_stages(robot, plan, calib, verge, axes, &mut |_, _| {})?, None));
     };
     let mut rec = RecordingHead::new(robot, writer);
-    let result =
-        run_robot_stages(&mut rec, plan, calib, verge, &mut |h, stage| h.set_stage(stage, Vec::new(), stage));
+    let result = run_robot_stages(&mut rec, plan, calib, verge, axes, &mut |h, stage| {
+        h.set_stage(stage, Vec::new(), stage)
+    });
     let writer = rec.into_writer();
     match result {
         Ok(r) => Ok((r, Some(writer))),

@@ -12,6 +12,7 @@ use headalign::alignment::VergeAxes;
 use headalign::estimate::RigCalibration;
 use headalign::onemotion::{Horizon, OneMotionOptions, OneMotionOutcome, align_one_motion};
 use headalign::panfix::{PanFixationOptions, PanFixationOutcome, align_pan_by_fixation};
+use headalign::procedure::AxisPerturbations;
 use headalign::robot::{PanOptions, PanOutcome, SteeringOptions, SteeringOutcome, align_pan, zero_steering};
 use headalign_platform::{StereoHead, Vehicle};
 use serde::{Deserialize, Serialize};
@@ -106,6 +107,7 @@ pub fn run_robot_stages<R: StereoHead + Vehicle>(
     plan: &RobotPlan,
     calib: &RigCalibration,
     verge: &VergeAxes,
+    axes: Option<&AxisPerturbations>,
     on_stage: &mut dyn FnMut(&mut R, &str),
 ) -> Result<RobotOutcomes> {
     let mut out = RobotOutcomes::default();
@@ -119,7 +121,7 @@ pub fn run_robot_stages<R: StereoHead + Vehicle>(
                 if let Some(c) = plan.planarity_chi2_max {
                     o.planarity_chi2_max = c;
                 }
-                out.pan.push(align_pan(robot, calib, verge, &o).context("pan stage")?);
+                out.pan.push(align_pan(robot, calib, verge, axes, &o).context("pan stage")?);
             }
             "one-motion" => {
                 let horizon = if plan.horizon_from_drive { Horizon::Drive } else { Horizon::PanAxis };
@@ -141,7 +143,7 @@ pub fn run_robot_stages<R: StereoHead + Vehicle>(
                 if let Some(c) = plan.planarity_chi2_max {
                     o.planarity_chi2_max = c;
                 }
-                let st = zero_steering(robot, calib, verge, &o).context("steering stage")?;
+                let st = zero_steering(robot, calib, verge, axes, &o).context("steering stage")?;
                 for &k in &st.dropped_turns {
                     if let Some(t) = st.turns.get(k) {
                         eprintln!(

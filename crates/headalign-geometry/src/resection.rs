@@ -10,6 +10,14 @@
 //! local method; it needs an initial pose within a few degrees (the commanded motion
 //! gives one). Observations whose final residual exceeds `outlier_px` are dropped and the
 //! pose refined again.
+//!
+//! Uncertainty: [`resection_bootstrap`] gives the estimator's own sampling spread by a
+//! parametric bootstrap (exact pixels of the estimate plus Gaussian noise, re-resected).
+//! The Gauss-Newton covariance `sigma^2 (J^T J)^-1` over the inliers is the least-squares
+//! one; this estimator is robust (Huber at `huber_px`, outliers re-selected at
+//! `outlier_px`), and at noise comparable to those thresholds it is markedly less
+//! efficient: at 3 px its poses spread about 1.4x (standard deviation) beyond that
+//! covariance (the vergence axes' rotation, `examples/axis_mc.rs`; 1.0x at 1 px).
 
 use nalgebra::{
     Isometry3, Matrix2x3, Matrix6, Point2, Point3, SMatrix, Translation3, UnitQuaternion, Vector6,
@@ -167,6 +175,57 @@ pub fn resect(
     Ok(Resection { cam_from_world: pose, rms_px: rms, inliers })
 }
 
+/// Most draws [`resection_bootstrap`] accepts (a bound on its cost).
+pub const MAX_BOOTSTRAP_DRAWS: usize = 10_000;
+
+/// Parametric bootstrap of [`resect`]: `draws` re-resections, each from the exact pixels
+/// of `points_in_world` at `cam_from_world` (the estimate) plus independent Gaussian noise
+/// of `sigma_px` per coordinate, started at the estimate, with the same options; returns
+/// the poses (`cam_from_world`) of the draws that succeeded. Their spread is the
+/// estimator's own under that noise model, robust loss and outlier re-selection included
+/// (module docs). Deterministic for a given `seed` (ChaCha8). Points behind the camera are
+/// skipped. Errors: `sigma_px` not finite and non-negative, or `draws` above
+/// [`MAX_BOOTSTRAP_DRAWS`].
+pub fn resection_bootstrap(
+    k: &Intrinsics,
+    points_in_world: &[Point3<f64>],
+    cam_from_world: &Isometry3<f64>,
+    sigma_px: f64,
+    draws: usize,
+    seed: u64,
+    options: &ResectionOptions,
+) -> Result<Vec<Isometry3<f64>>> {
+    use rand::{RngExt, SeedableRng};
+    if !(sigma_px.is_finite() && sigma_px >= 0.0) || draws > MAX_BOOTSTRAP_DRAWS {
+        return Err(GeometryError::InvalidOption(format!(
+            "bootstrap needs sigma_px >= 0 and at most {MAX_BOOTSTRAP_DRAWS} draws, got {sigma_px} and {draws}"
+        )));
+    }
+    let (pts, exact): (Vec<Point3<f64>>, Vec<Point2<f64>>) = points_in_world
+        .iter()
+        .filter_map(|x| {
+            let p = cam_from_world * x;
+            (p.z > 0.0).then(|| (*x, k.project_unchecked(&p)))
+        })
+        .unzip();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut out = Vec::with_capacity(draws);
+    for _ in 0..draws {
+        let noisy: Vec<Point2<f64>> = exact
+            .iter()
+            .map(|p| {
+                let dx: f64 = rng.sample(rand_distr::StandardNormal);
+                let dy: f64 = rng.sample(rand_distr::StandardNormal);
+                Point2::new(p.x + sigma_px * dx, p.y + sigma_px * dy)
+            })
+            .collect();
+        if let Ok(r) = resect(k, &pts, &noisy, cam_from_world, options) {
+            out.push(r.cam_from_world);
+        }
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -197,6 +256,86 @@ mod tests {
             prop_assert!((r.cam_from_world.to_homogeneous() - truth.to_homogeneous()).norm() < 1e-9);
             prop_assert_eq!(r.inliers.len(), 54);
         }
+    }
+
+    /// 150 points 2-6 m in front of a camera at a pose, in the world frame.
+    fn bootstrap_scene() -> (Intrinsics, Isometry3<f64>, Vec<Point3<f64>>) {
+        let k = Intrinsics::new(700.0, 720.0, 390.0, 284.0);
+        let pose = Isometry3::from_parts(
+            Translation3::new(0.1, -0.05, 0.2),
+            UnitQuaternion::from_euler_angles(0.05, -0.1, 0.02),
+        );
+        let pts = (0..150u64)
+            .map(|i| {
+                let h = i.wrapping_mul(2654435761) % 1000;
+                let pc = Point3::new(
+                    -1.5 + 0.003 * h as f64,
+                    -1.0 + 0.002 * ((h * 7) % 1000) as f64,
+                    2.0 + 0.004 * ((h * 13) % 1000) as f64,
+                );
+                pose.inverse() * pc
+            })
+            .collect();
+        (k, pose, pts)
+    }
+
+    /// Tangent `[w; v]` of the left-multiplicative update taking `a` to `b`.
+    fn tangent(a: &Isometry3<f64>, b: &Isometry3<f64>) -> Vector6<f64> {
+        let d = b * a.inverse();
+        let w = d.rotation.scaled_axis();
+        Vector6::new(w.x, w.y, w.z, d.translation.x, d.translation.y, d.translation.z)
+    }
+
+    /// The bootstrap: noise-free draws return the pose (1e-9: converged Gauss-Newton on
+    /// exact data); at 0.5 px, where the Huber loss (2 px) and the 5 px gate are inactive,
+    /// the draws' spread is the least-squares covariance `sigma^2 (J^T J)^-1` (J by
+    /// central differences of the projection along the update; 400 draws know each
+    /// variance to 7 %, tolerance 25 % on every diagonal entry); at 3 px the robust
+    /// estimator spreads wider than that covariance (measured 1.1-1.4x in standard
+    /// deviation on the rotation here); bad arguments are errors.
+    #[test]
+    fn bootstrap_spread() {
+        let (k, pose, pts) = bootstrap_scene();
+        let o = ResectionOptions::default();
+        let exact = resection_bootstrap(&k, &pts, &pose, 0.0, 3, 1, &o).unwrap();
+        assert_eq!(exact.len(), 3);
+        assert!(exact.iter().all(|p| tangent(&pose, p).norm() < 1e-9));
+        let cov = |sigma: f64| {
+            let draws = resection_bootstrap(&k, &pts, &pose, sigma, 400, 2, &o).unwrap();
+            let ds: Vec<Vector6<f64>> = draws.iter().map(|p| tangent(&pose, p)).collect();
+            let mean = ds.iter().sum::<Vector6<f64>>() / ds.len() as f64;
+            ds.iter().map(|d| (d - mean) * (d - mean).transpose()).sum::<Matrix6<f64>>()
+                / (ds.len() - 1) as f64
+        };
+        let mut jtj = Matrix6::<f64>::zeros();
+        let h = 1e-6;
+        for x in &pts {
+            let mut j = SMatrix::<f64, 2, 6>::zeros();
+            for c in 0..6 {
+                let mut d = Vector6::zeros();
+                d[c] = h;
+                let px = |d: &Vector6<f64>| {
+                    let m = Isometry3::from_parts(
+                        Translation3::new(d[3], d[4], d[5]),
+                        UnitQuaternion::from_scaled_axis(Vector3::new(d[0], d[1], d[2])),
+                    ) * pose;
+                    k.project_unchecked(&(m * x)).coords
+                };
+                j.set_column(c, &((px(&d) - px(&-d)) / (2.0 * h)));
+            }
+            jtj += j.transpose() * j;
+        }
+        let ls = jtj.try_inverse().unwrap();
+        let small = cov(0.5);
+        for i in 0..6 {
+            let r = small[(i, i)] / (0.25 * ls[(i, i)]);
+            assert!((r - 1.0).abs() < 0.25, "{i}: bootstrap / least squares variance {r}");
+        }
+        let big = cov(3.0);
+        let rot = |c: &Matrix6<f64>| c.fixed_view::<3, 3>(0, 0).trace();
+        assert!(rot(&big) > 1.1 * 9.0 * rot(&ls), "{} vs {}", rot(&big), 9.0 * rot(&ls));
+        assert!(resection_bootstrap(&k, &pts, &pose, -1.0, 3, 1, &o).is_err());
+        assert!(resection_bootstrap(&k, &pts, &pose, 1.0, MAX_BOOTSTRAP_DRAWS + 1, 1, &o).is_err());
     }
 
     #[test]

@@ -32,7 +32,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let vt = VergeTiltRun::default().run(robot.head_mut(), &opts)?;
     let enc = robot.head().encoders();
     let (robot_from_left, _) = robot.head().world_from_cameras(&enc);
-    let st = zero_steering(&mut robot, &vt.calibration, &vt.verge_axes, &o)?;
+    let st = zero_steering(&mut robot, &vt.calibration, &vt.verge_axes, Some(&vt.axis_perturbations()), &o)?;
     let z = robot.truth().steer_zero_deg;
     for t in &st.turns {
         let c_true = robot.truth().turning_centre(t.steer_encoder_deg - z).unwrap_or_default();

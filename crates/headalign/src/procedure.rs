@@ -251,6 +251,23 @@ pub struct VergeTiltOutcome {
     pub estimation_seconds: f64,
 }
 
+impl VergeTiltOutcome {
+    /// The vergence axes' uncertainty for the robot stages ([`axis_perturbations`] over
+    /// this outcome's axes and their sources, the pixel noise the bundle adjustment's
+    /// estimate: the axis views come from the same cameras, and the resections' own
+    /// residuals, truncated at their 5 px outlier threshold, estimate it low at 3 px).
+    pub fn axis_perturbations(&self) -> AxisPerturbations {
+        let cal = &self.calibration;
+        axis_perturbations(
+            cal,
+            &self.verge_axes,
+            &self.axis_sources,
+            &cal.reference_encoders,
+            Some(cal.report.sigma_px),
+        )
+    }
+}
+
 /// A run of the procedure: the views captured so far survive any error.
 #[derive(Debug, Default)]
 pub struct VergeTiltRun {
@@ -728,6 +745,81 @@ pub fn resection_pose_covariance(
     jtj.try_inverse().map(|inv| inv * (sigma * sigma))
 }
 
+/// Draws of [`resection_pose_covariance_bootstrap`]: the covariance of a 6-vector from
+/// 200 draws knows each standard deviation to about 5 %.
+pub const AXIS_BOOTSTRAP_DRAWS: usize = 200;
+/// Seed of the bootstrap's noise (left camera; the right one adds 1).
+const AXIS_BOOTSTRAP_SEED: u64 = 0x5eed_a215;
+
+/// Covariance (6x6, tangent as [`resection_pose_covariance`]) of a camera pose resected
+/// by [`crate::alignment::measure_cameras`], as the spread of its own robust resection
+/// re-run on [`AXIS_BOOTSTRAP_DRAWS`] synthetic draws
+/// ([`headalign_geometry::resection::resection_bootstrap`]: the exact pixels, at the
+/// estimate, of every point the capture observes, plus Gaussian noise of `noise_px` or, if `None`,
+/// the residuals' estimate as [`resection_pose_covariance`]). Unlike the least-squares
+/// covariance it includes the resection's Huber loss (2 px) and its outlier re-selection
+/// (5 px), which at 3 px noise widen the pose's spread about 1.4x (standard deviation;
+/// 1.0x at 1 px; `examples/axis_mc.rs`). `None` with fewer than 6 points or 20 successful
+/// draws.
+pub fn resection_pose_covariance_bootstrap(
+    k: &headalign_geometry::camera::Intrinsics,
+    points: &std::collections::HashMap<u64, nalgebra::Point3<f64>>,
+    obs: &[headalign_platform::TrackObservation],
+    ref_from_cam: &nalgebra::Isometry3<f64>,
+    noise_px: Option<f64>,
+    seed: u64,
+) -> Option<nalgebra::Matrix6<f64>> {
+    use headalign_geometry::resection::{ResectionOptions, resection_bootstrap};
+    let inliers = resection_inliers(k, points, obs, ref_from_cam);
+    if inliers.len() < 6 {
+        return None;
+    }
+    let sigma = match noise_px {
+        Some(s) => s,
+        None => {
+            let dof = (2 * inliers.len() - 6) as f64;
+            let sum: f64 = inliers
+                .iter()
+                .filter_map(|(t, px)| {
+                    project_into(k, ref_from_cam, points.get(t)?).map(|p| (p - px).norm_squared())
+                })
+                .sum();
+            (sum / dof).sqrt()
+        }
+    };
+    // Every observed point, as the resection sees them (its inliers at 3 px are only about
+    // 75 % of the true matches: a draw from the inliers alone would re-select a subset of
+    // a subset and spread 12 % wider).
+    let xs: Vec<nalgebra::Point3<f64>> = obs.iter().filter_map(|o| points.get(&o.track).copied()).collect();
+    let cam_from_ref = ref_from_cam.inverse();
+    let draws = resection_bootstrap(
+        k,
+        &xs,
+        &cam_from_ref,
+        sigma,
+        AXIS_BOOTSTRAP_DRAWS,
+        seed,
+        &ResectionOptions::default(),
+    )
+    .ok()?;
+    if draws.len() < 20 {
+        return None;
+    }
+    // Tangent of each draw: ref_from_cam_draw = ref_from_cam * Exp([w; t]).
+    let ds: Vec<nalgebra::Vector6<f64>> = draws
+        .iter()
+        .map(|c| {
+            let d = cam_from_ref * c.inverse();
+            let w = d.rotation.scaled_axis();
+            let t = d.translation.vector;
+            nalgebra::Vector6::new(w.x, w.y, w.z, t.x, t.y, t.z)
+        })
+        .collect();
+    let n = ds.len() as f64;
+    let mean: nalgebra::Vector6<f64> = ds.iter().sum::<nalgebra::Vector6<f64>>() / n;
+    Some(ds.iter().map(|d| (d - mean) * (d - mean).transpose()).sum::<nalgebra::Matrix6<f64>>() / (n - 1.0))
+}
+
 /// The points of `state` moved by one Gauss-Newton step each against their bundle
 /// observations `by_point` (indices into `state.points`): to first order the points'
 /// conditional mean given the perturbed camera parameters (the covariance has the points
@@ -850,9 +942,16 @@ impl<'a> AxisFollow<'a> {
     }
 
     /// Aligned deltas with the calibration `state` and the axis-measuring poses `poses`
+    /// (as [`Self::poses`]), the axes from [`Self::axes`].
+    fn deltas(&self, state: &RigState, poses: [Option<&nalgebra::Isometry3<f64>>; 2]) -> Option<[f64; 3]> {
+        let axes = self.axes(state, poses)?;
+        solve_alignment(state, &axes, self.reference).ok().map(|s| aligned_deltas(&s))
+    }
+
+    /// The vergence axes with the calibration `state` and the axis-measuring poses `poses`
     /// (as [`Self::poses`]): each measured axis re-derived by [`verge_axes_from_motion`],
     /// an axis without a source held as given.
-    fn deltas(&self, state: &RigState, poses: [Option<&nalgebra::Isometry3<f64>>; 2]) -> Option<[f64; 3]> {
+    fn axes(&self, state: &RigState, poses: [Option<&nalgebra::Isometry3<f64>>; 2]) -> Option<VergeAxes> {
         let axis = |src: &Option<AxisMeasurement>, pose: Option<&nalgebra::Isometry3<f64>>, is_left: bool| {
             let (Some(src), Some(pose)) = (src, pose) else {
                 return Some(if is_left { self.verge.left } else { self.verge.right });
@@ -866,11 +965,10 @@ impl<'a> AxisFollow<'a> {
             let axes = verge_axes_from_motion(state, self.reference, &src.capture.encoders, &m).ok()?;
             Some(if is_left { axes.left } else { axes.right })
         };
-        let axes = VergeAxes {
+        Some(VergeAxes {
             left: axis(&self.sources.left, poses[0], true)?,
             right: axis(&self.sources.right, poses[1], false)?,
-        };
-        solve_alignment(state, &axes, self.reference).ok().map(|s| aligned_deltas(&s))
+        })
     }
 
     /// Aligned deltas under the calibration perturbation `delta` (the bundle's tangent):
@@ -878,6 +976,13 @@ impl<'a> AxisFollow<'a> {
     /// their adjustment observations) and each axis pose is re-resected (one Gauss-Newton
     /// step over its resection's inliers, held from the estimate).
     fn followed(&self, delta: &DVector<f64>) -> Option<[f64; 3]> {
+        let (st, axes) = self.followed_axes(delta)?;
+        solve_alignment(&st, &axes, self.reference).ok().map(|s| aligned_deltas(&s))
+    }
+
+    /// The perturbed calibration state and the vergence axes re-derived under it, as
+    /// [`Self::followed`].
+    fn followed_axes(&self, delta: &DVector<f64>) -> Option<(RigState, VergeAxes)> {
         let st = retriangulated(&self.calib.bundle.perturbed(delta).ok()?, &self.by_point);
         let pts: std::collections::HashMap<u64, nalgebra::Point3<f64>> =
             self.calib.point_tracks.iter().copied().zip(st.points.iter().copied()).collect();
@@ -889,8 +994,109 @@ impl<'a> AxisFollow<'a> {
             Some(p) => Some(reresected(&st.right, &pts, &self.inliers[1], &p)?),
             None => None,
         };
-        self.deltas(&st, [left.as_ref(), right.as_ref()])
+        let axes = self.axes(&st, [left.as_ref(), right.as_ref()])?;
+        Some((st, axes))
     }
+}
+
+/// The vergence axes at `+` and `-` one finite-difference step of one source of
+/// uncertainty ([`AxisPerturbations`]).
+#[derive(Debug, Clone, Copy)]
+pub struct AxisStep {
+    /// The axes re-derived at `+` the step.
+    pub plus: VergeAxes,
+    /// ... and at `-` the step.
+    pub minus: VergeAxes,
+}
+
+/// The vergence axes' uncertainty as finite-difference steps, for propagating it, with
+/// its correlation to the calibration, into anything predicted at other vergence
+/// readings (the robot stages' stereo rig at a drive's readings,
+/// [`crate::robot::align_pan`], [`crate::robot::zero_steering`]). The axes are a function
+/// of the calibration (the pan/elevation chain, the stereo pose, and the scene points the
+/// axis views are resected against) and of the resected poses' own pixel noise
+/// (independent: the axis views are not in the bundle); the same linearisation as
+/// [`alignment_sigmas_measured`] ([`AxisFollow`]). Built by [`axis_perturbations`].
+#[derive(Debug, Clone, Default)]
+pub struct AxisPerturbations {
+    /// One entry per parameter of the bundle covariance (its order): the axes with the
+    /// calibration moved along that parameter by `+-` half its standard deviation (the
+    /// step [`crate::robot`]'s calibration propagation uses), the points following and
+    /// the axis poses re-resected; `None` where the parameter has no positive variance or
+    /// the re-derivation failed.
+    pub calibration: Vec<Option<AxisStep>>,
+    /// The resected poses' own noise: independent modes of unit variance (the columns
+    /// `l` of the Cholesky factor of each pose's covariance), each the axes with that
+    /// pose moved by `+-l/2` (the calibration held): the central difference of a quantity
+    /// over one mode is its change per unit of the mode.
+    pub pose: Vec<AxisStep>,
+}
+
+impl AxisPerturbations {
+    /// The calibration parameter's step (half its standard deviation), as used for
+    /// [`Self::calibration`].
+    pub fn calibration_step(cov: &headalign_geometry::bundle::Covariance, i: usize) -> f64 {
+        0.5 * cov.matrix[(i, i)].max(0.0).sqrt()
+    }
+}
+
+/// Build [`AxisPerturbations`] for the axes `verge` measured from `sources` (an axis
+/// without a source is held as given: both steps equal it). `noise_px` as
+/// [`alignment_sigmas_measured`] (`None`: estimated from the resection residuals).
+pub fn axis_perturbations(
+    calib: &RigCalibration,
+    verge: &VergeAxes,
+    sources: &AxisSources,
+    reference: &Encoders,
+    noise_px: Option<f64>,
+) -> AxisPerturbations {
+    let follow = AxisFollow::new(calib, verge, sources, reference);
+    let cov = &calib.bundle.covariance;
+    let n = cov.matrix.nrows();
+    let calibration = (0..n)
+        .map(|i| {
+            let h = AxisPerturbations::calibration_step(cov, i);
+            if h.is_nan() || h <= 0.0 {
+                return None;
+            }
+            let mut delta = DVector::zeros(n);
+            delta[i] = h;
+            let plus = follow.followed_axes(&delta)?.1;
+            delta[i] = -h;
+            let minus = follow.followed_axes(&delta)?.1;
+            Some(AxisStep { plus, minus })
+        })
+        .collect();
+    let state = &calib.bundle.state;
+    let points: std::collections::HashMap<u64, nalgebra::Point3<f64>> = calib.points().into_iter().collect();
+    let mut pose = Vec::new();
+    for side in 0..2 {
+        let (src, k, pose0) = if side == 0 {
+            (sources.left.as_ref().map(|s| &s.capture.left), &state.left, follow.poses[0])
+        } else {
+            (sources.right.as_ref().map(|s| &s.capture.right), &state.right, follow.poses[1])
+        };
+        let (Some(obs), Some(pose0)) = (src, pose0) else { continue };
+        let seed = AXIS_BOOTSTRAP_SEED + side as u64;
+        let Some(pcov) = resection_pose_covariance_bootstrap(k, &points, obs, &pose0, noise_px, seed) else {
+            continue;
+        };
+        let Some(chol) = pcov.cholesky() else { continue };
+        let l = chol.l();
+        for c in 0..6 {
+            let step: nalgebra::Vector6<f64> = l.column(c) * 0.5;
+            let eval = |d: &nalgebra::Vector6<f64>| {
+                let moved = pose0 * tangent_step(d);
+                let mut poses = [follow.poses[0].as_ref(), follow.poses[1].as_ref()];
+                poses[side] = Some(&moved);
+                follow.axes(state, poses)
+            };
+            if let (Some(plus), Some(minus)) = (eval(&step), eval(&-step)) {
+                pose.push(AxisStep { plus, minus });
+            }
+        }
+    }
+    AxisPerturbations { calibration, pose }
 }
 
 /// [`alignment_sigmas`] with the vergence axes' own measurement uncertainty: the aligned

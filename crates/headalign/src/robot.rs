@@ -56,9 +56,21 @@
 //! of (1) and (2) (clamped to a convex combination); the flow and the motion share the
 //! left images, whose correlation is not modelled, so the stated sigma takes the bound
 //! valid for any correlation of those two, `(sqrt(w^T C_m w) + w_i s_flow)^2`, plus
-//! `w^T C_cal w`. Measured 95 % coverage in `experiment coverage` (robot group). Not
-//! included: the vergence axes' uncertainty (resection, taken as exact). The drive is repeated
-//! (`iterations`) after correcting, as the paper suggests.
+//! `w^T C_cal w`. Measured 95 % coverage in `experiment coverage` (robot group). The drive
+//! is repeated (`iterations`) after correcting, as the paper suggests.
+//!
+//! **The vergence axes' uncertainty** (given [`AxisPerturbations`],
+//! [`crate::procedure::VergeTiltOutcome::axis_perturbations`]): the rig predicted at a
+//! drive's readings turns each camera about its vergence axis from the reference, and the
+//! axes come from resections of the vergence view, not from the bundle. Part (1) then
+//! moves the axes with each calibration parameter (re-derived with the scene points
+//! following and the poses re-resected) and adds the resected poses' own noise (modes of a
+//! parametric bootstrap of the robust resection: at 3 px its Huber loss and 5 px outlier
+//! gate spread the poses 1.4x beyond the least-squares covariance). Measured at 3 px
+//! (`examples/planarity_chi2.rs`, `RIGCHI=1`, seeds 1-30): the rotation error of the rig
+//! at the readings has a chi-square mean (3 expected) of 9.7 with the axes held as exact,
+//! 3.5 with their uncertainty (2.9 at the reference readings). Without
+//! `AxisPerturbations` the axes are held (the former behaviour).
 //!
 //! **Planarity** (both stages): the out-of-plane part of a drive, its rotation about the
 //! two axes perpendicular to the pan axis (radians) and the centre's displacement along
@@ -77,8 +89,9 @@
 //! as an outlier when three remain and they all pass (`SteeringOutcome::dropped_turns`):
 //! at 3 px, seed 170's first drive saw far points only (depths 12-25 m), where the rig
 //! predicted at the readings (the vergence axes' error, about 0.5 deg after a 10 deg
-//! vergence move, is not propagated) skewed the motion 1.1 deg out of plane, chi-square
-//! 42.7; a robot that really pitches or rolls fails every drive. The turning centres
+//! vergence move) skewed the motion 1.1 deg out of plane, chi-square 42.7 with the axes
+//! held as exact and still 30.0 with their uncertainty propagated (against 25.9); a robot
+//! that really pitches or rolls fails every drive. The turning centres
 //! (planar motion about the pan axis) give the steering zero, wheelbase and forward
 //! direction ([`steering_from_turns`]); the wheel is then set straight. The zero's sigma: each drive's motion covariance
 //! (independent drives) through its centre, plus the calibration's (every drive refitted
@@ -105,15 +118,15 @@ use headalign_geometry::translation::{
 use headalign_geometry::triangulation::triangulate_linear;
 use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead, Vehicle};
 use nalgebra::{
-    DMatrix, DVector, Isometry3, Matrix2, Matrix3, Point2, Point3, SMatrix, SVector, Unit, UnitQuaternion,
-    Vector2, Vector3, Vector6,
+    DMatrix, DVector, Isometry3, Matrix2, Matrix3, Matrix6, Point2, Point3, SMatrix, SVector, Unit,
+    UnitQuaternion, Vector2, Vector3, Vector6,
 };
 use serde::Serialize;
 
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
 use crate::estimate::RigCalibration;
-use crate::procedure::predicted_poses;
+use crate::procedure::{AxisPerturbations, predicted_poses};
 
 /// The 99.999 % quantile of a chi-square with 3 degrees of freedom: the default
 /// planarity limit, a false alarm rate of 1e-5 per drive (a demo run tests 8 drives; at
@@ -367,6 +380,30 @@ pub(crate) fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) 
     })
 }
 
+/// The calibrated stereo rig predicted at readings `enc` (both `K`s and
+/// `right_from_left`, the vergence axes moving the cameras from the reference readings),
+/// and the covariance (6x6) of that prediction's `right_from_left` in the left
+/// perturbation of [`perturb`] (rotation first, radians; translation in baselines),
+/// propagated from the calibration and, given `axes`, the vergence axes' uncertainty
+/// ([`calibration_covariance`]). The covariance is `None` if the propagation failed.
+pub fn predicted_rig(
+    calib: &RigCalibration,
+    verge: &VergeAxes,
+    axes: Option<&AxisPerturbations>,
+    enc: &Encoders,
+) -> Result<(StereoRig, Option<Matrix6<f64>>), AlignError> {
+    let rig = rig_at(calib, verge, enc)?.stereo;
+    let nominal = rig.right_from_left;
+    let cov = calibration_covariance(calib, verge, axes, |cp, va| {
+        let p = rig_at(cp, va, enc).ok()?.stereo.right_from_left;
+        // Left perturbation: p = exp(d) nominal.
+        let d = p * nominal.inverse();
+        let w = d.rotation.scaled_axis();
+        Some(Vector6::new(w.x, w.y, w.z, d.translation.x, d.translation.y, d.translation.z))
+    });
+    Ok((rig, cov))
+}
+
 /// The fundamental matrix `F` (`x_right^T F x_left = 0`, pixels) of the calibrated stereo
 /// rig at readings `enc`: `K_r^-T [t]x R K_l^-1` with `(R, t)` = `right_from_left`
 /// predicted by the calibrated kinematics (vergence axes included). The image front end
@@ -575,6 +612,7 @@ pub fn align_pan<R: StereoHead + Vehicle>(
     robot: &mut R,
     calib: &RigCalibration,
     verge: &VergeAxes,
+    axes: Option<&AxisPerturbations>,
     options: &PanOptions,
 ) -> Result<PanOutcome, AlignError> {
     options.validate()?;
@@ -585,7 +623,7 @@ pub fn align_pan<R: StereoHead + Vehicle>(
         robot.drive(options.drive_m)?;
         let after = robot.capture()?;
         robot.drive(-options.drive_m)?;
-        let step = pan_step(calib, verge, &before, &after, options)?;
+        let step = pan_step(calib, verge, axes, &before, &after, options)?;
         let target = enc.moved(Joint::Pan, step.pan_correction_deg);
         robot.move_to(&target)?;
         steps.push(step);
@@ -709,45 +747,79 @@ fn calibration_parameters(calib: &RigCalibration) -> Vec<usize> {
         .collect()
 }
 
-/// Covariance of a quantity `q(calibration)` (`n_out` values) from the verge/tilt
-/// calibration's covariance: `J C J^T` over [`calibration_parameters`], `J` by central
-/// differences of `q` along each parameter, step half its standard deviation (as
-/// [`crate::procedure::alignment_sigmas`]). `None` if `q` fails at a perturbed
-/// calibration.
+/// Covariance of a quantity `q(calibration, vergence axes)` (`n_out` values) from the
+/// verge/tilt calibration's covariance and, given `axes` ([`AxisPerturbations`]), the
+/// vergence axes' own: `J C J^T`, `J` by central differences of `q` along each
+/// parameter, step half its standard deviation (as
+/// [`crate::procedure::alignment_sigmas`]).
+///
+/// Without `axes`: the parameters of [`calibration_parameters`], the axes held as given
+/// (the stereo rig predicted at other vergence readings then counts no error of the
+/// axes). With `axes`: every parameter with a step in `axes.calibration` (the per-view
+/// ones too: they move the scene points the axis views were resected against), the
+/// axes moved with the calibration, plus the resected poses' noise modes (unit
+/// variance, independent of the calibration) with the calibration held. `None` if `q`
+/// fails at a perturbed calibration.
 pub(crate) fn calibration_covariance_dyn(
     calib: &RigCalibration,
+    verge: &VergeAxes,
+    axes: Option<&AxisPerturbations>,
     n_out: usize,
-    mut q: impl FnMut(&RigCalibration) -> Option<DVector<f64>>,
+    mut q: impl FnMut(&RigCalibration, &VergeAxes) -> Option<DVector<f64>>,
 ) -> Option<DMatrix<f64>> {
     let cov = &calib.bundle.covariance;
-    let idx = calibration_parameters(calib);
+    let n = cov.names.len();
+    let axes = axes.filter(|a| a.calibration.len() == n);
+    let idx: Vec<usize> = match axes {
+        Some(a) => (0..n).filter(|&i| a.calibration[i].is_some()).collect(),
+        None => calibration_parameters(calib),
+    };
     let mut scratch = calib.clone();
     let mut jac = DMatrix::<f64>::zeros(n_out, idx.len());
     for (col, &i) in idx.iter().enumerate() {
-        let h = 0.5 * cov.matrix[(i, i)].sqrt();
-        let mut delta = DVector::zeros(cov.names.len());
+        let h = AxisPerturbations::calibration_step(cov, i);
+        let (plus_axes, minus_axes) = match axes.and_then(|a| a.calibration[i].as_ref()) {
+            Some(st) => (st.plus, st.minus),
+            None => (*verge, *verge),
+        };
+        let mut delta = DVector::zeros(n);
         delta[i] = h;
         scratch.bundle.state = calib.bundle.perturbed(&delta).ok()?;
-        let plus = q(&scratch)?;
+        let plus = q(&scratch, &plus_axes)?;
         delta[i] = -h;
         scratch.bundle.state = calib.bundle.perturbed(&delta).ok()?;
-        let minus = q(&scratch)?;
+        let minus = q(&scratch, &minus_axes)?;
         if plus.len() != n_out || minus.len() != n_out {
             return None;
         }
         jac.set_column(col, &((plus - minus) / (2.0 * h)));
     }
     let sub = cov.matrix.select_rows(idx.iter()).select_columns(idx.iter());
-    Some(&jac * sub * jac.transpose())
+    let mut out = &jac * sub * jac.transpose();
+    if let Some(a) = axes {
+        // The resected poses' noise: unit-variance modes at +-1/2 (difference = change
+        // per unit of the mode).
+        for st in &a.pose {
+            let d = q(calib, &st.plus)? - q(calib, &st.minus)?;
+            if d.len() != n_out {
+                return None;
+            }
+            out += &d * d.transpose();
+        }
+    }
+    Some(out)
 }
 
 /// [`calibration_covariance_dyn`] for a fixed-size quantity.
 pub(crate) fn calibration_covariance<const N: usize>(
     calib: &RigCalibration,
-    mut q: impl FnMut(&RigCalibration) -> Option<SVector<f64, N>>,
+    verge: &VergeAxes,
+    axes: Option<&AxisPerturbations>,
+    mut q: impl FnMut(&RigCalibration, &VergeAxes) -> Option<SVector<f64, N>>,
 ) -> Option<SMatrix<f64, N, N>> {
-    let c =
-        calibration_covariance_dyn(calib, N, |cp| q(cp).map(|v| DVector::from_column_slice(v.as_slice())))?;
+    let c = calibration_covariance_dyn(calib, verge, axes, N, |cp, va| {
+        q(cp, va).map(|v| DVector::from_column_slice(v.as_slice()))
+    })?;
     Some(SMatrix::<f64, N, N>::from_fn(|r, k| c[(r, k)]))
 }
 
@@ -760,6 +832,7 @@ fn refit_options() -> RigMotionOptions {
 pub fn pan_step(
     calib: &RigCalibration,
     verge: &VergeAxes,
+    axes: Option<&AxisPerturbations>,
     before: &StereoCapture,
     after: &StereoCapture,
     options: &PanOptions,
@@ -837,8 +910,8 @@ pub fn pan_step(
     let basis = perpendicular_basis(&up);
     let v = out_of_plane(&motion.cam2_from_cam1, &up, &basis);
     let iterations = options.translation.max_iterations;
-    let cal = calibration_covariance(calib, |cp| {
-        let rig_p = rig_at(cp, verge, &enc).ok()?;
+    let cal = calibration_covariance(calib, verge, axes, |cp, verge_p| {
+        let rig_p = rig_at(cp, verge_p, &enc).ok()?;
         let (up_p, o_p) = pan_axis_in(cp, &rig_p).ok()?;
         let ml_p = refine_rig_motion(
             &rig_p.stereo,
@@ -950,6 +1023,7 @@ const MIN_STEERING_DRIVES: usize = 3;
 struct SteeringContext<'a> {
     calib: &'a RigCalibration,
     verge: &'a VergeAxes,
+    axes: Option<&'a AxisPerturbations>,
     enc: &'a Encoders,
     up: &'a Unit<Vector3<f64>>,
     wheelbase: Option<f64>,
@@ -980,8 +1054,8 @@ fn steering_fit(
     let basis = perpendicular_basis(up);
     let nominal: Vec<Isometry3<f64>> = motions.iter().map(|m| m.cam2_from_cam1).collect();
     let n = motions.len();
-    let cal = calibration_covariance_dyn(calib, 3 * n + 1, |cp| {
-        let rig_p = rig_at(cp, verge, ctx.enc).ok()?;
+    let cal = calibration_covariance_dyn(calib, verge, ctx.axes, 3 * n + 1, |cp, verge_p| {
+        let rig_p = rig_at(cp, verge_p, ctx.enc).ok()?;
         let up_p = cp.pan_axis()?.transformed(&rig_p.ref_from_left.inverse()).direction;
         let q = UnitQuaternion::rotation_between(up, &up_p).unwrap_or_else(UnitQuaternion::identity);
         let basis_p = [q * basis[0], q * basis[1]];
@@ -1036,6 +1110,7 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     robot: &mut R,
     calib: &RigCalibration,
     verge: &VergeAxes,
+    axes: Option<&AxisPerturbations>,
     options: &SteeringOptions,
 ) -> Result<SteeringOutcome, AlignError> {
     options.validate()?;
@@ -1080,7 +1155,7 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     }
     let scale = options.baseline_m;
     let wheelbase = options.wheelbase_m.map(|l| l / scale);
-    let ctx = SteeringContext { calib, verge, enc: &enc, up: &up, wheelbase };
+    let ctx = SteeringContext { calib, verge, axes, enc: &enc, up: &up, wheelbase };
     let mut fit = steering_fit(&ctx, &motions, &settings, &turns)?;
     for (step, chi2) in steps.iter_mut().zip(&fit.chi2) {
         step.planarity_chi2 = *chi2;
@@ -1162,20 +1237,24 @@ mod tests {
         let s = Scenario { seed: 1, noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
         let (mut robot, vt) = calibrated_robot(s);
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
-        let st = zero_steering(&mut robot, cal, verge, &SteeringOptions::default()).unwrap();
+        let axes = vt.axis_perturbations();
+        let st = zero_steering(&mut robot, cal, verge, Some(&axes), &SteeringOptions::default()).unwrap();
         let now = robot.steering_encoder_deg();
         assert!(robot.steer_err_deg(now).abs() < 1e-9, "{st:?}");
         assert!(st.sigma_steer_zero_deg < 1e-4, "{st:?}");
-        let pan = align_pan(&mut robot, cal, verge, &PanOptions::default()).unwrap();
+        let pan = align_pan(&mut robot, cal, verge, Some(&axes), &PanOptions::default()).unwrap();
         let enc = robot.head().encoders();
         assert!(robot.pan_err_deg(&enc).abs() < 1e-9, "{pan:?}");
         assert!(pan.steps.iter().all(|s| s.sigma_deg < 1e-4 && s.planarity_chi2 < 1.0), "{pan:?}");
 
         let short = PanOptions { drive_m: 0.002, ..PanOptions::default() };
-        assert!(matches!(align_pan(&mut robot, cal, verge, &short), Err(AlignError::DriveTooShort { .. })));
+        assert!(matches!(
+            align_pan(&mut robot, cal, verge, Some(&axes), &short),
+            Err(AlignError::DriveTooShort { .. })
+        ));
         let small = SteeringOptions { settings_deg: vec![0.3, 0.6, 0.9], ..SteeringOptions::default() };
         assert!(matches!(
-            zero_steering(&mut robot, cal, verge, &small),
+            zero_steering(&mut robot, cal, verge, Some(&axes), &small),
             Err(AlignError::TurnTooSmall { .. })
         ));
     }
@@ -1189,7 +1268,7 @@ mod tests {
         let s = Scenario { seed: 3, noise_px: 1.0, ..Scenario::default() };
         let (_, vt) = calibrated_robot(s);
         let cal = &vt.calibration;
-        let c = calibration_covariance(cal, |cp| {
+        let c = calibration_covariance(cal, &vt.verge_axes, None, |cp, _| {
             let k = cp.bundle.state.left;
             Some(SVector::<f64, 3>::new(k.fx, k.cx, 1.0))
         })
@@ -1210,6 +1289,117 @@ mod tests {
         }
         assert!(c[(2, 2)] == 0.0 && c[(0, 2)] == 0.0);
         assert!(expect[1][1] > 0.0);
+    }
+
+    /// The vergence axes' pose part of the rig predicted at other readings against a
+    /// Monte-Carlo: seed 2 at 3 px in the robot scene (the experiments' verge/tilt
+    /// options), the axis sources' captures re-drawn 100 times (exact pixels plus 3 px
+    /// Gaussian noise, no outliers), resected by [`crate::alignment::measure_cameras`] and
+    /// turned into axes, the calibration held; the spread of the predicted rig's rotation
+    /// at the stage's final readings against [`predicted_rig`]'s covariance with only the
+    /// pose modes of [`AxisPerturbations`]. Measured: Monte-Carlo / predicted standard
+    /// deviation 1.10 here (1.07-1.30 over seeds 1-8, `examples/axis_mc.rs`); the
+    /// least-squares pose covariance gave 1.40 (1.29-1.51). Tolerance [0.8, 1.3]: 100
+    /// draws know a standard deviation to 7 %, the bootstrap's 200 to 5 %, and it keeps
+    /// out the least-squares value.
+    #[test]
+    fn axis_pose_part_matches_monte_carlo_at_3px() {
+        use crate::alignment::{measure_cameras, verge_axes_from_motion};
+        use crate::procedure::AxisMeasurement;
+        use rand::{RngExt, SeedableRng};
+        let noise = 3.0;
+        let s = Scenario {
+            seed: 2,
+            noise_px: noise,
+            near_panels: Scenario::ROBOT_NEAR_PANELS,
+            ..Scenario::default()
+        };
+        let mut robot = SimulatedRobot::new(s.clone()).unwrap();
+        let opts = VergeTiltOptions {
+            verge_rotation_deg: 3.0,
+            estimation: EstimationOptions::scaled_for_noise(noise, s.seed),
+            ..VergeTiltOptions::default()
+        };
+        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        let cal = &vt.calibration;
+        let r0 = cal.reference_encoders;
+        let enc = vt.final_encoders;
+        let all = vt.axis_perturbations();
+        let pose_only = AxisPerturbations { calibration: vec![None; all.calibration.len()], pose: all.pose };
+        let (rig, cov) = predicted_rig(cal, &vt.verge_axes, Some(&pose_only), &enc).unwrap();
+        let predicted = cov.unwrap().fixed_view::<3, 3>(0, 0).trace().sqrt();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let head = robot.head();
+        let mut samples: Vec<Vector3<f64>> = Vec::new();
+        for _ in 0..100 {
+            let mut redraw = |src: &Option<AxisMeasurement>| -> VergeAxes {
+                let Some(src) = src else { return vt.verge_axes };
+                let mut c = head.exact_capture(&src.capture.encoders);
+                for o in c.left.iter_mut().chain(c.right.iter_mut()) {
+                    o.pixel.x += noise * rng.sample::<f64, _>(rand_distr::StandardNormal);
+                    o.pixel.y += noise * rng.sample::<f64, _>(rand_distr::StandardNormal);
+                }
+                let m = measure_cameras(cal, &c, &src.measured.ref_from_left, &src.measured.ref_from_right)
+                    .unwrap();
+                verge_axes_from_motion(&cal.bundle.state, &r0, &c.encoders, &m).unwrap()
+            };
+            let axes = VergeAxes {
+                left: redraw(&vt.axis_sources.left).left,
+                right: redraw(&vt.axis_sources.right).right,
+            };
+            let (p, _) = predicted_rig(cal, &axes, None, &enc).unwrap();
+            samples.push((p.right_from_left * rig.right_from_left.inverse()).rotation.scaled_axis());
+        }
+        let n = samples.len() as f64;
+        let mean: Vector3<f64> = samples.iter().sum::<Vector3<f64>>() / n;
+        let mc = (samples.iter().map(|v| (v - mean).norm_squared()).sum::<f64>() / (n - 1.0)).sqrt();
+        let ratio = mc / predicted;
+        assert!((0.8..1.3).contains(&ratio), "Monte-Carlo {mc} vs predicted {predicted}: {ratio}");
+    }
+
+    /// Regression, seed 170 at 3 px as the experiments run it: its first steering drive
+    /// sees far points only, where the rig predicted at the readings is 0.47 deg off (the
+    /// vergence axes). Planarity chi-square with the axes held as exact 42.7, with their
+    /// uncertainty 30.0 (measured; the other drives 24.3 / 11.3 / 13.1 -> 15.9 / 1.0 /
+    /// 3.6). Bounds 35 and 40 sit between the two values with a margin for the solver's
+    /// tolerance; the drive still fails the 25.9 limit, which is why the one-drive drop
+    /// rule stays.
+    #[test]
+    fn seed_170_far_drive_chi_square_falls_with_the_axes_uncertainty() {
+        let first_steer_chi2 = |with_axes: bool| {
+            let noise = 3.0;
+            let s = Scenario {
+                seed: 170,
+                noise_px: noise,
+                near_panels: Scenario::ROBOT_NEAR_PANELS,
+                ..Scenario::default()
+            };
+            let mut robot = SimulatedRobot::new(s.clone()).unwrap();
+            let opts = VergeTiltOptions {
+                verge_rotation_deg: 3.0,
+                estimation: EstimationOptions::scaled_for_noise(noise, s.seed),
+                ..VergeTiltOptions::default()
+            };
+            let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+            let perturbations = vt.axis_perturbations();
+            let axes = with_axes.then_some(&perturbations);
+            let mut pan =
+                PanOptions { drive_m: s.drive_m, planarity_chi2_max: f64::INFINITY, ..PanOptions::default() };
+            pan.translation.ransac.threshold *= noise;
+            pan.registration.threshold *= noise;
+            pan.guide_px *= noise;
+            let mut st = SteeringOptions {
+                baseline_m: s.baseline_m,
+                planarity_chi2_max: f64::INFINITY,
+                ..SteeringOptions::default()
+            };
+            st.registration.threshold *= noise;
+            align_pan(&mut robot, &vt.calibration, &vt.verge_axes, axes, &pan).unwrap();
+            let z = zero_steering(&mut robot, &vt.calibration, &vt.verge_axes, axes, &st).unwrap();
+            z.turns[0].planarity_chi2
+        };
+        let (held, with) = (first_steer_chi2(false), first_steer_chi2(true));
+        assert!(held > 40.0 && with < 35.0, "held {held}, with the axes' uncertainty {with}");
     }
 
     /// The motion propagation against the covariance itself: for a quantity linear in the
@@ -1253,6 +1443,7 @@ mod tests {
         let base = Scenario { seed: 4, near_panels: Scenario::ROBOT_NEAR_PANELS, ..Scenario::default() };
         let (exact, vt) = calibrated_robot(Scenario { noise_px: 0.0, ..base.clone() });
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
+        let axes = vt.axis_perturbations();
         let mut robot = SimulatedRobot::new(Scenario { noise_px: 1.0, ..base }).unwrap();
         let enc = exact.head().encoders();
         robot.move_to(&enc).unwrap();
@@ -1263,7 +1454,7 @@ mod tests {
             robot.drive(opt.drive_m).unwrap();
             let after = robot.capture().unwrap();
             robot.drive(-opt.drive_m).unwrap();
-            let step = pan_step(cal, verge, &before, &after, &opt).unwrap();
+            let step = pan_step(cal, verge, Some(&axes), &before, &after, &opt).unwrap();
             let err = robot.pan_err_deg(&enc.moved(Joint::Pan, step.pan_correction_deg));
             assert!(step.sigma_calibration_deg < 1e-3 * step.sigma_deg, "{step:?}");
             z2.push((err / step.sigma_deg).powi(2));
@@ -1325,22 +1516,23 @@ mod tests {
         };
         let (mut robot, vt) = calibrated_robot(s);
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
+        let axes = vt.axis_perturbations();
         // Planar: fine, and the pan stage reports its planarity check near zero.
-        let flat = align_pan(&mut robot, cal, verge, &PanOptions::default()).unwrap();
+        let flat = align_pan(&mut robot, cal, verge, Some(&axes), &PanOptions::default()).unwrap();
         assert!(flat.steps.iter().all(|s| s.off_axis_deg < 1e-6 && s.planarity_chi2 < 1.0), "{flat:?}");
         let mut ramp = Ramp { inner: robot, pitch_deg: 0.3 };
         assert!(matches!(
-            align_pan(&mut ramp, cal, verge, &PanOptions::default()),
+            align_pan(&mut ramp, cal, verge, Some(&axes), &PanOptions::default()),
             Err(AlignError::NotPlanar(_))
         ));
         ramp.pitch_deg = 3.0;
         assert!(matches!(
-            align_pan(&mut ramp, cal, verge, &PanOptions::default()),
+            align_pan(&mut ramp, cal, verge, Some(&axes), &PanOptions::default()),
             Err(AlignError::NotPlanar(_))
         ));
         ramp.pitch_deg = 5.0;
         assert!(matches!(
-            zero_steering(&mut ramp, cal, verge, &SteeringOptions::default()),
+            zero_steering(&mut ramp, cal, verge, Some(&axes), &SteeringOptions::default()),
             Err(AlignError::NotPlanar(_))
         ));
     }
@@ -1360,11 +1552,12 @@ mod tests {
         };
         let (mut robot, vt) = calibrated_robot(s);
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
-        align_pan(&mut robot, cal, verge, &PanOptions::default()).unwrap();
-        let st = zero_steering(&mut robot, cal, verge, &SteeringOptions::default()).unwrap();
+        let axes = vt.axis_perturbations();
+        align_pan(&mut robot, cal, verge, Some(&axes), &PanOptions::default()).unwrap();
+        let st = zero_steering(&mut robot, cal, verge, Some(&axes), &SteeringOptions::default()).unwrap();
         let err = robot.steer_err_deg(robot.steering_encoder_deg());
         assert!(st.sigma_steer_zero_deg > 0.0 && err.abs() < 4.0 * st.sigma_steer_zero_deg, "{err} {st:?}");
-        let pan = align_pan(&mut robot, cal, verge, &PanOptions::default()).unwrap();
+        let pan = align_pan(&mut robot, cal, verge, Some(&axes), &PanOptions::default()).unwrap();
         let last = pan.steps.last().unwrap();
         let err = robot.pan_err_deg(&robot.head().encoders());
         assert!(last.sigma_calibration_deg > 0.0 && last.sigma_deg >= last.sigma_calibration_deg);

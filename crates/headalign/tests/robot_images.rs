@@ -31,6 +31,7 @@ fn pan_stage_on_rendered_images() {
     };
     let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
     let (cal, verge) = (&vt.calibration, &vt.verge_axes);
+    let axes = vt.axis_perturbations();
     let before = robot.pan_err_deg(&robot.head().encoders());
     let options = FrontEndOptions { mode: TrackingMode::Previous, ..FrontEndOptions::default() };
     let prior = |enc: &Encoders| stereo_fundamental(cal, verge, enc).ok();
@@ -38,7 +39,7 @@ fn pan_stage_on_rendered_images() {
     let outcome = {
         let mut head =
             TrackingHead::new(&mut robot, options.clone()).unwrap().with_stereo_prior(Box::new(prior));
-        let outcome = align_pan(&mut head, cal, verge, &PanOptions::default()).unwrap();
+        let outcome = align_pan(&mut head, cal, verge, Some(&axes), &PanOptions::default()).unwrap();
         // Every capture after a drive is linked to the one before it.
         for (i, t) in head.tracking.iter().enumerate().skip(1).step_by(2) {
             assert!(t.temporal_matches[0] > 100 && t.observations[0] > 100, "capture {i}: {t:?}");
@@ -65,6 +66,6 @@ fn pan_stage_on_rendered_images() {
     // A 2 mm drive moves the near panels by about a pixel: named, not a bogus pan.
     let mut head = TrackingHead::new(&mut robot, options).unwrap().with_stereo_prior(Box::new(prior));
     let short = PanOptions { drive_m: 0.002, iterations: 1, ..PanOptions::default() };
-    let err = align_pan(&mut head, cal, verge, &short).unwrap_err();
+    let err = align_pan(&mut head, cal, verge, None, &short).unwrap_err();
     assert!(matches!(err, AlignError::DriveTooShort { .. }), "{err}");
 }
