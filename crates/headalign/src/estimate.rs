@@ -179,7 +179,9 @@ pub struct EstimationOptions {
     /// right.cx 88.0 -> 93.0 %, left.cx 91.0 -> 95.0 % at 3 px, every 1.5 px entry 95-98 %,
     /// but the focal lengths at 3 px go over the bar (left.fx 90.5 -> 99.0 %, left.fy 93.0
     /// -> 98.5 %, sd(z) 0.77-0.81: the nearer end's focal sigma is larger and the maximum
-    /// over the ends over-covers); about +12 % CPU per trial at these levels.
+    /// over the ends over-covers); about +12 % CPU per trial at these levels. With `z: 1.0`
+    /// (same run, same seeds) every entry is 90.5-98.0 % (right.cx 3 px 90.5 %); not yet
+    /// the default (README).
     pub depth_profile: Option<DepthProfile>,
 }
 
