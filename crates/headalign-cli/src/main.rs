@@ -522,6 +522,14 @@ fn demo(args: &DemoArgs) -> Result<()> {
         report.final_rms_px,
         report.sigma_px
     );
+    if let Some(p) = &report.depth_profile {
+        say!(
+            "depth scale: mean distance {:.1} baselines (sigma {:.1} %), sigmas widened by up to x{:.3} over its 95 % interval",
+            p.log_depth.exp(),
+            100.0 * p.sigma_log_depth,
+            p.max_widening
+        );
+    }
     for d in &report.dropped_views {
         eprintln!(
             "warning: view '{}' was left out of the estimate (its capture is kept): {}",
