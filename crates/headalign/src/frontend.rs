@@ -167,7 +167,7 @@ impl Default for FrontEndOptions {
             prior_band_px: 4.0,
             drive: RansacOptions { threshold: 2.0, min_iterations: 500, ..RansacOptions::default() },
             refine: Some(PatchRefineOptions::default()),
-            refine_stereo: false,
+            refine_stereo: true,
             refine_neighbours: 12,
         }
     }
