@@ -257,7 +257,8 @@ pub fn refine_relative_pose(
         });
     }
     let t0 = start.translation.vector;
-    if !(t0.norm() > 0.0) {
+    let n0 = t0.norm();
+    if n0.is_nan() || n0 <= 0.0 {
         return Err(GeometryError::InvalidEstimate("pose translation is zero".into()));
     }
     type State = (nalgebra::UnitQuaternion<f64>, Vector3<f64>);
@@ -355,11 +356,12 @@ mod tests {
         );
         assert!(quasi_euclidean_frame(&Matrix3::identity(), &k0, &[]).is_err());
     }
-    /// Noise-free matches of random rigs: from a start pose perturbed by up to ~1.7 deg in
-    /// rotation and ~3 deg in translation direction, the refinement recovers the true pose
-    /// (1e-7 rad: the optimum is exact, LM stops on relative cost decrease near 1e-14).
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(32))]
+        /// Noise-free matches of random rigs: from a start pose perturbed by up to ~1.7 deg
+        /// in rotation and ~3 deg in translation direction, the refinement recovers the true
+        /// pose (1e-7 rad: the optimum is exact, LM stops on relative cost decrease near
+        /// 1e-14).
         #[test]
         fn refine_relative_pose_recovers_noise_free_rigs(
             rx in -0.1..0.1f64, ry in -0.3..0.3f64, rz in -0.1..0.1f64, ty in -0.1..0.1f64, tz in -0.1..0.1f64,
