@@ -594,7 +594,7 @@ mod tests {
             baseline_m: None,
             seed: 0,
             search_px: None,
-            patch_refinement: PatchRefinement::Temporal,
+            patch_refinement: PatchRefinement::Stereo,
             corners: None,
         }
     }
