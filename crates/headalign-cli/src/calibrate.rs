@@ -76,11 +76,11 @@ pub struct CalibrateArgs {
     /// rotations; a hand-held rig that moved a lot needs more, e.g. 40).
     #[arg(long)]
     pub search_px: Option<f64>,
-    /// Patch refinement of tracked corners: `temporal` (default: the front end aligns every
-    /// later observation of a track against the same camera's reference patch), `stereo`
-    /// (also each reference right corner against its left partner's patch) or `off` (the
-    /// detector's own sub-pixel corners).
-    #[arg(long, value_enum, default_value_t = PatchRefinement::Temporal)]
+    /// Patch refinement of tracked corners: `stereo` (default: the front end aligns every
+    /// later observation of a track against the same camera's reference patch, and each
+    /// new right corner against its left partner's patch), `temporal` (later observations
+    /// only) or `off` (the detector's own sub-pixel corners).
+    #[arg(long, value_enum, default_value_t = PatchRefinement::Stereo)]
     pub patch_refinement: PatchRefinement,
     /// Corners detected per image. Default: 1500, and when that calibration is weak (a
     /// focal sigma above 0.5 %, or one motion in a mostly planar scene) or fails, a
@@ -114,9 +114,9 @@ fn options(args: &CalibrateArgs) -> CalibrateOptions {
 /// `--patch-refinement`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum PatchRefinement {
-    /// Later observations against the same camera's reference patch (the default).
+    /// Later observations against the same camera's reference patch only.
     Temporal,
-    /// Also stereo partners against the left patch.
+    /// Also stereo partners against the left patch (the default).
     Stereo,
     /// The detector's own corners.
     Off,
@@ -126,7 +126,7 @@ fn front_end(args: &CalibrateArgs, corners: usize) -> FrontEndOptions {
     let mut f = FrontEndOptions::default();
     f.features.max_features = corners;
     match args.patch_refinement {
-        PatchRefinement::Temporal => {}
+        PatchRefinement::Temporal => f.refine_stereo = false,
         PatchRefinement::Stereo => f.refine_stereo = true,
         PatchRefinement::Off => f.refine = None,
     }
@@ -570,7 +570,7 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         baseline_m: None,
         seed: info.estimation_seed,
         search_px: None,
-        patch_refinement: PatchRefinement::Temporal,
+        patch_refinement: PatchRefinement::Stereo,
         corners: None,
     };
     Ok(calibrate_views(&load_views(dir)?, &args)?.json)
@@ -594,7 +594,7 @@ mod tests {
             baseline_m: None,
             seed: 0,
             search_px: None,
-            patch_refinement: PatchRefinement::Temporal,
+            patch_refinement: PatchRefinement::Stereo,
             corners: None,
         }
     }

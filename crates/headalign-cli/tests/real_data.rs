@@ -69,11 +69,13 @@ fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
 }
 
 /// The Middlebury motorcycle pair is rectified: true epipolar lines are image rows. Our F
-/// (766 feature matches, Sampson RMS 0.41 px) puts its epipolar lines within 1 px of the
-/// rows everywhere on a 20 x 15 grid of the image at disparities 20-80 px (measured: RMS
-/// 0.20 px, max 0.58 px). 1 px: twice the feature localisation RMS, since the grid reaches
-/// the image corners where F is extrapolated. With the known intrinsics the rig from E is
-/// R = I (measured 0.08 deg; bound 0.3 deg) and t along -x (measured 0.33 deg; bound 1 deg).
+/// (the rig refined on its 5 dof over 666 of 767 feature matches, Sampson RMS 0.22 px,
+/// with the default stereo patch refinement) puts its epipolar lines within 1 px of the
+/// rows everywhere on a 20 x 15 grid of the image at disparities 20-80 px (measured: max
+/// 0.31 px; 0.44 px with `--patch-refinement off`). 1 px: twice the feature localisation
+/// RMS, since the grid reaches the image corners where F is extrapolated. With the known
+/// intrinsics the rig is R = I (measured 0.03 deg; bound 0.3 deg) and t along -x
+/// (measured 0.23 deg, 0.39 deg with refinement off; bound 1 deg; docs/real-data.md).
 #[test]
 fn motorcycle_f_agrees_with_the_known_calibration() {
     let Some(data) = data_dir() else { return };
@@ -117,11 +119,13 @@ fn chessboard_self_calibration_names_the_degeneracy() {
 /// What the chessboard pairs do give: F from the feature matches of all 13 pairs (the rig
 /// is fixed, so together they are not planar), and the rig from E with known intrinsics.
 /// Checked against the board's own corners (found by OpenCV, exact correspondences):
-/// their epipolar distances under our F have RMS below 1 px (measured 0.55 px; under
-/// OpenCV's stereoCalibrate F 0.27 px, which was fitted to those very corners; our F comes
-/// from FAST corners with 0.7 px Sampson RMS in 640x480 JPEGs, so about twice that is what
-/// the features allow). The rig agrees with stereoCalibrate's: translation direction within
-/// 2 deg (measured 1.0 deg), relative rotation within 0.5 deg (measured 0.15 deg).
+/// their epipolar distances under our F have RMS below 1 px (measured 0.32 px with the
+/// default stereo patch refinement, 0.64 px with `--patch-refinement off`; under OpenCV's
+/// stereoCalibrate F 0.27 px, which was fitted to those very corners; our F comes from
+/// FAST corners with 0.4 px (0.7 px unrefined) Sampson RMS in 640x480 JPEGs, so up to
+/// about twice that is what the features allow). The rig agrees with stereoCalibrate's:
+/// translation direction within 2 deg (measured 0.15 deg; 0.67 deg unrefined), relative
+/// rotation within 0.5 deg (measured 0.19 deg; 0.15 deg unrefined).
 #[test]
 fn chessboard_with_known_intrinsics_agrees_with_the_board() {
     let Some(data) = data_dir() else { return };

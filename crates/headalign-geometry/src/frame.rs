@@ -213,6 +213,103 @@ pub fn relative_pose(
     Ok(nalgebra::Isometry3::from_parts(t.into(), nalgebra::UnitQuaternion::from_rotation_matrix(&r)))
 }
 
+/// The fundamental matrix (pixels, `x_R^T F x_L = 0`) of two calibrated cameras related by
+/// `right_from_left`: `K_R^-T [t]x R K_L^-1`.
+pub fn fundamental_of_pose(
+    right_from_left: &nalgebra::Isometry3<f64>,
+    k_left: &Intrinsics,
+    k_right: &Intrinsics,
+) -> Matrix3<f64> {
+    let e = skew(&right_from_left.translation.vector)
+        * right_from_left.rotation.to_rotation_matrix().into_inner();
+    k_right.inverse_matrix().transpose() * e * k_left.inverse_matrix()
+}
+
+/// Signed Sampson distance (pixels) of one match under `f`; `None` where it is undefined.
+fn signed_sampson(f: &Matrix3<f64>, l: &Point2<f64>, r: &Point2<f64>) -> Option<f64> {
+    let (xl, xr) = (Vector3::new(l.x, l.y, 1.0), Vector3::new(r.x, r.y, 1.0));
+    let (fx, ftx) = (f * xl, f.transpose() * xr);
+    let den = fx.x * fx.x + fx.y * fx.y + ftx.x * ftx.x + ftx.y * ftx.y;
+    (den > 0.0).then(|| xr.dot(&fx) / den.sqrt())
+}
+
+/// Refine a calibrated relative pose (unit translation) on its 5 degrees of freedom
+/// (rotation, translation direction) by Levenberg-Marquardt on the sum of squared Sampson
+/// distances (pixels) of `matches` (left, right) under [`fundamental_of_pose`] (the
+/// first-order ML estimate for isotropic pixel noise, H&Z section 11.4.3, with the
+/// intrinsics held fixed). Unlike decomposing a fitted 7-dof `F` ([`relative_pose`]), the
+/// two surplus degrees of freedom cannot absorb noise that then leaks into the pose when
+/// `F` is projected onto the essential manifold. Returns the refined pose and its RMS
+/// Sampson distance (px); never a pose worse than `start`. The Jacobian is by central
+/// differences (5 parameters: cheap, and tested against the noise-free optimum).
+pub fn refine_relative_pose(
+    start: &nalgebra::Isometry3<f64>,
+    k_left: &Intrinsics,
+    k_right: &Intrinsics,
+    matches: &[(Point2<f64>, Point2<f64>)],
+    max_iterations: usize,
+) -> Result<(nalgebra::Isometry3<f64>, f64)> {
+    if matches.len() < 5 {
+        return Err(GeometryError::NotEnoughData {
+            what: "matches to refine a pose",
+            needed: 5,
+            got: matches.len(),
+        });
+    }
+    let t0 = start.translation.vector;
+    let n0 = t0.norm();
+    if n0.is_nan() || n0 <= 0.0 {
+        return Err(GeometryError::InvalidEstimate("pose translation is zero".into()));
+    }
+    type State = (nalgebra::UnitQuaternion<f64>, Vector3<f64>);
+    let pose = |s: &State| nalgebra::Isometry3::from_parts(s.1.into(), s.0);
+    let residuals = |s: &State| -> Option<Vec<f64>> {
+        let f = fundamental_of_pose(&pose(s), k_left, k_right);
+        matches.iter().map(|(l, r)| signed_sampson(&f, l, r)).collect()
+    };
+    let cost = |s: &State| residuals(s).map_or(f64::INFINITY, |r| r.iter().map(|x| x * x).sum());
+    // Retraction: rotation increment on the left, translation along two directions
+    // orthogonal to it, renormalised.
+    let retract = |s: &State, d: &SVector<f64, 5>| -> Option<State> {
+        let t = s.1.normalize();
+        let a = if t.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
+        let b1 = t.cross(&a).normalize();
+        let b2 = t.cross(&b1);
+        let rot = nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(d[0], d[1], d[2])) * s.0;
+        let tn = (t + b1 * d[3] + b2 * d[4]).try_normalize(1e-300)?;
+        Some((rot, tn))
+    };
+    let normal = |s: &State| -> Option<(SMatrix<f64, 5, 5>, SVector<f64, 5>)> {
+        let r = residuals(s)?;
+        const H: f64 = 1e-6;
+        let mut jac = vec![[0.0; 5]; r.len()];
+        for k in 0..5 {
+            let mut d = SVector::<f64, 5>::zeros();
+            d[k] = H;
+            let plus = residuals(&retract(s, &d)?)?;
+            d[k] = -H;
+            let minus = residuals(&retract(s, &d)?)?;
+            for (row, (p, m)) in jac.iter_mut().zip(plus.iter().zip(&minus)) {
+                row[k] = (p - m) / (2.0 * H);
+            }
+        }
+        let (mut jtj, mut jtr) = (SMatrix::<f64, 5, 5>::zeros(), SVector::<f64, 5>::zeros());
+        for (row, ri) in jac.iter().zip(&r) {
+            let j = SVector::<f64, 5>::from_column_slice(row);
+            jtj += j * j.transpose();
+            jtr += j * *ri;
+        }
+        Some((jtj, jtr))
+    };
+    let s0: State = (start.rotation, t0.normalize());
+    let c0 = cost(&s0);
+    if !c0.is_finite() {
+        return Err(GeometryError::InvalidEstimate("Sampson distance undefined at the start pose".into()));
+    }
+    let (s, c) = crate::lm::minimise(s0, c0, max_iterations, normal, retract, cost);
+    Ok((pose(&s), (c / matches.len() as f64).sqrt()))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -258,5 +355,44 @@ mod tests {
             quasi_euclidean_frame(&Matrix3::zeros(), &k0, &[(Point2::origin(), Point2::origin())]).is_err()
         );
         assert!(quasi_euclidean_frame(&Matrix3::identity(), &k0, &[]).is_err());
+    }
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(32))]
+        /// Noise-free matches of random rigs: from a start pose perturbed by up to ~1.7 deg
+        /// in rotation and ~3 deg in translation direction, the refinement recovers the true
+        /// pose (1e-7 rad: the optimum is exact, LM stops on relative cost decrease near
+        /// 1e-14).
+        #[test]
+        fn refine_relative_pose_recovers_noise_free_rigs(
+            rx in -0.1..0.1f64, ry in -0.3..0.3f64, rz in -0.1..0.1f64, ty in -0.1..0.1f64, tz in -0.1..0.1f64,
+            px in -0.03..0.03f64, pt in -0.05..0.05f64,
+        ) {
+            let kl = Intrinsics::rough_guess(768, 576);
+            let kr = Intrinsics { fx: kl.fx * 1.02, cx: kl.cx + 20.0, ..kl };
+            let rot = UnitQuaternion::from_euler_angles(rx, ry, rz);
+            let t = Vector3::new(-1.0, ty, tz).normalize();
+            let truth = Isometry3::from_parts(Translation3::from(t), rot);
+            let pts: Vec<_> = (0..40).map(|i| {
+                let p = Point3::new(-1.5 + 0.075 * i as f64, 0.8 - 0.04 * ((i * 7) % 40) as f64, 3.0 + 0.25 * ((i * 13) % 40) as f64);
+                (kl.project(&p).unwrap(), kr.project(&(truth * p)).unwrap())
+            }).collect();
+            let start = Isometry3::from_parts(
+                Translation3::from((t + Vector3::new(0.0, pt, -pt)).normalize()),
+                UnitQuaternion::from_euler_angles(px, -px, px) * rot,
+            );
+            let (got, rms) = refine_relative_pose(&start, &kl, &kr, &pts, 100).unwrap();
+            prop_assert!(rms < 1e-6, "rms {rms}");
+            prop_assert!(got.rotation.angle_to(&rot) < 1e-7);
+            prop_assert!((got.translation.vector - t).norm() < 1e-7);
+        }
+    }
+
+    #[test]
+    fn refine_relative_pose_errors_on_bad_input() {
+        let k = Intrinsics::rough_guess(768, 576);
+        let one = (Point2::new(1.0, 2.0), Point2::new(3.0, 4.0));
+        assert!(refine_relative_pose(&Isometry3::identity(), &k, &k, &[one; 10], 10).is_err());
+        let pose = Isometry3::from_parts(Translation3::new(-1.0, 0.0, 0.0), UnitQuaternion::identity());
+        assert!(refine_relative_pose(&pose, &k, &k, &[one; 4], 10).is_err());
     }
 }

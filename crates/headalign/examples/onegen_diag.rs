@@ -1,7 +1,8 @@
 //! Experiment: why `calibrate` on a rendered session is off, against the simulator's truth.
 //! `cargo run --release -p headalign --example onegen_diag -- SEED [procedural] [rotations] [lens K1 K2] [CORNERS...]`
-//! (`REFINE=off|stereo` in the environment: the front end without patch refinement or
-//! with stereo partners refined too; `COV=clustered` in the environment: the track-clustered covariance instead of the
+//! (`REFINE=off|temporal|stereo` in the environment: the front end without patch
+//! refinement, with later observations refined only, or with stereo partners too (the
+//! default); `COV=clustered` in the environment: the track-clustered covariance instead of the
 //! Gaussian one; `RESELECT=G`: the re-selection gate in robust sigmas, default 3.5.)
 //!
 //! Per corner count (default 1500 and 3000): the session `headalign simulate --images`

@@ -18,8 +18,9 @@
 //!   temporal tracking error; right: the stereo error);
 //! - the estimate's `sigma_inflation` under the clustered covariance.
 //!
-//! `REFINE=off|stereo` in the environment: the front end without patch refinement, or
-//! with stereo partners refined too (`common::front_end_options`); unset: the default.
+//! `REFINE=off|temporal|stereo` in the environment: the front end without patch
+//! refinement, with later observations refined only, or with stereo partners too
+//! (`common::front_end_options`); unset: the default (`stereo`).
 use std::collections::BTreeMap;
 
 mod common;

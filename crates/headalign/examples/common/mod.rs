@@ -69,12 +69,13 @@ pub fn true_cameras(
 }
 
 /// The front end's default options, with patch refinement as the environment's `REFINE`
-/// says: `off` (the detector's corners), `stereo` (stereo partners too), anything else or
-/// unset the default (later views only): before/after in one build.
+/// says: `off` (the detector's corners), `temporal` (later views only), `stereo` (stereo
+/// partners too), anything else or unset the default (`stereo`): before/after in one build.
 pub fn front_end_options() -> FrontEndOptions {
     let mut f = FrontEndOptions::default();
     match std::env::var("REFINE").as_deref() {
         Ok("off") => f.refine = None,
+        Ok("temporal") => f.refine_stereo = false,
         Ok("stereo") => f.refine_stereo = true,
         _ => {}
     }
