@@ -1228,6 +1228,28 @@ mod tests {
         (robot, vt)
     }
 
+    /// A robot-scene simulated robot at `noise` px and its verge/tilt calibration as the
+    /// experiments run it (noise-scaled estimation options, 3 deg vergence rotations).
+    fn experiment_robot(
+        seed: u64,
+        noise: f64,
+    ) -> (SimulatedRobot, crate::procedure::VergeTiltOutcome, Scenario) {
+        let s = Scenario {
+            seed,
+            noise_px: noise,
+            near_panels: Scenario::ROBOT_NEAR_PANELS,
+            ..Scenario::default()
+        };
+        let opts = VergeTiltOptions {
+            verge_rotation_deg: 3.0,
+            estimation: EstimationOptions::scaled_for_noise(noise, seed),
+            ..VergeTiltOptions::default()
+        };
+        let mut robot = SimulatedRobot::new(s.clone()).unwrap();
+        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        (robot, vt, s)
+    }
+
     /// Noise-free end to end: steering zero then pan, both exact to 1e-9 deg (rounding
     /// through triangulation, two least-squares fits and the epipole; before the
     /// maximum-likelihood passes a wrong track inside the RANSAC threshold left 0.006
@@ -1308,19 +1330,7 @@ mod tests {
         use crate::procedure::AxisMeasurement;
         use rand::{RngExt, SeedableRng};
         let noise = 3.0;
-        let s = Scenario {
-            seed: 2,
-            noise_px: noise,
-            near_panels: Scenario::ROBOT_NEAR_PANELS,
-            ..Scenario::default()
-        };
-        let mut robot = SimulatedRobot::new(s.clone()).unwrap();
-        let opts = VergeTiltOptions {
-            verge_rotation_deg: 3.0,
-            estimation: EstimationOptions::scaled_for_noise(noise, s.seed),
-            ..VergeTiltOptions::default()
-        };
-        let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+        let (robot, vt, _) = experiment_robot(2, noise);
         let cal = &vt.calibration;
         let r0 = cal.reference_encoders;
         let enc = vt.final_encoders;
@@ -1368,19 +1378,7 @@ mod tests {
     fn seed_170_far_drive_chi_square_falls_with_the_axes_uncertainty() {
         let first_steer_chi2 = |with_axes: bool| {
             let noise = 3.0;
-            let s = Scenario {
-                seed: 170,
-                noise_px: noise,
-                near_panels: Scenario::ROBOT_NEAR_PANELS,
-                ..Scenario::default()
-            };
-            let mut robot = SimulatedRobot::new(s.clone()).unwrap();
-            let opts = VergeTiltOptions {
-                verge_rotation_deg: 3.0,
-                estimation: EstimationOptions::scaled_for_noise(noise, s.seed),
-                ..VergeTiltOptions::default()
-            };
-            let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
+            let (mut robot, vt, s) = experiment_robot(170, noise);
             let perturbations = vt.axis_perturbations();
             let axes = with_axes.then_some(&perturbations);
             let mut pan =
