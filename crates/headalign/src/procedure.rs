@@ -676,6 +676,22 @@ fn resection_inliers(
         .collect()
 }
 
+/// The pose-only noise estimate from a resection's inliers (pixels): the residuals' RMS at
+/// `ref_from_cam` with 6 degrees of freedom taken out. Needs at least 4 inliers.
+fn residual_sigma(
+    k: &headalign_geometry::camera::Intrinsics,
+    points: &std::collections::HashMap<u64, nalgebra::Point3<f64>>,
+    inliers: &[(u64, nalgebra::Vector2<f64>)],
+    ref_from_cam: &nalgebra::Isometry3<f64>,
+) -> f64 {
+    let dof = (2 * inliers.len() - 6) as f64;
+    let sum: f64 = inliers
+        .iter()
+        .filter_map(|(t, px)| project_into(k, ref_from_cam, points.get(t)?).map(|p| (p - px).norm_squared()))
+        .sum();
+    (sum / dof).sqrt()
+}
+
 /// Pixel of `x` (reference frame) in the camera at `ref_from_cam`.
 fn project_into(
     k: &headalign_geometry::camera::Intrinsics,
@@ -731,16 +747,7 @@ pub fn resection_pose_covariance(
     if inliers.len() < 4 {
         return None;
     }
-    let dof = (2 * inliers.len() - 6) as f64;
-    let sigma = noise_px.unwrap_or_else(|| {
-        let sum: f64 = inliers
-            .iter()
-            .filter_map(|(t, px)| {
-                project_into(k, ref_from_cam, points.get(t)?).map(|p| (p - px).norm_squared())
-            })
-            .sum();
-        (sum / dof).sqrt()
-    });
+    let sigma = noise_px.unwrap_or_else(|| residual_sigma(k, points, &inliers, ref_from_cam));
     let (jtj, _) = resection_normal_equations(k, points, &inliers, ref_from_cam)?;
     jtj.try_inverse().map(|inv| inv * (sigma * sigma))
 }
@@ -774,19 +781,7 @@ pub fn resection_pose_covariance_bootstrap(
     if inliers.len() < 6 {
         return None;
     }
-    let sigma = match noise_px {
-        Some(s) => s,
-        None => {
-            let dof = (2 * inliers.len() - 6) as f64;
-            let sum: f64 = inliers
-                .iter()
-                .filter_map(|(t, px)| {
-                    project_into(k, ref_from_cam, points.get(t)?).map(|p| (p - px).norm_squared())
-                })
-                .sum();
-            (sum / dof).sqrt()
-        }
-    };
+    let sigma = noise_px.unwrap_or_else(|| residual_sigma(k, points, &inliers, ref_from_cam));
     // Every observed point, as the resection sees them (its inliers at 3 px are only about
     // 75 % of the true matches: a draw from the inliers alone would re-select a subset of
     // a subset and spread 12 % wider).
