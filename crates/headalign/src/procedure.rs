@@ -903,6 +903,26 @@ struct AxisFollow<'a> {
 }
 
 impl<'a> AxisFollow<'a> {
+    /// Side `side`'s resection (0: the left camera of the left axis' source, 1: the right
+    /// camera of the right one): its observations, its intrinsics in the calibration and
+    /// its resected pose; `None` for an axis without a source or without a pose.
+    fn resected(
+        &self,
+        side: usize,
+    ) -> Option<(
+        &'a [headalign_platform::TrackObservation],
+        &'a headalign_geometry::camera::Intrinsics,
+        nalgebra::Isometry3<f64>,
+    )> {
+        let state = &self.calib.bundle.state;
+        let (obs, k) = if side == 0 {
+            (self.sources.left.as_ref().map(|s| s.capture.left.as_slice()), &state.left)
+        } else {
+            (self.sources.right.as_ref().map(|s| s.capture.right.as_slice()), &state.right)
+        };
+        Some((obs?, k, self.poses.get(side).copied().flatten()?))
+    }
+
     fn new(
         calib: &'a RigCalibration,
         verge: &'a VergeAxes,
@@ -1066,12 +1086,7 @@ pub fn axis_perturbations(
     let points: std::collections::HashMap<u64, nalgebra::Point3<f64>> = calib.points().into_iter().collect();
     let mut pose = Vec::new();
     for side in 0..2 {
-        let (src, k, pose0) = if side == 0 {
-            (sources.left.as_ref().map(|s| &s.capture.left), &state.left, follow.poses[0])
-        } else {
-            (sources.right.as_ref().map(|s| &s.capture.right), &state.right, follow.poses[1])
-        };
-        let (Some(obs), Some(pose0)) = (src, pose0) else { continue };
+        let Some((obs, k, pose0)) = follow.resected(side) else { continue };
         let seed = AXIS_BOOTSTRAP_SEED + side as u64;
         let Some(pcov) = resection_pose_covariance_bootstrap(k, &points, obs, &pose0, noise_px, seed) else {
             continue;
@@ -1136,12 +1151,7 @@ pub fn alignment_sigmas_measured(
     let state = &calib.bundle.state;
     let points: std::collections::HashMap<u64, nalgebra::Point3<f64>> = calib.points().into_iter().collect();
     for side in 0..2 {
-        let (src, k, pose0) = if side == 0 {
-            (sources.left.as_ref().map(|s| &s.capture.left), &state.left, follow.poses[0])
-        } else {
-            (sources.right.as_ref().map(|s| &s.capture.right), &state.right, follow.poses[1])
-        };
-        let (Some(obs), Some(pose0)) = (src, pose0) else { continue };
+        let Some((obs, k, pose0)) = follow.resected(side) else { continue };
         let Some(pcov) = resection_pose_covariance(k, &points, obs, &pose0, noise_px) else { continue };
         let mut jp = nalgebra::Matrix3x6::<f64>::zeros();
         for c in 0..6 {
