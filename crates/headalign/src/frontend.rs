@@ -390,8 +390,7 @@ fn refine_against(
         grid.entry(cell(s)).or_default().push(m);
     }
     let mut dist: Vec<(f64, usize)> = Vec::new();
-    let mut moved = Vec::with_capacity(pts.len());
-    let ok = pts
+    let moved: Vec<Option<[f64; 2]>> = pts
         .iter()
         .map(|(s, d)| {
             let (cx, cy) = cell(s);
@@ -414,17 +413,9 @@ fn refine_against(
             }
             let near: Vec<usize> = dist[..k].iter().map(|e| e.1).collect();
             let a = affine_of(&pts, &near).unwrap_or(global);
-            match refine_point_against_patch(earlier_image, [s.x, s.y], current_image, [d.x, d.y], a, options)
-            {
-                Ok(r) => {
-                    moved.push(Some(r.point));
-                    true
-                }
-                Err(_) => {
-                    moved.push(None);
-                    false
-                }
-            }
+            refine_point_against_patch(earlier_image, [s.x, s.y], current_image, [d.x, d.y], a, options)
+                .ok()
+                .map(|r| r.point)
         })
         .collect();
     for (&(_, j), m) in pairs.iter().zip(&moved) {
@@ -433,7 +424,7 @@ fn refine_against(
             current.keypoints[j].y = p[1] as f32;
         }
     }
-    ok
+    moved.iter().map(Option::is_some).collect()
 }
 
 impl Tracker {
