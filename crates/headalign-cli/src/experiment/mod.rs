@@ -79,11 +79,12 @@ pub struct ExperimentArgs {
     /// over the remaining conditions.
     #[arg(long, value_delimiter = ',')]
     pub only: Vec<f64>,
-    /// Scene preset of every condition: `default` (the "yorick" room, points 1.5-6 m) or
-    /// `paper` (`Scenario::paper_lab`: points 0.6-1.5 m, the paper's ~1 m lab scene).
-    /// Outputs of a non-default scene are named `<experiment>-<scene>`. `all` always runs
-    /// the default scene, then the bars' conditions (calibration at 3 px, points at 50)
-    /// in the paper scene too.
+    /// Scene preset of every condition: `default` (the "yorick" room, points 1.5-6 m),
+    /// `paper` (`Scenario::paper_lab`: points 0.6-1.5 m, the paper's ~1 m lab scene) or
+    /// `robot` (`Scenario::robot_room`: the default room with the robot stages' 6 panels
+    /// about 1 m ahead). Outputs of a non-default scene are named `<experiment>-<scene>`.
+    /// `all` always runs the default scene, then the bars' conditions (calibration at
+    /// 3 px, points at 50) in the paper and robot scenes too.
     #[arg(long, default_value = "default")]
     pub scene: String,
 }
@@ -812,16 +813,23 @@ fn nan_null(v: f64) -> serde_json::Value {
     if v.is_finite() { json!(v) } else { serde_json::Value::Null }
 }
 
-/// (experiment, swept value) that `all` also runs in the paper-like scene
-/// (`Scenario::paper_lab`): the focal length bar at 3 px and the 50-point bars.
-const PAPER_SCENE_BARS: [(&str, f64); 2] = [("calibration", 3.0), ("points", 50.0)];
+/// (scene, experiment, swept value) that `all` also runs outside the default scene: the
+/// focal length bar at 3 px and the 50-point bars, in the paper-like scene
+/// (`Scenario::paper_lab`) and the robot's (`Scenario::robot_room`). The paper does not
+/// give its scene, and the bounds of these bars depend on the points' depth spread.
+const OTHER_SCENE_BARS: [(&str, &str, f64); 4] = [
+    ("paper", "calibration", 3.0),
+    ("paper", "points", 50.0),
+    ("robot", "calibration", 3.0),
+    ("robot", "points", 50.0),
+];
 
 /// Entry point of `headalign experiment`.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
     let scene = scene_name(&args.scene)?;
     if args.name == "all" && scene != "default" {
         bail!(
-            "`experiment all` runs the default scene and the bars in the paper-like scene itself; --scene is for single experiments"
+            "`experiment all` runs the default scene and the bars in the paper-like and robot scenes itself; --scene is for single experiments"
         );
     }
     let names: Vec<&str> = if args.name == "all" {
@@ -836,11 +844,11 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         produced.push(run_one(n, args, &sel)?);
     }
     if args.name == "all" {
-        // The bars' conditions again in the paper-like scene, with as many seeds per
+        // The bars' conditions again in the other scenes, with as many seeds per
         // condition as the default run used.
-        for (n, x) in PAPER_SCENE_BARS {
+        for (scene, n, x) in OTHER_SCENE_BARS {
             let seeds = produced.iter().find(|p| p.name == n).map(|p| p.sums.iter().map(|c| c.total).max());
-            let sel = Selection { scene: "paper", only: &[x], seeds: seeds.flatten() };
+            let sel = Selection { scene, only: &[x], seeds: seeds.flatten() };
             produced.push(run_one(n, args, &sel)?);
         }
     }
@@ -874,7 +882,7 @@ mod report;
 mod tests {
     use super::*;
 
-    /// `results.md` rows of the bars in both scenes: the 50-point rows of the fixed and
+    /// `results.md` rows of the bars in the three scenes: the 50-point rows of the fixed and
     /// the auto group, each with its bound, and the scene named (one seed, 50 points).
     #[test]
     fn bar_rows_name_their_scene_and_bound() {
@@ -888,12 +896,16 @@ mod tests {
             scene: "default".into(),
         };
         let mut ps = Vec::new();
-        for scene in ["default", "paper"] {
+        for scene in ["default", "paper", "robot"] {
             let sel = Selection { scene, only: &[50.0], seeds: Some(1) };
             ps.push(run_one("points", &args, &sel).unwrap());
         }
         let md = report::results_md(&ps, &args.out);
-        for words in ["default scene (points 1.5-6 m)", "paper-like scene (`--scene paper`"] {
+        for words in [
+            "default scene (points 1.5-6 m)",
+            "paper-like scene (`--scene paper`",
+            "robot scene (`--scene robot`",
+        ] {
             for rot in ["3 deg rotations", "rotations chosen by the procedure"] {
                 let row = md
                     .lines()
