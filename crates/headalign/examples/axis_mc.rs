@@ -9,11 +9,10 @@
 //! mean offset from the estimate (a bias of the axes under noise).
 //! `NOISE=3 DRAWS=200 cargo run --release -p headalign --example axis_mc -- FIRST LAST`
 use headalign::alignment::{VergeAxes, measure_cameras, verge_axes_from_motion};
-use headalign::estimate::EstimationOptions;
-use headalign::procedure::{
-    AxisMeasurement, AxisPerturbations, VergeTiltOptions, VergeTiltRun, axis_perturbations,
-};
-use headalign_sim::{Scenario, SimulatedRobot};
+use headalign::procedure::{AxisMeasurement, AxisPerturbations, VergeTiltRun, axis_perturbations};
+use headalign_sim::SimulatedRobot;
+
+mod common;
 use nalgebra::{Matrix3, Vector3};
 use rand::{RngExt, SeedableRng};
 
@@ -24,19 +23,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let noise: f64 = std::env::var("NOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(3.0);
     let draws: usize = std::env::var("DRAWS").ok().and_then(|v| v.parse().ok()).unwrap_or(200);
     for seed in first..=last {
-        let s = Scenario {
-            seed,
-            noise_px: noise,
-            near_panels: Scenario::ROBOT_NEAR_PANELS,
-            ..Scenario::default()
-        };
+        let s = common::robot_scenario(seed, noise);
         let mut robot = SimulatedRobot::new(s.clone())?;
-        let opts = VergeTiltOptions {
-            rotation_deg: s.rotation_deg,
-            verge_rotation_deg: 3.0,
-            estimation: EstimationOptions::scaled_for_noise(noise, seed),
-            ..VergeTiltOptions::default()
-        };
+        let opts = common::trial_options(&s, seed);
         let Ok(vt) = VergeTiltRun::default().run(robot.head_mut(), &opts) else { continue };
         let cal = &vt.calibration;
         let r0 = cal.reference_encoders;

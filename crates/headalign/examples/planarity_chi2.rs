@@ -26,10 +26,11 @@
 //! (seeds 1-60): the remaining excess at 3 px is the drive motions' own covariance. Seed
 //! 170's first steering drive (far points only, rig at the readings 0.47 deg off): 42.7
 //! held, 30.0 propagated.
-use headalign::estimate::EstimationOptions;
-use headalign::procedure::{VergeTiltOptions, VergeTiltRun, axis_perturbations};
+use headalign::procedure::{VergeTiltRun, axis_perturbations};
 use headalign::robot::{PanOptions, SteeringOptions, align_pan, zero_steering};
 use headalign_sim::{Scenario, SimulatedRobot};
+
+mod common;
 
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args: Vec<String> = std::env::args().collect();
@@ -39,19 +40,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let limit: f64 = std::env::var("LIMIT").ok().and_then(|v| v.parse().ok()).unwrap_or(f64::INFINITY);
     let k = noise.max(1.0);
     for seed in first..=last {
-        let s = Scenario {
-            seed,
-            noise_px: noise,
-            near_panels: Scenario::ROBOT_NEAR_PANELS,
-            ..Scenario::default()
-        };
+        let s = common::robot_scenario(seed, noise);
         let mut robot = SimulatedRobot::new(s.clone())?;
-        let opts = VergeTiltOptions {
-            rotation_deg: s.rotation_deg,
-            verge_rotation_deg: 3.0,
-            estimation: EstimationOptions::scaled_for_noise(noise, seed),
-            ..VergeTiltOptions::default()
-        };
+        let opts = common::trial_options(&s, seed);
         // EXACT_CAL=1: the calibration from a noise-free twin of the head (the robot then
         // starts at the twin's final readings): the drives' own covariance alone.
         let vt = if std::env::var("EXACT_CAL").is_ok() {

@@ -104,21 +104,7 @@ fn main() {
         Err(e) => println!("from truth failed: {e}"),
     }
     for (tag, which) in [("truth K", 0), ("truth rig", 1), ("truth mot", 2), ("truth pts", 3), ("K+rig", 4)] {
-        let mut m = st.clone();
-        match which {
-            0 => {
-                m.left = cs.left;
-                m.right = cs.right;
-            }
-            1 => m.right_from_left = cs.right_from_left,
-            2 => m.motions = cs.motions.clone(),
-            3 => m.points = start.points.clone(),
-            _ => {
-                m.left = cs.left;
-                m.right = cs.right;
-                m.right_from_left = cs.right_from_left;
-            }
-        }
+        let m = common::with_true_part(st, cs, &start.points, which);
         match bundle_adjust(&m, &c.observations, &o) {
             Ok(r) => show(tag, &r.state, r.report.final_rms_px, r.report.observations),
             Err(e) => println!("{tag} failed: {e}"),

@@ -178,17 +178,7 @@ fn main() {
         let s_truth = sig(&truth);
         let mut variants = Vec::new();
         for which in 0..4 {
-            let mut m = st.clone();
-            match which {
-                0 => {
-                    m.left = cs.left;
-                    m.right = cs.right;
-                }
-                1 => m.right_from_left = cs.right_from_left,
-                2 => m.motions = cs.motions.clone(),
-                _ => m.points = pts.clone(),
-            }
-            variants.push(sig(&m) / s_truth);
+            variants.push(sig(&common::with_true_part(st, cs, &pts, which)) / s_truth);
         }
         let value = |s: &RigState| match q.as_str() {
             "right.cx" => s.right.cx,

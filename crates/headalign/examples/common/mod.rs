@@ -15,10 +15,11 @@ use headalign::frontend::{FrontEndOptions, TrackingHead};
 use headalign::imaging::{VergingOptions, verge_to_common_view};
 use headalign::observations::View;
 use headalign::procedure::{VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan};
+use headalign_geometry::bundle::RigState;
 use headalign_geometry::camera::ProjectiveCamera;
 use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::{DMatrix, Point2, Vector4};
+use nalgebra::{DMatrix, Point2, Point3, Vector4};
 
 /// The trial with estimation seed `estimation_seed`; `None` if the simulator or the
 /// procedure fails.
@@ -29,14 +30,52 @@ pub fn verge_tilt_trial(
 ) -> Option<(SimulatedHead, VergeTiltOutcome)> {
     let mut head = SimulatedHead::new(s.clone()).ok()?;
     head.move_to(initial).ok()?;
-    let opts = VergeTiltOptions {
+    let out = VergeTiltRun::default().run(&mut head, &trial_options(s, estimation_seed)).ok()?;
+    Some((head, out))
+}
+
+/// The verge/tilt options of a trial in `s`: the scenario's fixed rotation, a 3 deg
+/// vergence move, thresholds scaled by its noise, estimation seed `estimation_seed`.
+pub fn trial_options(s: &Scenario, estimation_seed: u64) -> VergeTiltOptions {
+    VergeTiltOptions {
         rotation_deg: s.rotation_deg,
         verge_rotation_deg: 3.0,
         estimation: EstimationOptions::scaled_for_noise(s.noise_px, estimation_seed),
         ..VergeTiltOptions::default()
-    };
-    let out = VergeTiltRun::default().run(&mut head, &opts).ok()?;
-    Some((head, out))
+    }
+}
+
+/// The robot's scene (default room with [`Scenario::ROBOT_NEAR_PANELS`]) at `seed` and
+/// `noise_px` (`axis_mc`, `planarity_chi2`).
+pub fn robot_scenario(seed: u64, noise_px: f64) -> Scenario {
+    Scenario { seed, noise_px, ..Scenario::robot_room() }
+}
+
+/// `estimate` with some of its parts taken from `truth` (`sigma_diag`, `ratio_diag`: which
+/// part moves a sigma or a cost): 0 both cameras' intrinsics, 1 the stereo rig, 2 the view
+/// motions, 3 the points (`true_points`), anything else intrinsics and rig.
+pub fn with_true_part(
+    estimate: &RigState,
+    truth: &RigState,
+    true_points: &[Point3<f64>],
+    which: usize,
+) -> RigState {
+    let mut m = estimate.clone();
+    match which {
+        0 => {
+            m.left = truth.left;
+            m.right = truth.right;
+        }
+        1 => m.right_from_left = truth.right_from_left,
+        2 => m.motions = truth.motions.clone(),
+        3 => m.points = true_points.to_vec(),
+        _ => {
+            m.left = truth.left;
+            m.right = truth.right;
+            m.right_from_left = truth.right_from_left;
+        }
+    }
+    m
 }
 
 /// Every observation of `views` grouped by track id: `(view index, side (0 left, 1 right),
