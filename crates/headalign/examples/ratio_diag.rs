@@ -159,7 +159,8 @@ fn main() {
     let noise = c.bundle.report.sigma_px;
     let cost = |r: &BundleResult| {
         let mut k = r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise);
-        if let (Some(s), Motions::Joints { angles, commanded, .. }) = (o.angle_prior_sigma, &r.state.motions) {
+        if let (Some(s), Motions::Joints { angles, commanded, .. }) = (o.angle_prior_sigma, &r.state.motions)
+        {
             for (a, c) in angles.iter().zip(commanded).skip(1) {
                 k += a.iter().zip(c).map(|(x, y)| ((x - y) / s).powi(2)).sum::<f64>();
             }
@@ -178,14 +179,17 @@ fn main() {
             );
         }
         for k in [-3.0, -2.0, -1.0, 1.0, 2.0, 3.0] {
-            let Ok(held) = bundle_adjust_at_depth_scale(st, &c.observations, &o, s + k * sig, 1e-3 * sig / noise)
+            let Ok(held) =
+                bundle_adjust_at_depth_scale(st, &c.observations, &o, s + k * sig, 1e-3 * sig / noise)
             else {
                 println!("   sweep {k:+}: held adjustment failed");
                 continue;
             };
             match bundle_adjust(&held.state, &c.observations, &o) {
                 Ok(r) => {
-                    let fs = log_depth_scale(&r.state, &c.observations, &o, noise).map(|x| x.0).unwrap_or(f64::NAN);
+                    let fs = log_depth_scale(&r.state, &c.observations, &o, noise)
+                        .map(|x| x.0)
+                        .unwrap_or(f64::NAN);
                     show(&format!("sw{k:+}"), &r.state, r.report.final_rms_px, r.report.observations);
                     println!(
                         "      held cost {:+.2}, freed cost {:+.2}, s {fs:.4}, {} iterations",
