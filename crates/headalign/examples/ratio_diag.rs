@@ -5,13 +5,19 @@
 //! part decides the basin), with the rig's rotation and baseline direction against the
 //! truth's (seed 39 at position 2: the rig decides; its baseline's x component was
 //! reversed, see `estimate::reversed_rig_restart`).
+//! Last, the depth-scale sweep (`docs/ratio-tail.md`): the least squares re-run from the
+//! estimate held at depth scale `s_hat + k sigma_s` (k = -3..3) and then freed, with each
+//! end's cost against the estimate's (chi-square units, prior included): does a start
+//! along the badly determined direction reach the lower minimum the truth reaches?
 //! `cargo run --release -p headalign --example ratio_diag -- SEED NOISE POSITION`
 //! (POSITION 0, 1, 2 as in `experiment fig5-verge-tilt`).
 use std::collections::HashMap;
 
 use headalign::estimate::EstimationOptions;
 use headalign::procedure::VergeTiltOutcome;
-use headalign_geometry::bundle::{RobustLoss, bundle_adjust};
+use headalign_geometry::bundle::{
+    BundleResult, Motions, RobustLoss, bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale,
+};
 use headalign_platform::Encoders;
 use headalign_sim::{Scenario, SimulatedHead};
 
@@ -136,4 +142,50 @@ fn main() {
         Err(e) => println!("centred failed: {e}"),
     }
     println!("   ({missing} points without a clean counterpart kept at the estimate)");
+    let noise = c.bundle.report.sigma_px;
+    let cost = |r: &BundleResult| {
+        let mut k = r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise);
+        if let (Some(s), Motions::Joints { angles, commanded, .. }) = (o.angle_prior_sigma, &r.state.motions)
+        {
+            for (a, c) in angles.iter().zip(commanded).skip(1) {
+                k += a.iter().zip(c).map(|(x, y)| ((x - y) / s).powi(2)).sum::<f64>();
+            }
+        }
+        k
+    };
+    let base = cost(&again);
+    if let Ok((s, sig)) = log_depth_scale(st, &c.observations, &o, noise) {
+        println!("   depth scale s {s:.4} sigma {sig:.4} (estimate cost {base:.2})");
+        if let Ok(r) = bundle_adjust(&start, &c.observations, &o) {
+            let ts = log_depth_scale(&r.state, &c.observations, &o, noise).map(|x| x.0).unwrap_or(f64::NAN);
+            println!(
+                "   from the truth: s {ts:.4}, cost {:+.2}, t {:?}",
+                cost(&r) - base,
+                r.state.right_from_left.translation.vector.normalize()
+            );
+        }
+        for k in [-3.0, -2.0, -1.0, 1.0, 2.0, 3.0] {
+            let Ok(held) =
+                bundle_adjust_at_depth_scale(st, &c.observations, &o, s + k * sig, 1e-3 * sig / noise)
+            else {
+                println!("   sweep {k:+}: held adjustment failed");
+                continue;
+            };
+            match bundle_adjust(&held.state, &c.observations, &o) {
+                Ok(r) => {
+                    let fs = log_depth_scale(&r.state, &c.observations, &o, noise)
+                        .map(|x| x.0)
+                        .unwrap_or(f64::NAN);
+                    show(&format!("sw{k:+}"), &r.state, r.report.final_rms_px, r.report.observations);
+                    println!(
+                        "      held cost {:+.2}, freed cost {:+.2}, s {fs:.4}, {} iterations",
+                        cost(&held) - base,
+                        cost(&r) - base,
+                        r.report.iterations
+                    );
+                }
+                Err(e) => println!("   sweep {k:+}: freed adjustment failed: {e}"),
+            }
+        }
+    }
 }
