@@ -196,10 +196,10 @@ pub struct DepthProfile {
     /// maximum over the two ends; [`EstimationOptions::depth_profile`]).
     pub z: f64,
     /// Profile only when `sigma_s` exceeds this (default 0.01: the intrinsics' sigmas
-    /// widen by about `0.3-0.8 z sigma_s` (`examples/profile_cost.rs`, 0.5-2 px: sigma_s
-    /// 0.05-0.3, widening 1.5-22 %), so below it by well under 1 %; it skips the
-    /// noise-free runs, whose sigma_s is about 1e-9, and keeps every trial at 0.5 px and
-    /// above, sigma_s >= 0.046).
+    /// widen by about `0.3-0.6 z sigma_s` where `sigma_s < 0.2` (`examples/profile_cost.rs`,
+    /// seeds 1001-1040: 0.5 px sigma_s 0.033-0.066, widening 0.9-3.4 %; 1 px 0.065-0.16,
+    /// 3.6-8.2 %), so below it by well under 1 %; it skips the noise-free runs, whose
+    /// sigma_s is below 1e-6, and keeps every trial at 0.5 px and above).
     pub min_sigma_log_depth: f64,
 }
 
