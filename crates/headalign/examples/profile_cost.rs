@@ -5,7 +5,8 @@
 //! baselines and its sigma), how far the profile widened the sigmas, and right.cx's
 //! sigma with and without it.
 //! `cargo run --release -p headalign --example profile_cost -- FIRST LAST NOISE [Z]`
-//! (`Z`: the profile's ends in sigmas of the depth scale, default 1.96)
+//! (`Z`: the profile's ends in sigmas of the depth scale, default `DepthProfile::DEFAULT.z`;
+//! always profiled here, whatever `sigma_s`)
 //!
 //! Measured (seeds 1001-1012 at 3 px, loaded machine, one run): 22.3 s with / 17.7 s
 //! without (+26 % wall; the whole `experiment calibration --only 1.5,3` run: +12 % CPU);

@@ -178,10 +178,12 @@ pub struct EstimationOptions {
     /// ends run to convergence): `experiment calibration --only 1.5,3`, seeds 1001-1200
     /// and 2001-2080, every 95 % coverage 90-98 % (off: right.cx 88.0 % and right.fy 83.8 %
     /// at 3 px); with `z = 1.96` the focal lengths over-cover at 3 px (left.fx 99.0 %: each
-    /// sigma takes the maximum over the two ends). With the ends capped at
-    /// [`PROFILE_END_ITERATIONS`] and the threshold, about +5 % CPU per trial
-    /// (`docs/depth-profile-2001.md` has the coverage and timing of the default). `None`:
-    /// the linearised covariance at the estimate.
+    /// sigma takes the maximum over the two ends). The default (ends capped at
+    /// [`PROFILE_END_ITERATIONS`], the threshold) on the docs' seeds 1-300
+    /// (`docs/depth-profile-2001.md`): the coverage experiment's fixed group at 3 px
+    /// 90.7-97.0 % (right.cx 88.7 % off), at 0.5 px 92.7-98.0 %; +2 % CPU in
+    /// `experiment fig5-verge-tilt --trials 100`. `None`: the linearised covariance at
+    /// the estimate.
     pub depth_profile: Option<DepthProfile>,
 }
 

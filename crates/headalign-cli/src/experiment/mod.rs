@@ -958,6 +958,25 @@ mod tests {
         assert!(scene_name("moon").is_err());
     }
 
+    /// `--depth-profile`: `off`, `Z` (the default threshold), `Z:MIN`; bad values are
+    /// clean errors, not panics.
+    #[test]
+    fn depth_profile_values_parse() {
+        assert_eq!(parse_depth_profile("off"), Ok(ProfileSetting(None)));
+        let d = DepthProfile::DEFAULT.min_sigma_log_depth;
+        assert_eq!(
+            parse_depth_profile("1.5"),
+            Ok(ProfileSetting(Some(DepthProfile { z: 1.5, min_sigma_log_depth: d })))
+        );
+        assert_eq!(
+            parse_depth_profile("1:0.2"),
+            Ok(ProfileSetting(Some(DepthProfile { z: 1.0, min_sigma_log_depth: 0.2 })))
+        );
+        for bad in ["0", "-1", "abc", "1:-0.1", "1:x", "NaN", ""] {
+            assert!(parse_depth_profile(bad).is_err(), "{bad}");
+        }
+    }
+
     #[test]
     fn unknown_is_a_clean_error() {
         let e = experiment("nope", &Scenario::default()).err().map(|e| e.to_string()).unwrap_or_default();
