@@ -40,6 +40,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use headalign::estimate::{DepthProfile, EstimationOptions};
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -87,6 +88,34 @@ pub struct ExperimentArgs {
     /// 3 px, points at 50) in the paper and robot scenes too.
     #[arg(long, default_value = "default")]
     pub scene: String,
+    /// The depth-scale profile of the reported covariance
+    /// (`EstimationOptions::depth_profile`): `off`, `Z` (profile ends at Z sigmas of the
+    /// depth scale) or `Z:MIN` (profile only when that sigma exceeds MIN); default the
+    /// library's. For comparing settings without editing the default.
+    #[arg(long, value_parser = parse_depth_profile)]
+    pub depth_profile: Option<ProfileSetting>,
+}
+
+/// A `--depth-profile` value: `None` is `off`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ProfileSetting(pub Option<DepthProfile>);
+
+/// Parse `off`, `Z` or `Z:MIN` (module docs of `--depth-profile`), validated as
+/// [`EstimationOptions::validate`] does.
+fn parse_depth_profile(v: &str) -> Result<ProfileSetting, String> {
+    if v == "off" {
+        return Ok(ProfileSetting(None));
+    }
+    let num = |t: &str| t.trim().parse::<f64>().map_err(|e| format!("'{t}': {e}"));
+    let (z, min) = match v.split_once(':') {
+        Some((z, m)) => (num(z)?, num(m)?),
+        None => (num(v)?, DepthProfile::DEFAULT.min_sigma_log_depth),
+    };
+    let p = DepthProfile { z, min_sigma_log_depth: min };
+    EstimationOptions { depth_profile: Some(p), ..EstimationOptions::default() }
+        .validate()
+        .map_err(|e| e.to_string())?;
+    Ok(ProfileSetting(Some(p)))
 }
 
 /// One condition: a point of the swept parameter.
@@ -416,22 +445,33 @@ struct Outcome {
     result: Result<TrialRecord, String>,
 }
 
-fn spec(exp: &Experiment, c: &Condition, trial: usize, seed: u64) -> TrialSpec {
+fn spec(
+    exp: &Experiment,
+    c: &Condition,
+    trial: usize,
+    seed: u64,
+    profile: Option<DepthProfile>,
+) -> TrialSpec {
     let initial = exp.positions.get(trial % exp.positions.len().max(1)).copied().unwrap_or_default();
-    TrialSpec { scenario: Scenario { seed, ..c.scenario.clone() }, initial, rotation: c.rotation }
+    TrialSpec {
+        scenario: Scenario { seed, ..c.scenario.clone() },
+        initial,
+        rotation: c.rotation,
+        depth_profile: profile,
+    }
 }
 
 /// All trials of one seed: conditions that differ only in noise share one noise-free run.
-fn run_seed(exp: &Experiment, trial: usize, seed: u64) -> Vec<Outcome> {
+fn run_seed(exp: &Experiment, trial: usize, seed: u64, profile: Option<DepthProfile>) -> Vec<Outcome> {
     let mut out = Vec::new();
     let mut clean: Vec<(TrialSpec, Result<CleanRun, String>)> = Vec::new();
     for (ci, c) in exp.conditions.iter().enumerate() {
         if exp.robot || c.robot {
-            let result = run_pan_trial(&spec(exp, c, trial, seed)).map_err(|e| format!("{e:#}"));
+            let result = run_pan_trial(&spec(exp, c, trial, seed, profile)).map_err(|e| format!("{e:#}"));
             out.push(Outcome { condition: ci, trial, seed, result });
             continue;
         }
-        let s = spec(exp, c, trial, seed);
+        let s = spec(exp, c, trial, seed, profile);
         let mut key = s.clone();
         key.scenario.noise_px = 0.0; // a key only: `CleanRun::new` sets its own tiny noise
         let idx = match clean.iter().position(|(k, _)| {
@@ -461,7 +501,7 @@ fn run_seed(exp: &Experiment, trial: usize, seed: u64) -> Vec<Outcome> {
     out
 }
 
-fn run_experiment(exp: &Experiment, trials: usize, seed: u64) -> Vec<Outcome> {
+fn run_experiment(exp: &Experiment, trials: usize, seed: u64, profile: Option<DepthProfile>) -> Vec<Outcome> {
     let bar = ProgressBar::new((trials * exp.conditions.len()) as u64);
     if let Ok(style) =
         ProgressStyle::with_template("{prefix:>16} [{bar:30}] {pos}/{len} trials {elapsed}<{eta}")
@@ -472,7 +512,7 @@ fn run_experiment(exp: &Experiment, trials: usize, seed: u64) -> Vec<Outcome> {
     let mut all: Vec<Outcome> = (0..trials)
         .into_par_iter()
         .flat_map_iter(|t| {
-            let v = run_seed(exp, t, seed + t as u64);
+            let v = run_seed(exp, t, seed + t as u64, profile);
             bar.inc(v.len() as u64);
             v
         })
@@ -760,7 +800,8 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
         if sel.scene == "default" { exp.name.to_string() } else { format!("{}-{}", exp.name, sel.scene) };
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
     let t0 = Instant::now();
-    let outcomes = run_experiment(&exp, trials, args.seed);
+    let profile = args.depth_profile.map_or(EstimationOptions::default().depth_profile, |p| p.0);
+    let outcomes = run_experiment(&exp, trials, args.seed, profile);
     let seconds = t0.elapsed().as_secs_f64();
     let sums = summarise(&exp, &outcomes);
     write_csv(&args.out.join(format!("{stem}.csv")), &exp, &outcomes)?;
@@ -770,6 +811,16 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
         md = md
             .replacen(&format!("## {} — ", exp.name), &format!("## {stem} — scene `{}`: ", sel.scene), 1)
             .replace(&format!("]({}.png)", exp.name), &format!("]({stem}.png)"));
+    }
+    if args.depth_profile.is_some() {
+        let how = profile.map_or("off".to_string(), |p| {
+            format!("z = {}, only when sigma_s > {}", p.z, p.min_sigma_log_depth)
+        });
+        md = md.replacen(
+            "\n\n",
+            &format!("\n\nDepth-scale profile of the sigmas (`--depth-profile`): {how}.\n\n"),
+            1,
+        );
     }
     std::fs::write(args.out.join(format!("{stem}.md")), &md)
         .with_context(|| format!("cannot write {stem}.md"))?;
@@ -894,6 +945,7 @@ mod tests {
             json: false,
             only: vec![],
             scene: "default".into(),
+            depth_profile: None,
         };
         let mut ps = Vec::new();
         for scene in ["default", "paper", "robot"] {
@@ -916,6 +968,25 @@ mod tests {
         }
         assert!(md.contains("](results/points-paper.png)") || md.contains("points-paper.png)"), "{md}");
         assert!(scene_name("moon").is_err());
+    }
+
+    /// `--depth-profile`: `off`, `Z` (the default threshold), `Z:MIN`; bad values are
+    /// clean errors, not panics.
+    #[test]
+    fn depth_profile_values_parse() {
+        assert_eq!(parse_depth_profile("off"), Ok(ProfileSetting(None)));
+        let d = DepthProfile::DEFAULT.min_sigma_log_depth;
+        assert_eq!(
+            parse_depth_profile("1.5"),
+            Ok(ProfileSetting(Some(DepthProfile { z: 1.5, min_sigma_log_depth: d })))
+        );
+        assert_eq!(
+            parse_depth_profile("1:0.2"),
+            Ok(ProfileSetting(Some(DepthProfile { z: 1.0, min_sigma_log_depth: 0.2 })))
+        );
+        for bad in ["0", "-1", "abc", "1:-0.1", "1:x", "NaN", ""] {
+            assert!(parse_depth_profile(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

@@ -126,6 +126,7 @@ mod tests {
             scenario: Scenario { seed: 2, noise_px: noise, ..Scenario::default() },
             initial: Encoders::default(),
             rotation: RotationMode::Fixed,
+            depth_profile: headalign::estimate::EstimationOptions::default().depth_profile,
         }
     }
 

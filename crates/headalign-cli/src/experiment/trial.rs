@@ -43,7 +43,7 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow};
-use headalign::estimate::{EstimationOptions, RigCalibration};
+use headalign::estimate::{DepthProfile, EstimationOptions, RigCalibration};
 use headalign::procedure::{
     AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, alignment_sigmas,
 };
@@ -92,6 +92,10 @@ pub struct TrialSpec {
     pub initial: Encoders,
     /// Rotation choice.
     pub rotation: RotationMode,
+    /// The depth-scale profile of the reported covariance
+    /// ([`EstimationOptions::depth_profile`]; `experiment --depth-profile`, default the
+    /// library's).
+    pub depth_profile: Option<DepthProfile>,
 }
 
 /// One reported quantity of one trial.
@@ -140,17 +144,18 @@ pub struct TrialRecord {
     pub seconds: f64,
 }
 
-/// Estimation options for a scenario: [`EstimationOptions::scaled_for_noise`] at its noise
-/// and seed.
-pub fn estimation_options(scenario: &Scenario) -> EstimationOptions {
-    EstimationOptions::scaled_for_noise(scenario.noise_px, scenario.seed)
+/// Estimation options of a trial: [`EstimationOptions::scaled_for_noise`] at its noise
+/// and seed, with its depth profile.
+pub fn estimation_options(spec: &TrialSpec) -> EstimationOptions {
+    let o = EstimationOptions::scaled_for_noise(spec.scenario.noise_px, spec.scenario.seed);
+    EstimationOptions { depth_profile: spec.depth_profile, ..o }
 }
 
 fn procedure_options(spec: &TrialSpec) -> VergeTiltOptions {
     VergeTiltOptions {
         rotation_deg: spec.scenario.rotation_deg,
         verge_rotation_deg: 3.0,
-        estimation: estimation_options(&spec.scenario),
+        estimation: estimation_options(spec),
         auto_rotation: match spec.rotation {
             RotationMode::Fixed => None,
             RotationMode::Auto => Some(AutoRotation::default()),
@@ -316,6 +321,7 @@ mod tests {
             scenario: Scenario { seed: 5, noise_px: noise, ..Scenario::default() },
             initial: Encoders::default(),
             rotation: RotationMode::Fixed,
+            depth_profile: EstimationOptions::default().depth_profile,
         }
     }
 
@@ -329,6 +335,7 @@ mod tests {
             scenario: Scenario { seed: 22, noise_px: 1.5, points: 50, ..Scenario::paper_lab() },
             initial: Encoders::default(),
             rotation: RotationMode::Fixed,
+            depth_profile: EstimationOptions::default().depth_profile,
         };
         let clean = CleanRun::new(&s).unwrap();
         let crb = clean.crb_sigmas(1.5).unwrap();
