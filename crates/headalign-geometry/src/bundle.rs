@@ -109,7 +109,10 @@
 //! `n = parameters` for `RobustLoss::None`; with a robust loss the outliers would inflate
 //! that sum, so the estimate is `median |r| / sqrt(2 ln 2) * sqrt(m / (m - n))` (the
 //! median of the Rayleigh-distributed 2D residual norms). Points whose undamped block
-//! `V_p` is not positive definite are omitted from the covariance (conservative).
+//! `V_p` is not positive definite are omitted from the covariance (conservative), and so
+//! are the observations of a point collapsed onto a camera centre (information above
+//! `1e8` times the median point's, `MAX_POINT_INFORMATION_RATIO`): its terms would
+//! swamp the camera parameters' in rounding and make `S` indefinite.
 //!
 //! With [`CovarianceModel::PointClustered`] the covariance is instead the cluster-robust
 //! ("sandwich") estimate with each point's observations as one cluster:
@@ -1800,8 +1803,28 @@ pub fn clustered_covariance(
     Ok(covariance(&problem, &state, sigma_px, model, Some(cluster_of_point))?.0)
 }
 
+/// A point whose information (trace of its `V_p`) exceeds this multiple of the median
+/// point's. Information grows as the inverse square of depth, so such a point is about
+/// `1e4` times nearer than the median one: a point collapsed onto a camera centre (a
+/// wrong track "explained" at depth `1e-11` in a 3 px trial), which no lens sees. Its
+/// `U` and `W V^-1 W^T` terms are then some `1e24` times the camera parameters'
+/// information and cancel to rounding noise, so the reduced camera system is not
+/// positive definite although every parameter is observable.
+const MAX_POINT_INFORMATION_RATIO: f64 = 1e8;
+
+/// Compact indices of the points whose information exceeds
+/// [`MAX_POINT_INFORMATION_RATIO`] times the median point's.
+fn overinformed_points(n: &Normal) -> Vec<usize> {
+    let mut traces: Vec<f64> = n.v.iter().map(|v| v.trace()).collect();
+    traces.sort_by(f64::total_cmp);
+    let Some(&median) = traces.get(traces.len() / 2) else { return Vec::new() };
+    let limit = MAX_POINT_INFORMATION_RATIO * median;
+    n.v.iter().enumerate().filter(|(_, v)| gt(v.trace(), limit)).map(|(p, _)| p).collect()
+}
+
 /// The covariance of the camera parameters under `model` (module docs, Covariance) and
-/// its [`BundleReport::sigma_inflation`].
+/// its [`BundleReport::sigma_inflation`]. Points collapsed onto a camera centre
+/// ([`MAX_POINT_INFORMATION_RATIO`]) are left out of it.
 /// `clusters`, under `PointClustered`: the cluster of each point (indexed like
 /// `state.points`; `None`: each point its own).
 fn covariance(
@@ -1815,6 +1838,32 @@ fn covariance(
     let Some(n) = problem.normal_equations(state, sigma * sigma) else {
         return Err(GeometryError::Numerical("linearisation failed at the solution".into()));
     };
+    // A point collapsed onto a camera centre cannot be eliminated in floating point: its
+    // observations leave the covariance (the adjustment itself keeps them).
+    let excessive = overinformed_points(&n);
+    let reduced;
+    let (problem, n) = if excessive.is_empty() {
+        (problem, n)
+    } else {
+        let kept: Vec<BundleObservation> = problem
+            .obs
+            .iter()
+            .zip(&problem.obs_point)
+            .filter(|(_, p)| !excessive.contains(p))
+            .map(|(o, _)| *o)
+            .collect();
+        let (_, mut p) = self::problem(state, &kept, problem.options)?;
+        p.prior_weight = problem.prior_weight;
+        p.depth = problem.depth;
+        reduced = p;
+        let Some(n) = reduced.normal_equations(state, sigma * sigma) else {
+            return Err(GeometryError::Numerical("linearisation failed at the solution".into()));
+        };
+        (&reduced, n)
+    };
+    if problem.layout.names() != names {
+        return Err(GeometryError::Numerical("a parameter lost every observation".into()));
+    }
     // A point whose block is singular carries no usable information: left out.
     let Some((s, l_inv)) = reduced_camera_system(&n, |_| 0.0, true) else {
         return Err(GeometryError::Numerical("reduced camera system is not finite".into()));
@@ -2418,6 +2467,37 @@ mod tests {
         // Its covariance is the unconstrained linearisation at the profile point.
         assert_eq!(far.covariance.names, est.covariance.names);
         assert!(bundle_adjust_at_depth_scale(&est.state, &base.obs, &opts, s0, 0.0).is_err());
+    }
+
+    /// Regression (calibration experiment, 3 px, seed 53): a wrong track "explained" by a
+    /// point at depth 1e-11 made the reduced camera system indefinite by rounding (its
+    /// terms some 1e24 times the cameras' information) and failed the whole estimate.
+    /// Such a point now leaves the covariance, which then equals the covariance without
+    /// its observations (to 1e-9 relative: the same sums in the same order); kept, it
+    /// makes this covariance differ from that by more than that (rounding noise).
+    #[test]
+    fn a_point_at_a_camera_centre_leaves_the_covariance() {
+        let s = synth(13, 60, 0.5, 0.0, false);
+        let mut state = s.truth.clone();
+        state.points[0] = Point3::from(state.left.unproject(&Point2::new(400.0, 300.0)) * 1e-11);
+        let others: Vec<BundleObservation> = s.obs.iter().copied().filter(|o| o.point != 0).collect();
+        let mut all = others.clone();
+        for view in 0..3 {
+            for side in [Side::Left, Side::Right] {
+                let o = BundleObservation { point: 0, view, side, pixel: Point2::origin() };
+                if let Some(r) = residual_pixels(&state, &o).filter(|r| r.iter().all(|v| v.is_finite())) {
+                    all.push(BundleObservation { pixel: Point2::from(r), ..o });
+                }
+            }
+        }
+        assert!(all.len() >= others.len() + 2, "the collapsed point needs two observations");
+        let opts = BundleOptions::default();
+        let own: Vec<usize> = (0..state.points.len()).collect();
+        let with = clustered_covariance(&state, &all, &opts, 0.5, &own).unwrap();
+        let without = clustered_covariance(&state, &others, &opts, 0.5, &own).unwrap();
+        assert_eq!(with.names, without.names);
+        let scale = without.matrix.abs().max();
+        assert!((&with.matrix - &without.matrix).abs().max() <= 1e-9 * scale);
     }
 
     #[test]
