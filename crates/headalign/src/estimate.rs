@@ -43,7 +43,10 @@
 //!    re-triangulated) and the lower cost wins ([`EstimationOptions::reversed_rig_restart`];
 //!    seed 39 at 2-3 px had right cx 6 sigma off in the wrong minimum); likewise from the
 //!    baseline with its y and z components reversed (a forward component's sign is weakly
-//!    determined too: fig5 seeds 1119, 1130, 1211 at 3 px, `docs/ratio-tail.md`);
+//!    determined too: fig5 seeds 1119, 1130, 1211 at 3 px, `docs/ratio-tail.md`); and, when
+//!    the estimated baseline is more than 45 deg from the right camera's x axis (no stereo
+//!    head's cameras are so placed), from the baseline along that axis, both ways
+//!    (calibration seed 368 at 3 px had it along the optical axis, left fx 3.7 sigma off);
 //! 9. the depth-scale profile of the covariance ([`profile_depth_scale`],
 //!    [`EstimationOptions::depth_profile`]): the scene's distance in baselines is the badly
 //!    determined direction and the linearised sigmas follow it, so each camera sigma is the
@@ -1328,7 +1331,9 @@ pub fn profile_depth_scale(
 /// 3 px): the estimate had t = (+0.98, -0.11, -0.13) against (-0.98, -0.00, -0.19) at the
 /// truth, right cx 63 px (6 sigma) off, and its cost was 40 (chi-square units) above the
 /// minimum reached from the truth; from the reversed start the least squares reaches that
-/// minimum (right cx 14 px off). Three restarts ([`RESTART_BASELINE_FLIPS`]), each with
+/// minimum (right cx 14 px off). Three restarts ([`RESTART_BASELINE_FLIPS`]; two more,
+/// the baseline along the x axis both ways, when the estimate's is more than 45 deg from it,
+/// [`SIDEWAYS_RESTART_MAX_COS`]), each with
 /// every point re-triangulated from its stereo match under the restarted rig: the x
 /// component reversed, the whole baseline reversed (the other sign of `E`), and the y and z
 /// components reversed (fig5-verge-tilt seeds 1119, 1130, 1211 at 3 px ended 2.9-5.5
@@ -1363,10 +1368,16 @@ fn reversed_rig_restart(
     }
     let every = vec![true; current.state.points.len()];
     let mut best: Option<(BundleResult, f64)> = None;
-    for flip in RESTART_BASELINE_FLIPS {
+    let t = current.state.right_from_left.translation.vector;
+    let mut baselines: Vec<Vector3<f64>> =
+        RESTART_BASELINE_FLIPS.iter().map(|f| t.component_mul(f)).collect();
+    // A baseline far from the cameras' x axes is no stereo head's: restart side by side too.
+    if t.x.abs() < SIDEWAYS_RESTART_MAX_COS * t.norm() {
+        baselines.extend([-1.0, 1.0].map(|sign| Vector3::x() * (sign * t.norm())));
+    }
+    for baseline in baselines {
         let mut start = current.state.clone();
-        let t = start.right_from_left.translation.vector;
-        start.right_from_left.translation.vector = t.component_mul(&flip);
+        start.right_from_left.translation.vector = baseline;
         retriangulate_points(&mut start, points, &every);
         // A restart that fails or loses observations (points behind a camera) is no
         // competitor: its cost is over fewer residuals.
@@ -1398,6 +1409,16 @@ fn reversed_rig_restart(
 /// 2-3 sigma).
 const RESTART_BASELINE_FLIPS: [Vector3<f64>; 3] =
     [Vector3::new(-1.0, 1.0, 1.0), Vector3::new(-1.0, -1.0, -1.0), Vector3::new(1.0, -1.0, -1.0)];
+
+/// Cosine of the angle between the estimated baseline and the right camera's x axis below
+/// which [`reversed_rig_restart`] also restarts with the baseline along that axis, both
+/// ways (45 deg). A stereo head's cameras sit side by side: verged by up to 20 deg the
+/// baseline is within about 20 deg of each camera's x axis. Measured (`examples/ratio_diag.rs`,
+/// calibration seed 368 at 3 px): the estimate's baseline was (0.01, -0.36, -0.93), 84 deg
+/// from the truth's (-0.99, 0.00, -0.13), along the optical axis, with left fx 146 px
+/// (3.7 sigma) off, 127 chi-square units above the minimum the least squares reaches from
+/// the truth; no sign change of that baseline is near it.
+const SIDEWAYS_RESTART_MAX_COS: f64 = std::f64::consts::FRAC_1_SQRT_2;
 
 /// One restart's least squares ([`reversed_rig_restart`]) with an early exit for the
 /// hopeless ones: first [`RESTART_PROBE_ITERATIONS`]; a restart that converged there is
