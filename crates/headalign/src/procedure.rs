@@ -1264,6 +1264,21 @@ mod tests {
         assert!(with.abs() < 3.0, "with the restart: {with}");
     }
 
+    /// One trial of `headalign experiment` at the paper's protocol (default scenario at
+    /// `noise_px`, head position 0, the experiments' estimation options).
+    fn experiment_trial(seed: u64, noise_px: f64) -> (SimulatedHead, VergeTiltOutcome) {
+        let scenario = Scenario { seed, noise_px, ..Scenario::default() };
+        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+        let options = VergeTiltOptions {
+            rotation_deg: scenario.rotation_deg,
+            verge_rotation_deg: 3.0,
+            estimation: EstimationOptions::scaled_for_noise(noise_px, seed),
+            ..VergeTiltOptions::default()
+        };
+        let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+        (head, outcome)
+    }
+
     /// Seed 1211 of `experiment fig5-verge-tilt --seed 1001` (first head position, 3 px,
     /// the experiment's options): the restarts from the x-reversed and the fully reversed
     /// baseline end above the estimate, which has the baseline's forward component at +0.64
@@ -1272,15 +1287,7 @@ mod tests {
     /// (`docs/ratio-tail.md`). The sign of that component tells the two minima apart.
     #[test]
     fn yz_reversed_restart_reaches_the_lower_minimum() {
-        let scenario = Scenario { seed: 1211, noise_px: 3.0, ..Scenario::default() };
-        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
-        let options = VergeTiltOptions {
-            rotation_deg: scenario.rotation_deg,
-            verge_rotation_deg: 3.0,
-            estimation: EstimationOptions::scaled_for_noise(scenario.noise_px, scenario.seed),
-            ..VergeTiltOptions::default()
-        };
-        let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+        let (_, outcome) = experiment_trial(1211, 3.0);
         let t = outcome.calibration.bundle.state.right_from_left.translation.vector.normalize();
         assert!(t.z < -0.3, "baseline direction {t:?}");
     }
@@ -1294,15 +1301,7 @@ mod tests {
     /// above 0.3 (it was 0.01) and left fx within 90 px (4 of its sigmas; it was 6.6 off).
     #[test]
     fn sideways_restart_leaves_a_baseline_along_the_optical_axis() {
-        let scenario = Scenario { seed: 368, noise_px: 3.0, ..Scenario::default() };
-        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
-        let options = VergeTiltOptions {
-            rotation_deg: scenario.rotation_deg,
-            verge_rotation_deg: 3.0,
-            estimation: EstimationOptions::scaled_for_noise(scenario.noise_px, scenario.seed),
-            ..VergeTiltOptions::default()
-        };
-        let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+        let (head, outcome) = experiment_trial(368, 3.0);
         let st = &outcome.calibration.bundle.state;
         let t = st.right_from_left.translation.vector.normalize();
         assert!(t.x.abs() > 0.3, "baseline direction {t:?}");
@@ -1644,11 +1643,7 @@ mod tests {
     /// vergence errors of 250 such runs (0.72 deg); this run ends at 0.14 and 0.47 deg.
     #[test]
     fn a_point_collapsed_onto_a_camera_does_not_fail_the_estimate() {
-        let scenario = Scenario { seed: 53, noise_px: 3.0, ..Scenario::default() };
-        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
-        let estimation = EstimationOptions::scaled_for_noise(3.0, 53);
-        let options = VergeTiltOptions { estimation, verge_rotation_deg: 3.0, ..VergeTiltOptions::default() };
-        VergeTiltRun::default().run(&mut head, &options).unwrap();
+        let (head, _) = experiment_trial(53, 3.0);
         let e = head.alignment_errors(&head.encoders());
         assert!(e.elev_err_l_deg.abs() < 2.2 && e.verge_err_l_deg.abs() < 2.2, "{e:?}");
     }
