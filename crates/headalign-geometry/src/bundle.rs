@@ -1838,13 +1838,11 @@ fn covariance(
     let Some(n) = problem.normal_equations(state, sigma * sigma) else {
         return Err(GeometryError::Numerical("linearisation failed at the solution".into()));
     };
-    // A point collapsed onto a camera centre cannot be eliminated in floating point: its
-    // observations leave the covariance (the adjustment itself keeps them).
+    // A point collapsed onto a camera centre cannot be eliminated in floating point: the
+    // covariance is that of the problem without its observations (the adjustment itself
+    // keeps them).
     let excessive = overinformed_points(&n);
-    let reduced;
-    let (problem, n) = if excessive.is_empty() {
-        (problem, n)
-    } else {
+    if !excessive.is_empty() {
         let kept: Vec<BundleObservation> = problem
             .obs
             .iter()
@@ -1852,17 +1850,13 @@ fn covariance(
             .filter(|(_, p)| !excessive.contains(p))
             .map(|(o, _)| *o)
             .collect();
-        let (_, mut p) = self::problem(state, &kept, problem.options)?;
-        p.prior_weight = problem.prior_weight;
-        p.depth = problem.depth;
-        reduced = p;
-        let Some(n) = reduced.normal_equations(state, sigma * sigma) else {
-            return Err(GeometryError::Numerical("linearisation failed at the solution".into()));
-        };
-        (&reduced, n)
-    };
-    if problem.layout.names() != names {
-        return Err(GeometryError::Numerical("a parameter lost every observation".into()));
+        let (_, mut reduced) = self::problem(state, &kept, problem.options)?;
+        reduced.prior_weight = problem.prior_weight;
+        reduced.depth = problem.depth;
+        if reduced.layout.names() != names {
+            return Err(GeometryError::Numerical("a parameter lost every observation".into()));
+        }
+        return covariance(&reduced, state, sigma, model, clusters);
     }
     // A point whose block is singular carries no usable information: left out.
     let Some((s, l_inv)) = reduced_camera_system(&n, |_| 0.0, true) else {
