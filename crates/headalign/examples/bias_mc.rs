@@ -1,0 +1,81 @@
+//! Diagnostic (not a test): is the maximum-likelihood bundle adjustment itself biased at
+//! the experiments' geometry, and does the second-order (Box) bias predict it? For each
+//! seed, the clean trial's state (the truth) and its inlier observations; fresh Gaussian
+//! pixel noise, the least squares from the truth, the error of each focal length in
+//! units of its reported sigma, and the predicted bias
+//! ([`headalign_geometry::bundle::second_order_bias`]).
+//! `cargo run --release -p headalign --example bias_mc -- FIRST_SEED SEEDS DRAWS NOISE`
+use headalign::estimate::EstimationOptions;
+use headalign_geometry::bundle::{BundleObservation, RobustLoss, bundle_adjust, second_order_bias};
+use headalign_platform::Encoders;
+use headalign_sim::Scenario;
+use nalgebra::Vector2;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+mod common;
+
+fn main() {
+    let a: Vec<f64> = std::env::args().skip(1).map(|s| s.parse().expect("numbers")).collect();
+    let (first, seeds, draws, noise) = (a[0] as u64, a[1] as u64, a[2] as usize, a[3]);
+    let names = ["left.fx", "left.fy", "right.fx", "right.fy", "left.cx", "right.cy"];
+    let mut obs_sum = vec![0.0; names.len()];
+    let mut pred_sum = vec![0.0; names.len()];
+    let mut count = 0.0_f64;
+    let mut raw = vec![0.0; names.len()];
+    let mut sig = vec![0.0; names.len()];
+    let mut rng = ChaCha8Rng::seed_from_u64(first);
+    // TRUNCATE=1: drop the observations that noise pushed out of the image, as the
+    // simulator does.
+    let truncate = std::env::var("TRUNCATE").is_ok();
+    for seed in first..first + seeds {
+        let sc = Scenario { seed, noise_px: 1e-300, ..Scenario::default() };
+        let Some((_, clean)) = common::verge_tilt_trial(&sc, &Encoders::default(), seed) else { continue };
+        let truth = &clean.calibration.bundle.state;
+        let mut o = EstimationOptions::default().bundle;
+        o.robust = RobustLoss::None;
+        o.noise_sigma_px = Some(noise);
+        o.max_iterations = 300;
+        for _ in 0..draws {
+            let obs: Vec<BundleObservation> = clean
+                .calibration
+                .observations
+                .iter()
+                .map(|b| {
+                    let e = Vector2::new(StandardNormal.sample(&mut rng), StandardNormal.sample(&mut rng));
+                    BundleObservation { pixel: b.pixel + e * noise, ..*b }
+                })
+                .filter(|b| !truncate || headalign_sim::scene::pixel_in_image(&b.pixel, sc.image_size))
+                .collect();
+            let Ok(r) = bundle_adjust(truth, &obs, &o) else { continue };
+            let Ok(b) = second_order_bias(&r, &obs, &o) else { continue };
+            let get = |s: &headalign_geometry::bundle::RigState, n: &str| match n {
+                "left.fx" => s.left.fx,
+                "left.fy" => s.left.fy,
+                "right.fx" => s.right.fx,
+                "right.fy" => s.right.fy,
+                "left.cx" => s.left.cx,
+                _ => s.right.cy,
+            };
+            for (i, n) in names.iter().enumerate() {
+                let k = r.covariance.index(n).expect("named");
+                let s = r.covariance.sigma(n).expect("named");
+                obs_sum[i] += (get(&r.state, n) - get(truth, n)) / s;
+                pred_sum[i] += b.camera[k] / s;
+                raw[i] += get(&r.state, n) - get(truth, n);
+                sig[i] += s;
+            }
+            count += 1.0;
+        }
+    }
+    println!("{count} adjustments at {noise} px (mean error / sigma; se {:.3}):", 1.0 / count.sqrt());
+    for (i, n) in names.iter().enumerate() {
+        println!(
+            "{n:>9}: observed {:+.3}  predicted {:+.3}  (mean error / mean sigma {:+.3})",
+            obs_sum[i] / count,
+            pred_sum[i] / count,
+            raw[i] / sig[i]
+        );
+    }
+}
