@@ -1117,80 +1117,14 @@ impl Problem<'_> {
     }
 
     fn residual_norms(&self, state: &RigState) -> Option<Vec<f64>> {
-        Some(self.residuals(state)?.iter().map(|r| r.norm()).collect())
-    }
-
-    /// The residual of every used observation, pixels.
-    fn residuals(&self, state: &RigState) -> Option<Vec<Vector2<f64>>> {
         let views = view_geoms(state, &self.layout, false);
         let rig = rig_geom(state);
         let mut out = Vec::with_capacity(self.obs.len());
         for (o, &p) in self.obs.iter().zip(&self.obs_point) {
             let x = state.points.get(*self.points.get(p)?)?;
-            out.push(linearise_obs(state, &self.layout, &views, &rig, o, x, None)?.0);
+            out.push(linearise_obs(state, &self.layout, &views, &rig, o, x, None)?.0.norm());
         }
         Some(out)
-    }
-
-    /// `sum_i w_i J_i^T v_i` over the used observations for per-observation values `v_i`
-    /// (robust weights at `state`): camera part and per point (compact order).
-    fn gradients(
-        &self,
-        state: &RigState,
-        values: &[Vector2<f64>],
-    ) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
-        let views = view_geoms(state, &self.layout, true);
-        let rig = rig_geom(state);
-        let mut gc = DVector::zeros(self.layout.len());
-        let mut gp = vec![Vector3::zeros(); self.points.len()];
-        let mut cols = Vec::with_capacity(32);
-        for ((o, &p), v) in self.obs.iter().zip(&self.obs_point).zip(values) {
-            let x = state.points.get(*self.points.get(p)?)?;
-            let (r, jp) = linearise_obs(state, &self.layout, &views, &rig, o, x, Some(&mut cols))?;
-            let wt = robust(self.options.robust, r.norm_squared()).1;
-            *gp.get_mut(p)? += jp.transpose() * v * wt;
-            for &(a, ja) in &cols {
-                gc[a] += wt * ja.dot(v);
-            }
-        }
-        Some((gc, gp))
-    }
-
-    /// `state` moved by the camera step `dc` and every used point by `scale` times its
-    /// step in `dp` (compact order, homogeneous tangent); a point whose step would cross
-    /// infinity keeps its position and is flagged (compact order).
-    fn moved(
-        &self,
-        state: &RigState,
-        dc: &DVector<f64>,
-        dp: &[Vector3<f64>],
-        scale: f64,
-    ) -> Result<(RigState, Vec<bool>)> {
-        let mut out = retract(state, &self.layout, dc)?;
-        let mut stuck = vec![false; self.points.len()];
-        for ((&pi, d), flag) in self.points.iter().zip(dp).zip(stuck.iter_mut()) {
-            let Some(x) = out.points.get_mut(pi) else { continue };
-            match retract_point(x, &(d * scale)) {
-                Some(p) => *x = p,
-                None => *flag = true,
-            }
-        }
-        Ok((out, stuck))
-    }
-
-    /// The residual of every used observation, pixels, `None` where its point is behind
-    /// a camera.
-    fn residuals_each(&self, state: &RigState) -> Vec<Option<Vector2<f64>>> {
-        let views = view_geoms(state, &self.layout, false);
-        let rig = rig_geom(state);
-        self.obs
-            .iter()
-            .zip(&self.obs_point)
-            .map(|(o, &p)| {
-                let x = state.points.get(*self.points.get(p)?)?;
-                Some(linearise_obs(state, &self.layout, &views, &rig, o, x, None)?.0)
-            })
-            .collect()
     }
 
     /// Per point: the gradient of its observations' squared residuals with respect to the
@@ -1867,132 +1801,6 @@ pub fn clustered_covariance(
     let (state, problem) = problem(state, observations, options)?;
     let model = CovarianceModel::PointClustered;
     Ok(covariance(&problem, &state, sigma_px, model, Some(cluster_of_point))?.0)
-}
-
-/// Step of the second differences of [`second_order_bias`], in units of each direction's
-/// one-sigma length: small enough that the quadratic term dominates (the third-order term
-/// is `h^2` of it), large enough that rounding does not (residuals of hundreds of pixels,
-/// second differences of `1e-4` px).
-const BIAS_DIFFERENCE_STEP: f64 = 0.1;
-
-/// The second-order bias of a converged adjustment and the state with it removed
-/// ([`second_order_bias`]).
-#[derive(Clone, Debug)]
-pub struct BiasCorrection {
-    /// The bias of the camera parameters in the solver's tangent parametrisation, in the
-    /// order of [`Covariance::names`] (expectation of estimate minus truth, to second
-    /// order in the noise).
-    pub camera: DVector<f64>,
-    /// The state moved by minus the bias (camera parameters and points); its covariance is
-    /// that of the adjustment.
-    pub state: RigState,
-}
-
-/// The second-order bias of the maximum-likelihood estimate `result` of
-/// [`bundle_adjust`] (same observations and options), and the state with it removed.
-///
-/// Least squares on a nonlinear model is biased at order `sigma^2` (Box, "Bias in
-/// nonlinear estimation", JRSS B 1971):
-/// `E[theta_hat] - theta = -N^-1 sum_i w_i J_i^T q_i` with `q_i = tr(Sigma H_i) / 2`,
-/// `H_i` the Hessian of residual component `i` over every parameter (points included),
-/// `Sigma = sigma^2 N^-1` the full covariance and `N` the normal matrix of the
-/// covariance (robust weights and priors as there). The bias is `O(sigma^2)` per point,
-/// but the sigmas of the camera parameters fall as `1/sqrt(points)`, so with hundreds of
-/// points it is a visible fraction of a sigma: the focal lengths came out `+0.1` to
-/// `+0.35` sigma high at every noise level (`docs/ratio-tail.md`). Removing it is the
-/// "hyperaccurate correction" of maximum likelihood (Kanatani, "Ellipse fitting with
-/// hyperaccuracy", IEICE 2006; Okatani and Deguchi on bundle adjustment's bias).
-///
-/// `tr(Sigma H_i)` is a sum of second directional derivatives along square-root
-/// directions of `Sigma`, which has the points' structure: a direction per column `c_k`
-/// of the Cholesky factor of the camera covariance, moving every point by its conditional
-/// shift `-V_p^-1 W_p^T c_k`, and three moving every point along a column of `sigma
-/// L_p^-T` (`V_p = L_p L_p^T`) at once, since no residual sees two points. That is
-/// `c + 3` directions (about 40), two residual evaluations each, by central second
-/// differences ([`BIAS_DIFFERENCE_STEP`]); then one solve of the normal equations.
-/// Errors: a point collapsed onto a camera, a singular system or a direction that takes a
-/// point behind a camera (the expansion is then meaningless).
-pub fn second_order_bias(
-    result: &BundleResult,
-    observations: &[BundleObservation],
-    options: &BundleOptions,
-) -> Result<BiasCorrection> {
-    let sigma = result.report.sigma_px;
-    if !(sigma.is_finite() && sigma > 0.0) {
-        return Err(GeometryError::InvalidOption(format!(
-            "the result's sigma_px must be positive, got {sigma}"
-        )));
-    }
-    let (state, problem) = problem(&result.state, observations, options)?;
-    let numerical = |w: &str| GeometryError::Numerical(format!("second-order bias: {w}"));
-    let n = problem.normal_equations(&state, sigma * sigma).ok_or_else(|| numerical("linearisation"))?;
-    if !overinformed_points(&n).is_empty() {
-        return Err(numerical("a point collapsed onto a camera centre"));
-    }
-    let (s, l_inv) =
-        reduced_camera_system(&n, |_| 0.0, false).ok_or_else(|| numerical("singular point block"))?;
-    let s_inv = s.cholesky().ok_or_else(|| numerical("singular reduced system"))?.inverse();
-    let cov_c = 0.5 * (&s_inv + s_inv.transpose()) * (sigma * sigma);
-    let root_c = cov_c.cholesky().ok_or_else(|| numerical("camera covariance not positive definite"))?.l();
-    let l_inv: Vec<Matrix3<f64>> =
-        l_inv.into_iter().collect::<Option<_>>().ok_or_else(|| numerical("point block"))?;
-    let nc = problem.layout.len();
-    let np = problem.points.len();
-
-    // The square-root directions of the full covariance (camera part, point parts).
-    let mut directions: Vec<(DVector<f64>, Vec<Vector3<f64>>)> = Vec::with_capacity(nc + 3);
-    for k in 0..nc {
-        let c = root_c.column(k).into_owned();
-        let dp = (0..np)
-            .map(|p| {
-                let vi = l_inv[p].transpose() * l_inv[p];
-                -(vi * n.w.columns(3 * p, 3).tr_mul(&c))
-            })
-            .collect();
-        directions.push((c, dp));
-    }
-    for k in 0..3 {
-        let dp = l_inv.iter().map(|li| li.transpose().column(k) * sigma).collect();
-        directions.push((DVector::zeros(nc), dp));
-    }
-
-    let r0 = problem.residuals(&state).ok_or_else(|| numerical("residuals at the estimate"))?;
-    let h = BIAS_DIFFERENCE_STEP;
-    let mut q = vec![Vector2::zeros(); r0.len()];
-    // A point the expansion cannot follow (a step crosses infinity or a camera: a point
-    // whose depth is undetermined, found at 3 px some 1e4 times farther than the scene)
-    // has no meaningful second derivatives: its observations are left out of the bias.
-    let mut skipped = vec![false; np];
-    for (dc, dp) in &directions {
-        for sign in [1.0, -1.0] {
-            let (moved, stuck) = problem.moved(&state, &(dc * (sign * h)), dp, sign * h)?;
-            for (flag, s) in skipped.iter_mut().zip(&stuck) {
-                *flag |= *s;
-            }
-            let r = problem.residuals_each(&moved);
-            for (((qi, ri), r0i), &p) in q.iter_mut().zip(&r).zip(&r0).zip(&problem.obs_point) {
-                match ri {
-                    Some(ri) => *qi += (ri - r0i) / (2.0 * h * h),
-                    None => {
-                        if let Some(flag) = skipped.get_mut(p) {
-                            *flag = true;
-                        }
-                    }
-                }
-            }
-        }
-    }
-    for (qi, &p) in q.iter_mut().zip(&problem.obs_point) {
-        if skipped.get(p).copied().unwrap_or(true) {
-            *qi = Vector2::zeros();
-        }
-    }
-    let (gc, gp) = problem.gradients(&state, &q).ok_or_else(|| numerical("linearisation"))?;
-    let rp: Vec<Vector3<f64>> = gp.iter().map(|g| -g).collect();
-    let (bias_c, bias_p) =
-        solve_rhs(&n, 0.0, &(-gc), &rp).ok_or_else(|| numerical("singular normal equations"))?;
-    let (corrected, _) = problem.moved(&state, &(-&bias_c), &bias_p, -1.0)?;
-    Ok(BiasCorrection { camera: bias_c, state: corrected })
 }
 
 /// A point whose information (trace of its `V_p`) exceeds this multiple of the median

@@ -11,6 +11,7 @@
 //! along the badly determined direction reach the lower minimum the truth reaches?
 //! `SWEEP_LOG=0.7,1.1,-0.7` sweeps those offsets of `s` instead (log units, not sigmas):
 //! calibration seed 368 at 3 px, whose lower minimum lies 1.15 above, reached it from none.
+//! `SCENE=paper` (or `robot`) runs that scene preset (`--scene` of `headalign experiment`).
 //! `cargo run --release -p headalign --example ratio_diag -- SEED NOISE POSITION`
 //! (POSITION 0, 1, 2 as in `experiment fig5-verge-tilt`).
 use std::collections::HashMap;
@@ -39,7 +40,8 @@ fn main() {
         Encoders { pan: 4.0, elevation: 4.0, verge_left: 2.0, verge_right: -2.0 },
         Encoders { pan: -4.0, elevation: -4.0, verge_left: -2.0, verge_right: 2.0 },
     ];
-    let sc = Scenario { seed, noise_px: noise, ..Scenario::default() };
+    let scene = std::env::var("SCENE").unwrap_or_else(|_| "default".into());
+    let sc = Scenario { seed, noise_px: noise, ..Scenario::preset(&scene).expect("a scene preset") };
     let (head, noisy) = run(&sc, &positions[pos]);
     let (_, clean) = run(&Scenario { noise_px: 1e-300, ..sc.clone() }, &positions[pos]);
     let t = head.truth().clone();

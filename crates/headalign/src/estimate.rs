@@ -74,7 +74,7 @@ use std::collections::{BTreeMap, HashMap, HashSet};
 
 use headalign_geometry::bundle::{
     BundleObservation, BundleOptions, BundleResult, Motions, RigState, RobustLoss, Side, bundle_adjust,
-    bundle_adjust_at_depth_scale, log_depth_scale, residual_pixels, second_order_bias,
+    bundle_adjust_at_depth_scale, log_depth_scale, residual_pixels,
 };
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame, relative_pose};
@@ -190,10 +190,6 @@ pub struct EstimationOptions {
     /// `experiment fig5-verge-tilt --trials 100`. `None`: the linearised covariance at
     /// the estimate.
     pub depth_profile: Option<DepthProfile>,
-    /// Remove the maximum-likelihood estimate's second-order bias from the reported
-    /// state ([`headalign_geometry::bundle::second_order_bias`], module docs step 10;
-    /// needs `final_least_squares`). Default true. The covariance is unchanged.
-    pub bias_correction: bool,
 }
 
 /// How [`profile_depth_scale`] widens the reported covariance: the estimate is
@@ -296,7 +292,6 @@ impl Default for EstimationOptions {
             reversed_rig_restart: true,
             depth_step: None,
             depth_profile: Some(DepthProfile::DEFAULT),
-            bias_correction: true,
         }
     }
 }
@@ -499,10 +494,6 @@ pub struct EstimationReport {
     /// The depth-scale profile of the covariance ([`EstimationOptions::depth_profile`]);
     /// `None` when off or when `s` or its sigma could not be computed.
     pub depth_profile: Option<DepthProfileReport>,
-    /// The second-order bias removed ([`EstimationOptions::bias_correction`]): the largest
-    /// `|bias| / sigma` over the camera parameters; `None` when off or when it could not
-    /// be computed (the maximum-likelihood state is then reported).
-    pub bias_removed_sigmas: Option<f64>,
 }
 
 /// A rig view [`estimate_rig`] left out, and why.
@@ -897,11 +888,6 @@ fn estimate_rig_once(
         }
         _ => (final_result, None),
     };
-    let (final_result, bias_removed_sigmas) = if options.bias_correction && options.final_least_squares {
-        remove_second_order_bias(final_result, &second_obs, options)
-    } else {
-        (final_result, None)
-    };
     let report = EstimationReport {
         stereo_matches: pairs.len(),
         stereo_inliers: f_report.inliers.len(),
@@ -917,7 +903,6 @@ fn estimate_rig_once(
         sigma_inflation: final_result.report.sigma_inflation,
         dropped_views: Vec::new(),
         depth_profile,
-        bias_removed_sigmas,
     };
     let mut point_observations = vec![0usize; point_tracks.len()];
     let mut point_sides = vec![[false; 2]; point_tracks.len()];
@@ -1333,29 +1318,6 @@ pub fn profile_depth_scale(
     }
     report.max_widening = widen.iter().copied().fold(1.0, f64::max);
     (result, Some(report))
-}
-
-/// Module docs step 10: the maximum-likelihood state moved by minus its second-order
-/// bias ([`second_order_bias`], with the least-squares options of step 7), the covariance
-/// kept; and the largest `|bias| / sigma` over the camera parameters. When the bias cannot
-/// be computed the result is returned unchanged with `None`.
-fn remove_second_order_bias(
-    result: BundleResult,
-    obs: &[BundleObservation],
-    options: &EstimationOptions,
-) -> (BundleResult, Option<f64>) {
-    let ls = BundleOptions {
-        robust: RobustLoss::None,
-        noise_sigma_px: Some(result.report.sigma_px),
-        ..options.bundle.clone()
-    };
-    let Ok(bias) = second_order_bias(&result, obs, &ls) else { return (result, None) };
-    let m = &result.covariance.matrix;
-    let largest = (0..m.nrows())
-        .filter(|&i| m[(i, i)] > 0.0)
-        .map(|i| bias.camera[i].abs() / m[(i, i)].sqrt())
-        .fold(0.0, f64::max);
-    (BundleResult { state: bias.state, ..result }, Some(largest))
 }
 
 /// Module docs step 8: the least squares restarted from the depth-reversed rig. The

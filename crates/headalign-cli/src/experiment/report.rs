@@ -56,6 +56,50 @@ fn focal_row(m: &mut String, p: &Produced) {
     );
 }
 
+/// The ratio and coverage bars of a calibration run in another scene (the bars'
+/// conditions only, 3 px): its worst RMS / bound and the range of its 95 % coverages,
+/// judged like the default scene's grid (the paper's protocol does not fix the scene).
+fn scene_ratio_coverage_rows(m: &mut String, p: &Produced) {
+    let (r, at, ci) = worst_ratio(p);
+    if r.is_finite() {
+        let _ = writeln!(
+            m,
+            "| RMS error / Cramer-Rao bound, worst reported quantity, calibration, {} (median over quantities {}) | - | {} ({at}) | <= 1.15 | {} |",
+            scene_words(p.scene),
+            f(median_ratio(p), 2),
+            f(r, 2),
+            ratio_verdict(r, ci, RATIO_BAR)
+        );
+    }
+    let mut all: Vec<(f64, String)> = Vec::new();
+    for c in p.sums.iter().filter(|c| c.group == "fixed" && c.x > 0.0) {
+        for (q, v) in p.quantities.iter().zip(&c.coverage) {
+            if v.0.is_finite() {
+                all.push((v.0, format!("{q} at {} px", c.x)));
+            }
+        }
+    }
+    let lo = all.iter().min_by(|a, b| a.0.total_cmp(&b.0));
+    let hi = all.iter().max_by(|a, b| a.0.total_cmp(&b.0));
+    let n = p.sums.iter().map(|c| c.ok).min().unwrap_or(0);
+    let (clo, chi) = coverage_interval(n);
+    if let (Some(lo), Some(hi)) = (lo, hi) {
+        let _ = writeln!(
+            m,
+            "| 95 % coverage of every reported sigma, calibration, {} ({} entries, {n} trials each: a calibrated sigma gives {}-{} %) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
+            scene_words(p.scene),
+            all.len(),
+            f(100.0 * clo, 1),
+            f(100.0 * chi, 1),
+            f(100.0 * lo.0, 1),
+            f(100.0 * hi.0, 1),
+            lo.1,
+            hi.1,
+            verdict(lo.0 >= 0.9 && hi.0 <= 0.98)
+        );
+    }
+}
+
 /// The 50-point bars (1.5 px) of one scene and rotation group (`fixed`: 3 deg; `auto`:
 /// chosen by the procedure).
 fn fifty_point_rows(m: &mut String, p: &Produced, group: &str) {
@@ -243,6 +287,7 @@ crb_scenes` gives the bounds against the depth range), the 50-point elevation bo
     for scene in ["paper", "robot"] {
         if let Some(p) = find_in(ps, "calibration", scene) {
             focal_row(&mut m, p);
+            scene_ratio_coverage_rows(&mut m, p);
         }
     }
     for scene in BAR_SCENES {
@@ -434,6 +479,46 @@ mod tests {
         assert!(row.contains("lowest pan.aligned at 3 px (robot)") && row.ends_with("**no** |"), "{row}");
         let pan = m.lines().find(|l| l.contains("pan and steering-zero")).unwrap_or_default();
         assert!(pan.contains("3 px: pan 89.0 %, steering zero 95.0 %"), "{pan}");
+    }
+
+    /// Another scene's calibration run gets its own ratio and coverage rows, judged like
+    /// the default grid's.
+    #[test]
+    fn scene_rows_judge_ratio_and_coverage() {
+        let q = super::super::SIGMA_QUANTITIES.len();
+        let mut quantities = vec![(1.0, 1.0); q];
+        quantities[3] = (1.29, 1.0);
+        let mut coverage = vec![(0.95, 250); q];
+        coverage[5] = (0.852, 250);
+        let p = Produced {
+            name: "calibration",
+            scene: "paper",
+            stem: "calibration-paper".to_string(),
+            markdown: String::new(),
+            sums: vec![ConditionSummary {
+                group: "fixed",
+                x: 3.0,
+                ok: 250,
+                total: 250,
+                series: Vec::new(),
+                quantities,
+                coverage,
+                mean_rotation_deg: 3.0,
+            }],
+            series_labels: Vec::new(),
+            quantities: &super::super::SIGMA_QUANTITIES,
+        };
+        let m = results_md(&[p], Path::new("results"));
+        let ratio = m
+            .lines()
+            .find(|l| l.contains("Cramer-Rao bound, worst reported quantity, calibration, paper"))
+            .unwrap_or_default();
+        assert!(ratio.contains("| 1.29 (") && ratio.ends_with("| **no** |"), "{ratio}");
+        let cov = m
+            .lines()
+            .find(|l| l.contains("coverage of every reported sigma, calibration, paper"))
+            .unwrap_or_default();
+        assert!(cov.contains("85.2-95.0 %") && cov.ends_with("| **no** |"), "{cov}");
     }
 
     /// A value under a bar that lies below the bound is luck, and the verdict says so.
