@@ -4,7 +4,8 @@
 //! noise, the least squares from the truth, and the mean error of each intrinsic in units
 //! of its reported sigma (and as mean error over mean sigma). `TRUNCATE=1` drops the
 //! observations that the noise pushed out of the image, as the simulator does (the same
-//! draws otherwise: a paired comparison).
+//! draws otherwise: a paired comparison); `WINDOW=1` has the adjustment model that border
+//! (`BundleOptions::measurement_window`).
 //! `cargo run --release -p headalign --example bias_mc -- FIRST_SEED SEEDS DRAWS NOISE`
 use headalign::estimate::EstimationOptions;
 use headalign_geometry::bundle::{BundleObservation, RobustLoss, bundle_adjust};
@@ -29,6 +30,8 @@ fn main() {
     // TRUNCATE=1: drop the observations that noise pushed out of the image, as the
     // simulator does.
     let truncate = std::env::var("TRUNCATE").is_ok();
+    // WINDOW=1: the adjustment models the image border (`BundleOptions::measurement_window`).
+    let window = std::env::var("WINDOW").is_ok();
     for seed in first..first + seeds {
         let sc = Scenario { seed, noise_px: 1e-300, ..Scenario::default() };
         let Some((_, clean)) = common::verge_tilt_trial(&sc, &Encoders::default(), seed) else { continue };
@@ -37,6 +40,10 @@ fn main() {
         o.robust = RobustLoss::None;
         o.noise_sigma_px = Some(noise);
         o.max_iterations = 300;
+        if window {
+            let [w, h] = sc.image_size.map(f64::from);
+            o.measurement_window = Some([-0.5, -0.5, w - 0.5, h - 0.5]);
+        }
         for _ in 0..draws {
             let obs: Vec<BundleObservation> = clean
                 .calibration

@@ -94,6 +94,27 @@ pub struct ExperimentArgs {
     /// library's. For comparing settings without editing the default.
     #[arg(long, value_parser = parse_depth_profile)]
     pub depth_profile: Option<ProfileSetting>,
+    /// Model the image border in the least squares (`EstimationOptions::image_border`):
+    /// `on` or `off`; default the library's. For comparing settings without editing the
+    /// default.
+    #[arg(long, value_parser = parse_on_off)]
+    pub image_border: Option<bool>,
+}
+
+/// Parse `on` / `off`.
+fn parse_on_off(v: &str) -> Result<bool, String> {
+    match v {
+        "on" => Ok(true),
+        "off" => Ok(false),
+        other => Err(format!("expected 'on' or 'off', got '{other}'")),
+    }
+}
+
+/// The estimation settings an experiment run may change from the library's defaults.
+#[derive(Clone, Copy, Debug)]
+struct Tuning {
+    depth_profile: Option<DepthProfile>,
+    image_border: bool,
 }
 
 /// A `--depth-profile` value: `None` is `off`.
@@ -445,33 +466,28 @@ struct Outcome {
     result: Result<TrialRecord, String>,
 }
 
-fn spec(
-    exp: &Experiment,
-    c: &Condition,
-    trial: usize,
-    seed: u64,
-    profile: Option<DepthProfile>,
-) -> TrialSpec {
+fn spec(exp: &Experiment, c: &Condition, trial: usize, seed: u64, tuning: Tuning) -> TrialSpec {
     let initial = exp.positions.get(trial % exp.positions.len().max(1)).copied().unwrap_or_default();
     TrialSpec {
         scenario: Scenario { seed, ..c.scenario.clone() },
         initial,
         rotation: c.rotation,
-        depth_profile: profile,
+        depth_profile: tuning.depth_profile,
+        image_border: tuning.image_border,
     }
 }
 
 /// All trials of one seed: conditions that differ only in noise share one noise-free run.
-fn run_seed(exp: &Experiment, trial: usize, seed: u64, profile: Option<DepthProfile>) -> Vec<Outcome> {
+fn run_seed(exp: &Experiment, trial: usize, seed: u64, tuning: Tuning) -> Vec<Outcome> {
     let mut out = Vec::new();
     let mut clean: Vec<(TrialSpec, Result<CleanRun, String>)> = Vec::new();
     for (ci, c) in exp.conditions.iter().enumerate() {
         if exp.robot || c.robot {
-            let result = run_pan_trial(&spec(exp, c, trial, seed, profile)).map_err(|e| format!("{e:#}"));
+            let result = run_pan_trial(&spec(exp, c, trial, seed, tuning)).map_err(|e| format!("{e:#}"));
             out.push(Outcome { condition: ci, trial, seed, result });
             continue;
         }
-        let s = spec(exp, c, trial, seed, profile);
+        let s = spec(exp, c, trial, seed, tuning);
         let mut key = s.clone();
         key.scenario.noise_px = 0.0; // a key only: `CleanRun::new` sets its own tiny noise
         let idx = match clean.iter().position(|(k, _)| {
@@ -501,7 +517,7 @@ fn run_seed(exp: &Experiment, trial: usize, seed: u64, profile: Option<DepthProf
     out
 }
 
-fn run_experiment(exp: &Experiment, trials: usize, seed: u64, profile: Option<DepthProfile>) -> Vec<Outcome> {
+fn run_experiment(exp: &Experiment, trials: usize, seed: u64, tuning: Tuning) -> Vec<Outcome> {
     let bar = ProgressBar::new((trials * exp.conditions.len()) as u64);
     if let Ok(style) =
         ProgressStyle::with_template("{prefix:>16} [{bar:30}] {pos}/{len} trials {elapsed}<{eta}")
@@ -512,7 +528,7 @@ fn run_experiment(exp: &Experiment, trials: usize, seed: u64, profile: Option<De
     let mut all: Vec<Outcome> = (0..trials)
         .into_par_iter()
         .flat_map_iter(|t| {
-            let v = run_seed(exp, t, seed + t as u64, profile);
+            let v = run_seed(exp, t, seed + t as u64, tuning);
             bar.inc(v.len() as u64);
             v
         })
@@ -801,7 +817,8 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
     let t0 = Instant::now();
     let profile = args.depth_profile.map_or(EstimationOptions::default().depth_profile, |p| p.0);
-    let outcomes = run_experiment(&exp, trials, args.seed, profile);
+    let image_border = args.image_border.unwrap_or(EstimationOptions::default().image_border);
+    let outcomes = run_experiment(&exp, trials, args.seed, Tuning { depth_profile: profile, image_border });
     let seconds = t0.elapsed().as_secs_f64();
     let sums = summarise(&exp, &outcomes);
     write_csv(&args.out.join(format!("{stem}.csv")), &exp, &outcomes)?;
@@ -819,6 +836,14 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
         md = md.replacen(
             "\n\n",
             &format!("\n\nDepth-scale profile of the sigmas (`--depth-profile`): {how}.\n\n"),
+            1,
+        );
+    }
+    if let Some(on) = args.image_border {
+        let how = if on { "on" } else { "off" };
+        md = md.replacen(
+            "\n\n",
+            &format!("\n\nImage border modelled in the least squares (`--image-border`): {how}.\n\n"),
             1,
         );
     }
@@ -946,6 +971,7 @@ mod tests {
             only: vec![],
             scene: "default".into(),
             depth_profile: None,
+            image_border: None,
         };
         let mut ps = Vec::new();
         for scene in ["default", "paper", "robot"] {
@@ -972,6 +998,14 @@ mod tests {
 
     /// `--depth-profile`: `off`, `Z` (the default threshold), `Z:MIN`; bad values are
     /// clean errors, not panics.
+    /// `--image-border`: `on` or `off`, anything else is an error.
+    #[test]
+    fn image_border_values_parse() {
+        assert_eq!(parse_on_off("on"), Ok(true));
+        assert_eq!(parse_on_off("off"), Ok(false));
+        assert!(parse_on_off("yes").is_err() && parse_on_off("").is_err());
+    }
+
     #[test]
     fn depth_profile_values_parse() {
         assert_eq!(parse_depth_profile("off"), Ok(ProfileSetting(None)));

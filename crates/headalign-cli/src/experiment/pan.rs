@@ -127,6 +127,7 @@ mod tests {
             initial: Encoders::default(),
             rotation: RotationMode::Fixed,
             depth_profile: headalign::estimate::EstimationOptions::default().depth_profile,
+            image_border: headalign::estimate::EstimationOptions::default().image_border,
         }
     }
 

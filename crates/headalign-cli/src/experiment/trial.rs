@@ -96,6 +96,9 @@ pub struct TrialSpec {
     /// ([`EstimationOptions::depth_profile`]; `experiment --depth-profile`, default the
     /// library's).
     pub depth_profile: Option<DepthProfile>,
+    /// Model the image border in the least squares ([`EstimationOptions::image_border`];
+    /// `experiment --image-border`, default the library's).
+    pub image_border: bool,
 }
 
 /// One reported quantity of one trial.
@@ -145,10 +148,10 @@ pub struct TrialRecord {
 }
 
 /// Estimation options of a trial: [`EstimationOptions::scaled_for_noise`] at its noise
-/// and seed, with its depth profile.
+/// and seed, with its depth profile and image-border setting.
 pub fn estimation_options(spec: &TrialSpec) -> EstimationOptions {
     let o = EstimationOptions::scaled_for_noise(spec.scenario.noise_px, spec.scenario.seed);
-    EstimationOptions { depth_profile: spec.depth_profile, ..o }
+    EstimationOptions { depth_profile: spec.depth_profile, image_border: spec.image_border, ..o }
 }
 
 fn procedure_options(spec: &TrialSpec) -> VergeTiltOptions {
@@ -322,6 +325,7 @@ mod tests {
             initial: Encoders::default(),
             rotation: RotationMode::Fixed,
             depth_profile: EstimationOptions::default().depth_profile,
+            image_border: EstimationOptions::default().image_border,
         }
     }
 
@@ -336,6 +340,7 @@ mod tests {
             initial: Encoders::default(),
             rotation: RotationMode::Fixed,
             depth_profile: EstimationOptions::default().depth_profile,
+            image_border: EstimationOptions::default().image_border,
         };
         let clean = CleanRun::new(&s).unwrap();
         let crb = clean.crb_sigmas(1.5).unwrap();
