@@ -56,6 +56,34 @@ fn focal_row(m: &mut String, p: &Produced) {
     );
 }
 
+/// Every finite coverage of the conditions `keep` accepts, with the label `label` gives
+/// its (quantity, condition).
+fn coverage_entries(
+    p: &Produced,
+    keep: impl Fn(&ConditionSummary) -> bool,
+    label: impl Fn(&str, &ConditionSummary) -> String,
+) -> Vec<CoverageEntry> {
+    let mut all = Vec::new();
+    for c in p.sums.iter().filter(|c| keep(c)) {
+        for (q, v) in p.quantities.iter().zip(&c.coverage) {
+            if v.0.is_finite() {
+                all.push((v.0, label(q, c)));
+            }
+        }
+    }
+    all
+}
+
+/// A coverage and its label.
+type CoverageEntry = (f64, String);
+
+/// The lowest and highest of `entries` (`None` if there are none).
+fn extremes(entries: &[CoverageEntry]) -> Option<(CoverageEntry, CoverageEntry)> {
+    let lo = entries.iter().min_by(|a, b| a.0.total_cmp(&b.0)).cloned()?;
+    let hi = entries.iter().max_by(|a, b| a.0.total_cmp(&b.0)).cloned()?;
+    Some((lo, hi))
+}
+
 /// The ratio and coverage bars of a calibration run in another scene (the bars'
 /// conditions only, 3 px): its worst RMS / bound and the range of its 95 % coverages,
 /// judged like the default scene's grid (the paper's protocol does not fix the scene).
@@ -71,19 +99,10 @@ fn scene_ratio_coverage_rows(m: &mut String, p: &Produced) {
             ratio_verdict(r, ci, RATIO_BAR)
         );
     }
-    let mut all: Vec<(f64, String)> = Vec::new();
-    for c in p.sums.iter().filter(|c| c.group == "fixed" && c.x > 0.0) {
-        for (q, v) in p.quantities.iter().zip(&c.coverage) {
-            if v.0.is_finite() {
-                all.push((v.0, format!("{q} at {} px", c.x)));
-            }
-        }
-    }
-    let lo = all.iter().min_by(|a, b| a.0.total_cmp(&b.0));
-    let hi = all.iter().max_by(|a, b| a.0.total_cmp(&b.0));
+    let all = coverage_entries(p, |c| c.group == "fixed" && c.x > 0.0, |q, c| format!("{q} at {} px", c.x));
     let n = p.sums.iter().map(|c| c.ok).min().unwrap_or(0);
     let (clo, chi) = coverage_interval(n);
-    if let (Some(lo), Some(hi)) = (lo, hi) {
+    if let Some((lo, hi)) = extremes(&all) {
         let _ = writeln!(
             m,
             "| 95 % coverage of every reported sigma, calibration, {} ({} entries, {n} trials each: a calibrated sigma gives {}-{} %) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
@@ -333,23 +352,14 @@ crb_scenes` gives the bounds against the depth range), the 50-point elevation bo
     }
     if let Some(p) = find(ps, "coverage") {
         // Every (condition, quantity) entry with a coverage, and the extremes named.
-        let mut all: Vec<(f64, String)> = Vec::new();
-        for c in &p.sums {
-            for (q, v) in p.quantities.iter().zip(&c.coverage) {
-                if v.0.is_finite() {
-                    all.push((v.0, format!("{} at {} px ({})", q, c.x, c.group)));
-                }
-            }
-        }
-        let lo = all.iter().min_by(|a, b| a.0.total_cmp(&b.0)).cloned();
-        let hi = all.iter().max_by(|a, b| a.0.total_cmp(&b.0)).cloned();
+        let all = coverage_entries(p, |_| true, |q, c| format!("{} at {} px ({})", q, c.x, c.group));
         let n = p.sums.iter().map(|c| c.ok).min().unwrap_or(0);
         let (clo, chi) = coverage_interval(n);
         let outside = all.iter().filter(|v| v.0 < clo || v.0 > chi).count();
         let levels = |group: &str| {
             p.sums.iter().filter(|c| c.group == group).map(|c| c.x.to_string()).collect::<Vec<_>>().join(", ")
         };
-        if let (Some(lo), Some(hi)) = (lo, hi) {
+        if let Some((lo, hi)) = extremes(&all) {
             let _ = writeln!(
                 m,
                 "| 95 % coverage of every reported sigma ({} entries: the 11 verge/tilt quantities at {} px; with the robot stages at {} px the same 11 plus the pan reading and the steering zero; at least {n} trials each: a calibrated sigma gives {}-{} % with 95 % probability, {} entries outside that) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
