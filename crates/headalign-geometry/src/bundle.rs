@@ -1180,12 +1180,8 @@ impl Problem<'_> {
         else {
             return Some((r, jp));
         };
-        let reach = WINDOW_REACH_SIGMAS * sigma;
         for (axis, (lo, hi)) in [(x0, x1), (y0, y1)].into_iter().enumerate() {
             let predicted = r[axis] + obs.pixel[axis];
-            if predicted - lo > reach && hi - predicted > reach {
-                continue;
-            }
             let (shift, slope) = truncated_mean_shift(predicted, lo, hi, sigma);
             if shift == 0.0 && slope == 0.0 {
                 continue;
