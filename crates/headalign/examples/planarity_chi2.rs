@@ -25,7 +25,10 @@
 //! least-squares pose covariance instead of the bootstrap gave 4.1). `EXACT_CAL=1`: 3.2 / 3.5 / 3.0 at 1 px (seeds 1-40), 3.9 / 4.9 / 4.3 at 3 px
 //! (seeds 1-60): the remaining excess at 3 px is the drive motions' own covariance. Seed
 //! 170's first steering drive (far points only, rig at the readings 0.47 deg off): 42.7
-//! held, 30.0 propagated.
+//! held, 30.0 propagated, but from two runs whose pan stages left the head in different
+//! places (`AXES=held` changes the pan stage too): on the same drives it is 42.8
+//! propagated (`robot::tests::scan_steering_chi2`). These figures predate
+//! `EstimationOptions::image_border` as the default.
 use headalign::procedure::{VergeTiltRun, axis_perturbations};
 use headalign::robot::{PanOptions, SteeringOptions, align_pan, zero_steering};
 use headalign_sim::{Scenario, SimulatedRobot};

@@ -1377,35 +1377,54 @@ mod tests {
         (head, outcome)
     }
 
-    /// Seed 13 at 2 px from (pan 4, elevation 4, vergences 2 / -2) deg: the left axis is
-    /// re-measured in a check view 13 deg of elevation from the reference, where the axis
-    /// is most sensitive to the calibration (`examples/axis_diag.rs`).
-    fn check_view_case() -> (SimulatedHead, VergeTiltOutcome) {
+    /// The verge-tilt procedure as the experiments run it, at 2 px from (pan 4, elevation 4,
+    /// vergences 2 / -2) deg. At seeds 4, 11, 13, 15 and 23 (of 1-15 and 23) the left axis is
+    /// re-measured in a check view 9-14 deg of elevation from the reference, where the
+    /// axis is most sensitive to the calibration (`examples/axis_diag.rs`).
+    fn check_view_case_at(seed: u64) -> (SimulatedHead, VergeTiltOutcome) {
         let initial = Encoders { pan: 4.0, elevation: 4.0, verge_left: 2.0, verge_right: -2.0 };
-        let (head, outcome) =
-            run_as_experiment(Scenario { seed: 13, noise_px: 2.0, ..Scenario::default() }, initial);
-        let src = outcome.axis_sources.left.as_ref().unwrap();
-        let moved = (src.capture.encoders.elevation - outcome.calibration.reference_encoders.elevation).abs();
-        assert!(
-            moved > 5.0,
-            "the left axis should come from a check view after a large elevation move ({moved} deg)"
-        );
-        (head, outcome)
+        run_as_experiment(Scenario { seed, noise_px: 2.0, ..Scenario::default() }, initial)
     }
 
     /// The linearised calibration part ([`AxisFollow::followed`]: one Gauss-Newton step for
-    /// the points and for each axis pose) against the procedure's own computation under the
-    /// same perturbations: points re-triangulated to convergence (4 steps), the axis poses
-    /// resected by [`measure_cameras`] itself (robust, from its own inliers), the axes by
-    /// [`verge_axes_from_motion`]. Both Jacobians are propagated through the bundle
-    /// covariance. Tolerance 5 % (measured 0.9 % on the elevation, 0.05 % on the
-    /// vergences): the real resection's Huber weights (2 px, at 2 px noise) and its own
-    /// inlier choice make it a slightly different estimator than plain least squares over
-    /// fixed inliers. Letting the points seen only twice into the linearised resection (as
-    /// a first version did) gives 2.95x on the elevation here.
+    /// the points and for each axis pose, least squares over the inliers held) against the
+    /// procedure's own computation under the same perturbations: points re-triangulated
+    /// to convergence (4 steps), the axis poses resected by [`measure_cameras`] itself
+    /// (robust, from its own inliers), the axes by [`verge_axes_from_motion`]. Both
+    /// Jacobians are propagated through the bundle covariance. Seeds 1-12, the first
+    /// twelve, unselected (seeds 4 and 11 re-measure the left axis in a check view). The
+    /// agreement is a property of each seed: the real resection's Huber weights (2 px, at
+    /// 2 px noise) and its own inlier choice make it a different estimator from least
+    /// squares over fixed inliers. Over seeds 1-30 (`scan_check_view_seeds`) the elevation
+    /// ratio is 0.79-1.08, median 1.001 (seed 9 lowest, seed 13 0.88; without
+    /// `EstimationOptions::image_border` 0.86-1.02, median 0.997), the vergences'
+    /// 0.99-1.01 (without it 0.96-1.01): each seed is held to 25 % on the elevation and 5 %
+    /// on the vergences, the elevation's median to 3 %. Letting the points seen only twice
+    /// into the linearised resection (as a first version did) gave 2.95x on the elevation
+    /// at seed 13.
     #[test]
     fn axis_sensitivity_matches_the_real_resection() {
-        let (_, outcome) = check_view_case();
+        let mut elevation = Vec::new();
+        for seed in 1..=12 {
+            let (_, outcome) = check_view_case_at(seed);
+            let [a, b] = linearised_and_resected_sigmas(&outcome);
+            for (name, x, y, tol) in [
+                ("elevation", a.elevation_deg, b.elevation_deg, 0.25),
+                ("verge left", a.verge_left_deg, b.verge_left_deg, 0.05),
+                ("verge right", a.verge_right_deg, b.verge_right_deg, 0.05),
+            ] {
+                assert!((x / y - 1.0).abs() < tol, "seed {seed} {name}: linearised {x} vs resection {y}");
+            }
+            elevation.push(a.elevation_deg / b.elevation_deg);
+        }
+        elevation.sort_by(f64::total_cmp);
+        let median = 0.5 * (elevation[5] + elevation[6]);
+        assert!((median - 1.0).abs() < 0.03, "median elevation ratio {median}: {elevation:?}");
+    }
+
+    /// The calibration part of the alignment sigmas, linearised ([`AxisFollow::followed`])
+    /// and through the procedure's own resection (see the test above).
+    fn linearised_and_resected_sigmas(outcome: &VergeTiltOutcome) -> [AlignmentSigmas; 2] {
         let calib = &outcome.calibration;
         let reference = calib.reference_encoders;
         let sources = &outcome.axis_sources;
@@ -1438,34 +1457,56 @@ mod tests {
             let axes = VergeAxes { left: axis(&sources.left)?.left, right: axis(&sources.right)?.right };
             solve_alignment(&st, &axes, &reference).ok().map(|s| aligned_deltas(&s))
         });
-        let held = alignment_sigmas(calib, &outcome.verge_axes, &reference).unwrap();
-        let (a, b) = (
+        [
             sigmas_of(&(&linear * &cov.matrix * linear.transpose())),
             sigmas_of(&(&full * &cov.matrix * full.transpose())),
-        );
-        for (name, x, y) in [
-            ("elevation", a.elevation_deg, b.elevation_deg),
-            ("verge left", a.verge_left_deg, b.verge_left_deg),
-            ("verge right", a.verge_right_deg, b.verge_right_deg),
-        ] {
-            assert!(
-                (x / y - 1.0).abs() < 0.05,
-                "{name}: linearised {x} vs resection {y} (axes held: {held:?})"
-            );
+        ]
+    }
+
+    /// Monte-Carlo of the pose part: the axis sources' captures re-drawn 300 times and run
+    /// through [`measure_cameras`], [`verge_axes_from_motion`] and [`solve_alignment`] with
+    /// the calibration held; the spread of the aligned deltas against the pose part of
+    /// [`alignment_sigmas_measured`] (its variance at 1 px minus at ~0 px). Each draw is the
+    /// model the prediction linearises: the tracks its resection holds, at the projections
+    /// of the calibration's points through the measured poses, plus 1 px Gaussian noise.
+    /// (Exact pixels of the true scene instead add the calibration's fixed misfit, which
+    /// through the resection's Huber weights moved the spread by -30 % to +70 % of the
+    /// prediction over seeds 1-30; the model's draws 0.91-1.11.) 300 draws know a standard
+    /// deviation to 4 %; tolerance 15 % (3.5 standard errors) of the pose part plus 0.3 % of
+    /// the total sigma: the vergences' pose parts are a few thousandths of a degree (0.5-2 %
+    /// of the total), where the second-order term is as large as the linear one (seed 4's
+    /// left: 0.0023 deg against a linear 0.0017), and at that size a pose part changes the
+    /// total by less than 0.02 %.
+    /// Seeds 4 and 13 (check views 14 deg from the reference: the largest elevation pose
+    /// parts, 0.12 deg) and 14.
+    #[test]
+    fn pose_part_matches_monte_carlo() {
+        for seed in [4, 13, 14] {
+            let (head, outcome) = check_view_case_at(seed);
+            let [predicted, sd, total] = pose_part_and_monte_carlo(&head, &outcome, 300, true);
+            for (i, name) in ["elevation", "verge left", "verge right"].iter().enumerate() {
+                assert!(
+                    (sd[i] - predicted[i]).abs() < 0.15 * predicted[i] + 0.003 * total[i],
+                    "seed {seed} {name}: Monte-Carlo {} vs {} (total {})",
+                    sd[i],
+                    predicted[i],
+                    total[i]
+                );
+            }
         }
     }
 
-    /// Monte-Carlo of the pose part: the axis sources' captures re-drawn 300 times (exact
-    /// pixels plus 1 px Gaussian noise, no outliers) and run through [`measure_cameras`],
-    /// [`verge_axes_from_motion`] and [`solve_alignment`] with the calibration held; the
-    /// spread of the aligned deltas against the pose part of [`alignment_sigmas_measured`]
-    /// (its variance at 1 px minus at ~0 px). Elevation (pose part 0.11 deg here): 300 draws
-    /// know a standard deviation to 4 %; tolerance 15 % (3.5 standard errors; the real
-    /// resection's Huber weights cost it a few % of efficiency; measured +7 %).
-    #[test]
-    fn pose_part_matches_monte_carlo() {
+    /// The pose part of [`alignment_sigmas_measured`] at 1 px (elevation, verge left, verge
+    /// right; degrees), the standard deviations of `draws` Monte-Carlo re-draws (see the
+    /// test above; `consistent` false: exact pixels of the true scene), and the total
+    /// sigmas at 1 px.
+    fn pose_part_and_monte_carlo(
+        head: &SimulatedHead,
+        outcome: &VergeTiltOutcome,
+        draws: usize,
+        consistent: bool,
+    ) -> [[f64; 3]; 3] {
         use rand::{RngExt, SeedableRng};
-        let (head, outcome) = check_view_case();
         let calib = &outcome.calibration;
         let reference = calib.reference_encoders;
         let sources = &outcome.axis_sources;
@@ -1475,8 +1516,10 @@ mod tests {
             [s.elevation_deg.powi(2), s.verge_left_deg.powi(2), s.verge_right_deg.powi(2)]
         };
         let (v1, v0) = (var(1.0), var(1e-9));
-        let predicted: Vec<f64> = (0..3).map(|i| (v1[i] - v0[i]).max(0.0).sqrt()).collect();
+        let predicted = [0, 1, 2].map(|i| (v1[i] - v0[i]).max(0.0).sqrt());
         let state = &calib.bundle.state;
+        let points: std::collections::HashMap<u64, nalgebra::Point3<f64>> =
+            calib.points().into_iter().collect();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
         let mut noisy = |c: &headalign_platform::StereoCapture| {
             let mut c = c.clone();
@@ -1486,12 +1529,32 @@ mod tests {
             }
             c
         };
-        let draws = 300;
         let mut samples = Vec::with_capacity(draws);
         for _ in 0..draws {
             let mut axis = |src: &Option<AxisMeasurement>| -> VergeAxes {
                 let Some(src) = src else { return outcome.verge_axes };
-                let capture = noisy(&head.exact_capture(&src.capture.encoders));
+                // The tracks the prediction's resection holds, from the real capture.
+                let held = |k, obs, pose| -> std::collections::HashSet<u64> {
+                    resection_inliers(k, &points, obs, pose).into_iter().map(|(t, _)| t).collect()
+                };
+                let left = held(&state.left, &src.capture.left, &src.measured.ref_from_left);
+                let right = held(&state.right, &src.capture.right, &src.measured.ref_from_right);
+                let mut capture = head.exact_capture(&src.capture.encoders);
+                capture.left.retain(|o| left.contains(&o.track));
+                capture.right.retain(|o| right.contains(&o.track));
+                if consistent {
+                    for (obs, k, pose) in [
+                        (&mut capture.left, &state.left, &src.measured.ref_from_left),
+                        (&mut capture.right, &state.right, &src.measured.ref_from_right),
+                    ] {
+                        for o in obs.iter_mut() {
+                            if let Some(p) = points.get(&o.track).and_then(|x| project_into(k, pose, x)) {
+                                o.pixel = nalgebra::Point2::from(p);
+                            }
+                        }
+                    }
+                }
+                let capture = noisy(&capture);
                 let m = measure_cameras(
                     calib,
                     &capture,
@@ -1504,22 +1567,48 @@ mod tests {
             let axes = VergeAxes { left: axis(&sources.left).left, right: axis(&sources.right).right };
             samples.push(aligned_deltas(&solve_alignment(state, &axes, &reference).unwrap()));
         }
-        for (i, name) in ["elevation", "verge left", "verge right"].iter().enumerate() {
+        let sd = [0, 1, 2].map(|i| {
             let mean = samples.iter().map(|s| s[i]).sum::<f64>() / draws as f64;
-            let sd = (samples.iter().map(|s| (s[i] - mean).powi(2)).sum::<f64>() / (draws - 1) as f64).sqrt();
-            if i == 0 {
-                assert!(
-                    (sd / predicted[i] - 1.0).abs() < 0.15,
-                    "{name}: Monte-Carlo {sd} vs {}",
-                    predicted[i]
-                );
-            } else {
-                // The vergences' pose parts are a few thousandths of a degree (right: the
-                // second-order term dominates, 0.0006 deg against a linear 0.0003 deg):
-                // both must stay negligible against the total sigma.
-                let total = v1[i].sqrt();
-                assert!(sd < 0.01 * total && predicted[i] < 0.01 * total, "{name}: {sd}, {}", predicted[i]);
-            }
+            (samples.iter().map(|s| (s[i] - mean).powi(2)).sum::<f64>() / (draws - 1) as f64).sqrt()
+        });
+        [predicted, sd, v1.map(f64::sqrt)]
+    }
+
+    /// The two checks above over seeds 1-30, printed (a diagnostic, not a test: `cargo test
+    /// --release -p headalign --lib scan_check_view_seeds -- --ignored --nocapture`); the
+    /// Monte-Carlo both ways (`consistent` true and false).
+    #[test]
+    #[ignore]
+    fn scan_check_view_seeds() {
+        for seed in 1..=30 {
+            let (head, outcome) = check_view_case_at(seed);
+            let moved = outcome.axis_sources.left.as_ref().map_or(0.0, |src| {
+                (src.capture.encoders.elevation - outcome.calibration.reference_encoders.elevation).abs()
+            });
+            let [a, b] = linearised_and_resected_sigmas(&outcome);
+            let [p, model, _] = pose_part_and_monte_carlo(&head, &outcome, 200, true);
+            let [_, scene, total] = pose_part_and_monte_carlo(&head, &outcome, 200, false);
+            eprintln!(
+                "seed {seed} check view {moved:.1} deg | calibration part linearised/resected: elevation \
+                 {:.3} verge {:.3} {:.3} | pose part (deg) predicted / Monte-Carlo model / scene: \
+                 elevation {:.4} {:.4} {:.4}, verge left {:.5} {:.5} {:.5}, right {:.5} {:.5} {:.5} \
+                 | total {:.3} {:.3} {:.3}",
+                a.elevation_deg / b.elevation_deg,
+                a.verge_left_deg / b.verge_left_deg,
+                a.verge_right_deg / b.verge_right_deg,
+                p[0],
+                model[0],
+                scene[0],
+                p[1],
+                model[1],
+                scene[1],
+                p[2],
+                model[2],
+                scene[2],
+                total[0],
+                total[1],
+                total[2]
+            );
         }
     }
 

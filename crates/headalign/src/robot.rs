@@ -87,11 +87,12 @@
 //! below `min_turn_deg` is [`AlignError::TurnTooSmall`]; the planarity test above names
 //! a motion that is not planar. One drive failing it while the others pass is left out
 //! as an outlier when three remain and they all pass (`SteeringOutcome::dropped_turns`):
-//! at 3 px, seed 170's first drive saw far points only (depths 12-25 m), where the rig
-//! predicted at the readings (the vergence axes' error, about 0.5 deg after a 10 deg
-//! vergence move) skewed the motion 1.1 deg out of plane, chi-square 42.7 with the axes
-//! held as exact and still 30.0 with their uncertainty propagated (against 25.9); a robot
-//! that really pitches or rolls fails every drive. The turning centres
+//! at 3 px, seed 170's fourth drive has chi-square 43.5 with the axes held as exact and
+//! 42.8 with their uncertainty propagated, on the same drives (against 25.9; without
+//! [`crate::estimate::EstimationOptions::image_border`] its first drive, far points only,
+//! 42.7 / 42.8; an earlier reading of 30.0 with the uncertainty came from a second run
+//! whose pan stage had left the head elsewhere, so different drives); a robot that really
+//! pitches or rolls fails every drive. The turning centres
 //! (planar motion about the pan axis) give the steering zero, wheelbase and forward
 //! direction ([`steering_from_turns`]); the wheel is then set straight. The zero's sigma: each drive's motion covariance
 //! (independent drives) through its centre, plus the calibration's (every drive refitted
@@ -1236,6 +1237,7 @@ mod tests {
         seed: u64,
         noise: f64,
         depth_profile: Option<crate::estimate::DepthProfile>,
+        image_border: bool,
     ) -> (SimulatedRobot, crate::procedure::VergeTiltOutcome, Scenario) {
         let s = Scenario {
             seed,
@@ -1247,6 +1249,7 @@ mod tests {
             verge_rotation_deg: 3.0,
             estimation: EstimationOptions {
                 depth_profile,
+                image_border,
                 ..EstimationOptions::scaled_for_noise(noise, seed)
             },
             ..VergeTiltOptions::default()
@@ -1336,7 +1339,12 @@ mod tests {
         use crate::procedure::AxisMeasurement;
         use rand::{RngExt, SeedableRng};
         let noise = 3.0;
-        let (robot, vt, _) = experiment_robot(2, noise, EstimationOptions::default().depth_profile);
+        let (robot, vt, _) = experiment_robot(
+            2,
+            noise,
+            EstimationOptions::default().depth_profile,
+            EstimationOptions::default().image_border,
+        );
         let cal = &vt.calibration;
         let r0 = cal.reference_encoders;
         let enc = vt.final_encoders;
@@ -1373,39 +1381,47 @@ mod tests {
         assert!((0.8..1.3).contains(&ratio), "Monte-Carlo {mc} vs predicted {predicted}: {ratio}");
     }
 
-    /// Regression, seed 170 at 3 px as the experiments run it: its first steering drive
-    /// sees far points only, where the rig predicted at the readings is 0.47 deg off (the
-    /// vergence axes). Planarity chi-square with the axes held as exact 42.7, with their
-    /// uncertainty 30.0 (measured; the other drives 24.3 / 11.3 / 13.1 -> 15.9 / 1.0 /
-    /// 3.6). Bounds 35 and 40 sit between the two values with a margin for the solver's
-    /// tolerance; the drive still fails the 25.9 limit, which is why the one-drive drop
-    /// rule stays. The calibration's covariance is the linearised one (depth profile off):
-    /// with the default profile its sigmas are wider and already bring the held value to
-    /// 30.3 (with the axes 29.9; measured), which would not test the axes term.
-    #[test]
-    fn seed_170_far_drive_chi_square_falls_with_the_axes_uncertainty() {
-        let first_steer_chi2 = |with_axes: bool| {
-            let noise = 3.0;
-            let (mut robot, vt, s) = experiment_robot(170, noise, None);
-            let perturbations = vt.axis_perturbations();
-            let axes = with_axes.then_some(&perturbations);
-            let mut pan =
-                PanOptions { drive_m: s.drive_m, planarity_chi2_max: f64::INFINITY, ..PanOptions::default() };
-            pan.translation.ransac.threshold *= noise;
-            pan.registration.threshold *= noise;
-            pan.guide_px *= noise;
-            let mut st = SteeringOptions {
-                baseline_m: s.baseline_m,
-                planarity_chi2_max: f64::INFINITY,
-                ..SteeringOptions::default()
-            };
-            st.registration.threshold *= noise;
-            align_pan(&mut robot, &vt.calibration, &vt.verge_axes, axes, &pan).unwrap();
-            let z = zero_steering(&mut robot, &vt.calibration, &vt.verge_axes, axes, &st).unwrap();
-            z.turns[0].planarity_chi2
+    /// The steering drives' planarity chi-squares of the robot experiment at `seed`, 3 px,
+    /// with the vergence axes held as exact and with their uncertainty, on the same drives
+    /// (the robot cloned after the pan stage: a second run whose pan stage used the axes'
+    /// uncertainty would leave the head elsewhere and drive different drives).
+    fn steering_chi2(seed: u64, image_border: bool) -> [Vec<f64>; 2] {
+        let noise = 3.0;
+        let (mut robot, vt, s) = experiment_robot(seed, noise, None, image_border);
+        let perturbations = vt.axis_perturbations();
+        let mut pan =
+            PanOptions { drive_m: s.drive_m, planarity_chi2_max: f64::INFINITY, ..PanOptions::default() };
+        pan.translation.ransac.threshold *= noise;
+        pan.registration.threshold *= noise;
+        pan.guide_px *= noise;
+        let mut st = SteeringOptions {
+            baseline_m: s.baseline_m,
+            planarity_chi2_max: f64::INFINITY,
+            ..SteeringOptions::default()
         };
-        let (held, with) = (first_steer_chi2(false), first_steer_chi2(true));
-        assert!(held > 40.0 && with < 35.0, "held {held}, with the axes' uncertainty {with}");
+        st.registration.threshold *= noise;
+        align_pan(&mut robot, &vt.calibration, &vt.verge_axes, None, &pan).unwrap();
+        [None, Some(&perturbations)].map(|axes| {
+            let z = zero_steering(&mut robot.clone(), &vt.calibration, &vt.verge_axes, axes, &st).unwrap();
+            z.turns.iter().map(|t| t.planarity_chi2).collect()
+        })
+    }
+
+    /// Seeds 100-399 whose steering drives fail the planarity test with the axes held,
+    /// printed with the chi-squares on the same drives with the axes' uncertainty (a
+    /// diagnostic, not a test: `[IMAGE_BORDER=1] cargo test --release -p headalign --lib
+    /// scan_steering_chi2 -- --ignored --nocapture`, about 3.5 min). Measured: with the
+    /// image border modelled only seed 170 (fourth drive 43.5 held, 42.8 with the axes) and
+    /// 216 (third, 28.5 / 28.4); without it only seed 170 (first drive 42.7 / 42.8).
+    #[test]
+    #[ignore]
+    fn scan_steering_chi2() {
+        for seed in 100..400 {
+            let [held, with] = steering_chi2(seed, std::env::var("IMAGE_BORDER").is_ok_and(|v| v == "1"));
+            if held.iter().any(|&c| c > 25.9) {
+                eprintln!("SCAN seed {seed} held {held:.1?} with {with:.1?}");
+            }
+        }
     }
 
     /// The motion propagation against the covariance itself: for a quantity linear in the

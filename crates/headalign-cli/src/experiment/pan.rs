@@ -148,11 +148,10 @@ mod tests {
         assert!(q.crb.is_nan());
     }
 
-    /// Regression, 3 px seed 170 (`experiment coverage` / `fig5-pan-tilt`): its first
-    /// steering drive sees far points only, where the rig predicted at the readings
-    /// (vergence axes) skews the motion 1.1 deg out of plane, chi-square 42.7 against
-    /// 25.9 with the axes held as exact, 30.0 with their uncertainty propagated; the
-    /// other three drives pass. That drive is left out (`SteeringOutcome::dropped_turns`)
+    /// Regression, 3 px seed 170 (`experiment coverage` / `fig5-pan-tilt`): one steering
+    /// drive fails the planarity test (chi-square above 25.9: the fourth, or without
+    /// `EstimationOptions::image_border` the first, `robot::tests::scan_steering_chi2`);
+    /// the other three pass. That drive is left out (`SteeringOutcome::dropped_turns`)
     /// instead of failing the trial.
     #[test]
     fn one_non_planar_steering_drive_is_left_out() {
