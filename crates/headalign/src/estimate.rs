@@ -40,8 +40,9 @@
 //!    With [`EstimationOptions::image_border`] these passes model the image border: an
 //!    observation near it was kept only if its noise pointed inward, so its residual is
 //!    taken against the expected measurement of the truncated Gaussian. A point seen only
-//!    once by one camera is left out ([`EstimationOptions::min_camera_observations`]):
-//!    that observation alone sets its depth, so a wrong one is fitted exactly.
+//!    once by one camera can be left out ([`EstimationOptions::min_camera_observations`],
+//!    off by default): that observation alone sets its depth, so a wrong one is fitted
+//!    exactly, but the points go with their information.
 //! 8. the depth-reversed restart: the scene is far against the baseline, so the rig with
 //!    its baseline reversed (x component, or all of it) is a second least-squares minimum
 //!    with the points' depth order reversed; the least squares is restarted from it (points
@@ -213,14 +214,18 @@ pub struct EstimationOptions {
     pub image_border: bool,
     /// Observations a camera must have of a point for the point to take part in the
     /// maximum-likelihood passes, if that camera sees it at all (module docs step 7).
-    /// Default 2: a point seen once by one camera takes its depth from that observation
-    /// alone (the other camera's views, a few degrees apart, fix its direction only), so a
-    /// wrong observation near the epipolar line is fitted exactly at a wrong depth and no
-    /// residual test can see it. Measured (`examples/bias_pipeline.rs`, 3 px, seeds
-    /// 1-200): with 1 the final adjustment kept 0.585 outliers per trial, 116 of 117 of
-    /// this kind, and they put the focal lengths up to +0.25 sigma high; with 2, 0.005 per
-    /// trial, and about 5 % of the observations go with their points. 1 keeps every
-    /// point (the former selection).
+    /// Default 1 (every point). A point seen once by one camera takes its depth from that
+    /// observation alone (the other camera's views, a few degrees apart, fix its
+    /// direction only), so a wrong observation near the epipolar line is fitted exactly at
+    /// a wrong depth and no residual test can see it: at 3 px (`examples/bias_pipeline.rs`,
+    /// seeds 1-200) the final adjustment keeps 0.585 outliers per trial, 116 of 117 of
+    /// this kind, and the focal lengths come out up to +0.25 sigma high. 2 removes them
+    /// (0.005 per trial) but those points, about 5 % of the observations and often near
+    /// the image edge, carry much of the focal lengths' information: on `experiment all`
+    /// (same seeds) the RMS errors grew by up to 17 % (focal lengths at 3 px 6-17 %, alignment
+    /// 4-9 %) and the Cramer-Rao bound with them (f at 3 px 1.86 -> 2.00 %), so the
+    /// ratios fell (calibration grid worst 1.154 -> 1.09) while every estimate got worse
+    /// (`docs/ratio-tail.md`). Kept as an option for data with many such outliers.
     pub min_camera_observations: usize,
 }
 
@@ -325,7 +330,7 @@ impl Default for EstimationOptions {
             depth_step: None,
             depth_profile: Some(DepthProfile::DEFAULT),
             image_border: true,
-            min_camera_observations: 2,
+            min_camera_observations: 1,
         }
     }
 }

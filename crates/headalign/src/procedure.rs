@@ -1267,21 +1267,12 @@ mod tests {
     /// One trial of `headalign experiment` at the paper's protocol (default scenario at
     /// `noise_px`, head position 0, the experiments' estimation options).
     fn experiment_trial(seed: u64, noise_px: f64) -> (SimulatedHead, VergeTiltOutcome) {
-        experiment_trial_with(seed, noise_px, |e| e)
-    }
-
-    /// [`experiment_trial`] with its estimation options changed by `tune`.
-    fn experiment_trial_with(
-        seed: u64,
-        noise_px: f64,
-        tune: impl FnOnce(EstimationOptions) -> EstimationOptions,
-    ) -> (SimulatedHead, VergeTiltOutcome) {
         let scenario = Scenario { seed, noise_px, ..Scenario::default() };
         let mut head = SimulatedHead::new(scenario.clone()).unwrap();
         let options = VergeTiltOptions {
             rotation_deg: scenario.rotation_deg,
             verge_rotation_deg: 3.0,
-            estimation: tune(EstimationOptions::scaled_for_noise(noise_px, seed)),
+            estimation: EstimationOptions::scaled_for_noise(noise_px, seed),
             ..VergeTiltOptions::default()
         };
         let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
@@ -1294,13 +1285,9 @@ mod tests {
     /// (unit baseline); the minimum the least squares reaches from the truth has it at -0.53
     /// at 3.2 chi-square units lower cost, and the y-z reversed restart reaches it
     /// (`docs/ratio-tail.md`). The sign of that component tells the two minima apart.
-    /// Chosen with every point in the final passes (`min_camera_observations` 1): with the
-    /// default the data differ, and from the truth the least squares reaches the estimate's
-    /// basin (+0.67 forward), so the case tests nothing there.
     #[test]
     fn yz_reversed_restart_reaches_the_lower_minimum() {
-        let (_, outcome) =
-            experiment_trial_with(1211, 3.0, |e| EstimationOptions { min_camera_observations: 1, ..e });
+        let (_, outcome) = experiment_trial(1211, 3.0);
         let t = outcome.calibration.bundle.state.right_from_left.translation.vector.normalize();
         assert!(t.z < -0.3, "baseline direction {t:?}");
     }
