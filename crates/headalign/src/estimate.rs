@@ -2121,7 +2121,6 @@ mod tests {
         }
         let points_of = |kept: Vec<BundleObservation>| -> Vec<usize> {
             let mut p: Vec<usize> = kept.iter().map(|o| o.point).collect();
-            p.dedup();
             p.sort_unstable();
             p.dedup();
             p
