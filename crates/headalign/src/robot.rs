@@ -1330,11 +1330,12 @@ mod tests {
     /// and turned into axes, the calibration held; the spread of the predicted rig's
     /// rotation at the stage's final readings against [`predicted_rig`]'s covariance with
     /// only the pose modes of [`AxisPerturbations`]. Measured: Monte-Carlo / predicted
-    /// standard deviation 1.10 here (exact pixels of the true scene, which add the
-    /// calibration's fixed misfit through the Huber weights, also 1.10, and 1.07-1.30 over
-    /// seeds 1-8, `examples/axis_mc.rs`; with `EstimationOptions::min_camera_observations`
-    /// 2 the calibration differs and it was 1.22, exact pixels 1.33); the least-squares
-    /// pose covariance gave 1.40 (1.29-1.51).
+    /// standard deviation 1.10 here. Exact pixels of the true scene, as a first version
+    /// drew (they add the calibration's fixed misfit through the Huber weights), gave 1.10
+    /// with the image border not modelled and 1.07-1.30 over seeds 1-8
+    /// (`examples/axis_mc.rs`); with `EstimationOptions::min_camera_observations` 2 the
+    /// calibration differs and it was 1.22 (exact pixels 1.33). The least-squares pose
+    /// covariance gave 1.40 (1.29-1.51).
     /// Tolerance [0.8, 1.3]: 100 draws know a standard deviation to 7 %, the bootstrap's
     /// 200 to 5 %, and it keeps out the least-squares value.
     #[test]
