@@ -36,6 +36,7 @@
 //! (`EstimationOptions::min_camera_observations`) leaves them out: kept outliers 0.005
 //! per trial, the means +0.10 / +0.16 / +0.08 / +0.09 (seeds 1-200; +0.13 / +0.26 / +0.06
 //! / +0.16 with every point), at a cost in precision (`docs/ratio-tail.md`).
+use headalign_geometry::bundle::{BundleObservation, Side, residual_pixels};
 use headalign_sim::Scenario;
 
 mod common;
@@ -76,6 +77,13 @@ fn main() {
         }
         let mut run = headalign::procedure::VergeTiltRun::default();
         let out = run.run(&mut head, &opts).ok()?;
+        // Observations per (point, right camera?).
+        let obs = &out.calibration.observations;
+        let mut per_side = std::collections::HashMap::<(usize, bool), usize>::new();
+        for o in obs {
+            *per_side.entry((o.point, o.side == Side::Right)).or_default() += 1;
+        }
+        let count = |point: usize, right: bool| per_side.get(&(point, right)).copied().unwrap_or(0);
         // Observations of the final adjustment farther than 5 noise sigmas from their exact
         // pixel (outliers it kept), and their mean error's component toward the image
         // centre (pixels).
@@ -83,75 +91,57 @@ fn main() {
         if out.calibration.report.dropped_views.is_empty() {
             let rig: Vec<_> = run.views.iter().take(6).filter(|v| v.name != "verge").collect();
             let exact: Vec<_> = rig.iter().map(|v| head.exact_capture(&v.capture.encoders)).collect();
-            let centre =
-                nalgebra::Vector2::new(f64::from(sc.image_size[0]) / 2.0, f64::from(sc.image_size[1]) / 2.0);
-            for o in &out.calibration.observations {
+            let exact_pixel = |o: &BundleObservation| {
                 let track = out.calibration.point_tracks[o.point];
                 let list = match o.side {
-                    headalign_geometry::bundle::Side::Left => &exact[o.view].left,
-                    headalign_geometry::bundle::Side::Right => &exact[o.view].right,
+                    Side::Left => &exact[o.view].left,
+                    Side::Right => &exact[o.view].right,
                 };
-                let Some(x) = list.iter().find(|e| e.track == track) else { continue };
-                let e = o.pixel - x.pixel;
-                if e.norm() > 5.0 * noise && std::env::var("LIST").is_ok() {
-                    let same_side = out
-                        .calibration
-                        .observations
-                        .iter()
-                        .filter(|p| p.point == o.point && p.side == o.side)
-                        .count();
-                    let all = out.calibration.observations.iter().filter(|p| p.point == o.point).count();
+                list.iter().find(|e| e.track == track).map(|e| e.pixel)
+            };
+            let centre =
+                nalgebra::Vector2::new(f64::from(sc.image_size[0]) / 2.0, f64::from(sc.image_size[1]) / 2.0);
+            for o in obs {
+                let Some(x) = exact_pixel(o) else { continue };
+                let e = o.pixel - x;
+                if e.norm() <= 5.0 * noise {
+                    continue;
+                }
+                kept_outliers += 1.0;
+                inward += e.dot(&(centre - x.coords).normalize());
+                if std::env::var("LIST").is_ok() {
                     eprintln!(
-                        "kept outlier: seed {seed} view {} {:?} error {:.1} px ({:.1}, {:.1}); its point's observations {all}, in this camera {same_side}",
+                        "kept outlier: seed {seed} view {} {:?} error {:.1} px ({:.1}, {:.1}); its point's observations {}, in this camera {}",
                         o.view,
                         o.side,
                         e.norm(),
                         e.x,
-                        e.y
+                        e.y,
+                        count(o.point, false) + count(o.point, true),
+                        count(o.point, o.side == Side::Right)
                     );
                 }
-                if e.norm() > 5.0 * noise && std::env::var("DETAIL").is_ok() {
-                    for p in out.calibration.observations.iter().filter(|p| p.point == o.point) {
-                        let l = match p.side {
-                            headalign_geometry::bundle::Side::Left => &exact[p.view].left,
-                            headalign_geometry::bundle::Side::Right => &exact[p.view].right,
-                        };
-                        let ex = l.iter().find(|e| e.track == track).map(|e| e.pixel);
+                if std::env::var("DETAIL").is_ok() {
+                    for p in obs.iter().filter(|p| p.point == o.point) {
                         eprintln!(
-                            "  seed {seed} track {track} view {} {:?} pixel ({:.1}, {:.1}) exact {:?} residual {:?}",
+                            "  seed {seed} track {} view {} {:?} pixel ({:.1}, {:.1}) exact {:?} residual {:?}",
+                            out.calibration.point_tracks[p.point],
                             p.view,
                             p.side,
                             p.pixel.x,
                             p.pixel.y,
-                            ex.map(|e| (e.x, e.y)),
-                            headalign_geometry::bundle::residual_pixels(&out.calibration.bundle.state, p)
-                                .map(|r| (r.x, r.y))
+                            exact_pixel(p).map(|e| (e.x, e.y)),
+                            residual_pixels(&out.calibration.bundle.state, p).map(|r| (r.x, r.y))
                         );
                     }
-                    eprintln!("  names {:?}", rig.iter().map(|v| v.name.clone()).collect::<Vec<_>>());
-                }
-                if e.norm() > 5.0 * noise {
-                    kept_outliers += 1.0;
-                    inward += e.dot(&(centre - x.pixel.coords).normalize());
                 }
             }
         }
         let inward = if kept_outliers > 0.0 { inward / kept_outliers } else { 0.0 };
         // Observations of points seen only once by one of the cameras (whose depth then
         // hinges on that one observation).
-        let mut per_side = std::collections::HashMap::<(usize, bool), usize>::new();
-        for o in &out.calibration.observations {
-            *per_side.entry((o.point, o.side == headalign_geometry::bundle::Side::Right)).or_default() += 1;
-        }
-        let hinged = out
-            .calibration
-            .observations
-            .iter()
-            .filter(|o| {
-                per_side.get(&(o.point, false)).copied().unwrap_or(0) == 1
-                    || per_side.get(&(o.point, true)).copied().unwrap_or(0) == 1
-            })
-            .count() as f64;
+        let hinged =
+            obs.iter().filter(|o| count(o.point, false) == 1 || count(o.point, true) == 1).count() as f64;
         // CONVERGE=1: the estimate re-adjusted from itself on the same inliers with tight
         // tolerances (is the final least squares converged?).
         let refit;
