@@ -1529,16 +1529,23 @@ mod tests {
             }
             c
         };
+        // The tracks the prediction's resections hold (left, right camera), from the real
+        // capture of each axis source.
+        let held = |src: &Option<AxisMeasurement>| -> [std::collections::HashSet<u64>; 2] {
+            let Some(src) = src else { return Default::default() };
+            let of =
+                |k, obs, pose| resection_inliers(k, &points, obs, pose).into_iter().map(|(t, _)| t).collect();
+            [
+                of(&state.left, &src.capture.left, &src.measured.ref_from_left),
+                of(&state.right, &src.capture.right, &src.measured.ref_from_right),
+            ]
+        };
+        let held = [held(&sources.left), held(&sources.right)];
         let mut samples = Vec::with_capacity(draws);
         for _ in 0..draws {
-            let mut axis = |src: &Option<AxisMeasurement>| -> VergeAxes {
+            let mut axis = |src: &Option<AxisMeasurement>,
+                            [left, right]: &[std::collections::HashSet<u64>; 2]| {
                 let Some(src) = src else { return outcome.verge_axes };
-                // The tracks the prediction's resection holds, from the real capture.
-                let held = |k, obs, pose| -> std::collections::HashSet<u64> {
-                    resection_inliers(k, &points, obs, pose).into_iter().map(|(t, _)| t).collect()
-                };
-                let left = held(&state.left, &src.capture.left, &src.measured.ref_from_left);
-                let right = held(&state.right, &src.capture.right, &src.measured.ref_from_right);
                 let mut capture = head.exact_capture(&src.capture.encoders);
                 capture.left.retain(|o| left.contains(&o.track));
                 capture.right.retain(|o| right.contains(&o.track));
@@ -1564,7 +1571,10 @@ mod tests {
                 .unwrap();
                 verge_axes_from_motion(state, &reference, &capture.encoders, &m).unwrap()
             };
-            let axes = VergeAxes { left: axis(&sources.left).left, right: axis(&sources.right).right };
+            let axes = VergeAxes {
+                left: axis(&sources.left, &held[0]).left,
+                right: axis(&sources.right, &held[1]).right,
+            };
             samples.push(aligned_deltas(&solve_alignment(state, &axes, &reference).unwrap()));
         }
         let sd = [0, 1, 2].map(|i| {
