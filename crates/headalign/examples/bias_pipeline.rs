@@ -36,6 +36,17 @@
 //! (`EstimationOptions::min_camera_observations`) leaves them out: kept outliers 0.005
 //! per trial, the means +0.10 / +0.16 / +0.08 / +0.09 (seeds 1-200; +0.13 / +0.26 / +0.06
 //! / +0.16 with every point), at a cost in precision (`docs/ratio-tail.md`).
+//!
+//! `DEPTHDIAG=FILE` appends one CSV line per lone observation (seed, point, view, side,
+//! error against the exact pixel, the point's log distance minus its 10 angular
+//! neighbours' median, their MAD, the angle to the farthest of them in degrees, the log
+//! depth's stereo noise). Seeds 1-200 at 3 px, gate off: the 116 lone outliers lie at
+//! log ratio -1.6 (median; 5-95 % -2.2 to +0.7), the 3843 lone inliers at -0.01 (-0.40 to
+//! +0.31); over the noise, spread and a 0.1 roughness floor, 97 outliers and 24 inliers
+//! are beyond 5 deviations (1 px: 44 of 56 and 77 of 3963). That is
+//! `EstimationOptions::lone_depth_gate` (on by default, `LONE=off` / `LONE=Z`): at 3 px
+//! kept outliers 0.585 -> 0.115 per trial, the focal lengths' means +0.132 / +0.255 /
+//! +0.057 / +0.161 -> +0.099 / +0.117 / +0.042 / +0.050 sigma (seeds 1-200).
 use headalign_geometry::bundle::{BundleObservation, Side, residual_pixels};
 use headalign_sim::Scenario;
 
@@ -59,8 +70,17 @@ fn main() {
     ];
     let z_of = move |seed: u64| -> Option<[f64; 9]> {
         let d = Scenario::default();
-        let sc =
-            Scenario { seed, noise_px: noise, outlier_fraction: outliers.unwrap_or(d.outlier_fraction), ..d };
+        // ENCNOISE=deg: Gaussian noise on the encoder readings (the estimate's angle prior
+        // assumes `ENCODER_SIGMA_DEG`; the scenario's default is exact readings).
+        let encoder_noise_deg = std::env::var("ENCNOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(0.0);
+        let sc = Scenario {
+            seed,
+            noise_px: noise,
+            outlier_fraction: outliers.unwrap_or(d.outlier_fraction),
+            encoder_noise_deg,
+            points: std::env::var("POINTS").ok().and_then(|v| v.parse().ok()).unwrap_or(d.points),
+            ..d
+        };
         let mut head = headalign_sim::SimulatedHead::new(sc.clone()).ok()?;
         let mut opts = common::trial_options(&sc, seed);
         if let Some(g) = gate {
@@ -70,13 +90,24 @@ fn main() {
         if let Some(k) = std::env::var("MIN_CAMERA").ok().and_then(|v| v.parse::<usize>().ok()) {
             opts.estimation.min_camera_observations = k;
         }
+        // LONE=off: no lone-observation depth gate (`EstimationOptions::lone_depth_gate`);
+        // LONE=Z: its threshold Z.
+        match std::env::var("LONE").ok().as_deref() {
+            Some("off") => opts.estimation.lone_depth_gate = None,
+            Some(z) => {
+                if let (Some(g), Ok(z)) = (opts.estimation.lone_depth_gate.as_mut(), z.parse()) {
+                    g.z = z;
+                }
+            }
+            None => {}
+        }
         // FTHRESH=k: the stereo F RANSAC's and the homographies' thresholds k times wider.
         if let Some(k) = std::env::var("FTHRESH").ok().and_then(|v| v.parse::<f64>().ok()) {
             opts.estimation.fundamental.threshold *= k;
             opts.estimation.homography.threshold *= k;
         }
         let mut run = headalign::procedure::VergeTiltRun::default();
-        let out = run.run(&mut head, &opts).ok()?;
+        let out = run.run(&mut head, &opts).map_err(|e| eprintln!("seed {seed}: {e}")).ok()?;
         // Observations per (point, right camera?).
         let obs = &out.calibration.observations;
         let mut per_side = std::collections::HashMap::<(usize, bool), usize>::new();
@@ -138,6 +169,66 @@ fn main() {
             }
         }
         let inward = if kept_outliers > 0.0 { inward / kept_outliers } else { 0.0 };
+        // DEPTHDIAG=FILE: for each lone observation (its point seen once by that camera),
+        // the point's log distance against the median of its 10 angular neighbours among
+        // the points seen at least twice by each camera that sees them, with their spread.
+        if let Ok(path) = std::env::var("DEPTHDIAG") {
+            use std::io::Write;
+            let st = &out.calibration.bundle.state;
+            let anchored: Vec<usize> = (0..st.points.len())
+                .filter(|&i| {
+                    count(i, false) != 1 && count(i, true) != 1 && count(i, false) + count(i, true) > 0
+                })
+                .collect();
+            let rig: Vec<_> = run.views.iter().take(6).filter(|v| v.name != "verge").collect();
+            let exact: Vec<_> = rig.iter().map(|v| head.exact_capture(&v.capture.encoders)).collect();
+            let mut lines = String::new();
+            for o in obs {
+                if count(o.point, o.side == Side::Right) != 1 {
+                    continue;
+                }
+                let track = out.calibration.point_tracks[o.point];
+                let list = match o.side {
+                    Side::Left => &exact[o.view].left,
+                    Side::Right => &exact[o.view].right,
+                };
+                let err = list
+                    .iter()
+                    .find(|e| e.track == track)
+                    .map(|e| (o.pixel - e.pixel).norm())
+                    .unwrap_or(f64::NAN);
+                let p = st.points[o.point].coords;
+                let dir = p.normalize();
+                let mut nb: Vec<(f64, f64)> = anchored
+                    .iter()
+                    .map(|&j| {
+                        let q = st.points[j].coords;
+                        (q.normalize().dot(&dir), q.norm().ln())
+                    })
+                    .collect();
+                nb.sort_by(|a, b| b.0.total_cmp(&a.0));
+                nb.truncate(10);
+                let mut l: Vec<f64> = nb.iter().map(|x| x.1).collect();
+                l.sort_by(f64::total_cmp);
+                let med = l[l.len() / 2];
+                let mut dev: Vec<f64> = l.iter().map(|x| (x - med).abs()).collect();
+                dev.sort_by(f64::total_cmp);
+                let mad = dev[dev.len() / 2];
+                let angle = nb.last().map(|x| x.0.clamp(-1.0, 1.0).acos().to_degrees()).unwrap_or(f64::NAN);
+                let fb = st.left.fx * st.right_from_left.translation.vector.norm();
+                lines += &format!(
+                    "{seed},{},{},{:?},{err:.2},{:.4},{mad:.4},{angle:.2},{:.5}\n",
+                    o.point,
+                    o.view,
+                    o.side,
+                    p.norm().ln() - med,
+                    noise * p.norm() / fb
+                );
+            }
+            if let Ok(mut f) = std::fs::OpenOptions::new().create(true).append(true).open(&path) {
+                let _ = f.write_all(lines.as_bytes());
+            }
+        }
         // Observations of points seen only once by one of the cameras (whose depth then
         // hinges on that one observation).
         let hinged =

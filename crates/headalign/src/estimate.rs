@@ -40,9 +40,12 @@
 //!    With [`EstimationOptions::image_border`] these passes model the image border: an
 //!    observation near it was kept only if its noise pointed inward, so its residual is
 //!    taken against the expected measurement of the truncated Gaussian. A point seen only
-//!    once by one camera can be left out ([`EstimationOptions::min_camera_observations`],
-//!    off by default): that observation alone sets its depth, so a wrong one is fitted
-//!    exactly, but the points go with their information.
+//!    once by one camera takes its depth from that observation alone, so a wrong one is
+//!    fitted exactly at a wrong depth; such a point is left out when that depth is off its
+//!    neighbours' by more than its own stereo noise and the scene's roughness allow
+//!    ([`EstimationOptions::lone_depth_gate`], [`lone_depth_outliers`]). All of them can
+//!    be left out ([`EstimationOptions::min_camera_observations`], off by default), but
+//!    the points go with their information.
 //! 8. the depth-reversed restart: the scene is far against the baseline, so the rig with
 //!    its baseline reversed (x component, or all of it) is a second least-squares minimum
 //!    with the points' depth order reversed; the least squares is restarted from it (points
@@ -108,8 +111,11 @@ pub(crate) type Reconstruction = BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point
 /// The plane homographies (left, right) of one rotation.
 type PlanePair = (Matrix3<f64>, Matrix3<f64>);
 
-/// Encoder differences below this (degrees) count as "did not move".
-pub const MOVED_DEG: f64 = 1e-6;
+/// Encoder differences below this (degrees) count as "did not move": above the read jitter
+/// of a joint at rest (a reading with Gaussian noise of [`ENCODER_SIGMA_DEG`] differs from
+/// another by 0.014 deg RMS; 0.05 deg still failed 1 trial in 200 with "no view rotates the
+/// pan joint alone"), far below any commanded rotation (1 deg and up).
+pub const MOVED_DEG: f64 = 0.1;
 
 /// Points farther than this many times the median point distance, or nearer than its
 /// inverse, are treated as wrong tracks (a scene spans far less than a factor 100).
@@ -227,6 +233,32 @@ pub struct EstimationOptions {
     /// ratios fell (calibration grid worst 1.154 -> 1.09) while every estimate got worse
     /// (`docs/ratio-tail.md`). Kept as an option for data with many such outliers.
     pub min_camera_observations: usize,
+    /// Test of the points seen once by one camera against their neighbours' depth
+    /// ([`lone_depth_outliers`]): such a point's depth rests on that one observation, so
+    /// a wrong one near the epipolar line puts it at a wrong depth that no residual shows,
+    /// but usually far from the surface around it. `None` keeps every such point.
+    pub lone_depth_gate: Option<LoneDepthGate>,
+}
+
+/// Which points [`lone_depth_outliers`] flags: a point seen once by one camera whose log
+/// distance differs from the median of its `neighbours` nearest well-seen points (by
+/// direction) by more than `z` standard deviations, the deviation's variance being that of
+/// its own stereo depth (`sqrt 2` noise over the disparity), plus the neighbours' spread
+/// (1.4826 MAD) and the surface's `roughness`, all in log distance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LoneDepthGate {
+    /// Threshold in standard deviations (default 5).
+    pub z: f64,
+    /// Log-distance spread a point may have about its neighbours' median on a smooth
+    /// scene (default 0.1: 10 %).
+    pub roughness: f64,
+    /// Neighbours compared (default 10); with fewer well-seen points nothing is flagged.
+    pub neighbours: usize,
+}
+
+impl LoneDepthGate {
+    /// The default (field docs).
+    pub const DEFAULT: LoneDepthGate = LoneDepthGate { z: 5.0, roughness: 0.1, neighbours: 10 };
 }
 
 /// How [`profile_depth_scale`] widens the reported covariance: the estimate is
@@ -331,6 +363,7 @@ impl Default for EstimationOptions {
             depth_profile: Some(DepthProfile::DEFAULT),
             image_border: true,
             min_camera_observations: 1,
+            lone_depth_gate: Some(LoneDepthGate::DEFAULT),
         }
     }
 }
@@ -372,6 +405,17 @@ impl EstimationOptions {
         {
             return Err(AlignError::InvalidOption(
                 "depth_step needs a positive finite radius and a finite ratio above 1".into(),
+            ));
+        }
+        if let Some(g) = self.lone_depth_gate
+            && !(g.z.is_finite()
+                && g.z > 0.0
+                && g.roughness.is_finite()
+                && g.roughness >= 0.0
+                && g.neighbours >= 3)
+        {
+            return Err(AlignError::InvalidOption(
+                "lone_depth_gate needs a positive finite z, a finite roughness >= 0 and at least 3 neighbours".into(),
             ));
         }
         if self.min_tracks < 8 {
@@ -1248,7 +1292,7 @@ fn maximum_likelihood_pass(
         .copied()
         .filter(|o| residual_pixels(&state, o).is_some_and(|r| r.norm() <= c * sigma.max(0.05)))
         .collect();
-    let mut obs = plausible_points(&state, gated, options.min_camera_observations);
+    let mut obs = plausible_points(&state, gated, options, sigma);
     if obs.len() < options.min_tracks {
         obs = fallback.to_vec();
         state = robust.state.clone();
@@ -1281,7 +1325,7 @@ fn maximum_likelihood_pass(
                 residual_pixels(&result.state, o).is_some_and(|r| r.norm() <= c * refit.max(0.05) * scale)
             })
             .collect();
-        let next = plausible_points(&result.state, next, options.min_camera_observations);
+        let next = plausible_points(&result.state, next, options, refit);
         let key = |o: &BundleObservation| (o.point, o.view, o.side == Side::Right);
         let stable = next.len() == obs.len() && next.iter().zip(&obs).all(|(a, b)| key(a) == key(b));
         let moved = (refit / sigma - 1.0).abs() > 0.01;
@@ -1550,18 +1594,19 @@ pub const ML_ROUNDS: usize = 5;
 fn plausible_points(
     state: &RigState,
     gated: Vec<BundleObservation>,
-    min_camera_observations: usize,
+    options: &EstimationOptions,
+    noise_px: f64,
 ) -> Vec<BundleObservation> {
-    let mut counts = vec![0usize; state.points.len()];
-    let mut per_camera = vec![[0usize; 2]; state.points.len()];
-    for o in &gated {
-        counts[o.point] += 1;
-        per_camera[o.point][usize::from(o.side == Side::Right)] += 1;
-    }
+    let per_camera = camera_counts(state.points.len(), &gated);
+    let mut counts: Vec<usize> = per_camera.iter().map(|k| k[0] + k[1]).collect();
     // A point seen once by one camera takes its depth from that observation alone
-    // (`EstimationOptions::min_camera_observations`).
-    for (c, k) in counts.iter_mut().zip(&per_camera) {
-        if k.iter().any(|&n| n > 0 && n < min_camera_observations) {
+    // (`EstimationOptions::min_camera_observations`, `lone_depth_gate`).
+    let lone = match &options.lone_depth_gate {
+        Some(g) => lone_depth_outliers(state, &gated, noise_px, g),
+        None => vec![false; state.points.len()],
+    };
+    for ((c, k), lone) in counts.iter_mut().zip(&per_camera).zip(lone) {
+        if lone || k.iter().any(|&n| n > 0 && n < options.min_camera_observations) {
             *c = 0;
         }
     }
@@ -1576,6 +1621,88 @@ fn plausible_points(
         !d.is_nan() && d >= median / DEPTH_RATIO
     };
     gated.into_iter().filter(|o| counts[o.point] >= MIN_POINT_OBSERVATIONS && tame(o.point)).collect()
+}
+
+/// Observations of each point by the left and the right camera.
+fn camera_counts(points: usize, obs: &[BundleObservation]) -> Vec<[usize; 2]> {
+    let mut per_camera = vec![[0usize; 2]; points];
+    for o in obs {
+        if let Some(k) = per_camera.get_mut(o.point) {
+            k[usize::from(o.side == Side::Right)] += 1;
+        }
+    }
+    per_camera
+}
+
+/// Points seen once by one camera (and at least [`MIN_POINT_OBSERVATIONS`] times in
+/// all) whose depth disagrees with their neighbours' ([`LoneDepthGate`]), flagged per
+/// point of `state`.
+///
+/// Why: the other camera's views, a few degrees apart, fix such a point's direction but
+/// hardly its depth, so the one observation sets the depth; a wrong observation near the
+/// epipolar line is fitted exactly at a wrong depth (`examples/bias_pipeline.rs`: 116 of
+/// the 117 outliers the final adjustment kept at 3 px). A wrong pixel anywhere along the
+/// line is a wrong disparity, usually far from that of the surface around the point.
+///
+/// The neighbours are the `gate.neighbours` points nearest in direction (from the
+/// reference origin) among those seen by no camera exactly once; the deviation is
+/// `ln d - median ln d_j`, over `hypot(sqrt 2 sigma_ln_d, 1.4826 MAD, roughness)` with
+/// `sigma_ln_d = noise d / (f |t|)` the log-depth noise of one stereo disparity (`f` the
+/// lone camera's fx, `|t|` the baseline, `d` the distance). Units: `noise_px` pixels,
+/// `state` in any length unit. Pitfall: a lone point on a near object in front of a
+/// wall is flagged too (its information is lost, not its correctness).
+pub fn lone_depth_outliers(
+    state: &RigState,
+    obs: &[BundleObservation],
+    noise_px: f64,
+    gate: &LoneDepthGate,
+) -> Vec<bool> {
+    let n = state.points.len();
+    let per_camera = camera_counts(n, obs);
+    let mut flags = vec![false; n];
+    let baseline = state.right_from_left.translation.vector.norm();
+    let usable = |i: usize| {
+        let d = state.points[i].coords.norm();
+        d.is_finite() && d > 0.0
+    };
+    let anchored: Vec<(nalgebra::Vector3<f64>, f64)> = (0..n)
+        .filter(|&i| {
+            let k = per_camera[i];
+            k[0] != 1 && k[1] != 1 && k[0] + k[1] >= MIN_POINT_OBSERVATIONS && usable(i)
+        })
+        .map(|i| (state.points[i].coords.normalize(), state.points[i].coords.norm().ln()))
+        .collect();
+    if anchored.len() < gate.neighbours || baseline.is_nan() || baseline <= 0.0 {
+        return flags;
+    }
+    for (i, k) in per_camera.iter().enumerate() {
+        let lone_side = match k {
+            [1, r] if *r + 1 >= MIN_POINT_OBSERVATIONS => Side::Left,
+            [l, 1] if *l + 1 >= MIN_POINT_OBSERVATIONS => Side::Right,
+            _ => continue,
+        };
+        if !usable(i) {
+            continue;
+        }
+        let p = state.points[i].coords;
+        let dir = p.normalize();
+        let mut near: Vec<(f64, f64)> = anchored.iter().map(|(u, l)| (u.dot(&dir), *l)).collect();
+        near.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let mut logs: Vec<f64> = near.iter().take(gate.neighbours).map(|x| x.1).collect();
+        logs.sort_by(f64::total_cmp);
+        let median = logs[logs.len() / 2];
+        let mut spread: Vec<f64> = logs.iter().map(|l| (l - median).abs()).collect();
+        spread.sort_by(f64::total_cmp);
+        let mad = spread[spread.len() / 2];
+        let f = match lone_side {
+            Side::Left => state.left.fx,
+            Side::Right => state.right.fx,
+        };
+        let sigma_ln_d = noise_px * p.norm() / (f.abs() * baseline);
+        let scale = (2.0 * sigma_ln_d * sigma_ln_d + (1.4826 * mad).powi(2) + gate.roughness.powi(2)).sqrt();
+        flags[i] = (p.norm().ln() - median).abs() > gate.z * scale;
+    }
+    flags
 }
 
 /// Number of angle-prior residuals of a state under `options` (one per free joint angle of
@@ -2125,9 +2252,57 @@ mod tests {
             p.dedup();
             p
         };
-        assert_eq!(points_of(plausible_points(&state, obs.clone(), 2)), [1, 2]);
-        assert_eq!(points_of(plausible_points(&state, obs.clone(), 1)), [0, 1, 2]);
-        assert_eq!(plausible_points(&state, obs.clone(), 1).len(), obs.len());
+        let with = |k: usize| EstimationOptions { min_camera_observations: k, ..Default::default() };
+        assert_eq!(points_of(plausible_points(&state, obs.clone(), &with(2), 1.0)), [1, 2]);
+        assert_eq!(points_of(plausible_points(&state, obs.clone(), &with(1), 1.0)), [0, 1, 2]);
+        assert_eq!(plausible_points(&state, obs.clone(), &with(1), 1.0).len(), obs.len());
+    }
+
+    /// `lone_depth_outliers`: on a wall at 10 baselines (35 points seen twice by each
+    /// camera), points seen three times by the left camera and once by the right are
+    /// flagged when their depth is off the wall beyond the gate (3: ln 0.3 = -1.2, about 12
+    /// of its 0.10 deviations at 1 px) and kept near it (12: 1.8 deviations); a point seen
+    /// once by each camera (too few observations) and the wall's points are never flagged;
+    /// at 100 px of noise the near point's own stereo depth is too noisy to flag it (1.9
+    /// deviations); with too few well-seen points nothing is flagged.
+    #[test]
+    fn lone_points_off_their_neighbours_depth_are_flagged() {
+        let mut points = Vec::new();
+        let mut obs = Vec::new();
+        for i in 0..35 {
+            let (x, y) = (f64::from(i % 7) - 3.0, f64::from(i / 7) - 2.0);
+            points.push(nalgebra::Point3::new(x, y, 10.0));
+            for v in 0..2 {
+                obs.push(obs_at(i as usize, v, Side::Left, 0.0, 0.0));
+                obs.push(obs_at(i as usize, v, Side::Right, 0.0, 0.0));
+            }
+        }
+        // Lone points along the direction (0.5, 0.5, 10), at depths 3, 10 and 12, and one
+        // seen once by each camera at depth 3.
+        let dir = nalgebra::Vector3::new(0.5, 0.5, 10.0).normalize();
+        for (k, d) in [3.0, 10.0, 12.0, 3.0].into_iter().enumerate() {
+            points.push(nalgebra::Point3::from(dir * d));
+            let views = if k == 3 { 1 } else { 3 };
+            for v in 0..views {
+                obs.push(obs_at(35 + k, v, Side::Left, 0.0, 0.0));
+            }
+            obs.push(obs_at(35 + k, 0, Side::Right, 0.0, 0.0));
+        }
+        let mut state = state_at(&[]);
+        state.points = points;
+        let gate = LoneDepthGate::DEFAULT;
+        let flags = lone_depth_outliers(&state, &obs, 1.0, &gate);
+        let flagged: Vec<usize> = (0..flags.len()).filter(|&i| flags[i]).collect();
+        assert_eq!(flagged, [35]);
+        assert!(lone_depth_outliers(&state, &obs, 100.0, &gate).iter().all(|f| !f));
+        let few = LoneDepthGate { neighbours: 36, ..gate };
+        assert!(lone_depth_outliers(&state, &obs, 1.0, &few).iter().all(|f| !f));
+        // plausible_points drops the flagged point's observations and only those.
+        let kept = plausible_points(&state, obs.clone(), &EstimationOptions::default(), 1.0);
+        assert!(kept.iter().all(|o| o.point != 35));
+        assert_eq!(kept.len(), obs.len() - 4 - 2);
+        let off = EstimationOptions { lone_depth_gate: None, ..Default::default() };
+        assert_eq!(plausible_points(&state, obs.clone(), &off, 1.0).len(), obs.len() - 2);
     }
 
     /// A step between two planes: exactly the points with a neighbour across the step
@@ -2226,6 +2401,18 @@ mod tests {
         assert_eq!(roles[0], ViewRole::Reference);
         assert_eq!(roles[1], ViewRole::Rig { pan_deg: 0.0, elevation_deg: 3.0 });
         assert_eq!(roles[3], ViewRole::Verge);
+    }
+
+    /// Read jitter of a joint at rest (0.02 deg, two encoder sigmas) is not a motion: the
+    /// pan view stays a single-joint rotation and the elevation view is not a vergence.
+    #[test]
+    fn encoder_jitter_is_not_a_motion() {
+        let mut e = view("e", 0.0, 3.0, 0.0);
+        e.capture.encoders.verge_left = 0.02;
+        let views = [view("i", 0.0, 0.0, 0.0), e, view("p", 3.0, 0.02, 0.0)];
+        let roles = classify_views(&views).unwrap();
+        assert_eq!(roles[1], ViewRole::Rig { pan_deg: 0.0, elevation_deg: 3.0 });
+        assert!(matches!(roles[2], ViewRole::Rig { pan_deg, .. } if pan_deg == 3.0));
     }
 
     #[test]
@@ -2501,6 +2688,14 @@ mod tests {
         assert!(EstimationOptions::default().validate().is_ok());
         assert!(EstimationOptions { reselect_sigmas: 0.5, ..Default::default() }.validate().is_err());
         assert!(EstimationOptions { min_camera_observations: 0, ..Default::default() }.validate().is_err());
+        for g in [
+            LoneDepthGate { z: 0.0, ..LoneDepthGate::DEFAULT },
+            LoneDepthGate { z: f64::NAN, ..LoneDepthGate::DEFAULT },
+            LoneDepthGate { roughness: -0.1, ..LoneDepthGate::DEFAULT },
+            LoneDepthGate { neighbours: 2, ..LoneDepthGate::DEFAULT },
+        ] {
+            assert!(EstimationOptions { lone_depth_gate: Some(g), ..Default::default() }.validate().is_err());
+        }
         assert!(EstimationOptions { prefilter_px: f64::NAN, ..Default::default() }.validate().is_err());
         assert!(EstimationOptions { min_tracks: 3, ..Default::default() }.validate().is_err());
         let bad = DepthProfile { z: 0.0, ..DepthProfile::DEFAULT };

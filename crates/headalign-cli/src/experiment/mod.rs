@@ -40,7 +40,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::estimate::{DepthProfile, EstimationOptions};
+use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate};
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -99,6 +99,12 @@ pub struct ExperimentArgs {
     /// default.
     #[arg(long, value_parser = parse_on_off)]
     pub image_border: Option<bool>,
+    /// The depth test of points seen once by one camera
+    /// (`EstimationOptions::lone_depth_gate`): `off` or `Z` (the threshold in deviations,
+    /// the other settings the library's); default the library's. For comparing settings
+    /// without editing the default.
+    #[arg(long, value_parser = parse_lone_gate)]
+    pub lone_depth_gate: Option<LoneSetting>,
 }
 
 /// Parse `on` / `off`.
@@ -115,6 +121,24 @@ fn parse_on_off(v: &str) -> Result<bool, String> {
 struct Tuning {
     depth_profile: Option<DepthProfile>,
     image_border: bool,
+    lone_depth_gate: Option<LoneDepthGate>,
+}
+
+/// A `--lone-depth-gate` value: `None` is `off`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoneSetting(pub Option<LoneDepthGate>);
+
+/// Parse `off` or `Z`, validated as [`EstimationOptions::validate`] does.
+fn parse_lone_gate(v: &str) -> Result<LoneSetting, String> {
+    if v == "off" {
+        return Ok(LoneSetting(None));
+    }
+    let z = v.trim().parse::<f64>().map_err(|e| format!("'{v}': {e}"))?;
+    let g = LoneDepthGate { z, ..LoneDepthGate::DEFAULT };
+    EstimationOptions { lone_depth_gate: Some(g), ..EstimationOptions::default() }
+        .validate()
+        .map_err(|e| e.to_string())?;
+    Ok(LoneSetting(Some(g)))
 }
 
 /// A `--depth-profile` value: `None` is `off`.
@@ -474,6 +498,7 @@ fn spec(exp: &Experiment, c: &Condition, trial: usize, seed: u64, tuning: Tuning
         rotation: c.rotation,
         depth_profile: tuning.depth_profile,
         image_border: tuning.image_border,
+        lone_depth_gate: tuning.lone_depth_gate,
     }
 }
 
@@ -818,7 +843,9 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
     let t0 = Instant::now();
     let profile = args.depth_profile.map_or(EstimationOptions::default().depth_profile, |p| p.0);
     let image_border = args.image_border.unwrap_or(EstimationOptions::default().image_border);
-    let outcomes = run_experiment(&exp, trials, args.seed, Tuning { depth_profile: profile, image_border });
+    let lone_depth_gate = args.lone_depth_gate.map_or(EstimationOptions::default().lone_depth_gate, |g| g.0);
+    let tuning = Tuning { depth_profile: profile, image_border, lone_depth_gate };
+    let outcomes = run_experiment(&exp, trials, args.seed, tuning);
     let seconds = t0.elapsed().as_secs_f64();
     let sums = summarise(&exp, &outcomes);
     write_csv(&args.out.join(format!("{stem}.csv")), &exp, &outcomes)?;
@@ -844,6 +871,14 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
         md = md.replacen(
             "\n\n",
             &format!("\n\nImage border modelled in the least squares (`--image-border`): {how}.\n\n"),
+            1,
+        );
+    }
+    if args.lone_depth_gate.is_some() {
+        let how = lone_depth_gate.map_or("off".to_string(), |g| format!("z = {}", g.z));
+        md = md.replacen(
+            "\n\n",
+            &format!("\n\nDepth test of points seen once by a camera (`--lone-depth-gate`): {how}.\n\n"),
             1,
         );
     }
@@ -972,6 +1007,7 @@ mod tests {
             scene: "default".into(),
             depth_profile: None,
             image_border: None,
+            lone_depth_gate: None,
         };
         let mut ps = Vec::new();
         for scene in ["default", "paper", "robot"] {
@@ -1004,6 +1040,19 @@ mod tests {
         assert_eq!(parse_on_off("on"), Ok(true));
         assert_eq!(parse_on_off("off"), Ok(false));
         assert!(parse_on_off("yes").is_err() && parse_on_off("").is_err());
+    }
+
+    /// `--lone-depth-gate`: `off` or a positive threshold; bad values are clean errors.
+    #[test]
+    fn lone_gate_values_parse() {
+        assert_eq!(parse_lone_gate("off"), Ok(LoneSetting(None)));
+        assert_eq!(
+            parse_lone_gate("3"),
+            Ok(LoneSetting(Some(LoneDepthGate { z: 3.0, ..LoneDepthGate::DEFAULT })))
+        );
+        for bad in ["0", "-1", "on", "NaN", ""] {
+            assert!(parse_lone_gate(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

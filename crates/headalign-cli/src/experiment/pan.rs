@@ -128,6 +128,7 @@ mod tests {
             rotation: RotationMode::Fixed,
             depth_profile: headalign::estimate::EstimationOptions::default().depth_profile,
             image_border: headalign::estimate::EstimationOptions::default().image_border,
+            lone_depth_gate: headalign::estimate::EstimationOptions::default().lone_depth_gate,
         }
     }
 
