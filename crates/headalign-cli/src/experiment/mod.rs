@@ -105,6 +105,19 @@ pub struct ExperimentArgs {
     /// without editing the default.
     #[arg(long, value_parser = parse_lone_gate)]
     pub lone_depth_gate: Option<LoneSetting>,
+    /// Standard deviation of the simulated encoder readings' noise in the noisy trials,
+    /// degrees (`Scenario::encoder_noise_deg`; the noise-free run that gives the
+    /// Cramer-Rao bound reads exactly). Default 0: exact readings.
+    #[arg(long, value_parser = parse_encoder_noise, default_value_t = 0.0)]
+    pub encoder_noise: f64,
+}
+
+/// Parse a finite, non-negative encoder noise in degrees.
+fn parse_encoder_noise(v: &str) -> Result<f64, String> {
+    match v.trim().parse::<f64>() {
+        Ok(x) if x.is_finite() && x >= 0.0 => Ok(x),
+        _ => Err(format!("expected a finite encoder noise >= 0 in degrees, got '{v}'")),
+    }
 }
 
 /// Parse `on` / `off`.
@@ -122,6 +135,7 @@ struct Tuning {
     depth_profile: Option<DepthProfile>,
     image_border: bool,
     lone_depth_gate: Option<LoneDepthGate>,
+    encoder_noise_deg: f64,
 }
 
 /// A `--lone-depth-gate` value: `None` is `off`.
@@ -493,7 +507,7 @@ struct Outcome {
 fn spec(exp: &Experiment, c: &Condition, trial: usize, seed: u64, tuning: Tuning) -> TrialSpec {
     let initial = exp.positions.get(trial % exp.positions.len().max(1)).copied().unwrap_or_default();
     TrialSpec {
-        scenario: Scenario { seed, ..c.scenario.clone() },
+        scenario: Scenario { seed, encoder_noise_deg: tuning.encoder_noise_deg, ..c.scenario.clone() },
         initial,
         rotation: c.rotation,
         depth_profile: tuning.depth_profile,
@@ -844,7 +858,12 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
     let profile = args.depth_profile.map_or(EstimationOptions::default().depth_profile, |p| p.0);
     let image_border = args.image_border.unwrap_or(EstimationOptions::default().image_border);
     let lone_depth_gate = args.lone_depth_gate.map_or(EstimationOptions::default().lone_depth_gate, |g| g.0);
-    let tuning = Tuning { depth_profile: profile, image_border, lone_depth_gate };
+    let tuning = Tuning {
+        depth_profile: profile,
+        image_border,
+        lone_depth_gate,
+        encoder_noise_deg: args.encoder_noise,
+    };
     let outcomes = run_experiment(&exp, trials, args.seed, tuning);
     let seconds = t0.elapsed().as_secs_f64();
     let sums = summarise(&exp, &outcomes);
@@ -871,6 +890,16 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
         md = md.replacen(
             "\n\n",
             &format!("\n\nImage border modelled in the least squares (`--image-border`): {how}.\n\n"),
+            1,
+        );
+    }
+    if args.encoder_noise > 0.0 {
+        md = md.replacen(
+            "\n\n",
+            &format!(
+                "\n\nEncoder readings with Gaussian noise (`--encoder-noise`): {} deg.\n\n",
+                args.encoder_noise
+            ),
             1,
         );
     }
@@ -1008,6 +1037,7 @@ mod tests {
             depth_profile: None,
             image_border: None,
             lone_depth_gate: None,
+            encoder_noise: 0.0,
         };
         let mut ps = Vec::new();
         for scene in ["default", "paper", "robot"] {
@@ -1052,6 +1082,10 @@ mod tests {
         );
         for bad in ["0", "-1", "on", "NaN", ""] {
             assert!(parse_lone_gate(bad).is_err(), "{bad}");
+        }
+        assert_eq!(parse_encoder_noise("0.01"), Ok(0.01));
+        for bad in ["-0.01", "inf", "x", ""] {
+            assert!(parse_encoder_noise(bad).is_err(), "{bad}");
         }
     }
 

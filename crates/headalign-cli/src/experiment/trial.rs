@@ -280,6 +280,7 @@ impl CleanRun {
         let t0 = Instant::now();
         let mut clean = spec.clone();
         clean.scenario.noise_px = CLEAN_NOISE_PX;
+        clean.scenario.encoder_noise_deg = 0.0;
         clean.lone_depth_gate = None;
         let mut head = SimulatedHead::new(clean.scenario.clone()).map_err(|e| anyhow!("simulator: {e}"))?;
         head.move_to(&clean.initial).map_err(|e| anyhow!("simulator: {e}"))?;
