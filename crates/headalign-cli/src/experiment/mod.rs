@@ -875,41 +875,31 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
             .replacen(&format!("## {} — ", exp.name), &format!("## {stem} — scene `{}`: ", sel.scene), 1)
             .replace(&format!("]({}.png)", exp.name), &format!("]({stem}.png)"));
     }
+    // Settings changed from the library's defaults, each a line after the heading (the
+    // last one given comes first).
+    let mut settings: Vec<String> = Vec::new();
     if args.depth_profile.is_some() {
         let how = profile.map_or("off".to_string(), |p| {
             format!("z = {}, only when sigma_s > {}", p.z, p.min_sigma_log_depth)
         });
-        md = md.replacen(
-            "\n\n",
-            &format!("\n\nDepth-scale profile of the sigmas (`--depth-profile`): {how}.\n\n"),
-            1,
-        );
+        settings.push(format!("Depth-scale profile of the sigmas (`--depth-profile`): {how}."));
     }
     if let Some(on) = args.image_border {
         let how = if on { "on" } else { "off" };
-        md = md.replacen(
-            "\n\n",
-            &format!("\n\nImage border modelled in the least squares (`--image-border`): {how}.\n\n"),
-            1,
-        );
+        settings.push(format!("Image border modelled in the least squares (`--image-border`): {how}."));
     }
     if args.encoder_noise > 0.0 {
-        md = md.replacen(
-            "\n\n",
-            &format!(
-                "\n\nEncoder readings with Gaussian noise (`--encoder-noise`): {} deg.\n\n",
-                args.encoder_noise
-            ),
-            1,
-        );
+        settings.push(format!(
+            "Encoder readings with Gaussian noise (`--encoder-noise`): {} deg.",
+            args.encoder_noise
+        ));
     }
     if args.lone_depth_gate.is_some() {
         let how = lone_depth_gate.map_or("off".to_string(), |g| format!("z = {}", g.z));
-        md = md.replacen(
-            "\n\n",
-            &format!("\n\nDepth test of points seen once by a camera (`--lone-depth-gate`): {how}.\n\n"),
-            1,
-        );
+        settings.push(format!("Depth test of points seen once by a camera (`--lone-depth-gate`): {how}."));
+    }
+    for line in settings {
+        md = md.replacen("\n\n", &format!("\n\n{line}\n\n"), 1);
     }
     std::fs::write(args.out.join(format!("{stem}.md")), &md)
         .with_context(|| format!("cannot write {stem}.md"))?;

@@ -184,16 +184,22 @@ fn procedure_options(spec: &TrialSpec) -> VergeTiltOptions {
     }
 }
 
-fn run_procedure(spec: &TrialSpec) -> Result<(SimulatedHead, VergeTiltOutcome)> {
+/// A simulated head for `spec` with the verge/tilt procedure run on it, and the run's
+/// views.
+fn run_procedure(spec: &TrialSpec) -> Result<(SimulatedHead, VergeTiltRun, VergeTiltOutcome)> {
     let mut head = SimulatedHead::new(spec.scenario.clone()).map_err(|e| anyhow!("simulator: {e}"))?;
-    let outcome = verge_tilt_on(&mut head, spec)?;
-    Ok((head, outcome))
+    let mut run = VergeTiltRun::default();
+    let outcome = run_on(&mut head, &mut run, spec)?;
+    Ok((head, run, outcome))
 }
 
 /// The verge/tilt procedure on `head`, which first moves to `spec.initial`.
 pub(super) fn verge_tilt_on(head: &mut SimulatedHead, spec: &TrialSpec) -> Result<VergeTiltOutcome> {
+    run_on(head, &mut VergeTiltRun::default(), spec)
+}
+
+fn run_on(head: &mut SimulatedHead, run: &mut VergeTiltRun, spec: &TrialSpec) -> Result<VergeTiltOutcome> {
     head.move_to(&spec.initial).map_err(|e| anyhow!("simulator: {e}"))?;
-    let mut run = VergeTiltRun::default();
     run.run(head, &procedure_options(spec)).context("verge/tilt procedure")
 }
 
@@ -282,12 +288,8 @@ impl CleanRun {
         clean.scenario.noise_px = CLEAN_NOISE_PX;
         clean.scenario.encoder_noise_deg = 0.0;
         clean.lone_depth_gate = None;
-        let mut head = SimulatedHead::new(clean.scenario.clone()).map_err(|e| anyhow!("simulator: {e}"))?;
-        head.move_to(&clean.initial).map_err(|e| anyhow!("simulator: {e}"))?;
-        let mut run = VergeTiltRun::default();
-        let mut outcome = run
-            .run(&mut head, &procedure_options(&clean))
-            .context("noise-free run for the Cramer-Rao bound")?;
+        let (head, run, mut outcome) =
+            run_procedure(&clean).context("noise-free run for the Cramer-Rao bound")?;
         let inliers = true_inlier_observations(&head, &run, &outcome.calibration);
         outcome.calibration.observations = inliers;
         Ok(Self { head, outcome, seconds: t0.elapsed().as_secs_f64() })
@@ -325,7 +327,7 @@ impl CleanRun {
 /// Run one trial; `crb` (from [`CleanRun::crb_sigmas`]) fills the bounds (NaN if `None`).
 pub fn run_trial(spec: &TrialSpec, crb: Option<&[f64]>) -> Result<TrialRecord> {
     let t0 = Instant::now();
-    let (head, outcome) = run_procedure(spec)?;
+    let (head, _, outcome) = run_procedure(spec)?;
     Ok(record_from(&head, &outcome, crb, t0.elapsed().as_secs_f64()))
 }
 
