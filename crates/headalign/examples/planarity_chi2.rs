@@ -15,6 +15,7 @@
 //! the chi-square (3 dof) of the rig's rotation error at the first steering drive's
 //! readings (and at the reference) against its propagated covariance. `EXACT_CAL=1`
 //! calibrates a noise-free twin of the head: the drives' own covariance alone.
+//! `ENCNOISE=deg` reads the encoders with Gaussian noise (default 0: exact).
 //!
 //! Measured (3 px, seeds 1-120, 960 drives, one run each): mean chi-square, first pan
 //! stage / steering / second pan stage, 3.29 / 3.38 / 3.36 with the axes held (above the
@@ -43,7 +44,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let limit: f64 = std::env::var("LIMIT").ok().and_then(|v| v.parse().ok()).unwrap_or(f64::INFINITY);
     let k = noise.max(1.0);
     for seed in first..=last {
-        let s = common::robot_scenario(seed, noise);
+        let encoder_noise_deg = std::env::var("ENCNOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(0.0);
+        let s = Scenario { encoder_noise_deg, ..common::robot_scenario(seed, noise) };
         let mut robot = SimulatedRobot::new(s.clone())?;
         let opts = common::trial_options(&s, seed);
         // EXACT_CAL=1: the calibration from a noise-free twin of the head (the robot then

@@ -72,6 +72,16 @@
 //! 3.5 with their uncertainty (2.9 at the reference readings). Without
 //! `AxisPerturbations` the axes are held (the former behaviour).
 //!
+//! **The readings' noise** (`encoder_sigma_deg` of [`PanOptions`] and
+//! [`SteeringOptions`], default the calibration prior's 0.01 deg): the rig is predicted
+//! at the drive's readings, so part (1) also moves each joint's reading (its difference
+//! from the reference reading: two reads) and adds those modes; the corrected pan is the
+//! pan reading plus the correction, so that read's noise adds to the pan's sigma. With
+//! noise-free images and readings at 0.01 deg the rig's error from the readings alone
+//! failed the planarity test in 12 of 20 `fig5-pan-tilt` trials before it was counted
+//! (the rest of the fix: [`crate::alignment::verge_axes_from_motion`] ignores the
+//! unmoved joints' jitter).
+//!
 //! **Planarity** (both stages): the out-of-plane part of a drive, its rotation about the
 //! two axes perpendicular to the pan axis (radians) and the centre's displacement along
 //! it (baselines), is tested by its chi-square (3 dof) against its covariance (the
@@ -126,7 +136,7 @@ use serde::Serialize;
 
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
-use crate::estimate::RigCalibration;
+use crate::estimate::{ENCODER_SIGMA_DEG, RigCalibration};
 use crate::procedure::{AxisPerturbations, predicted_poses};
 
 /// The 99.999 % quantile of a chi-square with 3 degrees of freedom: the default
@@ -165,6 +175,14 @@ pub struct PanOptions {
     /// perpendicular to the ground). Default [`PLANARITY_CHI2_MAX`], the 99.999 %
     /// quantile: a false alarm rate of 1e-5 per drive when the covariance is right.
     pub planarity_chi2_max: f64,
+    /// Standard deviation of each joint's encoder reading, degrees (the noise of the
+    /// readings the drive's rig is predicted at; 0: exact). It enters the calibration
+    /// part of the covariance ([`calibration_covariance`]): a reading 0.01 deg off turns
+    /// the predicted stereo rig by that much, which the planarity test otherwise sees as
+    /// the robot tilting (noise-free images with readings at 0.01 deg failed 12 of 20
+    /// `fig5-pan-tilt` trials). Default [`ENCODER_SIGMA_DEG`], the noise the
+    /// calibration's angle prior assumes.
+    pub encoder_sigma_deg: f64,
 }
 
 impl Default for PanOptions {
@@ -178,6 +196,7 @@ impl Default for PanOptions {
             min_flow_px: 2.0,
             use_stereo_rotation: true,
             planarity_chi2_max: PLANARITY_CHI2_MAX,
+            encoder_sigma_deg: ENCODER_SIGMA_DEG,
         }
     }
 }
@@ -195,6 +214,7 @@ impl PanOptions {
         if self.planarity_chi2_max.is_nan() || self.planarity_chi2_max <= 0.0 {
             return bad(format!("planarity_chi2_max must be positive, got {}", self.planarity_chi2_max));
         }
+        check_encoder_sigma(self.encoder_sigma_deg)?;
         if !(self.guide_px > 0.0 && self.min_flow_px >= 0.0) {
             return bad(format!(
                 "guide_px must be > 0 and min_flow_px >= 0, got {} {}",
@@ -225,10 +245,12 @@ pub struct PanStep {
     /// Weight of the image estimate in the combination (the stereo one has `1 - w`).
     pub weight_image: f64,
     /// Standard deviation of the combined correction due to the verge/tilt calibration's
-    /// uncertainty alone, degrees (NaN if it could not be propagated).
+    /// uncertainty and the noise of the readings the rig is predicted at (no image noise of
+    /// the drive), degrees (NaN if it could not be propagated).
     pub sigma_calibration_deg: f64,
     /// Standard deviation of the combined correction: calibration and image noise
-    /// (module docs), degrees.
+    /// (module docs) and the pan reading's noise ([`PanOptions::encoder_sigma_deg`]: the
+    /// corrected pan is that reading plus the correction), degrees.
     pub sigma_deg: f64,
     /// Heading change measured during the drive, degrees.
     pub turn_deg: f64,
@@ -277,6 +299,9 @@ pub struct SteeringOptions {
     pub baseline_m: f64,
     /// Registration RANSAC (threshold: reprojection pixels). Default threshold 4 px.
     pub registration: RansacOptions,
+    /// Standard deviation of each joint's encoder reading, degrees, as
+    /// [`PanOptions::encoder_sigma_deg`]. Default [`ENCODER_SIGMA_DEG`].
+    pub encoder_sigma_deg: f64,
 }
 
 impl Default for SteeringOptions {
@@ -289,7 +314,17 @@ impl Default for SteeringOptions {
             wheelbase_m: None,
             baseline_m: 0.25,
             registration: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
+            encoder_sigma_deg: ENCODER_SIGMA_DEG,
         }
+    }
+}
+
+/// `encoder_sigma_deg` of [`PanOptions`] and [`SteeringOptions`]: finite, >= 0.
+fn check_encoder_sigma(sigma_deg: f64) -> Result<(), AlignError> {
+    if sigma_deg.is_finite() && sigma_deg >= 0.0 {
+        Ok(())
+    } else {
+        Err(AlignError::InvalidOption(format!("encoder_sigma_deg must be finite and >= 0, got {sigma_deg}")))
     }
 }
 
@@ -313,6 +348,7 @@ impl SteeringOptions {
         if !(self.min_turn_deg >= 0.0 && self.planarity_chi2_max > 0.0) {
             return bad("min_turn_deg >= 0 and planarity_chi2_max > 0 required".into());
         }
+        check_encoder_sigma(self.encoder_sigma_deg)?;
         self.registration.validate().step("steering options")
     }
 }
@@ -386,7 +422,8 @@ pub(crate) fn rig_at(calib: &RigCalibration, verge: &VergeAxes, enc: &Encoders) 
 /// and the covariance (6x6) of that prediction's `right_from_left` in the left
 /// perturbation of [`perturb`] (rotation first, radians; translation in baselines),
 /// propagated from the calibration and, given `axes`, the vergence axes' uncertainty
-/// ([`calibration_covariance`]). The covariance is `None` if the propagation failed.
+/// ([`calibration_covariance`]), the readings taken as exact. The covariance is `None` if
+/// the propagation failed.
 pub fn predicted_rig(
     calib: &RigCalibration,
     verge: &VergeAxes,
@@ -395,8 +432,8 @@ pub fn predicted_rig(
 ) -> Result<(StereoRig, Option<Matrix6<f64>>), AlignError> {
     let rig = rig_at(calib, verge, enc)?.stereo;
     let nominal = rig.right_from_left;
-    let cov = calibration_covariance(calib, verge, axes, |cp, va| {
-        let p = rig_at(cp, va, enc).ok()?.stereo.right_from_left;
+    let cov = calibration_covariance(calib, verge, axes, &Readings::exact(*enc), |cp, va, e| {
+        let p = rig_at(cp, va, e).ok()?.stereo.right_from_left;
         // Left perturbation: p = exp(d) nominal.
         let d = p * nominal.inverse();
         let w = d.rotation.scaled_axis();
@@ -748,28 +785,50 @@ fn calibration_parameters(calib: &RigCalibration) -> Vec<usize> {
         .collect()
 }
 
-/// Covariance of a quantity `q(calibration, vergence axes)` (`n_out` values) from the
-/// verge/tilt calibration's covariance and, given `axes` ([`AxisPerturbations`]), the
-/// vergence axes' own: `J C J^T`, `J` by central differences of `q` along each
-/// parameter, step half its standard deviation (as
-/// [`crate::procedure::alignment_sigmas`]).
+/// Encoder readings a quantity is computed at, with the standard deviation of each
+/// joint's reading noise (degrees; 0: the readings taken as exact).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Readings {
+    pub(crate) enc: Encoders,
+    pub(crate) sigma_deg: f64,
+}
+
+impl Readings {
+    /// The readings taken as exact.
+    pub(crate) fn exact(enc: Encoders) -> Self {
+        Self { enc, sigma_deg: 0.0 }
+    }
+}
+
+/// Covariance of a quantity `q(calibration, vergence axes, readings)` (`n_out` values)
+/// from the verge/tilt calibration's covariance, given `axes` ([`AxisPerturbations`]) the
+/// vergence axes' own, and the noise of the encoder `readings` the quantity is computed
+/// at: `J C J^T`, `J` by central differences of `q` along each parameter, step half its
+/// standard deviation (as [`crate::procedure::alignment_sigmas`]).
 ///
 /// Without `axes`: the parameters of [`calibration_parameters`], the axes held as given
 /// (the stereo rig predicted at other vergence readings then counts no error of the
 /// axes). With `axes`: every parameter with a step in `axes.calibration` (the per-view
 /// ones too: they move the scene points the axis views were resected against), the
 /// axes moved with the calibration, plus the resected poses' noise modes (unit
-/// variance, independent of the calibration) with the calibration held. `None` if `q`
-/// fails at a perturbed calibration.
+/// variance, independent of the calibration) with the calibration held. The readings'
+/// noise: the rig is predicted from each joint's reading minus the calibration's
+/// reference reading, two independent reads, so each joint's reading is moved by
+/// `+-sqrt(2) sigma / 2`, independent of the other joints and of the calibration (whose
+/// angle priors hold the differences of the calibration views' readings, not the
+/// reference reading's own error).
+/// `None` if `q` fails at a perturbed calibration.
 pub(crate) fn calibration_covariance_dyn(
     calib: &RigCalibration,
     verge: &VergeAxes,
     axes: Option<&AxisPerturbations>,
+    readings: &Readings,
     n_out: usize,
-    mut q: impl FnMut(&RigCalibration, &VergeAxes) -> Option<DVector<f64>>,
+    mut q: impl FnMut(&RigCalibration, &VergeAxes, &Encoders) -> Option<DVector<f64>>,
 ) -> Option<DMatrix<f64>> {
     let cov = &calib.bundle.covariance;
     let n = cov.names.len();
+    let enc = &readings.enc;
     let axes = axes.filter(|a| a.calibration.len() == n);
     let idx: Vec<usize> = match axes {
         Some(a) => (0..n).filter(|&i| a.calibration[i].is_some()).collect(),
@@ -786,10 +845,10 @@ pub(crate) fn calibration_covariance_dyn(
         let mut delta = DVector::zeros(n);
         delta[i] = h;
         scratch.bundle.state = calib.bundle.perturbed(&delta).ok()?;
-        let plus = q(&scratch, &plus_axes)?;
+        let plus = q(&scratch, &plus_axes, enc)?;
         delta[i] = -h;
         scratch.bundle.state = calib.bundle.perturbed(&delta).ok()?;
-        let minus = q(&scratch, &minus_axes)?;
+        let minus = q(&scratch, &minus_axes, enc)?;
         if plus.len() != n_out || minus.len() != n_out {
             return None;
         }
@@ -797,15 +856,27 @@ pub(crate) fn calibration_covariance_dyn(
     }
     let sub = cov.matrix.select_rows(idx.iter()).select_columns(idx.iter());
     let mut out = &jac * sub * jac.transpose();
+    // Unit-variance modes at +-1/2: the difference is the change per unit of the mode.
+    let mut add_mode = |d: DVector<f64>| {
+        if d.len() != n_out {
+            return None;
+        }
+        out += &d * d.transpose();
+        Some(())
+    };
     if let Some(a) = axes {
-        // The resected poses' noise: unit-variance modes at +-1/2 (difference = change
-        // per unit of the mode).
+        // The resected poses' noise.
         for st in &a.pose {
-            let d = q(calib, &st.plus)? - q(calib, &st.minus)?;
-            if d.len() != n_out {
-                return None;
-            }
-            out += &d * d.transpose();
+            add_mode(q(calib, &st.plus, enc)? - q(calib, &st.minus, enc)?)?;
+        }
+    }
+    if readings.sigma_deg > 0.0 {
+        let half = 0.5 * std::f64::consts::SQRT_2 * readings.sigma_deg;
+        for joint in Joint::ALL {
+            let (mut plus, mut minus) = (*enc, *enc);
+            *plus.get_mut(joint) += half;
+            *minus.get_mut(joint) -= half;
+            add_mode(q(calib, verge, &plus)? - q(calib, verge, &minus)?)?;
         }
     }
     Some(out)
@@ -816,10 +887,11 @@ pub(crate) fn calibration_covariance<const N: usize>(
     calib: &RigCalibration,
     verge: &VergeAxes,
     axes: Option<&AxisPerturbations>,
-    mut q: impl FnMut(&RigCalibration, &VergeAxes) -> Option<SVector<f64, N>>,
+    readings: &Readings,
+    mut q: impl FnMut(&RigCalibration, &VergeAxes, &Encoders) -> Option<SVector<f64, N>>,
 ) -> Option<SMatrix<f64, N, N>> {
-    let c = calibration_covariance_dyn(calib, verge, axes, N, |cp, va| {
-        q(cp, va).map(|v| DVector::from_column_slice(v.as_slice()))
+    let c = calibration_covariance_dyn(calib, verge, axes, readings, N, |cp, va, e| {
+        q(cp, va, e).map(|v| DVector::from_column_slice(v.as_slice()))
     })?;
     Some(SMatrix::<f64, N, N>::from_fn(|r, k| c[(r, k)]))
 }
@@ -911,8 +983,9 @@ pub fn pan_step(
     let basis = perpendicular_basis(&up);
     let v = out_of_plane(&motion.cam2_from_cam1, &up, &basis);
     let iterations = options.translation.max_iterations;
-    let cal = calibration_covariance(calib, verge, axes, |cp, verge_p| {
-        let rig_p = rig_at(cp, verge_p, &enc).ok()?;
+    let readings = Readings { enc, sigma_deg: options.encoder_sigma_deg };
+    let cal = calibration_covariance(calib, verge, axes, &readings, |cp, verge_p, enc_p| {
+        let rig_p = rig_at(cp, verge_p, enc_p).ok()?;
         let (up_p, o_p) = pan_axis_in(cp, &rig_p).ok()?;
         let ml_p = refine_rig_motion(
             &rig_p.stereo,
@@ -976,7 +1049,7 @@ pub fn pan_step(
         pan_correction_deg: combined.to_degrees(),
         weight_image: w_i,
         sigma_calibration_deg: var_cal.sqrt().to_degrees(),
-        sigma_deg: (var_cal + data_sd * data_sd).sqrt().to_degrees(),
+        sigma_deg: (var_cal + data_sd * data_sd).sqrt().to_degrees().hypot(options.encoder_sigma_deg),
         turn_deg: heading_stereo.to_degrees(),
         off_axis_deg: off_axis,
         planarity_chi2: chi2,
@@ -1025,7 +1098,7 @@ struct SteeringContext<'a> {
     calib: &'a RigCalibration,
     verge: &'a VergeAxes,
     axes: Option<&'a AxisPerturbations>,
-    enc: &'a Encoders,
+    readings: Readings,
     up: &'a Unit<Vector3<f64>>,
     wheelbase: Option<f64>,
 }
@@ -1055,29 +1128,30 @@ fn steering_fit(
     let basis = perpendicular_basis(up);
     let nominal: Vec<Isometry3<f64>> = motions.iter().map(|m| m.cam2_from_cam1).collect();
     let n = motions.len();
-    let cal = calibration_covariance_dyn(calib, verge, ctx.axes, 3 * n + 1, |cp, verge_p| {
-        let rig_p = rig_at(cp, verge_p, ctx.enc).ok()?;
-        let up_p = cp.pan_axis()?.transformed(&rig_p.ref_from_left.inverse()).direction;
-        let q = UnitQuaternion::rotation_between(up, &up_p).unwrap_or_else(UnitQuaternion::identity);
-        let basis_p = [q * basis[0], q * basis[1]];
-        let mut out = DVector::zeros(3 * n + 1);
-        let mut refits = Vec::with_capacity(n);
-        for (k, d) in motions.iter().enumerate() {
-            let ml = refine_rig_motion(
-                &rig_p.stereo,
-                &d.tracks,
-                &d.cam2_from_cam1,
-                &d.ml.points,
-                &refit_options(),
-            )
-            .ok()?;
-            out.fixed_rows_mut::<3>(3 * k).copy_from(&out_of_plane(&ml.cam2_from_cam1, &up_p, &basis_p));
-            refits.push(ml.cam2_from_cam1);
-        }
-        out[3 * n] = steer_zero_of(&up_p, &refits, settings, &hint, wheelbase)?;
-        Some(out)
-    })
-    .unwrap_or_else(|| DMatrix::from_element(3 * n + 1, 3 * n + 1, f64::NAN));
+    let cal =
+        calibration_covariance_dyn(calib, verge, ctx.axes, &ctx.readings, 3 * n + 1, |cp, verge_p, enc_p| {
+            let rig_p = rig_at(cp, verge_p, enc_p).ok()?;
+            let up_p = cp.pan_axis()?.transformed(&rig_p.ref_from_left.inverse()).direction;
+            let q = UnitQuaternion::rotation_between(up, &up_p).unwrap_or_else(UnitQuaternion::identity);
+            let basis_p = [q * basis[0], q * basis[1]];
+            let mut out = DVector::zeros(3 * n + 1);
+            let mut refits = Vec::with_capacity(n);
+            for (k, d) in motions.iter().enumerate() {
+                let ml = refine_rig_motion(
+                    &rig_p.stereo,
+                    &d.tracks,
+                    &d.cam2_from_cam1,
+                    &d.ml.points,
+                    &refit_options(),
+                )
+                .ok()?;
+                out.fixed_rows_mut::<3>(3 * k).copy_from(&out_of_plane(&ml.cam2_from_cam1, &up_p, &basis_p));
+                refits.push(ml.cam2_from_cam1);
+            }
+            out[3 * n] = steer_zero_of(&up_p, &refits, settings, &hint, wheelbase)?;
+            Some(out)
+        })
+        .unwrap_or_else(|| DMatrix::from_element(3 * n + 1, 3 * n + 1, f64::NAN));
     let mut var_zero = cal[(3 * n, 3 * n)];
     let mut chi2s = Vec::with_capacity(n);
     for (k, d) in motions.iter().enumerate() {
@@ -1156,7 +1230,8 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     }
     let scale = options.baseline_m;
     let wheelbase = options.wheelbase_m.map(|l| l / scale);
-    let ctx = SteeringContext { calib, verge, axes, enc: &enc, up: &up, wheelbase };
+    let readings = Readings { enc, sigma_deg: options.encoder_sigma_deg };
+    let ctx = SteeringContext { calib, verge, axes, readings, up: &up, wheelbase };
     let mut fit = steering_fit(&ctx, &motions, &settings, &turns)?;
     for (step, chi2) in steps.iter_mut().zip(&fit.chi2) {
         step.planarity_chi2 = *chi2;
@@ -1269,11 +1344,14 @@ mod tests {
         let (mut robot, vt) = calibrated_robot(s);
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
         let axes = vt.axis_perturbations();
-        let st = zero_steering(&mut robot, cal, verge, Some(&axes), &SteeringOptions::default()).unwrap();
+        // The simulated readings are exact.
+        let steering = SteeringOptions { encoder_sigma_deg: 0.0, ..SteeringOptions::default() };
+        let st = zero_steering(&mut robot, cal, verge, Some(&axes), &steering).unwrap();
         let now = robot.steering_encoder_deg();
         assert!(robot.steer_err_deg(now).abs() < 1e-9, "{st:?}");
         assert!(st.sigma_steer_zero_deg < 1e-4, "{st:?}");
-        let pan = align_pan(&mut robot, cal, verge, Some(&axes), &PanOptions::default()).unwrap();
+        let exact = PanOptions { encoder_sigma_deg: 0.0, ..PanOptions::default() };
+        let pan = align_pan(&mut robot, cal, verge, Some(&axes), &exact).unwrap();
         let enc = robot.head().encoders();
         assert!(robot.pan_err_deg(&enc).abs() < 1e-9, "{pan:?}");
         assert!(pan.steps.iter().all(|s| s.sigma_deg < 1e-4 && s.planarity_chi2 < 1.0), "{pan:?}");
@@ -1299,10 +1377,16 @@ mod tests {
         let s = Scenario { seed: 3, noise_px: 1.0, ..Scenario::default() };
         let (_, vt) = calibrated_robot(s);
         let cal = &vt.calibration;
-        let c = calibration_covariance(cal, &vt.verge_axes, None, |cp, _| {
-            let k = cp.bundle.state.left;
-            Some(SVector::<f64, 3>::new(k.fx, k.cx, 1.0))
-        })
+        let c = calibration_covariance(
+            cal,
+            &vt.verge_axes,
+            None,
+            &Readings::exact(vt.final_encoders),
+            |cp, _, _| {
+                let k = cp.bundle.state.left;
+                Some(SVector::<f64, 3>::new(k.fx, k.cx, 1.0))
+            },
+        )
         .unwrap();
         let cov = &cal.bundle.covariance;
         let (i, j) = (cov.index("left.fx").unwrap(), cov.index("left.cx").unwrap());
@@ -1320,6 +1404,47 @@ mod tests {
         }
         assert!(c[(2, 2)] == 0.0 && c[(0, 2)] == 0.0);
         assert!(expect[1][1] > 0.0);
+    }
+
+    /// The readings' noise: for quantities linear in the readings and independent of the
+    /// calibration (the pan reading; the sum of the elevation and left vergence readings)
+    /// the modes give exactly `2 sigma^2` per joint (the reading and the reference
+    /// reading), uncorrelated across joints (1e-9 relative: rounding); a quantity the
+    /// readings do not move gets zero; and the rig predicted at the readings turns by the
+    /// vergence readings' noise (its rotation's variance, radians, `2 sigma^2` per
+    /// vergence joint, the calibration noise-free; 1 % for the rotations' nonlinearity).
+    #[test]
+    fn reading_noise_adds_each_joints_variance() {
+        let s = Scenario { seed: 3, noise_px: 0.0, ..Scenario::default() };
+        let (_, vt) = calibrated_robot(s);
+        let cal = &vt.calibration;
+        let sigma = 0.01;
+        let readings = Readings { enc: vt.final_encoders, sigma_deg: sigma };
+        let c = calibration_covariance(cal, &vt.verge_axes, None, &readings, |_, _, e| {
+            Some(SVector::<f64, 3>::new(
+                e.get(Joint::Pan),
+                e.get(Joint::Elevation) + e.get(Joint::VergeLeft),
+                1.0,
+            ))
+        })
+        .unwrap();
+        let var = 2.0 * sigma * sigma;
+        let expect = [[var, 0.0], [0.0, 2.0 * var]];
+        for r in 0..2 {
+            for k in 0..2 {
+                assert!((c[(r, k)] - expect[r][k]).abs() <= 1e-9 * var, "{r} {k}: {}", c[(r, k)]);
+            }
+        }
+        assert!(c[(2, 2)] == 0.0);
+        let nominal = rig_at(cal, &vt.verge_axes, &vt.final_encoders).unwrap().stereo.right_from_left;
+        let rot = calibration_covariance(cal, &vt.verge_axes, None, &readings, |cp, va, e| {
+            let d = rig_at(cp, va, e).ok()?.stereo.right_from_left * nominal.inverse();
+            Some(d.rotation.scaled_axis())
+        })
+        .unwrap();
+        let s_rad = sigma.to_radians();
+        let expect = 4.0 * s_rad * s_rad;
+        assert!((rot.trace() - expect).abs() <= 0.01 * expect, "{} vs {expect}", rot.trace());
     }
 
     /// The vergence axes' pose part of the rig predicted at other readings against a
@@ -1489,7 +1614,8 @@ mod tests {
         let mut robot = SimulatedRobot::new(Scenario { noise_px: 1.0, ..base }).unwrap();
         let enc = exact.head().encoders();
         robot.move_to(&enc).unwrap();
-        let opt = PanOptions::default();
+        // The simulated readings are exact: the data's sigma alone.
+        let opt = PanOptions { encoder_sigma_deg: 0.0, ..PanOptions::default() };
         let mut z2 = Vec::new();
         for _ in 0..40 {
             let before = robot.capture().unwrap();

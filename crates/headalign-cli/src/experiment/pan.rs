@@ -119,6 +119,7 @@ pub fn run_pan_trial(spec: &TrialSpec) -> Result<TrialRecord> {
 mod tests {
     use super::super::trial::RotationMode;
     use super::*;
+    use headalign::estimate::ENCODER_SIGMA_DEG;
     use headalign_platform::Encoders;
 
     fn spec(noise: f64) -> TrialSpec {
@@ -142,9 +143,13 @@ mod tests {
         assert_eq!(r.quantities.len(), ROBOT_QUANTITIES.len());
         let q = r.quantities[PAN_INDEX];
         assert!((q.est - q.truth - r.pan_err_deg).abs() < 1e-12);
-        // Noise-free: both robot sigmas are tiny and the truths are matched to rounding.
+        // Noise-free: the truths are matched to rounding, and both robot sigmas are those
+        // of the readings' noise the stages assume (`PanOptions::encoder_sigma_deg`, 0.01
+        // deg, which the simulator's exact readings lack): the pan's is that read's noise
+        // and the rig's prediction error from it, measured 0.0125 deg; the steering
+        // zero's is the rig's part alone, 0.0070 deg.
         for q in &r.quantities[PAN_INDEX..] {
-            assert!((q.est - q.truth).abs() < 1e-9 && q.sigma < 1e-3, "{q:?}");
+            assert!((q.est - q.truth).abs() < 1e-9 && q.sigma < 2.0 * ENCODER_SIGMA_DEG, "{q:?}");
         }
         assert!(q.crb.is_nan());
     }
