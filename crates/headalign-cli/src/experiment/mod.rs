@@ -40,7 +40,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate};
+use headalign::estimate::{DepthProfile, ENCODER_SIGMA_DEG, EstimationOptions, LoneDepthGate};
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -107,8 +107,10 @@ pub struct ExperimentArgs {
     pub lone_depth_gate: Option<LoneSetting>,
     /// Standard deviation of the simulated encoder readings' noise in the noisy trials,
     /// degrees (`Scenario::encoder_noise_deg`; the noise-free run that gives the
-    /// Cramer-Rao bound reads exactly). Default 0: exact readings.
-    #[arg(long, value_parser = parse_encoder_noise, default_value_t = 0.0)]
+    /// Cramer-Rao bound reads exactly). Default the noise the estimate and the bound
+    /// assume (`ENCODER_SIGMA_DEG`, 0.01 deg): with exact readings the data hold more than
+    /// the bound counts, so errors fall below it and sigmas over-cover. 0: exact readings.
+    #[arg(long, value_parser = parse_encoder_noise, default_value_t = ENCODER_SIGMA_DEG)]
     pub encoder_noise: f64,
 }
 
@@ -875,8 +877,8 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
             .replacen(&format!("## {} — ", exp.name), &format!("## {stem} — scene `{}`: ", sel.scene), 1)
             .replace(&format!("]({}.png)", exp.name), &format!("]({stem}.png)"));
     }
-    // Settings changed from the library's defaults, each a line after the heading (the
-    // last one given comes first).
+    // The simulated encoder noise and the settings changed from the library's defaults,
+    // each a line after the heading (the last one given comes first).
     let mut settings: Vec<String> = Vec::new();
     if args.depth_profile.is_some() {
         let how = profile.map_or("off".to_string(), |p| {
@@ -888,9 +890,14 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
         let how = if on { "on" } else { "off" };
         settings.push(format!("Image border modelled in the least squares (`--image-border`): {how}."));
     }
-    if args.encoder_noise > 0.0 {
+    if args.encoder_noise == ENCODER_SIGMA_DEG {
         settings.push(format!(
-            "Encoder readings with Gaussian noise (`--encoder-noise`): {} deg.",
+            "Encoder readings with Gaussian noise of {} deg (`--encoder-noise`), as the estimate's angle prior assumes.",
+            args.encoder_noise
+        ));
+    } else {
+        settings.push(format!(
+            "Encoder readings with Gaussian noise of {} deg (`--encoder-noise`; the estimate's angle prior assumes {ENCODER_SIGMA_DEG} deg).",
             args.encoder_noise
         ));
     }
