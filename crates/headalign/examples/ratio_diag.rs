@@ -19,7 +19,7 @@ use std::collections::HashMap;
 use headalign::estimate::EstimationOptions;
 use headalign::procedure::VergeTiltOutcome;
 use headalign_geometry::bundle::{
-    BundleResult, Motions, RobustLoss, bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale,
+    BundleResult, RobustLoss, angle_prior_chi2, bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale,
 };
 use headalign_platform::Encoders;
 use headalign_sim::{Scenario, SimulatedHead};
@@ -148,14 +148,8 @@ fn main() {
     println!("   ({missing} points without a clean counterpart kept at the estimate)");
     let noise = c.bundle.report.sigma_px;
     let cost = |r: &BundleResult| {
-        let mut k = r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise);
-        if let (Some(s), Motions::Joints { angles, commanded, .. }) = (o.angle_prior_sigma, &r.state.motions)
-        {
-            for (a, c) in angles.iter().zip(commanded).skip(1) {
-                k += a.iter().zip(c).map(|(x, y)| ((x - y) / s).powi(2)).sum::<f64>();
-            }
-        }
-        k
+        r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise)
+            + angle_prior_chi2(&r.state.motions, &o)
     };
     let base = cost(&again);
     if let Ok((s, sig)) = log_depth_scale(st, &c.observations, &o, noise) {

@@ -44,10 +44,10 @@
 use std::collections::HashMap;
 
 use headalign::estimate::EstimationOptions;
-use headalign_geometry::bundle::BundleOptions;
 use headalign_geometry::bundle::{
-    BundleObservation, BundleResult, Motions, RigState, RobustLoss, bundle_adjust, residual_pixels,
+    BundleObservation, BundleResult, RigState, RobustLoss, bundle_adjust, residual_pixels,
 };
+use headalign_geometry::bundle::{BundleOptions, angle_prior_chi2};
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
 use nalgebra::{DMatrix, Matrix3, Point3, Vector3};
@@ -103,14 +103,9 @@ fn shifted(st: &RigState, rs: &[(f64, f64)], sign: f64, cap: f64) -> RigState {
 
 /// Least-squares cost in chi-square units (pixels over `noise`, plus the angle priors), as
 /// `estimate::least_squares_cost` computes it.
-fn chi2(r: &BundleResult, noise: f64, prior: Option<f64>) -> f64 {
-    let mut cost = r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise);
-    if let (Some(s), Motions::Joints { angles, commanded, .. }) = (prior, &r.state.motions) {
-        for (a, c) in angles.iter().zip(commanded).skip(1) {
-            cost += a.iter().zip(c).map(|(x, y)| ((x - y) / s).powi(2)).sum::<f64>();
-        }
-    }
-    cost
+fn chi2(r: &BundleResult, noise: f64, options: &BundleOptions) -> f64 {
+    r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise)
+        + angle_prior_chi2(&r.state.motions, options)
 }
 
 fn main() {
@@ -227,10 +222,9 @@ fn main() {
             let fixed =
                 bundle_adjust(&held, &c.observations, &BundleOptions { fix_principal_point: true, ..lo });
             if let (Ok(f), Ok(h)) = (free, fixed) {
-                let prior = o.angle_prior_sigma;
                 println!(
                     "     profile: chi2 at the true right.cx - at the estimate <= {:.2} (Wald z^2 {:.2}; {} iterations, {})",
-                    chi2(&h, noise, prior) - chi2(&f, noise, prior),
+                    chi2(&h, noise, &o) - chi2(&f, noise, &o),
                     ((value(st) - truth_value) / sig(st)).powi(2),
                     h.report.iterations,
                     h.report.termination

@@ -41,6 +41,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::estimate::{DepthProfile, ENCODER_SIGMA_DEG, EstimationOptions, LoneDepthGate};
+use headalign_geometry::bundle::AnglePrior;
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -112,6 +113,21 @@ pub struct ExperimentArgs {
     /// the bound counts, so errors fall below it and sigmas over-cover. 0: exact readings.
     #[arg(long, value_parser = parse_encoder_noise, default_value_t = ENCODER_SIGMA_DEG)]
     pub encoder_noise: f64,
+    /// The error model of the commanded angles in the bundle adjustment
+    /// (`BundleOptions::angle_prior`): `readings` (differences of independently noisy
+    /// readings, sharing the reference view's) or `independent`; default the library's.
+    /// For comparing settings without editing the default.
+    #[arg(long, value_parser = parse_angle_prior)]
+    pub angle_prior: Option<AnglePrior>,
+}
+
+/// Parse `readings` / `independent`.
+fn parse_angle_prior(v: &str) -> Result<AnglePrior, String> {
+    match v {
+        "readings" => Ok(AnglePrior::ReadingDifferences),
+        "independent" => Ok(AnglePrior::Independent),
+        other => Err(format!("expected 'readings' or 'independent', got '{other}'")),
+    }
 }
 
 /// Parse a finite, non-negative encoder noise in degrees.
@@ -138,6 +154,7 @@ struct Tuning {
     image_border: bool,
     lone_depth_gate: Option<LoneDepthGate>,
     encoder_noise_deg: f64,
+    angle_prior: AnglePrior,
 }
 
 /// A `--lone-depth-gate` value: `None` is `off`.
@@ -515,6 +532,7 @@ fn spec(exp: &Experiment, c: &Condition, trial: usize, seed: u64, tuning: Tuning
         depth_profile: tuning.depth_profile,
         image_border: tuning.image_border,
         lone_depth_gate: tuning.lone_depth_gate,
+        angle_prior: tuning.angle_prior,
     }
 }
 
@@ -865,6 +883,7 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
         image_border,
         lone_depth_gate,
         encoder_noise_deg: args.encoder_noise,
+        angle_prior: args.angle_prior.unwrap_or(EstimationOptions::default().bundle.angle_prior),
     };
     let outcomes = run_experiment(&exp, trials, args.seed, tuning);
     let seconds = t0.elapsed().as_secs_f64();
@@ -900,6 +919,13 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
             "Encoder readings with Gaussian noise of {} deg (`--encoder-noise`; the estimate's angle prior assumes {ENCODER_SIGMA_DEG} deg).",
             args.encoder_noise
         ));
+    }
+    if let Some(model) = args.angle_prior {
+        let how = match model {
+            AnglePrior::ReadingDifferences => "reading differences (the shared reference reading modelled)",
+            AnglePrior::Independent => "independent errors",
+        };
+        settings.push(format!("Error model of the commanded angles (`--angle-prior`): {how}."));
     }
     if args.lone_depth_gate.is_some() {
         let how = lone_depth_gate.map_or("off".to_string(), |g| format!("z = {}", g.z));
@@ -1035,6 +1061,7 @@ mod tests {
             image_border: None,
             lone_depth_gate: None,
             encoder_noise: 0.0,
+            angle_prior: None,
         };
         let mut ps = Vec::new();
         for scene in ["default", "paper", "robot"] {

@@ -130,6 +130,7 @@ mod tests {
             depth_profile: headalign::estimate::EstimationOptions::default().depth_profile,
             image_border: headalign::estimate::EstimationOptions::default().image_border,
             lone_depth_gate: headalign::estimate::EstimationOptions::default().lone_depth_gate,
+            angle_prior: headalign_geometry::bundle::AnglePrior::default(),
         }
     }
 

@@ -55,7 +55,7 @@ use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate, RigCal
 use headalign::procedure::{
     AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, alignment_sigmas,
 };
-use headalign_geometry::bundle::{RobustLoss, bundle_adjust};
+use headalign_geometry::bundle::{AnglePrior, BundleOptions, RobustLoss, bundle_adjust};
 use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead, calibration_errors};
 use serde::Serialize;
@@ -111,6 +111,9 @@ pub struct TrialSpec {
     /// ([`EstimationOptions::lone_depth_gate`]; `experiment --lone-depth-gate`, default
     /// the library's).
     pub lone_depth_gate: Option<LoneDepthGate>,
+    /// The commanded angles' error model ([`BundleOptions::angle_prior`];
+    /// `experiment --angle-prior`, default the library's).
+    pub angle_prior: AnglePrior,
 }
 
 /// One reported quantity of one trial.
@@ -167,6 +170,7 @@ pub fn estimation_options(spec: &TrialSpec) -> EstimationOptions {
         depth_profile: spec.depth_profile,
         image_border: spec.image_border,
         lone_depth_gate: spec.lone_depth_gate,
+        bundle: BundleOptions { angle_prior: spec.angle_prior, ..o.bundle.clone() },
         ..o
     }
 }
@@ -276,6 +280,8 @@ fn true_inlier_observations(
 pub struct CleanRun {
     head: SimulatedHead,
     outcome: VergeTiltOutcome,
+    /// The trial's bundle options (its angle prior is the bound's).
+    bundle: BundleOptions,
     seconds: f64,
 }
 
@@ -292,7 +298,8 @@ impl CleanRun {
             run_procedure(&clean).context("noise-free run for the Cramer-Rao bound")?;
         let inliers = true_inlier_observations(&head, &run, &outcome.calibration);
         outcome.calibration.observations = inliers;
-        Ok(Self { head, outcome, seconds: t0.elapsed().as_secs_f64() })
+        let bundle = estimation_options(spec).bundle;
+        Ok(Self { head, outcome, bundle, seconds: t0.elapsed().as_secs_f64() })
     }
 
     /// The noise-free run as a trial record (its bound is 0).
@@ -307,7 +314,7 @@ impl CleanRun {
             return Ok(vec![0.0; SIGMA_QUANTITIES.len()]);
         }
         let calib = &self.outcome.calibration;
-        let mut options = EstimationOptions::default().bundle;
+        let mut options = self.bundle.clone();
         options.max_iterations = 0;
         options.robust = RobustLoss::None;
         options.noise_sigma_px = Some(noise_px);
@@ -400,6 +407,7 @@ mod tests {
             depth_profile: EstimationOptions::default().depth_profile,
             image_border: EstimationOptions::default().image_border,
             lone_depth_gate: EstimationOptions::default().lone_depth_gate,
+            angle_prior: AnglePrior::default(),
         }
     }
 
@@ -440,6 +448,7 @@ mod tests {
             depth_profile: EstimationOptions::default().depth_profile,
             image_border: EstimationOptions::default().image_border,
             lone_depth_gate: EstimationOptions::default().lone_depth_gate,
+            angle_prior: AnglePrior::default(),
         };
         let clean = CleanRun::new(&s).unwrap();
         let crb = clean.crb_sigmas(1.5).unwrap();
