@@ -360,14 +360,18 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
 ) -> Result<OneMotionOutcome, AlignError> {
     options.validate()?;
     let mut steps = Vec::new();
+    // Moves are made from the last commanded readings (read once), not from fresh noisy
+    // reads, which would move every joint by its read noise at each step; the rig is
+    // predicted at the readings.
+    let mut commanded = robot.read_encoders()?;
     for _ in 0..options.iterations {
         let enc = robot.read_encoders()?;
         let before = robot.capture()?;
-        robot.move_to(&enc.moved(Joint::Elevation, options.tilt_deg))?;
+        robot.move_to(&commanded.moved(Joint::Elevation, options.tilt_deg))?;
         robot.drive(options.drive_m)?;
         let after = robot.capture()?;
         robot.drive(-options.drive_m)?;
-        robot.move_to(&enc)?;
+        robot.move_to(&commanded)?;
         let rig = rig_at(calib, verge, &enc)?;
         let left_from_ref = rig.ref_from_left.inverse();
         let pan_axis = calib.pan_axis().ok_or_else(|| AlignError::MissingMotion("pan axis".into()))?;
@@ -408,17 +412,17 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
             options.horizon,
             &options.thresholds,
         )?;
-        let mut target = enc.moved(Joint::Pan, estimate.pan_correction_deg);
+        commanded = commanded.moved(Joint::Pan, estimate.pan_correction_deg);
         if options.correct_elevation {
-            target = target.moved(Joint::Elevation, estimate.elevation_correction_deg);
+            commanded = commanded.moved(Joint::Elevation, estimate.elevation_correction_deg);
         }
         for (joint, c) in [Joint::VergeLeft, Joint::VergeRight].into_iter().zip(estimate.verge_correction_deg)
         {
             if let Some(c) = c {
-                target = target.moved(joint, c);
+                commanded = commanded.moved(joint, c);
             }
         }
-        robot.move_to(&target)?;
+        robot.move_to(&commanded)?;
         steps.push(OneMotionStep { encoders: enc, estimate, inliers: motion.inliers });
     }
     Ok(OneMotionOutcome { steps, final_encoders: robot.read_encoders()? })

@@ -150,8 +150,10 @@ pub fn align_pan_by_fixation<R: StereoHead + Vehicle>(
     let mut alpha = guess;
     let mut steps: Vec<PanFixationStep> = Vec::new();
     let mut last: Option<(f64, f64)> = None; // (offset before the move, tan of the move)
+    // Moves are made from the last commanded readings (read once), not from fresh noisy
+    // reads: those would move the other joints by their read noise at every step.
+    let mut commanded = robot.read_encoders()?;
     for _ in 0..options.max_drives {
-        let enc = robot.read_encoders()?;
         let before = robot.capture()?;
         robot.drive(options.drive_m)?;
         let after = robot.capture()?;
@@ -191,7 +193,8 @@ pub fn align_pan_by_fixation<R: StereoHead + Vehicle>(
         let max = options.max_move_deg.to_radians();
         let theta =
             if finite { (offset / alpha).atan().clamp(-max, max) } else { max.copysign(offset * alpha) };
-        robot.move_to(&enc.moved(Joint::Pan, theta.to_degrees()))?;
+        commanded = commanded.moved(Joint::Pan, theta.to_degrees());
+        robot.move_to(&commanded)?;
         last = finite.then_some((offset, theta.tan()));
         steps.push(PanFixationStep {
             epipole_px,
