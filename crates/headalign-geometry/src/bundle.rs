@@ -2650,6 +2650,38 @@ mod tests {
         assert!(angle_prior_residuals(&[], 1e-3, AnglePrior::ReadingDifferences).is_empty());
     }
 
+    /// The prior rows' analytic derivatives `(delta_il - beta) / sigma` (as
+    /// `Problem::prior_terms` builds them) against central differences of the residuals
+    /// (linear in the errors: equal up to the rounding of a 1e-7 rad step on errors of
+    /// 1e-4 rad, 1e-6 relative).
+    #[test]
+    fn angle_prior_derivatives_match_finite_differences() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5151);
+        for m in 1..=6 {
+            let sigma = 2e-4;
+            let e: Vec<f64> = (0..m).map(|_| sigma * gauss(&mut rng)).collect();
+            for model in [AnglePrior::Independent, AnglePrior::ReadingDifferences] {
+                let beta = prior_beta(m, model);
+                for l in 0..m {
+                    let h = 1e-7;
+                    let (mut plus, mut minus) = (e.clone(), e.clone());
+                    plus[l] += h;
+                    minus[l] -= h;
+                    let rp = angle_prior_residuals(&plus, sigma, model);
+                    let rm = angle_prior_residuals(&minus, sigma, model);
+                    for i in 0..m {
+                        let fd = (rp[i] - rm[i]) / (2.0 * h);
+                        let analytic = (if i == l { 1.0 } else { 0.0 } - beta) / sigma;
+                        assert!(
+                            (fd - analytic).abs() <= 1e-6 * (1.0 / sigma),
+                            "{model:?} m {m} d r{i}/d e{l}: {fd} vs {analytic}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
     /// Monte-Carlo spread of `left.fx` and `left.cx` against the mean predicted sigma of
     /// both covariance models, for errors built by `err(point, side, rng)`.
     fn spread_and_predictions(
