@@ -544,6 +544,14 @@ pub struct BundleResult {
 }
 
 impl BundleResult {
+    /// The least-squares cost in chi-square units at pixel noise `noise_px`: the squared
+    /// reprojection errors over `noise_px^2` plus the angle prior's chi-square
+    /// ([`angle_prior_chi2`] under `options`), as the adjustment weighs them.
+    pub fn chi2(&self, noise_px: f64, options: &BundleOptions) -> f64 {
+        self.report.final_rms_px.powi(2) * self.report.observations as f64 / (noise_px * noise_px)
+            + angle_prior_chi2(&self.state.motions, options)
+    }
+
     /// The state moved by a tangent-space step `delta` over the non-point parameters (same
     /// order as `covariance.names`), points unchanged.
     /// Lets callers propagate the covariance to any derived quantity by finite differences.

@@ -19,7 +19,7 @@ use std::collections::HashMap;
 use headalign::estimate::EstimationOptions;
 use headalign::procedure::VergeTiltOutcome;
 use headalign_geometry::bundle::{
-    BundleResult, RobustLoss, angle_prior_chi2, bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale,
+    BundleResult, RobustLoss, bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale,
 };
 use headalign_platform::Encoders;
 use headalign_sim::{Scenario, SimulatedHead};
@@ -147,10 +147,7 @@ fn main() {
     }
     println!("   ({missing} points without a clean counterpart kept at the estimate)");
     let noise = c.bundle.report.sigma_px;
-    let cost = |r: &BundleResult| {
-        r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise)
-            + angle_prior_chi2(&r.state.motions, &o)
-    };
+    let cost = |r: &BundleResult| r.chi2(noise, &o);
     let base = cost(&again);
     if let Ok((s, sig)) = log_depth_scale(st, &c.observations, &o, noise) {
         println!("   depth scale s {s:.4} sigma {sig:.4} (estimate cost {base:.2})");

@@ -44,10 +44,8 @@
 use std::collections::HashMap;
 
 use headalign::estimate::EstimationOptions;
-use headalign_geometry::bundle::{
-    BundleObservation, BundleResult, RigState, RobustLoss, bundle_adjust, residual_pixels,
-};
-use headalign_geometry::bundle::{BundleOptions, angle_prior_chi2};
+use headalign_geometry::bundle::BundleOptions;
+use headalign_geometry::bundle::{BundleObservation, RigState, RobustLoss, bundle_adjust, residual_pixels};
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
 use nalgebra::{DMatrix, Matrix3, Point3, Vector3};
@@ -99,13 +97,6 @@ fn shifted(st: &RigState, rs: &[(f64, f64)], sign: f64, cap: f64) -> RigState {
         *p = Point3::from(dir / (rho + sign * h));
     }
     m
-}
-
-/// Least-squares cost in chi-square units (pixels over `noise`, plus the angle priors), as
-/// `estimate::least_squares_cost` computes it.
-fn chi2(r: &BundleResult, noise: f64, options: &BundleOptions) -> f64 {
-    r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise)
-        + angle_prior_chi2(&r.state.motions, options)
 }
 
 fn main() {
@@ -224,7 +215,7 @@ fn main() {
             if let (Ok(f), Ok(h)) = (free, fixed) {
                 println!(
                     "     profile: chi2 at the true right.cx - at the estimate <= {:.2} (Wald z^2 {:.2}; {} iterations, {})",
-                    chi2(&h, noise, &o) - chi2(&f, noise, &o),
+                    h.chi2(noise, &o) - f.chi2(noise, &o),
                     ((value(st) - truth_value) / sig(st)).powi(2),
                     h.report.iterations,
                     h.report.termination

@@ -82,8 +82,8 @@
 use std::collections::{BTreeMap, HashMap, HashSet};
 
 use headalign_geometry::bundle::{
-    BundleObservation, BundleOptions, BundleResult, Motions, RigState, RobustLoss, Side, angle_prior_chi2,
-    bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale, residual_pixels,
+    BundleObservation, BundleOptions, BundleResult, Motions, RigState, RobustLoss, Side, bundle_adjust,
+    bundle_adjust_at_depth_scale, log_depth_scale, residual_pixels,
 };
 use headalign_geometry::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use headalign_geometry::frame::{StereoFrame, quasi_euclidean_frame, relative_pose};
@@ -1470,7 +1470,7 @@ fn reversed_rig_restart(
         noise_sigma_px: Some(noise),
         ..options.bundle.clone()
     };
-    let base = least_squares_cost(&current, noise, &options.bundle);
+    let base = current.chi2(noise, &options.bundle);
     // Costs are non-negative: below the gain no restart can win (the noise-free runs of
     // the experiments' Cramer-Rao bound, where a restart ran up to 300 iterations in vain).
     if base < RESTART_MIN_GAIN {
@@ -1495,7 +1495,7 @@ fn reversed_rig_restart(
         if r.report.observations != current.report.observations {
             continue;
         }
-        let cost = least_squares_cost(&r, noise, &options.bundle);
+        let cost = r.chi2(noise, &options.bundle);
         if cost < base - RESTART_MIN_GAIN && best.as_ref().is_none_or(|(_, c)| cost < *c) {
             best = Some((r, cost));
         }
@@ -1555,7 +1555,7 @@ fn restart_adjustment(
     if r.report.converged {
         return Some(r);
     }
-    if least_squares_cost(&r, noise, ls) > base + RESTART_ABANDON_GAP {
+    if r.chi2(noise, ls) > base + RESTART_ABANDON_GAP {
         return None;
     }
     bundle_adjust(start, obs, ls).ok()
@@ -1571,14 +1571,6 @@ const RESTART_PROBE_ITERATIONS: usize = 50;
 /// between 1 below and 82 above the estimate there; of the 104 above 200, none came below
 /// it in 300 iterations. Twice the largest winner's gap, for margin.
 const RESTART_ABANDON_GAP: f64 = 200.0;
-
-/// Least-squares cost of a result in chi-square units at pixel noise `noise`: squared
-/// reprojection errors over `noise^2` plus the squared angle-prior residuals (as the
-/// adjustment weighs them).
-fn least_squares_cost(r: &BundleResult, noise: f64, options: &BundleOptions) -> f64 {
-    r.report.final_rms_px.powi(2) * r.report.observations as f64 / (noise * noise)
-        + angle_prior_chi2(&r.state.motions, options)
-}
 
 /// Smallest cost decrease (chi-square units) for which a restart replaces the estimate
 /// ([`reversed_rig_restart`]): far below the 40 between the two minima of seed 39 and far
