@@ -1769,7 +1769,52 @@ pub fn bundle_adjust(
     observations: &[BundleObservation],
     options: &BundleOptions,
 ) -> Result<BundleResult> {
-    adjust(initial, observations, options, None)
+    adjust(initial, observations, options, None, None)?.ok_or_else(never_abandoned)
+}
+
+/// What [`bundle_adjust_with_checkpoint`] shows its callback: the accepted state after
+/// `iterations` iterations, not converged.
+#[derive(Debug, Clone, Copy)]
+pub struct BundleCheckpoint<'a> {
+    /// The current (best so far) state.
+    pub state: &'a RigState,
+    /// Iterations done.
+    pub iterations: usize,
+    /// RMS reprojection error of the state over the used observations, pixels.
+    pub rms_px: f64,
+    /// Observations used.
+    pub observations: usize,
+}
+
+impl BundleCheckpoint<'_> {
+    /// [`BundleResult::chi2`] of the checkpoint's state (the same expression, so a caller
+    /// comparing it with a finished result's compares like with like).
+    pub fn chi2(&self, noise_px: f64, options: &BundleOptions) -> f64 {
+        self.rms_px.powi(2) * self.observations as f64 / (noise_px * noise_px)
+            + angle_prior_chi2(&self.state.motions, options)
+    }
+}
+
+/// [`bundle_adjust`] that, if still not converged after `at_iteration` iterations, asks
+/// `keep_going` whether to continue; `Ok(None)` when it says no. The run that continues is
+/// exactly [`bundle_adjust`]'s (the solver is deterministic and the check changes
+/// nothing), so a caller that would give up on a hopeless start pays for the iterations up
+/// to the check only, and one that goes on does not repeat them (what running a short
+/// probe and then the full adjustment from the start would cost).
+pub fn bundle_adjust_with_checkpoint(
+    initial: &RigState,
+    observations: &[BundleObservation],
+    options: &BundleOptions,
+    at_iteration: usize,
+    keep_going: &mut dyn FnMut(&BundleCheckpoint<'_>) -> bool,
+) -> Result<Option<BundleResult>> {
+    adjust(initial, observations, options, None, Some((at_iteration, keep_going)))
+}
+
+/// The error for a run without a checkpoint that came back abandoned (cannot happen: only
+/// the checkpoint's callback abandons).
+fn never_abandoned() -> GeometryError {
+    GeometryError::Numerical("the adjustment was abandoned without a checkpoint".into())
 }
 
 /// [`bundle_adjust`] with the scene's depth scale held near `target`: the stiff
@@ -1790,7 +1835,7 @@ pub fn bundle_adjust_at_depth_scale(
             "depth-scale target {target} / tolerance {tolerance} must be finite, tolerance > 0"
         )));
     }
-    adjust(initial, observations, options, Some((target, tolerance)))
+    adjust(initial, observations, options, Some((target, tolerance)), None)?.ok_or_else(never_abandoned)
 }
 
 /// The scene's depth scale `s` of a state: `-ln` of the mean inverse distance (the log
@@ -1867,12 +1912,17 @@ fn log_depth_scale_jacobian(state: &RigState, points: &[usize]) -> Option<Vec<Ve
         .collect()
 }
 
+/// The callback of [`bundle_adjust_with_checkpoint`] and the iteration count at which it
+/// is asked.
+type Checkpoint<'c> = (usize, &'c mut dyn FnMut(&BundleCheckpoint<'_>) -> bool);
+
 fn adjust(
     initial: &RigState,
     observations: &[BundleObservation],
     options: &BundleOptions,
     depth: Option<(f64, f64)>,
-) -> Result<BundleResult> {
+    mut checkpoint: Option<Checkpoint<'_>>,
+) -> Result<Option<BundleResult>> {
     let (mut state, mut problem) = problem(initial, observations, options)?;
     problem.depth = depth;
     let nc = problem.layout.len();
@@ -1889,6 +1939,19 @@ fn adjust(
     let mut converged = false;
     let mut termination = String::from("maximum iterations reached");
     'outer: while iterations < options.max_iterations {
+        if let Some((at, keep_going)) = checkpoint.as_mut()
+            && iterations == *at
+        {
+            let seen = BundleCheckpoint {
+                state: &state,
+                iterations,
+                rms_px: rms(current.sum_sq, n_obs),
+                observations: n_obs,
+            };
+            if !keep_going(&seen) {
+                return Ok(None);
+            }
+        }
         iterations += 1;
         let Some(normal) = problem.normal_equations(&state, problem.prior_weight) else {
             return Err(GeometryError::Numerical("linearisation failed at an accepted state".into()));
@@ -1982,7 +2045,7 @@ fn adjust(
         }
     };
     let (covariance, sigma_inflation) = covariance(&problem, &state, sigma, options.covariance_model, None)?;
-    Ok(BundleResult {
+    Ok(Some(BundleResult {
         state,
         report: BundleReport {
             iterations,
@@ -1996,7 +2059,7 @@ fn adjust(
             sigma_inflation,
         },
         covariance,
-    })
+    }))
 }
 
 fn x_norm(state: &RigState, points: &[usize]) -> f64 {
@@ -2232,6 +2295,41 @@ mod tests {
         assert!(res.report.converged, "{:?}", res.report);
         assert!(res.report.final_rms_px < 1e-8, "{:?}", res.report);
         assert!(d < 1e-8, "distance to truth {d:e}, {:?}", res.report);
+    }
+
+    /// The checkpoint changes nothing when the callback goes on (the same state to the
+    /// bit, the same report), shows the state a run capped at that many iterations ends
+    /// with (same chi-square), and abandons when told to.
+    #[test]
+    fn a_checkpoint_that_goes_on_is_the_plain_run() {
+        let s = synth(5, 120, 1.0, 0.0, false);
+        let start = perturb(&s.truth, 20);
+        let options =
+            BundleOptions { noise_sigma_px: Some(1.0), robust: RobustLoss::None, ..Default::default() };
+        let plain = bundle_adjust(&start, &s.obs, &options).unwrap();
+        assert!(plain.report.converged && plain.report.iterations > 3, "{:?}", plain.report);
+        let at = 2;
+        let capped =
+            bundle_adjust(&start, &s.obs, &BundleOptions { max_iterations: at, ..options.clone() }).unwrap();
+        let mut seen = Vec::new();
+        let mut go_on = |c: &BundleCheckpoint<'_>| {
+            seen.push((c.iterations, c.chi2(1.0, &options), c.state.left.fx));
+            true
+        };
+        let checked =
+            bundle_adjust_with_checkpoint(&start, &s.obs, &options, at, &mut go_on).unwrap().unwrap();
+        assert_eq!(seen, vec![(at, capped.chi2(1.0, &options), capped.state.left.fx)]);
+        assert_eq!(format!("{:?}", checked.report), format!("{:?}", plain.report));
+        assert_eq!(format!("{:?}", checked.state), format!("{:?}", plain.state));
+        assert_eq!(checked.covariance.matrix, plain.covariance.matrix);
+        let mut stop = |_: &BundleCheckpoint<'_>| false;
+        assert!(bundle_adjust_with_checkpoint(&start, &s.obs, &options, at, &mut stop).unwrap().is_none());
+        // A run that converges before the checkpoint never asks.
+        let mut never = |_: &BundleCheckpoint<'_>| -> bool { panic!("asked after convergence") };
+        let late = plain.report.iterations + 1;
+        let done =
+            bundle_adjust_with_checkpoint(&start, &s.obs, &options, late, &mut never).unwrap().unwrap();
+        assert_eq!(done.report.iterations, plain.report.iterations);
     }
 
     #[test]
