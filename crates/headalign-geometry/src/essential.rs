@@ -70,7 +70,7 @@ fn signed_sampson_gradient(f: &Matrix3<f64>, l: &Point2<f64>, r: &Point2<f64>) -
     let fx = f * Vector3::from(xl);
     let ftx = f.tr_mul(&Vector3::from(xr));
     let den = fx.x * fx.x + fx.y * fx.y + ftx.x * ftx.x + ftx.y * ftx.y;
-    if !(den > 0.0) {
+    if den.is_nan() || den <= 0.0 {
         return None;
     }
     let e = Vector3::from(xr).dot(&fx);
