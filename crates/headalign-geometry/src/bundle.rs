@@ -557,8 +557,7 @@ impl BundleResult {
     /// reprojection errors over `noise_px^2` plus the angle prior's chi-square
     /// ([`angle_prior_chi2`] under `options`), as the adjustment weighs them.
     pub fn chi2(&self, noise_px: f64, options: &BundleOptions) -> f64 {
-        self.report.final_rms_px.powi(2) * self.report.observations as f64 / (noise_px * noise_px)
-            + angle_prior_chi2(&self.state.motions, options)
+        chi2_of(self.report.final_rms_px, self.report.observations, &self.state.motions, noise_px, options)
     }
 
     /// The state moved by a tangent-space step `delta` over the non-point parameters (same
@@ -1540,9 +1539,8 @@ fn solve(n: &Normal, lambda: f64) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
 /// `-g.h - h^T N h / 2 = (-g.h + lambda h^T D h) / 2`, where `g` includes the depth-scale
 /// pseudo-residual's gradient and `D` is the clamped diagonal the damping uses.
 fn predicted_decrease(n: &Normal, lambda: f64, dc: &DVector<f64>, dp: &[Vector3<f64>]) -> f64 {
-    let damp = |d: f64| d.clamp(DAMPING_DIAGONAL.0, DAMPING_DIAGONAL.1);
     let mut g_h = n.gc.dot(dc);
-    let mut h_d_h: f64 = (0..dc.len()).map(|i| damp(n.u[(i, i)]) * dc[i] * dc[i]).sum();
+    let mut h_d_h: f64 = (0..dc.len()).map(|i| damping_diagonal(n.u[(i, i)]) * dc[i] * dc[i]).sum();
     for (p, d) in dp.iter().enumerate() {
         let (Some(g), Some(v)) = (n.gp.get(p), n.v.get(p)) else { continue };
         let mut g = *g;
@@ -1550,13 +1548,16 @@ fn predicted_decrease(n: &Normal, lambda: f64, dc: &DVector<f64>, dp: &[Vector3<
             g += a;
         }
         g_h += g.dot(d);
-        h_d_h += (0..3).map(|i| damp(v[(i, i)]) * d[i] * d[i]).sum::<f64>();
+        h_d_h += (0..3).map(|i| damping_diagonal(v[(i, i)]) * d[i] * d[i]).sum::<f64>();
     }
     0.5 * (lambda * h_d_h - g_h)
 }
 
-/// The range the damping's diagonal is clamped to (Marquardt scaling, module docs).
-const DAMPING_DIAGONAL: (f64, f64) = (1e-6, 1e32);
+/// A diagonal entry of the normal matrix as the damping scales it: clamped to
+/// `[1e-6, 1e32]` (Marquardt scaling, module docs).
+fn damping_diagonal(d: f64) -> f64 {
+    d.clamp(1e-6, 1e32)
+}
 
 /// Solve the damped normal equations `N_lambda (dc, dp) = (rc, rp)` (data and priors
 /// only) by the Schur complement over the points.
@@ -1566,8 +1567,7 @@ fn solve_rhs(
     rc: &DVector<f64>,
     rp: &[Vector3<f64>],
 ) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
-    let (s, l_inv) =
-        reduced_camera_system(n, |d| lambda * d.clamp(DAMPING_DIAGONAL.0, DAMPING_DIAGONAL.1), false)?;
+    let (s, l_inv) = reduced_camera_system(n, |d| lambda * damping_diagonal(d), false)?;
     // V_p^-1 = L_p^-T L_p^-1.
     let v_inv: Vec<Matrix3<f64>> =
         l_inv.into_iter().map(|li| li.map(|li| li.transpose() * li)).collect::<Option<_>>()?;
@@ -1823,9 +1823,21 @@ impl BundleCheckpoint<'_> {
     /// [`BundleResult::chi2`] of the checkpoint's state (the same expression, so a caller
     /// comparing it with a finished result's compares like with like).
     pub fn chi2(&self, noise_px: f64, options: &BundleOptions) -> f64 {
-        self.rms_px.powi(2) * self.observations as f64 / (noise_px * noise_px)
-            + angle_prior_chi2(&self.state.motions, options)
+        chi2_of(self.rms_px, self.observations, &self.state.motions, noise_px, options)
     }
+}
+
+/// The least-squares cost in chi-square units of `observations` residuals with RMS
+/// `rms_px` at noise `noise_px`, plus the angle prior's chi-square under `options`
+/// ([`BundleResult::chi2`], [`BundleCheckpoint::chi2`]).
+fn chi2_of(
+    rms_px: f64,
+    observations: usize,
+    motions: &Motions,
+    noise_px: f64,
+    options: &BundleOptions,
+) -> f64 {
+    rms_px.powi(2) * observations as f64 / (noise_px * noise_px) + angle_prior_chi2(motions, options)
 }
 
 /// [`bundle_adjust`] that, if still not converged after `at_iteration` iterations, asks
@@ -1945,6 +1957,13 @@ fn log_depth_scale_jacobian(state: &RigState, points: &[usize]) -> Option<Vec<Ve
         .collect()
 }
 
+/// Nielsen's damping after a rejected step (or one that could not be solved): raise
+/// `lambda` by `nu`, and double `nu` for the next rejection in a row.
+fn reject(lambda: &mut f64, nu: &mut f64) {
+    *lambda *= *nu;
+    *nu *= 2.0;
+}
+
 /// The callback of [`bundle_adjust_with_checkpoint`] and the iteration count at which it
 /// is asked.
 type Checkpoint<'c> = (usize, &'c mut dyn FnMut(&BundleCheckpoint<'_>) -> bool);
@@ -1999,8 +2018,7 @@ fn adjust(
                 break 'outer;
             }
             let Some((dc, dp)) = solve(&normal, lambda) else {
-                lambda *= nu;
-                nu *= 2.0;
+                reject(&mut lambda, &mut nu);
                 continue;
             };
             let predicted = predicted_decrease(&normal, lambda, &dc, &dp);
@@ -2054,10 +2072,7 @@ fn adjust(
                     }
                     break;
                 }
-                _ => {
-                    lambda *= nu;
-                    nu *= 2.0;
-                }
+                _ => reject(&mut lambda, &mut nu),
             }
         }
     }
