@@ -13,7 +13,9 @@ use headalign::estimate::RigCalibration;
 use headalign::onemotion::{Horizon, OneMotionOptions, OneMotionOutcome, align_one_motion};
 use headalign::panfix::{PanFixationOptions, PanFixationOutcome, align_pan_by_fixation};
 use headalign::procedure::AxisPerturbations;
-use headalign::robot::{PanOptions, PanOutcome, SteeringOptions, SteeringOutcome, align_pan, zero_steering};
+use headalign::robot::{
+    PanOptions, PanOutcome, RigCheck, SteeringOptions, SteeringOutcome, align_pan, zero_steering,
+};
 use headalign_platform::{StereoHead, Vehicle};
 use serde::{Deserialize, Serialize};
 
@@ -100,6 +102,18 @@ impl RobotOutcomes {
     }
 }
 
+/// Warn on stderr when a robot stage had to correct the stereo rig predicted at its
+/// readings ([`RigCheck`]): the run goes on, but the calibration or the vergence axes do
+/// not hold there.
+fn warn_rig_correction(what: &str, check: &RigCheck) {
+    if check.correction_deg > 0.0 {
+        eprintln!(
+            "warning: {what}: the stereo rig predicted at its readings misfit the captures (median {:.2} px, at most {:.2} px expected); its relative pose was re-fitted to them ({:.3} deg, median misfit now {:.2} px). The vergence axes or the calibration do not hold at these readings: consider running the verge/tilt stage again",
+            check.misfit_px, check.bound_px, check.correction_deg, check.used_misfit_px
+        );
+    }
+}
+
 /// Run the plan's robot stages in order on `robot`; `on_stage(robot, name)` is called
 /// before each (a recording head names the stage's captures with it).
 pub fn run_robot_stages<R: StereoHead + Vehicle>(
@@ -121,12 +135,16 @@ pub fn run_robot_stages<R: StereoHead + Vehicle>(
                 if let Some(c) = plan.planarity_chi2_max {
                     o.planarity_chi2_max = c;
                 }
-                out.pan.push(align_pan(robot, calib, verge, axes, &o).context("pan stage")?);
+                let pan = align_pan(robot, calib, verge, axes, &o).context("pan stage")?;
+                pan.steps.iter().for_each(|s| warn_rig_correction("pan drive", &s.rig_check));
+                out.pan.push(pan);
             }
             "one-motion" => {
                 let horizon = if plan.horizon_from_drive { Horizon::Drive } else { Horizon::PanAxis };
                 let o = OneMotionOptions { drive_m: plan.drive_m, horizon, ..OneMotionOptions::default() };
-                out.one_motion.push(align_one_motion(robot, calib, verge, &o).context("one-motion stage")?);
+                let one = align_one_motion(robot, calib, verge, &o).context("one-motion stage")?;
+                one.steps.iter().for_each(|s| warn_rig_correction("one-motion drive", &s.rig_check));
+                out.one_motion.push(one);
             }
             "pan-fixate" => {
                 let o = PanFixationOptions { drive_m: plan.drive_m, ..PanFixationOptions::default() };
@@ -144,6 +162,7 @@ pub fn run_robot_stages<R: StereoHead + Vehicle>(
                     o.planarity_chi2_max = c;
                 }
                 let st = zero_steering(robot, calib, verge, axes, &o).context("steering stage")?;
+                warn_rig_correction("steering stage", &st.rig_check);
                 for &k in &st.dropped_turns {
                     if let Some(t) = st.turns.get(k) {
                         eprintln!(

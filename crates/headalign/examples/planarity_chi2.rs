@@ -42,7 +42,6 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let last: u64 = args.get(2).map_or(Ok(first), |s| s.parse())?;
     let noise: f64 = std::env::var("NOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(3.0);
     let limit: f64 = std::env::var("LIMIT").ok().and_then(|v| v.parse().ok()).unwrap_or(f64::INFINITY);
-    let k = noise.max(1.0);
     for seed in first..=last {
         let encoder_noise_deg = std::env::var("ENCNOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(0.0);
         let s = Scenario { encoder_noise_deg, ..common::robot_scenario(seed, noise) };
@@ -83,16 +82,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
                 st.right_from_left.translation.vector.angle(&t_rl.translation.vector).to_degrees()
             );
         }
-        let mut pan = PanOptions { drive_m: s.drive_m, planarity_chi2_max: limit, ..PanOptions::default() };
-        pan.translation.ransac.threshold *= k;
-        pan.registration.threshold *= k;
-        pan.guide_px *= k;
-        let mut st = SteeringOptions {
+        // The stages scale their thresholds with the calibration's noise estimate.
+        let pan = PanOptions { drive_m: s.drive_m, planarity_chi2_max: limit, ..PanOptions::default() };
+        let st = SteeringOptions {
             baseline_m: s.baseline_m,
             planarity_chi2_max: limit,
             ..SteeringOptions::default()
         };
-        st.registration.threshold *= k;
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
         // The vergence axes' uncertainty (default) or, with `AXES=held`, the axes taken as
         // exact (the robot stages before it was propagated).
@@ -111,6 +107,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             axis_perturbations(cal, verge, &vt.axis_sources, &cal.reference_encoders, px)
         });
         let axes = perturbations.as_ref();
+        if std::env::var("DETAIL").is_ok() {
+            eprintln!("  before the pan stage: verge axes {:?}", vt.verge_axes);
+            print_rig_error(&robot, &vt, s.baseline_m);
+        }
         let p1 = match align_pan(&mut robot, cal, verge, axes, &pan) {
             Ok(p) => p,
             Err(e) => {
@@ -127,26 +127,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             );
         }
         if std::env::var("DETAIL").is_ok() {
-            let enc = robot.head().encoders();
-            let r0 = vt.calibration.reference_encoders;
-            let rot = |axis: &Option<headalign_geometry::so3::Line>, a: f64| {
-                axis.map(|l| headalign_geometry::so3::rotation_about_line(&l, a.to_radians()))
-                    .unwrap_or_else(nalgebra::Isometry3::identity)
-            };
-            let rl = rot(&vt.verge_axes.left, enc.verge_left - r0.verge_left);
-            let rr = rot(&vt.verge_axes.right, enc.verge_right - r0.verge_right);
-            let pred = vt.calibration.bundle.state.right_from_left * rr.inverse() * rl;
-            let (wl, wr) = robot.head().world_from_cameras(&enc);
-            let truth = wr.inverse() * wl;
-            let d = pred.inverse() * truth;
-            eprintln!(
-                "  rig at readings: rot err {:.3} deg ({:?}), t dir err {:.3} deg, |t| {:.3} vs {:.3}",
-                d.rotation.angle().to_degrees(),
-                d.rotation.scaled_axis().as_slice(),
-                pred.translation.vector.angle(&truth.translation.vector).to_degrees(),
-                pred.translation.vector.norm(),
-                truth.translation.vector.norm() / s.baseline_m
-            );
+            print_rig_error(&robot, &vt, s.baseline_m);
             let s0 = robot.steering_encoder_deg();
             let (robot_from_left, _) = robot.head().world_from_cameras(&robot.head().encoders());
             for set in &st.settings_deg {
@@ -209,4 +190,29 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         println!("{seed} z pan {:.3} steer {:.3}", pan_err / ps, steer_err / sz.sigma_steer_zero_deg);
     }
     Ok(())
+}
+
+/// The stereo rig predicted at the robot's current readings (calibration and vergence
+/// axes) against the truth, on stderr.
+fn print_rig_error(robot: &SimulatedRobot, vt: &headalign::procedure::VergeTiltOutcome, baseline_m: f64) {
+    let enc = robot.head().encoders();
+    let r0 = vt.calibration.reference_encoders;
+    let rot = |axis: &Option<headalign_geometry::so3::Line>, a: f64| {
+        axis.map(|l| headalign_geometry::so3::rotation_about_line(&l, a.to_radians()))
+            .unwrap_or_else(nalgebra::Isometry3::identity)
+    };
+    let rl = rot(&vt.verge_axes.left, enc.verge_left - r0.verge_left);
+    let rr = rot(&vt.verge_axes.right, enc.verge_right - r0.verge_right);
+    let pred = vt.calibration.bundle.state.right_from_left * rr.inverse() * rl;
+    let (wl, wr) = robot.head().world_from_cameras(&enc);
+    let truth = wr.inverse() * wl;
+    let d = pred.inverse() * truth;
+    eprintln!(
+        "  rig at readings: rot err {:.3} deg ({:?}), t dir err {:.3} deg, |t| {:.3} vs {:.3}",
+        d.rotation.angle().to_degrees(),
+        d.rotation.scaled_axis().as_slice(),
+        pred.translation.vector.angle(&truth.translation.vector).to_degrees(),
+        pred.translation.vector.norm(),
+        truth.translation.vector.norm() / baseline_m
+    );
 }

@@ -55,7 +55,6 @@ pub enum AlignError {
     /// The platform (head) failed.
     #[error("head: {0}")]
     Platform(#[from] PlatformError),
-    /// Invalid options.
     /// The drive was too short for the scene depth: the image flow is too small to
     /// locate the epipole.
     #[error(
@@ -99,6 +98,25 @@ pub enum AlignError {
     /// translation along it).
     #[error("motion not planar: {0}")]
     NotPlanar(String),
+    /// The stereo rig predicted at a robot stage's readings (calibration and vergence
+    /// axes) does not fit that stage's stereo captures, even with its relative pose
+    /// re-fitted to them.
+    #[error(
+        "the stereo rig predicted at readings (pan {:.3}, elevation {:.3}, verge {:.3} / {:.3} deg) does not fit the captured stereo pairs: median misfit {misfit_px:.2} px, at most {bound_px:.2} px expected from the calibration's noise, {refit_px:.2} px with its relative pose re-fitted; the calibration or the vergence axes do not hold at these readings: run the verge/tilt stage again",
+        readings.pan, readings.elevation, readings.verge_left, readings.verge_right
+    )]
+    RigMisfit {
+        /// The readings the rig was predicted at.
+        readings: headalign_platform::Encoders,
+        /// Median misfit of the predicted rig, pixels ([`crate::robot::RigCheck`]).
+        misfit_px: f64,
+        /// The largest accepted, pixels.
+        bound_px: f64,
+        /// Median misfit after re-fitting the relative pose, pixels (infinite: the
+        /// re-fit failed).
+        refit_px: f64,
+    },
+    /// Invalid options.
     #[error("invalid option: {0}")]
     InvalidOption(String),
     /// Bad or unusable images.

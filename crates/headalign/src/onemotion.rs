@@ -64,7 +64,7 @@ use serde::Serialize;
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
 use crate::estimate::RigCalibration;
-use crate::robot::{angle_about, drive_motion, head_forward, rig_at};
+use crate::robot::{RigCheck, angle_about, check_rig, drive_motion, head_forward, rig_at, threshold_scale};
 
 /// Known geometry of the head for [`one_motion_from_motion`], in the left camera frame
 /// before the motion, stereo baselines.
@@ -298,6 +298,9 @@ pub struct OneMotionOptions {
     pub thresholds: OneMotionThresholds,
     /// Registration RANSAC (threshold: reprojection pixels). Default threshold 4 px.
     pub registration: RansacOptions,
+    /// Multiply the registration threshold by the calibration's noise estimate when it
+    /// exceeds 1 px, as [`crate::robot::PanOptions::scale_to_noise`]. Default true.
+    pub scale_to_noise: bool,
 }
 
 impl Default for OneMotionOptions {
@@ -311,6 +314,7 @@ impl Default for OneMotionOptions {
             horizon: Horizon::PanAxis,
             thresholds: OneMotionThresholds::default(),
             registration: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
+            scale_to_noise: true,
         }
     }
 }
@@ -338,6 +342,9 @@ pub struct OneMotionStep {
     pub estimate: OneMotionEstimate,
     /// Registration inliers.
     pub inliers: usize,
+    /// The predicted stereo rig checked against this motion's captures (and corrected if
+    /// it misfit them).
+    pub rig_check: RigCheck,
 }
 
 /// Result of [`align_one_motion`].
@@ -359,6 +366,9 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
     options: &OneMotionOptions,
 ) -> Result<OneMotionOutcome, AlignError> {
     options.validate()?;
+    let mut options = options.clone();
+    options.registration.threshold *= threshold_scale(options.scale_to_noise, calib.report.sigma_px);
+    let options = &options;
     let mut steps = Vec::new();
     // Moves are made from the last commanded readings (read once), not from fresh noisy
     // reads, which would move every joint by its read noise at each step; the rig is
@@ -372,7 +382,8 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
         let after = robot.capture()?;
         robot.drive(-options.drive_m)?;
         robot.move_to(&commanded)?;
-        let rig = rig_at(calib, verge, &enc)?;
+        let (rig, _, rig_check) =
+            check_rig(rig_at(calib, verge, &enc)?, &[&before, &after], calib.report.sigma_px, &enc)?;
         let left_from_ref = rig.ref_from_left.inverse();
         let pan_axis = calib.pan_axis().ok_or_else(|| AlignError::MissingMotion("pan axis".into()))?;
         let elev_axis =
@@ -423,7 +434,7 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
             }
         }
         robot.move_to(&commanded)?;
-        steps.push(OneMotionStep { encoders: enc, estimate, inliers: motion.inliers });
+        steps.push(OneMotionStep { encoders: enc, estimate, inliers: motion.inliers, rig_check });
     }
     Ok(OneMotionOutcome { steps, final_encoders: robot.read_encoders()? })
 }

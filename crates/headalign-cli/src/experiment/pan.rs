@@ -54,22 +54,17 @@ pub const ROBOT_QUANTITIES: [&str; 13] = [
 /// Index of `pan.aligned` in [`ROBOT_QUANTITIES`].
 pub const PAN_INDEX: usize = 11;
 
-/// Pan options for a scenario: its drive, the RANSAC and guide thresholds scaled by
-/// `max(1, noise_px)` (as [`super::trial::estimation_options`] does for the verge/tilt
-/// stage: the defaults are tuned for about 1 px).
+/// Pan options for a scenario: its drive; the stage scales its pixel thresholds with the
+/// calibration's noise estimate itself ([`PanOptions::scale_to_noise`]), where the
+/// verge/tilt stage is given them scaled by the scenario's noise
+/// ([`super::trial::estimation_options`]).
 pub fn pan_options(scenario: &Scenario) -> PanOptions {
-    let s = scenario.noise_px.max(1.0);
-    let mut o = PanOptions { drive_m: scenario.drive_m, ..PanOptions::default() };
-    o.translation.ransac.threshold *= s;
-    o.registration.threshold *= s;
-    o.guide_px *= s;
-    o
+    PanOptions { drive_m: scenario.drive_m, ..PanOptions::default() }
 }
 
+/// Steering options for a scenario: its baseline (thresholds as [`pan_options`]).
 fn steering_options(scenario: &Scenario) -> SteeringOptions {
-    let mut o = SteeringOptions { baseline_m: scenario.baseline_m, ..SteeringOptions::default() };
-    o.registration.threshold *= scenario.noise_px.max(1.0);
-    o
+    SteeringOptions { baseline_m: scenario.baseline_m, ..SteeringOptions::default() }
 }
 
 /// Sigma of the last drive's pan correction, degrees (NaN without a drive): the
