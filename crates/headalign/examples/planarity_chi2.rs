@@ -5,7 +5,8 @@
 //! the trial's pan and steering-zero errors over their sigmas. `LIMIT=25.902` restores
 //! the default test (a failing stage then ends the seed); `DETAIL=1` prints, on stderr,
 //! the calibrated rig's error at the reference and at the robot's readings (vergence
-//! axes) and each steering drive's true camera displacement (baselines).
+//! axes; before the first pan stage and after it) and each steering drive's true camera
+//! displacement (baselines).
 //! `NOISE=3 cargo run --release -p headalign --example planarity_chi2 -- FIRST LAST`
 //!
 //! `AXES=held`: the vergence axes taken as exact (the robot stages before their

@@ -64,7 +64,10 @@ use serde::Serialize;
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
 use crate::estimate::RigCalibration;
-use crate::robot::{RigCheck, angle_about, check_rig, drive_motion, head_forward, rig_at, threshold_scale};
+use crate::robot::{
+    DRIVE_MIN_ITERATIONS, RigCheck, angle_about, check_rig, drive_motion, head_forward, rig_at,
+    threshold_scale,
+};
 
 /// Known geometry of the head for [`one_motion_from_motion`], in the left camera frame
 /// before the motion, stereo baselines.
@@ -296,7 +299,8 @@ pub struct OneMotionOptions {
     pub horizon: Horizon,
     /// Degeneracy thresholds. Default [`OneMotionThresholds::default`].
     pub thresholds: OneMotionThresholds,
-    /// Registration RANSAC (threshold: reprojection pixels). Default threshold 4 px.
+    /// Registration RANSAC (threshold: reprojection pixels). Default threshold 4 px, at
+    /// least [`DRIVE_MIN_ITERATIONS`] samples.
     pub registration: RansacOptions,
     /// Multiply the registration threshold by the calibration's noise estimate when it
     /// exceeds 1 px, as [`crate::robot::PanOptions::scale_to_noise`]. Default true.
@@ -313,7 +317,11 @@ impl Default for OneMotionOptions {
             correct_vergence: true,
             horizon: Horizon::PanAxis,
             thresholds: OneMotionThresholds::default(),
-            registration: RansacOptions { threshold: 4.0, ..RansacOptions::default() },
+            registration: RansacOptions {
+                threshold: 4.0,
+                min_iterations: DRIVE_MIN_ITERATIONS,
+                ..RansacOptions::default()
+            },
             scale_to_noise: true,
         }
     }
