@@ -150,15 +150,24 @@ mod tests {
         assert!(q.crb.is_nan());
     }
 
-    /// Regression, 3 px seed 170 (`experiment coverage` / `fig5-pan-tilt`): one steering
-    /// drive fails the planarity test (chi-square above 25.9: the fourth, or without
-    /// `EstimationOptions::image_border` the first, `robot::tests::scan_steering_chi2`);
-    /// the other three pass. That drive is left out (`SteeringOutcome::dropped_turns`)
-    /// instead of failing the trial.
+    /// Regression, 3 px seed 170 (`experiment coverage` / `fig5-pan-tilt`), under the
+    /// experiments' protocol (readings with 0.01 deg of noise): the trial completes with
+    /// both robot quantities within 4 reported sigmas. It used to have one steering drive
+    /// fail the planarity test and be left out (`SteeringOutcome::dropped_turns`); with
+    /// the 200-sample drive registration (`robot::DRIVE_MIN_ITERATIONS`) all four pass
+    /// (chi-square 4.0 / 5.1 / 6.1 / 2.0), so this seed no longer exercises that rule.
+    /// With exact readings (the former set-up) its first drive is still left out, but the
+    /// other three (24-57 tracks each) give a steering zero of -87 +- 64 deg, which the
+    /// platform refuses to command: not yet a named error (session 16's note).
     #[test]
-    fn one_non_planar_steering_drive_is_left_out() {
-        let s =
-            TrialSpec { scenario: Scenario { seed: 170, noise_px: 3.0, ..Scenario::default() }, ..spec(3.0) };
+    fn seed_170_robot_trial_is_within_its_sigmas() {
+        let scenario = Scenario {
+            seed: 170,
+            noise_px: 3.0,
+            encoder_noise_deg: ENCODER_SIGMA_DEG,
+            ..Scenario::default()
+        };
+        let s = TrialSpec { scenario, ..spec(3.0) };
         let r = run_pan_trial(&s).unwrap();
         // Within 4 reported sigmas (both are about 1 deg here).
         for q in &r.quantities[PAN_INDEX..] {
