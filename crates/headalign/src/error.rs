@@ -116,6 +116,25 @@ pub enum AlignError {
         /// re-fit failed).
         refit_px: f64,
     },
+    /// The steering drives leave the steering zero undetermined: its standard deviation
+    /// exceeds [`crate::robot::SteeringOptions::max_sigma_zero_deg`]. The wheel is not
+    /// commanded to it.
+    #[error(
+        "steering zero undetermined: {zero_deg:+.2} +- {sigma_deg:.2} deg from {drives} drives{}, above the {max_sigma_deg} deg accepted; drive farther, steer wider or add steering settings",
+        if dropped_turns.is_empty() { String::new() } else { format!(" (drives {dropped_turns:?} left out as not planar)") }
+    )]
+    SteeringUndetermined {
+        /// The steering zero found, degrees (encoder reading).
+        zero_deg: f64,
+        /// Its standard deviation, degrees.
+        sigma_deg: f64,
+        /// The largest accepted, degrees.
+        max_sigma_deg: f64,
+        /// Drives the solution used.
+        drives: usize,
+        /// Indices of drives left out (`SteeringOutcome::dropped_turns`).
+        dropped_turns: Vec<usize>,
+    },
     /// Invalid options.
     #[error("invalid option: {0}")]
     InvalidOption(String),

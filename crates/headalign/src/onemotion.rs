@@ -328,6 +328,14 @@ impl Default for OneMotionOptions {
 }
 
 impl OneMotionOptions {
+    /// These options with the registration threshold scaled for the calibration's noise
+    /// estimate `sigma_px` ([`OneMotionOptions::scale_to_noise`]).
+    pub fn scaled_to_noise(&self, sigma_px: f64) -> OneMotionOptions {
+        let mut o = self.clone();
+        o.registration.threshold *= threshold_scale(self.scale_to_noise, sigma_px);
+        o
+    }
+
     /// Check the options.
     pub fn validate(&self) -> Result<(), AlignError> {
         if !(self.drive_m.is_finite() && self.tilt_deg.is_finite() && self.iterations >= 1) {
@@ -374,9 +382,7 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
     options: &OneMotionOptions,
 ) -> Result<OneMotionOutcome, AlignError> {
     options.validate()?;
-    let mut options = options.clone();
-    options.registration.threshold *= threshold_scale(options.scale_to_noise, calib.report.sigma_px);
-    let options = &options;
+    let options = &options.scaled_to_noise(calib.report.sigma_px);
     let mut steps = Vec::new();
     // Moves are made from the last commanded readings (read once), not from fresh noisy
     // reads, which would move every joint by its read noise at each step; the rig is

@@ -121,7 +121,10 @@
 //! direction ([`steering_from_turns`]); the wheel is then set straight. The zero's sigma: each drive's motion covariance
 //! (independent drives) through its centre, plus the calibration's (every drive refitted
 //! under each perturbed calibration), by central differences (96 % coverage over 100
-//! trials at 1 px).
+//! trials at 1 px). A zero whose sigma exceeds `max_sigma_zero_deg` (default 10 deg)
+//! is [`AlignError::SteeringUndetermined`], before the wheel is commanded: at 3 px with
+//! exact readings, seed 170's first drive is left out and the other three (24-57 tracks
+//! each) give -87 +- 64 deg.
 //!
 //! Degenerate drives: a median flow below `min_flow_px` is [`AlignError::DriveTooShort`].
 //! Every drive is followed by the reverse drive, so the robot ends where it started.
@@ -365,6 +368,11 @@ pub struct SteeringOptions {
     /// Multiply the registration threshold by the calibration's noise estimate when it
     /// exceeds 1 px, as [`PanOptions::scale_to_noise`]. Default true.
     pub scale_to_noise: bool,
+    /// Largest standard deviation of the steering zero accepted, degrees: above it the
+    /// stage is [`AlignError::SteeringUndetermined`] and the wheel is not commanded.
+    /// Default 10 (the largest of 860 experiment trials, 3 px included, was 7.6; three
+    /// drives of 24-57 tracks each at 3 px gave 64).
+    pub max_sigma_zero_deg: f64,
 }
 
 impl Default for SteeringOptions {
@@ -383,6 +391,7 @@ impl Default for SteeringOptions {
             },
             encoder_sigma_deg: ENCODER_SIGMA_DEG,
             scale_to_noise: true,
+            max_sigma_zero_deg: 10.0,
         }
     }
 }
@@ -414,6 +423,11 @@ impl SteeringOptions {
                 self.drive_m, self.baseline_m
             ));
         }
+        if let Some(l) = self.wheelbase_m
+            && !(l.is_finite() && l > 0.0)
+        {
+            return bad(format!("wheelbase_m must be positive, got {l}"));
+        }
         let needed = if self.wheelbase_m.is_some() { 2 } else { 3 };
         if self.settings_deg.len() < needed || self.settings_deg.iter().any(|s| !s.is_finite()) {
             return bad(format!(
@@ -421,8 +435,11 @@ impl SteeringOptions {
                 self.settings_deg
             ));
         }
-        if !(self.min_turn_deg >= 0.0 && self.planarity_chi2_max > 0.0) {
-            return bad("min_turn_deg >= 0 and planarity_chi2_max > 0 required".into());
+        if !(self.min_turn_deg >= 0.0 && self.planarity_chi2_max > 0.0 && self.max_sigma_zero_deg > 0.0) {
+            return bad(format!(
+                "min_turn_deg >= 0, planarity_chi2_max > 0 and max_sigma_zero_deg > 0 required, got {} {} {}",
+                self.min_turn_deg, self.planarity_chi2_max, self.max_sigma_zero_deg
+            ));
         }
         check_encoder_sigma(self.encoder_sigma_deg)?;
         self.registration.validate().step("steering options")
@@ -1509,6 +1526,16 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     }
     let sol = fit.solution;
     let var_zero = fit.var_zero;
+    // A NaN sigma (not propagated) passes: the zero itself may be well determined.
+    if var_zero.sqrt() > options.max_sigma_zero_deg {
+        return Err(AlignError::SteeringUndetermined {
+            zero_deg: sol.steer_zero_deg,
+            sigma_deg: var_zero.sqrt(),
+            max_sigma_deg: options.max_sigma_zero_deg,
+            drives: steps.len() - dropped.len(),
+            dropped_turns: dropped,
+        });
+    }
     robot.steer_to(sol.steer_zero_deg)?;
     let pan_check = angle_about(&up, &head_forward(&rig), &sol.forward);
     Ok(SteeringOutcome {
@@ -1570,6 +1597,47 @@ mod tests {
         let mut robot = SimulatedRobot::new(s.clone()).unwrap();
         let vt = VergeTiltRun::default().run(robot.head_mut(), &opts).unwrap();
         (robot, vt, s)
+    }
+
+    /// Every option the stages check is rejected when out of range, by a named
+    /// [`AlignError::InvalidOption`]; the defaults pass.
+    #[test]
+    fn robot_options_validate() {
+        assert!(PanOptions::default().validate().is_ok());
+        assert!(SteeringOptions::default().validate().is_ok());
+        let pans = [
+            PanOptions { drive_m: f64::NAN, ..PanOptions::default() },
+            PanOptions { drive_m: 0.0, ..PanOptions::default() },
+            PanOptions { iterations: 0, ..PanOptions::default() },
+            PanOptions { planarity_chi2_max: f64::NAN, ..PanOptions::default() },
+            PanOptions { encoder_sigma_deg: -0.1, ..PanOptions::default() },
+            PanOptions { guide_px: 0.0, ..PanOptions::default() },
+        ];
+        for o in &pans {
+            assert!(matches!(o.validate(), Err(AlignError::InvalidOption(_))), "{o:?}");
+        }
+        let steerings = [
+            SteeringOptions { drive_m: f64::INFINITY, ..SteeringOptions::default() },
+            SteeringOptions { baseline_m: 0.0, ..SteeringOptions::default() },
+            SteeringOptions { settings_deg: vec![-20.0, 20.0], ..SteeringOptions::default() },
+            SteeringOptions { settings_deg: vec![-20.0, f64::NAN, 20.0], ..SteeringOptions::default() },
+            SteeringOptions { min_turn_deg: -1.0, ..SteeringOptions::default() },
+            SteeringOptions { planarity_chi2_max: 0.0, ..SteeringOptions::default() },
+            SteeringOptions { max_sigma_zero_deg: 0.0, ..SteeringOptions::default() },
+            SteeringOptions { max_sigma_zero_deg: f64::NAN, ..SteeringOptions::default() },
+            SteeringOptions { encoder_sigma_deg: f64::NAN, ..SteeringOptions::default() },
+            SteeringOptions { wheelbase_m: Some(-0.5), ..SteeringOptions::default() },
+        ];
+        for o in &steerings {
+            assert!(matches!(o.validate(), Err(AlignError::InvalidOption(_))), "{o:?}");
+        }
+        // Two settings suffice with a known wheelbase.
+        let known = SteeringOptions {
+            settings_deg: vec![-20.0, 20.0],
+            wheelbase_m: Some(0.5),
+            ..SteeringOptions::default()
+        };
+        assert!(known.validate().is_ok());
     }
 
     /// Noise-free end to end: steering zero then pan, both exact to 1e-9 deg (rounding
