@@ -35,7 +35,7 @@ use super::trial::{Quantity, SIGMA_QUANTITIES, TrialRecord, TrialSpec, record_fr
 /// The quantities a robot trial reports with a sigma, in record order: the verge/tilt
 /// stage's ([`SIGMA_QUANTITIES`], in the robot's scene), then the final pan reading and
 /// the steering zero (degrees).
-pub const ROBOT_QUANTITIES: [&str; 13] = [
+pub const ROBOT_QUANTITIES: [&str; 17] = [
     SIGMA_QUANTITIES[0],
     SIGMA_QUANTITIES[1],
     SIGMA_QUANTITIES[2],
@@ -47,12 +47,16 @@ pub const ROBOT_QUANTITIES: [&str; 13] = [
     SIGMA_QUANTITIES[8],
     SIGMA_QUANTITIES[9],
     SIGMA_QUANTITIES[10],
+    SIGMA_QUANTITIES[11],
+    SIGMA_QUANTITIES[12],
+    SIGMA_QUANTITIES[13],
+    SIGMA_QUANTITIES[14],
     "pan.aligned",
     "steer.zero",
 ];
 
 /// Index of `pan.aligned` in [`ROBOT_QUANTITIES`].
-pub const PAN_INDEX: usize = 11;
+pub const PAN_INDEX: usize = 15;
 
 /// Pan options for a scenario: its drive; the stage scales its pixel thresholds with the
 /// calibration's noise estimate itself ([`PanOptions::scale_to_noise`]), where the
@@ -93,7 +97,7 @@ pub fn run_pan_trial(spec: &TrialSpec) -> Result<TrialRecord> {
     let last = align_pan(&mut robot, cal, verge, axes, &pan).context("pan stage, wheel straight")?;
     let enc = robot.head().encoders();
     let pan_err = robot.pan_err_deg(&enc);
-    let mut rec = record_from(robot.head(), &vt, None, t0.elapsed().as_secs_f64());
+    let mut rec = record_from(robot.head(), &vt, &spec.initial, None, t0.elapsed().as_secs_f64());
     rec.pan_err_deg = pan_err;
     rec.quantities.push(Quantity {
         est: enc.pan,

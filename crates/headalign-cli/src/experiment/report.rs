@@ -249,7 +249,10 @@ The Cramer-Rao bound of a quantity is the standard deviation the bundle adjustme
 predicts at the true parameters (evaluated on the noise-free run of the same seed, which has \
 the trial's outliers and reads the encoders exactly, with the scenario's pixel noise and the \
 angle prior's encoder noise), propagated to the aligned readings like the procedure's own sigmas. \
-It ignores the vergence axes' own measurement noise (taken as exact; the reported sigmas include it, `alignment_sigmas_measured`).\n\n\
+It ignores the vergence axes' own measurement noise (taken as exact; the reported sigmas include it, `alignment_sigmas_measured`). \
+The pan and elevation axes' directions (`pan_axis.dir0` ... `elevation_axis.dir1`, degrees) are the estimate's offset from the \
+true axis in the bundle adjustment's two tangent coordinates of each direction, whose sigmas `headalign align` reports \
+(`head.json`: `direction_sigma_deg`, their root sum of squares).\n\n\
 Metrics (our reading of the paper's where it is ambiguous; both readings are shown where they differ): \
 alignment errors are the angles of each optical axis from true after the head moved to the \
 aligned readings; the focal length is the paper's `f` (its cameras have `f` and an aspect \
@@ -366,7 +369,7 @@ crb_scenes` gives the bounds against the depth range), the 50-point elevation bo
         if let Some((lo, hi)) = extremes(&all) {
             let _ = writeln!(
                 m,
-                "| 95 % coverage of every reported sigma ({} entries: the 11 verge/tilt quantities at {} px; with the robot stages at {} px the same 11 plus the pan reading and the steering zero; at least {n} trials each: a calibrated sigma gives {}-{} % with 95 % probability, {} entries outside that) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
+                "| 95 % coverage of every reported sigma ({} entries: the 15 verge/tilt quantities (8 intrinsics, 3 aligned readings, 4 components of the pan and elevation axes' directions) at {} px; with the robot stages at {} px the same 15 plus the pan reading and the steering zero; at least {n} trials each: a calibrated sigma gives {}-{} % with 95 % probability, {} entries outside that) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
                 all.len(),
                 levels("fixed"),
                 levels("robot"),

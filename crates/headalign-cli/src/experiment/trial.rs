@@ -6,7 +6,8 @@
 //! the alignment errors after the procedure moved the head (degrees, signed, from the
 //! simulator's truth), the calibration errors (percent), the reconstruction error
 //! (percent), and for every quantity headalign reports with a sigma (the eight
-//! intrinsics in pixels, the three aligned readings in degrees) the estimate, the truth,
+//! intrinsics in pixels, the three aligned readings in degrees, the pan and elevation
+//! axes' directions as two tangent components each in degrees) the estimate, the truth,
 //! the reported 1-sigma and the Cramer-Rao bound.
 //!
 //! Cramer-Rao bound ("the standard deviation predicted by the bundle adjustment's
@@ -51,18 +52,22 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow};
-use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate, RigCalibration};
+use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate, RigCalibration, axes_of};
 use headalign::procedure::{
     AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, alignment_sigmas,
 };
 use headalign_geometry::bundle::{AnglePrior, BundleOptions, RobustLoss, bundle_adjust};
-use headalign_platform::{Encoders, StereoHead};
+use headalign_platform::{Encoders, Joint, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead, calibration_errors};
+use nalgebra::{DVector, Matrix3x2};
 use serde::Serialize;
 
 /// Names of the quantities reported with a sigma, in record order: intrinsics (pixels),
-/// then aligned readings (degrees).
-pub const SIGMA_QUANTITIES: [&str; 11] = [
+/// then aligned readings (degrees), then the pan and elevation axes' directions (degrees:
+/// the estimate's offset from the truth in the bundle adjustment's own tangent coordinates
+/// of each axis, `axis0.dir0` ... `axis1.dir1`, whose sigmas `headalign align` reports as
+/// `direction_sigma_deg` = their root sum of squares; [`axis_direction_offsets`]).
+pub const SIGMA_QUANTITIES: [&str; 15] = [
     "left.fx",
     "left.fy",
     "left.cx",
@@ -74,7 +79,15 @@ pub const SIGMA_QUANTITIES: [&str; 11] = [
     "aligned.elevation",
     "aligned.verge_left",
     "aligned.verge_right",
+    "pan_axis.dir0",
+    "pan_axis.dir1",
+    "elevation_axis.dir0",
+    "elevation_axis.dir1",
 ];
+
+/// The bundle adjustment's covariance names of [`SIGMA_QUANTITIES`]' axis directions
+/// (radians), same order.
+const AXIS_DIRECTION_PARAMS: [&str; 4] = ["axis0.dir0", "axis0.dir1", "axis1.dir0", "axis1.dir1"];
 
 /// Pixel noise of the noise-free run ([`CleanRun`], module docs): far below the rounding of
 /// any pixel coordinate, but positive so that the simulator draws the same random numbers
@@ -229,6 +242,55 @@ fn estimates(outcome: &VergeTiltOutcome) -> Vec<(f64, f64)> {
     ]
 }
 
+/// The pan and elevation axes' directions of an outcome against the truth
+/// ([`SIGMA_QUANTITIES`]' last four, degrees): the estimate's offset from the true
+/// direction in the bundle adjustment's tangent coordinates at the estimate (a direction
+/// `d` moves to `normalise(d + B a)`; `B` is read by central differences through
+/// [`headalign_geometry::bundle::BundleResult::perturbed`], so the basis stays the
+/// adjustment's own). The truth is the simulator's axis at the reference view's true
+/// readings `reference`, in that view's left camera frame (the estimate's gauge). NaN
+/// where the state has no such axes or the perturbation fails.
+fn axis_direction_offsets(
+    head: &SimulatedHead,
+    outcome: &VergeTiltOutcome,
+    reference: &Encoders,
+) -> [f64; 4] {
+    let mut out = [f64::NAN; 4];
+    let bundle = &outcome.calibration.bundle;
+    let truth = head.truth();
+    let left_from_world = truth.world_from_cameras(reference).0.inverse();
+    let Some((pan, elevation)) = axes_of(&bundle.state) else { return out };
+    let direction_of = |state: &headalign_geometry::bundle::RigState, j: usize| {
+        axes_of(state).map(|(p, e)| if j == 0 { p.direction.into_inner() } else { e.direction.into_inner() })
+    };
+    for (j, (joint, line)) in [(Joint::Pan, pan), (Joint::Elevation, elevation)].into_iter().enumerate() {
+        let d = line.direction.into_inner();
+        let d_true = left_from_world.rotation * truth.axis_in_world(joint, reference).direction.into_inner();
+        let mut basis = Matrix3x2::zeros();
+        for i in 0..2 {
+            let Some(k) = bundle.covariance.index(AXIS_DIRECTION_PARAMS[2 * j + i]) else { return out };
+            let h = 1e-6;
+            let at = |sign: f64| {
+                let mut delta = DVector::zeros(bundle.covariance.names.len());
+                delta[k] = sign * h;
+                bundle.perturbed(&delta).ok().and_then(|st| direction_of(&st, j))
+            };
+            let (Some(plus), Some(minus)) = (at(1.0), at(-1.0)) else { return out };
+            basis.set_column(i, &((plus - minus) / (2.0 * h)));
+        }
+        // The truth's tangent coordinates: the gnomonic point `d_true / (d . d_true)`
+        // less `d`, in the basis (least squares: the central differences are not exactly
+        // orthonormal).
+        let v = d_true / d.dot(&d_true) - d;
+        let Some(a) = (basis.transpose() * basis).try_inverse().map(|m| m * basis.transpose() * v) else {
+            return out;
+        };
+        out[2 * j] = -a[0].to_degrees();
+        out[2 * j + 1] = -a[1].to_degrees();
+    }
+    out
+}
+
 /// The observations of a noise-free run's calibration whose points are seen only at the
 /// simulator's exact pixels (module docs): a point with any other observation (an outlier
 /// kept) loses all of them. The rig views are the run's views before its vergence move,
@@ -282,6 +344,8 @@ pub struct CleanRun {
     outcome: VergeTiltOutcome,
     /// The trial's bundle options (its angle prior is the bound's).
     bundle: BundleOptions,
+    /// The head's readings where the procedure started (its reference view).
+    initial: Encoders,
     seconds: f64,
 }
 
@@ -299,13 +363,13 @@ impl CleanRun {
         let inliers = true_inlier_observations(&head, &run, &outcome.calibration);
         outcome.calibration.observations = inliers;
         let bundle = estimation_options(spec).bundle;
-        Ok(Self { head, outcome, bundle, seconds: t0.elapsed().as_secs_f64() })
+        Ok(Self { head, outcome, bundle, initial: spec.initial, seconds: t0.elapsed().as_secs_f64() })
     }
 
     /// The noise-free run as a trial record (its bound is 0).
     pub fn record(&self) -> Result<TrialRecord> {
         let zeros = vec![0.0; SIGMA_QUANTITIES.len()];
-        Ok(record_from(&self.head, &self.outcome, Some(&zeros), self.seconds))
+        Ok(record_from(&self.head, &self.outcome, &self.initial, Some(&zeros), self.seconds))
     }
 
     /// Cramer-Rao bounds of [`SIGMA_QUANTITIES`] at pixel noise `noise_px` (module docs).
@@ -327,6 +391,7 @@ impl CleanRun {
         let mut out: Vec<f64> =
             SIGMA_QUANTITIES[..8].iter().map(|n| cov.sigma(n).unwrap_or(f64::NAN)).collect();
         out.extend([sig.elevation_deg, sig.verge_left_deg, sig.verge_right_deg]);
+        out.extend(AXIS_DIRECTION_PARAMS.iter().map(|n| cov.sigma(n).map_or(f64::NAN, f64::to_degrees)));
         Ok(out)
     }
 }
@@ -335,13 +400,16 @@ impl CleanRun {
 pub fn run_trial(spec: &TrialSpec, crb: Option<&[f64]>) -> Result<TrialRecord> {
     let t0 = Instant::now();
     let (head, _, outcome) = run_procedure(spec)?;
-    Ok(record_from(&head, &outcome, crb, t0.elapsed().as_secs_f64()))
+    Ok(record_from(&head, &outcome, &spec.initial, crb, t0.elapsed().as_secs_f64()))
 }
 
 /// Score an outcome against the head's truth.
+/// `reference`: the true (commanded) readings of the reference view, where the procedure
+/// started (the estimate's frame, [`axis_direction_offsets`]).
 pub(super) fn record_from(
     head: &SimulatedHead,
     outcome: &VergeTiltOutcome,
+    reference: &Encoders,
     crb: Option<&[f64]>,
     seconds: f64,
 ) -> TrialRecord {
@@ -366,9 +434,15 @@ pub(super) fn record_from(
         aligned.verge_left,
         aligned.verge_right,
     ];
+    let cov = &outcome.calibration.bundle.covariance;
+    let axes = axis_direction_offsets(head, outcome, reference)
+        .into_iter()
+        .zip(AXIS_DIRECTION_PARAMS)
+        .map(|(offset, name)| ((offset, cov.sigma(name).map_or(f64::NAN, f64::to_degrees)), 0.0));
     let quantities = estimates(outcome)
         .into_iter()
         .zip(truths)
+        .chain(axes)
         .enumerate()
         .map(|(i, ((est, sigma), truth))| Quantity {
             est,
@@ -489,6 +563,24 @@ mod tests {
     /// degrees, so it weighs more against noisier pixels: measured 1.85x, not 2x, for
     /// left.fx from 1 to 2 px), and the noise-free trial's estimates equal the truth
     /// (the bound is evaluated at the truth).
+    /// The axis offsets' sign, scale and components: a noise-free estimate (the truth to
+    /// about 1e-6) moved by 0.5 deg along its elevation axis's second tangent coordinate
+    /// reads (0, 0, 0, +0.5) deg; 1e-2 deg allows the tangent basis at the moved direction,
+    /// which differs from the one at the estimate to second order (0.5 deg x 0.009 rad).
+    #[test]
+    fn axis_offsets_follow_a_known_tangent_step() {
+        let (head, _, mut outcome) = run_procedure(&spec(0.0)).unwrap();
+        let zero = axis_direction_offsets(&head, &outcome, &Encoders::default());
+        assert!(zero.iter().all(|v| v.abs() < 1e-4), "{zero:?}");
+        let b = &outcome.calibration.bundle;
+        let mut delta = DVector::zeros(b.covariance.names.len());
+        delta[b.covariance.index("axis1.dir1").unwrap()] = 0.5_f64.to_radians();
+        outcome.calibration.bundle.state = b.perturbed(&delta).unwrap();
+        let o = axis_direction_offsets(&head, &outcome, &Encoders::default());
+        assert!(o[0].abs() < 1e-4 && o[1].abs() < 1e-4, "pan moved: {o:?}");
+        assert!(o[2].abs() < 1e-2 && (o[3] - 0.5).abs() < 1e-2, "{o:?}");
+    }
+
     #[test]
     fn crb_scales_with_noise_and_clean_run_is_truth() {
         let clean = CleanRun::new(&spec(1.0)).unwrap();
