@@ -559,10 +559,6 @@ mod tests {
         assert!(far(0.0) > 10, "{}", far(0.0));
     }
 
-    /// The bound grows with the noise, at most linearly (the angle prior is fixed in
-    /// degrees, so it weighs more against noisier pixels: measured 1.85x, not 2x, for
-    /// left.fx from 1 to 2 px), and the noise-free trial's estimates equal the truth
-    /// (the bound is evaluated at the truth).
     /// The axis offsets' sign, scale and components: a noise-free estimate (the truth to
     /// about 1e-6) moved by 0.5 deg along its elevation axis's second tangent coordinate
     /// reads (0, 0, 0, +0.5) deg; 1e-2 deg allows the tangent basis at the moved direction,
@@ -581,6 +577,10 @@ mod tests {
         assert!(o[2].abs() < 1e-2 && (o[3] - 0.5).abs() < 1e-2, "{o:?}");
     }
 
+    /// The bound grows with the noise, at most linearly (the angle prior is fixed in
+    /// degrees, so it weighs more against noisier pixels: measured 1.85x, not 2x, for
+    /// left.fx from 1 to 2 px), and the noise-free trial's estimates equal the truth
+    /// (the bound is evaluated at the truth).
     #[test]
     fn crb_scales_with_noise_and_clean_run_is_truth() {
         let clean = CleanRun::new(&spec(1.0)).unwrap();
