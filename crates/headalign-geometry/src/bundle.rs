@@ -1887,7 +1887,8 @@ pub fn bundle_adjust_at_depth_scale(
 
 /// [`bundle_adjust`] with the named camera parameters (covariance names, e.g.
 /// `right.fx`) held at their values in `initial`: the profile-likelihood point at those
-/// values. The covariance is over the parameters left free.
+/// values. The covariance is over the parameters left free. A name that is unknown or
+/// not adjusted under `options` is [`GeometryError::InvalidOption`].
 pub fn bundle_adjust_holding(
     initial: &RigState,
     observations: &[BundleObservation],
@@ -1996,6 +1997,9 @@ fn adjust(
 ) -> Result<Option<BundleResult>> {
     let (mut state, mut problem) = problem(initial, observations, options)?;
     problem.depth = depth;
+    if let Some(p) = held.iter().find(|p| !problem.layout.params.contains(p)) {
+        return Err(GeometryError::InvalidOption(format!("{} is not a free parameter here", p.name())));
+    }
     if !held.is_empty() {
         let kept = problem.layout.params.iter().copied().filter(|p| !held.contains(p)).collect();
         // A held `fy` is not a tie `fy = fx`: the tie follows the options.
@@ -3125,7 +3129,7 @@ mod tests {
     /// by about 4 in chi-square (exactly 4 for a linear model; measured 3.66-4.38 on this
     /// 80-point scene at 1 px, the model's curvature, so 2.5-6 is allowed),
     /// without the held parameter in the covariance. A held `fy` is not tied to `fx`;
-    /// an unknown name is an error.
+    /// an unknown name, or one the options do not adjust, is an error.
     #[test]
     fn holding_a_parameter_gives_its_profile_likelihood() {
         let base = synth(12, 80, 1.0, 0.0, false);
@@ -3159,6 +3163,8 @@ mod tests {
             }
         }
         assert!(bundle_adjust_holding(&est.state, &base.obs, &opts, &["right.focal"]).is_err());
+        // Distortion is not estimated under these options: nothing to hold.
+        assert!(bundle_adjust_holding(&est.state, &base.obs, &opts, &["left.k1"]).is_err());
     }
 
     /// Regression (calibration experiment, 3 px, seed 53): a wrong track "explained" by a
