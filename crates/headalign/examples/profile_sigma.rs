@@ -5,7 +5,9 @@
 //! estimate's inliers at its noise) and the cost rise `d` (chi-square units) gives the
 //! profile half-width `Z sigma / sqrt(d)` on that side. Printed per quantity: the 95 %
 //! coverage of the linearised sigma, of the larger of it and the profile's on the side the
-//! truth lies, and of the largest of all three.
+//! truth lies, and of the largest of all three. The encoders read exactly (the preset's
+//! default; `headalign experiment` reads them with 0.01 deg of noise), so the linearised
+//! coverage runs higher than the experiments'; compare the columns with each other.
 //! `cargo run --release -p headalign --example profile_sigma -- FIRST N NOISE [Z]`
 use headalign_geometry::bundle::{RobustLoss, bundle_adjust, bundle_adjust_holding};
 use headalign_geometry::camera::Intrinsics;
