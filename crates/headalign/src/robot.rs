@@ -1525,12 +1525,12 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         )));
     }
     let sol = fit.solution;
-    let var_zero = fit.var_zero;
+    let sigma_zero = fit.var_zero.sqrt();
     // A NaN sigma (not propagated) passes: the zero itself may be well determined.
-    if var_zero.sqrt() > options.max_sigma_zero_deg {
+    if sigma_zero > options.max_sigma_zero_deg {
         return Err(AlignError::SteeringUndetermined {
             zero_deg: sol.steer_zero_deg,
-            sigma_deg: var_zero.sqrt(),
+            sigma_deg: sigma_zero,
             max_sigma_deg: options.max_sigma_zero_deg,
             drives: steps.len() - dropped.len(),
             dropped_turns: dropped,
@@ -1542,7 +1542,7 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         turns: steps,
         dropped_turns: dropped,
         steer_zero_deg: sol.steer_zero_deg,
-        sigma_steer_zero_deg: var_zero.sqrt(),
+        sigma_steer_zero_deg: sigma_zero,
         wheelbase_m: sol.wheelbase * scale,
         pan_check_deg: pan_check.to_degrees(),
         across_rms_m: sol.across_rms * scale,

@@ -35,28 +35,19 @@ use super::trial::{Quantity, SIGMA_QUANTITIES, TrialRecord, TrialSpec, record_fr
 /// The quantities a robot trial reports with a sigma, in record order: the verge/tilt
 /// stage's ([`SIGMA_QUANTITIES`], in the robot's scene), then the final pan reading and
 /// the steering zero (degrees).
-pub const ROBOT_QUANTITIES: [&str; 17] = [
-    SIGMA_QUANTITIES[0],
-    SIGMA_QUANTITIES[1],
-    SIGMA_QUANTITIES[2],
-    SIGMA_QUANTITIES[3],
-    SIGMA_QUANTITIES[4],
-    SIGMA_QUANTITIES[5],
-    SIGMA_QUANTITIES[6],
-    SIGMA_QUANTITIES[7],
-    SIGMA_QUANTITIES[8],
-    SIGMA_QUANTITIES[9],
-    SIGMA_QUANTITIES[10],
-    SIGMA_QUANTITIES[11],
-    SIGMA_QUANTITIES[12],
-    SIGMA_QUANTITIES[13],
-    SIGMA_QUANTITIES[14],
-    "pan.aligned",
-    "steer.zero",
-];
+pub const ROBOT_QUANTITIES: [&str; SIGMA_QUANTITIES.len() + 2] = {
+    let mut q = ["steer.zero"; SIGMA_QUANTITIES.len() + 2];
+    let mut i = 0;
+    while i < SIGMA_QUANTITIES.len() {
+        q[i] = SIGMA_QUANTITIES[i];
+        i += 1;
+    }
+    q[PAN_INDEX] = "pan.aligned";
+    q
+};
 
-/// Index of `pan.aligned` in [`ROBOT_QUANTITIES`].
-pub const PAN_INDEX: usize = 15;
+/// Index of `pan.aligned` in [`ROBOT_QUANTITIES`] (`steer.zero` follows it).
+pub const PAN_INDEX: usize = SIGMA_QUANTITIES.len();
 
 /// Pan options for a scenario: its drive; the stage scales its pixel thresholds with the
 /// calibration's noise estimate itself ([`PanOptions::scale_to_noise`]), where the

@@ -369,7 +369,7 @@ crb_scenes` gives the bounds against the depth range), the 50-point elevation bo
         if let Some((lo, hi)) = extremes(&all) {
             let _ = writeln!(
                 m,
-                "| 95 % coverage of every reported sigma ({} entries: the 15 verge/tilt quantities (8 intrinsics, 3 aligned readings, 4 components of the pan and elevation axes' directions) at {} px; with the robot stages at {} px the same 15 plus the pan reading and the steering zero; at least {n} trials each: a calibrated sigma gives {}-{} % with 95 % probability, {} entries outside that) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
+                "| 95 % coverage of every reported sigma ({} entries: the {q} verge/tilt quantities (8 intrinsics, 3 aligned readings, 4 components of the pan and elevation axes' directions) at {} px; with the robot stages at {} px the same {q} plus the pan reading and the steering zero; at least {n} trials each: a calibrated sigma gives {}-{} % with 95 % probability, {} entries outside that) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
                 all.len(),
                 levels("fixed"),
                 levels("robot"),
@@ -380,7 +380,8 @@ crb_scenes` gives the bounds against the depth range), the 50-point elevation bo
                 f(100.0 * hi.0, 1),
                 lo.1,
                 hi.1,
-                verdict(lo.0 >= 0.9 && hi.0 <= 0.98)
+                verdict(lo.0 >= 0.9 && hi.0 <= 0.98),
+                q = SIGMA_QUANTITIES.len(),
             );
         }
         // The robot sigmas alone (the pan reading's and the steering zero's).

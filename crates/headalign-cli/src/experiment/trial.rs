@@ -56,7 +56,7 @@ use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate, RigCal
 use headalign::procedure::{
     AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, alignment_sigmas,
 };
-use headalign_geometry::bundle::{AnglePrior, BundleOptions, RobustLoss, bundle_adjust};
+use headalign_geometry::bundle::{AnglePrior, BundleOptions, Covariance, RobustLoss, bundle_adjust};
 use headalign_platform::{Encoders, Joint, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead, calibration_errors};
 use nalgebra::{DVector, Matrix3x2};
@@ -88,6 +88,11 @@ pub const SIGMA_QUANTITIES: [&str; 15] = [
 /// The bundle adjustment's covariance names of [`SIGMA_QUANTITIES`]' axis directions
 /// (radians), same order.
 const AXIS_DIRECTION_PARAMS: [&str; 4] = ["axis0.dir0", "axis0.dir1", "axis1.dir0", "axis1.dir1"];
+
+/// The sigmas of [`AXIS_DIRECTION_PARAMS`] in `cov`, degrees (NaN where absent).
+fn axis_direction_sigmas_deg(cov: &Covariance) -> impl Iterator<Item = f64> + '_ {
+    AXIS_DIRECTION_PARAMS.iter().map(|n| cov.sigma(n).map_or(f64::NAN, f64::to_degrees))
+}
 
 /// Pixel noise of the noise-free run ([`CleanRun`], module docs): far below the rounding of
 /// any pixel coordinate, but positive so that the simulator draws the same random numbers
@@ -391,7 +396,7 @@ impl CleanRun {
         let mut out: Vec<f64> =
             SIGMA_QUANTITIES[..8].iter().map(|n| cov.sigma(n).unwrap_or(f64::NAN)).collect();
         out.extend([sig.elevation_deg, sig.verge_left_deg, sig.verge_right_deg]);
-        out.extend(AXIS_DIRECTION_PARAMS.iter().map(|n| cov.sigma(n).map_or(f64::NAN, f64::to_degrees)));
+        out.extend(axis_direction_sigmas_deg(cov));
         Ok(out)
     }
 }
@@ -434,11 +439,10 @@ pub(super) fn record_from(
         aligned.verge_left,
         aligned.verge_right,
     ];
-    let cov = &outcome.calibration.bundle.covariance;
     let axes = axis_direction_offsets(head, outcome, reference)
         .into_iter()
-        .zip(AXIS_DIRECTION_PARAMS)
-        .map(|(offset, name)| ((offset, cov.sigma(name).map_or(f64::NAN, f64::to_degrees)), 0.0));
+        .zip(axis_direction_sigmas_deg(&outcome.calibration.bundle.covariance))
+        .map(|estimate| (estimate, 0.0));
     let quantities = estimates(outcome)
         .into_iter()
         .zip(truths)
