@@ -53,10 +53,11 @@
 //! the rig, the pan and elevation axes; [`RigCalibration`]'s bundle covariance): the
 //! whole computation after the data selections (rig at the readings, the least-squares
 //! motion refit from the solution, the derotated flow and the epipole refit, the two
-//! angles) is re-run at each calibration parameter moved by +-half its sigma, and the
-//! central differences give the 2x2 covariance of the two estimates `J C J^T`. It
-//! dominates at 1 px (about 0.3 deg, mostly the left principal point: the travel
-//! direction is measured in the left camera frame) and is common to both estimates.
+//! angles) is re-run at each calibration parameter moved by +-[`PROPAGATION_STEP_SIGMAS`]
+//! of its sigma, and central differences give the 2x2 covariance of the two estimates
+//! `J C J^T`. It dominates at 1 px (about 0.3 deg, mostly the left principal point: the
+//! travel direction is measured in the left camera frame) and is common to both
+//! estimates.
 //! (2) The image noise, in two parts: the drive motion's (its 6x6 maximum-likelihood
 //! covariance, moved through both estimates by central differences along its Cholesky
 //! factor: the image estimate depends on the motion's rotation through the derotation
@@ -155,7 +156,7 @@ use serde::Serialize;
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
 use crate::estimate::{ENCODER_SIGMA_DEG, RigCalibration};
-use crate::procedure::{AxisPerturbations, predicted_poses};
+use crate::procedure::{AxisPerturbations, PROPAGATION_STEP_SIGMAS, predicted_poses};
 
 /// The 99.999 % quantile of a chi-square with 3 degrees of freedom: the default
 /// planarity limit, a false alarm rate of 1e-5 per drive (a demo run tests 8 drives; at
@@ -988,11 +989,11 @@ fn planarity_chi2(v: &Vector3<f64>, cov: &Matrix3<f64>) -> f64 {
 
 /// Covariance (2x2) of the two pan estimates `q(motion)` from a drive motion's own
 /// covariance ([`RigMotionEstimate::covariance`], left perturbation, rotation first):
-/// `q` is evaluated at the motion moved by `+-1/2` of each column of the covariance's
-/// Cholesky factor `L` (`C = L L^T`), and the central differences `D` give `D D^T`
-/// (exact for a linear `q`; the factor keeps the strong rotation-translation
-/// correlations of a short drive). `None` if `q` fails or the covariance is not
-/// positive definite.
+/// `q` is evaluated at the motion moved by `+-` [`PROPAGATION_STEP_SIGMAS`] times each
+/// column of the covariance's Cholesky factor `L` (`C = L L^T`), and the central
+/// differences `D` (per unit of each column) give `D D^T` (exact for a linear `q`; the
+/// factor keeps the strong rotation-translation correlations of a short drive). `None`
+/// if `q` fails or the covariance is not positive definite.
 fn motion_covariance(
     ml: &RigMotionEstimate,
     q: impl Fn(&Isometry3<f64>) -> Option<Vector2<f64>>,
@@ -1000,10 +1001,10 @@ fn motion_covariance(
     let l = ml.covariance.cholesky()?.l();
     let mut out = Matrix2::zeros();
     for k in 0..6 {
-        let step: Vector6<f64> = l.column(k) * 0.5;
+        let step: Vector6<f64> = l.column(k) * PROPAGATION_STEP_SIGMAS;
         let plus = q(&perturb(&ml.cam2_from_cam1, &step))?;
         let minus = q(&perturb(&ml.cam2_from_cam1, &(-step)))?;
-        let d = plus - minus;
+        let d = (plus - minus) / (2.0 * PROPAGATION_STEP_SIGMAS);
         out += d * d.transpose();
     }
     Some(out)
@@ -1039,8 +1040,9 @@ impl Readings {
 /// Covariance of a quantity `q(calibration, vergence axes, readings)` (`n_out` values)
 /// from the verge/tilt calibration's covariance, given `axes` ([`AxisPerturbations`]) the
 /// vergence axes' own, and the noise of the encoder `readings` the quantity is computed
-/// at: `J C J^T`, `J` by central differences of `q` along each parameter, step half its
-/// standard deviation (as [`crate::procedure::alignment_sigmas`]).
+/// at: `J C J^T`, `J` by central differences of `q` along each parameter, step
+/// [`PROPAGATION_STEP_SIGMAS`] of its standard deviation (as
+/// [`crate::procedure::alignment_sigmas`]).
 ///
 /// Without `axes`: the parameters of [`calibration_parameters`], the axes held as given
 /// (the stereo rig predicted at other vergence readings then counts no error of the
@@ -1049,10 +1051,10 @@ impl Readings {
 /// axes moved with the calibration, plus the resected poses' noise modes (unit
 /// variance, independent of the calibration) with the calibration held. The readings'
 /// noise: the rig is predicted from each joint's reading minus the calibration's
-/// reference reading, two independent reads, so each joint's reading is moved by
-/// `+-sqrt(2) sigma / 2`, independent of the other joints and of the calibration (whose
-/// angle priors hold the differences of the calibration views' readings, not the
-/// reference reading's own error).
+/// reference reading, two independent reads, so each joint's reading is moved by `+-`
+/// [`PROPAGATION_STEP_SIGMAS`] `sqrt(2) sigma`, independent of the other joints and of
+/// the calibration (whose angle priors hold the differences of the calibration views'
+/// readings, not the reference reading's own error).
 /// `None` if `q` fails at a perturbed calibration.
 pub(crate) fn calibration_covariance_dyn(
     calib: &RigCalibration,
@@ -1092,11 +1094,13 @@ pub(crate) fn calibration_covariance_dyn(
     }
     let sub = cov.matrix.select_rows(idx.iter()).select_columns(idx.iter());
     let mut out = &jac * sub * jac.transpose();
-    // Unit-variance modes at +-1/2: the difference is the change per unit of the mode.
+    // Unit-variance modes at +-PROPAGATION_STEP_SIGMAS: the difference over twice the
+    // step is the change per unit of the mode.
     let mut add_mode = |d: DVector<f64>| {
         if d.len() != n_out {
             return None;
         }
+        let d = d / (2.0 * PROPAGATION_STEP_SIGMAS);
         out += &d * d.transpose();
         Some(())
     };
@@ -1107,7 +1111,7 @@ pub(crate) fn calibration_covariance_dyn(
         }
     }
     if readings.sigma_deg > 0.0 {
-        let half = 0.5 * std::f64::consts::SQRT_2 * readings.sigma_deg;
+        let half = PROPAGATION_STEP_SIGMAS * std::f64::consts::SQRT_2 * readings.sigma_deg;
         for joint in Joint::ALL {
             let (mut plus, mut minus) = (*enc, *enc);
             *plus.get_mut(joint) += half;
@@ -1761,7 +1765,8 @@ mod tests {
     /// and turned into axes, the calibration held; the spread of the predicted rig's
     /// rotation at the stage's final readings against [`predicted_rig`]'s covariance with
     /// only the pose modes of [`AxisPerturbations`]. Measured: Monte-Carlo / predicted
-    /// standard deviation 1.10 here. Exact pixels of the true scene, as a first version
+    /// standard deviation 0.89 here (at c46cdb3 and with the 0.1-sigma difference step
+    /// alike; 1.10 when this test was written, on an earlier calibration). Exact pixels of the true scene, as a first version
     /// drew (they add the calibration's fixed misfit through the Huber weights), gave 1.10
     /// with the image border not modelled and 1.07-1.30 over seeds 1-8
     /// (`examples/axis_mc.rs`); with `EstimationOptions::min_camera_observations` 2 the
