@@ -1766,8 +1766,9 @@ mod tests {
     /// rotation at the stage's final readings against [`predicted_rig`]'s covariance with
     /// only the pose modes of [`AxisPerturbations`]. Measured: Monte-Carlo / predicted
     /// standard deviation 0.89 here (at c46cdb3 and with the 0.1-sigma difference step
-    /// alike; 1.10 when this test was written, on an earlier calibration). Exact pixels of the true scene, as a first version
-    /// drew (they add the calibration's fixed misfit through the Huber weights), gave 1.10
+    /// alike; 1.10 when this test was written, on an earlier calibration). Exact pixels
+    /// of the true scene, as a first version drew (they add the calibration's fixed
+    /// misfit through the Huber weights), gave 1.10
     /// with the image border not modelled and 1.07-1.30 over seeds 1-8
     /// (`examples/axis_mc.rs`); with `EstimationOptions::min_camera_observations` 2 the
     /// calibration differs and it was 1.22 (exact pixels 1.33). The least-squares pose

@@ -581,10 +581,6 @@ mod tests {
         assert!(o[2].abs() < 1e-2 && (o[3] - 0.5).abs() < 1e-2, "{o:?}");
     }
 
-    /// The bound grows with the noise, at most linearly (the angle prior is fixed in
-    /// degrees, so it weighs more against noisier pixels: measured 1.85x, not 2x, for
-    /// left.fx from 1 to 2 px), and the noise-free trial's estimates equal the truth
-    /// (the bound is evaluated at the truth).
     /// The aligned readings' reported sigmas against their bound in the two trials of
     /// `docs/results` (at c46cdb3) where the propagation broke, both `calibration` at 3 px
     /// with the experiments' 0.01 deg encoder noise. Seed 72: a point near infinity,
@@ -619,6 +615,10 @@ mod tests {
         }
     }
 
+    /// The bound grows with the noise, at most linearly (the angle prior is fixed in
+    /// degrees, so it weighs more against noisier pixels: measured 1.85x, not 2x, for
+    /// left.fx from 1 to 2 px), and the noise-free trial's estimates equal the truth
+    /// (the bound is evaluated at the truth).
     #[test]
     fn crb_scales_with_noise_and_clean_run_is_truth() {
         let clean = CleanRun::new(&spec(1.0)).unwrap();
