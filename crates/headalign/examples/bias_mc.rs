@@ -8,7 +8,7 @@
 //! (`BundleOptions::measurement_window`).
 //! `cargo run --release -p headalign --example bias_mc -- FIRST_SEED SEEDS DRAWS NOISE`
 use headalign::estimate::EstimationOptions;
-use headalign_geometry::bundle::{BundleObservation, RobustLoss, bundle_adjust};
+use headalign_geometry::bundle::{BundleObservation, BundleOptions, RobustLoss, bundle_adjust};
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
 use nalgebra::Vector2;
@@ -26,6 +26,9 @@ fn main() {
     let mut count = 0.0_f64;
     let mut raw = vec![0.0; names.len()];
     let mut sig = vec![0.0; names.len()];
+    // Squared errors and squared bounds (the covariance at the truth), for RMS / bound.
+    let mut err2 = vec![0.0; names.len()];
+    let mut bound2 = vec![0.0; names.len()];
     let mut rng = ChaCha8Rng::seed_from_u64(first);
     // TRUNCATE=1: drop the observations that noise pushed out of the image, as the
     // simulator does.
@@ -44,6 +47,12 @@ fn main() {
             let [w, h] = sc.image_size.map(f64::from);
             o.measurement_window = Some([-0.5, -0.5, w - 0.5, h - 0.5]);
         }
+        let at_truth = bundle_adjust(
+            truth,
+            &clean.calibration.observations,
+            &BundleOptions { max_iterations: 0, ..o.clone() },
+        );
+        let Ok(at_truth) = at_truth else { continue };
         for _ in 0..draws {
             let obs: Vec<BundleObservation> = clean
                 .calibration
@@ -68,6 +77,8 @@ fn main() {
                 let s = r.covariance.sigma(n).expect("named");
                 obs_sum[i] += (get(&r.state, n) - get(truth, n)) / s;
                 raw[i] += get(&r.state, n) - get(truth, n);
+                err2[i] += (get(&r.state, n) - get(truth, n)).powi(2);
+                bound2[i] += at_truth.covariance.sigma(n).expect("named").powi(2);
                 sig[i] += s;
             }
             count += 1.0;
@@ -76,9 +87,10 @@ fn main() {
     println!("{count} adjustments at {noise} px (mean error / sigma; se {:.3}):", 1.0 / count.sqrt());
     for (i, n) in names.iter().enumerate() {
         println!(
-            "{n:>9}: mean error / sigma {:+.3}  (mean error / mean sigma {:+.3})",
+            "{n:>9}: mean error / sigma {:+.3}  (mean error / mean sigma {:+.3}); RMS error / RMS bound at the truth {:.3}",
             obs_sum[i] / count,
-            raw[i] / sig[i]
+            raw[i] / sig[i],
+            (err2[i] / bound2[i]).sqrt()
         );
     }
 }
