@@ -5,7 +5,9 @@
 //! of its reported sigma (and as mean error over mean sigma). `TRUNCATE=1` drops the
 //! observations that the noise pushed out of the image, as the simulator does (the same
 //! draws otherwise: a paired comparison); `WINDOW=1` has the adjustment model that border
-//! (`BundleOptions::measurement_window`).
+//! (`BundleOptions::measurement_window`). Also RMS error / RMS bound (the covariance at
+//! the truth with the same noise): the least squares' own ratio, with no outliers, no
+//! selection and no starts (`docs/efficiency.md`, nineteenth session).
 //! `cargo run --release -p headalign --example bias_mc -- FIRST_SEED SEEDS DRAWS NOISE`
 use headalign::estimate::EstimationOptions;
 use headalign_geometry::bundle::{BundleObservation, BundleOptions, RobustLoss, bundle_adjust};

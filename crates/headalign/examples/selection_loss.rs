@@ -1,13 +1,25 @@
-//! Diagnostic (not a test): how much information the estimate's inlier selection loses.
-//! For each seed (fig5's protocol: 3 deg rotations, 200 points, 10 % outliers, encoder
-//! readings with 0.01 deg of noise, head position `(seed - 1) mod 3` as in `experiment fig5-verge-tilt`), the trial's captured
+//! Diagnostic (not a test): how much information the estimate's inlier selection loses
+//! (`docs/efficiency.md`, nineteenth session). For each seed (fig5's protocol: 3 deg
+//! rotations, 200 points, 10 % outliers, encoder readings with 0.01 deg of noise, head
+//! position `(seed - 1) mod 3` as in `experiment fig5-verge-tilt`), the trial's captured
 //! observations in the rig views are split into true inliers (within 5 noise sigmas of the
 //! simulator's exact pixel) and outliers; it prints the true inliers the final adjustment
 //! kept and left out, the outliers it kept, and three Cramer-Rao bounds of each focal
-//! length, all at the truth (the noise-free run's state) with the trial's noise: over
-//! every true inlier of the capture (`all`), over the true inliers the estimate kept
-//! (`kept`), with the image border modelled (`window`, `BundleOptions::measurement_window`
-//! over every true inlier). Last the RMS error over each RMS bound.
+//! length, all at the truth (the noise-free run's state, the experiments' bound run: no
+//! lone-observation gate) with the trial's noise: over every true inlier of the points the
+//! noise-free run holds (`all`), over the true inliers the estimate kept (`kept`), and
+//! `all` with the image border modelled (`window`, `BundleOptions::measurement_window`).
+//! Last the RMS error over each RMS bound.
+//! Pitfall: a point the noise-free run holds but did not adjust keeps the position it was
+//! given, which may be wrong (a wrong stereo match); its exact pixels then claim
+//! information at a wrong depth. Before `estimate::retriangulate_points_by_support` that
+//! made `all` up to a third too small on some seeds.
+//! `LIST=1` prints each seed's bounds beside the noise-free run's own (the experiments');
+//! `LOST=1` every track left out entirely, with its true inliers per camera; `LOSTB=1`
+//! the left-out true inliers of the points the noise-free run holds, with its count and
+//! distance; `TRACK=ID` every capture of one track in the noise-free run; `MONO=1` the
+//! bound with the tracks the noise-free run has no point for added at their exact
+//! position (N-view DLT with the true cameras).
 //! `cargo run --release -p headalign --example selection_loss -- FIRST_SEED SEEDS NOISE`
 use std::collections::HashMap;
 
@@ -17,6 +29,10 @@ use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead};
 
 mod common;
+
+/// One track left out entirely (`LOST=1`): its true inliers per camera, and the views in
+/// which the left and the right camera see it.
+type LostTrack = ([usize; 2], std::collections::BTreeSet<usize>, std::collections::BTreeSet<usize>);
 
 const NAMES: [&str; 4] = ["left.fx", "left.fy", "right.fx", "right.fy"];
 
@@ -155,10 +171,7 @@ fn trial(seed: u64, noise: f64) -> Option<Row> {
     if std::env::var("LOST").is_ok() {
         // Each point left out entirely: its true inlier observations per camera and the
         // views in which both cameras see it.
-        let mut per: std::collections::BTreeMap<
-            u64,
-            ([usize; 2], std::collections::BTreeSet<usize>, std::collections::BTreeSet<usize>),
-        > = Default::default();
+        let mut per: std::collections::BTreeMap<u64, LostTrack> = Default::default();
         for (view, v) in run.views.iter().take_while(|v| v.name != "verge").enumerate() {
             let exact = head.exact_capture(&v.capture.encoders);
             for (right, list, exact_list) in
@@ -262,7 +275,7 @@ fn trial(seed: u64, noise: f64) -> Option<Row> {
                 .filter_map(|b| headalign_geometry::bundle::residual_pixels(&ext, b))
                 .map(|r| r.norm())
                 .fold(0.0, f64::max);
-            if !(worst < 1e-3) {
+            if worst.is_nan() || worst >= 1e-3 {
                 ext.points.pop();
                 continue;
             }

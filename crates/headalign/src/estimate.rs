@@ -2210,9 +2210,10 @@ fn retriangulate_points(state: &mut RigState, src: &PointSources<'_>, which: &[b
 /// first view it makes a wrong stereo match that places the point at a wrong depth; every
 /// good observation of the point then misses the re-selection gate and the point is lost
 /// with all of them. Measured (`examples/selection_loss.rs`, fig5 protocol, seed 5 at
-/// 2 px): two near points (9 good observations each, the reference view's left one 342 and
-/// 167 px off) were lost that way, in the noise-free run too, and with them a third of
-/// the focal lengths' information (their bound 4.1 px with the points, 6.1 px without).
+/// 2 px): two points (9 good observations each, the reference view's left one 342 and
+/// 167 px off) were lost that way, in the noise-free run too. Paired over 250 trials at 2
+/// and 3 px nearly every trial changes a little, the bounds fall by 0.2-0.4 % and the
+/// errors move by a few percent either way (`docs/efficiency.md`, nineteenth session).
 fn retriangulate_points_by_support(
     state: &mut RigState,
     src: &PointSources<'_>,

@@ -151,9 +151,10 @@ mod tests {
     /// fail the planarity test and be left out (`SteeringOutcome::dropped_turns`); with
     /// the 200-sample drive registration (`robot::DRIVE_MIN_ITERATIONS`) all four pass
     /// (chi-square 4.0 / 5.1 / 6.1 / 2.0), so this seed no longer exercises that rule.
-    /// With exact readings (the former set-up) its first drive is still left out, but the
-    /// other three (24-57 tracks each) leave the steering zero undetermined
-    /// (`seed_170_exact_readings_leave_the_steering_zero_undetermined`).
+    /// With exact readings (the former set-up) its first drive was left out and the other
+    /// three (24-57 tracks each) left the steering zero undetermined; since session 19
+    /// (points re-triangulated by support) that trial completes, and the rule is tested
+    /// with a lowered limit (`robot::tests::an_undetermined_steering_zero_is_named`).
     #[test]
     fn seed_170_robot_trial_is_within_its_sigmas() {
         let scenario = Scenario {
@@ -167,32 +168,6 @@ mod tests {
         // Within 4 reported sigmas (both are about 1 deg here).
         for q in &r.quantities[PAN_INDEX..] {
             assert!((q.est - q.truth).abs() < 4.0 * q.sigma, "{q:?}");
-        }
-    }
-
-    /// 3 px seed 170 with exact readings: the first steering drive fails the planarity
-    /// test and is left out (the dropped-drive rule), and the other three, with 24-57
-    /// tracks each, determine the zero only to about 64 deg: the stage names it rather
-    /// than command the wheel to -87 deg.
-    #[test]
-    fn seed_170_exact_readings_leave_the_steering_zero_undetermined() {
-        let scenario = Scenario { seed: 170, noise_px: 3.0, ..Scenario::default() };
-        let s = TrialSpec { scenario, ..spec(3.0) };
-        let e = run_pan_trial(&s).unwrap_err();
-        let found = e.chain().find_map(|c| c.downcast_ref::<headalign::AlignError>());
-        match found {
-            Some(headalign::AlignError::SteeringUndetermined {
-                sigma_deg,
-                max_sigma_deg,
-                drives,
-                dropped_turns,
-                ..
-            }) => {
-                assert_eq!(dropped_turns, &[0], "{e:#}");
-                assert_eq!(*drives, 3);
-                assert!(sigma_deg > max_sigma_deg, "{e:#}");
-            }
-            _ => panic!("expected SteeringUndetermined, got {e:#}"),
         }
     }
 }
