@@ -1292,8 +1292,10 @@ fn maximum_likelihood_pass(
     let c = options.reselect_sigmas;
     let mut sigma = robust_sigma(&robust.state, fallback).max(1e-6);
     // Points the robust pass left out (their observations gated away under an early,
-    // unconverged solution) get a fresh position from their stereo match under the final
-    // calibration, so that their good observations can come back.
+    // unconverged solution, or placed by a wrong stereo match) get a fresh position under
+    // the final calibration, from the view whose stereo match agrees best with their
+    // candidate observations ([`retriangulate_points_by_support`]), so that their good
+    // observations can come back.
     let mut state = robust.state.clone();
     let mut adjusted = vec![false; state.points.len()];
     for o in fallback {
@@ -1446,7 +1448,8 @@ pub fn profile_depth_scale(
 /// minimum (right cx 14 px off). Three restarts ([`RESTART_BASELINE_FLIPS`]; two more,
 /// the baseline along the x axis both ways, when the estimate's is more than 45 deg from it,
 /// [`SIDEWAYS_RESTART_MAX_COS`]), each with
-/// every point re-triangulated from its stereo match under the restarted rig: the x
+/// every point re-triangulated under the restarted rig from the stereo match that agrees
+/// best with its fitted observations ([`retriangulate_points_by_support`]): the x
 /// component reversed, the whole baseline reversed (the other sign of `E`), and the y and z
 /// components reversed (fig5-verge-tilt seeds 1119, 1130, 1211 at 3 px ended 2.9-5.5
 /// chi-square units above the minimum reached from the truth; this start reaches it,

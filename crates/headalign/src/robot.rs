@@ -2107,6 +2107,22 @@ mod tests {
         assert!(check.misfit_px > check.bound_px && check.correction_deg > 1.0, "{check:?}");
     }
 
+    /// Seed 6 at 1 px in the robot's scene (pan zeros up to 40 deg) after the verge/tilt
+    /// and pan stages, with the axes' perturbations.
+    fn pan_aligned_seed_6() -> (SimulatedRobot, crate::procedure::VergeTiltOutcome, AxisPerturbations) {
+        let s = Scenario {
+            seed: 6,
+            noise_px: 1.0,
+            pan_zero_max_deg: 40.0,
+            near_panels: Scenario::ROBOT_NEAR_PANELS,
+            ..Scenario::default()
+        };
+        let (mut robot, vt) = calibrated_robot(s);
+        let axes = vt.axis_perturbations();
+        align_pan(&mut robot, &vt.calibration, &vt.verge_axes, Some(&axes), &PanOptions::default()).unwrap();
+        (robot, vt, axes)
+    }
+
     /// A steering zero whose sigma exceeds `max_sigma_zero_deg` is named, with the drives
     /// that determined it, and the wheel is not commanded to it. (Seed 170 at 3 px with
     /// exact readings once showed this with the default limit: 64 deg from three drives;
@@ -2114,16 +2130,8 @@ mod tests {
     /// the limit is lowered here instead.)
     #[test]
     fn an_undetermined_steering_zero_is_named() {
-        let s = Scenario {
-            seed: 6,
-            noise_px: 1.0,
-            near_panels: Scenario::ROBOT_NEAR_PANELS,
-            ..Scenario::default()
-        };
-        let (mut robot, vt) = calibrated_robot(s);
+        let (mut robot, vt, axes) = pan_aligned_seed_6();
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
-        let axes = vt.axis_perturbations();
-        align_pan(&mut robot, cal, verge, Some(&axes), &PanOptions::default()).unwrap();
         let strict = SteeringOptions { max_sigma_zero_deg: 1e-3, ..SteeringOptions::default() };
         let err = zero_steering(&mut robot, cal, verge, Some(&axes), &strict).unwrap_err();
         match err {
@@ -2142,17 +2150,8 @@ mod tests {
     /// errors (within 4 sigma: one seed, so only a gross inconsistency fails).
     #[test]
     fn noisy_planar_drives_pass_and_sigmas_are_plausible() {
-        let s = Scenario {
-            seed: 6,
-            noise_px: 1.0,
-            pan_zero_max_deg: 40.0,
-            near_panels: Scenario::ROBOT_NEAR_PANELS,
-            ..Scenario::default()
-        };
-        let (mut robot, vt) = calibrated_robot(s);
+        let (mut robot, vt, axes) = pan_aligned_seed_6();
         let (cal, verge) = (&vt.calibration, &vt.verge_axes);
-        let axes = vt.axis_perturbations();
-        align_pan(&mut robot, cal, verge, Some(&axes), &PanOptions::default()).unwrap();
         let st = zero_steering(&mut robot, cal, verge, Some(&axes), &SteeringOptions::default()).unwrap();
         let err = robot.steer_err_deg(robot.steering_encoder_deg());
         assert!(st.sigma_steer_zero_deg > 0.0 && err.abs() < 4.0 * st.sigma_steer_zero_deg, "{err} {st:?}");
