@@ -2246,15 +2246,11 @@ fn retriangulate_points_by_support(
         })
     };
     let g2 = gate_px * gate_px;
-    let cost = |state: &RigState, p: &Point3<f64>, obs: &[&BundleObservation]| -> f64 {
-        obs.iter()
-            .map(|o| {
-                ref_from_cam
-                    .get(o.view)
-                    .and_then(|pose| residual_pixels_at(state, pose, p, o))
-                    .map_or(g2, |r| r.norm_squared().min(g2))
-            })
-            .sum()
+    let residual = |p: &Point3<f64>, o: &BundleObservation| {
+        ref_from_cam.get(o.view).and_then(|pose| residual_pixels_at(state, pose, p, o))
+    };
+    let cost = |p: &Point3<f64>, obs: &[&BundleObservation]| -> f64 {
+        obs.iter().map(|o| residual(p, o).map_or(g2, |r| r.norm_squared().min(g2))).sum()
     };
     let (point_tracks, recon) = (src.point_tracks, src.recon);
     let mut moved: Vec<(usize, Point3<f64>)> = Vec::new();
@@ -2263,7 +2259,7 @@ fn retriangulate_points_by_support(
         if obs.is_empty() {
             continue;
         }
-        let mut best = (*current, cost(state, current, obs));
+        let mut best = (*current, cost(current, obs));
         for (slot, map) in recon.iter().enumerate().take(views) {
             let Some((_, l, r)) = map.get(track) else { continue };
             let Ok(x) = headalign_geometry::triangulation::triangulate_linear(&p_l, &p_r, l, r) else {
@@ -2274,7 +2270,7 @@ fn retriangulate_points_by_support(
                 continue;
             }
             let p = ref_from_cam[slot] * p;
-            let c = cost(state, &p, obs);
+            let c = cost(&p, obs);
             if c < best.1 {
                 best = (p, c);
             }
@@ -2282,12 +2278,7 @@ fn retriangulate_points_by_support(
         let inliers: Vec<&BundleObservation> = obs
             .iter()
             .copied()
-            .filter(|o| {
-                ref_from_cam
-                    .get(o.view)
-                    .and_then(|pose| residual_pixels_at(state, pose, &best.0, o))
-                    .is_some_and(|r| r.norm_squared() <= g2)
-            })
+            .filter(|o| residual(&best.0, o).is_some_and(|r| r.norm_squared() <= g2))
             .collect();
         let cams: Option<Vec<ProjectiveCamera>> = inliers.iter().map(|o| camera(o.view, o.side)).collect();
         if let Some(cams) = cams
@@ -2298,7 +2289,7 @@ fn retriangulate_points_by_support(
                 .ok()
                 .and_then(|x| dehomogenise3(&x))
             {
-                let c = cost(state, &p, obs);
+                let c = cost(&p, obs);
                 if c < best.1 {
                     best = (p, c);
                 }
