@@ -32,8 +32,10 @@
 //! - [`rectify`]: stereo rectification of a calibrated pair (OpenCV / ROS conventions).
 //! - [`bundle`]: the rig bundle adjustment (maximum likelihood, Schur complement,
 //!   robust loss, covariance).
+//! - [`bootstrap`]: the bundle adjustment's spread over resampled point tracks.
 //! - [`synthetic`]: seeded rig problems with known truth for tests, benches, experiments.
 
+pub mod bootstrap;
 pub mod bundle;
 pub mod camera;
 pub mod distortion;
