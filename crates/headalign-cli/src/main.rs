@@ -29,6 +29,7 @@ use headalign::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_
 use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
 use headalign::procedure::{AutoRotation, VergeTiltOptions, VergeTiltRun, alignment_sigmas, capture_plan};
+use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::so3::Line;
 use headalign_platform::{Joint, StereoHead};
@@ -94,8 +95,13 @@ struct ScenarioArgs {
     #[arg(long)]
     rotation: Option<f64>,
     /// Scenario file (TOML) overriding the defaults; flags override the file.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "scene")]
     scenario: Option<PathBuf>,
+    /// A scene preset instead of the default room (`Scenario::preset`): `default`,
+    /// `paper` (points 0.6-1.5 m, the paper's ~1 m lab) or `robot` (6 panels about 1 m
+    /// ahead), as `experiment --scene`; flags override it.
+    #[arg(long)]
+    scene: Option<String>,
 }
 
 impl ScenarioArgs {
@@ -106,7 +112,10 @@ impl ScenarioArgs {
                     .with_context(|| format!("cannot read {}", path.display()))?;
                 Scenario::from_toml_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
             }
-            None => Scenario::default(),
+            None => match &self.scene {
+                Some(name) => Scenario::preset(name).map_err(|e| anyhow::anyhow!("--scene: {e}"))?,
+                None => Scenario::default(),
+            },
         };
         s.seed = self.seed;
         if let Some(v) = self.noise {
@@ -193,6 +202,23 @@ struct DemoArgs {
     /// 10 deg single-joint views alone), alignment 0.05 deg RMS at 1 px.
     #[arg(long)]
     auto_rotation: bool,
+    /// Widen the verge/tilt sigmas to a bootstrap over point tracks with this many
+    /// replicates (`EstimationOptions::bootstrap`, at least 3; 30 is a sigma to about
+    /// 13 %): for near scenes at a few pixels of noise, where the linearised sigmas are
+    /// too small. Off by default (about one more adjustment per replicate).
+    #[arg(long, value_parser = parse_replicates)]
+    bootstrap: Option<BootstrapOptions>,
+}
+
+/// Parse a bootstrap replicate count (`--bootstrap`), validated as
+/// [`EstimationOptions::validate`] does.
+fn parse_replicates(v: &str) -> Result<BootstrapOptions, String> {
+    let replicates = v.trim().parse::<usize>().map_err(|e| format!("'{v}': {e}"))?;
+    let b = BootstrapOptions { replicates, ..BootstrapOptions::default() };
+    EstimationOptions { bootstrap: Some(b), ..EstimationOptions::default() }
+        .validate()
+        .map_err(|e| e.to_string())?;
+    Ok(b)
 }
 
 #[derive(Args)]
@@ -219,6 +245,10 @@ struct AlignArgs {
     /// translation is in baselines: self-calibration fixes no scale).
     #[arg(long)]
     baseline_m: Option<f64>,
+    /// Widen the sigmas to a bootstrap over point tracks with this many replicates (as
+    /// `demo --bootstrap`; off by default).
+    #[arg(long, value_parser = parse_replicates)]
+    bootstrap: Option<BootstrapOptions>,
 }
 
 #[derive(Args)]
@@ -361,7 +391,11 @@ fn demo(args: &DemoArgs) -> Result<()> {
     let options = VergeTiltOptions {
         rotation_deg: scenario.rotation_deg,
         verge_rotation_deg: scenario.rotation_deg,
-        estimation: EstimationOptions { seed: scenario.seed, ..EstimationOptions::default() },
+        estimation: EstimationOptions {
+            seed: scenario.seed,
+            bootstrap: args.bootstrap,
+            ..EstimationOptions::default()
+        },
         auto_rotation: args.auto_rotation.then(AutoRotation::default),
         ..VergeTiltOptions::default()
     };
@@ -529,6 +563,9 @@ fn demo(args: &DemoArgs) -> Result<()> {
             100.0 * p.sigma_log_depth,
             p.max_widening
         );
+    }
+    if let Some(b) = &report.bootstrap {
+        say!("{}", bootstrap_line(b));
     }
     for d in &report.dropped_views {
         eprintln!(
@@ -703,7 +740,8 @@ fn align(args: &AlignArgs) -> Result<()> {
         .filter(|(_, r)| !matches!(r, ViewRole::Verge))
         .map(|(v, _)| v.clone())
         .collect();
-    let calib = estimate_rig(&rig, &EstimationOptions::default()).with_context(in_session)?;
+    let estimation = EstimationOptions { bootstrap: args.bootstrap, ..EstimationOptions::default() };
+    let calib = estimate_rig(&rig, &estimation).with_context(in_session)?;
     let state = &calib.bundle.state;
     let reference = views[0].capture.encoders;
     // Vergence axes from the first view where a vergence moved, if any.
@@ -816,6 +854,9 @@ fn align(args: &AlignArgs) -> Result<()> {
         a.verge_right,
         sig.verge_right_deg
     );
+    if let Some(b) = &calib.report.bootstrap {
+        say!("{}", bootstrap_line(b));
+    }
     if !solution.verge_axes_measured {
         say!("note: no view moved the vergence joints; their axes were assumed nominal");
     }
@@ -823,6 +864,14 @@ fn align(args: &AlignArgs) -> Result<()> {
         say!("wrote {}", p.display());
     }
     Ok(())
+}
+
+/// One line on what the bootstrap of the covariance did.
+fn bootstrap_line(b: &headalign::estimate::BootstrapReport) -> String {
+    format!(
+        "bootstrap: {} replicates ({} failed), sigmas widened by up to x{:.3} (median bootstrap / linearised {:.3})",
+        b.replicates, b.failed, b.max_widening, b.median_ratio
+    )
 }
 
 fn simulate(args: &SimulateArgs) -> Result<()> {

@@ -8,6 +8,8 @@
 //! (`BundleOptions::measurement_window`). Also RMS error / RMS bound (the covariance at
 //! the truth with the same noise): the least squares' own ratio, with no outliers, no
 //! selection and no starts (`docs/efficiency.md`, nineteenth session).
+//! `SCENE=paper` (or `robot`) runs that scene preset. Also the 95 % coverage of the
+//! adjustment's own sigma (its covariance at its estimate) and of the bound.
 //! `cargo run --release -p headalign --example bias_mc -- FIRST_SEED SEEDS DRAWS NOISE`
 use headalign::estimate::EstimationOptions;
 use headalign_geometry::bundle::{BundleObservation, BundleOptions, RobustLoss, bundle_adjust};
@@ -31,6 +33,11 @@ fn main() {
     // Squared errors and squared bounds (the covariance at the truth), for RMS / bound.
     let mut err2 = vec![0.0; names.len()];
     let mut bound2 = vec![0.0; names.len()];
+    // Trials with |error| <= 1.96 sigma: the estimate's own sigma, and the bound.
+    let mut covered = vec![0.0; names.len()];
+    let mut covered_bound = vec![0.0; names.len()];
+    let scene = std::env::var("SCENE").unwrap_or_else(|_| "default".into());
+    let preset = Scenario::preset(&scene).expect("a scene preset");
     let mut rng = ChaCha8Rng::seed_from_u64(first);
     // TRUNCATE=1: drop the observations that noise pushed out of the image, as the
     // simulator does.
@@ -38,7 +45,7 @@ fn main() {
     // WINDOW=1: the adjustment models the image border (`BundleOptions::measurement_window`).
     let window = std::env::var("WINDOW").is_ok();
     for seed in first..first + seeds {
-        let sc = Scenario { seed, noise_px: 1e-300, ..Scenario::default() };
+        let sc = Scenario { seed, noise_px: 1e-300, ..preset.clone() };
         let Some((_, clean)) = common::verge_tilt_trial(&sc, &Encoders::default(), seed) else { continue };
         let truth = &clean.calibration.bundle.state;
         let mut o = EstimationOptions::default().bundle;
@@ -80,7 +87,11 @@ fn main() {
                 obs_sum[i] += (get(&r.state, n) - get(truth, n)) / s;
                 raw[i] += get(&r.state, n) - get(truth, n);
                 err2[i] += (get(&r.state, n) - get(truth, n)).powi(2);
-                bound2[i] += at_truth.covariance.sigma(n).expect("named").powi(2);
+                let b = at_truth.covariance.sigma(n).expect("named");
+                bound2[i] += b.powi(2);
+                let e = (get(&r.state, n) - get(truth, n)).abs();
+                covered[i] += f64::from(u8::from(e <= 1.96 * s));
+                covered_bound[i] += f64::from(u8::from(e <= 1.96 * b));
                 sig[i] += s;
             }
             count += 1.0;
@@ -89,10 +100,12 @@ fn main() {
     println!("{count} adjustments at {noise} px (mean error / sigma; se {:.3}):", 1.0 / count.sqrt());
     for (i, n) in names.iter().enumerate() {
         println!(
-            "{n:>9}: mean error / sigma {:+.3}  (mean error / mean sigma {:+.3}); RMS error / RMS bound at the truth {:.3}",
+            "{n:>9}: mean error / sigma {:+.3}  (mean error / mean sigma {:+.3}); RMS error / RMS bound at the truth {:.3}; coverage {:.1} % (bound's {:.1} %)",
             obs_sum[i] / count,
             raw[i] / sig[i],
-            (err2[i] / bound2[i]).sqrt()
+            (err2[i] / bound2[i]).sqrt(),
+            100.0 * covered[i] / count,
+            100.0 * covered_bound[i] / count
         );
     }
 }

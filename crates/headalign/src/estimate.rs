@@ -62,6 +62,13 @@
 //!    largest of those at the estimate and at the estimate re-adjusted with the depth scale
 //!    held one sigma either side; the estimate itself is unchanged. On by default: measured,
 //!    it mends the principal points' and right.fy's coverage at 3 px (option docs).
+//! 10. optionally, the bootstrap of the covariance ([`bootstrap_covariance`],
+//!     [`EstimationOptions::bootstrap`], off by default): the maximum-likelihood pass
+//!     re-run on point tracks drawn with replacement (and the encoder readings redrawn
+//!     from the angle prior), each camera sigma the larger of the linearised one and the
+//!     replicates' spread. Where the likelihood is not quadratic (near scenes at a few
+//!     pixels) the linearised sigmas are too small; this mends that at about one
+//!     warm-started adjustment per replicate.
 //!
 //! Pitfalls: with 3 deg rotations the linear chain is noisy (focal lengths off by tens of
 //! percent are common), hence several starts; a point can start behind the cameras when
@@ -81,6 +88,7 @@
 
 use std::collections::{BTreeMap, HashMap, HashSet};
 
+use headalign_geometry::bootstrap::{BootstrapOptions, bootstrap_spread};
 use headalign_geometry::bundle::{
     BundleCheckpoint, BundleObservation, BundleOptions, BundleResult, Motions, RigState, RobustLoss, Side,
     bundle_adjust, bundle_adjust_at_depth_scale, bundle_adjust_with_checkpoint, log_depth_scale,
@@ -203,6 +211,14 @@ pub struct EstimationOptions {
     /// `experiment fig5-verge-tilt --trials 100`. `None`: the linearised covariance at
     /// the estimate.
     pub depth_profile: Option<DepthProfile>,
+    /// The bootstrap of the covariance (module docs step 10, [`bootstrap_covariance`]):
+    /// `Some` re-runs the maximum-likelihood pass on `replicates` resamplings of the point
+    /// tracks (seeded by `seed` plus [`EstimationOptions::seed`]) and widens each camera
+    /// sigma to the replicates' spread where that is larger (after the depth profile).
+    /// Default `None`: it costs about one warm-started adjustment per replicate (30
+    /// replicates: measured in `docs/efficiency.md`, twentieth session, with the coverage
+    /// it buys in the near scene).
+    pub bootstrap: Option<BootstrapOptions>,
     /// Model the image border in the maximum-likelihood passes (module docs step 7): a
     /// point is observed only if its measured position lies in the image, so near the
     /// border the noise of the observations that remain points inward; the least
@@ -375,6 +391,7 @@ impl Default for EstimationOptions {
             reversed_rig_restart: true,
             depth_step: None,
             depth_profile: Some(DepthProfile::DEFAULT),
+            bootstrap: None,
             image_border: true,
             min_camera_observations: 1,
             lone_depth_gate: Some(LoneDepthGate::DEFAULT),
@@ -444,6 +461,9 @@ impl EstimationOptions {
             return Err(AlignError::InvalidOption(
                 "depth_profile needs a positive finite z and a finite min_sigma_log_depth >= 0".into(),
             ));
+        }
+        if let Some(b) = self.bootstrap {
+            b.validate().map_err(|e| AlignError::InvalidOption(format!("bootstrap: {e}")))?;
         }
         Ok(())
     }
@@ -594,6 +614,22 @@ pub struct EstimationReport {
     /// The depth-scale profile of the covariance ([`EstimationOptions::depth_profile`]);
     /// `None` when off or when `s` or its sigma could not be computed.
     pub depth_profile: Option<DepthProfileReport>,
+    /// The bootstrap of the covariance ([`EstimationOptions::bootstrap`]); `None` when off
+    /// or when fewer than 3 replicates converged.
+    pub bootstrap: Option<BootstrapReport>,
+}
+
+/// What [`bootstrap_covariance`] did.
+#[derive(Debug, Clone, Copy, Serialize, PartialEq)]
+pub struct BootstrapReport {
+    /// Replicates that converged and entered the spread.
+    pub replicates: usize,
+    /// Replicates that failed (skipped).
+    pub failed: usize,
+    /// The largest factor by which a camera parameter's sigma was widened (1: none).
+    pub max_widening: f64,
+    /// The median over the camera parameters of bootstrap sigma / sigma before it.
+    pub median_ratio: f64,
 }
 
 /// A rig view [`estimate_rig`] left out, and why.
@@ -1000,6 +1036,12 @@ fn estimate_rig_once(
         }
         _ => (final_result, None),
     };
+    let (final_result, bootstrap) = match options.bootstrap {
+        Some(b) if options.final_least_squares => {
+            bootstrap_covariance(final_result, &second_obs, &b, options)
+        }
+        _ => (final_result, None),
+    };
     let report = EstimationReport {
         stereo_matches: pairs.len(),
         stereo_inliers: f_report.inliers.len(),
@@ -1015,6 +1057,7 @@ fn estimate_rig_once(
         sigma_inflation: final_result.report.sigma_inflation,
         dropped_views: Vec::new(),
         depth_profile,
+        bootstrap,
     };
     let mut point_observations = vec![0usize; point_tracks.len()];
     let mut point_sides = vec![[false; 2]; point_tracks.len()];
@@ -1431,6 +1474,51 @@ pub fn profile_depth_scale(
         }
     }
     report.max_widening = widen.iter().copied().fold(1.0, f64::max);
+    (result, Some(report))
+}
+
+/// Module docs step 10: widen the covariance of the maximum-likelihood `result` (fitted
+/// to `obs`) to the bootstrap spread of that least squares
+/// ([`headalign_geometry::bootstrap::bootstrap_spread`]: point tracks drawn with
+/// replacement, the encoder readings redrawn from the angle prior, each replicate started
+/// at the estimate). As in [`profile_depth_scale`], `C' = D C D` with
+/// `D = diag(max(1, sigma_boot / sigma))`, capped at [`MAX_END_WIDENING`]: the
+/// correlations stay the linearisation's and the point estimate is unchanged. Why: with
+/// small rotations in a near scene at 3 px the least squares spreads 1.1-1.2 times its
+/// linearised sigma for the focal lengths (`examples/bootstrap_mc.rs`). If fewer than 3
+/// replicates converge, the covariance is left as it was and the report is `None`.
+pub fn bootstrap_covariance(
+    result: BundleResult,
+    obs: &[BundleObservation],
+    boot: &BootstrapOptions,
+    options: &EstimationOptions,
+) -> (BundleResult, Option<BootstrapReport>) {
+    let ls = BundleOptions {
+        robust: RobustLoss::None,
+        noise_sigma_px: Some(result.report.sigma_px),
+        ..options.bundle.clone()
+    };
+    let seeded = BootstrapOptions { seed: boot.seed.wrapping_add(options.seed), ..*boot };
+    let Ok(spread) = bootstrap_spread(&result, obs, &ls, &seeded) else { return (result, None) };
+    let n = result.covariance.matrix.nrows();
+    let mut ratios: Vec<f64> =
+        (0..n).map(|i| spread.sigma(i).unwrap_or(0.0) / result.covariance.matrix[(i, i)].sqrt()).collect();
+    let widen: Vec<f64> =
+        ratios.iter().map(|r| if r.is_finite() { r.clamp(1.0, MAX_END_WIDENING) } else { 1.0 }).collect();
+    let mut result = result;
+    for i in 0..n {
+        for j in 0..n {
+            result.covariance.matrix[(i, j)] *= widen[i] * widen[j];
+        }
+    }
+    ratios.retain(|r| r.is_finite());
+    ratios.sort_by(f64::total_cmp);
+    let report = BootstrapReport {
+        replicates: spread.replicates,
+        failed: spread.failed,
+        max_widening: widen.iter().copied().fold(1.0, f64::max),
+        median_ratio: ratios.get(ratios.len() / 2).copied().unwrap_or(f64::NAN),
+    };
     (result, Some(report))
 }
 
@@ -2744,6 +2832,41 @@ mod tests {
     /// Noise free, the depth scale is known (sigma_s ~ 1e-10) and the profile changes
     /// nothing: the same state, and the covariance equal to 1e-6 relative (its entries
     /// are themselves ~1e-20, evaluated at states differing by rounding).
+    /// The bootstrap (step 10) moves no estimate, only widens sigmas, reports its
+    /// replicates, and is reproducible: a near scene (0.6-1.5 m) at 3 px, seed 1, 8
+    /// replicates (few, to keep the test short: the widening itself is measured by
+    /// `experiment calibration --scene paper --bootstrap 30`).
+    #[test]
+    fn the_bootstrap_widens_sigmas_and_moves_no_estimate() {
+        let scenario =
+            headalign_sim::Scenario { seed: 1, noise_px: 3.0, ..headalign_sim::Scenario::paper_lab() };
+        let views = sim_views(scenario);
+        let base = EstimationOptions::scaled_for_noise(3.0, 1);
+        let boot = BootstrapOptions { replicates: 8, ..BootstrapOptions::default() };
+        let with = EstimationOptions { bootstrap: Some(boot), ..base.clone() };
+        let on = estimate_rig(&views, &with).unwrap();
+        let off = estimate_rig(&views, &base).unwrap();
+        let rep = on.report.bootstrap.unwrap();
+        assert!(off.report.bootstrap.is_none());
+        assert_eq!(rep.replicates + rep.failed, 8);
+        assert!(rep.replicates >= 6, "{rep:?}");
+        assert!(rep.max_widening >= 1.0 && rep.median_ratio.is_finite() && rep.median_ratio > 0.0, "{rep:?}");
+        assert_eq!(on.bundle.state.left.fx, off.bundle.state.left.fx);
+        assert_eq!(on.bundle.state.right.cy, off.bundle.state.right.cy);
+        let (a, b) = (&on.bundle.covariance.matrix, &off.bundle.covariance.matrix);
+        let mut widened = 0;
+        for i in 0..a.nrows() {
+            assert!(a[(i, i)] >= b[(i, i)] * (1.0 - 1e-12), "{i}: {} < {}", a[(i, i)], b[(i, i)]);
+            widened += usize::from(a[(i, i)] > b[(i, i)] * 1.0001);
+        }
+        // 8 replicates' sigmas scatter +-25 % around the linearised ones: some widen.
+        assert!(widened > 0, "no sigma widened");
+        let again = estimate_rig(&views, &with).unwrap();
+        assert_eq!(again.bundle.covariance.matrix, on.bundle.covariance.matrix);
+        let bad = EstimationOptions { bootstrap: Some(BootstrapOptions { replicates: 1, ..boot }), ..base };
+        assert!(matches!(bad.validate(), Err(AlignError::InvalidOption(_))));
+    }
+
     #[test]
     fn depth_profile_leaves_noise_free_unchanged() {
         let scenario = headalign_sim::Scenario { seed: 4, noise_px: 0.0, ..Default::default() };

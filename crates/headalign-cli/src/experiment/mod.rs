@@ -41,6 +41,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::estimate::{DepthProfile, ENCODER_SIGMA_DEG, EstimationOptions, LoneDepthGate};
+use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::bundle::AnglePrior;
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
@@ -119,6 +120,23 @@ pub struct ExperimentArgs {
     /// For comparing settings without editing the default.
     #[arg(long, value_parser = parse_angle_prior)]
     pub angle_prior: Option<AnglePrior>,
+    /// The bootstrap of the reported covariance (`EstimationOptions::bootstrap`): `off`
+    /// or the number of replicates B (at least 3); default the library's (off). Each
+    /// noisy trial then runs B more warm-started adjustments.
+    #[arg(long, value_parser = parse_bootstrap)]
+    pub bootstrap: Option<BootstrapSetting>,
+}
+
+/// A `--bootstrap` value: `None` is `off`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BootstrapSetting(pub Option<BootstrapOptions>);
+
+/// Parse `off` or a replicate count, validated as [`EstimationOptions::validate`] does.
+fn parse_bootstrap(v: &str) -> Result<BootstrapSetting, String> {
+    if v == "off" {
+        return Ok(BootstrapSetting(None));
+    }
+    crate::parse_replicates(v).map(|b| BootstrapSetting(Some(b)))
 }
 
 /// Parse `readings` / `independent`.
@@ -155,6 +173,7 @@ struct Tuning {
     lone_depth_gate: Option<LoneDepthGate>,
     encoder_noise_deg: f64,
     angle_prior: AnglePrior,
+    bootstrap: Option<BootstrapOptions>,
 }
 
 /// A `--lone-depth-gate` value: `None` is `off`.
@@ -533,6 +552,7 @@ fn spec(exp: &Experiment, c: &Condition, trial: usize, seed: u64, tuning: Tuning
         image_border: tuning.image_border,
         lone_depth_gate: tuning.lone_depth_gate,
         angle_prior: tuning.angle_prior,
+        bootstrap: tuning.bootstrap,
     }
 }
 
@@ -884,6 +904,7 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
         lone_depth_gate,
         encoder_noise_deg: args.encoder_noise,
         angle_prior: args.angle_prior.unwrap_or(EstimationOptions::default().bundle.angle_prior),
+        bootstrap: args.bootstrap.map_or(EstimationOptions::default().bootstrap, |b| b.0),
     };
     let outcomes = run_experiment(&exp, trials, args.seed, tuning);
     let seconds = t0.elapsed().as_secs_f64();
@@ -904,6 +925,10 @@ fn run_one(name: &str, args: &ExperimentArgs, sel: &Selection<'_>) -> Result<Pro
             format!("z = {}, only when sigma_s > {}", p.z, p.min_sigma_log_depth)
         });
         settings.push(format!("Depth-scale profile of the sigmas (`--depth-profile`): {how}."));
+    }
+    if let Some(b) = args.bootstrap {
+        let how = b.0.map_or("off".to_string(), |b| format!("{} replicates", b.replicates));
+        settings.push(format!("Bootstrap of the sigmas over point tracks (`--bootstrap`): {how}."));
     }
     if let Some(on) = args.image_border {
         let how = if on { "on" } else { "off" };
@@ -1062,6 +1087,7 @@ mod tests {
             lone_depth_gate: None,
             encoder_noise: 0.0,
             angle_prior: None,
+            bootstrap: None,
         };
         let mut ps = Vec::new();
         for scene in ["default", "paper", "robot"] {
@@ -1110,6 +1136,16 @@ mod tests {
         assert_eq!(parse_encoder_noise("0.01"), Ok(0.01));
         for bad in ["-0.01", "inf", "x", ""] {
             assert!(parse_encoder_noise(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn bootstrap_values_parse() {
+        assert_eq!(parse_bootstrap("off"), Ok(BootstrapSetting(None)));
+        let b = parse_bootstrap("40").unwrap().0.unwrap();
+        assert_eq!(b.replicates, 40);
+        for bad in ["2", "-1", "x", ""] {
+            assert!(parse_bootstrap(bad).is_err(), "{bad}");
         }
     }
 

@@ -121,6 +121,7 @@ mod tests {
             image_border: headalign::estimate::EstimationOptions::default().image_border,
             lone_depth_gate: headalign::estimate::EstimationOptions::default().lone_depth_gate,
             angle_prior: headalign_geometry::bundle::AnglePrior::default(),
+            bootstrap: None,
         }
     }
 

@@ -56,6 +56,7 @@ use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate, RigCal
 use headalign::procedure::{
     AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, alignment_sigmas,
 };
+use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::bundle::{AnglePrior, BundleOptions, Covariance, RobustLoss, bundle_adjust};
 use headalign_platform::{Encoders, Joint, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead, calibration_errors};
@@ -132,6 +133,10 @@ pub struct TrialSpec {
     /// The commanded angles' error model ([`BundleOptions::angle_prior`];
     /// `experiment --angle-prior`, default the library's).
     pub angle_prior: AnglePrior,
+    /// The bootstrap of the covariance ([`EstimationOptions::bootstrap`];
+    /// `experiment --bootstrap`, default the library's: off). The noise-free run of the
+    /// bound never bootstraps: its covariance is not used.
+    pub bootstrap: Option<BootstrapOptions>,
 }
 
 /// One reported quantity of one trial.
@@ -188,6 +193,7 @@ pub fn estimation_options(spec: &TrialSpec) -> EstimationOptions {
         depth_profile: spec.depth_profile,
         image_border: spec.image_border,
         lone_depth_gate: spec.lone_depth_gate,
+        bootstrap: spec.bootstrap,
         bundle: BundleOptions { angle_prior: spec.angle_prior, ..o.bundle.clone() },
         ..o
     }
@@ -363,6 +369,7 @@ impl CleanRun {
         clean.scenario.noise_px = CLEAN_NOISE_PX;
         clean.scenario.encoder_noise_deg = 0.0;
         clean.lone_depth_gate = None;
+        clean.bootstrap = None;
         let (head, run, mut outcome) =
             run_procedure(&clean).context("noise-free run for the Cramer-Rao bound")?;
         let inliers = true_inlier_observations(&head, &run, &outcome.calibration);
@@ -486,6 +493,7 @@ mod tests {
             image_border: EstimationOptions::default().image_border,
             lone_depth_gate: EstimationOptions::default().lone_depth_gate,
             angle_prior: AnglePrior::default(),
+            bootstrap: None,
         }
     }
 
@@ -527,6 +535,7 @@ mod tests {
             image_border: EstimationOptions::default().image_border,
             lone_depth_gate: EstimationOptions::default().lone_depth_gate,
             angle_prior: AnglePrior::default(),
+            bootstrap: None,
         };
         let clean = CleanRun::new(&s).unwrap();
         let crb = clean.crb_sigmas(1.5).unwrap();
