@@ -562,6 +562,17 @@ impl BundleResult {
         chi2_of(self.report.final_rms_px, self.report.observations, &self.state.motions, noise_px, options)
     }
 
+    /// The parameters of the covariance's names.
+    fn params(&self) -> Result<Vec<Param>> {
+        self.covariance
+            .names
+            .iter()
+            .map(|n| {
+                Param::parse(n).ok_or_else(|| GeometryError::InvalidOption(format!("unknown parameter {n}")))
+            })
+            .collect()
+    }
+
     /// The state moved by a tangent-space step `delta` over the non-point parameters (same
     /// order as `covariance.names`), points unchanged.
     /// Lets callers propagate the covariance to any derived quantity by finite differences.
@@ -573,14 +584,7 @@ impl BundleResult {
                 self.covariance.names.len()
             )));
         }
-        let params = self
-            .covariance
-            .names
-            .iter()
-            .map(|n| {
-                Param::parse(n).ok_or_else(|| GeometryError::InvalidOption(format!("unknown parameter {n}")))
-            })
-            .collect::<Result<Vec<_>>>()?;
+        let params = self.params()?;
         let layout = Layout::from_params(params, &self.state.motions)?;
         retract(&self.state, &layout, delta)
     }
@@ -592,14 +596,7 @@ impl BundleResult {
     /// whose directions lie in the same half-space. Lets callers take the spread of
     /// other solutions (bootstrap replicates) in the covariance's coordinates.
     pub fn tangent_offset(&self, other: &RigState) -> Result<DVector<f64>> {
-        let params = self
-            .covariance
-            .names
-            .iter()
-            .map(|n| {
-                Param::parse(n).ok_or_else(|| GeometryError::InvalidOption(format!("unknown parameter {n}")))
-            })
-            .collect::<Result<Vec<_>>>()?;
+        let params = self.params()?;
         local(&self.state, other, &params)
     }
 }

@@ -15,10 +15,8 @@ use headalign::estimate::EstimationOptions;
 use headalign_geometry::bundle::{BundleObservation, BundleOptions, RobustLoss, bundle_adjust};
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
-use nalgebra::Vector2;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 
 mod common;
 
@@ -63,16 +61,11 @@ fn main() {
         );
         let Ok(at_truth) = at_truth else { continue };
         for _ in 0..draws {
-            let obs: Vec<BundleObservation> = clean
-                .calibration
-                .observations
-                .iter()
-                .map(|b| {
-                    let e = Vector2::new(StandardNormal.sample(&mut rng), StandardNormal.sample(&mut rng));
-                    BundleObservation { pixel: b.pixel + e * noise, ..*b }
-                })
-                .filter(|b| !truncate || headalign_sim::scene::pixel_in_image(&b.pixel, sc.image_size))
-                .collect();
+            let obs: Vec<BundleObservation> =
+                common::with_pixel_noise(&clean.calibration.observations, noise, &mut rng)
+                    .into_iter()
+                    .filter(|b| !truncate || headalign_sim::scene::pixel_in_image(&b.pixel, sc.image_size))
+                    .collect();
             let Ok(r) = bundle_adjust(truth, &obs, &o) else { continue };
             let get = |s: &headalign_geometry::bundle::RigState, n: &str| match n {
                 "left.fx" => s.left.fx,

@@ -13,10 +13,8 @@ use headalign::estimate::EstimationOptions;
 use headalign_geometry::bundle::{BundleObservation, BundleOptions, RigState, RobustLoss, bundle_adjust};
 use headalign_platform::Encoders;
 use headalign_sim::Scenario;
-use nalgebra::Vector2;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 
 mod common;
 
@@ -78,15 +76,7 @@ fn main() {
         o.noise_sigma_px = Some(noise);
         o.max_iterations = 300;
         for _ in 0..draws {
-            let obs: Vec<BundleObservation> = clean
-                .calibration
-                .observations
-                .iter()
-                .map(|b| {
-                    let e = Vector2::new(StandardNormal.sample(&mut rng), StandardNormal.sample(&mut rng));
-                    BundleObservation { pixel: b.pixel + e * noise, ..*b }
-                })
-                .collect();
+            let obs = common::with_pixel_noise(&clean.calibration.observations, noise, &mut rng);
             let Ok(r) = bundle_adjust(truth, &obs, &o) else { continue };
             let mut reps: Vec<[f64; 8]> = Vec::new();
             let ob = BundleOptions { max_iterations: 30, ..o.clone() };

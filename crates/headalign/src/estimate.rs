@@ -463,7 +463,10 @@ impl EstimationOptions {
             ));
         }
         if let Some(b) = self.bootstrap {
-            b.validate().map_err(|e| AlignError::InvalidOption(format!("bootstrap: {e}")))?;
+            b.validate().map_err(|e| match e {
+                headalign_geometry::GeometryError::InvalidOption(m) => AlignError::InvalidOption(m),
+                other => AlignError::InvalidOption(other.to_string()),
+            })?;
         }
         Ok(())
     }

@@ -4,8 +4,9 @@
 //! [`EstimationOptions::scaled_for_noise`]) on a simulated head started at `initial`;
 //! the views' observations grouped by track, the true projective cameras of each view and
 //! an N-view DLT with them (`track_errors`, `onegen_diag`, `cluster_diag`); the tracked
-//! verge/tilt rig views of a robot-scene seed (`track_errors`, `cluster_diag`). Each
-//! example uses only part of it.
+//! verge/tilt rig views of a robot-scene seed (`track_errors`, `cluster_diag`); fresh
+//! Gaussian pixel noise on exact observations (`bias_mc`, `bootstrap_mc`). Each example
+//! uses only part of it.
 #![allow(dead_code)]
 
 use std::collections::BTreeMap;
@@ -176,4 +177,20 @@ pub fn triangulate_track(
     }
     let vt = a.svd(false, true).v_t?;
     Some(Vector4::from_iterator(vt.row(3).iter().copied()))
+}
+
+/// `obs` with fresh Gaussian noise of `noise_px` per pixel coordinate.
+pub fn with_pixel_noise(
+    obs: &[headalign_geometry::bundle::BundleObservation],
+    noise_px: f64,
+    rng: &mut rand_chacha::ChaCha8Rng,
+) -> Vec<headalign_geometry::bundle::BundleObservation> {
+    use rand_distr::{Distribution, StandardNormal};
+    obs.iter()
+        .map(|b| {
+            let e =
+                nalgebra::Vector2::new(StandardNormal.sample(&mut *rng), StandardNormal.sample(&mut *rng));
+            headalign_geometry::bundle::BundleObservation { pixel: b.pixel + e * noise_px, ..*b }
+        })
+        .collect()
 }
