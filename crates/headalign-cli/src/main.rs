@@ -205,8 +205,9 @@ struct DemoArgs {
     /// Widen the verge/tilt sigmas to a bootstrap over point tracks with this many
     /// replicates (`EstimationOptions::bootstrap`, at least 3; 30 is a sigma to about
     /// 13 %): for near scenes at a few pixels of noise, where the linearised sigmas are
-    /// too small. Off by default (about one more adjustment per replicate).
-    #[arg(long, value_parser = parse_replicates)]
+    /// too small. Off by default (about one more adjustment per replicate). Point mode;
+    /// for recorded images, `align --images DIR --bootstrap N`.
+    #[arg(long, value_parser = parse_replicates, conflicts_with = "images")]
     bootstrap: Option<BootstrapOptions>,
 }
 
