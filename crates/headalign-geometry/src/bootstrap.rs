@@ -19,7 +19,7 @@
 //! a near scene at a few pixels of noise the likelihood is not quadratic over the region
 //! the estimate wanders (the focal lengths' least squares, started at the truth on exact
 //! model data, spreads 1.09-1.17 times its Cramer-Rao bound in the 0.6-1.5 m scene at
-//! 3 px, and its 95 % intervals cover 89-92 %); the bootstrap sees the spread of the
+//! 3 px, and its 95 % intervals cover 89-93 %); the bootstrap sees the spread of the
 //! least squares itself, nonlinearity included (Efron and Tibshirani 1993, ch. 6 and 9;
 //! the pairs bootstrap of regression, with the track as the pair).
 //!
