@@ -1471,13 +1471,20 @@ pub fn profile_depth_scale(
         }
     }
     let mut result = result;
-    for i in 0..n {
-        for j in 0..n {
-            result.covariance.matrix[(i, j)] *= widen[i] * widen[j];
-        }
-    }
+    widen_covariance(&mut result, &widen);
     report.max_widening = widen.iter().copied().fold(1.0, f64::max);
     (result, Some(report))
+}
+
+/// `C' = D C D` with `D = diag(widen)`: each camera sigma of `result` times its factor,
+/// the correlations unchanged ([`profile_depth_scale`], [`bootstrap_covariance`]).
+fn widen_covariance(result: &mut BundleResult, widen: &[f64]) {
+    let m = &mut result.covariance.matrix;
+    for i in 0..m.nrows().min(widen.len()) {
+        for j in 0..m.ncols().min(widen.len()) {
+            m[(i, j)] *= widen[i] * widen[j];
+        }
+    }
 }
 
 /// Module docs step 10: widen the covariance of the maximum-likelihood `result` (fitted
@@ -1509,11 +1516,7 @@ pub fn bootstrap_covariance(
     let widen: Vec<f64> =
         ratios.iter().map(|r| if r.is_finite() { r.clamp(1.0, MAX_END_WIDENING) } else { 1.0 }).collect();
     let mut result = result;
-    for i in 0..n {
-        for j in 0..n {
-            result.covariance.matrix[(i, j)] *= widen[i] * widen[j];
-        }
-    }
+    widen_covariance(&mut result, &widen);
     ratios.retain(|r| r.is_finite());
     ratios.sort_by(f64::total_cmp);
     let report = BootstrapReport {
