@@ -11,7 +11,8 @@
 //! along the badly determined direction reach the lower minimum the truth reaches?
 //! `SWEEP_LOG=0.7,1.1,-0.7` sweeps those offsets of `s` instead (log units, not sigmas):
 //! calibration seed 368 at 3 px, whose lower minimum lies 1.15 above, reached it from none.
-//! `SCENE=paper` (or `robot`) runs that scene preset (`--scene` of `headalign experiment`).
+//! `SCENE=paper` (or `robot`) runs that scene preset (`--scene` of `headalign experiment`);
+//! `ENCNOISE=0` reads the encoders exactly (default 0.01 deg, as `headalign experiment`).
 //! `cargo run --release -p headalign --example ratio_diag -- SEED NOISE POSITION`
 //! (POSITION 0, 1, 2 as in `experiment fig5-verge-tilt`).
 use std::collections::HashMap;
@@ -41,7 +42,14 @@ fn main() {
         Encoders { pan: -4.0, elevation: -4.0, verge_left: -2.0, verge_right: 2.0 },
     ];
     let scene = std::env::var("SCENE").unwrap_or_else(|_| "default".into());
-    let sc = Scenario { seed, noise_px: noise, ..Scenario::preset(&scene).expect("a scene preset") };
+    // `ENCNOISE` (deg): the encoder readings' noise, default the experiments' 0.01 deg.
+    let encoder_noise_deg = std::env::var("ENCNOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(0.01);
+    let sc = Scenario {
+        seed,
+        noise_px: noise,
+        encoder_noise_deg,
+        ..Scenario::preset(&scene).expect("a scene preset")
+    };
     let (head, noisy) = run(&sc, &positions[pos]);
     let (_, clean) = run(&Scenario { noise_px: 1e-300, ..sc.clone() }, &positions[pos]);
     let t = head.truth().clone();
