@@ -130,7 +130,7 @@ impl ScenarioArgs {
         if let Some(v) = self.rotation {
             s.rotation_deg = v;
         }
-        s.validate().map_err(|e| anyhow::anyhow!("invalid scenario: {e}"))?;
+        s.validate()?;
         Ok(s)
     }
 }
@@ -373,7 +373,7 @@ fn demo(args: &DemoArgs) -> Result<()> {
     } else if let Some(n) = args.near_panels {
         scenario.near_panels = n;
     }
-    scenario.validate().map_err(|e| anyhow::anyhow!("invalid scenario: {e}"))?;
+    scenario.validate()?;
     if !rplan.stages.iter().any(|s| s == "verge-tilt") {
         anyhow::bail!(
             "the robot stages need the calibration of the verge-tilt stage (list it first in --stages)"
