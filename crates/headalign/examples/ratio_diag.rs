@@ -12,7 +12,8 @@
 //! `SWEEP_LOG=0.7,1.1,-0.7` sweeps those offsets of `s` instead (log units, not sigmas):
 //! calibration seed 368 at 3 px, whose lower minimum lies 1.15 above, reached it from none.
 //! `SCENE=paper` (or `robot`) runs that scene preset (`--scene` of `headalign experiment`);
-//! `ENCNOISE=0` reads the encoders exactly (default 0.01 deg, as `headalign experiment`).
+//! `ENCNOISE=0` reads the encoders exactly (default 0.01 deg, as `headalign experiment`;
+//! before the twenty-first session the default was exact readings, as in `docs/ratio-tail.md`).
 //! `cargo run --release -p headalign --example ratio_diag -- SEED NOISE POSITION`
 //! (POSITION 0, 1, 2 as in `experiment fig5-verge-tilt`).
 use std::collections::HashMap;
@@ -51,7 +52,9 @@ fn main() {
         ..Scenario::preset(&scene).expect("a scene preset")
     };
     let (head, noisy) = run(&sc, &positions[pos]);
-    let (_, clean) = run(&Scenario { noise_px: 1e-300, ..sc.clone() }, &positions[pos]);
+    // The noise-free run reads the encoders exactly, as the experiments' bound run does.
+    let (_, clean) =
+        run(&Scenario { noise_px: 1e-300, encoder_noise_deg: 0.0, ..sc.clone() }, &positions[pos]);
     let t = head.truth().clone();
     let c = &noisy.calibration;
     let st = &c.bundle.state;

@@ -94,13 +94,12 @@ fn draw<DB: DrawingBackend>(
         .build_cartesian_2d((x0 - pad)..(x1 + pad), 0.0..y1)
         .map_err(err)?;
     chart.configure_mesh().x_desc(x_label).y_desc(y_label).light_line_style(WHITE).draw().map_err(err)?;
-    let finite_points = |c: &Curve| -> Vec<(f64, f64)> {
-        c.points.iter().copied().filter(|p| p.0.is_finite() && p.1.is_finite()).collect()
-    };
+    // The measured curves drawn so far, for the coincidence test.
     let mut drawn: Vec<Vec<(f64, f64)>> = Vec::new();
     for c in curves {
         let colour = Palette99::pick(c.colour).to_rgba();
-        let pts = finite_points(c);
+        let pts: Vec<(f64, f64)> =
+            c.points.iter().copied().filter(|p| p.0.is_finite() && p.1.is_finite()).collect();
         let width = if c.bound { 1 } else { 2 };
         let style = colour.stroke_width(width);
         let covers_earlier = drawn.iter().any(|d| coincident(&pts, d, COINCIDENT_FRACTION * y1));
@@ -118,15 +117,13 @@ fn draw<DB: DrawingBackend>(
                 PathElement::new(ends, style).into_dyn()
             }
         });
-        if !c.bound {
-            drawn.push(pts.clone());
-        }
         if c.bound {
             chart
                 .draw_series(pts.iter().map(|&p| TriangleMarker::new(p, 4, colour.filled())))
                 .map_err(err)?;
         } else {
             chart.draw_series(pts.iter().map(|&p| Circle::new(p, 3, colour.filled()))).map_err(err)?;
+            drawn.push(pts);
         }
     }
     chart
