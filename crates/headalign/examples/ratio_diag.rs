@@ -18,7 +18,7 @@
 //! (POSITION 0, 1, 2 as in `experiment fig5-verge-tilt`).
 use std::collections::HashMap;
 
-use headalign::estimate::EstimationOptions;
+use headalign::estimate::{ENCODER_SIGMA_DEG, EstimationOptions};
 use headalign::procedure::VergeTiltOutcome;
 use headalign_geometry::bundle::{
     BundleResult, RobustLoss, bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale,
@@ -43,8 +43,10 @@ fn main() {
         Encoders { pan: -4.0, elevation: -4.0, verge_left: -2.0, verge_right: 2.0 },
     ];
     let scene = std::env::var("SCENE").unwrap_or_else(|_| "default".into());
-    // `ENCNOISE` (deg): the encoder readings' noise, default the experiments' 0.01 deg.
-    let encoder_noise_deg = std::env::var("ENCNOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(0.01);
+    // `ENCNOISE` (deg): the encoder readings' noise, default the experiments' (the noise the
+    // estimate's angle prior assumes).
+    let encoder_noise_deg =
+        std::env::var("ENCNOISE").ok().and_then(|v| v.parse().ok()).unwrap_or(ENCODER_SIGMA_DEG);
     let sc = Scenario {
         seed,
         noise_px: noise,
