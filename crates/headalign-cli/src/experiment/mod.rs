@@ -64,8 +64,9 @@ pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
     /// coverage, or all.
     pub name: String,
-    /// Total trials, split evenly over the experiment's conditions (at least one seed
-    /// each); default per experiment.
+    /// Total trials, split evenly over the experiment's conditions; default per
+    /// experiment.
+    // Seeds per condition: `ceil(trials / conditions)`, at least one (`run_one`).
     #[arg(long)]
     pub trials: Option<usize>,
     /// First seed.
@@ -78,51 +79,46 @@ pub struct ExperimentArgs {
     #[arg(long)]
     pub json: bool,
     /// Run only the conditions whose swept value is in this comma-separated list (e.g.
-    /// `--only 2,3` for the 2 and 3 px rows of a noise sweep); `--trials` is then split
-    /// over the remaining conditions.
+    /// `--only 2,3`).
+    // `--trials` is then split over the conditions kept.
     #[arg(long, value_delimiter = ',')]
     pub only: Vec<f64>,
-    /// Scene preset of every condition: `default` (the "yorick" room, points 1.5-6 m),
-    /// `paper` (`Scenario::paper_lab`: points 0.6-1.5 m, the paper's ~1 m lab scene) or
-    /// `robot` (`Scenario::robot_room`: the default room with the robot stages' 6 panels
-    /// about 1 m ahead). Outputs of a non-default scene are named `<experiment>-<scene>`.
-    /// `all` always runs the default scene, then the bars' conditions (calibration at
-    /// 3 px, points at 50) in the paper and robot scenes too.
+    /// Scene preset of every condition: `default`, `paper` or `robot` (as `demo --scene`);
+    /// outputs are then named `<experiment>-<scene>`.
+    // `Scenario::preset`. `all` refuses it: it runs the default scene, then
+    // `OTHER_SCENE_BARS` in the paper and robot scenes.
     #[arg(long, default_value = "default")]
     pub scene: String,
-    /// The depth-scale profile of the reported covariance
-    /// (`EstimationOptions::depth_profile`): `off`, `Z` (profile ends at Z sigmas of the
-    /// depth scale) or `Z:MIN` (profile only when that sigma exceeds MIN); default the
-    /// library's. For comparing settings without editing the default.
+    /// Depth-scale profile of the reported covariance: `off`, `Z` (to Z sigmas of the
+    /// depth scale) or `Z:MIN` (only when that sigma exceeds MIN).
+    // `EstimationOptions::depth_profile`; unset: the library's default.
     #[arg(long, value_parser = parse_depth_profile)]
     pub depth_profile: Option<ProfileSetting>,
-    /// Model the image border in the least squares (`EstimationOptions::image_border`):
-    /// `on` or `off`; default the library's. For comparing settings without editing the
-    /// default.
+    /// Model the image border in the least squares: `on` or `off`.
+    // `EstimationOptions::image_border`; unset: the library's default.
     #[arg(long, value_parser = parse_on_off)]
     pub image_border: Option<bool>,
-    /// The depth test of points seen once by one camera
-    /// (`EstimationOptions::lone_depth_gate`): `off` or `Z` (the threshold in deviations,
-    /// the other settings the library's); default the library's. For comparing settings
-    /// without editing the default.
+    /// Depth test of points seen once by one camera: `off` or `Z` (the threshold in
+    /// deviations).
+    // `EstimationOptions::lone_depth_gate` (other fields `LoneDepthGate::DEFAULT`); unset:
+    // the library's default.
     #[arg(long, value_parser = parse_lone_gate)]
     pub lone_depth_gate: Option<LoneSetting>,
-    /// Standard deviation of the simulated encoder readings' noise in the noisy trials,
-    /// degrees (`Scenario::encoder_noise_deg`; the noise-free run that gives the
-    /// Cramer-Rao bound reads exactly). Default the noise the estimate and the bound
-    /// assume (`ENCODER_SIGMA_DEG`, 0.01 deg): with exact readings the data hold more than
-    /// the bound counts, so errors fall below it and sigmas over-cover. 0: exact readings.
+    /// Standard deviation of the simulated encoder noise in the noisy trials, degrees
+    /// (0: exact readings).
+    // `Scenario::encoder_noise_deg`. Default `ENCODER_SIGMA_DEG`, the noise the estimate
+    // and the bound assume; the noise-free run that gives the bound reads exactly.
     #[arg(long, value_parser = parse_encoder_noise, default_value_t = ENCODER_SIGMA_DEG)]
     pub encoder_noise: f64,
-    /// The error model of the commanded angles in the bundle adjustment
-    /// (`BundleOptions::angle_prior`): `readings` (differences of independently noisy
-    /// readings, sharing the reference view's) or `independent`; default the library's.
-    /// For comparing settings without editing the default.
+    /// Error model of the commanded angles in the bundle adjustment: `readings` (reading
+    /// differences) or `independent`.
+    // `BundleOptions::angle_prior`; unset: the library's default.
     #[arg(long, value_parser = parse_angle_prior)]
     pub angle_prior: Option<AnglePrior>,
-    /// The bootstrap of the reported covariance (`EstimationOptions::bootstrap`): `off`
-    /// or the number of replicates B (at least 3); default the library's (off). Each
-    /// noisy trial then runs B more warm-started adjustments.
+    /// Bootstrap of the reported covariance: `off` or the number of replicates (at
+    /// least 3).
+    // `EstimationOptions::bootstrap`; unset: the library's default (off). Each noisy trial
+    // then runs one more warm-started adjustment per replicate.
     #[arg(long, value_parser = parse_bootstrap)]
     pub bootstrap: Option<BootstrapSetting>,
 }
