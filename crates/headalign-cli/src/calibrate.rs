@@ -84,8 +84,8 @@ pub struct CalibrateArgs {
     // only; `off`: the detector's own sub-pixel corners.
     #[arg(long, value_enum, default_value_t = PatchRefinement::Stereo)]
     pub patch_refinement: PatchRefinement,
-    /// Corners detected per image, with no retry. Default: 1500, retried with 3000 when
-    /// the calibration is weak or fails.
+    /// Corners detected per image (no retry). Default: 1500, with a second try at 3000
+    /// when that calibration is weak or fails.
     // `Density::default` (headalign::calibrate): which result is kept and why is in the
     // report's `density`; docs/real-data.md.
     #[arg(long)]

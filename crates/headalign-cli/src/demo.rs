@@ -47,7 +47,7 @@ pub struct DemoArgs {
     // wheel tolerated), the second exact once steering has straightened the wheel.
     #[arg(long, default_value = "verge-tilt,pan,steering,pan")]
     stages: String,
-    /// one-motion stage: level the elevation with the measured drive direction instead of
+    /// one-motion stage: level the elevation with the drive's own direction instead of
     /// the calibrated pan axis.
     #[arg(long)]
     horizon_from_drive: bool,
@@ -82,7 +82,7 @@ pub struct DemoArgs {
     #[arg(long)]
     images: bool,
     /// Record the session here. With --images the default is
-    /// ./headalign-sessions/<UTC time>; in point mode only this flag records.
+    /// `./headalign-sessions/<UTC time>`; in point mode only this flag records.
     // Format: `headalign::session`. `--save` is a hidden alias. Point mode records the
     // verge/tilt stage and observations.json; --images adds figure6.png and aligned.png.
     #[arg(long, alias = "save", conflicts_with = "no_session")]

@@ -35,7 +35,7 @@ pub struct RunArgs {
     /// Longest wait for one answer of the driver, seconds.
     #[arg(long, default_value_t = 30.0)]
     pub head_timeout: f64,
-    /// Record the session here (default ./headalign-sessions/<UTC time>).
+    /// Record the session here (default `./headalign-sessions/<UTC time>`).
     #[arg(long)]
     pub session: Option<PathBuf>,
     /// Rotation of the procedure's moves, degrees.
