@@ -46,17 +46,18 @@ pub struct CalibrateArgs {
     /// Hold both principal points at the image centre.
     #[arg(long)]
     pub fix_principal_point: bool,
-    /// Known lens distortion: an OpenCV FileStorage YAML with M1 D1 M2 D2 (as OpenCV's
-    /// stereo sample and our opencv_stereo.yaml write) or camera_matrix +
-    /// distortion_coefficients (one camera, used for both).
+    /// Known lens distortion: OpenCV FileStorage YAML with M1 D1 M2 D2, or camera_matrix
+    /// and distortion_coefficients (used for both cameras).
+    // The M1 D1 M2 D2 form is what OpenCV's stereo sample and our opencv_stereo.yaml write.
     #[arg(long)]
     pub distortion: Option<PathBuf>,
     /// Estimate each camera's radial distortion (k1, k2, OpenCV plumb_bob) in the bundle
-    /// adjustment; written to every calibration file.
+    /// adjustment.
     #[arg(long, conflicts_with = "distortion")]
     pub estimate_distortion: bool,
-    /// Known intrinsics and distortion (same file formats): no self-calibration; the rig
-    /// from the fundamental matrix of all views (works with a planar target).
+    /// Known intrinsics and distortion (same file formats): no self-calibration, only the
+    /// rig (works with a planar target).
+    // The rig comes from the fundamental matrix of all views.
     #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "zero_skew", "square_pixels", "fix_principal_point"])]
     pub intrinsics: Option<PathBuf>,
     /// Write the calibration files here (calibration.json, opencv_stereo.yaml, left.yaml,
@@ -72,23 +73,21 @@ pub struct CalibrateArgs {
     /// Seed of the robust estimators.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Search radius of guided matching between views, pixels (default 8: small head
-    /// rotations; a hand-held rig that moved a lot needs more, e.g. 40).
+    /// Search radius of guided matching between views, pixels (default 8; a hand-held rig
+    /// that moved a lot needs more, e.g. 40).
+    // Default: `FrontEndOptions::guided_radius_px`.
     #[arg(long)]
     pub search_px: Option<f64>,
-    /// Patch refinement of tracked corners: `stereo` (default: the front end aligns every
-    /// later observation of a track against the same camera's reference patch, and each
-    /// new right corner against its left partner's patch), `temporal` (later observations
-    /// only) or `off` (the detector's own sub-pixel corners).
+    /// Patch refinement of tracked corners: `stereo` (default), `temporal` or `off`.
+    // `stereo`: every later observation of a track against the same camera's reference
+    // patch and each new right corner against its left partner's; `temporal`: the former
+    // only; `off`: the detector's own sub-pixel corners.
     #[arg(long, value_enum, default_value_t = PatchRefinement::Stereo)]
     pub patch_refinement: PatchRefinement,
-    /// Corners detected per image. Default: 1500, and when that calibration is weak (a
-    /// focal sigma above 0.5 %, or one motion in a mostly planar scene) or fails, a
-    /// second detection with 3000 from the same images; the result with the smaller
-    /// focal sigma is kept (if the two disagree by more than 3 sigmas, the one whose
-    /// principal points lie nearer the image centre), and the report's `density` says what was done
-    /// (headalign::calibrate::Density; docs/real-data.md). A number here fixes the
-    /// count, with no retry.
+    /// Corners detected per image (no retry). Default: 1500, with a second try at 3000
+    /// when that calibration is weak or fails.
+    // `Density::default` (headalign::calibrate): which result is kept and why is in the
+    // report's `density`; docs/real-data.md.
     #[arg(long)]
     pub corners: Option<usize>,
 }

@@ -35,15 +35,15 @@ pub struct RunArgs {
     /// Longest wait for one answer of the driver, seconds.
     #[arg(long, default_value_t = 30.0)]
     pub head_timeout: f64,
-    /// Record the session here (default ./headalign-sessions/<UTC time>).
+    /// Record the session here (default `./headalign-sessions/<UTC time>`).
     #[arg(long)]
     pub session: Option<PathBuf>,
     /// Rotation of the procedure's moves, degrees.
     #[arg(long, default_value_t = 3.0)]
     pub rotation: f64,
-    /// Let the procedure choose its elevation/pan rotations (up to 10 deg each way, plus
-    /// pan and elevation together, as far as the scene stays in view); `--rotation` is then
-    /// only the vergence move.
+    /// Let the procedure choose its elevation/pan rotations as far as the scene stays in
+    /// view; `--rotation` is then only the vergence move.
+    // `AutoRotation::default`: up to 10 deg each way, plus pan and elevation together.
     #[arg(long)]
     pub auto_rotation: bool,
     /// Print one JSON object instead of the summary.

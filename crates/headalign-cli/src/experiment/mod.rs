@@ -28,7 +28,10 @@
 //! bound), `<name>.md` (summary tables: RMS per series, RMS / bound per reported
 //! quantity, 95 % coverage). `all` runs every experiment and writes `results.md` beside
 //! DIR with the paper's numbers and the bars.
+//!
+//! Each experiment's conditions, series and default trial count are defined in [`catalog`].
 
+mod catalog;
 pub mod pan;
 pub mod plot;
 pub mod stats;
@@ -64,8 +67,9 @@ pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
     /// coverage, or all.
     pub name: String,
-    /// Total trials, split evenly over the experiment's conditions (at least one seed
-    /// each); default per experiment.
+    /// Total trials, split evenly over the experiment's conditions; default per
+    /// experiment.
+    // Seeds per condition: `ceil(trials / conditions)`, at least one (`run_one`).
     #[arg(long)]
     pub trials: Option<usize>,
     /// First seed.
@@ -78,51 +82,46 @@ pub struct ExperimentArgs {
     #[arg(long)]
     pub json: bool,
     /// Run only the conditions whose swept value is in this comma-separated list (e.g.
-    /// `--only 2,3` for the 2 and 3 px rows of a noise sweep); `--trials` is then split
-    /// over the remaining conditions.
+    /// `--only 2,3`).
+    // `--trials` is then split over the conditions kept.
     #[arg(long, value_delimiter = ',')]
     pub only: Vec<f64>,
-    /// Scene preset of every condition: `default` (the "yorick" room, points 1.5-6 m),
-    /// `paper` (`Scenario::paper_lab`: points 0.6-1.5 m, the paper's ~1 m lab scene) or
-    /// `robot` (`Scenario::robot_room`: the default room with the robot stages' 6 panels
-    /// about 1 m ahead). Outputs of a non-default scene are named `<experiment>-<scene>`.
-    /// `all` always runs the default scene, then the bars' conditions (calibration at
-    /// 3 px, points at 50) in the paper and robot scenes too.
+    /// Scene preset of every condition: `default`, `paper` or `robot` (as `demo --scene`);
+    /// outputs of another scene than `default` are named `<experiment>-<scene>`.
+    // `Scenario::preset`. `all` refuses it: it runs the default scene, then
+    // `OTHER_SCENE_BARS` in the paper and robot scenes.
     #[arg(long, default_value = "default")]
     pub scene: String,
-    /// The depth-scale profile of the reported covariance
-    /// (`EstimationOptions::depth_profile`): `off`, `Z` (profile ends at Z sigmas of the
-    /// depth scale) or `Z:MIN` (profile only when that sigma exceeds MIN); default the
-    /// library's. For comparing settings without editing the default.
+    /// Depth-scale profile of the reported covariance: `off`, `Z` (to Z sigmas of the
+    /// depth scale) or `Z:MIN` (only when that sigma exceeds MIN).
+    // `EstimationOptions::depth_profile`; unset: the library's default.
     #[arg(long, value_parser = parse_depth_profile)]
     pub depth_profile: Option<ProfileSetting>,
-    /// Model the image border in the least squares (`EstimationOptions::image_border`):
-    /// `on` or `off`; default the library's. For comparing settings without editing the
-    /// default.
+    /// Model the image border in the least squares: `on` or `off`.
+    // `EstimationOptions::image_border`; unset: the library's default.
     #[arg(long, value_parser = parse_on_off)]
     pub image_border: Option<bool>,
-    /// The depth test of points seen once by one camera
-    /// (`EstimationOptions::lone_depth_gate`): `off` or `Z` (the threshold in deviations,
-    /// the other settings the library's); default the library's. For comparing settings
-    /// without editing the default.
+    /// Depth test of points seen once by one camera: `off` or `Z` (the threshold in
+    /// deviations).
+    // `EstimationOptions::lone_depth_gate` (other fields `LoneDepthGate::DEFAULT`); unset:
+    // the library's default.
     #[arg(long, value_parser = parse_lone_gate)]
     pub lone_depth_gate: Option<LoneSetting>,
-    /// Standard deviation of the simulated encoder readings' noise in the noisy trials,
-    /// degrees (`Scenario::encoder_noise_deg`; the noise-free run that gives the
-    /// Cramer-Rao bound reads exactly). Default the noise the estimate and the bound
-    /// assume (`ENCODER_SIGMA_DEG`, 0.01 deg): with exact readings the data hold more than
-    /// the bound counts, so errors fall below it and sigmas over-cover. 0: exact readings.
+    /// Standard deviation of the simulated encoder noise in the noisy trials, degrees
+    /// (0: exact readings).
+    // `Scenario::encoder_noise_deg`. Default `ENCODER_SIGMA_DEG`, the noise the estimate
+    // and the bound assume; the noise-free run that gives the bound reads exactly.
     #[arg(long, value_parser = parse_encoder_noise, default_value_t = ENCODER_SIGMA_DEG)]
     pub encoder_noise: f64,
-    /// The error model of the commanded angles in the bundle adjustment
-    /// (`BundleOptions::angle_prior`): `readings` (differences of independently noisy
-    /// readings, sharing the reference view's) or `independent`; default the library's.
-    /// For comparing settings without editing the default.
+    /// Error model of the commanded angles in the bundle adjustment: `readings` (reading
+    /// differences) or `independent`.
+    // `BundleOptions::angle_prior`; unset: the library's default.
     #[arg(long, value_parser = parse_angle_prior)]
     pub angle_prior: Option<AnglePrior>,
-    /// The bootstrap of the reported covariance (`EstimationOptions::bootstrap`): `off`
-    /// or the number of replicates B (at least 3); default the library's (off). Each
-    /// noisy trial then runs B more warm-started adjustments.
+    /// Bootstrap of the reported covariance: `off` or the number of replicates (at
+    /// least 3).
+    // `EstimationOptions::bootstrap`; unset: the library's default (off). Each noisy trial
+    // then runs one more warm-started adjustment per replicate.
     #[arg(long, value_parser = parse_bootstrap)]
     pub bootstrap: Option<BootstrapSetting>,
 }
@@ -334,202 +333,19 @@ const COVERAGE_ROBOT_PX: [f64; 2] = [1.0, 3.0];
 /// coverage of 90 % (or 98 %) is told from 95 % by about 4 (or 2.4) standard deviations.
 const COVERAGE_TRIALS: usize = 300;
 
+/// Noise levels (pixels) of the figure 5 noise sweeps.
+const NOISE_GRID: [f64; 5] = [0.0, 0.5, 1.0, 2.0, 3.0];
+
 /// Experiment `name` with every condition in `scene` (a preset, any seed).
 fn experiment(name: &str, scene: &Scenario) -> Result<Experiment> {
-    let base = |noise: f64| base(scene, noise);
-    let noise_grid = [0.0, 0.5, 1.0, 2.0, 3.0];
     Ok(match name {
-        "fig5-verge-tilt" => Experiment {
-            name: "fig5-verge-tilt",
-            title: "Verge/tilt alignment error vs noise (3 deg, 200 points)",
-            x_label: "image noise (px)",
-            y_label: "RMS error (deg)",
-            default_trials: 1250,
-            robot: false,
-            quantities: &SIGMA_QUANTITIES,
-            note: "",
-            positions: vec![
-                Encoders::default(),
-                Encoders { pan: 4.0, elevation: 4.0, verge_left: 2.0, verge_right: -2.0 },
-                Encoders { pan: -4.0, elevation: -4.0, verge_left: -2.0, verge_right: 2.0 },
-            ],
-            conditions: noise_grid.iter().map(|&n| fixed(n, base(n))).collect(),
-            series: alignment_series(),
-        },
-        "calibration" => Experiment {
-            name: "calibration",
-            title: "Calibration error vs noise (3 deg, 200 points)",
-            x_label: "image noise (px)",
-            y_label: "RMS error (%)",
-            default_trials: 1250,
-            robot: false,
-            quantities: &SIGMA_QUANTITIES,
-            note: "",
-            positions: vec![Encoders::default()],
-            conditions: [0.5, 1.0, 1.5, 2.0, 3.0].iter().map(|&n| fixed(n, base(n))).collect(),
-            series: vec![
-                Series { label: "left fx (%)", value: |r| q_rel_pct(r, 0), crb: Some(|r| q_crb_pct(r, 0)) },
-                Series { label: "right fx (%)", value: |r| q_rel_pct(r, 4), crb: Some(|r| q_crb_pct(r, 4)) },
-                focal_pooled(),
-                worst_focal(),
-                Series { label: "aspect ratio, worst (%)", value: |r| r.aspect_err_pct, crb: None },
-                Series { label: "principal point, worst (% of f)", value: |r| r.pp_err_pct, crb: None },
-                recon_rms(),
-                recon_median(),
-            ],
-        },
-        "points" => Experiment {
-            name: "points",
-            title: "Error vs number of points (1.5 px, 3 deg)",
-            x_label: "points",
-            y_label: "RMS error (deg, %)",
-            default_trials: 150,
-            robot: false,
-            quantities: &SIGMA_QUANTITIES,
-            note: "Group `auto`: 50 points with the rotations the procedure chooses itself (`--auto-rotation`, default `AutoRotation`). Its overlap rule keeps a rotation while every probed view shares at least half of the reference view's stereo tracks and at least 30 of them (`AutoRotation::min_tracks`), so a 50-point scene mostly gets 10 deg single-joint views, 6-10 deg diagonal views and a 10 deg vergence move (the `rotation` column is the mean single-joint rotation). The reconstruction error's tail is the likelihood's own, not the estimator's: started from the truth on the same inliers, the bundle adjustment ends at the estimate's cost (`cargo run --release -p headalign --example recon_ml`); the worst trials have their points on one wall 3-6 m away, where the baseline direction is known to 15-20 deg and far points are reconstructed near infinity.",
-            positions: vec![Encoders::default()],
-            conditions: {
-                let mut c: Vec<Condition> = [50usize, 100, 200, 400]
-                    .iter()
-                    .map(|&p| fixed(p as f64, Scenario { points: p, ..base(1.5) }))
-                    .collect();
-                // The 50-point bar with the rotations the procedure chooses itself.
-                c.push(Condition {
-                    group: "auto",
-                    x: 50.0,
-                    scenario: Scenario { points: 50, ..base(1.5) },
-                    rotation: RotationMode::Auto,
-                    robot: false,
-                });
-                c
-            },
-            series: vec![
-                elevation_left(),
-                verge_left(),
-                focal_pooled(),
-                worst_focal(),
-                recon_rms(),
-                recon_median(),
-            ],
-        },
-        "rotation" => {
-            let mut conditions: Vec<Condition> = [1.0, 3.0, 6.0, 10.0, 15.0]
-                .iter()
-                .map(|&d| fixed(d, Scenario { rotation_deg: d, ..base(1.0) }))
-                .collect();
-            for n in [1.0, 3.0] {
-                conditions.push(Condition {
-                    group: "auto",
-                    x: n,
-                    scenario: base(n),
-                    rotation: RotationMode::Auto,
-                    robot: false,
-                });
-            }
-            Experiment {
-                name: "rotation",
-                title: "Error vs rotation size (1 px, 200 points)",
-                x_label: "rotation (deg)",
-                y_label: "RMS error (deg, %)",
-                default_trials: 140,
-                robot: false,
-                quantities: &SIGMA_QUANTITIES,
-                note: "",
-                positions: vec![Encoders::default()],
-                conditions,
-                series: vec![
-                    verge_left(),
-                    elevation_left(),
-                    Series {
-                        label: "left fx (%)",
-                        value: |r| q_rel_pct(r, 0),
-                        crb: Some(|r| q_crb_pct(r, 0)),
-                    },
-                    focal_pooled(),
-                    worst_focal(),
-                ],
-            }
-        }
-        "outliers" => Experiment {
-            name: "outliers",
-            title: "Error vs outlier fraction (1 px, 3 deg, 200 points)",
-            x_label: "outlier fraction (per observation)",
-            y_label: "RMS error (deg, %)",
-            default_trials: 70,
-            robot: false,
-            quantities: &SIGMA_QUANTITIES,
-            note: "",
-            positions: vec![Encoders::default()],
-            conditions: [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6]
-                .iter()
-                .map(|&o| fixed(o, Scenario { outlier_fraction: o, ..base(1.0) }))
-                .collect(),
-            series: vec![elevation_left(), verge_left(), worst_focal()],
-        },
-        "coverage" => Experiment {
-            name: "coverage",
-            title: "Reported sigma vs actual error (3 deg, 200 points)",
-            x_label: "image noise (px)",
-            y_label: "RMS error (deg)",
-            default_trials: COVERAGE_TRIALS * COVERAGE_FIXED_PX.len()
-                + COVERAGE_TRIALS * COVERAGE_ROBOT_PX.len(),
-            robot: false,
-            quantities: &ROBOT_QUANTITIES,
-            note: "Groups: `fixed` runs the verge/tilt procedure in the plain room at each noise level; `robot` runs the robot stages as `fig5-pan-tilt` does (verge/tilt, pan, steering, pan; 6 near panels, pan zeros up to 20 deg, 0.10 m drive) at 1 and 3 px, which adds the final pan reading (`pan.aligned`: its sigma is the last drive's: the verge/tilt calibration's uncertainty, the drive motion's (all 6 dof, through the derotated flow and the half turn) and the flow's, propagated) and the steering zero (`steer.zero`), and repeats the verge/tilt quantities in the robot's scene. These are every sigma headalign reports in point mode (the intrinsics, the aligned readings, the pan and elevation axes' directions, the pan reading and the steering zero).",
-            positions: vec![Encoders::default()],
-            conditions: {
-                let mut c: Vec<Condition> = COVERAGE_FIXED_PX.iter().map(|&n| fixed(n, base(n))).collect();
-                c.extend(COVERAGE_ROBOT_PX.iter().map(|&n| Condition {
-                    group: "robot",
-                    x: n,
-                    scenario: base(n),
-                    rotation: RotationMode::Fixed,
-                    robot: true,
-                }));
-                c
-            },
-            series: alignment_series(),
-        },
-        "fig5-pan-tilt" => {
-            let robot = |group: &'static str, x: f64, noise: f64, pan_max: f64, drive: f64| Condition {
-                group,
-                x,
-                scenario: Scenario { pan_zero_max_deg: pan_max, drive_m: drive, ..base(noise) },
-                rotation: RotationMode::Fixed,
-                robot: true,
-            };
-            let mut conditions: Vec<Condition> =
-                noise_grid.iter().map(|&n| robot("noise", n, n, 20.0, 0.10)).collect();
-            conditions.extend([10.0, 20.0, 40.0, 60.0].iter().map(|&p| robot("pan zero", p, 1.0, p, 0.10)));
-            conditions.extend([0.05, 0.10, 0.20, 0.40].iter().map(|&d| robot("drive", d, 1.0, 20.0, d)));
-            Experiment {
-                name: "fig5-pan-tilt",
-                title: "Pan alignment by the forward drive (verge/tilt, pan, steering, pan)",
-                x_label: "noise (px) / max initial pan (deg) / drive (m)",
-                y_label: "RMS error (deg)",
-                default_trials: 260,
-                robot: true,
-                quantities: &ROBOT_QUANTITIES,
-                note: "Groups: `noise` sweeps the image noise (pan zeros up to 20 deg, 0.10 m drive); `pan zero` sweeps the largest initial pan error (1 px, 0.10 m); `drive` sweeps the forward drive in metres (1 px, up to 20 deg). Each trial runs the demo's default stages (verge-tilt, pan, steering, pan) in point mode with 6 near panels about 1 m ahead; errors are measured after the last stage. The plot shows the `noise` group. No Cramer-Rao bound for the pan: the pan stage has no joint likelihood whose covariance could be evaluated at the truth, so the bound columns are '-'. The reported pan sigma is the last drive's correction sigma: the verge/tilt calibration's covariance and the drive motion's propagated through the pan computation, plus the flow's noise (bounded for its unmodelled correlation with the motion's); the trials also report the steering zero with its sigma (`steer.zero`) and the verge/tilt quantities in the robot's scene. The paper's real robot: 1.7 deg RMS pan for initial pans up to 20 deg, 3.5 deg up to 60 deg.",
-                positions: vec![Encoders::default()],
-                conditions,
-                series: vec![
-                    Series { label: "pan (deg)", value: |r| r.pan_err_deg, crb: None },
-                    Series {
-                        label: "reported pan sigma (deg)",
-                        value: |r| r.quantities.get(PAN_INDEX).map_or(f64::NAN, |q| q.sigma),
-                        crb: None,
-                    },
-                    Series { label: "elevation left (deg)", value: |r| r.elev_err_l_deg, crb: None },
-                    Series { label: "elevation right (deg)", value: |r| r.elev_err_r_deg, crb: None },
-                    Series {
-                        label: "elevation right, excess (deg)",
-                        value: |r| r.elev_err_r_excess_deg,
-                        crb: None,
-                    },
-                ],
-            }
-        }
+        "fig5-verge-tilt" => catalog::fig5_verge_tilt(scene),
+        "calibration" => catalog::calibration(scene),
+        "points" => catalog::points(scene),
+        "rotation" => catalog::rotation(scene),
+        "outliers" => catalog::outliers(scene),
+        "coverage" => catalog::coverage(scene),
+        "fig5-pan-tilt" => catalog::fig5_pan_tilt(scene),
         other => bail!("unknown experiment '{other}'; expected one of {}", NAMES.join(", ")),
     })
 }

@@ -233,6 +233,51 @@ fn median_ratio(p: &Produced) -> f64 {
 pub(super) fn results_md(ps: &[Produced], out: &Path) -> String {
     let dir = out.file_name().map_or_else(|| "results".into(), |n| n.to_string_lossy().into_owned());
     let mut m = String::new();
+    intro(&mut m, &dir);
+    let _ = writeln!(m, "## The paper's numbers beside ours\n");
+    let _ = writeln!(m, "| quantity | paper | ours | bar | met |\n|---|---|---|---|---|");
+    if let Some(p) = find(ps, "fig5-verge-tilt") {
+        verge_tilt_rows(&mut m, p);
+    }
+    if let Some(p) = find(ps, "calibration") {
+        calibration_rows(&mut m, p);
+    }
+    for scene in ["paper", "robot"] {
+        if let Some(p) = find_in(ps, "calibration", scene) {
+            focal_row(&mut m, p);
+            scene_ratio_coverage_rows(&mut m, p);
+        }
+    }
+    for scene in BAR_SCENES {
+        if let Some(p) = find_in(ps, "points", scene) {
+            fifty_point_rows(&mut m, p, "fixed");
+        }
+    }
+    for scene in BAR_SCENES {
+        if let Some(p) = find_in(ps, "points", scene) {
+            fifty_point_rows(&mut m, p, "auto");
+        }
+    }
+    if let Some(p) = find(ps, "rotation") {
+        rotation_rows(&mut m, p);
+    }
+    if let Some(p) = find(ps, "coverage") {
+        coverage_rows(&mut m, p);
+    }
+    pan_tilt_rows(&mut m, find(ps, "fig5-pan-tilt"));
+    for p in ps {
+        let _ = writeln!(
+            m,
+            "{}",
+            p.markdown.replace(&format!("]({}.png)", p.stem), &format!("]({dir}/{}.png)", p.stem))
+        );
+    }
+    m
+}
+
+/// The heading and the paragraphs before the tables: the simulation, the bound, the
+/// metrics and the scenes.
+fn intro(m: &mut String, dir: &str) {
     let _ = writeln!(
         m,
         "# Results: verge/tilt alignment and calibration on the simulated head\n\n\
@@ -275,150 +320,142 @@ one (1.5-6 m), each with its own Cramer-Rao bound. The focal lengths' bound depe
 points' depth spread, near against far (`cargo run --release -p headalign --example \
 crb_scenes` gives the bounds against the depth range), the 50-point elevation bound hardly.\n"
     );
-    let _ = writeln!(m, "## The paper's numbers beside ours\n");
-    let _ = writeln!(m, "| quantity | paper | ours | bar | met |\n|---|---|---|---|---|");
-    if let Some(p) = find(ps, "fig5-verge-tilt") {
-        let (r, at, ci) = worst_ratio(p);
-        if let Some(c) = cond(p, "fixed", 1.0) {
-            let worst = ["verge left (deg)", "verge right (deg)", "elevation left (deg)"]
-                .iter()
-                .map(|l| series(p, c, l))
-                .fold(f64::NAN, f64::max);
-            let _ = writeln!(
-                m,
-                "| alignment error at 1 px (worst RMS of verge L/R, elevation L) | below 1 deg | {} deg | - | {} |",
-                f(worst, 3),
-                verdict(worst < 1.0)
-            );
-        }
+}
+
+/// The `fig5-verge-tilt` rows: the alignment error at 1 px and the worst RMS / bound.
+fn verge_tilt_rows(m: &mut String, p: &Produced) {
+    let (r, at, ci) = worst_ratio(p);
+    if let Some(c) = cond(p, "fixed", 1.0) {
+        let worst = ["verge left (deg)", "verge right (deg)", "elevation left (deg)"]
+            .iter()
+            .map(|l| series(p, c, l))
+            .fold(f64::NAN, f64::max);
         let _ = writeln!(
             m,
-            "| RMS error / Cramer-Rao bound, worst reported quantity, fig5 noise grid (median over quantities and levels {}) | - | {} ({at}) | <= 1.15 | {} |",
-            f(median_ratio(p), 2),
-            f(r, 2),
-            ratio_verdict(r, ci, RATIO_BAR)
+            "| alignment error at 1 px (worst RMS of verge L/R, elevation L) | below 1 deg | {} deg | - | {} |",
+            f(worst, 3),
+            verdict(worst < 1.0)
         );
     }
-    if let Some(p) = find(ps, "calibration") {
-        let (r, at, ci) = worst_ratio(p);
+    let _ = writeln!(
+        m,
+        "| RMS error / Cramer-Rao bound, worst reported quantity, fig5 noise grid (median over quantities and levels {}) | - | {} ({at}) | <= 1.15 | {} |",
+        f(median_ratio(p), 2),
+        f(r, 2),
+        ratio_verdict(r, ci, RATIO_BAR)
+    );
+}
+
+/// The `calibration` rows (default scene): the worst RMS / bound and the focal length bar.
+fn calibration_rows(m: &mut String, p: &Produced) {
+    let (r, at, ci) = worst_ratio(p);
+    let _ = writeln!(
+        m,
+        "| RMS error / Cramer-Rao bound, worst reported quantity, calibration noise grid (median over quantities and levels {}) | - | {} ({at}) | <= 1.15 | {} |",
+        f(median_ratio(p), 2),
+        f(r, 2),
+        ratio_verdict(r, ci, RATIO_BAR)
+    );
+    focal_row(m, p);
+}
+
+/// The `rotation` rows: the rotations the procedure chooses, at 1 px (alignment) and
+/// 3 px (focal length).
+fn rotation_rows(m: &mut String, p: &Produced) {
+    if let Some(c) = cond(p, "auto", 1.0) {
+        let pooled = (["verge left (deg)", "elevation left (deg)"]
+            .iter()
+            .map(|l| series(p, c, l).powi(2))
+            .sum::<f64>()
+            / 2.0)
+            .sqrt();
         let _ = writeln!(
             m,
-            "| RMS error / Cramer-Rao bound, worst reported quantity, calibration noise grid (median over quantities and levels {}) | - | {} ({at}) | <= 1.15 | {} |",
-            f(median_ratio(p), 2),
-            f(r, 2),
-            ratio_verdict(r, ci, RATIO_BAR)
+            "| rotation chosen by the procedure (mean {} deg), 1 px: RMS alignment error (verge L, elevation L pooled) | - | {} deg | <= 0.15 deg | {} |",
+            f(c.mean_rotation_deg, 1),
+            f(pooled, 3),
+            verdict(pooled <= 0.15)
         );
-        focal_row(&mut m, p);
     }
-    for scene in ["paper", "robot"] {
-        if let Some(p) = find_in(ps, "calibration", scene) {
-            focal_row(&mut m, p);
-            scene_ratio_coverage_rows(&mut m, p);
-        }
+    if let Some(c) = cond(p, "auto", 3.0) {
+        let pooled = series(p, c, "focal length f = fx, L/R pooled (%)");
+        let bound = series_crb(p, c, "focal length f = fx, L/R pooled (%)");
+        let w = series(p, c, "focal length, worst of 4 (%)");
+        let _ = writeln!(
+            m,
+            "| rotation chosen by the procedure (mean {} deg), 3 px: focal length error (f = fx, L/R pooled; bound {} %; worst of 4: {} %) | - | {} % | <= 0.5 % | {} |",
+            f(c.mean_rotation_deg, 1),
+            f(bound, 2),
+            f(w, 2),
+            f(pooled, 2),
+            bounded_verdict(pooled, 0.5, bound, c.ok)
+        );
     }
-    for scene in BAR_SCENES {
-        if let Some(p) = find_in(ps, "points", scene) {
-            fifty_point_rows(&mut m, p, "fixed");
-        }
+}
+
+/// The `coverage` rows: every reported sigma's 95 % coverage, then the robot sigmas'
+/// (pan reading and steering zero) alone.
+fn coverage_rows(m: &mut String, p: &Produced) {
+    // Every (condition, quantity) entry with a coverage, and the extremes named.
+    let all = coverage_entries(p, |_| true, |q, c| format!("{} at {} px ({})", q, c.x, c.group));
+    let n = p.sums.iter().map(|c| c.ok).min().unwrap_or(0);
+    let (clo, chi) = coverage_interval(n);
+    let outside = all.iter().filter(|v| v.0 < clo || v.0 > chi).count();
+    let levels = |group: &str| {
+        p.sums.iter().filter(|c| c.group == group).map(|c| c.x.to_string()).collect::<Vec<_>>().join(", ")
+    };
+    if let Some((lo, hi)) = extremes(&all) {
+        let _ = writeln!(
+            m,
+            "| 95 % coverage of every reported sigma ({} entries: the {q} verge/tilt quantities (8 intrinsics, 3 aligned readings, 4 components of the pan and elevation axes' directions) at {} px; with the robot stages at {} px the same {q} plus the pan reading and the steering zero; at least {n} trials each: a calibrated sigma gives {}-{} % with 95 % probability, {} entries outside that) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
+            all.len(),
+            levels("fixed"),
+            levels("robot"),
+            f(100.0 * clo, 1),
+            f(100.0 * chi, 1),
+            outside,
+            f(100.0 * lo.0, 1),
+            f(100.0 * hi.0, 1),
+            lo.1,
+            hi.1,
+            verdict(lo.0 >= 0.9 && hi.0 <= 0.98),
+            q = SIGMA_QUANTITIES.len(),
+        );
     }
-    for scene in BAR_SCENES {
-        if let Some(p) = find_in(ps, "points", scene) {
-            fifty_point_rows(&mut m, p, "auto");
-        }
+    // The robot sigmas alone (the pan reading's and the steering zero's).
+    let robot: Vec<String> = p
+        .sums
+        .iter()
+        .filter(|c| c.group == "robot")
+        .filter_map(|c| {
+            let pan = c.coverage.get(super::pan::PAN_INDEX)?.0;
+            let steer = c.coverage.get(super::pan::PAN_INDEX + 1)?.0;
+            Some(format!("{} px: pan {} %, steering zero {} %", c.x, f(100.0 * pan, 1), f(100.0 * steer, 1)))
+        })
+        .collect();
+    let robot_cov: Vec<f64> = p
+        .sums
+        .iter()
+        .filter(|c| c.group == "robot")
+        .flat_map(|c| c.coverage.iter().skip(super::pan::PAN_INDEX).map(|v| v.0))
+        .filter(|v| v.is_finite())
+        .collect();
+    if !robot.is_empty() {
+        let lo = robot_cov.iter().copied().fold(f64::NAN, f64::min);
+        let hi = robot_cov.iter().copied().fold(f64::NAN, f64::max);
+        let _ = writeln!(
+            m,
+            "| 95 % coverage of the reported pan and steering-zero sigmas (`coverage`, robot group; the last drive's sigma: calibration, drive motion and flow propagated) | - | {} | 90-98 % | {} |",
+            robot.join("; "),
+            verdict(lo >= 0.9 && hi <= 0.98)
+        );
     }
-    if let Some(p) = find(ps, "rotation") {
-        if let Some(c) = cond(p, "auto", 1.0) {
-            let pooled = (["verge left (deg)", "elevation left (deg)"]
-                .iter()
-                .map(|l| series(p, c, l).powi(2))
-                .sum::<f64>()
-                / 2.0)
-                .sqrt();
-            let _ = writeln!(
-                m,
-                "| rotation chosen by the procedure (mean {} deg), 1 px: RMS alignment error (verge L, elevation L pooled) | - | {} deg | <= 0.15 deg | {} |",
-                f(c.mean_rotation_deg, 1),
-                f(pooled, 3),
-                verdict(pooled <= 0.15)
-            );
-        }
-        if let Some(c) = cond(p, "auto", 3.0) {
-            let pooled = series(p, c, "focal length f = fx, L/R pooled (%)");
-            let bound = series_crb(p, c, "focal length f = fx, L/R pooled (%)");
-            let w = series(p, c, "focal length, worst of 4 (%)");
-            let _ = writeln!(
-                m,
-                "| rotation chosen by the procedure (mean {} deg), 3 px: focal length error (f = fx, L/R pooled; bound {} %; worst of 4: {} %) | - | {} % | <= 0.5 % | {} |",
-                f(c.mean_rotation_deg, 1),
-                f(bound, 2),
-                f(w, 2),
-                f(pooled, 2),
-                bounded_verdict(pooled, 0.5, bound, c.ok)
-            );
-        }
-    }
-    if let Some(p) = find(ps, "coverage") {
-        // Every (condition, quantity) entry with a coverage, and the extremes named.
-        let all = coverage_entries(p, |_| true, |q, c| format!("{} at {} px ({})", q, c.x, c.group));
-        let n = p.sums.iter().map(|c| c.ok).min().unwrap_or(0);
-        let (clo, chi) = coverage_interval(n);
-        let outside = all.iter().filter(|v| v.0 < clo || v.0 > chi).count();
-        let levels = |group: &str| {
-            p.sums.iter().filter(|c| c.group == group).map(|c| c.x.to_string()).collect::<Vec<_>>().join(", ")
-        };
-        if let Some((lo, hi)) = extremes(&all) {
-            let _ = writeln!(
-                m,
-                "| 95 % coverage of every reported sigma ({} entries: the {q} verge/tilt quantities (8 intrinsics, 3 aligned readings, 4 components of the pan and elevation axes' directions) at {} px; with the robot stages at {} px the same {q} plus the pan reading and the steering zero; at least {n} trials each: a calibrated sigma gives {}-{} % with 95 % probability, {} entries outside that) | - | {}-{} % (lowest {}, highest {}) | 90-98 % | {} |",
-                all.len(),
-                levels("fixed"),
-                levels("robot"),
-                f(100.0 * clo, 1),
-                f(100.0 * chi, 1),
-                outside,
-                f(100.0 * lo.0, 1),
-                f(100.0 * hi.0, 1),
-                lo.1,
-                hi.1,
-                verdict(lo.0 >= 0.9 && hi.0 <= 0.98),
-                q = SIGMA_QUANTITIES.len(),
-            );
-        }
-        // The robot sigmas alone (the pan reading's and the steering zero's).
-        let robot: Vec<String> = p
-            .sums
-            .iter()
-            .filter(|c| c.group == "robot")
-            .filter_map(|c| {
-                let pan = c.coverage.get(super::pan::PAN_INDEX)?.0;
-                let steer = c.coverage.get(super::pan::PAN_INDEX + 1)?.0;
-                Some(format!(
-                    "{} px: pan {} %, steering zero {} %",
-                    c.x,
-                    f(100.0 * pan, 1),
-                    f(100.0 * steer, 1)
-                ))
-            })
-            .collect();
-        let robot_cov: Vec<f64> = p
-            .sums
-            .iter()
-            .filter(|c| c.group == "robot")
-            .flat_map(|c| c.coverage.iter().skip(super::pan::PAN_INDEX).map(|v| v.0))
-            .filter(|v| v.is_finite())
-            .collect();
-        if !robot.is_empty() {
-            let lo = robot_cov.iter().copied().fold(f64::NAN, f64::min);
-            let hi = robot_cov.iter().copied().fold(f64::NAN, f64::max);
-            let _ = writeln!(
-                m,
-                "| 95 % coverage of the reported pan and steering-zero sigmas (`coverage`, robot group; the last drive's sigma: calibration, drive motion and flow propagated) | - | {} | 90-98 % | {} |",
-                robot.join("; "),
-                verdict(lo >= 0.9 && hi <= 0.98)
-            );
-        }
-    }
-    if let Some(p) = find(ps, "fig5-pan-tilt") {
+}
+
+/// The `fig5-pan-tilt` rows (the pan against the paper's real robot, the pan sigma's
+/// coverage), or "not run".
+fn pan_tilt_rows(m: &mut String, p: Option<&Produced>) {
+    if let Some(p) = p {
         let at = |x: f64| cond(p, "pan zero", x).map(|c| (series(p, c, "pan (deg)"), c.ok, c.total));
         if let (Some((p20, ok20, n20)), Some((p60, ok60, n60))) = (at(20.0), at(60.0)) {
             let _ = writeln!(
@@ -453,14 +490,6 @@ crb_scenes` gives the bounds against the depth range), the 50-point elevation bo
             "| pan alignment, initial pan up to 20 deg / 60 deg (real robot) | 1.7 / 3.5 deg RMS | not run | - | - |\n"
         );
     }
-    for p in ps {
-        let _ = writeln!(
-            m,
-            "{}",
-            p.markdown.replace(&format!("]({}.png)", p.stem), &format!("]({dir}/{}.png)", p.stem))
-        );
-    }
-    m
 }
 
 #[cfg(test)]
