@@ -119,10 +119,12 @@ pub(crate) struct Adjustment {
     pub start_index: usize,
 }
 
-/// The adjustment stage (module docs, steps 5-6), shared with the calibration from
-/// general rig motions ([`crate::calibrate`]): each start screened by a short adjustment
-/// on `first_obs` (gross residuals left out), the best one re-selected over `all_obs` by
-/// residual, adjusted to convergence, wild points removed and adjusted once more.
+/// The adjustment stage (estimation steps 5-7; this file's module docs, 1-5), shared
+/// with the calibration from general rig motions ([`crate::calibrate`]): each start
+/// screened by a short adjustment on `first_obs` (gross residuals left out,
+/// [`screen_starts`]), the best one re-selected over `all_obs` by residual, adjusted to
+/// convergence, wild points removed and adjusted once more, then (with
+/// `final_least_squares`) the maximum-likelihood pass.
 pub(crate) fn adjust_from_starts(
     starts: Vec<Result<RigState, AlignError>>,
     first_obs: &[BundleObservation],
@@ -202,7 +204,7 @@ pub(crate) fn adjust_from_starts(
     Ok(Adjustment { first, last: final_result, observations: second_obs, linear_focal, start_index })
 }
 
-/// Module docs, step 1: each start adjusted briefly ([`SCREEN_ITERATIONS`]) on
+/// This file's module docs, step 1: each start adjusted briefly ([`SCREEN_ITERATIONS`]) on
 /// `first_obs` without its gross residuals (above 5 times the median residual under that
 /// start, and at least 10 px), scored by [`start_score`] over all of `first_obs`. Returns
 /// the best screened adjustment, the focal lengths of the first start that existed (left
@@ -230,7 +232,8 @@ fn screen_starts(
         }
         // Gross residuals under this start (wrong matches that no quadruplet checked, points
         // placed badly by a rough start) are left out of its first adjustment: above 5 times
-        // the median residual, and at least 10 px. The re-selection below re-admits them.
+        // the median residual, and at least 10 px. The re-selection of
+        // `adjust_from_starts` re-admits them.
         let start_obs: Vec<BundleObservation> = {
             let mut r: Vec<f64> =
                 first_obs.iter().filter_map(|o| residual_pixels(&state, o).map(|v| v.norm())).collect();

@@ -44,7 +44,7 @@ use crate::error::{AlignError, StepContext};
 /// docs step 7; measured: the set is stable after 2-3 at 1-3 px).
 pub const ML_ROUNDS: usize = 5;
 
-/// The maximum-likelihood pass (module docs, step 7). The robust solution's noise is
+/// The maximum-likelihood pass (estimation step 7, this file's module docs). The robust solution's noise is
 /// estimated from the median residual norm (MAD-like, immune to the outliers still in
 /// `candidates`) and gives the first classification: observations of `candidates` within
 /// `reselect_sigmas` of it, points keeping at least [`MIN_POINT_OBSERVATIONS`] and of

@@ -32,7 +32,7 @@ use super::adjust::{FINAL_ITERATIONS, PointSources, retriangulate_points_by_supp
 use super::likelihood::maximum_likelihood_pass;
 use crate::error::AlignError;
 
-/// Module docs step 8: the least squares restarted from the depth-reversed rig. The
+/// [Estimation](super) step 8: the least squares restarted from the depth-reversed rig. The
 /// scene is far compared with the baseline (median depth about 20 baselines), so the
 /// horizontal disparity that the baseline adds to the vergence's is small and nearly
 /// constant over the points: the rig with the baseline's x component (right camera

@@ -46,7 +46,7 @@ pub const MAX_END_WIDENING: f64 = 10.0;
 /// within 0.52 %, and the estimates are identical.
 pub const PROFILE_END_ITERATIONS: usize = 20;
 
-/// Module docs step 9: widen the covariance of a least-squares `result` for the
+/// [Estimation](super) step 9: widen the covariance of a least-squares `result` for the
 /// nonlinearity along the scene's depth scale. With small rotations the scene's distance
 /// in baselines is the badly determined direction (at 3 px known to tens of percent) and
 /// the linearised sigmas follow it: a receding maximum-likelihood scene (about 5 % of the
@@ -121,7 +121,7 @@ fn widen_covariance(result: &mut BundleResult, widen: &[f64]) {
     }
 }
 
-/// Module docs step 10: widen the covariance of the maximum-likelihood `result` (fitted
+/// [Estimation](super) step 10: widen the covariance of the maximum-likelihood `result` (fitted
 /// to `obs`) to the bootstrap spread of that least squares
 /// ([`headalign_geometry::bootstrap::bootstrap_spread`]: point tracks drawn with
 /// replacement, the encoder readings redrawn from the angle prior, each replicate started
