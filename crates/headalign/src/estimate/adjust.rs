@@ -1,7 +1,8 @@
-//! Steps 6 and 7 of the estimation ([`super`]): the rig bundle adjustment from the
-//! starts, with the selection of observations and the re-triangulation of points
-//! (DESIGN.md section 2 step 4 "Refine"; the paper's step 4 refines each `H` on transfer
-//! error, section 3.2, where this adjusts everything jointly on reprojection error).
+//! Step 6 of the estimation ([`super`]), with the screening of step 5's starts and the
+//! hand-over to step 7: the rig bundle adjustment from the starts, with the selection of
+//! observations and the re-triangulation of points (DESIGN.md section 2 step 4 "Refine";
+//! the paper's step 4 refines each `H` on transfer error, section 3.2, where this adjusts
+//! everything jointly on reprojection error).
 //!
 //! The model ([`headalign_geometry::bundle`]): both cameras' intrinsics, the rig pose
 //! (the baseline is the unit of length), the motions as rotations about two fixed axes
@@ -9,8 +10,8 @@
 //! in the reference view's left camera frame. [`adjust_from_starts`], shared with the
 //! calibration from general rig motions ([`crate::calibrate`]):
 //! 1. every start's short adjustment ([`SCREEN_ITERATIONS`]) on the first selection
-//!    ([`first_selection`]: stereo inliers of `F` that are also quadruplet inliers), its
-//!    gross residuals left out; the best MSAC score over the common selection wins
+//!    ([`first_selection`]: stereo inliers of `F`, and quadruplet inliers where the point
+//!    was in a quadruplet), its gross residuals left out; the best MSAC score over the common selection wins
 //!    ([`start_score`]);
 //! 2. the points its start put behind a camera re-triangulated under the winning rig;
 //! 3. every raw observation ([`rig_observations`]) re-selected by its residual

@@ -2,17 +2,17 @@
 //! (paper section 3.2 steps 2-4(c); DESIGN.md section 2 steps 2-3).
 //!
 //! A rotation of the head maps the reference view's projective points `X` to the rotated
-//! view's `Y ~ H X`, `H = H_PE^-1 D H_PE` a 4x4 projective map (15 dof; 6 of them the
-//! rigid motion `D`, the rest the frame's `H_PE`, paper equation 1). The matches between
-//! the two stereo views give quadruplets (left and right pixel in each view) with their
-//! points `X`, `Y`. Per view:
+//! view's `Y ~ H X`, `H = H_PE^-1 D H_PE` a 4x4 projective map (15 dof as estimated),
+//! conjugate by the frame's `H_PE` to the rigid motion `D` (6 dof; paper equation 1). The
+//! matches between the two stereo views give quadruplets (left and right pixel in each
+//! view) with their points `X`, `Y`. Per view:
 //! 1. the quadruplets are screened by 4-point plane-homography RANSAC on left0 -> left1
 //!    and right0 -> right1 ([`screen_rotation`]): a head rotation maps each image almost
 //!    by `K R K^-1`, departing from it only by the parallax of the axis offsets (threshold
 //!    [`super::EstimationOptions::prefilter_px`]); the plane homographies are kept for the
 //!    rotating-camera start ([`super::starts`]);
-//! 2. starting models: the rigid fit in the quasi-Euclidean frame and the 5-point DLT on
-//!    the screened set, each polished by Levenberg-Marquardt on the symmetric transfer
+//! 2. starting models: the rigid fit in the quasi-Euclidean frame and the DLT over the
+//!    screened set, each polished by Levenberg-Marquardt on the symmetric transfer
 //!    error ([`polish`]); the 5-point DLT RANSAC ([`PolishedHomography`]) runs only when
 //!    neither explains half of the screened set;
 //! 3. guided re-selection over all quadruplets with the polished `H`, refitted, until the

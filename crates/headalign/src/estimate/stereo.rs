@@ -4,8 +4,8 @@
 //!
 //! While only pan and elevation move the rig does not change, so the left-right matches
 //! of all rig views obey one `F` (7 dof) and pooling them conditions it far better than
-//! any single view. `F` comes from RANSAC (normalised 8-point / 7-point samples, DEGENSAC
-//! against a dominant plane) refined on Sampson distance
+//! any single view. `F` comes from RANSAC (7-point samples, normalised 8-point polish,
+//! the DEGENSAC test against a dominant plane) refined on Sampson distance
 //! ([`headalign_geometry::fundamental::estimate_fundamental`]), with the threshold and the
 //! minimum sample count of [`super::EstimationOptions::fundamental`].
 //!
