@@ -108,6 +108,8 @@ pub fn classify_views(views: &[View]) -> Result<Vec<ViewRole>, AlignError> {
     }
 }
 
+/// Whether `role` is a rig view that rotates `joint` (pan or elevation) alone: it moved
+/// by more than [`MOVED_DEG`] and the other of the two did not.
 fn is_single(role: &ViewRole, joint: Joint) -> bool {
     match role {
         ViewRole::Rig { pan_deg, elevation_deg } => match joint {
