@@ -13,7 +13,7 @@
 //!   with each point's efficient score `s_p = g_p - W_p V_p^-1 h_p` (pixels; `c` camera
 //!   parameters, `2n` residual components, `P` the priors' information), consistent when
 //!   a point's errors are correlated across its observations (White 1980; Liang and Zeger
-//!   1986), with [`BundleReport::sigma_inflation`](super::BundleReport::sigma_inflation)
+//!   1986), with [`BundleReport::sigma_inflation`]
 //!   its widening over the Gaussian sigmas.
 //! - [`clustered_covariance`]: the same sandwich with clusters given by the caller (points
 //!   sharing a label), for diagnostics of correlation across points.
@@ -30,12 +30,14 @@
 //!   so are the observations of a point collapsed onto a camera centre (information above
 //!   `MAX_POINT_INFORMATION_RATIO` = 1e8 times the median point's): its terms would swamp
 //!   the camera parameters' in rounding and make `S` indefinite.
-//! - A singular `S` means an unobservable parameter (a gauge left free, an axis that never
-//!   moves): [`GeometryError::Numerical`], not a huge sigma.
+//! - A singular `S` at the solution means a parameter the data do not determine:
+//!   [`GeometryError::Numerical`], not a huge sigma.
 //! - The sandwich needs many more clusters than camera parameters (hundreds of points
 //!   against 20-40 parameters); over a few coarse clusters it is noisy and biased low.
 //! - Inverse distance, not log distance, is averaged for the depth scale: a far point's log
 //!   distance is unbounded (measured sigmas up to 570 at 3 px).
+//!
+//! [`BundleReport::sigma_inflation`]: super::BundleReport::sigma_inflation
 
 use std::collections::BTreeMap;
 
@@ -84,10 +86,12 @@ impl Covariance {
 }
 
 /// The covariance of the camera parameters under `model` (module docs, Covariance) and
-/// its [`BundleReport::sigma_inflation`](super::BundleReport::sigma_inflation). Points collapsed onto a camera centre
+/// its [`BundleReport::sigma_inflation`]. Points collapsed onto a camera centre
 /// ([`MAX_POINT_INFORMATION_RATIO`]) are left out of it.
 /// `clusters`, under `PointClustered`: the cluster of each point (indexed like
 /// `state.points`; `None`: each point its own).
+///
+/// [`BundleReport::sigma_inflation`]: super::BundleReport::sigma_inflation
 pub(super) fn covariance(
     problem: &Problem<'_>,
     state: &RigState,
@@ -207,8 +211,10 @@ fn overinformed_points(n: &Normal) -> Vec<usize> {
 /// `cluster_of_point` entry (indexed like `state.points`) form one cluster, whose errors may
 /// be correlated across all their observations. With every point its own cluster this is
 /// the covariance of [`CovarianceModel::PointClustered`]. `sigma_px` weights the angle
-/// priors as in [`bundle_adjust`](super::bundle_adjust) (its reported `sigma_px`). For diagnostics: coarser
+/// priors as in [`bundle_adjust`] (its reported `sigma_px`). For diagnostics: coarser
 /// clusters (an image region, a surface) test whether errors are correlated across points.
+///
+/// [`bundle_adjust`]: super::bundle_adjust
 pub fn clustered_covariance(
     state: &RigState,
     observations: &[BundleObservation],
@@ -234,13 +240,15 @@ pub fn clustered_covariance(
 /// The scene's depth scale `s` of a state: `-ln` of the mean inverse distance (the log
 /// harmonic-mean distance) from the reference left camera, in units of the baseline
 /// length (the scale gauge, held by the adjustment), over the points that
-/// [`bundle_adjust`](super::bundle_adjust) would adjust with these observations (seen at least twice, in front
+/// [`bundle_adjust`] would adjust with these observations (seen at least twice, in front
 /// of the cameras), and its standard
 /// deviation from the linearisation at `state` with pixel noise `sigma_px` (data and
 /// priors; points not eliminated: `sigma_px^2 a^T N^-1 a`). Why: with small rotations the
 /// scene's distance in baselines is the badly determined direction of the rig (a
 /// receding scene with shifted principal points fits nearly as well), and the camera
 /// covariance varies along it.
+///
+/// [`bundle_adjust`]: super::bundle_adjust
 pub fn log_depth_scale(
     state: &RigState,
     observations: &[BundleObservation],
@@ -283,8 +291,10 @@ pub(super) fn log_depth_scale_of(state: &RigState, points: &[usize]) -> Option<f
 }
 
 /// Gradient of [`log_depth_scale_of`] with respect to each point's homogeneous tangent
-/// step `d` of [`retract_point`](super::layout::retract_point) (compact order):
+/// step `d` of [`retract_point`] (compact order):
 /// `X^T / (n m |X|^3) (B_xyz - X B_w) / h_w`, `m` the mean inverse distance.
+///
+/// [`retract_point`]: super::layout::retract_point
 pub(super) fn log_depth_scale_jacobian(state: &RigState, points: &[usize]) -> Option<Vec<Vector3<f64>>> {
     let n = points.len() as f64;
     let mut m = 0.0;
@@ -339,8 +349,10 @@ mod tests {
         }
     }
 
-    /// Commanded angles as differences of noisy readings ([`AnglePrior::ReadingDifferences`](crate::bundle::AnglePrior::ReadingDifferences)):
+    /// Commanded angles as differences of noisy readings ([`AnglePrior::ReadingDifferences`]):
     /// every view's reading of every joint, view 0's included, gets Gaussian noise `sigma`.
+    ///
+    /// [`AnglePrior::ReadingDifferences`]: crate::bundle::AnglePrior::ReadingDifferences
     fn scatter_readings(motions: &mut Motions, sigma: f64, rng: &mut ChaCha8Rng) {
         if let Motions::Joints { commanded, .. } = motions {
             let reference: Vec<f64> =

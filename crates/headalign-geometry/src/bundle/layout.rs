@@ -5,7 +5,7 @@
 //! # What it computes
 //!
 //! - `Layout::build` lists the free camera parameters in their fixed order, with the
-//!   names of [`Covariance::names`](super::Covariance::names) (`Param::name`,
+//!   names of [`Covariance::names`] (`Param::name`,
 //!   `Param::parse`): per camera `fx fy skew cx cy` (pixels; `fy` absent with square
 //!   pixels, skew absent with zero skew, `cx cy` absent with a fixed principal point) and
 //!   `k1 k2` with distortion (dimensionless); `rig.rot0..2` (radians) and `rig.tdir0..1`
@@ -19,7 +19,7 @@
 //!   the scale gauge); an axis's direction on the sphere and its foot point in the plane
 //!   perpendicular to it, both by the tangent basis `B`; `ref_from_cam <- (exp(w), v)
 //!   ref_from_cam` for a free view. `local` is its inverse, the step between two states
-//!   ([`BundleResult::tangent_offset`](super::BundleResult::tangent_offset)).
+//!   ([`BundleResult::tangent_offset`]).
 //! - `retract_point`: a point (3 dof) moves on the unit sphere of homogeneous 4-vectors,
 //!   `h <- normalize(h + B d)` with `B` a Householder basis of the tangent space (Triggs,
 //!   McLauchlan, Hartley, Fitzgibbon, "Bundle adjustment - a modern synthesis", 2000,
@@ -33,10 +33,14 @@
 //! - With square pixels `fy` has no slot and follows `fx` (`Layout::square`); a held `fy`
 //!   is not such a tie (the solver keeps the options' tie flags when it removes held
 //!   parameters).
-//! - `local` needs rotations that differ by less than pi and directions in the same
-//!   half-space (the ends of the tangent charts); it is an error otherwise.
+//! - `local` inverts `retract` only for rotations that differ by less than pi and
+//!   directions in the same half-space (the ends of the tangent charts); a baseline or
+//!   axis direction turned by 90 deg or more is an error.
 //! - The tangent updates never flip an axis: `(-a, -theta)` is the same motion but lies in
 //!   another chart.
+//!
+//! [`Covariance::names`]: super::Covariance::names
+//! [`BundleResult::tangent_offset`]: super::BundleResult::tangent_offset
 
 use nalgebra::{DVector, Isometry3, Matrix3x2, Point3, Translation3, Unit, UnitQuaternion, Vector2, Vector3};
 

@@ -26,7 +26,7 @@
 //!   camera parameter at its start value (a profile-likelihood point; a held `fy` stays
 //!   untied from `fx`).
 //! - `left.{k1,k2}`, `right.{k1,k2}` (only with `estimate_distortion`): the radial
-//!   coefficients of OpenCV's `plumb_bob` lens model ([`Distortion`](crate::distortion::Distortion), dimensionless, on
+//!   coefficients of OpenCV's `plumb_bob` lens model ([`Distortion`], dimensionless, on
 //!   normalised coordinates), additive update. The projection is then
 //!   `K distort(pi(X))`; the other coefficients (`p1 p2 k3`) of
 //!   [`RigState::left_distortion`] / `right_distortion` are held at their given values (a
@@ -110,7 +110,7 @@
 //! (`cargo bench -p headalign-geometry --bench bundle`, 80 -> 52 ms).
 //!
 //! Jacobians: projection w.r.t. intrinsics and the camera-frame point are analytic, as
-//! are those w.r.t. the rig and free view poses (tangent updates via [`so3::exp`](crate::so3::exp), safe
+//! are those w.r.t. the rig and free view poses (tangent updates via [`so3::exp`], safe
 //! at zero). For the `Joints` model the derivative of each view's pose tangent w.r.t. the
 //! axis and angle parameters is taken by **central differences of the small pose
 //! function** (step 1e-6, one 6-vector per parameter per view per iteration) and chained
@@ -185,7 +185,7 @@
 //!   system would be singular; a perturbed start with a different baseline length converges
 //!   to a *scaled* truth.
 //! - An axis whose angle is zero in every view does not move anything and cannot be
-//!   estimated: rejected with [`GeometryError::Degenerate`](crate::GeometryError::Degenerate).
+//!   estimated: rejected with [`GeometryError::Degenerate`].
 //! - The sign of an angle goes with the direction of its axis (`(-a, -theta)` is the same
 //!   motion). The tangent updates never flip an axis, so keep the directions of the
 //!   initial axes consistent with the commanded angles.
@@ -196,7 +196,8 @@
 //!
 //! The module is one directory, split by concern; each file opens with its own `//!` block
 //! (what it computes, degrees of freedom, units, the algorithm, pitfalls) and ends with the
-//! tests of what it holds. Every public item is re-exported here, so its path is
+//! tests of what it holds (`state.rs` and `normal.rs` are exercised by the solver's and the
+//! covariance's tests). Every public item is re-exported here, so its path is
 //! `bundle::Item` whichever file holds it.
 //!
 //! - `state.rs` (the problem's data): [`Side`], [`BundleObservation`], [`Motions`],
@@ -220,6 +221,10 @@
 //! - `covariance.rs` (the covariance): [`Covariance`], [`CovarianceModel`], the covariance
 //!   at the solution, [`clustered_covariance`], the depth scale [`log_depth_scale`].
 //! - `test_support.rs`: fixtures shared by the tests (test builds only).
+//!
+//! [`Distortion`]: crate::distortion::Distortion
+//! [`so3::exp`]: crate::so3::exp
+//! [`GeometryError::Degenerate`]: crate::GeometryError::Degenerate
 
 mod covariance;
 mod layout;

@@ -8,7 +8,7 @@
 //!   `J^T W J`, `J^T W r` of the robustly weighted residuals (IRLS weights `rho'(s)/s` at
 //!   the linearisation point), split into the dense camera block `U` (`c x c`, `c` camera
 //!   parameters), one 3x3 block `V_p` per point, the off-diagonal blocks `W` (`c x 3n`)
-//!   and the gradients `g_c, g_p` (`Normal`; squared pixels per parameter unit). `U` is
+//!   and the gradients `g_c, g_p` (`Normal`, in pixels and the parameters' units). `U` is
 //!   one dense product per (view, side) pair (`CameraBlock`: all its observations share
 //!   the same camera columns); the angle-prior rows add to `U` and `g_c` with the given
 //!   prior weight; the depth-scale pseudo-residual is kept as a row over the points.

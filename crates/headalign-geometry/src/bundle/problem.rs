@@ -15,7 +15,7 @@
 //!   least twice; the other points are returned unchanged, without error.
 //! - `Problem::observe` is an observation's residual and Jacobians with the measurement
 //!   window applied (the expected reported measurement, `robust.rs`); `evaluate` the cost
-//!   `sum_obs rho(|r|^2) + prior_weight / 2 sum prior^2 (+ (s - target)^2 / (2 tol^2)` for
+//!   `sum_obs rho(|r|) + prior_weight / 2 sum prior^2 (+ (s - target)^2 / (2 tol^2)` for
 //!   the depth-scale constraint), in half squared pixels, with the plain sum of squared
 //!   residuals for the RMS; `residual_norms` and `point_scores` serve the covariance.
 //!
@@ -55,7 +55,9 @@ pub(super) struct Problem<'a> {
     pub(super) options: &'a BundleOptions,
     /// Weight of the angle prior relative to pixels (`sigma_px^2`).
     pub(super) prior_weight: f64,
-    /// The depth-scale constraint `(target, tolerance)` of [`bundle_adjust_at_depth_scale`](super::bundle_adjust_at_depth_scale).
+    /// The depth-scale constraint `(target, tolerance)` of [`bundle_adjust_at_depth_scale`].
+    ///
+    /// [`bundle_adjust_at_depth_scale`]: super::bundle_adjust_at_depth_scale
     pub(super) depth: Option<(f64, f64)>,
 }
 

@@ -91,9 +91,9 @@ fn normal_pdf(t: f64) -> f64 {
 /// with respect to `mu`: with `a = (lo - mu) / sigma`, `b = (hi - mu) / sigma` and
 /// `Z = Phi(b) - Phi(a)`, `shift = sigma (phi(a) - phi(b)) / Z` and
 /// `d shift / d mu = (a phi(a) - b phi(b)) / Z - (shift / sigma)^2` (so `1 + d shift / d mu`
-/// is the truncated variance over `sigma^2`, in `(0, 1]`). `(0, 0)` more than
-/// [`WINDOW_REACH_SIGMAS`] inside both borders; for a prediction more than
-/// [`WINDOW_CLAMP_SIGMAS`] outside, the shift at that distance is held (derivative 0), so
+/// is the truncated variance over `sigma^2`, in `(0, 1]`). `(0, 0)` more than 6 sigma
+/// (`WINDOW_REACH_SIGMAS`) inside both borders; for a prediction more than 4 sigma
+/// (`WINDOW_CLAMP_SIGMAS`) outside, the shift at that distance is held (derivative 0), so
 /// the expected measurement follows the prediction there and such an observation still
 /// pulls its point back towards the window.
 #[inline]

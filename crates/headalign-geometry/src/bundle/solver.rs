@@ -117,11 +117,13 @@ fn never_abandoned() -> GeometryError {
 }
 
 /// [`bundle_adjust`] with the scene's depth scale held near `target`: the stiff
-/// pseudo-residual `(s - target) / tolerance` (cost units; `s` of [`log_depth_scale`](super::log_depth_scale) over
+/// pseudo-residual `(s - target) / tolerance` (cost units; `s` of [`log_depth_scale`] over
 /// the adjusted points) joins the cost, so the result is the profile-likelihood point at
 /// that depth scale (`tolerance` small against `sigma_s / sigma_px`). The reported
 /// covariance and noise are those of the data and priors alone (the linearisation at the
 /// profile point, without the constraint), and `final_rms_px` is of the pixels alone.
+///
+/// [`log_depth_scale`]: super::log_depth_scale
 pub fn bundle_adjust_at_depth_scale(
     initial: &RigState,
     observations: &[BundleObservation],
@@ -210,7 +212,7 @@ fn keep_going(
     it: &Iterate,
     n_obs: usize,
 ) -> bool {
-    if let Some((at, keep_going)) = checkpoint.as_mut()
+    if let Some((at, ask)) = checkpoint.as_mut()
         && iterations == *at
     {
         let seen = BundleCheckpoint {
@@ -219,9 +221,7 @@ fn keep_going(
             rms_px: rms(it.current.sum_sq, n_obs),
             observations: n_obs,
         };
-        if !keep_going(&seen) {
-            return false;
-        }
+        return ask(&seen);
     }
     true
 }

@@ -35,9 +35,9 @@
 //!   when the problem is set up, not repaired.
 //! - The sign of a joint angle goes with the direction of its axis: keep the initial axes'
 //!   directions consistent with the commanded angles (the updates never flip an axis).
-//! - `BundleOptions::default()` is what the pipeline and the experiments run with (Huber
-//!   at 2 px, zero skew, a 0.05 deg reading-difference prior, tolerances `1e-12`, 100
-//!   iterations): changing a default changes every result.
+//! - `BundleOptions::default()` (Huber at 2 px, zero skew, a 0.05 deg reading-difference
+//!   prior, tolerances `1e-12`, 100 iterations) is what every caller gets for the options
+//!   it does not set: changing a default changes their results.
 
 use nalgebra::{DVector, Isometry3, Point2, Point3};
 
@@ -143,7 +143,9 @@ pub struct RigState {
     pub points: Vec<Point3<f64>>,
 }
 
-/// Options of [`bundle_adjust`](super::bundle_adjust).
+/// Options of [`bundle_adjust`].
+///
+/// [`bundle_adjust`]: super::bundle_adjust
 #[derive(Clone, Debug)]
 pub struct BundleOptions {
     /// Maximum number of Levenberg-Marquardt iterations (linearisations).
@@ -175,8 +177,10 @@ pub struct BundleOptions {
     /// (for a whole image `[-0.5, -0.5, w - 0.5, h - 0.5]`), so near the border the
     /// reported measurements are pulled inward by the noise. With `noise_sigma_px` set,
     /// each residual is then taken against the expected measurement under that truncated
-    /// Gaussian ([`truncated_mean_shift`](super::truncated_mean_shift)); without it, or with `None` (the default), against
+    /// Gaussian ([`truncated_mean_shift`]); without it, or with `None` (the default), against
     /// the projection. Module docs, Measurement window.
+    ///
+    /// [`truncated_mean_shift`]: super::truncated_mean_shift
     pub measurement_window: Option<[f64; 4]>,
     /// Relative cost decrease below which the iteration stops.
     pub function_tolerance: f64,
@@ -273,7 +277,9 @@ pub struct BundleReport {
     pub sigma_inflation: f64,
 }
 
-/// Output of [`bundle_adjust`](super::bundle_adjust).
+/// Output of [`bundle_adjust`].
+///
+/// [`bundle_adjust`]: super::bundle_adjust
 #[derive(Clone, Debug)]
 pub struct BundleResult {
     /// The refined state.
@@ -287,7 +293,9 @@ pub struct BundleResult {
 impl BundleResult {
     /// The least-squares cost in chi-square units at pixel noise `noise_px`: the squared
     /// reprojection errors over `noise_px^2` plus the angle prior's chi-square
-    /// ([`angle_prior_chi2`](super::angle_prior_chi2) under `options`), as the adjustment weighs them.
+    /// ([`angle_prior_chi2`] under `options`), as the adjustment weighs them.
+    ///
+    /// [`angle_prior_chi2`]: super::angle_prior_chi2
     pub fn chi2(&self, noise_px: f64, options: &BundleOptions) -> f64 {
         chi2_of(self.report.final_rms_px, self.report.observations, &self.state.motions, noise_px, options)
     }
