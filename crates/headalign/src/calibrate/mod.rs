@@ -30,7 +30,11 @@
 //! 6. per start, an adjustment over every point seen at least twice (also the points
 //!    seen by one stereo view only), robust first, then least squares on the re-selected
 //!    observations (`adjust::every_point_pass`); the start with the lower truncated cost over
-//!    all observations is kept.
+//!    all observations is kept;
+//! 7. the report: each motion's screw after the adjustment (if none turned by
+//!    `min_rotation_deg` there the run fails: a noisy 3D homography can pass step 4's
+//!    test although the rig never turned), the focal lengths' sigmas, and warnings about
+//!    data that determine the calibration poorly.
 //!
 //! Steps 3 and 5 are seeded (RANSAC samples): when no 3D homography fits or the
 //! adjustment fails from every start, steps 1-6 run again with the next estimation seeds
@@ -57,13 +61,12 @@
 //! zero skew. A planar scene is degenerate for projective reconstruction (step 1). The
 //! conditioning of one general motion depends on its translation along the axis: report
 //! `plane_conditioning` and trust the sigmas.
-
 //!
-//! Code layout, one file per step: [`depth`] (step 1), [`stereo`] (step 2, and the rig
-//! from known intrinsics), [`motion`] (step 3), [`starts`] (the point set and the two
-//! starts: step 4 and the rigid start), [`adjust`] (steps 5-6), [`report`] (the report's
-//! motions, sigmas and warnings), [`lens`] (known lens models), [`density`] (the corner
-//! density of self-calibration from images); [`calibrate_once`] chains them.
+//! Code layout, one file per step: `depth` (step 1), `stereo` (step 2, and the rig from
+//! known intrinsics), `motion` (step 3), `starts` (the point set and the two starts: step
+//! 4 and the rigid start), `adjust` (steps 5-6), `report` (step 7), `lens` (known lens
+//! models), `density` (the corner density of self-calibration from images);
+//! `calibrate_once` chains them.
 
 mod adjust;
 mod density;

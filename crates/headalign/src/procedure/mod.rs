@@ -48,8 +48,8 @@
 //! Every captured view is kept in the outcome (and in the error path the caller still has
 //! them through [`VergeTiltRun::views`]). Angles in degrees.
 //!
-//! Code layout: [`rotation`] (the rotation choice), [`sigmas`] (the aligned readings'
-//! uncertainty), [`axes`] (the vergence axes' measurement and its uncertainty); the
+//! Code layout: `rotation` (the rotation choice), `sigmas` (the aligned readings'
+//! uncertainty), `axes` (the vergence axes' measurement and its uncertainty); the
 //! procedure itself, its options and the capture plan here.
 
 mod axes;

@@ -130,10 +130,10 @@
 //! Degenerate drives: a median flow below `min_flow_px` is [`AlignError::DriveTooShort`].
 //! Every drive is followed by the reverse drive, so the robot ends where it started.
 //!
-//! Code layout: [`rig`] (the rig at a stage's readings and its check), [`drive`] (the
-//! rigid motion of a drive), [`propagation`] (the covariance propagations and the
-//! planarity test), [`pan`] (the pan stage, [`pan_step`] a pipeline of named steps),
-//! [`steering`] (the steering stage).
+//! Code layout: `rig` (the rig at a stage's readings and its check), `drive` (the rigid
+//! motion of a drive), `propagation` (the covariance propagations and the planarity
+//! test), `pan` (the pan stage, [`pan_step`] a pipeline of named steps), `steering` (the
+//! steering stage).
 
 mod drive;
 mod pan;
