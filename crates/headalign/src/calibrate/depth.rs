@@ -11,7 +11,9 @@
 //! projective reconstruction, so no 3D homography relates its views; a chessboard in
 //! front of a fixed rig is the typical case. Pitfalls: the check is seeded (the
 //! estimation seed) like every RANSAC of the chain; a scene mostly on one wall passes it
-//! and is warned about later ([`CalibrateReport::plane_share`](super::CalibrateReport::plane_share)).
+//! and is warned about later ([`CalibrateReport::plane_share`]).
+//!
+//! [`CalibrateReport::plane_share`]: super::CalibrateReport::plane_share
 
 use headalign_geometry::GeometryError;
 use headalign_geometry::homography2d::Homography2Estimator;

@@ -134,7 +134,9 @@ fn plane_weak(motions: usize, plane_share: f64, options: &CalibrateOptions) -> b
 
 /// True if a calibration carries a warning about its data (the focal length poorly
 /// determined, or one motion in a mostly planar scene; not the note that a restart was
-/// needed): the data may give more if the images are read more densely ([`Density`](super::Density)).
+/// needed): the data may give more if the images are read more densely ([`Density`]).
+///
+/// [`Density`]: super::Density
 pub fn weak_data(report: &CalibrateReport, options: &CalibrateOptions) -> bool {
     focal_sigma_weak(&report.focal_sigma_pct, options)
         || plane_weak(report.motions.len(), report.plane_share, options)

@@ -295,7 +295,9 @@ pub(super) fn tangent_step(d: &nalgebra::Vector6<f64>) -> nalgebra::Isometry3<f6
 }
 
 /// The vergence axes re-measured under perturbations, linearised: what
-/// [`alignment_sigmas_measured`](super::alignment_sigmas_measured) differentiates.
+/// [`alignment_sigmas_measured`] differentiates.
+///
+/// [`alignment_sigmas_measured`]: super::alignment_sigmas_measured
 pub(super) struct AxisFollow<'a> {
     calib: &'a RigCalibration,
     verge: &'a VergeAxes,
@@ -442,7 +444,9 @@ pub struct AxisStep {
 /// of the calibration (the pan/elevation chain, the stereo pose, and the scene points the
 /// axis views are resected against) and of the resected poses' own pixel noise
 /// (independent: the axis views are not in the bundle); the same linearisation as
-/// [`alignment_sigmas_measured`](super::alignment_sigmas_measured) (`AxisFollow`). Built by [`axis_perturbations`].
+/// [`alignment_sigmas_measured`] (`AxisFollow`). Built by [`axis_perturbations`].
+///
+/// [`alignment_sigmas_measured`]: super::alignment_sigmas_measured
 #[derive(Debug, Clone, Default)]
 pub struct AxisPerturbations {
     /// One entry per parameter of the bundle covariance (its order): the axes with the
@@ -470,7 +474,9 @@ impl AxisPerturbations {
 
 /// Build [`AxisPerturbations`] for the axes `verge` measured from `sources` (an axis
 /// without a source is held as given: both steps equal it). `noise_px` as
-/// [`alignment_sigmas_measured`](super::alignment_sigmas_measured) (`None`: estimated from the resection residuals).
+/// [`alignment_sigmas_measured`] (`None`: estimated from the resection residuals).
+///
+/// [`alignment_sigmas_measured`]: super::alignment_sigmas_measured
 pub fn axis_perturbations(
     calib: &RigCalibration,
     verge: &VergeAxes,

@@ -126,8 +126,10 @@ pub fn choose_rotations<E>(
 /// The options with the auto mode resolved: if `options.auto_rotation` is set, probe the
 /// head from its current readings ([`choose_rotations`]; the head returns there) and
 /// return the options with the chosen `rotation_deg` and `diagonal_rotation_deg` and no
-/// auto mode; otherwise a copy. [`VergeTiltRun::run`](super::VergeTiltRun::run) calls it first; a caller that
+/// auto mode; otherwise a copy. [`VergeTiltRun::run`] calls it first; a caller that
 /// records sessions calls it itself to record the probes as their own stage.
+///
+/// [`VergeTiltRun::run`]: super::VergeTiltRun::run
 pub fn resolve_rotation<H: StereoHead>(
     head: &mut H,
     options: &VergeTiltOptions,

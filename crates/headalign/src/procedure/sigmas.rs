@@ -113,7 +113,7 @@ pub(super) fn sigmas_of(cov: &nalgebra::DMatrix<f64>) -> AlignmentSigmas {
 /// readings are a function of the calibration (bundle covariance) and of the poses
 /// resected after the vergence move (covariance [`resection_pose_covariance`], pixel noise
 /// `noise_px` or the resection residuals' estimate), independent because the vergence
-/// view is not in the bundle. Each axis is re-derived by [`verge_axes_from_motion`](crate::alignment::verge_axes_from_motion) from
+/// view is not in the bundle. Each axis is re-derived by [`verge_axes_from_motion`] from
 /// the perturbed calibration (its pan/elevation chain and stereo pose) and the perturbed
 /// resected pose, then [`solve_alignment`] is differentiated centrally. An axis without a
 /// source is held as given. Under each calibration perturbation the scene points follow
@@ -136,6 +136,8 @@ pub(super) fn sigmas_of(cov: &nalgebra::DMatrix<f64>) -> AlignmentSigmas {
 /// the resections; with `noise_px` `None` the pixel noise is estimated from residuals
 /// truncated at the resection's 5 px outlier threshold (7 % low at 2 px), which only the
 /// small pose part feels.
+///
+/// [`verge_axes_from_motion`]: crate::alignment::verge_axes_from_motion
 pub fn alignment_sigmas_measured(
     calib: &RigCalibration,
     verge: &VergeAxes,

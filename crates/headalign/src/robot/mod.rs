@@ -1,8 +1,8 @@
 //! Robot stages: pan alignment from a forward drive (paper section 4, DESIGN.md section 2
 //! step 6) and steering-wheel zeroing (paper section 7, step 8), in point mode, generic
-//! over the platform traits ([`StereoHead`] + [`Vehicle`](headalign_platform::Vehicle)).
+//! over the platform traits ([`StereoHead`] + [`Vehicle`]).
 //!
-//! Both use the calibrated rig of the verge/tilt stage ([`RigCalibration`](crate::estimate::RigCalibration) and the
+//! Both use the calibrated rig of the verge/tilt stage ([`RigCalibration`] and the
 //! vergence axes) to triangulate the stereo matches of a view at any encoder readings
 //! (cameras predicted by the calibrated kinematics), in the current left camera frame,
 //! in stereo-baseline units.
@@ -11,7 +11,7 @@
 //! 3-point rigid fits (Umeyama) of `Y = R X + t` (`cam2_from_cam1`), each track scored by
 //! its linear triangulation from all four views under the model and the largest of its
 //! four reprojection errors (pixels; a score that trusts neither stereo pair's depth
-//! alone); then the maximum-likelihood motion ([`refine_rig_motion`](headalign_geometry::rigmotion::refine_rig_motion): motion and points
+//! alone); then the maximum-likelihood motion ([`refine_rig_motion`]: motion and points
 //! on the reprojection error in all four images, Huber, covariance) and a guided
 //! re-selection of the tracks with it (twice); finally a maximum-likelihood pass (as the
 //! verge/tilt estimator's): the noise estimated from the median residual, the tracks
@@ -37,7 +37,7 @@
 //! **Pan** (per drive): two estimates of the displacement direction:
 //! - *image*: left-left matches, the second image derotated by the measured `R`
 //!   (`K R^T K^-1`), matches kept only within `guide_px` of the flow the reconstruction
-//!   predicts, then [`translation_from_flow`](headalign_geometry::translation::translation_from_flow) (epipole by 2-point RANSAC on flow lines,
+//!   predicts, then [`translation_from_flow`] (epipole by 2-point RANSAC on flow lines,
 //!   LM on the sphere, re-selection at 3.5 robust sigmas, `t = K^-1 e`);
 //! - *stereo*: `c` of the maximum-likelihood motion.
 //!
@@ -50,10 +50,10 @@
 //! optical axes, projected) to that direction.
 //!
 //! **Uncertainty of the pan**: two parts. (1) The verge/tilt calibration's (both `K`s,
-//! the rig, the pan and elevation axes; [`RigCalibration`](crate::estimate::RigCalibration)'s bundle covariance): the
+//! the rig, the pan and elevation axes; [`RigCalibration`]'s bundle covariance): the
 //! whole computation after the data selections (rig at the readings, the least-squares
 //! motion refit from the solution, the derotated flow and the epipole refit, the two
-//! angles) is re-run at each calibration parameter moved by +-[`PROPAGATION_STEP_SIGMAS`](crate::procedure::PROPAGATION_STEP_SIGMAS)
+//! angles) is re-run at each calibration parameter moved by +-[`PROPAGATION_STEP_SIGMAS`]
 //! of its sigma, and central differences give the 2x2 covariance of the two estimates
 //! `J C J^T`. It dominates at 1 px (about 0.3 deg, mostly the left principal point: the
 //! travel direction is measured in the left camera frame) and is common to both
@@ -74,7 +74,7 @@
 //! `w^T C_cal w`. Measured 95 % coverage in `experiment coverage` (robot group). The drive
 //! is repeated (`iterations`) after correcting, as the paper suggests.
 //!
-//! **The vergence axes' uncertainty** (given [`AxisPerturbations`](crate::procedure::AxisPerturbations),
+//! **The vergence axes' uncertainty** (given [`AxisPerturbations`],
 //! [`crate::procedure::VergeTiltOutcome::axis_perturbations`]): the rig predicted at a
 //! drive's readings turns each camera about its vergence axis from the reference, and the
 //! axes come from resections of the vergence view, not from the bundle. Part (1) then
@@ -119,7 +119,7 @@
 //! whose pan stage had left the head elsewhere, so different drives); a robot that really
 //! pitches or rolls fails every drive. The turning centres
 //! (planar motion about the pan axis) give the steering zero, wheelbase and forward
-//! direction ([`steering_from_turns`](headalign_geometry::steering::steering_from_turns)); the wheel is then set straight. The zero's sigma: each drive's motion covariance
+//! direction ([`steering_from_turns`]); the wheel is then set straight. The zero's sigma: each drive's motion covariance
 //! (independent drives) through its centre, plus the calibration's (every drive refitted
 //! under each perturbed calibration), by central differences (96 % coverage over 100
 //! trials at 1 px). A zero whose sigma exceeds `max_sigma_zero_deg` (default 10 deg)
@@ -129,6 +129,15 @@
 //!
 //! Degenerate drives: a median flow below `min_flow_px` is [`AlignError::DriveTooShort`].
 //! Every drive is followed by the reverse drive, so the robot ends where it started.
+//!
+//! [`StereoHead`]: headalign_platform::StereoHead
+//! [`Vehicle`]: headalign_platform::Vehicle
+//! [`RigCalibration`]: crate::estimate::RigCalibration
+//! [`AxisPerturbations`]: crate::procedure::AxisPerturbations
+//! [`PROPAGATION_STEP_SIGMAS`]: crate::procedure::PROPAGATION_STEP_SIGMAS
+//! [`refine_rig_motion`]: headalign_geometry::rigmotion::refine_rig_motion
+//! [`steering_from_turns`]: headalign_geometry::steering::steering_from_turns
+//! [`translation_from_flow`]: headalign_geometry::translation::translation_from_flow
 //!
 //! Code layout: `rig` (the rig at a stage's readings and its check), `drive` (the rigid
 //! motion of a drive), `propagation` (the covariance propagations and the planarity

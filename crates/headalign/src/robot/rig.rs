@@ -197,10 +197,12 @@ pub(crate) fn check_rig(
 /// The calibrated stereo rig predicted at readings `enc` (both `K`s and
 /// `right_from_left`, the vergence axes moving the cameras from the reference readings),
 /// and the covariance (6x6) of that prediction's `right_from_left` in the left
-/// perturbation of [`perturb`](headalign_geometry::rigmotion::perturb) (rotation first, radians; translation in baselines),
+/// perturbation of [`perturb`] (rotation first, radians; translation in baselines),
 /// propagated from the calibration and, given `axes`, the vergence axes' uncertainty
 /// (`calibration_covariance`, module docs), the readings taken as exact. The covariance is
 /// `None` if the propagation failed.
+///
+/// [`perturb`]: headalign_geometry::rigmotion::perturb
 pub fn predicted_rig(
     calib: &RigCalibration,
     verge: &VergeAxes,
