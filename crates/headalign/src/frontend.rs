@@ -584,150 +584,31 @@ impl Tracker {
         stereo_prior: Option<&Matrix3<f64>>,
     ) -> Result<(StereoCapture, ViewTracking), AlignError> {
         let o = &self.options;
-        let mut left = detect_and_describe(&images.left, &o.features).map_err(vision("left image"))?;
-        let mut right = detect_and_describe(&images.right, &o.features).map_err(vision("right image"))?;
+        let left = detect_and_describe(&images.left, &o.features).map_err(vision("left image"))?;
+        let right = detect_and_describe(&images.right, &o.features).map_err(vision("right image"))?;
         let stereo = self.stereo(&left, &right, view, stereo_prior)?;
         let mut report = ViewTracking {
             corners: [left.len(), right.len()],
             stereo_matches: stereo.len(),
             ..ViewTracking::default()
         };
-        let mut left_ids: Vec<Option<u64>> = vec![None; left.len()];
-        let mut right_ids: Vec<Option<u64>> = vec![None; right.len()];
-        match &self.reference {
-            None => {
-                for &(a, b) in &stereo {
-                    let id = self.next_id;
-                    self.next_id += 1;
-                    left_ids[a] = Some(id);
-                    right_ids[b] = Some(id);
-                }
-            }
+        let (left_ids, right_ids) = (vec![None; left.len()], vec![None; right.len()]);
+        let mut corners = ViewCorners { left, right, stereo, left_ids, right_ids };
+        // Track ids (module docs, step 4): fresh for the first view, else inherited.
+        self.next_id = match &self.reference {
+            None => first_view_ids(self.next_id, &mut corners),
             Some(r) if o.mode == TrackingMode::Previous => {
-                // Across a drive, stereo pairs are matched as units under both cameras'
-                // drive F (a wrong match of one camera slides along its epipolar line,
-                // which its own F cannot catch; the other camera's F and descriptor
-                // rarely agree with it). Unlinked pairs start fresh tracks; unpaired
-                // corners carry none.
-                let (fl, fr) = (self.across_drive(&r.left, &left), self.across_drive(&r.right, &right));
-                let links = match (&fl, &fr) {
-                    (Some((fl, nl)), Some((fr, nr))) => {
-                        report.temporal_matches = [*nl, *nr];
-                        self.link_pairs(r, &left, &right, &stereo, fl, fr)
-                    }
-                    _ => Vec::new(),
-                };
-                let mut ids: Vec<Option<u64>> = vec![None; stereo.len()];
-                for (i, j) in links {
-                    ids[j] = r.left_ids[r.stereo[i].0];
-                }
-                let mut fresh = self.next_id;
-                for (k, &(a, b)) in stereo.iter().enumerate() {
-                    let id = ids[k].unwrap_or_else(|| {
-                        fresh += 1;
-                        fresh - 1
-                    });
-                    left_ids[a] = Some(id);
-                    right_ids[b] = Some(id);
-                }
-                self.next_id = fresh;
+                self.ids_across_drive(r, &mut corners, &mut report)
             }
-            Some(r) => {
-                let tl = self.temporal(
-                    &r.left,
-                    &left,
-                    &format!("between the left images of the reference and '{view}'"),
-                )?;
-                let tr = self.temporal(
-                    &r.right,
-                    &right,
-                    &format!("between the right images of the reference and '{view}'"),
-                )?;
-                report.temporal_matches = [tl.len(), tr.len()];
-                for &(a, b) in &tl {
-                    left_ids[b] = r.left_ids[a];
-                }
-                for &(a, b) in &tr {
-                    right_ids[b] = r.right_ids[a];
-                }
-                let mut fresh = self.next_id;
-                // Stereo pairs: share an id, or get a fresh one; disagreeing pairs go.
-                for &(a, b) in &stereo {
-                    match (left_ids[a], right_ids[b]) {
-                        (Some(x), Some(y)) if x != y => {
-                            left_ids[a] = None;
-                            right_ids[b] = None;
-                        }
-                        (Some(x), None) => right_ids[b] = Some(x),
-                        (None, Some(y)) => left_ids[a] = Some(y),
-                        (None, None) => {
-                            left_ids[a] = Some(fresh);
-                            right_ids[b] = Some(fresh);
-                            fresh += 1;
-                        }
-                        _ => {}
-                    }
-                }
-                self.next_id = fresh;
-            }
-        }
+            Some(r) => self.ids_from_reference(r, &mut corners, view, &mut report)?,
+        };
         if let Some(ro) = &o.refine {
-            let k = o.refine_neighbours;
-            match &self.reference {
-                Some(r) => {
-                    // Each camera against the same camera's earlier image, by shared id.
-                    let [pl, pr] =
-                        [(&r.left_ids, &left_ids), (&r.right_ids, &right_ids)].map(|(a, b)| shared(a, b));
-                    let (okl, okr) = (
-                        refine_against(&r.left_image, &r.left, &images.left, &mut left, &pl, ro, k),
-                        refine_against(&r.right_image, &r.right, &images.right, &mut right, &pr, ro, k),
-                    );
-                    for (side, (pairs, ok, ids)) in
-                        [(&pl, okl, &mut left_ids), (&pr, okr, &mut right_ids)].into_iter().enumerate()
-                    {
-                        tally(pairs, &ok, ids, &mut report, side);
-                    }
-                    if o.refine_stereo && o.mode == TrackingMode::Previous {
-                        // Unlinked pairs start fresh tracks here: right against left.
-                        let linked: std::collections::HashSet<usize> = pr.iter().map(|p| p.1).collect();
-                        let fresh: Vec<(usize, usize)> = stereo
-                            .iter()
-                            .copied()
-                            .filter(|&(a, b)| {
-                                !linked.contains(&b) && left_ids[a].is_some() && left_ids[a] == right_ids[b]
-                            })
-                            .collect();
-                        let ok =
-                            refine_against(&images.left, &left, &images.right, &mut right, &fresh, ro, k);
-                        tally(&fresh, &ok, &mut right_ids, &mut report, 1);
-                    }
-                }
-                None if o.refine_stereo => {
-                    let pairs: Vec<(usize, usize)> = stereo
-                        .iter()
-                        .copied()
-                        .filter(|&(a, b)| left_ids[a].is_some() && left_ids[a] == right_ids[b])
-                        .collect();
-                    let ok = refine_against(&images.left, &left, &images.right, &mut right, &pairs, ro, k);
-                    tally(&pairs, &ok, &mut right_ids, &mut report, 1);
-                }
-                None => {}
-            }
+            self.refine_view(ro, images, &mut corners, &mut report);
         }
-        let observe = |f: &Features, ids: &[Option<u64>]| -> Vec<TrackObservation> {
-            ids.iter()
-                .enumerate()
-                .filter_map(|(i, id)| id.map(|track| TrackObservation { track, pixel: point(f, i) }))
-                .collect()
-        };
-        let capture = StereoCapture {
-            encoders: images.encoders,
-            image_size: images.image_size(),
-            left: observe(&left, &left_ids),
-            right: observe(&right, &right_ids),
-        };
+        let capture = corners.capture(images);
         report.observations = [capture.left.len(), capture.right.len()];
         if self.reference.is_none() || self.options.mode == TrackingMode::Previous {
+            let ViewCorners { left, right, stereo, left_ids, right_ids } = corners;
             self.reference = Some(Reference {
                 left,
                 right,
@@ -740,6 +621,184 @@ impl Tracker {
         }
         Ok((capture, report))
     }
+
+    /// [`TrackingMode::Previous`] (module docs): the track ids of a view after a drive.
+    /// Across a drive, stereo pairs are matched as units under both cameras' drive F (a
+    /// wrong match of one camera slides along its epipolar line, which its own F cannot
+    /// catch; the other camera's F and descriptor rarely agree with it). Unlinked pairs
+    /// start fresh tracks; unpaired corners carry none. Returns the next free id.
+    fn ids_across_drive(&self, r: &Reference, view: &mut ViewCorners, report: &mut ViewTracking) -> u64 {
+        let (left, right, stereo) = (&view.left, &view.right, &view.stereo);
+        let (fl, fr) = (self.across_drive(&r.left, left), self.across_drive(&r.right, right));
+        let links = match (&fl, &fr) {
+            (Some((fl, nl)), Some((fr, nr))) => {
+                report.temporal_matches = [*nl, *nr];
+                self.link_pairs(r, left, right, stereo, fl, fr)
+            }
+            _ => Vec::new(),
+        };
+        let mut ids: Vec<Option<u64>> = vec![None; stereo.len()];
+        for (i, j) in links {
+            ids[j] = r.left_ids[r.stereo[i].0];
+        }
+        let mut fresh = self.next_id;
+        for (k, &(a, b)) in stereo.iter().enumerate() {
+            let id = ids[k].unwrap_or_else(|| {
+                fresh += 1;
+                fresh - 1
+            });
+            view.left_ids[a] = Some(id);
+            view.right_ids[b] = Some(id);
+        }
+        fresh
+    }
+
+    /// [`TrackingMode::Reference`] (module docs, steps 3-4): each camera's corners matched
+    /// to the same camera's reference image inherit its ids; a stereo pair shares an id
+    /// or gets a fresh one, and a pair whose two ids disagree goes. Returns the next free
+    /// id.
+    fn ids_from_reference(
+        &self,
+        r: &Reference,
+        view: &mut ViewCorners,
+        name: &str,
+        report: &mut ViewTracking,
+    ) -> Result<u64, AlignError> {
+        let tl = self.temporal(
+            &r.left,
+            &view.left,
+            &format!("between the left images of the reference and '{name}'"),
+        )?;
+        let tr = self.temporal(
+            &r.right,
+            &view.right,
+            &format!("between the right images of the reference and '{name}'"),
+        )?;
+        report.temporal_matches = [tl.len(), tr.len()];
+        let (left_ids, right_ids) = (&mut view.left_ids, &mut view.right_ids);
+        for &(a, b) in &tl {
+            left_ids[b] = r.left_ids[a];
+        }
+        for &(a, b) in &tr {
+            right_ids[b] = r.right_ids[a];
+        }
+        let mut fresh = self.next_id;
+        // Stereo pairs: share an id, or get a fresh one; disagreeing pairs go.
+        for &(a, b) in &view.stereo {
+            match (left_ids[a], right_ids[b]) {
+                (Some(x), Some(y)) if x != y => {
+                    left_ids[a] = None;
+                    right_ids[b] = None;
+                }
+                (Some(x), None) => right_ids[b] = Some(x),
+                (None, Some(y)) => left_ids[a] = Some(y),
+                (None, None) => {
+                    left_ids[a] = Some(fresh);
+                    right_ids[b] = Some(fresh);
+                    fresh += 1;
+                }
+                _ => {}
+            }
+        }
+        Ok(fresh)
+    }
+
+    /// Patch refinement of a tracked view (module docs, step 5): with a reference, each
+    /// camera's observations against the same camera's earlier image, by shared id (and,
+    /// with `refine_stereo` in [`TrackingMode::Previous`], each unlinked pair's right
+    /// corner against its left partner); for the first view, with `refine_stereo`, each
+    /// right corner against its left partner. A failed alignment drops the observation's
+    /// id; the report counts both.
+    fn refine_view(
+        &self,
+        ro: &PatchRefineOptions,
+        images: &StereoImages,
+        view: &mut ViewCorners,
+        report: &mut ViewTracking,
+    ) {
+        let o = &self.options;
+        let k = o.refine_neighbours;
+        let ViewCorners { left, right, stereo, left_ids, right_ids } = view;
+        match &self.reference {
+            Some(r) => {
+                // Each camera against the same camera's earlier image, by shared id.
+                let [pl, pr] =
+                    [(&r.left_ids, &*left_ids), (&r.right_ids, &*right_ids)].map(|(a, b)| shared(a, b));
+                let (okl, okr) = (
+                    refine_against(&r.left_image, &r.left, &images.left, left, &pl, ro, k),
+                    refine_against(&r.right_image, &r.right, &images.right, right, &pr, ro, k),
+                );
+                for (side, (pairs, ok, ids)) in
+                    [(&pl, okl, &mut *left_ids), (&pr, okr, &mut *right_ids)].into_iter().enumerate()
+                {
+                    tally(pairs, &ok, ids, report, side);
+                }
+                if o.refine_stereo && o.mode == TrackingMode::Previous {
+                    // Unlinked pairs start fresh tracks here: right against left.
+                    let linked: std::collections::HashSet<usize> = pr.iter().map(|p| p.1).collect();
+                    let fresh: Vec<(usize, usize)> = stereo
+                        .iter()
+                        .copied()
+                        .filter(|&(a, b)| {
+                            !linked.contains(&b) && left_ids[a].is_some() && left_ids[a] == right_ids[b]
+                        })
+                        .collect();
+                    let ok = refine_against(&images.left, left, &images.right, right, &fresh, ro, k);
+                    tally(&fresh, &ok, right_ids, report, 1);
+                }
+            }
+            None if o.refine_stereo => {
+                let pairs: Vec<(usize, usize)> = stereo
+                    .iter()
+                    .copied()
+                    .filter(|&(a, b)| left_ids[a].is_some() && left_ids[a] == right_ids[b])
+                    .collect();
+                let ok = refine_against(&images.left, left, &images.right, right, &pairs, ro, k);
+                tally(&pairs, &ok, right_ids, report, 1);
+            }
+            None => {}
+        }
+    }
+}
+
+/// One view's corners while they are tracked: both images' features, the stereo pairs
+/// `(left index, right index)` and each corner's track id.
+struct ViewCorners {
+    left: Features,
+    right: Features,
+    stereo: Vec<(usize, usize)>,
+    left_ids: Vec<Option<u64>>,
+    right_ids: Vec<Option<u64>>,
+}
+
+impl ViewCorners {
+    /// The tracked observations of the view: every corner with a track id.
+    fn capture(&self, images: &StereoImages) -> StereoCapture {
+        let observe = |f: &Features, ids: &[Option<u64>]| -> Vec<TrackObservation> {
+            ids.iter()
+                .enumerate()
+                .filter_map(|(i, id)| id.map(|track| TrackObservation { track, pixel: point(f, i) }))
+                .collect()
+        };
+        StereoCapture {
+            encoders: images.encoders,
+            image_size: images.image_size(),
+            left: observe(&self.left, &self.left_ids),
+            right: observe(&self.right, &self.right_ids),
+        }
+    }
+}
+
+/// The first view's track ids (module docs, step 4): each stereo pair a fresh id, from
+/// `next_id` on. Returns the next free id.
+fn first_view_ids(mut next_id: u64, view: &mut ViewCorners) -> u64 {
+    for &(a, b) in &view.stereo {
+        let id = next_id;
+        next_id += 1;
+        view.left_ids[a] = Some(id);
+        view.right_ids[b] = Some(id);
+    }
+    next_id
 }
 
 /// A predicted stereo fundamental matrix (`x_right^T F x_left = 0`) at given readings.

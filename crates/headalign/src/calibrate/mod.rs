@@ -1,0 +1,412 @@
+//! Self-calibration of a stereo rig from rigid motions of the whole rig (head rotations,
+//! robot drives, a hand-held rig): both cameras' intrinsics, the rig's relative pose and
+//! every view's motion, with covariances (issue 6 part 2; paper section 3.1; Hartley &
+//! Zisserman 2nd ed., sections 10.4, 19.5-19.6).
+//!
+//! Input: tracked point observations of stereo views (the first is the reference), the
+//! rig fixed between them (views whose vergence readings differ from the first view's are
+//! left out: their rig changed). Chain, each step a pure function of the previous:
+//! 1. a scene-depth check per view: if one plane homography explains nearly all stereo
+//!    matches of a view (default 90 % within 2 px), its projective reconstruction is a
+//!    plane and no 3D homography relates it to another view: the view is left out, and if
+//!    no moved view remains (a chessboard) the error names the degeneracy;
+//! 2. one fundamental matrix from the stereo matches of all views (DEGENSAC, Sampson
+//!    refinement), the quasi-Euclidean projective frame and optimal triangulation
+//!    (as [`crate::estimate`]);
+//! 3. per moved view, the 3D homography from the reference: 3-point rigid RANSAC in the
+//!    quasi-Euclidean frame (robust to the large motions of a hand-held rig; the 5-point
+//!    DLT RANSAC as fallback), polished on symmetric transfer error, guided re-selection
+//!    until the inlier set is stable;
+//! 4. the linear self-calibration: the plane at infinity fixed by all motions whose
+//!    rotation exceeds `min_rotation_deg` (two rotations about different axes, or ONE
+//!    general screw motion, a rotation with a translation along its axis), the infinite
+//!    homographies, and `K` from the image of the absolute conic with the user's linear
+//!    constraints (zero skew, square pixels, principal point at the image centre); the
+//!    right camera by decomposition, the motions `D_i`;
+//! 5. the maximum-likelihood rig bundle adjustment with free 6-dof view poses (the
+//!    constraints held exactly), robust loss, re-selection, covariance, from each of two
+//!    starts (the linear chain, and `K = K0` with the rigid motions of step 3), as in
+//!    [`crate::estimate`] (shared code);
+//! 6. per start, an adjustment over every point seen at least twice (also the points
+//!    seen by one stereo view only), robust first, then least squares on the re-selected
+//!    observations (`adjust::every_point_pass`); the start with the lower truncated cost over
+//!    all observations is kept;
+//! 7. the report: each motion's screw after the adjustment (if none turned by
+//!    `min_rotation_deg` there the run fails: a noisy 3D homography can pass step 4's
+//!    test although the rig never turned), the focal lengths' sigmas, and warnings about
+//!    data that determine the calibration poorly.
+//!
+//! Steps 3 and 5 are seeded (RANSAC samples): when no 3D homography fits or the
+//! adjustment fails from every start, steps 1-6 run again with the next estimation seeds
+//! ([`CalibrateOptions::restarts`]); the report names the seed used, and the final error
+//! the seeds tried and the tracks the views share.
+//!
+//! Degrees of freedom: per camera 5 intrinsics minus the constraints; rig 5 (the baseline
+//! length is the scale gauge: the scene is in baselines); 6 per moved view; 3 per point.
+//! Units: pixels for thresholds and residuals, degrees in reports, baselines for lengths.
+//!
+//! Lens distortion: a known model ([`LensModel`], e.g. read from an OpenCV YAML file with
+//! [`read_opencv_lenses`]) is removed from the observations first ([`undistort_views`]);
+//! everything after is pinhole. Alternatively `estimate_distortion` adds the radial
+//! coefficients `k1, k2` of each camera to the final adjustment (step 5;
+//! [`BundleOptions::estimate_distortion`](headalign_geometry::bundle::BundleOptions)):
+//! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
+//! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
+//! with sigmas `left.k1` ... in the covariance. With small rotations `k1` correlates with
+//! the focal length: without it a barrel lens biases `f` (see README).
+//!
+//! Pitfalls: a pure rotation, or a planar motion (translation perpendicular to the axis),
+//! fixes a pencil of planes: with one such motion the plane at infinity is undetermined
+//! (an error naming it). One rotation also leaves the conic a pencil: it needs at least
+//! zero skew. A planar scene is degenerate for projective reconstruction (step 1). The
+//! conditioning of one general motion depends on its translation along the axis: report
+//! `plane_conditioning` and trust the sigmas.
+//!
+//! Code layout, one file per step: `depth` (step 1), `stereo` (step 2, and the rig from
+//! known intrinsics), `motion` (step 3), `starts` (the point set and the two starts: step
+//! 4 and the rigid start), `adjust` (steps 5-6), `report` (step 7), `lens` (known lens
+//! models), `density` (the corner density of self-calibration from images);
+//! `calibrate_once` chains them.
+
+mod adjust;
+mod density;
+mod depth;
+mod lens;
+mod motion;
+mod report;
+mod starts;
+mod stereo;
+#[cfg(test)]
+mod tests;
+
+use headalign_geometry::GeometryError;
+use headalign_geometry::bundle::{BundleObservation, BundleResult};
+use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::selfcal::IntrinsicConstraints;
+use serde::Serialize;
+
+pub use density::{
+    DISAGREEMENT_SIGMAS, Density, DensityReport, DensityTrial, disagreement_sigmas, prefer_denser,
+};
+pub use depth::{PlaneCheck, check_planarity, require_depth};
+pub use lens::{LensModel, read_opencv_lenses, undistort_views};
+pub use report::weak_data;
+pub use stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
+
+use crate::error::AlignError;
+use crate::estimate::EstimationOptions;
+use crate::observations::View;
+
+/// Options of [`calibrate_rig`].
+#[derive(Debug, Clone)]
+pub struct CalibrateOptions {
+    /// F, 3D homography RANSAC, bundle adjustment, re-selection, minimum tracks and seed
+    /// (defaults of [`EstimationOptions`]; the bundle's intrinsic constraints are set from
+    /// the three flags below, and its angle prior is unused: the poses are free).
+    pub estimation: EstimationOptions,
+    /// Hold both skews at zero (default false).
+    pub zero_skew: bool,
+    /// `fx = fy` in both cameras (default false).
+    pub square_pixels: bool,
+    /// Hold both principal points at the image centre (default false).
+    pub fix_principal_point: bool,
+    /// Estimate each camera's radial distortion `k1, k2` in the adjustment (default false:
+    /// pinhole, or a known lens removed beforehand with [`undistort_views`]).
+    pub estimate_distortion: bool,
+    /// Motions rotating less than this (degrees) do not enter the linear
+    /// self-calibration (default 0.5: below it `H - I` is mostly noise); they still enter
+    /// the adjustment.
+    pub min_rotation_deg: f64,
+    /// Transfer threshold of the scene-depth check, pixels (default 2).
+    pub planar_threshold_px: f64,
+    /// Fraction of a view's stereo matches on one plane above which the view counts as
+    /// planar (default 0.98: the simulated rooms put up to 92 % of a view's matches on
+    /// one wall and still calibrate).
+    pub planar_fraction: f64,
+    /// Relative sigma of either focal length, percent, above which the report carries a
+    /// warning that the motions and scene determine the calibration poorly (default 0.5:
+    /// on the one-general-motion session at 0.5 px the well-conditioned seeds give
+    /// 0.14-0.44 %; near-critical motions gave 0.9-1.0 % with errors of 2.5 %: there the
+    /// linearised sigma is itself optimistic).
+    pub warn_focal_sigma_pct: f64,
+    /// With one motion, the mean fraction of the views' stereo matches on one plane above
+    /// which the report warns that the scene is close to degenerate (default 0.85: the
+    /// one-motion failures seen were at 0.88-0.92; the well-conditioned seeds mostly
+    /// below 0.8).
+    pub warn_plane_fraction: f64,
+    /// When the adjustment fails from every start (or no 3D homography fits), the chain
+    /// runs again from step 2 with the next estimation seeds (`seed + 1`, ...), at most
+    /// this many more times (default 3). The robust stages are seeded: with one motion and
+    /// few common tracks (rendered seed 19: 82 points seen in both views) the 3-point
+    /// RANSAC's rigid motion, the rigid start's only input, can be poor enough that its
+    /// screening adjustment diverges while the linear start's conic is not positive
+    /// definite; other seeds converge to the same minimum (estimation seeds 1 and 2:
+    /// f 701.2 for a true 700).
+    pub restarts: usize,
+}
+
+impl Default for CalibrateOptions {
+    fn default() -> Self {
+        Self {
+            estimation: EstimationOptions::default(),
+            zero_skew: false,
+            square_pixels: false,
+            fix_principal_point: false,
+            estimate_distortion: false,
+            min_rotation_deg: 0.5,
+            planar_threshold_px: 2.0,
+            planar_fraction: 0.98,
+            warn_focal_sigma_pct: 0.5,
+            warn_plane_fraction: 0.85,
+            restarts: 3,
+        }
+    }
+}
+
+impl CalibrateOptions {
+    /// Check every option.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        self.estimation.validate()?;
+        if !(self.min_rotation_deg.is_finite() && self.min_rotation_deg > 0.0) {
+            return Err(AlignError::InvalidOption("min_rotation_deg must be positive".into()));
+        }
+        if !(self.planar_threshold_px.is_finite() && self.planar_threshold_px > 0.0) {
+            return Err(AlignError::InvalidOption("planar_threshold_px must be positive".into()));
+        }
+        if !(self.planar_fraction > 0.0 && self.planar_fraction <= 1.0) {
+            return Err(AlignError::InvalidOption("planar_fraction must be in (0, 1]".into()));
+        }
+        if !(self.warn_plane_fraction > 0.0 && self.warn_plane_fraction <= 1.0) {
+            return Err(AlignError::InvalidOption("warn_plane_fraction must be in (0, 1]".into()));
+        }
+        if !(self.warn_focal_sigma_pct.is_finite() && self.warn_focal_sigma_pct > 0.0) {
+            return Err(AlignError::InvalidOption("warn_focal_sigma_pct must be positive".into()));
+        }
+        Ok(())
+    }
+
+    fn constraints(&self) -> IntrinsicConstraints {
+        IntrinsicConstraints {
+            zero_skew: self.zero_skew,
+            square_pixels: self.square_pixels,
+            principal_point_at_origin: self.fix_principal_point,
+        }
+    }
+}
+
+/// One motion of the rig relative to the reference view.
+#[derive(Debug, Clone, Serialize)]
+pub struct MotionReport {
+    /// View name.
+    pub view: String,
+    /// Quadruplets (points triangulated in both views).
+    pub candidates: usize,
+    /// Inliers of the 3D homography.
+    pub inliers: usize,
+    /// RMS symmetric transfer error of the inliers, pixels.
+    pub rms_transfer_px: f64,
+    /// Rotation angle of the 3D homography, degrees (a similarity invariant).
+    pub homography_rotation_deg: f64,
+    /// True if the motion entered the linear self-calibration.
+    pub linear: bool,
+    /// Rotation angle after the adjustment, degrees.
+    pub rotation_deg: f64,
+    /// Rotation axis direction (reference left camera frame).
+    pub axis: [f64; 3],
+    /// Translation of the camera centre, baselines.
+    pub translation_baselines: f64,
+    /// Translation along the rotation axis (screw pitch times angle), baselines.
+    pub along_axis_baselines: f64,
+}
+
+/// Diagnostics of [`calibrate_rig`].
+#[derive(Debug, Clone, Serialize)]
+pub struct CalibrateReport {
+    /// Views used, in order (the first is the reference).
+    pub views: Vec<String>,
+    /// Views left out, with the reason.
+    pub skipped: Vec<String>,
+    /// The scene-depth check of every view.
+    pub planarity: Vec<PlaneCheck>,
+    /// Stereo matches over all views.
+    pub stereo_matches: usize,
+    /// Inliers of F.
+    pub stereo_inliers: usize,
+    /// RMS Sampson distance of the inliers, pixels.
+    pub stereo_rms_px: f64,
+    /// One per moved view.
+    pub motions: Vec<MotionReport>,
+    /// Second-smallest over largest singular value of the plane-at-infinity system.
+    pub plane_conditioning: Option<f64>,
+    /// Uniqueness of the conic solution (square root of the eigenvalue ratio).
+    pub conic_uniqueness: Option<f64>,
+    /// Left / right intrinsics of the linear chain.
+    pub linear: Option<[Intrinsics; 2]>,
+    /// Why the linear chain failed, if it did.
+    pub linear_error: Option<String>,
+    /// The start the adjustment kept: "linear" or "rigid".
+    pub start: String,
+    /// Observations of the final adjustment.
+    pub bundle_observations: usize,
+    /// Points of the final adjustment.
+    pub bundle_points: usize,
+    /// Iterations of the final adjustment.
+    pub bundle_iterations: usize,
+    /// RMS reprojection error of the kept start, pixels.
+    pub initial_rms_px: f64,
+    /// Final RMS reprojection error, pixels.
+    pub final_rms_px: f64,
+    /// Estimated image noise, pixels.
+    pub sigma_px: f64,
+    /// Sigma of the focal length (`fx`) of the left and right camera, percent of it.
+    pub focal_sigma_pct: [Option<f64>; 2],
+    /// Mean fraction of the used views' stereo matches on one plane (the scene-depth
+    /// check's `on_one_plane / stereo_matches`, averaged over the views not left out).
+    pub plane_share: f64,
+    /// The estimation seed of the run that gave this result (the options' seed plus
+    /// [`CalibrateReport::restarts`]).
+    pub estimation_seed: u64,
+    /// Runs that failed before this one with earlier seeds ([`CalibrateOptions::restarts`]).
+    pub restarts: usize,
+    /// Warnings: a poorly determined calibration (focal sigma above
+    /// [`CalibrateOptions::warn_focal_sigma_pct`]), one motion in a mostly planar scene
+    /// ([`CalibrateOptions::warn_plane_fraction`]), with what to do about it.
+    pub warnings: Vec<String>,
+}
+
+/// The calibrated rig and its motions, in the reference view's left camera frame.
+#[derive(Debug, Clone)]
+pub struct MotionCalibration {
+    /// The bundle adjustment (state with free view poses, covariance, report).
+    pub bundle: BundleResult,
+    /// Track id of each bundle point.
+    pub point_tracks: Vec<u64>,
+    /// Observations of the final adjustment (`view` indexes [`CalibrateReport::views`]).
+    pub observations: Vec<BundleObservation>,
+    /// Image size of the views.
+    pub image_size: [u32; 2],
+    /// Diagnostics.
+    pub report: CalibrateReport,
+}
+
+/// Self-calibrate the rig from its views (module docs). Views whose vergence readings
+/// differ from the first view's are left out (the rig changed).
+pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<MotionCalibration, AlignError> {
+    options.validate()?;
+    let mut failures = Vec::new();
+    for restart in 0..=options.restarts {
+        let mut o = options.clone();
+        o.estimation.seed = options.estimation.seed.wrapping_add(restart as u64);
+        let mut seeded = None;
+        match calibrate_once(views, &o, &mut seeded) {
+            Ok(mut c) => {
+                c.report.restarts = restart;
+                if restart > 0 {
+                    c.report.warnings.push(format!(
+                        "the run with estimation seed {} failed ({}); estimation seed {} gave this result: the robust stages are close to their limits (few tracks common to the views?)",
+                        options.estimation.seed,
+                        failures.first().map_or("", String::as_str),
+                        o.estimation.seed
+                    ));
+                }
+                return Ok(c);
+            }
+            Err(error) => match seeded {
+                Some(Seeded { common_tracks, fitting }) => failures.push(format!(
+                    "seed {}: {error} ({common_tracks} tracks seen in the reference and a moved view, {fitting} fitting its 3D homography)",
+                    o.estimation.seed
+                )),
+                None => return Err(error),
+            },
+        }
+    }
+    Err(AlignError::Geometry {
+        step: "self-calibration".into(),
+        cause: GeometryError::Degenerate(format!(
+            "self-calibration failed in its robust stages with {} estimation seeds: {}. Too few points are seen in both views, or they lie close to one plane: record views that overlap more (turn the rig less, 15-25 deg), in a textured scene with depth, or add a motion",
+            failures.len(),
+            failures.join("; ")
+        )),
+    })
+}
+
+/// Set by [`calibrate_once`] when it failed in a seeded stage (the 3D homography RANSAC,
+/// the adjustment from its starts), which another seed may pass: the fewest tracks common
+/// to the reference and a moved view, and the fewest fitting that view's 3D homography
+/// (0 if none fits). Other failures (planar scene, missing motion, options) leave it unset.
+#[derive(Debug, Clone, Copy)]
+struct Seeded {
+    common_tracks: usize,
+    fitting: usize,
+}
+
+/// One run of the chain with the options' estimation seed ([`calibrate_rig`]): the steps
+/// of the module docs in order, each a function of its own file.
+fn calibrate_once(
+    views: &[View],
+    options: &CalibrateOptions,
+    seeded: &mut Option<Seeded>,
+) -> Result<MotionCalibration, AlignError> {
+    // 1. The views of the rig.
+    let depth::RigViews { rig, skipped, planarity, image_size } = depth::select_views(views, options)?;
+    let [w, h] = image_size;
+    let k0 = Intrinsics::rough_guess(w, h);
+    let est = &options.estimation;
+    // 2. F from all views, frame, triangulation.
+    let stereo = stereo::stereo_geometry(&rig, &k0, est)?;
+    // 3. 3D homographies from the reference.
+    let motions = motion::fit_motions(&rig, &stereo.recon, &stereo.frame, options, seeded)?;
+    // The point set and the observations (as in estimate).
+    let points = starts::point_set(&rig, &stereo.recon, &motions);
+    let problem = starts::Problem {
+        recon: &stereo.recon,
+        point_tracks: &points.point_tracks,
+        origin_slot: &points.origin_slot,
+        min_tracks: est.min_tracks,
+    };
+    // 4. The linear self-calibration, and the rigid start.
+    let linear = starts::linear_start(&motions, &stereo.frame, &k0, &problem, options);
+    let (linear_k, linear_error) = starts::linear_summary(&linear.state)?;
+    let rigid = starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
+    // 5-6. The adjustment from both starts.
+    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, &stereo.recon, options)
+        .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
+    // 7. The report: final motions, the rotation test, sigmas, warnings.
+    let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
+    report::require_rotation(&motions, &motion_reports, options)?;
+    let focal_sigma_pct = report::focal_sigma_pct(&adjusted.last);
+    let plane_share = report::plane_share(&planarity);
+    let warnings = report::data_warnings(&focal_sigma_pct, plane_share, motions.len(), options);
+    let report = CalibrateReport {
+        views: rig.iter().map(|v| v.name.clone()).collect(),
+        skipped,
+        planarity,
+        stereo_matches: stereo.matches,
+        stereo_inliers: stereo.inliers,
+        stereo_rms_px: stereo.rms_px,
+        motions: motion_reports,
+        plane_conditioning: linear.plane_conditioning,
+        conic_uniqueness: linear.conic_uniqueness,
+        linear: linear_k,
+        linear_error,
+        start: if adjusted.start_index == 0 { "linear" } else { "rigid" }.to_string(),
+        bundle_observations: adjusted.observations.len(),
+        bundle_points: points.point_tracks.len(),
+        bundle_iterations: adjusted.last.report.iterations,
+        initial_rms_px: adjusted.first.report.initial_rms_px,
+        final_rms_px: adjusted.last.report.final_rms_px,
+        sigma_px: adjusted.last.report.sigma_px,
+        focal_sigma_pct,
+        plane_share,
+        estimation_seed: est.seed,
+        restarts: 0,
+        warnings,
+    };
+    Ok(MotionCalibration {
+        bundle: adjusted.last,
+        point_tracks: points.point_tracks,
+        observations: adjusted.observations,
+        image_size: [w, h],
+        report,
+    })
+}

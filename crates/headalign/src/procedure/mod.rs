@@ -1,0 +1,454 @@
+//! The verge/tilt procedure over any [`StereoHead`] (DESIGN.md section 2 steps 1-5, paper
+//! section 3.2): capture an initial view; rotate elevation, capture; rotate pan (from the
+//! initial position), capture — by default each both ways (+r and -r), which doubles the
+//! angular span per axis; rotate both vergences, capture; return. Estimate the rig and head
+//! ([`crate::estimate`]), measure the vergence axes by resection, compute the aligned
+//! readings exactly ([`crate::alignment`]), move there, capture again and check the result
+//! by vision; if the measured error exceeds the tolerance, re-measure the vergence axes from
+//! that larger move and correct (at most `max_corrections` times). A vergence axis is
+//! re-measured only from a vergence turn at least as large as the procedure's own vergence
+//! move: the axis is the screw of the measured pose against the modelled pan/elevation
+//! chain, and a small turn on top of a large elevation turn measures mostly the chain's
+//! error (one 3 px trial ended 8 deg off before this rule).
+//!
+//! Rotation size: fixed (`rotation_deg`, default 3 deg, the paper's protocol; optional
+//! diagonal views `diagonal_rotation_deg`) or, with [`VergeTiltOptions::auto_rotation`],
+//! chosen by the procedure "when the scene allows" ([`choose_rotations`], pure, and
+//! [`resolve_rotation`], which probes the head): it probes the elevation and pan moves
+//! (both ways) at candidate sizes (10, 6, 3 deg, largest first) and keeps the largest at which
+//! every probed view still sees, in both cameras, at least `min_overlap_fraction` (0.5) of
+//! the reference view's stereo tracks and at least `min_tracks` of them; then the diagonal
+//! views (pan and elevation turned together, each by at most that size: 4 more views) and
+//! the vergence move at the largest candidate that keeps the same overlap. Calibration
+//! error falls roughly as 1/rotation (the plane at infinity is found from the rotations'
+//! screws), so larger is better while enough of the scene stays in view; each joint still
+//! turns at most 10 deg. Why diagonals: the Cramer-Rao bound of the focal length at 3 px
+//! (`f = fx` pooled over both cameras, default room, 8 seeds, `cargo run --release -p
+//! headalign --example crb_plans`) is 1.76 % with 3 deg single-joint views, 0.71 % at
+//! 10 deg, 0.56 % adding 5 deg single-joint views (9 views), 0.47 / 0.39 / 0.31 % adding
+//! diagonals of 5 / 7 / 10 deg (9 views), 0.27-0.28 % with 13 views: a combined rotation
+//! moves the image along both axes at once and decorrelates the focal lengths from the
+//! axes, where more of the same single-joint views add little. The diagonal views keep
+//! 56-70 % of the reference tracks at 10 deg (hence 0.5 rather than the former 0.6, which
+//! only single-joint views had to meet; 0.5 of about 200 tracks is still 3 times
+//! `min_tracks`). Why `min_tracks` = 30: a probed view's shared tracks are counted before
+//! outlier rejection, and a track enters a 3D homography only if all four of its
+//! observations are inliers (0.9^4 = 0.66 of them at 10 % outliers) and it survives the
+//! rotation screen, which the estimator needs `EstimationOptions::min_tracks` (12) of. In a
+//! 50-point scene at 1.5 px (`headalign experiment points --only 50`, 30 seeds) 20 let a
+//! 10 deg diagonal keep 11 usable tracks (2 of 30 trials failed), 25 failed 1 of 30, 30
+//! none (150 seeds: 1 failure, as many as the fixed 3 deg protocol), 40 settled at 5.6 deg
+//! on average and 60 (the former value) never left 3 deg, since a 50-point scene never
+//! shares 60 tracks. Probe captures are discarded (they are not in `views`); a recording
+//! caller calls [`resolve_rotation`] itself to record them as their own stage. Pitfall: the
+//! overlap is counted by track id, which in image mode means the tracker's matches; a
+//! tracker that loses tracks at larger rotations shrinks the choice, as it should (seed 1
+//! on rendered images: 10 deg single-joint views, 3 deg diagonals).
+//!
+//! Every captured view is kept in the outcome (and in the error path the caller still has
+//! them through [`VergeTiltRun::views`]). Angles in degrees.
+//!
+//! Code layout: `rotation` (the rotation choice), `sigmas` (the aligned readings'
+//! uncertainty), `axes` (the vergence axes' measurement and its uncertainty); the
+//! procedure itself, its options and the capture plan here.
+
+mod axes;
+mod rotation;
+mod sigmas;
+#[cfg(test)]
+mod tests;
+
+use std::time::Instant;
+
+use headalign_geometry::so3::Line;
+use headalign_platform::{Encoders, Joint, StereoHead};
+use serde::Serialize;
+
+pub use axes::{
+    AXIS_BOOTSTRAP_DRAWS, AxisMeasurement, AxisPerturbations, AxisSources, AxisStep, axis_perturbations,
+    resection_pose_covariance, resection_pose_covariance_bootstrap,
+};
+pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
+pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured};
+
+use crate::alignment::{
+    AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors,
+    solve_alignment, verge_axes_from_motion,
+};
+use crate::error::AlignError;
+use crate::estimate::{EstimationOptions, RigCalibration, estimate_rig};
+use crate::observations::View;
+
+/// Options of the verge/tilt procedure.
+#[derive(Debug, Clone)]
+pub struct VergeTiltOptions {
+    /// Elevation and pan rotation for calibration, degrees (default 3, the paper's
+    /// protocol; larger rotations give proportionally better accuracy).
+    pub rotation_deg: f64,
+    /// Vergence rotation used to measure the vergence axes, degrees (default 3).
+    pub verge_rotation_deg: f64,
+    /// Rotate each of elevation and pan both ways (+r and -r), five rig views instead of
+    /// three (default true): twice the angular span per axis, about half the error.
+    pub both_directions: bool,
+    /// Estimation options.
+    pub estimation: EstimationOptions,
+    /// Correct again when a measured alignment error exceeds this, degrees (default 0.2:
+    /// after the first move the measured error at 1 px noise is 0.02-0.2 deg of noise, and
+    /// correcting below that only chases it; a wrong vergence-axis model shows above it).
+    pub check_tolerance_deg: f64,
+    /// Maximum number of corrective moves after the first (default 2).
+    pub max_corrections: usize,
+    /// Also rotate pan and elevation together by this much, degrees (default 0: no such
+    /// views): the diagonal views `(pan, elevation) = (+d, +d), (+d, -d), (-d, +d), (-d, -d)`
+    /// (only `(+d, +d)` without `both_directions`). Each joint still turns by at most `d`;
+    /// the combined rotations add the most information per view (module docs). The auto
+    /// mode sets it.
+    pub diagonal_rotation_deg: f64,
+    /// Let the procedure choose the elevation/pan rotation itself (default `None`: use
+    /// `rotation_deg` and `diagonal_rotation_deg`).
+    pub auto_rotation: Option<AutoRotation>,
+}
+
+/// How the procedure chooses its calibration rotation when the scene allows (see the
+/// module docs).
+#[derive(Debug, Clone, PartialEq)]
+pub struct AutoRotation {
+    /// Candidate rotation sizes, degrees, tried in increasing order (default 3, 6, 10).
+    /// The first one is used even if its overlap is insufficient (the fixed protocol).
+    pub candidates_deg: Vec<f64>,
+    /// Fraction of the reference view's stereo tracks that each probed view must still
+    /// see in both cameras (default 0.6).
+    pub min_overlap_fraction: f64,
+    /// Minimum number of such shared tracks (default 30; module docs: why).
+    pub min_tracks: usize,
+    /// After choosing the single-joint rotation `r`, also add the four diagonal views
+    /// (pan and elevation together, each by the largest candidate `d <= r` whose four
+    /// probed views keep the overlap; none if the smallest candidate does not) (default
+    /// true).
+    pub diagonals: bool,
+    /// Also choose the vergence move (both vergences together, which measures the
+    /// vergence axes): the largest candidate `v <= r` whose view keeps the overlap; if
+    /// none does, `verge_rotation_deg` stays (default true). The vergence axis is the screw
+    /// of a measured pose, whose direction error is about the pose error over the turn:
+    /// at 3 px with the auto rotations, a 10 deg move instead of 3 deg took the aligned
+    /// elevation's RMS error from 1.61 to 1.27 times its bound (60 seeds).
+    pub choose_verge: bool,
+}
+
+impl Default for AutoRotation {
+    fn default() -> Self {
+        Self {
+            candidates_deg: vec![3.0, 6.0, 10.0],
+            min_overlap_fraction: 0.5,
+            min_tracks: 30,
+            diagonals: true,
+            choose_verge: true,
+        }
+    }
+}
+
+impl AutoRotation {
+    /// Check the candidates (increasing, each 0.1-45 deg) and thresholds.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        if self.candidates_deg.is_empty() {
+            return Err(AlignError::InvalidOption("auto rotation needs at least one candidate".into()));
+        }
+        let mut last = 0.0;
+        for &c in &self.candidates_deg {
+            if !(c.is_finite() && (0.1..=45.0).contains(&c) && c > last) {
+                return Err(AlignError::InvalidOption(format!(
+                    "auto rotation candidates must increase within 0.1-45 degrees, got {:?}",
+                    self.candidates_deg
+                )));
+            }
+            last = c;
+        }
+        if !(self.min_overlap_fraction.is_finite() && (0.0..=1.0).contains(&self.min_overlap_fraction)) {
+            return Err(AlignError::InvalidOption(format!(
+                "min_overlap_fraction must be in [0, 1], got {}",
+                self.min_overlap_fraction
+            )));
+        }
+        Ok(())
+    }
+}
+
+impl Default for VergeTiltOptions {
+    fn default() -> Self {
+        Self {
+            rotation_deg: 3.0,
+            verge_rotation_deg: 3.0,
+            both_directions: true,
+            estimation: EstimationOptions::default(),
+            check_tolerance_deg: 0.2,
+            max_corrections: 2,
+            diagonal_rotation_deg: 0.0,
+            auto_rotation: None,
+        }
+    }
+}
+
+impl VergeTiltOptions {
+    /// Check every option.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        for (name, v) in
+            [("rotation_deg", self.rotation_deg), ("verge_rotation_deg", self.verge_rotation_deg)]
+        {
+            if !(v.abs() >= 0.1 && v.abs() <= 45.0) {
+                return Err(AlignError::InvalidOption(format!(
+                    "{name} must be between 0.1 and 45 degrees in magnitude, got {v}"
+                )));
+            }
+        }
+        let d = self.diagonal_rotation_deg;
+        if !(d == 0.0 || (d.abs() >= 0.1 && d.abs() <= 45.0)) {
+            return Err(AlignError::InvalidOption(format!(
+                "diagonal_rotation_deg must be 0 or between 0.1 and 45 degrees in magnitude, got {d}"
+            )));
+        }
+        if !self.check_tolerance_deg.is_finite() || self.check_tolerance_deg <= 0.0 {
+            return Err(AlignError::InvalidOption("check_tolerance_deg must be positive".into()));
+        }
+        if let Some(auto) = &self.auto_rotation {
+            auto.validate()?;
+        }
+        self.estimation.validate()
+    }
+}
+
+/// One move to the aligned readings and its check by vision.
+#[derive(Debug, Clone, Serialize)]
+pub struct CheckStep {
+    /// Readings moved to.
+    pub encoders: Encoders,
+    /// Errors measured by resection after the move.
+    pub measured: MeasuredErrors,
+}
+
+/// 1-sigma uncertainties of the aligned readings, degrees, propagated from the bundle
+/// adjustment's covariance and, in the procedure ([`alignment_sigmas_measured`]), from the
+/// resections that measured the vergence axes.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct AlignmentSigmas {
+    /// Elevation reading.
+    pub elevation_deg: f64,
+    /// Left vergence reading.
+    pub verge_left_deg: f64,
+    /// Right vergence reading.
+    pub verge_right_deg: f64,
+}
+
+impl AlignmentSigmas {
+    /// The sigmas with a reading noise of `sigma_deg` per joint added in quadrature: the
+    /// aligned readings are the reference view's readings plus the solved turns, so that
+    /// read's error is in each of them.
+    pub fn with_reading_noise(self, sigma_deg: f64) -> Self {
+        let add = |s: f64| s.hypot(sigma_deg);
+        Self {
+            elevation_deg: add(self.elevation_deg),
+            verge_left_deg: add(self.verge_left_deg),
+            verge_right_deg: add(self.verge_right_deg),
+        }
+    }
+}
+
+/// Everything the procedure produced.
+#[derive(Debug, Clone)]
+pub struct VergeTiltOutcome {
+    /// The calibration.
+    pub calibration: RigCalibration,
+    /// Vergence axes measured by resection.
+    pub verge_axes: VergeAxes,
+    /// The views (and resected poses) each vergence axis was measured from.
+    pub axis_sources: AxisSources,
+    /// The final alignment solution.
+    pub solution: AlignmentSolution,
+    /// Uncertainty of the aligned readings.
+    pub sigmas: AlignmentSigmas,
+    /// Each move and its check.
+    pub checks: Vec<CheckStep>,
+    /// Final encoder readings (aligned).
+    pub final_encoders: Encoders,
+    /// Elevation/pan rotation used for calibration, degrees (chosen if auto).
+    pub rotation_deg: f64,
+    /// Diagonal (pan and elevation together) rotation used, degrees; 0 if none (chosen if
+    /// auto).
+    pub diagonal_rotation_deg: f64,
+    /// Vergence move used to measure the vergence axes, degrees (chosen if auto).
+    pub verge_rotation_deg: f64,
+    /// Seconds spent estimating (excluding head motion and capture).
+    pub estimation_seconds: f64,
+}
+
+impl VergeTiltOutcome {
+    /// The vergence axes' uncertainty for the robot stages ([`axis_perturbations`] over
+    /// this outcome's axes and their sources, the pixel noise the bundle adjustment's
+    /// estimate: the axis views come from the same cameras, and the resections' own
+    /// residuals, truncated at their 5 px outlier threshold, estimate it low at 3 px).
+    pub fn axis_perturbations(&self) -> AxisPerturbations {
+        let cal = &self.calibration;
+        axis_perturbations(
+            cal,
+            &self.verge_axes,
+            &self.axis_sources,
+            &cal.reference_encoders,
+            Some(cal.report.sigma_px),
+        )
+    }
+}
+
+/// A run of the procedure: the views captured so far survive any error.
+#[derive(Debug, Default)]
+pub struct VergeTiltRun {
+    /// Every captured view, in order.
+    pub views: Vec<View>,
+}
+
+impl VergeTiltRun {
+    fn capture<H: StereoHead>(&mut self, head: &mut H, name: &str) -> Result<usize, AlignError> {
+        let capture = head.capture()?;
+        self.views.push(View { name: name.to_string(), capture });
+        Ok(self.views.len() - 1)
+    }
+
+    /// Run the procedure on `head`.
+    pub fn run<H: StereoHead>(
+        &mut self,
+        head: &mut H,
+        options: &VergeTiltOptions,
+    ) -> Result<VergeTiltOutcome, AlignError> {
+        options.validate()?;
+        let options = &resolve_rotation(head, options)?;
+        let e0 = head.read_encoders()?;
+        let (rotation_deg, diagonal_rotation_deg) = (options.rotation_deg, options.diagonal_rotation_deg);
+        let plan = capture_plan(&e0, options);
+        for (name, encoders) in &plan {
+            head.move_to(encoders)?;
+            self.capture(head, name)?;
+        }
+        // Every view of the plan but the last (the vergence move) keeps the rig rigid.
+        let rig_views = plan.len() - 1;
+        let verge_view = rig_views;
+        head.move_to(&e0)?;
+
+        let t0 = Instant::now();
+        let calibration = estimate_rig(&self.views[..rig_views], &options.estimation)?;
+        let state = &calibration.bundle.state;
+        let reference = self.views[0].capture.encoders;
+        let left0 = nalgebra::Isometry3::identity();
+        let right0 = state.right_from_left.inverse();
+        let measured = measure_cameras(&calibration, &self.views[verge_view].capture, &left0, &right0)?;
+        let mut verge_axes =
+            verge_axes_from_motion(state, &reference, &self.views[verge_view].capture.encoders, &measured)?;
+        let source = AxisMeasurement { capture: self.views[verge_view].capture.clone(), measured };
+        let mut axis_sources = AxisSources {
+            left: verge_axes.left.map(|_| source.clone()),
+            right: verge_axes.right.map(|_| source.clone()),
+        };
+        let mut solution = solve_alignment(state, &verge_axes, &reference)?;
+        let mut estimation_seconds = t0.elapsed().as_secs_f64();
+
+        let mut checks = Vec::new();
+        for round in 0..=options.max_corrections {
+            let target = solution.aligned_encoders;
+            head.move_to(&target)?;
+            let idx = self.capture(head, &format!("check-{}", round + 1))?;
+            let t1 = Instant::now();
+            let enc = self.views[idx].capture.encoders;
+            let d = |j: Joint| (enc.get(j) - reference.get(j)).to_radians();
+            let (pl, pr) = predicted_poses(&calibration, &verge_axes, &reference, &enc)?;
+            let measured = measure_cameras(&calibration, &self.views[idx].capture, &pl, &pr)?;
+            let errors = measured_errors(state, &measured, d(Joint::Pan))
+                .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
+            checks.push(CheckStep { encoders: enc, measured: errors });
+            // The right camera's elevation error is not correctable; the other three are.
+            let worst = errors
+                .verge_err_l_deg
+                .abs()
+                .max(errors.verge_err_r_deg.abs())
+                .max(errors.elev_err_l_deg.abs());
+            if worst <= options.check_tolerance_deg || round == options.max_corrections {
+                estimation_seconds += t1.elapsed().as_secs_f64();
+                break;
+            }
+            // Re-measure a vergence axis from this move only if its vergence turned at
+            // least as far as the procedure's own vergence move: the axis is the screw of
+            // the measured pose against the modelled pan/elevation chain, so a small
+            // vergence turn on top of a large elevation turn measures mostly the chain's
+            // error (at 3 px, a 0.9 deg turn after 8 deg of elevation gave an axis 80 deg
+            // off and an 8 deg alignment error). No axis re-measured: nothing to correct.
+            let big = |j: Joint| (enc.get(j) - reference.get(j)).abs() >= options.verge_rotation_deg.abs();
+            let better = verge_axes_from_motion(state, &reference, &enc, &measured)?;
+            let left = better.left.filter(|_| big(Joint::VergeLeft));
+            let right = better.right.filter(|_| big(Joint::VergeRight));
+            if left.is_none() && right.is_none() {
+                estimation_seconds += t1.elapsed().as_secs_f64();
+                break;
+            }
+            let source = AxisMeasurement { capture: self.views[idx].capture.clone(), measured };
+            if left.is_some() {
+                axis_sources.left = Some(source.clone());
+            }
+            if right.is_some() {
+                axis_sources.right = Some(source);
+            }
+            verge_axes = VergeAxes { left: left.or(verge_axes.left), right: right.or(verge_axes.right) };
+            solution = solve_alignment(state, &verge_axes, &reference)?;
+            estimation_seconds += t1.elapsed().as_secs_f64();
+        }
+        let reading_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
+        let sigmas = alignment_sigmas_measured(&calibration, &verge_axes, &axis_sources, &reference, None)?
+            .with_reading_noise(reading_sigma_deg);
+        let final_encoders = head.read_encoders()?;
+        Ok(VergeTiltOutcome {
+            calibration,
+            verge_axes,
+            axis_sources,
+            solution,
+            sigmas,
+            checks,
+            final_encoders,
+            rotation_deg,
+            diagonal_rotation_deg,
+            verge_rotation_deg: options.verge_rotation_deg,
+            estimation_seconds,
+        })
+    }
+}
+
+/// The views the procedure captures, in order, from the initial readings `e0`: the
+/// initial view; elevation and pan rotations (each both ways if `both_directions`); the
+/// diagonal views if `diagonal_rotation_deg` is not 0; and last, both vergences rotated
+/// (to measure the vergence axes).
+pub fn capture_plan(e0: &Encoders, options: &VergeTiltOptions) -> Vec<(String, Encoders)> {
+    let mut plan = vec![("initial".to_string(), *e0)];
+    let moves = rotation::single_joint_offsets(options.rotation_deg, options.both_directions)
+        .into_iter()
+        .chain(rotation::diagonal_offsets(options.diagonal_rotation_deg, options.both_directions));
+    for (name, pan, elevation) in moves {
+        plan.push((name.to_string(), e0.moved(Joint::Pan, pan).moved(Joint::Elevation, elevation)));
+    }
+    let v = options.verge_rotation_deg;
+    plan.push(("verge".to_string(), e0.moved(Joint::VergeLeft, v).moved(Joint::VergeRight, v)));
+    plan
+}
+
+/// Predicted `ref_from_cam` of both cameras at encoders `enc` from the kinematic model.
+pub(crate) fn predicted_poses(
+    calib: &RigCalibration,
+    verge: &VergeAxes,
+    reference: &Encoders,
+    enc: &Encoders,
+) -> Result<(nalgebra::Isometry3<f64>, nalgebra::Isometry3<f64>), AlignError> {
+    let state = &calib.bundle.state;
+    let d = |j: Joint| (enc.get(j) - reference.get(j)).to_radians();
+    let chain = head_motion(state, d(Joint::Pan), d(Joint::Elevation))
+        .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
+    let rot = |axis: &Option<Line>, angle: f64| {
+        axis.map(|l| headalign_geometry::so3::rotation_about_line(&l, angle))
+            .unwrap_or_else(nalgebra::Isometry3::identity)
+    };
+    let left = chain * rot(&verge.left, d(Joint::VergeLeft));
+    let right = chain * rot(&verge.right, d(Joint::VergeRight)) * state.right_from_left.inverse();
+    Ok((left, right))
+}

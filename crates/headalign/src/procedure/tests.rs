@@ -1,0 +1,738 @@
+//! Tests of the verge/tilt procedure ([`super`]): noise-free exactness, noisy readings,
+//! the restarts out of wrong minima, the uncertainty propagations against their
+//! definitions and against Monte-Carlo runs, the rotation choice and the capture plan.
+//! Most run whole simulated procedures (slow); the experiments are ignored: run them by
+//! name. Units as in the module: degrees, pixels.
+
+use headalign_platform::{Encoders, StereoHead};
+use headalign_sim::{Scenario, SimulatedHead, calibration_errors};
+
+use super::axes::{AxisFollow, project_into, resection_inliers, retriangulated};
+use super::rotation::{choose_rotation, diagonal_offsets, single_joint_offsets};
+use super::sigmas::{aligned_deltas, calibration_jacobian, sigmas_of};
+use super::*;
+use crate::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_axes_from_motion};
+use crate::estimate::{EstimationOptions, RigCalibration};
+
+fn run(scenario: Scenario) -> (SimulatedHead, VergeTiltOutcome) {
+    let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+    let options = VergeTiltOptions {
+        estimation: EstimationOptions { seed: scenario.seed, ..EstimationOptions::default() },
+        ..VergeTiltOptions::default()
+    };
+    let mut run = VergeTiltRun::default();
+    let outcome = run.run(&mut head, &options).unwrap();
+    assert_eq!(run.views.len(), 6 + outcome.checks.len(), "every captured view is kept");
+    (head, outcome)
+}
+
+/// Noise-free, no outliers: the correctable alignment errors vanish and the focal
+/// lengths are exact. 0.01 deg and 0.01 % are the issue's bars; the solver reaches
+/// about 1e-6 here (its tolerances), so they leave a wide margin.
+#[test]
+fn noise_free_alignment_is_exact() {
+    for seed in [1, 2] {
+        let scenario = Scenario { seed, noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
+        let (head, outcome) = run(scenario);
+        let e = head.alignment_errors(&head.encoders());
+        for (name, v) in
+            [("verge_l", e.verge_err_l_deg), ("verge_r", e.verge_err_r_deg), ("elev_l", e.elev_err_l_deg)]
+        {
+            assert!(v.abs() < 0.01, "seed {seed}: {name} = {v} deg");
+        }
+        // The right camera's elevation error is its mounting, which no joint removes:
+        // it must equal the truth's residual and the calibration's prediction.
+        let unavoidable = head.alignment_errors(&head.aligned_encoders()).elev_err_r_deg;
+        assert!((e.elev_err_r_deg - unavoidable).abs() < 0.01, "seed {seed}");
+        assert!(
+            (outcome.solution.predicted_elev_err_r_deg.abs() - unavoidable.abs()).abs() < 0.01,
+            "seed {seed}"
+        );
+        let st = &outcome.calibration.bundle.state;
+        let cal = calibration_errors(&head.truth().left, &head.truth().right, &st.left, &st.right);
+        assert!(cal.f_err_pct < 0.01 && cal.pp_err_pct < 0.01, "seed {seed}: {cal:?}");
+    }
+}
+
+/// Encoder readings with Gaussian noise at the angle prior's sigma (0.01 deg, every
+/// read; the default simulator reads exactly): the procedure runs (it failed with "no
+/// view rotates the pan joint alone" while any encoder change counted as a motion) and,
+/// with noise-free pixels, aligns to within 4 of its stated sigmas, which include the
+/// reference read's noise (measured at most 2.0 over these seeds; before the unmoved
+/// joints' jitter was ignored in `verge_axes_from_motion` it tilted the vergence axes,
+/// and seed 3's elevation was 6.7 sigmas off) and to within 0.1 deg.
+#[test]
+fn noisy_encoder_readings_still_align() {
+    for seed in [1, 2, 3, 4] {
+        let scenario = Scenario {
+            seed,
+            noise_px: 0.0,
+            outlier_fraction: 0.0,
+            encoder_noise_deg: crate::estimate::ENCODER_SIGMA_DEG,
+            ..Scenario::default()
+        };
+        let (head, outcome) = run(scenario);
+        let e = head.alignment_errors(&head.encoders());
+        let s = outcome.sigmas;
+        for (v, sigma) in [
+            (e.verge_err_l_deg, s.verge_left_deg),
+            (e.verge_err_r_deg, s.verge_right_deg),
+            (e.elev_err_l_deg, s.elevation_deg),
+        ] {
+            assert!(v.abs() < 0.1 && v.abs() <= 4.0 * sigma, "seed {seed}: {e:?} {s:?}");
+        }
+    }
+}
+
+/// Seed 39 from the experiments' third head position at 2 px (thresholds scaled as in
+/// `experiment`): without the depth-reversed restart the least squares ends in the
+/// minimum with the baseline's x component reversed, right cx about 6 sigma off
+/// (measured -5.8); with it, in the lower minimum (measured -1.2 sigma). The bounds 4
+/// and 3 sigma sit between the two with a margin for the solver's tolerance.
+#[test]
+fn reversed_rig_restart_leaves_the_wrong_minimum() {
+    let scenario = Scenario { seed: 39, noise_px: 2.0, ..Scenario::default() };
+    let z = |restart: bool| {
+        let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+        head.move_to(&Encoders { pan: -4.0, elevation: -4.0, verge_left: -2.0, verge_right: 2.0 }).unwrap();
+        let d = EstimationOptions::default();
+        let mut estimation = EstimationOptions {
+            seed: scenario.seed,
+            prefilter_px: 2.0 * d.prefilter_px,
+            reversed_rig_restart: restart,
+            ..d
+        };
+        estimation.fundamental.threshold *= 2.0;
+        estimation.homography.threshold *= 2.0;
+        let options = VergeTiltOptions {
+            rotation_deg: scenario.rotation_deg,
+            verge_rotation_deg: 3.0,
+            estimation,
+            ..VergeTiltOptions::default()
+        };
+        let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+        let bundle = &outcome.calibration.bundle;
+        (bundle.state.right.cx - head.truth().right.cx) / bundle.covariance.sigma("right.cx").unwrap()
+    };
+    let (without, with) = (z(false), z(true));
+    assert!(without.abs() > 4.0, "without the restart: {without}");
+    assert!(with.abs() < 3.0, "with the restart: {with}");
+}
+
+/// One trial of `headalign experiment` at the paper's protocol (default scenario at
+/// `noise_px`, head position 0, the experiments' estimation options).
+fn experiment_trial(seed: u64, noise_px: f64) -> (SimulatedHead, VergeTiltOutcome) {
+    let scenario = Scenario { seed, noise_px, ..Scenario::default() };
+    let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+    let options = VergeTiltOptions {
+        rotation_deg: scenario.rotation_deg,
+        verge_rotation_deg: 3.0,
+        estimation: EstimationOptions::scaled_for_noise(noise_px, seed),
+        ..VergeTiltOptions::default()
+    };
+    let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+    (head, outcome)
+}
+
+/// Seed 1211 of `experiment fig5-verge-tilt --seed 1001` (first head position, 3 px,
+/// the experiment's options): the restarts from the x-reversed and the fully reversed
+/// baseline end above the estimate, which has the baseline's forward component at +0.64
+/// (unit baseline); the minimum the least squares reaches from the truth has it at -0.53
+/// at 3.2 chi-square units lower cost, and the y-z reversed restart reaches it
+/// (`docs/ratio-tail.md`). The sign of that component tells the two minima apart.
+#[test]
+fn yz_reversed_restart_reaches_the_lower_minimum() {
+    let (_, outcome) = experiment_trial(1211, 3.0);
+    let t = outcome.calibration.bundle.state.right_from_left.translation.vector.normalize();
+    assert!(t.z < -0.3, "baseline direction {t:?}");
+}
+
+/// Regression (calibration experiment, 3 px, seed 368): the estimate's baseline was
+/// (0.01, -0.36, -0.93), along the optical axis and 84 deg from the truth's, with left fx
+/// 146 px off, 127 chi-square units above the minimum the least squares reaches from
+/// the truth; the side-by-side restart reaches that minimum (left fx 45 px off, sigma
+/// 22; baseline (-0.56, -0.25, -0.79): at 3 px the baseline's forward component is
+/// weakly determined, the truth's minimum has -0.59). Limits: the baseline's x component
+/// above 0.3 (it was 0.01) and left fx within 90 px (4 of its sigmas; it was 6.6 off).
+#[test]
+fn sideways_restart_leaves_a_baseline_along_the_optical_axis() {
+    let (head, outcome) = experiment_trial(368, 3.0);
+    let st = &outcome.calibration.bundle.state;
+    let t = st.right_from_left.translation.vector.normalize();
+    assert!(t.x.abs() > 0.3, "baseline direction {t:?}");
+    assert!((st.left.fx - head.truth().left.fx).abs() < 90.0, "left fx {}", st.left.fx);
+}
+
+/// Default scenario (1 px, 10 % outliers): one seed within generous single-run limits
+/// (the RMS bars over 20 seeds are 0.5 deg and 1.5 %; one run gets three times that),
+/// and the reported sigmas are not absurd.
+#[test]
+fn default_scenario_aligns() {
+    let (head, outcome) = run(Scenario { seed: 11, ..Scenario::default() });
+    let e = head.alignment_errors(&head.encoders());
+    for v in [e.verge_err_l_deg, e.verge_err_r_deg, e.elev_err_l_deg] {
+        assert!(v.abs() < 1.5, "{e:?}");
+    }
+    let st = &outcome.calibration.bundle.state;
+    let cal = calibration_errors(&head.truth().left, &head.truth().right, &st.left, &st.right);
+    assert!(cal.f_err_pct < 4.5, "{cal:?}");
+    let s = outcome.sigmas;
+    for v in [s.elevation_deg, s.verge_left_deg, s.verge_right_deg] {
+        assert!(v > 0.01 && v < 2.0, "sigma {v}");
+    }
+}
+
+/// The vergence axes' own measurement adds uncertainty: with no axis source the
+/// measured-axis sigmas equal [`alignment_sigmas`] (same finite differences, 1e-12 is
+/// rounding); with the procedure's sources the vergence sigmas change a little, and the pose
+/// variance scales with the pixel noise squared (resection covariance is sigma^2 (J^T J)^-1).
+#[test]
+fn measured_axes_add_their_own_uncertainty() {
+    let (_, outcome) = run(Scenario { seed: 11, ..Scenario::default() });
+    let calib = &outcome.calibration;
+    let reference = calib.reference_encoders;
+    let fixed = alignment_sigmas(calib, &outcome.verge_axes, &reference).unwrap();
+    let none =
+        alignment_sigmas_measured(calib, &outcome.verge_axes, &AxisSources::default(), &reference, None)
+            .unwrap();
+    assert!((fixed.verge_left_deg - none.verge_left_deg).abs() < 1e-12);
+    assert!((fixed.elevation_deg - none.elevation_deg).abs() < 1e-12);
+    let src = &outcome.axis_sources;
+    assert!(src.left.is_some() && src.right.is_some());
+    let measured = outcome.sigmas;
+    // The axes' own measurement is a small part of the vergence sigmas (resection
+    // against ~200 points; the points follow the calibration, which partly cancels):
+    // they move, but by less than 5 % (measured: 0.05 %).
+    for (m, f) in
+        [(measured.verge_left_deg, fixed.verge_left_deg), (measured.verge_right_deg, fixed.verge_right_deg)]
+    {
+        assert!(m != f && (m / f - 1.0).abs() < 0.05, "{measured:?} vs {fixed:?}");
+    }
+    // Variance = calibration part + pose part * sigma^2: (v3 - v2) / (v2 - v1) = 5/3
+    // (the finite differences are at 0.5 sigma of a nearly linear map: 2 % is generous).
+    let var = |px: f64| {
+        alignment_sigmas_measured(calib, &outcome.verge_axes, src, &reference, Some(px))
+            .unwrap()
+            .verge_left_deg
+            .powi(2)
+    };
+    let ratio = (var(3.0) - var(2.0)) / (var(2.0) - var(1.0));
+    assert!((ratio - 5.0 / 3.0).abs() < 0.035, "ratio {ratio}");
+}
+
+/// The procedure as `experiment fig5-verge-tilt` runs it (3 deg vergence move, RANSAC
+/// thresholds scaled by the noise) from initial readings `initial`.
+fn run_as_experiment(scenario: Scenario, initial: Encoders) -> (SimulatedHead, VergeTiltOutcome) {
+    let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+    head.move_to(&initial).unwrap();
+    let estimation = EstimationOptions::scaled_for_noise(scenario.noise_px, scenario.seed);
+    let options = VergeTiltOptions { verge_rotation_deg: 3.0, estimation, ..VergeTiltOptions::default() };
+    let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+    (head, outcome)
+}
+
+/// The verge-tilt procedure as the experiments run it, at 2 px from (pan 4, elevation 4,
+/// vergences 2 / -2) deg. Of seeds 1-30, seeds 4, 11, 13, 14, 15, 23 and 30 re-measure
+/// the left axis in a check view 6-14 deg of elevation from the reference, where the
+/// axis is most sensitive to the calibration (`examples/axis_diag.rs`).
+fn check_view_case_at(seed: u64) -> (SimulatedHead, VergeTiltOutcome) {
+    let initial = Encoders { pan: 4.0, elevation: 4.0, verge_left: 2.0, verge_right: -2.0 };
+    run_as_experiment(Scenario { seed, noise_px: 2.0, ..Scenario::default() }, initial)
+}
+
+/// The linearised calibration part ([`AxisFollow::followed`]: one Gauss-Newton step for
+/// the points and for each axis pose, least squares over the inliers held) against the
+/// procedure's own computation under the same perturbations: points re-triangulated
+/// to convergence (4 steps), the axis poses resected by [`measure_cameras`] itself
+/// (robust, from its own inliers), the axes by [`verge_axes_from_motion`]. Both
+/// Jacobians are propagated through the bundle covariance. Seeds 1-12, the first
+/// twelve, unselected (seeds 4 and 11 re-measure the left axis in a check view). The
+/// agreement is a property of each seed: the real resection's Huber weights (2 px, at
+/// 2 px noise) and its own inlier choice make it a different estimator from least
+/// squares over fixed inliers. Over seeds 1-30 (`scan_check_view_seeds`) the elevation
+/// ratio is 0.79-1.08, median 1.001 (seed 9 lowest, seed 13 0.88; without
+/// `EstimationOptions::image_border` 0.86-1.02, median 0.997), the vergences'
+/// 0.99-1.01 (without it 0.96-1.01): each seed is held to 25 % on the elevation and 5 %
+/// on the vergences, the elevation's median to 3 %. Letting the points seen only twice
+/// into the linearised resection (as a first version did) gave 2.95x on the elevation
+/// at seed 13.
+#[test]
+fn axis_sensitivity_matches_the_real_resection() {
+    let mut elevation = Vec::new();
+    for seed in 1..=12 {
+        let (_, outcome) = check_view_case_at(seed);
+        let [a, b] = linearised_and_resected_sigmas(&outcome);
+        for (name, x, y, tol) in [
+            ("elevation", a.elevation_deg, b.elevation_deg, 0.25),
+            ("verge left", a.verge_left_deg, b.verge_left_deg, 0.05),
+            ("verge right", a.verge_right_deg, b.verge_right_deg, 0.05),
+        ] {
+            assert!((x / y - 1.0).abs() < tol, "seed {seed} {name}: linearised {x} vs resection {y}");
+        }
+        elevation.push(a.elevation_deg / b.elevation_deg);
+    }
+    elevation.sort_by(f64::total_cmp);
+    let median = 0.5 * (elevation[5] + elevation[6]);
+    assert!((median - 1.0).abs() < 0.03, "median elevation ratio {median}: {elevation:?}");
+}
+
+/// The calibration part of the alignment sigmas, linearised ([`AxisFollow::followed`])
+/// and through the procedure's own resection (see the test above).
+fn linearised_and_resected_sigmas(outcome: &VergeTiltOutcome) -> [AlignmentSigmas; 2] {
+    let calib = &outcome.calibration;
+    let reference = calib.reference_encoders;
+    let sources = &outcome.axis_sources;
+    let follow = AxisFollow::new(calib, &outcome.verge_axes, sources, &reference);
+    let cov = &calib.bundle.covariance;
+    let linear = calibration_jacobian(cov, &[&|d| follow.followed(d)]);
+    let full = calibration_jacobian(
+        cov,
+        &[&|d| {
+            let mut st = calib.bundle.perturbed(d).ok()?;
+            for _ in 0..4 {
+                st = retriangulated(&st, &follow.by_point);
+            }
+            let moved = RigCalibration {
+                bundle: headalign_geometry::bundle::BundleResult {
+                    state: st.clone(),
+                    ..calib.bundle.clone()
+                },
+                ..calib.clone()
+            };
+            let axis = |src: &Option<AxisMeasurement>| -> Option<VergeAxes> {
+                let Some(src) = src else { return Some(outcome.verge_axes) };
+                let m = measure_cameras(
+                    &moved,
+                    &src.capture,
+                    &src.measured.ref_from_left,
+                    &src.measured.ref_from_right,
+                )
+                .ok()?;
+                verge_axes_from_motion(&st, &reference, &src.capture.encoders, &m).ok()
+            };
+            let axes = VergeAxes { left: axis(&sources.left)?.left, right: axis(&sources.right)?.right };
+            solve_alignment(&st, &axes, &reference).ok().map(|s| aligned_deltas(&s))
+        }],
+    );
+    [
+        sigmas_of(&(&linear * &cov.matrix * linear.transpose())),
+        sigmas_of(&(&full * &cov.matrix * full.transpose())),
+    ]
+}
+
+/// Monte-Carlo of the pose part: the axis sources' captures re-drawn 300 times and run
+/// through [`measure_cameras`], [`verge_axes_from_motion`] and [`solve_alignment`] with
+/// the calibration held; the spread of the aligned deltas against the pose part of
+/// [`alignment_sigmas_measured`] (its variance at 1 px minus at ~0 px). Each draw is the
+/// model the prediction linearises: the tracks its resection holds, at the projections
+/// of the calibration's points through the measured poses, plus 1 px Gaussian noise.
+/// (Exact pixels of the true scene instead add the calibration's fixed misfit, which
+/// through the resection's Huber weights moved the spread by -8 % to +68 % of the
+/// prediction over seeds 1-30, seed 14 most; the model's draws 0.91-1.11.) 300 draws know a standard
+/// deviation to 4 %; tolerance 15 % (3.5 standard errors) of the pose part plus 0.3 % of
+/// the total sigma: the vergences' pose parts are a few thousandths of a degree (0.5-2 %
+/// of the total), where the second-order term is as large as the linear one (seed 4's
+/// left: 0.0023 deg against a linear 0.0017), and at that size a pose part changes the
+/// total by less than 0.02 %.
+/// Seeds 4 and 13 (check views 14 deg from the reference: the largest elevation pose
+/// parts, 0.12 deg) and 14.
+#[test]
+fn pose_part_matches_monte_carlo() {
+    for seed in [4, 13, 14] {
+        let (head, outcome) = check_view_case_at(seed);
+        let [predicted, sd, total] = pose_part_and_monte_carlo(&head, &outcome, 300, true);
+        for (i, name) in ["elevation", "verge left", "verge right"].iter().enumerate() {
+            assert!(
+                (sd[i] - predicted[i]).abs() < 0.15 * predicted[i] + 0.003 * total[i],
+                "seed {seed} {name}: Monte-Carlo {} vs {} (total {})",
+                sd[i],
+                predicted[i],
+                total[i]
+            );
+        }
+    }
+}
+
+/// The pose part of [`alignment_sigmas_measured`] at 1 px (elevation, verge left, verge
+/// right; degrees), the standard deviations of `draws` Monte-Carlo re-draws (see the
+/// test above; `consistent` false: exact pixels of the true scene), and the total
+/// sigmas at 1 px.
+fn pose_part_and_monte_carlo(
+    head: &SimulatedHead,
+    outcome: &VergeTiltOutcome,
+    draws: usize,
+    consistent: bool,
+) -> [[f64; 3]; 3] {
+    use rand::{RngExt, SeedableRng};
+    let calib = &outcome.calibration;
+    let reference = calib.reference_encoders;
+    let sources = &outcome.axis_sources;
+    let var = |px: f64| {
+        let s = alignment_sigmas_measured(calib, &outcome.verge_axes, sources, &reference, Some(px)).unwrap();
+        [s.elevation_deg.powi(2), s.verge_left_deg.powi(2), s.verge_right_deg.powi(2)]
+    };
+    let (v1, v0) = (var(1.0), var(1e-9));
+    let predicted = [0, 1, 2].map(|i| (v1[i] - v0[i]).max(0.0).sqrt());
+    let state = &calib.bundle.state;
+    let points: std::collections::HashMap<u64, nalgebra::Point3<f64>> = calib.points().into_iter().collect();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut noisy = |c: &headalign_platform::StereoCapture| {
+        let mut c = c.clone();
+        for o in c.left.iter_mut().chain(c.right.iter_mut()) {
+            o.pixel.x += rng.sample::<f64, _>(rand_distr::StandardNormal);
+            o.pixel.y += rng.sample::<f64, _>(rand_distr::StandardNormal);
+        }
+        c
+    };
+    // The tracks the prediction's resections hold (left, right camera), from the real
+    // capture of each axis source.
+    let held = |src: &Option<AxisMeasurement>| -> [std::collections::HashSet<u64>; 2] {
+        let Some(src) = src else { return Default::default() };
+        let of =
+            |k, obs, pose| resection_inliers(k, &points, obs, pose).into_iter().map(|(t, _)| t).collect();
+        [
+            of(&state.left, &src.capture.left, &src.measured.ref_from_left),
+            of(&state.right, &src.capture.right, &src.measured.ref_from_right),
+        ]
+    };
+    let held = [held(&sources.left), held(&sources.right)];
+    let mut samples = Vec::with_capacity(draws);
+    for _ in 0..draws {
+        let mut axis = |src: &Option<AxisMeasurement>,
+                        [left, right]: &[std::collections::HashSet<u64>; 2]| {
+            let Some(src) = src else { return outcome.verge_axes };
+            let mut capture = head.exact_capture(&src.capture.encoders);
+            capture.left.retain(|o| left.contains(&o.track));
+            capture.right.retain(|o| right.contains(&o.track));
+            if consistent {
+                for (obs, k, pose) in [
+                    (&mut capture.left, &state.left, &src.measured.ref_from_left),
+                    (&mut capture.right, &state.right, &src.measured.ref_from_right),
+                ] {
+                    for o in obs.iter_mut() {
+                        if let Some(p) = points.get(&o.track).and_then(|x| project_into(k, pose, x)) {
+                            o.pixel = nalgebra::Point2::from(p);
+                        }
+                    }
+                }
+            }
+            let capture = noisy(&capture);
+            let m =
+                measure_cameras(calib, &capture, &src.measured.ref_from_left, &src.measured.ref_from_right)
+                    .unwrap();
+            verge_axes_from_motion(state, &reference, &capture.encoders, &m).unwrap()
+        };
+        let axes = VergeAxes {
+            left: axis(&sources.left, &held[0]).left,
+            right: axis(&sources.right, &held[1]).right,
+        };
+        samples.push(aligned_deltas(&solve_alignment(state, &axes, &reference).unwrap()));
+    }
+    let sd = [0, 1, 2].map(|i| {
+        let mean = samples.iter().map(|s| s[i]).sum::<f64>() / draws as f64;
+        (samples.iter().map(|s| (s[i] - mean).powi(2)).sum::<f64>() / (draws - 1) as f64).sqrt()
+    });
+    [predicted, sd, v1.map(f64::sqrt)]
+}
+
+/// The two checks above over seeds 1-30, printed (a diagnostic, not a test: `cargo test
+/// --release -p headalign --lib scan_check_view_seeds -- --ignored --nocapture`); the
+/// Monte-Carlo both ways (`consistent` true and false).
+#[test]
+#[ignore]
+fn scan_check_view_seeds() {
+    for seed in 1..=30 {
+        let (head, outcome) = check_view_case_at(seed);
+        let moved = outcome.axis_sources.left.as_ref().map_or(0.0, |src| {
+            (src.capture.encoders.elevation - outcome.calibration.reference_encoders.elevation).abs()
+        });
+        let [a, b] = linearised_and_resected_sigmas(&outcome);
+        let [p, model, _] = pose_part_and_monte_carlo(&head, &outcome, 200, true);
+        let [_, scene, total] = pose_part_and_monte_carlo(&head, &outcome, 200, false);
+        eprintln!(
+            "seed {seed} check view {moved:.1} deg | calibration part linearised/resected: elevation \
+             {:.3} verge {:.3} {:.3} | pose part (deg) predicted / Monte-Carlo model / scene: \
+             elevation {:.4} {:.4} {:.4}, verge left {:.5} {:.5} {:.5}, right {:.5} {:.5} {:.5} \
+             | total {:.3} {:.3} {:.3}",
+            a.elevation_deg / b.elevation_deg,
+            a.verge_left_deg / b.verge_left_deg,
+            a.verge_right_deg / b.verge_right_deg,
+            p[0],
+            model[0],
+            scene[0],
+            p[1],
+            model[1],
+            scene[1],
+            p[2],
+            model[2],
+            scene[2],
+            total[0],
+            total[1],
+            total[2]
+        );
+    }
+}
+
+#[test]
+fn capture_plan_has_both_directions_and_a_verge_view() {
+    let e0 = Encoders::default();
+    let plan = capture_plan(&e0, &VergeTiltOptions::default());
+    let names: Vec<&str> = plan.iter().map(|p| p.0.as_str()).collect();
+    assert_eq!(names, ["initial", "elevation+", "elevation-", "pan+", "pan-", "verge"]);
+    assert_eq!(plan[2].1.elevation, -3.0);
+    let short =
+        capture_plan(&e0, &VergeTiltOptions { both_directions: false, ..VergeTiltOptions::default() });
+    assert_eq!(short.len(), 4);
+}
+
+/// Auto rotation on the default scene grows past the fixed 3 deg (the simulated room
+/// fills the view), and a demanding overlap keeps the first candidate.
+#[test]
+fn auto_rotation_grows_when_the_scene_allows() {
+    let scenario = Scenario { seed: 3, noise_px: 0.5, outlier_fraction: 0.0, ..Scenario::default() };
+    let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+    let e0 = head.read_encoders().unwrap();
+    let loose = AutoRotation::default();
+    let c = choose_rotation(&mut head, &e0, true, &loose).unwrap();
+    assert!(c.rotation_deg > 3.0 && c.diagonal_rotation_deg > 3.0, "chose {c:?}");
+    assert_eq!(head.read_encoders().unwrap(), e0, "returns to the initial readings");
+    let strict = AutoRotation { min_overlap_fraction: 1.0, ..AutoRotation::default() };
+    let c = choose_rotation(&mut head, &e0, true, &strict).unwrap();
+    assert_eq!(c, RotationChoice { rotation_deg: 3.0, diagonal_rotation_deg: 0.0, verge_rotation_deg: None });
+    let bad = AutoRotation { candidates_deg: vec![6.0, 3.0], ..AutoRotation::default() };
+    assert!(bad.validate().is_err());
+}
+
+/// A field of view as the overlap test: a view keeps the overlap while each joint
+/// turns at most `joint_max` and pan and elevation together at most `sum_max` (degrees).
+fn field(joint_max: f64, sum_max: f64) -> impl Fn(f64, f64, f64) -> bool {
+    move |p: f64, e: f64, v: f64| {
+        p.abs() <= joint_max && e.abs() <= joint_max && v.abs() <= joint_max && p.abs() + e.abs() <= sum_max
+    }
+}
+
+/// Run the pure choice on `keeps`, recording the probes.
+fn choose(
+    auto: &AutoRotation,
+    both: bool,
+    keeps: impl Fn(f64, f64, f64) -> bool,
+) -> (RotationChoice, Vec<(f64, f64, f64)>) {
+    let mut probes = Vec::new();
+    let c = choose_rotations(auto, both, |p, e, v| {
+        probes.push((p, e, v));
+        Ok::<bool, ()>(keeps(p, e, v))
+    })
+    .unwrap();
+    (c, probes)
+}
+
+/// End to end with the auto mode (1 px, 10 % outliers): 10 deg each way and 10 deg
+/// diagonals on the default room, every view estimated. Limits: the bars of the
+/// issue's auto condition (0.15 deg, 0.5 %) with a factor 3 for one run.
+#[test]
+fn auto_rotation_with_diagonals_end_to_end() {
+    let scenario = Scenario { seed: 4, ..Scenario::default() };
+    let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+    let options = VergeTiltOptions {
+        estimation: EstimationOptions { seed: scenario.seed, ..EstimationOptions::default() },
+        auto_rotation: Some(AutoRotation::default()),
+        ..VergeTiltOptions::default()
+    };
+    let mut run = VergeTiltRun::default();
+    let outcome = run.run(&mut head, &options).unwrap();
+    assert_eq!(
+        (outcome.rotation_deg, outcome.diagonal_rotation_deg, outcome.verge_rotation_deg),
+        (10.0, 10.0, 10.0)
+    );
+    assert_eq!(run.views.len(), 10 + outcome.checks.len(), "probes are not kept");
+    assert_eq!(outcome.calibration.report.homographies.len(), 8, "every rotated view is estimated");
+    let e = head.alignment_errors(&head.encoders());
+    for v in [e.verge_err_l_deg, e.verge_err_r_deg, e.elev_err_l_deg] {
+        assert!(v.abs() < 0.45, "{e:?}");
+    }
+    let st = &outcome.calibration.bundle.state;
+    let cal = calibration_errors(&head.truth().left, &head.truth().right, &st.left, &st.right);
+    assert!(cal.f_err_pct < 1.5, "{cal:?}");
+}
+
+/// A 50-point scene (1.5 px, the issue's 50-point bar): the auto mode leaves the 3 deg
+/// protocol (with the former `min_tracks` of 60 it never did, since such a scene never
+/// shares 60 tracks) and every view is estimated. Limit 0.75 deg: three times the
+/// RMS elevation error of 150 such runs (0.25 deg, `headalign experiment points --only
+/// 50 --trials 300`), against 0.74 deg RMS with the fixed 3 deg protocol.
+#[test]
+fn auto_rotation_grows_in_a_fifty_point_scene() {
+    let scenario = Scenario { seed: 2, points: 50, noise_px: 1.5, ..Scenario::default() };
+    let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+    let options = VergeTiltOptions {
+        estimation: EstimationOptions { seed: scenario.seed, ..EstimationOptions::default() },
+        auto_rotation: Some(AutoRotation::default()),
+        ..VergeTiltOptions::default()
+    };
+    let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+    assert!(outcome.rotation_deg >= 6.0 && outcome.diagonal_rotation_deg >= 3.0, "{}", outcome.rotation_deg);
+    let e = head.alignment_errors(&head.encoders());
+    assert!(e.elev_err_l_deg.abs() < 0.75 && e.verge_err_l_deg.abs() < 0.75, "{e:?}");
+}
+
+/// Regression (calibration experiment, 3 px, seed 53): the re-selected adjustment
+/// explained a wrong track by a point at depth 1e-11, whose rounding noise made the
+/// reduced camera system indefinite, and the whole estimate failed ("a parameter is
+/// unobservable"); such a point now leaves the covariance and the depth filter after
+/// that adjustment removes it. Limit 2.2 deg: three times the RMS elevation and
+/// vergence errors of 250 such runs (0.72 deg); this run ends at 0.14 and 0.47 deg.
+#[test]
+fn a_point_collapsed_onto_a_camera_does_not_fail_the_estimate() {
+    let (head, _) = experiment_trial(53, 3.0);
+    let e = head.alignment_errors(&head.encoders());
+    assert!(e.elev_err_l_deg.abs() < 2.2 && e.verge_err_l_deg.abs() < 2.2, "{e:?}");
+}
+
+/// Regression (50 points, 1.5 px, 3 deg, seed 97, the experiment's thresholds scaled
+/// by 1.5): a round of the maximum-likelihood re-classification left a parameter
+/// unobservable and the whole estimate failed ("reduced camera system is singular");
+/// the rounds now end at the last classification that fitted. Limit 2.2 deg: three
+/// times the RMS elevation error of 150 such runs (0.74 deg); this run ends at 0.73.
+#[test]
+fn a_singular_reclassification_keeps_the_last_fit() {
+    let scenario = Scenario { seed: 97, points: 50, noise_px: 1.5, ..Scenario::default() };
+    let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+    let estimation = EstimationOptions::scaled_for_noise(1.5, 97);
+    let options = VergeTiltOptions { estimation, verge_rotation_deg: 3.0, ..VergeTiltOptions::default() };
+    VergeTiltRun::default().run(&mut head, &options).unwrap();
+    let e = head.alignment_errors(&head.encoders());
+    assert!(e.elev_err_l_deg.abs() < 2.2, "{e:?}");
+}
+
+/// Regression (3 px, seed 29, the former auto plan without diagonals): the first check
+/// measured 0.41 deg, above the tolerance, and the correction re-measured the left
+/// vergence axis from a 0.9 deg vergence turn after 8 deg of elevation: the axis came
+/// out 80 deg off and the head ended 8 deg from aligned. Now an axis is re-measured only
+/// from a vergence turn at least as large as the procedure's own (3 deg). Limit 1 deg:
+/// this run ends at 0.04 deg elevation and 0.44 deg vergence (3 px).
+#[test]
+fn small_vergence_turns_do_not_remeasure_the_axis() {
+    let scenario = Scenario { seed: 29, noise_px: 3.0, ..Scenario::default() };
+    let mut head = SimulatedHead::new(scenario.clone()).unwrap();
+    let estimation = EstimationOptions::scaled_for_noise(3.0, 29);
+    let auto = AutoRotation {
+        diagonals: false,
+        choose_verge: false,
+        min_overlap_fraction: 0.6,
+        ..AutoRotation::default()
+    };
+    let options = VergeTiltOptions { estimation, auto_rotation: Some(auto), ..VergeTiltOptions::default() };
+    let outcome = VergeTiltRun::default().run(&mut head, &options).unwrap();
+    assert_eq!(outcome.rotation_deg, 10.0);
+    let e = head.alignment_errors(&head.encoders());
+    assert!(e.elev_err_l_deg.abs() < 1.0 && e.verge_err_l_deg.abs() < 1.0, "{e:?}");
+}
+
+#[test]
+fn choice_takes_the_largest_rotations_the_field_allows() {
+    let auto = AutoRotation::default();
+    let rc = |r, d, v| RotationChoice { rotation_deg: r, diagonal_rotation_deg: d, verge_rotation_deg: v };
+    // Everything in view: 10 deg each way, 10 deg diagonals and vergence; 9 probes
+    // (largest first), none twice.
+    let (c, probes) = choose(&auto, true, field(90.0, 180.0));
+    assert_eq!(c, rc(10.0, 10.0, Some(10.0)));
+    assert_eq!(probes.len(), 9);
+    let mut unique = probes.clone();
+    unique.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    unique.dedup();
+    assert_eq!(unique.len(), probes.len(), "no view probed twice");
+    // Diagonals lose the corners first: 10 deg single-joint views, 6 deg diagonals.
+    assert_eq!(choose(&auto, true, field(12.0, 14.0)).0, rc(10.0, 6.0, Some(10.0)));
+    // A narrow field: 3 deg (the fixed protocol) and 3 deg diagonals.
+    assert_eq!(choose(&auto, true, field(4.0, 6.0)).0, rc(3.0, 3.0, Some(3.0)));
+    // Nothing in view: the first candidate, no diagonals, the vergence move unchanged.
+    assert_eq!(choose(&auto, true, field(1.0, 1.0)).0, rc(3.0, 0.0, None));
+    // One direction only fails: the elevation-down view at 10 deg.
+    let (c, _) = choose(&auto, true, |p: f64, e: f64, v: f64| e > -8.0 && field(90.0, 180.0)(p, e, v));
+    assert_eq!(c, rc(6.0, 6.0, Some(6.0)));
+    // The vergence move alone is limited.
+    let (c, _) = choose(&auto, true, |p: f64, e: f64, v: f64| v < 7.0 && field(90.0, 180.0)(p, e, v));
+    assert_eq!(c, rc(10.0, 10.0, Some(6.0)));
+    // Diagonals and vergence off: neither probed.
+    let off = AutoRotation { diagonals: false, choose_verge: false, ..AutoRotation::default() };
+    let (c, probes) = choose(&off, true, field(90.0, 180.0));
+    assert_eq!(c, rc(10.0, 0.0, None));
+    assert!(probes.iter().all(|(p, e, v)| (*p == 0.0 || *e == 0.0) && *v == 0.0));
+    // One direction: only positive offsets are probed.
+    let (c, probes) = choose(&auto, false, field(90.0, 180.0));
+    assert_eq!(c, rc(10.0, 10.0, Some(10.0)));
+    assert!(probes.iter().all(|(p, e, v)| *p >= 0.0 && *e >= 0.0 && *v >= 0.0));
+    // A failing probe (the head) stops the choice with its error.
+    let mut n = 0;
+    let err = choose_rotations(&auto, true, |_, _, _| {
+        n += 1;
+        if n == 3 { Err("head") } else { Ok(true) }
+    });
+    assert_eq!(err, Err("head"));
+}
+
+proptest::proptest! {
+    /// For any field of view: the chosen single-joint views all keep the overlap (or
+    /// it is the first candidate) and the next candidate's do not; the chosen
+    /// diagonals keep it and every larger candidate up to the rotation does not.
+    #[test]
+    fn choice_is_the_largest_allowed(joint_max in 0.0f64..20.0, sum_max in 0.0f64..30.0, both: bool) {
+        let auto = AutoRotation::default();
+        let keeps = field(joint_max, sum_max);
+        let (c, _) = choose(&auto, both, &keeps);
+        let cross_ok = |r: f64| single_joint_offsets(r, both).iter().all(|&(_, p, e)| keeps(p, e, 0.0));
+        let diag_ok = |d: f64| diagonal_offsets(d, both).iter().all(|&(_, p, e)| keeps(p, e, 0.0));
+        let cands = &auto.candidates_deg;
+        let i = cands.iter().position(|&x| x == c.rotation_deg).unwrap();
+        proptest::prop_assert!(i == 0 || cross_ok(c.rotation_deg));
+        for &larger in &cands[i + 1..] {
+            proptest::prop_assert!(!cross_ok(larger));
+        }
+        proptest::prop_assert!(c.diagonal_rotation_deg == 0.0 || diag_ok(c.diagonal_rotation_deg));
+        proptest::prop_assert!(c.diagonal_rotation_deg <= c.rotation_deg);
+        for &d in cands.iter().filter(|&&d| d > c.diagonal_rotation_deg && d <= c.rotation_deg) {
+            proptest::prop_assert!(!diag_ok(d));
+        }
+        let v = c.verge_rotation_deg.unwrap_or(0.0);
+        proptest::prop_assert!(v == 0.0 || (keeps(0.0, 0.0, v) && v <= c.rotation_deg));
+        for &w in cands.iter().filter(|&&w| w > v && w <= c.rotation_deg) {
+            proptest::prop_assert!(!keeps(0.0, 0.0, w));
+        }
+    }
+}
+
+#[test]
+fn capture_plan_adds_the_diagonals_before_the_verge_view() {
+    let e0 = Encoders::default();
+    let o =
+        VergeTiltOptions { rotation_deg: 10.0, diagonal_rotation_deg: 6.0, ..VergeTiltOptions::default() };
+    let plan = capture_plan(&e0, &o);
+    let names: Vec<&str> = plan.iter().map(|p| p.0.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "initial",
+            "elevation+",
+            "elevation-",
+            "pan+",
+            "pan-",
+            "pan+elevation+",
+            "pan+elevation-",
+            "pan-elevation+",
+            "pan-elevation-",
+            "verge"
+        ]
+    );
+    assert_eq!((plan[6].1.pan, plan[6].1.elevation), (6.0, -6.0));
+    assert_eq!(plan[3].1.elevation, 0.0);
+    let bad = VergeTiltOptions { diagonal_rotation_deg: 0.05, ..VergeTiltOptions::default() };
+    assert!(bad.validate().is_err());
+}
+
+#[test]
+fn invalid_options_are_errors() {
+    let bad = VergeTiltOptions { rotation_deg: 0.0, ..VergeTiltOptions::default() };
+    assert!(bad.validate().is_err());
+    let bad = VergeTiltOptions { check_tolerance_deg: f64::NAN, ..VergeTiltOptions::default() };
+    assert!(bad.validate().is_err());
+}
