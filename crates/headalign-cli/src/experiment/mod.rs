@@ -29,6 +29,7 @@
 //! quantity, 95 % coverage). `all` runs every experiment and writes `results.md` beside
 //! DIR with the paper's numbers and the bars.
 
+pub mod ml_spread;
 pub mod pan;
 pub mod plot;
 pub mod stats;
@@ -55,14 +56,24 @@ use self::stats::{coverage, quantity_crb, quantity_rms, rms};
 use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
 
 /// Names accepted by `headalign experiment`.
-pub const NAMES: [&str; 8] =
-    ["fig5-verge-tilt", "fig5-pan-tilt", "calibration", "points", "rotation", "outliers", "coverage", "all"];
+pub const NAMES: [&str; 9] = [
+    "fig5-verge-tilt",
+    "fig5-pan-tilt",
+    "calibration",
+    "points",
+    "rotation",
+    "outliers",
+    "coverage",
+    "all",
+    ml_spread::NAME,
+];
 
 /// Arguments of `headalign experiment`.
 #[derive(Args, Debug)]
 pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
-    /// coverage, or all.
+    /// coverage, or all; or ml-spread (the least squares' own spread from the truth; not
+    /// in all).
     pub name: String,
     /// Total trials, split evenly over the experiment's conditions (at least one seed
     /// each); default per experiment.
@@ -1014,6 +1025,9 @@ const OTHER_SCENE_BARS: [(&str, &str, f64); 4] = [
 
 /// Entry point of `headalign experiment`.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
+    if args.name == ml_spread::NAME {
+        return ml_spread::run(args);
+    }
     let scene = scene_name(&args.scene)?;
     if args.name == "all" && scene != "default" {
         bail!(
@@ -1021,7 +1035,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         );
     }
     let names: Vec<&str> = if args.name == "all" {
-        NAMES.iter().copied().filter(|n| *n != "all").collect()
+        NAMES.iter().copied().filter(|n| *n != "all" && *n != ml_spread::NAME).collect()
     } else {
         experiment(&args.name, &Scenario::default())?;
         vec![args.name.as_str()]
