@@ -139,7 +139,7 @@
 //! error. The estimating equations are then unbiased at the border too
 //! (moment matching: the expectation of each residual is zero at the truth; the exact
 //! truncated likelihood differs only in the weight of the few border residuals).
-//! Measured (`examples/bias_mc`, 2400 adjustments of the experiments' scene at 3 px): the
+//! Measured (the removed `examples/bias_mc.rs`, 2400 adjustments of the experiments' scene at 3 px): the
 //! image border's truncation put the focal lengths +0.08 to +0.14 sigma higher, fy most
 //! (the image is 576 px high); with the window they return to the untruncated values.
 //!
@@ -1045,8 +1045,8 @@ fn normal_pdf(t: f64) -> f64 {
 /// `Z = Phi(b) - Phi(a)`, `shift = sigma (phi(a) - phi(b)) / Z` and
 /// `d shift / d mu = (a phi(a) - b phi(b)) / Z - (shift / sigma)^2` (so `1 + d shift / d mu`
 /// is the truncated variance over `sigma^2`, in `(0, 1]`). `(0, 0)` more than
-/// [`WINDOW_REACH_SIGMAS`] inside both borders; for a prediction more than
-/// [`WINDOW_CLAMP_SIGMAS`] outside, the shift at that distance is held (derivative 0), so
+/// `WINDOW_REACH_SIGMAS` inside both borders; for a prediction more than
+/// `WINDOW_CLAMP_SIGMAS` outside, the shift at that distance is held (derivative 0), so
 /// the expected measurement follows the prediction there and such an observation still
 /// pulls its point back towards the window.
 #[inline]

@@ -188,14 +188,14 @@ pub struct EstimationOptions {
     /// views calibrate the head well.
     pub drop_weak_views: bool,
     /// After the maximum-likelihood pass, restart the least squares from the
-    /// depth-reversed rig ([`reversed_rig_restart`], module docs step 8) and keep the
+    /// depth-reversed rig (`reversed_rig_restart`, module docs step 8) and keep the
     /// solution of lower cost (default true; needs `final_least_squares`).
     pub reversed_rig_restart: bool,
     /// Leave out the tracks at depth steps before the maximum-likelihood pass
     /// ([`near_depth_step`]; default `None`, off, also in image mode: see
     /// [`DepthStepGate::IMAGES`]). A corner where a near edge crosses the background is no
     /// fixed scene point, and its structured error moves the calibration coherently
-    /// (`examples/cluster_diag.rs`).
+    /// (the removed `examples/cluster_diag.rs`).
     pub depth_step: Option<DepthStepGate>,
     /// Profile the reported covariance along the scene's depth scale
     /// ([`profile_depth_scale`], module docs step 9; needs `final_least_squares`). Default
@@ -224,7 +224,7 @@ pub struct EstimationOptions {
     /// border the noise of the observations that remain points inward; the least
     /// squares then fits each residual against the expected measurement under that
     /// truncation (`BundleOptions::measurement_window` = the whole image). Default
-    /// true. Measured with `examples/bias_mc` (2400 adjustments at 3 px): the truncation
+    /// true. Measured with the removed `examples/bias_mc.rs` (2400 adjustments at 3 px): the truncation
     /// put the focal lengths +0.08 to +0.14 sigma high (fy most: the image is 576 px high)
     /// and the window takes them back to the untruncated values; in `experiment
     /// calibration` (`--image-border on` against `off`, seeds 1-250 and 251-500) it halves
@@ -240,7 +240,7 @@ pub struct EstimationOptions {
     /// Default 1 (every point). A point seen once by one camera takes its depth from that
     /// observation alone (the other camera's views, a few degrees apart, fix its
     /// direction only), so a wrong observation near the epipolar line is fitted exactly at
-    /// a wrong depth and no residual test can see it: at 3 px (`examples/bias_pipeline.rs`,
+    /// a wrong depth and no residual test can see it: at 3 px (the removed `examples/bias_pipeline.rs`,
     /// seeds 1-200) the final adjustment keeps 0.585 outliers per trial, 116 of 117 of
     /// this kind, and the focal lengths come out up to +0.25 sigma high. 2 removes them
     /// (0.005 per trial) but those points, about 5 % of the observations and often near
@@ -254,7 +254,7 @@ pub struct EstimationOptions {
     /// ([`lone_depth_outliers`]): such a point's depth rests on that one observation, so
     /// a wrong one near the epipolar line puts it at a wrong depth that no residual shows,
     /// but usually far from the surface around it. `None` keeps every such point. Default
-    /// [`LoneDepthGate::DEFAULT`]. Measured (`examples/bias_pipeline.rs`, seeds 1-200 at
+    /// [`LoneDepthGate::DEFAULT`]. Measured (the removed `examples/bias_pipeline.rs`, seeds 1-200 at
     /// 3 px): kept outliers 0.585 -> 0.115 per trial, the focal lengths' mean error +0.13 /
     /// +0.26 / +0.06 / +0.16 -> +0.10 / +0.12 / +0.04 / +0.05 sigma; `experiment
     /// calibration` (seeds 1-250, paired, `--lone-depth-gate off` against the default): the
@@ -282,7 +282,7 @@ pub struct LoneDepthGate {
 }
 
 impl LoneDepthGate {
-    /// The default (field docs). Chosen on `examples/bias_pipeline.rs` `DEPTHDIAG` with
+    /// The default (field docs). Chosen on the removed `examples/bias_pipeline.rs` `DEPTHDIAG` with
     /// the gate off (lone observations more than 5 noise sigmas from their exact pixel
     /// count as outliers): beyond 5 deviations lie 97 of 116 lone outliers and 24 of 3843
     /// lone inliers at 3 px (200 seeds), 44 of 56 and 77 of 3963 at 1 px, 20 of 27 and 28 of
@@ -302,7 +302,7 @@ pub struct DepthProfile {
     /// maximum over the two ends; [`EstimationOptions::depth_profile`]).
     pub z: f64,
     /// Profile only when `sigma_s` exceeds this (default 0.01: the intrinsics' sigmas
-    /// widen by about `0.3-0.6 z sigma_s` where `sigma_s < 0.2` (`examples/profile_cost.rs`,
+    /// widen by about `0.3-0.6 z sigma_s` where `sigma_s < 0.2` (the removed `examples/profile_cost.rs`,
     /// seeds 1001-1040: 0.5 px sigma_s 0.033-0.066, widening 0.9-3.4 %; 1 px 0.065-0.16,
     /// 3.6-8.2 %), so below it by well under 1 %; it skips the noise-free runs, whose
     /// sigma_s is below 1e-6, and keeps every trial at 0.5 px and above).
@@ -361,7 +361,7 @@ pub struct DepthStepGate {
 
 impl DepthStepGate {
     /// The image-mode setting (field docs). Measured with the final observations re-fitted
-    /// without the flagged tracks (`examples/cluster_diag.rs`, seeds 1-40): z-score RMS of
+    /// without the flagged tracks (the removed `examples/cluster_diag.rs`, seeds 1-40): z-score RMS of
     /// the 8 intrinsics 1.29 -> 1.15 (seeds 1-20) and 2.27 -> 1.45 (seeds 21-40, three
     /// seeds at 3-7); radius 25 px and ratio 1.2 flagged fewer tracks and did less (1.17,
     /// 1.90); dropping as many random tracks changed nothing (1.28, 2.18). In the full
@@ -1256,7 +1256,7 @@ pub(crate) fn adjust_from_starts(
 /// point of the scene; it slides along the edge as the viewpoint moves, and its error is
 /// structured by the motion, alike for all such tracks, so it moves the calibration
 /// coherently where the per-track (clustered) covariance assumes independent tracks.
-/// Measured with the simulator's truth (`examples/cluster_diag.rs`): 2-5 % of the tracks
+/// Measured with the simulator's truth (the removed `examples/cluster_diag.rs`): 2-5 % of the tracks
 /// sit at true depth steps. Neighbours are found by bucketing each image into cells of
 /// the radius (linear time). Pitfall: it also flags good tracks beside an edge (the data
 /// lost is the price of not telling them apart).
@@ -1417,7 +1417,7 @@ fn maximum_likelihood_pass(
 /// in baselines is the badly determined direction (at 3 px known to tens of percent) and
 /// the linearised sigmas follow it: a receding maximum-likelihood scene (about 5 % of the
 /// trials at 3 px) reports sigmas 0.5-0.9 of the Cramer-Rao bound while its principal
-/// points move to absorb the disparity (`examples/sigma_diag.rs`). So the covariance is
+/// points move to absorb the disparity (the removed `examples/sigma_diag.rs`). So the covariance is
 /// evaluated along the profile likelihood in `s`: at `s_hat -+ z sigma_s` (everything
 /// else re-optimised, [`bundle_adjust_at_depth_scale`]); each camera parameter's sigma
 /// becomes the largest of the three and the correlations stay those of the estimate
@@ -1495,7 +1495,7 @@ fn widen_covariance(result: &mut BundleResult, widen: &[f64]) {
 /// `D = diag(max(1, sigma_boot / sigma))`, capped at [`MAX_END_WIDENING`]: the
 /// correlations stay the linearisation's and the point estimate is unchanged. Why: with
 /// small rotations in a near scene at 3 px the least squares spreads 1.1-1.2 times its
-/// linearised sigma for the focal lengths (`examples/bootstrap_mc.rs`). If fewer than 3
+/// linearised sigma for the focal lengths (the removed `examples/bootstrap_mc.rs`). If fewer than 3
 /// replicates converge, the covariance is left as it was and the report is `None`.
 pub fn bootstrap_covariance(
     result: BundleResult,
@@ -1535,7 +1535,7 @@ pub fn bootstrap_covariance(
 /// frame) reversed, plus a small change of relative yaw and principal point, fits the
 /// images almost as well, with the depth order of the points reversed around the
 /// fixation distance. Both are least-squares minima and the solver stays in the one its
-/// start leads to. Measured (`examples/ratio_diag.rs`, seed 39, position 2, at 2 and
+/// start leads to. Measured (the removed `examples/ratio_diag.rs`, seed 39, position 2, at 2 and
 /// 3 px): the estimate had t = (+0.98, -0.11, -0.13) against (-0.98, -0.00, -0.19) at the
 /// truth, right cx 63 px (6 sigma) off, and its cost was 40 (chi-square units) above the
 /// minimum reached from the truth; from the reversed start the least squares reaches that
@@ -1607,7 +1607,7 @@ fn reversed_rig_restart(
 /// The restarts' baseline sign changes (right camera frame, multiplied component-wise):
 /// the x component reversed, the whole baseline reversed, and its y and z components
 /// reversed (the product of the other two: with the estimate, the four form the group of
-/// these sign changes). The third, measured (`examples/ratio_diag.rs`, fig5-verge-tilt seed
+/// these sign changes). The third, measured (the removed `examples/ratio_diag.rs`, fig5-verge-tilt seed
 /// 1211, position 0, 3 px): the estimate had t = (-0.74, +0.19, +0.64), the minimum the
 /// least squares reaches from the truth t = (-0.73, -0.43, -0.53) at 3.2 chi-square units
 /// lower cost; the y-z reversed start reaches it (57 iterations), the other two do not. A
@@ -1621,7 +1621,7 @@ const RESTART_BASELINE_FLIPS: [Vector3<f64>; 3] =
 /// Cosine of the angle between the estimated baseline and the right camera's x axis below
 /// which [`reversed_rig_restart`] also restarts with the baseline along that axis, both
 /// ways (45 deg). A stereo head's cameras sit side by side: verged by up to 20 deg the
-/// baseline is within about 20 deg of each camera's x axis. Measured (`examples/ratio_diag.rs`,
+/// baseline is within about 20 deg of each camera's x axis. Measured (the removed `examples/ratio_diag.rs`,
 /// calibration seed 368 at 3 px): the estimate's baseline was (0.01, -0.36, -0.93), 84 deg
 /// from the truth's (-0.99, 0.00, -0.13), along the optical axis, with left fx 146 px
 /// (3.7 sigma) off, 127 chi-square units above the minimum the least squares reaches from
@@ -1667,7 +1667,7 @@ const RESTART_ABANDON_GAP: f64 = 200.0;
 /// replaces it.
 const RESTART_MIN_GAIN: f64 = 0.5;
 
-/// Rounds of classification and least squares in [`maximum_likelihood_pass`] (measured:
+/// Rounds of classification and least squares in `maximum_likelihood_pass` (measured:
 /// the set is stable after 2-3 at 1-3 px).
 pub const ML_ROUNDS: usize = 5;
 
@@ -1728,7 +1728,7 @@ fn camera_counts(points: usize, obs: &[BundleObservation]) -> Vec<[usize; 2]> {
 ///
 /// Why: the other camera's views, a few degrees apart, fix such a point's direction but
 /// hardly its depth, so the one observation sets the depth; a wrong observation near the
-/// epipolar line is fitted exactly at a wrong depth (`examples/bias_pipeline.rs`: 116 of
+/// epipolar line is fitted exactly at a wrong depth (the removed `examples/bias_pipeline.rs`: 116 of
 /// the 117 outliers the final adjustment kept at 3 px). A wrong pixel anywhere along the
 /// line is a wrong disparity, usually far from that of the surface around the point.
 ///
@@ -2306,7 +2306,7 @@ fn retriangulate_points(state: &mut RigState, src: &PointSources<'_>, which: &[b
 /// Why: an outlier can lie within the stereo threshold of its epipolar line, and in the
 /// first view it makes a wrong stereo match that places the point at a wrong depth; every
 /// good observation of the point then misses the re-selection gate and the point is lost
-/// with all of them. Measured (`examples/selection_loss.rs`, fig5 protocol, seed 5 at
+/// with all of them. Measured (the removed `examples/selection_loss.rs`, fig5 protocol, seed 5 at
 /// 2 px): two points (9 good observations each, the reference view's left one 342 and
 /// 167 px off) were lost that way, in the noise-free run too. Paired over 250 trials at 2
 /// and 3 px nearly every trial changes a little, the bounds fall by 0.2-0.4 % and the
@@ -2929,7 +2929,7 @@ mod tests {
     }
 
     /// A receding scene (the rig re-adjusted with its depth scale held 2 sigma_s beyond the
-    /// estimate, the far solution of examples/sigma_diag.rs in miniature: 80 points at
+    /// estimate, the far solution of the removed examples/sigma_diag.rs in miniature: 80 points at
     /// 1 px) reports smaller sigmas than the estimate; profiling it widens them back (the
     /// near end lies near the estimate), never narrows any, and keeps the state.
     #[test]

@@ -23,8 +23,8 @@
 //! error falls roughly as 1/rotation (the plane at infinity is found from the rotations'
 //! screws), so larger is better while enough of the scene stays in view; each joint still
 //! turns at most 10 deg. Why diagonals: the Cramer-Rao bound of the focal length at 3 px
-//! (`f = fx` pooled over both cameras, default room, 8 seeds, `cargo run --release -p
-//! headalign --example crb_plans`) is 1.76 % with 3 deg single-joint views, 0.71 % at
+//! (`f = fx` pooled over both cameras, default room, 8 seeds, the removed
+//! the removed `examples/crb_plans.rs`) is 1.76 % with 3 deg single-joint views, 0.71 % at
 //! 10 deg, 0.56 % adding 5 deg single-joint views (9 views), 0.47 / 0.39 / 0.31 % adding
 //! diagonals of 5 / 7 / 10 deg (9 views), 0.27-0.28 % with 13 views: a combined rotation
 //! moves the image along both axes at once and decorrelates the focal lengths from the
@@ -777,7 +777,7 @@ fn resection_normal_equations(
 
 /// Covariance (6x6, tangent `ref_from_cam * Exp([w; t])`, radians and scene units) of a
 /// camera pose resected from `obs` against `points` by [`crate::alignment::measure_cameras`]:
-/// `sigma^2 (J^T J)^-1` over the observations it keeps ([`resection_inliers`]), `J` by
+/// `sigma^2 (J^T J)^-1` over the observations it keeps (`resection_inliers`), `J` by
 /// central differences. `sigma` is `noise_px` or, if `None`, the residuals' own estimate
 /// `sqrt(sum r^2 / (2n - 6))`. `None` if fewer than 4 points or `J^T J` is singular.
 pub fn resection_pose_covariance(
@@ -810,7 +810,7 @@ const AXIS_BOOTSTRAP_SEED: u64 = 0x5eed_a215;
 /// the residuals' estimate as [`resection_pose_covariance`]). Unlike the least-squares
 /// covariance it includes the resection's Huber loss (2 px) and its outlier re-selection
 /// (5 px), which at 3 px noise widen the pose's spread about 1.4x (standard deviation;
-/// 1.0x at 1 px; `examples/axis_mc.rs`). `None` with fewer than 6 points or 20 successful
+/// 1.0x at 1 px; the removed `examples/axis_mc.rs`). `None` with fewer than 6 points or 20 successful
 /// draws.
 pub fn resection_pose_covariance_bootstrap(
     k: &headalign_geometry::camera::Intrinsics,
@@ -1085,7 +1085,7 @@ pub struct AxisStep {
 /// of the calibration (the pan/elevation chain, the stereo pose, and the scene points the
 /// axis views are resected against) and of the resected poses' own pixel noise
 /// (independent: the axis views are not in the bundle); the same linearisation as
-/// [`alignment_sigmas_measured`] ([`AxisFollow`]). Built by [`axis_perturbations`].
+/// [`alignment_sigmas_measured`] (`AxisFollow`). Built by [`axis_perturbations`].
 #[derive(Debug, Clone, Default)]
 pub struct AxisPerturbations {
     /// One entry per parameter of the bundle covariance (its order): the axes with the
@@ -1186,7 +1186,7 @@ pub fn axis_perturbations(
 /// rest; letting them into the linearised resection, or re-applying an outlier threshold
 /// per perturbation, inflated the elevation sigma of runs whose axis was re-measured in a
 /// check view after a large elevation move up to 2.7x, while their actual errors moved by
-/// a few hundredths of a degree (`examples/axis_diag.rs`). Measured there (150 seeds at
+/// a few hundredths of a degree (the removed `examples/axis_diag.rs`). Measured there (150 seeds at
 /// 2 px): the term raises the elevation sigma by 2 % where the axes come from the
 /// procedure's vergence view, by 6 % where a check view re-measured them (a third of the
 /// runs), and the vergence sigmas by under 0.1 %.
@@ -1474,7 +1474,7 @@ mod tests {
     /// The verge-tilt procedure as the experiments run it, at 2 px from (pan 4, elevation 4,
     /// vergences 2 / -2) deg. Of seeds 1-30, seeds 4, 11, 13, 14, 15, 23 and 30 re-measure
     /// the left axis in a check view 6-14 deg of elevation from the reference, where the
-    /// axis is most sensitive to the calibration (`examples/axis_diag.rs`).
+    /// axis is most sensitive to the calibration (the removed `examples/axis_diag.rs`).
     fn check_view_case_at(seed: u64) -> (SimulatedHead, VergeTiltOutcome) {
         let initial = Encoders { pan: 4.0, elevation: 4.0, verge_left: 2.0, verge_right: -2.0 };
         run_as_experiment(Scenario { seed, noise_px: 2.0, ..Scenario::default() }, initial)

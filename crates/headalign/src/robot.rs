@@ -82,7 +82,7 @@
 //! following and the poses re-resected) and adds the resected poses' own noise (modes of a
 //! parametric bootstrap of the robust resection: at 3 px its Huber loss and 5 px outlier
 //! gate spread the poses 1.4x beyond the least-squares covariance). Measured at 3 px
-//! (`examples/planarity_chi2.rs`, `RIGCHI=1`, seeds 1-30): the rotation error of the rig
+//! (the removed `examples/planarity_chi2.rs`, `RIGCHI=1`, seeds 1-30): the rotation error of the rig
 //! at the readings has a chi-square mean (3 expected) of 9.7 with the axes held as exact,
 //! 3.5 with their uncertainty (2.9 at the reference readings). Without
 //! `AxisPerturbations` the axes are held (the former behaviour).
@@ -207,7 +207,7 @@ pub struct PanOptions {
     pub planarity_chi2_max: f64,
     /// Standard deviation of each joint's encoder reading, degrees (the noise of the
     /// readings the drive's rig is predicted at; 0: exact). It enters the calibration
-    /// part of the covariance ([`calibration_covariance`]): a reading 0.01 deg off turns
+    /// part of the covariance (`calibration_covariance`): a reading 0.01 deg off turns
     /// the predicted stereo rig by that much, which the planarity test otherwise sees as
     /// the robot tilting (noise-free images with readings at 0.01 deg failed 12 of 20
     /// `fig5-pan-tilt` trials). Default [`ENCODER_SIGMA_DEG`], the noise the
@@ -532,7 +532,7 @@ impl Rig {
 
 /// Largest median misfit of the predicted rig accepted as it is, in the calibration's
 /// noise estimate (module docs, "rig check"). Over 713 drives of 90 robot-scene trials at
-/// 3 px (`examples/planarity_chi2.rs`, readings with 0.01 deg of noise) the median misfit
+/// 3 px (the removed `examples/planarity_chi2.rs`, readings with 0.01 deg of noise) the median misfit
 /// was 0.63 sigma, its 99th percentile 1.5 sigma; the one trial whose rig was 1.9 deg off
 /// (a vergence axis 12 deg off) had 4.4 sigma.
 pub const RIG_MISFIT_SIGMAS: f64 = 2.0;
@@ -656,7 +656,7 @@ pub(crate) fn check_rig(
 /// and the covariance (6x6) of that prediction's `right_from_left` in the left
 /// perturbation of [`perturb`] (rotation first, radians; translation in baselines),
 /// propagated from the calibration and, given `axes`, the vergence axes' uncertainty
-/// ([`calibration_covariance`]), the readings taken as exact. The covariance is `None` if
+/// (`calibration_covariance`), the readings taken as exact. The covariance is `None` if
 /// the propagation failed.
 pub fn predicted_rig(
     calib: &RigCalibration,
@@ -1770,7 +1770,7 @@ mod tests {
     /// of the true scene, as a first version drew (they add the calibration's fixed
     /// misfit through the Huber weights), gave 1.10
     /// with the image border not modelled and 1.07-1.30 over seeds 1-8
-    /// (`examples/axis_mc.rs`); with `EstimationOptions::min_camera_observations` 2 the
+    /// (the removed `examples/axis_mc.rs`); with `EstimationOptions::min_camera_observations` 2 the
     /// calibration differs and it was 1.22 (exact pixels 1.33). The least-squares pose
     /// covariance gave 1.40 (1.29-1.51).
     /// Tolerance [0.8, 1.3]: 100 draws know a standard deviation to 7 %, the bootstrap's

@@ -348,7 +348,7 @@ fn true_inlier_observations(
 }
 
 /// The noise-free run of a scenario, from which the Cramer-Rao bound at any noise level
-/// is evaluated ([`crb_sigmas`]).
+/// is evaluated ([`CleanRun::crb_sigmas`]).
 #[derive(Clone, Debug)]
 pub struct CleanRun {
     head: SimulatedHead,
