@@ -11,7 +11,7 @@
 //! Why: with a stereo head's nearly parallel cameras the epipoles lie far outside the
 //! images and `F` (7 dof) is ill-determined by noisy matches: at 3 px of noise the
 //! best-supported `F` of some scenes has its epipole inside the image, with a Sampson cost
-//! equal to or lower than the true `F`'s (measured, docs/efficiency.md). Knowing the
+//! equal to or lower than the true `F`'s (measured, docs/accuracy.md). Knowing the
 //! intrinsics removes two degrees of freedom, and the ambiguity with them.
 //!
 //! Parametrisation: `R <- exp(w) R` (3), `t <- normalise(t + B d)` with `B` a basis of the

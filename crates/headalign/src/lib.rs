@@ -17,6 +17,34 @@
 //! - [`session`]: sessions on disk (recording head, replay head, the format).
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
 //! - [`panfix`]: pan alignment without calibration, by fixating a drive's epipole.
+//!
+//! Aligning a simulated head (`headalign-sim`; any [`StereoHead`] will do): the verge/tilt
+//! procedure captures views at small elevation, pan and vergence turns, self-calibrates the
+//! cameras from them and returns the encoder readings at which the head is aligned, each
+//! with its sigma (degrees).
+//!
+//! ```
+//! use headalign::procedure::{VergeTiltOptions, VergeTiltRun};
+//! use headalign_sim::{Scenario, SimulatedHead};
+//!
+//! # fn main() -> Result<(), Box<dyn std::error::Error>> {
+//! // Unknown encoder zeros and mounting errors, 1 px image noise, 10 % outliers.
+//! let mut head = SimulatedHead::new(Scenario { points: 80, ..Scenario::default() })?;
+//! let outcome = VergeTiltRun::default().run(&mut head, &VergeTiltOptions::default())?;
+//! let (aligned, sigma) = (outcome.solution.aligned_encoders, outcome.sigmas);
+//! println!("elevation {:.3} +- {:.3} deg", aligned.elevation, sigma.elevation_deg);
+//! // The simulator knows the truth.
+//! let truth = head.aligned_encoders();
+//! assert!((aligned.elevation - truth.elevation).abs() < 4.0 * sigma.elevation_deg);
+//! assert!((aligned.verge_left - truth.verge_left).abs() < 4.0 * sigma.verge_left_deg);
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! The crate's examples teach the rest: `align_simulated` (the above with the errors
+//! printed), `custom_head` (implementing [`StereoHead`] for your own head) and
+//! `calibrate_folder` (self-calibration from a folder of stereo images with
+//! [`calibrate`]); `cargo run --release -p headalign --example NAME`.
 
 pub mod alignment;
 pub mod calibrate;

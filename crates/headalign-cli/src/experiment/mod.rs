@@ -32,6 +32,7 @@
 //! Each experiment's conditions, series and default trial count are defined in [`catalog`].
 
 mod catalog;
+pub mod ml_spread;
 pub mod pan;
 pub mod plot;
 pub mod stats;
@@ -58,14 +59,24 @@ use self::stats::{coverage, quantity_crb, quantity_rms, rms};
 use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
 
 /// Names accepted by `headalign experiment`.
-pub const NAMES: [&str; 8] =
-    ["fig5-verge-tilt", "fig5-pan-tilt", "calibration", "points", "rotation", "outliers", "coverage", "all"];
+pub const NAMES: [&str; 9] = [
+    "fig5-verge-tilt",
+    "fig5-pan-tilt",
+    "calibration",
+    "points",
+    "rotation",
+    "outliers",
+    "coverage",
+    "all",
+    ml_spread::NAME,
+];
 
 /// Arguments of `headalign experiment`.
 #[derive(Args, Debug)]
 pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
-    /// coverage, or all.
+    /// coverage, or all; or ml-spread (the least squares' own spread from the truth; not
+    /// in all).
     pub name: String,
     /// Total trials, split evenly over the experiment's conditions; default per
     /// experiment.
@@ -247,7 +258,7 @@ struct Experiment {
     /// (`fig5-verge-tilt`, `calibration`) run 250 seeds per noise level: an RMS over `n`
     /// trials is known to `1 / sqrt(2 n)` (4.5 % at 250; 95 % interval of the ratio about
     /// +-9 %), against 13 % at the former 30 seeds, where single seeds made 1.24-1.40 of
-    /// an estimator at 1.0-1.18 over 300 (docs/efficiency.md). 250 rather than 300 keeps
+    /// an estimator at 1.0-1.18 over 300 (docs/accuracy.md). 250 rather than 300 keeps
     /// `experiment all` near 15 min on an idle 2-core machine. `outliers`, where nothing
     /// is judged, runs 10 seeds.
     default_trials: usize,
@@ -830,6 +841,9 @@ const OTHER_SCENE_BARS: [(&str, &str, f64); 4] = [
 
 /// Entry point of `headalign experiment`.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
+    if args.name == ml_spread::NAME {
+        return ml_spread::run(args);
+    }
     let scene = scene_name(&args.scene)?;
     if args.name == "all" && scene != "default" {
         bail!(
@@ -837,7 +851,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         );
     }
     let names: Vec<&str> = if args.name == "all" {
-        NAMES.iter().copied().filter(|n| *n != "all").collect()
+        NAMES.iter().copied().filter(|n| *n != "all" && *n != ml_spread::NAME).collect()
     } else {
         experiment(&args.name, &Scenario::default())?;
         vec![args.name.as_str()]

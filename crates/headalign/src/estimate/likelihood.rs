@@ -21,7 +21,7 @@
 //! Pitfalls: classifying the inliers once, at the robust solution, biased the noise
 //! estimate 5 % low at 2-3 px (true inliers with 2-4 sigma errors were dropped); the
 //! iterated classification at the least-squares solution fixes that (measured in
-//! `docs/efficiency.md`). A point seen only once by one camera takes its depth from that
+//! `docs/accuracy.md`). A point seen only once by one camera takes its depth from that
 //! observation alone, so a wrong one is fitted exactly at a wrong depth that no residual
 //! shows; such a point is left out when that depth is off its neighbours' by more than its
 //! own stereo noise and the scene's roughness allow ([`lone_depth_outliers`]).
@@ -60,7 +60,7 @@ pub const ML_ROUNDS: usize = 5;
 ///   smaller than the noise by its leverage, a residual of an observation left out of the
 ///   fit larger.
 ///
-/// Measured cause (docs/efficiency.md): gating at the Huber solution once, where an
+/// Measured cause (docs/accuracy.md): gating at the Huber solution once, where an
 /// inlier with a large error keeps its full residual but the median-based scale is that of
 /// fitted residuals (about 0.88 of the noise at 2 px), dropped 7-12 % of the true inliers
 /// with errors of 2-3 sigma and 50-85 % of those at 3-4 sigma, so the least-squares noise
@@ -206,7 +206,7 @@ fn camera_counts(points: usize, obs: &[BundleObservation]) -> Vec<[usize; 2]> {
 ///
 /// Why: the other camera's views, a few degrees apart, fix such a point's direction but
 /// hardly its depth, so the one observation sets the depth; a wrong observation near the
-/// epipolar line is fitted exactly at a wrong depth (`examples/bias_pipeline.rs`: 116 of
+/// epipolar line is fitted exactly at a wrong depth (the removed `examples/bias_pipeline.rs`: 116 of
 /// the 117 outliers the final adjustment kept at 3 px). A wrong pixel anywhere along the
 /// line is a wrong disparity, usually far from that of the surface around the point.
 ///

@@ -45,7 +45,7 @@
 //!    the least-squares solution (studentised residuals within `reselect_sigmas` of the
 //!    unbiased, truncation-corrected noise estimate) and the adjustment repeated until the
 //!    set is stable: the ML estimate under the Gaussian model, whose covariance is the one
-//!    reported. Measured effect in `docs/efficiency.md` (RMS error / Cramer-Rao bound).
+//!    reported. Measured effect in `docs/accuracy.md` (RMS error / Cramer-Rao bound).
 //!    With [`EstimationOptions::image_border`] these passes model the image border: an
 //!    observation near it was kept only if its noise pointed inward, so its residual is
 //!    taken against the expected measurement of the truncated Gaussian. A point seen only
@@ -62,7 +62,7 @@
 //!    ([`EstimationOptions::reversed_rig_restart`]; seed 39 at 2-3 px had right cx 6 sigma
 //!    off in the wrong minimum); likewise from the baseline with its y and z components
 //!    reversed (a forward component's sign is weakly determined too: fig5 seeds 1119,
-//!    1130, 1211 at 3 px, `docs/ratio-tail.md`); and, when the estimated baseline is more
+//!    1130, 1211 at 3 px, `docs/accuracy.md`); and, when the estimated baseline is more
 //!    than 45 deg from the right camera's x axis (no stereo head's cameras are so placed),
 //!    from the baseline along that axis, both ways (calibration seed 368 at 3 px had it
 //!    along the optical axis, left fx 3.7 sigma off);
@@ -95,7 +95,7 @@
 //! outliers. Classifying the inliers once, at the robust solution, biased the noise
 //! estimate 5 % low at 2-3 px (true inliers with 2-4 sigma errors were dropped); the
 //! iterated classification at the least-squares solution fixes that (measured in
-//! `docs/efficiency.md`, with the remaining heavy-tailed trials).
+//! `docs/accuracy.md`, with the remaining heavy-tailed trials).
 //!
 //! Units: pixels for thresholds, radians inside, the scene in baselines (|t_rig| = 1)
 //! (a known baseline only rescales the scene). Frames: everything in the reference view's left
@@ -203,7 +203,7 @@ pub struct EstimationOptions {
     /// ([`near_depth_step`]; default `None`, off, also in image mode: see
     /// [`DepthStepGate::IMAGES`]). A corner where a near edge crosses the background is no
     /// fixed scene point, and its structured error moves the calibration coherently
-    /// (`examples/cluster_diag.rs`).
+    /// (the removed `examples/cluster_diag.rs`).
     pub depth_step: Option<DepthStepGate>,
     /// Profile the reported covariance along the scene's depth scale
     /// ([`profile_depth_scale`], module docs step 9; needs `final_least_squares`). Default
@@ -214,7 +214,7 @@ pub struct EstimationOptions {
     /// at 3 px); with `z = 1.96` the focal lengths over-cover at 3 px (left.fx 99.0 %: each
     /// sigma takes the maximum over the two ends). The default (ends capped at
     /// [`PROFILE_END_ITERATIONS`], the threshold) on the docs' seeds 1-300
-    /// (`docs/depth-profile-2001.md`): the coverage experiment's fixed group at 3 px
+    /// (`docs/accuracy.md`): the coverage experiment's fixed group at 3 px
     /// 90.7-97.0 % (right.cx 88.7 % off), at 0.5 px 92.7-98.0 %; +2 % CPU in
     /// `experiment fig5-verge-tilt --trials 100`. `None`: the linearised covariance at
     /// the estimate.
@@ -224,7 +224,7 @@ pub struct EstimationOptions {
     /// tracks (seeded by `seed` plus [`EstimationOptions::seed`]) and widens each camera
     /// sigma to the replicates' spread where that is larger (after the depth profile).
     /// Default `None`: it costs about one warm-started adjustment per replicate (30
-    /// replicates: measured in `docs/efficiency.md`, twentieth session, with the coverage
+    /// replicates: measured in `docs/accuracy.md`, with the coverage
     /// it buys in the near scene).
     pub bootstrap: Option<BootstrapOptions>,
     /// Model the image border in the maximum-likelihood passes (module docs step 7): a
@@ -232,12 +232,12 @@ pub struct EstimationOptions {
     /// border the noise of the observations that remain points inward; the least
     /// squares then fits each residual against the expected measurement under that
     /// truncation (`BundleOptions::measurement_window` = the whole image). Default
-    /// true. Measured with `examples/bias_mc` (2400 adjustments at 3 px): the truncation
+    /// true. Measured with the removed `examples/bias_mc.rs` (2400 adjustments at 3 px): the truncation
     /// put the focal lengths +0.08 to +0.14 sigma high (fy most: the image is 576 px high)
     /// and the window takes them back to the untruncated values; in `experiment
     /// calibration` (`--image-border on` against `off`, seeds 1-250 and 251-500) it halves
     /// the focal lengths' bias, the ratios move by less than their sampling noise, and
-    /// `experiment coverage` stays within 90.7-97.3 % (`docs/ratio-tail.md`). Noise-free
+    /// `experiment coverage` stays within 90.7-97.3 % (`docs/accuracy.md`). Noise-free
     /// estimates are unchanged (no residual is near its window's edge in sigmas). A
     /// feature detector that keeps a margin (`headalign-vision`: 16 px) truncates there
     /// instead; the whole-image window then corrects nothing and changes almost nothing
@@ -248,7 +248,7 @@ pub struct EstimationOptions {
     /// Default 1 (every point). A point seen once by one camera takes its depth from that
     /// observation alone (the other camera's views, a few degrees apart, fix its
     /// direction only), so a wrong observation near the epipolar line is fitted exactly at
-    /// a wrong depth and no residual test can see it: at 3 px (`examples/bias_pipeline.rs`,
+    /// a wrong depth and no residual test can see it: at 3 px (the removed `examples/bias_pipeline.rs`,
     /// seeds 1-200) the final adjustment keeps 0.585 outliers per trial, 116 of 117 of
     /// this kind, and the focal lengths come out up to +0.25 sigma high. 2 removes them
     /// (0.005 per trial) but those points, about 5 % of the observations and often near
@@ -256,13 +256,13 @@ pub struct EstimationOptions {
     /// (same seeds) the RMS errors grew by up to 17 % (focal lengths at 3 px 6-17 %, alignment
     /// 4-9 %) and the Cramer-Rao bound with them (f at 3 px 1.86 -> 2.00 %), so the
     /// ratios fell (calibration grid worst 1.154 -> 1.09) while every estimate got worse
-    /// (`docs/ratio-tail.md`). Kept as an option for data with many such outliers.
+    /// (`docs/accuracy.md`). Kept as an option for data with many such outliers.
     pub min_camera_observations: usize,
     /// Test of the points seen once by one camera against their neighbours' depth
     /// ([`lone_depth_outliers`]): such a point's depth rests on that one observation, so
     /// a wrong one near the epipolar line puts it at a wrong depth that no residual shows,
     /// but usually far from the surface around it. `None` keeps every such point. Default
-    /// [`LoneDepthGate::DEFAULT`]. Measured (`examples/bias_pipeline.rs`, seeds 1-200 at
+    /// [`LoneDepthGate::DEFAULT`]. Measured (the removed `examples/bias_pipeline.rs`, seeds 1-200 at
     /// 3 px): kept outliers 0.585 -> 0.115 per trial, the focal lengths' mean error +0.13 /
     /// +0.26 / +0.06 / +0.16 -> +0.10 / +0.12 / +0.04 / +0.05 sigma; `experiment
     /// calibration` (seeds 1-250, paired, `--lone-depth-gate off` against the default): the
@@ -290,7 +290,7 @@ pub struct LoneDepthGate {
 }
 
 impl LoneDepthGate {
-    /// The default (field docs). Chosen on `examples/bias_pipeline.rs` `DEPTHDIAG` with
+    /// The default (field docs). Chosen on the removed `examples/bias_pipeline.rs` `DEPTHDIAG` with
     /// the gate off (lone observations more than 5 noise sigmas from their exact pixel
     /// count as outliers): beyond 5 deviations lie 97 of 116 lone outliers and 24 of 3843
     /// lone inliers at 3 px (200 seeds), 44 of 56 and 77 of 3963 at 1 px, 20 of 27 and 28 of
@@ -310,7 +310,7 @@ pub struct DepthProfile {
     /// maximum over the two ends; [`EstimationOptions::depth_profile`]).
     pub z: f64,
     /// Profile only when `sigma_s` exceeds this (default 0.01: the intrinsics' sigmas
-    /// widen by about `0.3-0.6 z sigma_s` where `sigma_s < 0.2` (`examples/profile_cost.rs`,
+    /// widen by about `0.3-0.6 z sigma_s` where `sigma_s < 0.2` (the removed `examples/profile_cost.rs`,
     /// seeds 1001-1040: 0.5 px sigma_s 0.033-0.066, widening 0.9-3.4 %; 1 px 0.065-0.16,
     /// 3.6-8.2 %), so below it by well under 1 %; it skips the noise-free runs, whose
     /// sigma_s is below 1e-6, and keeps every trial at 0.5 px and above).
@@ -353,7 +353,7 @@ pub struct DepthStepGate {
 
 impl DepthStepGate {
     /// The image-mode setting (field docs). Measured with the final observations re-fitted
-    /// without the flagged tracks (`examples/cluster_diag.rs`, seeds 1-40): z-score RMS of
+    /// without the flagged tracks (the removed `examples/cluster_diag.rs`, seeds 1-40): z-score RMS of
     /// the 8 intrinsics 1.29 -> 1.15 (seeds 1-20) and 2.27 -> 1.45 (seeds 21-40, three
     /// seeds at 3-7); radius 25 px and ratio 1.2 flagged fewer tracks and did less (1.17,
     /// 1.90); dropping as many random tracks changed nothing (1.28, 2.18). In the full

@@ -351,7 +351,7 @@ fn a_weak_rotated_view_is_left_out() {
 
 /// The maximum-likelihood pass at 2 px: the noise it weights the prior with and
 /// reports is the truncation-corrected least-squares estimate (measured 0.96-1.02 of
-/// the truth at 2-3 px over seeds, 1.98 px here, docs/efficiency.md; one seed's
+/// the truth at 2-3 px over seeds, 1.98 px here, docs/accuracy.md; one seed's
 /// estimate over ~3800 residual components has a standard error of about 1.2 %, so
 /// 1.85-2.15 px leaves room for that and for the selection), it keeps
 /// the good observations (with 10 % outliers, at least 70 % of all of them: measured 77 %,
@@ -539,7 +539,7 @@ fn image_border_moves_only_noisy_estimates_and_only_a_little() {
 }
 
 /// A receding scene (the rig re-adjusted with its depth scale held 2 sigma_s beyond the
-/// estimate, the far solution of examples/sigma_diag.rs in miniature: 80 points at
+/// estimate, the far solution of the removed examples/sigma_diag.rs in miniature: 80 points at
 /// 1 px) reports smaller sigmas than the estimate; profiling it widens them back (the
 /// near end lies near the estimate), never narrows any, and keeps the state.
 #[test]
