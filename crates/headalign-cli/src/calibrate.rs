@@ -598,8 +598,30 @@ mod tests {
         }
     }
 
+    /// `json` without its timings (every `seconds` key, at any depth): what two runs on
+    /// the same views share bit for bit.
+    fn without_seconds(mut json: Value) -> Value {
+        fn strip(v: &mut Value) {
+            match v {
+                Value::Object(m) => {
+                    m.remove("seconds");
+                    m.values_mut().for_each(strip);
+                }
+                Value::Array(a) => a.iter_mut().for_each(strip),
+                _ => {}
+            }
+        }
+        strip(&mut json);
+        json
+    }
+
     /// A rendered session calibrated in memory and after a round trip through disk gives
-    /// the same calibration bit for bit (PNG is lossless; same tracker, same seeds).
+    /// the same calibration bit for bit (PNG is lossless; same tracker, same seeds). The
+    /// disk side is `replay`, which is calibrate on the views read back with the
+    /// constraints the session records (none here, as `args`): its report equals the
+    /// in-memory run's in every number but the timings (JSON numbers round-trip exactly),
+    /// the intrinsics with their sigmas, the rig, the distortion, the adjustment's report
+    /// and the density choice.
     #[test]
     fn session_on_disk_agrees_with_memory() {
         let scenario = Scenario { seed: 2, rotation_deg: 5.0, ..Scenario::default() };
@@ -608,19 +630,16 @@ mod tests {
         std::fs::remove_dir_all(&dir).ok();
         let info = session_info(&scenario, "rotations").unwrap();
         write_session(&dir, &views, &info).unwrap();
-        let a = args(&dir);
-        let memory = calibrate_views(&views, &a).unwrap();
-        let disk = calibrate_views(&load_views(&dir).unwrap(), &a).unwrap();
-        // The one session writer made it: a session.json that replay reads, and replay is
-        // calibrate on the same views.
+        let memory = calibrate_views(&views, &args(&dir)).unwrap();
+        // The one session writer made it: a session.json that replay reads.
         let read = headalign::session::read_session_info(&dir).unwrap();
         assert_eq!(read.procedure, PROCEDURE);
         let replayed = replay(&dir, &read).unwrap();
         // A second session into the same folder is refused (never mixed or overwritten).
         assert!(write_session(&dir, &views, &info).is_err());
         std::fs::remove_dir_all(&dir).ok();
-        assert_eq!(memory.stereo, disk.stereo);
-        assert_eq!(replayed["left"]["fx"], disk.json["left"]["fx"]);
+        assert!(memory.json["left"]["fx"].is_number() && memory.json["right_from_left"].is_object());
+        assert_eq!(without_seconds(replayed), without_seconds(memory.json.clone()));
         // And it is a calibration: within 3 % of the truth in focal length (rendered
         // images, two 5 deg rotations, full K with skew free).
         let t = head.truth();

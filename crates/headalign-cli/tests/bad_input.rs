@@ -49,140 +49,23 @@ fn observations() -> Value {
            "views": [view("initial", 0.0, 0.0), view("elevation", 0.0, 3.0), view("pan", 3.0, 0.0)]})
 }
 
-#[test]
-fn align_observations_bad_input_table() {
-    let dir = base("obs");
-    let good = serde_json::to_string(&observations()).unwrap();
-    let edit = |f: &dyn Fn(&mut Value)| {
-        let mut v = observations();
-        f(&mut v);
-        serde_json::to_string(&v).unwrap()
-    };
-    // (case, file contents, expected message parts besides the file name)
-    let cases: Vec<(&str, Vec<u8>, Vec<&str>)> = vec![
-        ("empty file", vec![], vec!["malformed JSON", "EOF"]),
-        ("whitespace only", b"  \n".to_vec(), vec!["malformed JSON"]),
-        ("truncated at a third", good.as_bytes()[..good.len() / 3].to_vec(), vec!["malformed JSON", "EOF"]),
-        ("truncated before the end", good.as_bytes()[..good.len() - 1].to_vec(), vec!["malformed JSON"]),
-        ("not JSON", b"views: 3".to_vec(), vec!["malformed JSON"]),
-        ("binary, not UTF-8", vec![0xff, 0xfe, 0x00, 0x89, b'P', b'N', b'G'], vec!["cannot read", "UTF-8"]),
-        ("an array, not an object", b"[1, 2, 3]".to_vec(), vec!["malformed JSON", "invalid type"]),
-        ("null", b"null".to_vec(), vec!["malformed JSON", "invalid type"]),
-        (
-            "wrong type: pan is a string",
-            edit(&|v| v["views"][0]["encoders"]["pan"] = json!("x")).into(),
-            vec!["invalid type"],
-        ),
-        ("wrong type: views is an object", edit(&|v| v["views"] = json!({})).into(), vec!["invalid type"]),
-        (
-            "wrong type: pixel is a string",
-            edit(&|v| v["views"][0]["left"][0][1] = json!("1")).into(),
-            vec!["invalid type"],
-        ),
-        (
-            "wrong type: observation has 2 numbers",
-            edit(&|v| v["views"][0]["left"][0] = json!([1, 2.0])).into(),
-            vec!["invalid length"],
-        ),
-        (
-            "missing field: format",
-            edit(&|v| drop(v.as_object_mut().unwrap().remove("format"))).into(),
-            vec!["missing field `format`"],
-        ),
-        (
-            "missing field: encoders",
-            edit(&|v| drop(v["views"][1].as_object_mut().unwrap().remove("encoders"))).into(),
-            vec!["missing field `encoders`"],
-        ),
-        (
-            "missing field: verge_right",
-            edit(&|v| drop(v["views"][1]["encoders"].as_object_mut().unwrap().remove("verge_right"))).into(),
-            vec!["missing field `verge_right`"],
-        ),
-        ("unknown field", edit(&|v| v["extra"] = json!(1)).into(), vec!["unknown field `extra`"]),
-        (
-            "wrong format tag",
-            edit(&|v| v["format"] = json!("headalign-observations/9")).into(),
-            vec!["unsupported format"],
-        ),
-        ("NaN literal", good.replacen("3.0", "NaN", 1).into_bytes(), vec!["malformed JSON"]),
-        (
-            "infinite encoder (1e999)",
-            good.replacen("3.0", "1e999", 1).into_bytes(),
-            vec!["number out of range"],
-        ),
-        (
-            "huge encoder 1e308",
-            edit(&|v| v["views"][1]["encoders"]["elevation"] = json!(1e308)).into(),
-            vec!["beyond +-3600"],
-        ),
-        ("huge pixel 1e308", edit(&|v| v["views"][1]["left"][0][1] = json!(1e308)).into(), vec!["outside"]),
-        ("negative pixel", edit(&|v| v["views"][1]["left"][0][2] = json!(-3.0)).into(), vec!["outside"]),
-        (
-            "track id beyond u64",
-            good.replacen("[0,", "[99999999999999999999,", 1).into_bytes(),
-            vec!["malformed JSON"],
-        ),
-        (
-            "negative track id",
-            edit(&|v| v["views"][0]["left"][0][0] = json!(-1)).into(),
-            vec!["malformed JSON"],
-        ),
-        (
-            "fractional track id",
-            edit(&|v| v["views"][0]["left"][0][0] = json!(1.5)).into(),
-            vec!["malformed JSON"],
-        ),
-        (
-            "negative image size",
-            edit(&|v| v["image_size"] = json!([-768, 576])).into(),
-            vec!["malformed JSON"],
-        ),
-        (
-            "zero image size",
-            edit(&|v| v["image_size"] = json!([0, 576])).into(),
-            vec!["not a valid image size"],
-        ),
-        (
-            "image size beyond u32",
-            edit(&|v| v["image_size"] = json!([1e10, 576])).into(),
-            vec!["malformed JSON"],
-        ),
-        (
-            "huge image size",
-            edit(&|v| v["image_size"] = json!([4_000_000_000u32, 576])).into(),
-            vec!["not a valid image size"],
-        ),
-        (
-            "image size with 3 numbers",
-            edit(&|v| v["image_size"] = json!([768, 576, 3])).into(),
-            vec!["malformed JSON"],
-        ),
-        ("no views", edit(&|v| v["views"] = json!([])).into(), vec!["needs at least 3"]),
-        ("empty view name", edit(&|v| v["views"][0]["name"] = json!(" ")).into(), vec!["empty name"]),
-        (
-            "duplicate view name",
-            edit(&|v| v["views"][1]["name"] = json!("initial")).into(),
-            vec!["appears twice"],
-        ),
-        ("duplicate track", edit(&|v| v["views"][0]["left"][1][0] = json!(0)).into(), vec!["appears twice"]),
-        (
-            "no tracks at all",
-            edit(&|v| {
-                for view in v["views"].as_array_mut().unwrap() {
-                    view["left"] = json!([]);
-                    view["right"] = json!([]);
-                }
-            })
-            .into(),
-            vec!["too few tracks"],
-        ),
-        (
-            "deeply nested",
-            format!("{}{}", "[".repeat(10_000), "]".repeat(10_000)).into_bytes(),
-            vec!["malformed JSON"],
-        ),
-    ];
+/// The observation session `observations()` changed by `f`, as file contents.
+fn edited(f: impl FnOnce(&mut Value)) -> Vec<u8> {
+    let mut v = observations();
+    f(&mut v);
+    serde_json::to_string(&v).unwrap().into()
+}
+
+/// The valid observation session as text, for cases that cut or rewrite its bytes.
+fn good_observations() -> String {
+    serde_json::to_string(&observations()).unwrap()
+}
+
+/// Each case's bytes written to a file of its own in a fresh folder named by `test`, and
+/// `align --observations FILE` must fail cleanly naming the file and the case's expected
+/// parts.
+fn check_observation_cases(test: &str, cases: &[(&str, Vec<u8>, Vec<&str>)]) {
+    let dir = base(test);
     for (i, (case, bytes, expected)) in cases.iter().enumerate() {
         let path = dir.join(format!("case{i}.json"));
         std::fs::write(&path, bytes).unwrap();
@@ -191,13 +74,183 @@ fn align_observations_bad_input_table() {
         parts.push(p);
         assert_clean_failure(case, &run(&["align", "--observations", p]), &parts);
     }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Files that are not JSON, or not readable as a file, at all.
+#[test]
+fn align_observations_malformed_json() {
+    let good = good_observations();
+    // (case, file contents, expected message parts besides the file name)
+    check_observation_cases(
+        "obs-malformed",
+        &[
+            ("empty file", vec![], vec!["malformed JSON", "EOF"]),
+            ("whitespace only", b"  \n".to_vec(), vec!["malformed JSON"]),
+            (
+                "truncated at a third",
+                good.as_bytes()[..good.len() / 3].to_vec(),
+                vec!["malformed JSON", "EOF"],
+            ),
+            ("truncated before the end", good.as_bytes()[..good.len() - 1].to_vec(), vec!["malformed JSON"]),
+            ("not JSON", b"views: 3".to_vec(), vec!["malformed JSON"]),
+            (
+                "binary, not UTF-8",
+                vec![0xff, 0xfe, 0x00, 0x89, b'P', b'N', b'G'],
+                vec!["cannot read", "UTF-8"],
+            ),
+            ("an array, not an object", b"[1, 2, 3]".to_vec(), vec!["malformed JSON", "invalid type"]),
+            ("null", b"null".to_vec(), vec!["malformed JSON", "invalid type"]),
+            ("NaN literal", good.replacen("3.0", "NaN", 1).into_bytes(), vec!["malformed JSON"]),
+            (
+                "deeply nested",
+                format!("{}{}", "[".repeat(10_000), "]".repeat(10_000)).into_bytes(),
+                vec!["malformed JSON"],
+            ),
+        ],
+    );
     // Not a readable file.
+    let dir = base("obs-unreadable");
     let d = dir.to_str().unwrap();
     assert_clean_failure("a directory", &run(&["align", "--observations", d]), &[d, "cannot read"]);
     let missing = dir.join("missing.json");
     let m = missing.to_str().unwrap();
     assert_clean_failure("missing file", &run(&["align", "--observations", m]), &[m, "cannot read"]);
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// JSON of the wrong shape: wrong types, missing or unknown fields, a wrong format tag.
+#[test]
+fn align_observations_wrong_types_and_fields() {
+    check_observation_cases(
+        "obs-fields",
+        &[
+            (
+                "wrong type: pan is a string",
+                edited(|v| v["views"][0]["encoders"]["pan"] = json!("x")),
+                vec!["invalid type"],
+            ),
+            ("wrong type: views is an object", edited(|v| v["views"] = json!({})), vec!["invalid type"]),
+            (
+                "wrong type: pixel is a string",
+                edited(|v| v["views"][0]["left"][0][1] = json!("1")),
+                vec!["invalid type"],
+            ),
+            (
+                "wrong type: observation has 2 numbers",
+                edited(|v| v["views"][0]["left"][0] = json!([1, 2.0])),
+                vec!["invalid length"],
+            ),
+            (
+                "missing field: format",
+                edited(|v| drop(v.as_object_mut().unwrap().remove("format"))),
+                vec!["missing field `format`"],
+            ),
+            (
+                "missing field: encoders",
+                edited(|v| drop(v["views"][1].as_object_mut().unwrap().remove("encoders"))),
+                vec!["missing field `encoders`"],
+            ),
+            (
+                "missing field: verge_right",
+                edited(|v| drop(v["views"][1]["encoders"].as_object_mut().unwrap().remove("verge_right"))),
+                vec!["missing field `verge_right`"],
+            ),
+            ("unknown field", edited(|v| v["extra"] = json!(1)), vec!["unknown field `extra`"]),
+            (
+                "wrong format tag",
+                edited(|v| v["format"] = json!("headalign-observations/9")),
+                vec!["unsupported format"],
+            ),
+        ],
+    );
+}
+
+/// Numbers out of their range: encoders, pixels, track ids and image sizes.
+#[test]
+fn align_observations_numbers_out_of_range() {
+    let good = good_observations();
+    check_observation_cases(
+        "obs-numbers",
+        &[
+            (
+                "infinite encoder (1e999)",
+                good.replacen("3.0", "1e999", 1).into_bytes(),
+                vec!["number out of range"],
+            ),
+            (
+                "huge encoder 1e308",
+                edited(|v| v["views"][1]["encoders"]["elevation"] = json!(1e308)),
+                vec!["beyond +-3600"],
+            ),
+            ("huge pixel 1e308", edited(|v| v["views"][1]["left"][0][1] = json!(1e308)), vec!["outside"]),
+            ("negative pixel", edited(|v| v["views"][1]["left"][0][2] = json!(-3.0)), vec!["outside"]),
+            (
+                "track id beyond u64",
+                good.replacen("[0,", "[99999999999999999999,", 1).into_bytes(),
+                vec!["malformed JSON"],
+            ),
+            (
+                "negative track id",
+                edited(|v| v["views"][0]["left"][0][0] = json!(-1)),
+                vec!["malformed JSON"],
+            ),
+            (
+                "fractional track id",
+                edited(|v| v["views"][0]["left"][0][0] = json!(1.5)),
+                vec!["malformed JSON"],
+            ),
+            ("negative image size", edited(|v| v["image_size"] = json!([-768, 576])), vec!["malformed JSON"]),
+            (
+                "zero image size",
+                edited(|v| v["image_size"] = json!([0, 576])),
+                vec!["not a valid image size"],
+            ),
+            (
+                "image size beyond u32",
+                edited(|v| v["image_size"] = json!([1e10, 576])),
+                vec!["malformed JSON"],
+            ),
+            (
+                "huge image size",
+                edited(|v| v["image_size"] = json!([4_000_000_000u32, 576])),
+                vec!["not a valid image size"],
+            ),
+            (
+                "image size with 3 numbers",
+                edited(|v| v["image_size"] = json!([768, 576, 3])),
+                vec!["malformed JSON"],
+            ),
+        ],
+    );
+}
+
+/// Well-formed sessions whose views do not fit together.
+#[test]
+fn align_observations_inconsistent_views() {
+    check_observation_cases(
+        "obs-views",
+        &[
+            ("no views", edited(|v| v["views"] = json!([])), vec!["needs at least 3"]),
+            ("empty view name", edited(|v| v["views"][0]["name"] = json!(" ")), vec!["empty name"]),
+            (
+                "duplicate view name",
+                edited(|v| v["views"][1]["name"] = json!("initial")),
+                vec!["appears twice"],
+            ),
+            ("duplicate track", edited(|v| v["views"][0]["left"][1][0] = json!(0)), vec!["appears twice"]),
+            (
+                "no tracks at all",
+                edited(|v| {
+                    for view in v["views"].as_array_mut().unwrap() {
+                        view["left"] = json!([]);
+                        view["right"] = json!([]);
+                    }
+                }),
+                vec!["too few tracks"],
+            ),
+        ],
+    );
 }
 
 fn textured(w: u32, h: u32, seed: u32) -> GrayImage {
@@ -260,174 +313,30 @@ fn png_bomb(w: u32, h: u32) -> Vec<u8> {
     png
 }
 
-#[test]
-fn align_images_bad_input_table() {
-    let root = base("images");
-    type Setup = Box<dyn Fn(&Path)>;
-    let write = |rel: &'static str, bytes: Vec<u8>| -> Setup {
-        Box::new(move |d: &Path| std::fs::write(d.join(rel), &bytes).unwrap())
-    };
-    let json_case = |text: &'static str| write("01-elevation/view.json", text.as_bytes().to_vec());
-    let good_png = {
-        let p = root.join("good.png");
-        textured(64, 48, 3).save(&p).unwrap();
-        std::fs::read(&p).unwrap()
-    };
-    // (case, how to break a good session, expected parts: the file, then the problem)
-    let cases: Vec<(&str, Setup, Vec<&str>)> = vec![
-        ("view.json empty", json_case(""), vec!["01-elevation/view.json", "EOF"]),
-        (
-            "view.json truncated",
-            json_case("{\"name\": \"elevation\", \"encoders\": {\"pan\": 0"),
-            vec!["01-elevation/view.json", "EOF"],
-        ),
-        ("view.json not an object", json_case("[]"), vec!["01-elevation/view.json", "invalid length"]),
-        (
-            "view.json wrong type",
-            json_case(r#"{"name": 5, "encoders": {}}"#),
-            vec!["01-elevation/view.json", "invalid type"],
-        ),
-        (
-            "view.json missing encoders",
-            json_case(r#"{"name": "e"}"#),
-            vec!["01-elevation/view.json", "missing field `encoders`"],
-        ),
-        (
-            "view.json missing joint",
-            json_case(r#"{"name": "e", "encoders": {"pan": 0, "elevation": 0, "verge_left": 0}}"#),
-            vec!["01-elevation/view.json", "missing field `verge_right`"],
-        ),
-        (
-            "view.json NaN",
-            json_case(
-                r#"{"name": "e", "encoders": {"pan": NaN, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
-            ),
-            vec!["01-elevation/view.json"],
-        ),
-        (
-            "view.json inf",
-            json_case(
-                r#"{"name": "e", "encoders": {"pan": -1e400, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
-            ),
-            vec!["01-elevation/view.json", "out of range"],
-        ),
-        (
-            "view.json 1e308",
-            json_case(
-                r#"{"name": "e", "encoders": {"pan": 1e308, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
-            ),
-            vec!["01-elevation/view.json", "beyond"],
-        ),
-        (
-            "view.json i64 overflow",
-            json_case(
-                r#"{"name": "e", "encoders": {"pan": 9223372036854775808000, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
-            ),
-            vec!["01-elevation/view.json", "beyond"],
-        ),
-        (
-            "view.json empty name",
-            json_case(
-                r#"{"name": "", "encoders": {"pan": 0, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
-            ),
-            vec!["01-elevation/view.json", "name is empty"],
-        ),
-        (
-            "view.json duplicate name",
-            json_case(
-                r#"{"name": "initial", "encoders": {"pan": 0, "elevation": 3, "verge_left": 0, "verge_right": 0}}"#,
-            ),
-            vec!["01-elevation/view.json", "also the name of"],
-        ),
-        (
-            "view.json is a directory",
-            Box::new(|d: &Path| {
-                std::fs::remove_file(d.join("01-elevation/view.json")).unwrap();
-                std::fs::create_dir(d.join("01-elevation/view.json")).unwrap();
-            }),
-            vec!["01-elevation/view.json", "cannot read"],
-        ),
-        (
-            "missing image",
-            Box::new(|d: &Path| std::fs::remove_file(d.join("02-pan/left.png")).unwrap()),
-            vec!["02-pan/left.png", "No such file"],
-        ),
-        (
-            "image is a directory",
-            Box::new(|d: &Path| {
-                std::fs::remove_file(d.join("02-pan/right.png")).unwrap();
-                std::fs::create_dir(d.join("02-pan/right.png")).unwrap();
-            }),
-            vec!["02-pan/right.png", "directory"],
-        ),
-        ("empty PNG", write("00-initial/left.png", vec![]), vec!["00-initial/left.png"]),
-        (
-            "not a PNG",
-            write("00-initial/left.png", b"hello, world".to_vec()),
-            vec!["00-initial/left.png", "format"],
-        ),
-        (
-            "truncated PNG",
-            write("00-initial/right.png", good_png[..good_png.len() / 2].to_vec()),
-            vec!["00-initial/right.png"],
-        ),
-        ("PNG header only", write("00-initial/right.png", png_header(64, 48)), vec!["00-initial/right.png"]),
-        (
-            "PNG declaring 1e6 x 1e6",
-            write("00-initial/left.png", png_header(1_000_000, 1_000_000)),
-            vec!["00-initial/left.png", "limit"],
-        ),
-        (
-            "PNG declaring 8000 x 8000 (a decompression bomb)",
-            write("00-initial/left.png", png_bomb(8000, 8000)),
-            vec!["00-initial/left.png", "declares 8000x8000 pixels"],
-        ),
-        (
-            "PNG declaring zero width",
-            write("00-initial/left.png", png_header(0, 48)),
-            vec!["00-initial/left.png"],
-        ),
-        (
-            "blank image",
-            Box::new(|d: &Path| {
-                GrayImage::filled(64, 48, 90).save(&d.join("01-elevation/left.png")).unwrap()
-            }),
-            vec!["01-elevation/left.png", "blank"],
-        ),
-        (
-            "left and right sizes differ",
-            Box::new(|d: &Path| textured(60, 48, 1).save(&d.join("01-elevation/right.png")).unwrap()),
-            vec!["01-elevation/left.png", "01-elevation/right.png", "same size"],
-        ),
-        (
-            "view size differs from the first",
-            Box::new(|d: &Path| {
-                textured(32, 48, 1).save(&d.join("02-pan/left.png")).unwrap();
-                textured(32, 48, 2).save(&d.join("02-pan/right.png")).unwrap();
-            }),
-            vec!["02-pan/left.png", "first view"],
-        ),
-        (
-            "no view folders",
-            Box::new(|d: &Path| {
-                for v in ["00-initial", "01-elevation", "02-pan"] {
-                    std::fs::remove_dir_all(d.join(v)).unwrap();
-                }
-            }),
-            vec!["holds no view folders"],
-        ),
-        (
-            "textured but too small to track",
-            Box::new(|d: &Path| {
-                for v in ["00-initial", "01-elevation", "02-pan"] {
-                    textured(4, 3, 1).save(&d.join(v).join("left.png")).unwrap();
-                    textured(4, 3, 2).save(&d.join(v).join("right.png")).unwrap();
-                }
-            }),
-            vec!["view 'initial'"],
-        ),
-        ("random texture: nothing matches", Box::new(|_: &Path| {}), vec!["view '"]),
-    ];
+type Setup = Box<dyn Fn(&Path)>;
+
+/// A case that writes `bytes` to the file `rel` of the session.
+fn write_file(rel: &'static str, bytes: Vec<u8>) -> Setup {
+    Box::new(move |d: &Path| std::fs::write(d.join(rel), &bytes).unwrap())
+}
+
+/// A case that replaces the elevation view's view.json by `text`.
+fn view_json_case(text: &'static str) -> Setup {
+    write_file("01-elevation/view.json", text.as_bytes().to_vec())
+}
+
+/// A good textured PNG written to `root/good.png`: its path and its bytes.
+fn good_png(root: &Path) -> (PathBuf, Vec<u8>) {
+    let p = root.join("good.png");
+    textured(64, 48, 3).save(&p).unwrap();
+    let bytes = std::fs::read(&p).unwrap();
+    (p, bytes)
+}
+
+/// Each case breaks a good session (`image_session`) of its own under `root`, and
+/// `align --images DIR` must fail cleanly naming the folder and the case's expected parts
+/// (the file, then the problem).
+fn check_image_cases(root: &Path, cases: &[(&str, Setup, Vec<&str>)]) {
     for (i, (case, setup, expected)) in cases.iter().enumerate() {
         let dir = root.join(format!("case{i}"));
         image_session(&dir);
@@ -438,6 +347,204 @@ fn align_images_bad_input_table() {
         parts.push(d);
         assert_clean_failure(case, &out, &parts);
     }
+}
+
+/// A view's view.json broken: malformed, the wrong shape, numbers out of range, names
+/// that are empty or taken, not a file.
+#[test]
+fn align_images_bad_view_json() {
+    let root = base("images-json");
+    check_image_cases(
+        &root,
+        &[
+            ("view.json empty", view_json_case(""), vec!["01-elevation/view.json", "EOF"]),
+            (
+                "view.json truncated",
+                view_json_case("{\"name\": \"elevation\", \"encoders\": {\"pan\": 0"),
+                vec!["01-elevation/view.json", "EOF"],
+            ),
+            (
+                "view.json not an object",
+                view_json_case("[]"),
+                vec!["01-elevation/view.json", "invalid length"],
+            ),
+            (
+                "view.json wrong type",
+                view_json_case(r#"{"name": 5, "encoders": {}}"#),
+                vec!["01-elevation/view.json", "invalid type"],
+            ),
+            (
+                "view.json missing encoders",
+                view_json_case(r#"{"name": "e"}"#),
+                vec!["01-elevation/view.json", "missing field `encoders`"],
+            ),
+            (
+                "view.json missing joint",
+                view_json_case(r#"{"name": "e", "encoders": {"pan": 0, "elevation": 0, "verge_left": 0}}"#),
+                vec!["01-elevation/view.json", "missing field `verge_right`"],
+            ),
+            (
+                "view.json NaN",
+                view_json_case(
+                    r#"{"name": "e", "encoders": {"pan": NaN, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+                ),
+                vec!["01-elevation/view.json"],
+            ),
+            (
+                "view.json inf",
+                view_json_case(
+                    r#"{"name": "e", "encoders": {"pan": -1e400, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+                ),
+                vec!["01-elevation/view.json", "out of range"],
+            ),
+            (
+                "view.json 1e308",
+                view_json_case(
+                    r#"{"name": "e", "encoders": {"pan": 1e308, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+                ),
+                vec!["01-elevation/view.json", "beyond"],
+            ),
+            (
+                "view.json i64 overflow",
+                view_json_case(
+                    r#"{"name": "e", "encoders": {"pan": 9223372036854775808000, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+                ),
+                vec!["01-elevation/view.json", "beyond"],
+            ),
+            (
+                "view.json empty name",
+                view_json_case(
+                    r#"{"name": "", "encoders": {"pan": 0, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#,
+                ),
+                vec!["01-elevation/view.json", "name is empty"],
+            ),
+            (
+                "view.json duplicate name",
+                view_json_case(
+                    r#"{"name": "initial", "encoders": {"pan": 0, "elevation": 3, "verge_left": 0, "verge_right": 0}}"#,
+                ),
+                vec!["01-elevation/view.json", "also the name of"],
+            ),
+            (
+                "view.json is a directory",
+                Box::new(|d: &Path| {
+                    std::fs::remove_file(d.join("01-elevation/view.json")).unwrap();
+                    std::fs::create_dir(d.join("01-elevation/view.json")).unwrap();
+                }),
+                vec!["01-elevation/view.json", "cannot read"],
+            ),
+        ],
+    );
+    std::fs::remove_dir_all(&root).ok();
+}
+
+/// A view's images missing, not images, truncated, declaring absurd sizes, blank, or of
+/// sizes that do not match.
+#[test]
+fn align_images_bad_image_files() {
+    let root = base("images-files");
+    let (_, good) = good_png(&root);
+    check_image_cases(
+        &root,
+        &[
+            (
+                "missing image",
+                Box::new(|d: &Path| std::fs::remove_file(d.join("02-pan/left.png")).unwrap()),
+                vec!["02-pan/left.png", "No such file"],
+            ),
+            (
+                "image is a directory",
+                Box::new(|d: &Path| {
+                    std::fs::remove_file(d.join("02-pan/right.png")).unwrap();
+                    std::fs::create_dir(d.join("02-pan/right.png")).unwrap();
+                }),
+                vec!["02-pan/right.png", "directory"],
+            ),
+            ("empty PNG", write_file("00-initial/left.png", vec![]), vec!["00-initial/left.png"]),
+            (
+                "not a PNG",
+                write_file("00-initial/left.png", b"hello, world".to_vec()),
+                vec!["00-initial/left.png", "format"],
+            ),
+            (
+                "truncated PNG",
+                write_file("00-initial/right.png", good[..good.len() / 2].to_vec()),
+                vec!["00-initial/right.png"],
+            ),
+            (
+                "PNG header only",
+                write_file("00-initial/right.png", png_header(64, 48)),
+                vec!["00-initial/right.png"],
+            ),
+            (
+                "PNG declaring 1e6 x 1e6",
+                write_file("00-initial/left.png", png_header(1_000_000, 1_000_000)),
+                vec!["00-initial/left.png", "limit"],
+            ),
+            (
+                "PNG declaring 8000 x 8000 (a decompression bomb)",
+                write_file("00-initial/left.png", png_bomb(8000, 8000)),
+                vec!["00-initial/left.png", "declares 8000x8000 pixels"],
+            ),
+            (
+                "PNG declaring zero width",
+                write_file("00-initial/left.png", png_header(0, 48)),
+                vec!["00-initial/left.png"],
+            ),
+            (
+                "blank image",
+                Box::new(|d: &Path| {
+                    GrayImage::filled(64, 48, 90).save(&d.join("01-elevation/left.png")).unwrap()
+                }),
+                vec!["01-elevation/left.png", "blank"],
+            ),
+            (
+                "left and right sizes differ",
+                Box::new(|d: &Path| textured(60, 48, 1).save(&d.join("01-elevation/right.png")).unwrap()),
+                vec!["01-elevation/left.png", "01-elevation/right.png", "same size"],
+            ),
+            (
+                "view size differs from the first",
+                Box::new(|d: &Path| {
+                    textured(32, 48, 1).save(&d.join("02-pan/left.png")).unwrap();
+                    textured(32, 48, 2).save(&d.join("02-pan/right.png")).unwrap();
+                }),
+                vec!["02-pan/left.png", "first view"],
+            ),
+        ],
+    );
+    std::fs::remove_dir_all(&root).ok();
+}
+
+/// Folders that are not sessions, or sessions whose images cannot be tracked.
+#[test]
+fn align_images_bad_folders() {
+    let root = base("images-folders");
+    check_image_cases(
+        &root,
+        &[
+            (
+                "no view folders",
+                Box::new(|d: &Path| {
+                    for v in ["00-initial", "01-elevation", "02-pan"] {
+                        std::fs::remove_dir_all(d.join(v)).unwrap();
+                    }
+                }),
+                vec!["holds no view folders"],
+            ),
+            (
+                "textured but too small to track",
+                Box::new(|d: &Path| {
+                    for v in ["00-initial", "01-elevation", "02-pan"] {
+                        textured(4, 3, 1).save(&d.join(v).join("left.png")).unwrap();
+                        textured(4, 3, 2).save(&d.join(v).join("right.png")).unwrap();
+                    }
+                }),
+                vec!["view 'initial'"],
+            ),
+            ("random texture: nothing matches", Box::new(|_: &Path| {}), vec!["view '"]),
+        ],
+    );
     let missing = root.join("missing");
     let m = missing.to_str().unwrap();
     assert_clean_failure(
@@ -445,7 +552,7 @@ fn align_images_bad_input_table() {
         &run(&["align", "--images", m]),
         &[m, "cannot read session folder"],
     );
-    let file = root.join("good.png");
+    let (file, _) = good_png(&root);
     let f = file.to_str().unwrap();
     assert_clean_failure(
         "a file, not a folder",

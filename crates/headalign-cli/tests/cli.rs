@@ -1,13 +1,20 @@
 //! End-to-end tests of the `headalign` binary: the demo's JSON, a simulated session
-//! recorded to disk and aligned, and every error path of `align --observations`.
+//! recorded to disk and aligned, every error path of `align --observations`, the image
+//! demo's saved views aligned offline, and `run --head-cmd` driving the example simulator
+//! driver through the head protocol to that image demo's result.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use std::sync::OnceLock;
 
 use serde_json::Value;
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_headalign"))
+}
+
+fn driver() -> &'static str {
+    env!("CARGO_BIN_EXE_headalign-sim-driver")
 }
 
 fn tmp(name: &str) -> PathBuf {
@@ -154,24 +161,55 @@ fn align_writes_the_calibration_files() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// The folders of `dir` that hold a recorded view, sorted.
+fn view_folders(dir: &Path) -> Vec<String> {
+    let mut v: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .filter_map(Result::ok)
+        .filter(|e| e.path().join("view.json").exists())
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .collect();
+    v.sort();
+    v
+}
+
+/// The image demo of seed 4, run once for the two tests that use it: its folder, its
+/// `--json` output, and the view folders it recorded (listed before any test touches the
+/// folder).
+struct ImageDemo {
+    dir: PathBuf,
+    json: Value,
+    folders: Vec<String>,
+}
+
+/// `demo --images --stages verge-tilt --seed 4 --json --save DIR`: the verge/tilt stage
+/// alone (the plain room); the robot stages on images are covered by `sessions.rs`
+/// (recorded and replayed) and `headalign/tests/robot_images.rs`.
+fn image_demo() -> &'static ImageDemo {
+    static DEMO: OnceLock<ImageDemo> = OnceLock::new();
+    DEMO.get_or_init(|| {
+        let dir = tmp("images-save");
+        let out = run(&[
+            "demo",
+            "--images",
+            "--stages",
+            "verge-tilt",
+            "--seed",
+            "4",
+            "--json",
+            "--save",
+            dir.to_str().unwrap(),
+        ]);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let json = serde_json::from_slice(&out.stdout).unwrap();
+        let folders = view_folders(&dir);
+        ImageDemo { dir, json, folders }
+    })
+}
+
 #[test]
 fn demo_on_rendered_images_aligns_and_saves_the_views() {
-    let dir = tmp("images-save");
-    // The verge/tilt stage alone (the plain room): the robot stages on images are covered
-    // by `sessions.rs` (recorded and replayed) and `headalign/tests/robot_images.rs`.
-    let out = run(&[
-        "demo",
-        "--images",
-        "--stages",
-        "verge-tilt",
-        "--seed",
-        "4",
-        "--json",
-        "--save",
-        dir.to_str().unwrap(),
-    ]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let ImageDemo { dir, json: v, .. } = image_demo();
     // The bar for image mode is 0.5 deg and 2 %; one seed here, measured about
     // 0.05 deg and 0.3 % (seeds 1-5 in the README), so 0.5 / 2 is the bar itself.
     for key in ["verge_err_l_deg", "verge_err_r_deg", "elev_err_l_deg", "elev_err_r_excess_deg"] {
@@ -234,7 +272,7 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
     std::fs::write(&bad, b"truncated").unwrap();
     let out = run(&["align", "--images", dir.to_str().unwrap()]);
     assert_clean_failure(&out, "right.png");
-    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_dir_all(dir).ok();
     // --no-session needs --images (point mode records only with --session).
     let out = run(&["demo", "--no-session"]);
     assert!(!out.status.success());
@@ -297,6 +335,36 @@ fn align_error_paths_are_one_line_and_named() {
     // Fewer than three views.
     let f = session_with(&base, |v| v["views"].as_array_mut().unwrap().truncate(2));
     assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "at least 3");
+}
+
+/// `run --head-cmd` with the example driver of the simulator (the simulated head of
+/// `demo --images` for the same seed) runs the same procedure on the same images as the
+/// image demo: the same numbers, bit for bit, and the same views. The demo's own test
+/// bounds these errors (0.5 deg, 2 %); the estimate is identical. The session it records
+/// replays to the same estimate.
+#[test]
+fn a_driver_process_runs_the_procedure_like_the_simulator() {
+    let dir = tmp("driver-4");
+    std::fs::remove_dir_all(&dir).ok();
+    let out = bin()
+        .args(["run", "--head-cmd", &format!("'{}' --seed 4", driver()), "--json", "--session"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let live: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let demo = image_demo();
+    assert_eq!(live["estimate"], demo.json["estimate"]);
+    assert_eq!(live["checks"], demo.json["checks"]);
+    assert_eq!(view_folders(&dir), demo.folders);
+    let out = run(&["replay", dir.to_str().unwrap(), "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let r: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(r["estimate"], live["estimate"]);
+    let info: Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("session.json")).unwrap()).unwrap();
+    assert_eq!(info["head"]["kind"], "process");
+    std::fs::remove_dir_all(&dir).ok();
 }
 
 #[test]

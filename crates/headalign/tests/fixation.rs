@@ -3,12 +3,27 @@
 //! centre, checked against the simulator's truth — for a visible scene point and for
 //! targets that start outside the image (left, right, above, below, diagonally).
 
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock};
+
 use headalign::imaging::{Camera, FixationOptions, FixationReport, fixate};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::{Point3, Vector3};
 
+/// The simulated head of `seed` at its start. Its textures are baked once per seed and
+/// shared by every case of that seed (the cases clone a head baked before any capture):
+/// baking draws from its own stream (`SimulatedHead::textured_scene`), seeded by the
+/// scenario alone, so a clone renders the images a fresh head would, bit for bit, and a
+/// seed's cases pay for one bake instead of one each.
 fn head(seed: u64) -> SimulatedHead {
-    SimulatedHead::new(Scenario { seed, ..Scenario::default() }).unwrap()
+    static HEADS: OnceLock<Mutex<HashMap<u64, Arc<OnceLock<SimulatedHead>>>>> = OnceLock::new();
+    let slot = HEADS.get_or_init(Default::default).lock().unwrap().entry(seed).or_default().clone();
+    slot.get_or_init(|| {
+        let mut h = SimulatedHead::new(Scenario { seed, ..Scenario::default() }).unwrap();
+        h.textured_scene();
+        h
+    })
+    .clone()
 }
 
 fn centre(h: &SimulatedHead) -> [f64; 2] {
