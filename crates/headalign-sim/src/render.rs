@@ -492,8 +492,8 @@ mod tests {
     /// bit. `deterministic_with_the_seed_and_noise_advances` builds its heads afresh: it
     /// tests that construction.
     fn clean_head(seed: u64, distortion: RadialDistortion) -> SimulatedHead {
-        type Slot = Arc<OnceLock<SimulatedHead>>;
-        static HEADS: OnceLock<Mutex<HashMap<(u64, u64, u64), Slot>>> = OnceLock::new();
+        type Heads = Mutex<HashMap<(u64, u64, u64), Arc<OnceLock<SimulatedHead>>>>;
+        static HEADS: OnceLock<Heads> = OnceLock::new();
         let key = (seed, distortion.k1.to_bits(), distortion.k2.to_bits());
         let slot = HEADS.get_or_init(Default::default).lock().unwrap().entry(key).or_default().clone();
         slot.get_or_init(|| {
