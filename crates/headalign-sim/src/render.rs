@@ -482,10 +482,27 @@ mod tests {
     use super::*;
     use crate::{Scenario, SimulatedHead};
     use headalign_platform::{Encoders, StereoHead};
+    use std::collections::HashMap;
+    use std::sync::{Arc, Mutex, OnceLock};
 
+    /// A head of `seed` rendering without blur or noise through `distortion`, at its
+    /// start. Its textures are baked once per (seed, distortion) and shared by the tests
+    /// (each clones a head baked before any render): baking draws from its own stream,
+    /// seeded by the scenario alone, so a clone renders what a fresh head would, bit for
+    /// bit. `deterministic_with_the_seed_and_noise_advances` builds its heads afresh: it
+    /// tests that construction.
     fn clean_head(seed: u64, distortion: RadialDistortion) -> SimulatedHead {
-        let render = RenderOptions { distortion, ..RenderOptions::clean() };
-        SimulatedHead::new(Scenario { seed, render, ..Scenario::default() }).unwrap()
+        type Heads = Mutex<HashMap<(u64, u64, u64), Arc<OnceLock<SimulatedHead>>>>;
+        static HEADS: OnceLock<Heads> = OnceLock::new();
+        let key = (seed, distortion.k1.to_bits(), distortion.k2.to_bits());
+        let slot = HEADS.get_or_init(Default::default).lock().unwrap().entry(key).or_default().clone();
+        slot.get_or_init(|| {
+            let render = RenderOptions { distortion, ..RenderOptions::clean() };
+            let mut head = SimulatedHead::new(Scenario { seed, render, ..Scenario::default() }).unwrap();
+            head.textured_scene();
+            head
+        })
+        .clone()
     }
 
     /// Bilinear grey value at a sub-pixel position (inside the image).
