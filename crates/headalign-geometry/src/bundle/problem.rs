@@ -37,6 +37,7 @@ use nalgebra::{DVector, Isometry3, Matrix2x3, Point3, Unit, Vector2, Vector3};
 use super::covariance::log_depth_scale_of;
 use super::gt;
 use super::layout::Layout;
+use super::normal::DENSE_SCHUR_MAX_VIEWS;
 use super::residual::{RigGeom, ViewGeom, linearise_obs, rig_geom, view_geoms};
 use super::robust::{robust, truncated_mean_shift};
 use super::state::{BundleObservation, BundleOptions, Motions, RigState};
@@ -59,6 +60,9 @@ pub(super) struct Problem<'a> {
     ///
     /// [`bundle_adjust_at_depth_scale`]: super::bundle_adjust_at_depth_scale
     pub(super) depth: Option<(f64, f64)>,
+    /// The normal equations keep `W` per point (`normal.rs`): more than
+    /// `DENSE_SCHUR_MAX_VIEWS` views.
+    pub(super) sparse: bool,
 }
 
 pub(super) struct Eval {
@@ -276,6 +280,14 @@ pub(super) fn problem<'a>(
     }
     let state = prepare_state(initial, options)?;
     let n_views = state.motions.view_count();
+    if let Some(&k) = options.gauge_views.iter().find(|&&k| k == 0 || k >= n_views) {
+        return Err(GeometryError::InvalidOption(format!(
+            "gauge view {k} must be a view other than view 0 (of {n_views})"
+        )));
+    }
+    if !options.gauge_views.is_empty() && !matches!(state.motions, Motions::Free { .. }) {
+        return Err(GeometryError::InvalidOption("gauge views need free view poses".into()));
+    }
     let mut per_view = vec![0usize; n_views];
     for (i, o) in observations.iter().enumerate() {
         if o.view >= n_views || o.point >= state.points.len() {
@@ -349,6 +361,7 @@ pub(super) fn problem<'a>(
         options,
         prior_weight: sigma_opt * sigma_opt,
         depth: None,
+        sparse: n_views > DENSE_SCHUR_MAX_VIEWS,
     };
     Ok((state, problem))
 }
