@@ -71,9 +71,12 @@
 mod adjust;
 mod density;
 mod depth;
+mod graph;
 mod lens;
 mod motion;
 mod report;
+mod route;
+mod sequence;
 mod starts;
 mod stereo;
 #[cfg(test)]
@@ -89,8 +92,11 @@ pub use density::{
     DISAGREEMENT_SIGMAS, Density, DensityReport, DensityTrial, disagreement_sigmas, prefer_denser,
 };
 pub use depth::{PlaneCheck, check_planarity, require_depth};
+pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
 pub use lens::{LensModel, read_opencv_lenses, undistort_views};
 pub use report::weak_data;
+pub use route::{REFERENCE_ROUTE_MAX_VIEWS, Route, TrackedViews, calibrate_tracked, track_views};
+pub use sequence::{SequenceReport, calibrate_sequence};
 pub use stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
 
 use crate::error::AlignError;
@@ -143,6 +149,9 @@ pub struct CalibrateOptions {
     /// definite; other seeds converge to the same minimum (estimation seeds 1 and 2:
     /// f 701.2 for a true 700).
     pub restarts: usize,
+    /// Keyframes and links of the sequence route ([`calibrate_sequence`]; defaults of
+    /// [`SequenceOptions`]).
+    pub sequence: SequenceOptions,
 }
 
 impl Default for CalibrateOptions {
@@ -159,6 +168,7 @@ impl Default for CalibrateOptions {
             warn_focal_sigma_pct: 0.5,
             warn_plane_fraction: 0.85,
             restarts: 3,
+            sequence: SequenceOptions::default(),
         }
     }
 }
@@ -182,7 +192,7 @@ impl CalibrateOptions {
         if !(self.warn_focal_sigma_pct.is_finite() && self.warn_focal_sigma_pct > 0.0) {
             return Err(AlignError::InvalidOption("warn_focal_sigma_pct must be positive".into()));
         }
-        Ok(())
+        self.sequence.validate()
     }
 
     fn constraints(&self) -> IntrinsicConstraints {
@@ -207,6 +217,10 @@ pub struct MotionReport {
     pub rms_transfer_px: f64,
     /// Rotation angle of the 3D homography, degrees (a similarity invariant).
     pub homography_rotation_deg: f64,
+    /// The view the motion is relative to when it is not the first view: a sequence's
+    /// segment gauge ([`calibrate_sequence`]); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub relative_to: Option<String>,
     /// True if the motion entered the linear self-calibration.
     pub linear: bool,
     /// Rotation angle after the adjustment, degrees.
@@ -268,6 +282,10 @@ pub struct CalibrateReport {
     pub estimation_seed: u64,
     /// Runs that failed before this one with earlier seeds ([`CalibrateOptions::restarts`]).
     pub restarts: usize,
+    /// The sequence route's segments and keyframes ([`calibrate_sequence`]); absent on
+    /// the reference route.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sequence: Option<SequenceReport>,
     /// Warnings: a poorly determined calibration (focal sigma above
     /// [`CalibrateOptions::warn_focal_sigma_pct`]), one motion in a mostly planar scene
     /// ([`CalibrateOptions::warn_plane_fraction`]), with what to do about it.
@@ -293,12 +311,22 @@ pub struct MotionCalibration {
 /// differ from the first view's are left out (the rig changed).
 pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<MotionCalibration, AlignError> {
     options.validate()?;
+    with_restarts(options, |o, seeded| calibrate_once(views, o, seeded))
+}
+
+/// Run a chain (`once`: [`calibrate_once`], or the sequence's) with the options' seed, and
+/// again with the next seeds while it fails in a seeded stage
+/// ([`CalibrateOptions::restarts`]); the report names the seed that gave the result.
+fn with_restarts(
+    options: &CalibrateOptions,
+    once: impl Fn(&CalibrateOptions, &mut Option<Seeded>) -> Result<MotionCalibration, AlignError>,
+) -> Result<MotionCalibration, AlignError> {
     let mut failures = Vec::new();
     for restart in 0..=options.restarts {
         let mut o = options.clone();
         o.estimation.seed = options.estimation.seed.wrapping_add(restart as u64);
         let mut seeded = None;
-        match calibrate_once(views, &o, &mut seeded) {
+        match once(&o, &mut seeded) {
             Ok(mut c) => {
                 c.report.restarts = restart;
                 if restart > 0 {
@@ -400,6 +428,7 @@ fn calibrate_once(
         plane_share,
         estimation_seed: est.seed,
         restarts: 0,
+        sequence: None,
         warnings,
     };
     Ok(MotionCalibration {
