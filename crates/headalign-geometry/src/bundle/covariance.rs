@@ -48,6 +48,7 @@ use super::gt;
 use super::layout::{homogeneous_basis, point_homogeneous};
 use super::normal::{Normal, reduced_camera_system, solve_rhs};
 use super::problem::{Problem, problem};
+use super::sparse::ProfileCholesky;
 use super::state::{BundleObservation, BundleOptions, RigState};
 use crate::{GeometryError, Result};
 
@@ -129,12 +130,15 @@ pub(super) fn covariance(
     let Some((s, l_inv)) = reduced_camera_system(&n, |_| 0.0, true) else {
         return Err(GeometryError::Numerical("reduced camera system is not finite".into()));
     };
-    let Some(ch) = s.cholesky() else {
-        return Err(GeometryError::Numerical(
+    let singular = || {
+        GeometryError::Numerical(
             "reduced camera system is singular at the solution: a parameter is unobservable".into(),
-        ));
+        )
     };
-    let inv = ch.inverse();
+    let inv = match &n.order {
+        None => s.cholesky().ok_or_else(singular)?.inverse(),
+        Some(order) => ProfileCholesky::new(&s, order.clone()).ok_or_else(singular)?.inverse(),
+    };
     let gaussian = 0.5 * (&inv + inv.transpose()) * (sigma * sigma);
     if model == CovarianceModel::Gaussian {
         return Ok((Covariance { names, matrix: gaussian }, 1.0));

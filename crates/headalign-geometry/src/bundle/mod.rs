@@ -238,6 +238,7 @@ mod problem;
 mod residual;
 mod robust;
 mod solver;
+mod sparse;
 mod state;
 #[cfg(test)]
 mod test_support;

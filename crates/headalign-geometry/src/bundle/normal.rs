@@ -39,9 +39,11 @@ use nalgebra::{DMatrix, DVector, Dyn, Matrix3, OMatrix, RowVector3, U3, Vector3}
 use super::covariance::{log_depth_scale_jacobian, log_depth_scale_of};
 use super::layout::side_index;
 use super::problem::Problem;
-use super::residual::{rig_geom, view_geoms};
+use super::residual::{RigGeom, ViewGeom, rig_geom, view_geoms};
 use super::robust::robust;
+use super::sparse::{ProfileCholesky, SparseStructure, schur, view_first_order};
 use super::state::RigState;
+use std::rc::Rc;
 
 pub(super) struct Normal {
     pub(super) u: DMatrix<f64>,
@@ -54,27 +56,62 @@ pub(super) struct Normal {
     /// The depth-scale pseudo-residual: its Jacobian row over the points (compact order)
     /// and its value; its rank-one normal term is applied in [`solve`] (Sherman-Morrison).
     pub(super) depth: Option<(Vec<Vector3<f64>>, f64)>,
+    /// The order of the profile Cholesky of the sparse form (`sparse.rs`): the per-view
+    /// parameters, then the shared ones; `None` for the dense form.
+    pub(super) order: Option<Vec<usize>>,
 }
 
 impl Problem<'_> {
+    /// The sparse structure of `W` for a problem of many views (`None`: dense), built at
+    /// the first linearisation from its column lists and kept (it depends on the layout
+    /// and the observations only); `None` in the outer option if an observation does not
+    /// linearise at `state`.
+    fn sparse_structure(
+        &self,
+        state: &RigState,
+        views: &[ViewGeom],
+        rig: &RigGeom,
+    ) -> Option<Option<Rc<SparseStructure>>> {
+        if !self.sparse {
+            return Some(None);
+        }
+        if let Some(s) = self.structure.get() {
+            return Some(Some(s.clone()));
+        }
+        let mut cols = Vec::with_capacity(32);
+        let mut lists = Vec::with_capacity(self.obs.len());
+        for (o, &p) in self.obs.iter().zip(&self.obs_point) {
+            let x = state.points.get(*self.points.get(p)?)?;
+            self.observe(state, views, rig, o, x, Some(&mut cols))?;
+            lists.push((p, cols.iter().map(|c| c.0).collect::<Vec<usize>>()));
+        }
+        let s = Rc::new(SparseStructure::new(self.points.len(), &lists)?);
+        let _ = self.structure.set(s.clone());
+        Some(Some(s))
+    }
+
     pub(super) fn normal_equations(&self, state: &RigState, prior_weight: f64) -> Option<Normal> {
         let nc = self.layout.len();
         let np = self.points.len();
         let views = view_geoms(state, &self.layout, true);
         let rig = rig_geom(state);
+        let structure = self.sparse_structure(state, &views, &rig)?;
         let mut n = Normal {
             u: DMatrix::zeros(nc, nc),
             gc: DVector::zeros(nc),
             v: vec![Matrix3::zeros(); np],
             gp: vec![Vector3::zeros(); np],
-            w: if self.sparse {
-                PointBlocks::Sparse(vec![SparseBlock::default(); np])
-            } else {
-                PointBlocks::Dense(DMatrix::zeros(nc, 3 * np))
+            w: match &structure {
+                Some(structure) => PointBlocks::Sparse(structure.clone(), structure.zeros()),
+                None => PointBlocks::Dense(DMatrix::zeros(nc, 3 * np)),
             },
             sum_wsq: 0.0,
             depth: None,
+            order: None,
         };
+        if matches!(n.w, PointBlocks::Sparse(..)) {
+            n.order = Some(view_first_order(&self.layout));
+        }
         if let Some((target, tol)) = self.depth {
             let r = (log_depth_scale_of(state, &self.points)? - target) / tol;
             let row = log_depth_scale_jacobian(state, &self.points)?;
@@ -86,7 +123,7 @@ impl Problem<'_> {
         // and its share of `U` is one matrix product, scattered once at the end.
         let mut blocks: Vec<Option<CameraBlock>> = (0..2 * views.len()).map(|_| None).collect();
         let mut cols = Vec::with_capacity(32);
-        for (o, &p) in self.obs.iter().zip(&self.obs_point) {
+        for (oi, (o, &p)) in self.obs.iter().zip(&self.obs_point).enumerate() {
             let x = state.points.get(*self.points.get(p)?)?;
             let (r, jp) = self.observe(state, &views, &rig, o, x, Some(&mut cols))?;
             let s2 = r.norm_squared();
@@ -105,10 +142,11 @@ impl Problem<'_> {
             let sw = wt.sqrt();
             block.rows.extend(cols.iter().map(|c| c.1.x * sw));
             block.rows.extend(cols.iter().map(|c| c.1.y * sw));
-            for &(a, ja) in &cols {
+            let slots = structure.as_ref().map_or(&[][..], |s| s.slots(oi));
+            for (j, &(a, ja)) in cols.iter().enumerate() {
                 n.gc[a] += wt * ja.dot(&r);
                 let wrow = ja.transpose() * jpw;
-                n.w.add(a, p, &wrow);
+                n.w.add(slots.get(j), a, p, &wrow);
             }
         }
         for block in blocks.into_iter().flatten() {
@@ -136,48 +174,41 @@ impl Problem<'_> {
 
 /// The off-diagonal blocks `W_p = sum J_c^T w J_p` of the normal equations (camera
 /// parameters x a point's 3 coordinates), stored densely for few views or per point for
-/// many ([`DENSE_SCHUR_MAX_VIEWS`]).
+/// many ([`DENSE_SCHUR_MAX_VIEWS`], `sparse.rs`).
 pub(super) enum PointBlocks {
     /// One `c x 3n` matrix: point `p`'s block is columns `3p..3p+3`.
     Dense(DMatrix<f64>),
     /// Per point, its non-zero rows only (the camera parameters of its observations).
-    Sparse(Vec<SparseBlock>),
-}
-
-/// A point's block of [`PointBlocks::Sparse`]: the camera-parameter indices of its
-/// non-zero rows, ascending, and those rows.
-#[derive(Clone, Default)]
-pub(super) struct SparseBlock {
-    rows: Vec<usize>,
-    values: Vec<RowVector3<f64>>,
+    Sparse(Rc<SparseStructure>, Vec<RowVector3<f64>>),
 }
 
 /// The largest number of views whose problems keep `W` dense (module docs, Algorithm):
 /// the dense form is one product over all points, the sparse one a product per point over
-/// its own rows only. Dense costs `c^2 n` per iteration (`c` grows with the views, and so
-/// does `n` along a sequence: quadratic in the views), sparse `n k^2` (`k` a point's rows:
-/// the shared parameters plus 6 per view that sees it: linear). The dense form stays below
-/// this so that the results of the small problems are those they always were (the
-/// order of the sums is part of them).
-pub(super) const DENSE_SCHUR_MAX_VIEWS: usize = 16;
+/// its own rows only (`sparse.rs`). Dense costs `c^2 n` per iteration (`c` camera
+/// parameters grow with the views, and so do the points `n` along a sequence: quadratic
+/// in the views) and its Cholesky `c^3`; sparse `n k^2` (`k` a point's rows: the shared
+/// parameters plus 6 per view that sees it) and a profile Cholesky linear in the views
+/// along a sequence. Measured on a rendered 25-view sequence (15 keyframes, 7200 points):
+/// the dense form spent 12 s of system time alone allocating its `c x 3n` matrices. The
+/// dense form stays up to this many views so that the results of the small problems
+/// (every head procedure, a few views of a rig) are those they always were (the order of
+/// the sums is part of them).
+pub(super) const DENSE_SCHUR_MAX_VIEWS: usize = 8;
 
 impl PointBlocks {
-    /// `W[a, point p] += row`.
-    fn add(&mut self, a: usize, p: usize, row: &RowVector3<f64>) {
+    /// `W[a, point p] += row` for a column (parameter `a`) of an observation's Jacobian
+    /// whose slot in the sparse form is `slot` (the column's entry of
+    /// [`SparseStructure::slots`]).
+    fn add(&mut self, slot: Option<&usize>, a: usize, p: usize, row: &RowVector3<f64>) {
         match self {
             PointBlocks::Dense(w) => {
                 for c in 0..3 {
                     w[(a, 3 * p + c)] += row[c];
                 }
             }
-            PointBlocks::Sparse(blocks) => {
-                let Some(b) = blocks.get_mut(p) else { return };
-                match b.rows.binary_search(&a) {
-                    Ok(i) => b.values[i] += row,
-                    Err(i) => {
-                        b.rows.insert(i, a);
-                        b.values.insert(i, *row);
-                    }
+            PointBlocks::Sparse(_, values) => {
+                if let Some(v) = slot.and_then(|&s| values.get_mut(s)) {
+                    *v += row;
                 }
             }
         }
@@ -187,11 +218,9 @@ impl PointBlocks {
     fn sub_times(&self, p: usize, x: &Vector3<f64>, b: &mut DVector<f64>) {
         match self {
             PointBlocks::Dense(w) => b.gemv(-1.0, &w.columns(3 * p, 3), x, 1.0),
-            PointBlocks::Sparse(blocks) => {
-                if let Some(blk) = blocks.get(p) {
-                    for (&a, row) in blk.rows.iter().zip(&blk.values) {
-                        b[a] -= row.dot(&x.transpose());
-                    }
+            PointBlocks::Sparse(structure, values) => {
+                for (a, row) in structure.block(values, p) {
+                    b[a] -= row.dot(&x.transpose());
                 }
             }
         }
@@ -204,9 +233,9 @@ impl PointBlocks {
                 let t = w.columns(3 * p, 3).tr_mul(x);
                 Vector3::new(t[0], t[1], t[2])
             }
-            PointBlocks::Sparse(blocks) => blocks.get(p).map_or_else(Vector3::zeros, |blk| {
-                blk.rows.iter().zip(&blk.values).map(|(&a, row)| row.transpose() * x[a]).sum()
-            }),
+            PointBlocks::Sparse(structure, values) => {
+                structure.block(values, p).map(|(a, row)| row.transpose() * x[a]).sum()
+            }
         }
     }
 
@@ -214,12 +243,10 @@ impl PointBlocks {
     pub(super) fn times(&self, p: usize, m: &Matrix3<f64>, nc: usize) -> OMatrix<f64, Dyn, U3> {
         match self {
             PointBlocks::Dense(w) => w.columns(3 * p, 3) * m,
-            PointBlocks::Sparse(blocks) => {
+            PointBlocks::Sparse(structure, values) => {
                 let mut out = OMatrix::<f64, Dyn, U3>::zeros(nc);
-                if let Some(blk) = blocks.get(p) {
-                    for (&a, row) in blk.rows.iter().zip(&blk.values) {
-                        out.set_row(a, &(row * m));
-                    }
+                for (a, row) in structure.block(values, p) {
+                    out.set_row(a, &(row * m));
                 }
                 out
             }
@@ -255,8 +282,8 @@ pub(super) fn reduced_camera_system(
     }
     let w = match &n.w {
         PointBlocks::Dense(w) => w,
-        PointBlocks::Sparse(blocks) => {
-            let l_inv = sparse_schur(&n.v, blocks, &mut s, &damp, skip_singular)?;
+        PointBlocks::Sparse(structure, values) => {
+            let l_inv = schur(&n.v, structure, values, &mut s, &damp, skip_singular)?;
             return Some((0.5 * (&s + s.transpose()), l_inv));
         }
     };
@@ -280,46 +307,6 @@ pub(super) fn reduced_camera_system(
     }
     s.gemm(-1.0, &m, &m.transpose(), 1.0);
     Some((0.5 * (&s + s.transpose()), l_inv))
-}
-
-/// [`reduced_camera_system`] over [`PointBlocks::Sparse`]: `s` (the damped `U`) less
-/// `M_p M_p^T` point by point, each over the point's own rows only; the points' `L_p^-1`.
-fn sparse_schur(
-    v: &[Matrix3<f64>],
-    blocks: &[SparseBlock],
-    s: &mut DMatrix<f64>,
-    damp: &impl Fn(f64) -> f64,
-    skip_singular: bool,
-) -> Option<Vec<Option<Matrix3<f64>>>> {
-    let mut l_inv = Vec::with_capacity(v.len());
-    let mut m: Vec<RowVector3<f64>> = Vec::new();
-    for (vp, blk) in v.iter().zip(blocks) {
-        let mut vd = *vp;
-        for i in 0..3 {
-            vd[(i, i)] += damp(vp[(i, i)]);
-        }
-        let Some(li) = vd.cholesky().and_then(|ch| ch.l().try_inverse()) else {
-            if skip_singular {
-                l_inv.push(None);
-                continue;
-            }
-            return None;
-        };
-        let lt = li.transpose();
-        m.clear();
-        m.extend(blk.values.iter().map(|row| row * lt));
-        for (i, (&a, ma)) in blk.rows.iter().zip(&m).enumerate() {
-            for (&b, mb) in blk.rows[..=i].iter().zip(&m[..=i]) {
-                let d = ma.dot(mb);
-                s[(a, b)] -= d;
-                if a != b {
-                    s[(b, a)] -= d;
-                }
-            }
-        }
-        l_inv.push(Some(li));
-    }
-    Some(l_inv)
 }
 
 /// Solve the damped normal equations by the Schur complement over the points; with a
@@ -384,7 +371,10 @@ pub(super) fn solve_rhs(
     for (p, (vi, g)) in v_inv.iter().zip(rp).enumerate() {
         n.w.sub_times(p, &(vi * g), &mut b);
     }
-    let dc = s.cholesky()?.solve(&b);
+    let dc = match &n.w {
+        PointBlocks::Dense(_) => s.cholesky()?.solve(&b),
+        PointBlocks::Sparse(..) => ProfileCholesky::new(&s, n.order.clone()?)?.solve(&b),
+    };
     if !dc.iter().all(|v| v.is_finite()) {
         return None;
     }
@@ -425,7 +415,7 @@ mod tests {
         p.sparse = false;
         let dense = p.normal_equations(&state, 1.0).unwrap();
         let (cov_dense, _) = covariance(&p, &state, 0.5, CovarianceModel::PointClustered, None).unwrap();
-        assert!(matches!(dense.w, PointBlocks::Dense(_)) && matches!(sparse.w, PointBlocks::Sparse(_)));
+        assert!(matches!(dense.w, PointBlocks::Dense(_)) && matches!(sparse.w, PointBlocks::Sparse(..)));
         let rel = |a: &DVector<f64>, b: &DVector<f64>| (a - b).norm() / b.norm();
         for lambda in [1e-3, 1.0] {
             let (dc_s, dp_s) = solve(&sparse, lambda).unwrap();

@@ -40,6 +40,7 @@ use super::layout::Layout;
 use super::normal::DENSE_SCHUR_MAX_VIEWS;
 use super::residual::{RigGeom, ViewGeom, linearise_obs, rig_geom, view_geoms};
 use super::robust::{robust, truncated_mean_shift};
+use super::sparse::SparseStructure;
 use super::state::{BundleObservation, BundleOptions, Motions, RigState};
 use crate::camera::Intrinsics;
 use crate::so3::Line;
@@ -63,6 +64,8 @@ pub(super) struct Problem<'a> {
     /// The normal equations keep `W` per point (`normal.rs`): more than
     /// `DENSE_SCHUR_MAX_VIEWS` views.
     pub(super) sparse: bool,
+    /// The sparse form's structure, built at the first linearisation (`sparse.rs`).
+    pub(super) structure: std::cell::OnceCell<std::rc::Rc<SparseStructure>>,
 }
 
 pub(super) struct Eval {
@@ -362,6 +365,7 @@ pub(super) fn problem<'a>(
         prior_weight: sigma_opt * sigma_opt,
         depth: None,
         sparse: n_views > DENSE_SCHUR_MAX_VIEWS,
+        structure: std::cell::OnceCell::new(),
     };
     Ok((state, problem))
 }

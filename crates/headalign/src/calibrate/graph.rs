@@ -49,13 +49,18 @@ pub const END_FLOW_FRACTION: f64 = 0.25;
 #[derive(Debug, Clone)]
 pub struct SequenceOptions {
     /// A view becomes a keyframe when it shares fewer than this fraction of the last
-    /// keyframe's stereo tracks (default 0.6: consecutive keyframes then share over half
-    /// their tracks, plenty for the 3D homography between them).
+    /// keyframe's stereo tracks (default 0.35). Tracks chained through consecutive views
+    /// wear out (on the rendered sequence of `benches/sequence.rs` about a quarter is
+    /// lost per view), so this fraction is reached after a few views even with little
+    /// motion; consecutive keyframes then still share hundreds of tracks (measured
+    /// 270-570 there), plenty for the 3D homography between them.
     pub keyframe_overlap: f64,
     /// A view becomes a keyframe when the median image motion of the tracks it shares
-    /// with the last keyframe reaches this, pixels, left camera (default 40: about 3 deg
-    /// of rotation at a focal length of 750 px; smaller motions make the 3D homography
-    /// between keyframes mostly noise).
+    /// with the last keyframe reaches this, pixels, left camera (default 60: 8 % of a
+    /// 752-pixel image, 7.5 deg of rotation at a focal length of 460 px). Smaller motions
+    /// make the 3D homography between keyframes mostly noise and cost adjustment time:
+    /// on the 50-view rendered sequence 0.6 / 40 px gave 27 keyframes and 0.35 / 60 px
+    /// 14, for the same focal length to 0.01 % and 40 % less time.
     pub keyframe_flow_px: f64,
     /// Fewest stereo tracks two views must share to be linked (default 30: the 3D
     /// homography needs 12 inliers, and a link of a few dozen tracks is still a reliable
@@ -68,7 +73,7 @@ pub struct SequenceOptions {
 
 impl Default for SequenceOptions {
     fn default() -> Self {
-        Self { keyframe_overlap: 0.6, keyframe_flow_px: 40.0, min_link_tracks: 30, linear_motions: 8 }
+        Self { keyframe_overlap: 0.35, keyframe_flow_px: 60.0, min_link_tracks: 30, linear_motions: 8 }
     }
 }
 
@@ -303,7 +308,7 @@ mod tests {
     }
 
     /// A chain of 100-track windows sliding by 10 tracks a view, the image moving 5 px a
-    /// view: overlap falls below 0.6 after 5 views (flow 25 px), so every fifth view is
+    /// view, thresholds 0.6 and 40 px: overlap falls below 0.6 after 5 views (flow 25 px), so every fifth view is
     /// a keyframe, and a run's last view is one when it moved 10 px (a quarter of 40)
     /// since the last; a gap in the ids breaks the chain into two segments (their
     /// keyframes also link past a neighbour when they share 30 tracks: the tree takes
@@ -314,7 +319,8 @@ mod tests {
         views.extend((0..8).map(|i| view(5000 + 10 * i..5100 + 10 * i, 5.0 * i as f64)));
         views.push(view(9000..9100, 0.0));
         let tracks: Vec<ViewTracks> = views.iter().map(ViewTracks::of).collect();
-        let o = SequenceOptions::default();
+        let o =
+            SequenceOptions { keyframe_overlap: 0.6, keyframe_flow_px: 40.0, ..SequenceOptions::default() };
         let keys = keyframes(&tracks, &o);
         assert_eq!(keys, vec![0, 5, 10, 12, 13, 18, 20, 21], "{keys:?}");
         let counts = shared_counts(&tracks, &keys);

@@ -95,8 +95,11 @@ pub use depth::{PlaneCheck, check_planarity, require_depth};
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
 pub use lens::{LensModel, read_opencv_lenses, undistort_views};
 pub use report::weak_data;
-pub use route::{REFERENCE_ROUTE_MAX_VIEWS, Route, TrackedViews, calibrate_tracked, track_views};
-pub use sequence::{SequenceReport, calibrate_sequence};
+pub use route::{
+    REFERENCE_ROUTE_MAX_VIEWS, Route, SEQUENCE_RANSAC_MIN_ITERATIONS, TrackedViews, calibrate_tracked,
+    track_views,
+};
+pub use sequence::{RANSAC_PAIRS, SequenceReport, calibrate_sequence};
 pub use stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
 
 use crate::error::AlignError;

@@ -41,6 +41,15 @@ use crate::observations::View;
 /// first only works while the rig stays in one place.
 pub const REFERENCE_ROUTE_MAX_VIEWS: usize = 20;
 
+/// The sequence route's front end draws at most this many RANSAC samples for each view's
+/// stereo `F` and each camera's `F` to the view before, unless its inlier ratio asks for
+/// more (the adaptive count at confidence 0.999: 80 samples at 70 % inliers, 880 at 50 %);
+/// the front end's own floor is 500. Three such fits per view were a third of the front
+/// end's time; on the 50-view rendered sequence of `benches/sequence.rs` the floor of
+/// 100 took 19.4 -> 13.2 s of CPU time, linked the same tracks to 1 % and gave the same
+/// focal length to 0.001 px.
+pub const SEQUENCE_RANSAC_MIN_ITERATIONS: usize = 100;
+
 /// Which chain the tracked views are for (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "kebab-case")]
@@ -105,7 +114,11 @@ pub fn track_views(
     } else {
         notes.push(format!("{} views: tracked as a sequence", images.len()));
     }
-    let mut tracker = Tracker::new(FrontEndOptions { mode: TrackingMode::Previous, ..front.clone() })?;
+    let mut sequence = FrontEndOptions { mode: TrackingMode::Previous, ..front.clone() };
+    for r in [&mut sequence.stereo, &mut sequence.drive] {
+        r.min_iterations = r.min_iterations.min(SEQUENCE_RANSAC_MIN_ITERATIONS);
+    }
+    let mut tracker = Tracker::new(sequence)?;
     let (mut views, mut tracking) = (Vec::new(), Vec::new());
     for (name, pair) in images {
         match tracker.track(pair, name) {

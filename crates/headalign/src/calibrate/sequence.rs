@@ -65,6 +65,11 @@ use crate::error::AlignError;
 use crate::estimate::MOVED_DEG;
 use crate::observations::View;
 
+/// Stereo matches F's RANSAC scores at most (step 4; every `n`-th of the keyframes'):
+/// thousands of matches of one rig determine F to far below a pixel, and the RANSAC's
+/// cost grows with the matches it scores. The refinement runs over all of them.
+pub const RANSAC_PAIRS: usize = 5000;
+
 /// What the report says of a sequence ([`CalibrateReport::sequence`]).
 #[derive(Debug, Clone, Serialize)]
 pub struct SequenceReport {
@@ -330,7 +335,7 @@ fn sequence_once(
     let image_size = kf.rig[0].capture.image_size;
     let k0 = Intrinsics::rough_guess(image_size[0], image_size[1]);
     let est = &options.estimation;
-    let stereo = stereo::stereo_geometry(&kf.rig, &k0, est)?;
+    let stereo = stereo::stereo_geometry_sampled(&kf.rig, &k0, est, Some(RANSAC_PAIRS))?;
     let motions = chain_motions(&kf, &stereo, options, seeded)?;
     let points = starts::point_set_linked(&kf.rig, &stereo.recon, &motions, &kf.links);
     let problem = starts::Problem {
@@ -345,15 +350,23 @@ fn sequence_once(
     let rigid = starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
     let mut held = options.clone();
     held.estimation.bundle.gauge_views = kf.gauges.clone();
-    let adjusted =
-        adjust::adjust_starts([linear.state, rigid], &points, &stereo.recon, &held).inspect_err(|_| {
-            *seeded = motions
-                .iter()
-                .enumerate()
-                .filter(|(i, _)| kf.links.parent.get(i + 1).is_some_and(Option::is_some))
-                .map(|(_, m)| Seeded { common_tracks: m.report.candidates, fitting: m.report.inliers })
-                .min_by_key(|x| x.fitting);
-        })?;
+    // One or two motions: both starts to convergence (shallow valleys, as the reference
+    // chain); more: the better screened start only.
+    let moving = kf.links.parent.iter().filter(|p| p.is_some()).count();
+    let starts = [linear.state, rigid];
+    let adjusted = if moving <= 2 {
+        adjust::adjust_starts(starts, &points, &stereo.recon, &held)
+    } else {
+        adjust::adjust_best_start(starts, &points, &stereo.recon, &held)
+    };
+    let adjusted = adjusted.inspect_err(|_| {
+        *seeded = motions
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| kf.links.parent.get(i + 1).is_some_and(Option::is_some))
+            .map(|(_, m)| Seeded { common_tracks: m.report.candidates, fitting: m.report.inliers })
+            .min_by_key(|x| x.fitting);
+    })?;
     // The report: the motions of the keyframes that are not gauges.
     let all_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
     let motion_reports: Vec<MotionReport> = all_reports
