@@ -222,8 +222,9 @@ impl ProfileCholesky {
         for i in (0..n).rev() {
             y[i] /= self.l[i * n + i];
             let xi = y[i];
-            for k in self.first[i]..i {
-                y[k] -= self.l[i * n + k] * xi;
+            let row = &self.l[i * n + self.first[i]..i * n + i];
+            for (yk, lik) in y[self.first[i]..i].iter_mut().zip(row) {
+                *yk -= lik * xi;
             }
         }
         let mut out = DVector::zeros(n);
