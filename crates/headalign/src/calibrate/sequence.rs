@@ -155,7 +155,43 @@ fn keyframes(views: &[View], options: &CalibrateOptions) -> Result<Keyframes, Al
             so.min_link_tracks
         )));
     }
-    // Each view belongs to the last keyframe at or before it (planar ones included).
+    let arranged = arrange(&rig_views, &chosen, &keys, &segments, &alone, &mut skipped);
+    Ok(Keyframes {
+        rig: arranged.rig,
+        links: arranged.links,
+        gauges: arranged.gauges,
+        planarity,
+        skipped,
+        report: SequenceReport {
+            views: views.len(),
+            keyframes: chosen.len(),
+            segments: arranged.reports,
+            tracking_notes: Vec::new(),
+        },
+    })
+}
+
+/// The keyframes of the segments in the adjustment's order ([`arrange`]).
+struct Arranged {
+    rig: Vec<View>,
+    links: Links,
+    gauges: Vec<usize>,
+    reports: Vec<SegmentReport>,
+}
+
+/// The adjustment's order of the keyframes (per segment its tree from the gauge), the
+/// links, the gauges after the first, and each segment's report; every view is counted
+/// with the last keyframe at or before it (`chosen`, before the depth check), and a view
+/// whose keyframe went is added to `skipped`. `keys`: the keyframes kept (view indices),
+/// `segments` and `alone` in positions of `keys`.
+fn arrange(
+    rig_views: &[&View],
+    chosen: &[usize],
+    keys: &[usize],
+    segments: &[graph::Segment],
+    alone: &[usize],
+    skipped: &mut Vec<String>,
+) -> Arranged {
     let mut between = vec![0usize; keys.len()];
     let mut represented_by = None;
     for (i, v) in rig_views.iter().enumerate() {
@@ -204,19 +240,7 @@ fn keyframes(views: &[View], options: &CalibrateOptions) -> Result<Keyframes, Al
         }
         reports.push(seg_report);
     }
-    Ok(Keyframes {
-        rig,
-        links: Links { parent, segment },
-        gauges,
-        planarity,
-        skipped,
-        report: SequenceReport {
-            views: views.len(),
-            keyframes: chosen.len(),
-            segments: reports,
-            tracking_notes: Vec::new(),
-        },
-    })
+    Arranged { rig, links: Links { parent, segment }, gauges, reports }
 }
 
 /// A motion that moves nothing: a segment gauge's, relative to itself.
