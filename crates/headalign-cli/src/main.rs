@@ -16,6 +16,7 @@ mod experiment;
 mod headcmd;
 mod images;
 mod points;
+mod recording;
 mod replay;
 mod report_html;
 mod stages;
@@ -155,11 +156,15 @@ struct AlignArgs {
     /// Observation session (JSON, format headalign-observations/1).
     #[arg(long, required_unless_present = "images", conflicts_with = "images")]
     observations: Option<PathBuf>,
-    /// A recorded image session instead (as `demo --images --session DIR` writes); its
-    /// verge/tilt views are tracked by the image front end.
-    // Verging captures are skipped (`RecordedView::is_verge_tilt`).
+    /// A recorded image session instead (as `demo --images --session DIR` writes), or a
+    /// ROS 2 bag of a head run; its verge/tilt views are tracked by the image front end.
+    // Verging captures are skipped (`RecordedView::is_verge_tilt`); a bag's views are its
+    // still views from the verge/tilt start (`recording::align_views`).
     #[arg(long)]
     images: Option<PathBuf>,
+    /// How a recording is read (bags, EuRoC folders).
+    #[command(flatten)]
+    recording: recording::RecordingArgs,
     /// Print one JSON object instead of the table.
     #[arg(long)]
     json: bool,
@@ -302,10 +307,14 @@ fn read_align_views(args: &AlignArgs) -> Result<(Vec<View>, Option<Vec<RecordedV
         (None, Some(dir)) => {
             // The verge/tilt views (verging captures are recorded too, but the rig is not
             // rigid there).
-            let r: Vec<_> = headalign::session::read_image_session(dir)?
-                .into_iter()
-                .filter(RecordedView::is_verge_tilt)
-                .collect();
+            let r: Vec<_> = if headalign::recordings::detect(dir).is_some() {
+                recording::align_views(dir, &args.recording)?
+            } else {
+                headalign::session::read_image_session(dir)?
+                    .into_iter()
+                    .filter(RecordedView::is_verge_tilt)
+                    .collect()
+            };
             let views =
                 headalign::session::track_session(&r, &headalign::frontend::FrontEndOptions::default())?;
             Ok((views, Some(r)))
