@@ -423,6 +423,9 @@ fn stereo_calibration(
 
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
+    if let Some(spec) = &args.lens_from {
+        crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
+    }
     let views = load_views(&args.dir, &args.recording)?;
     let outcome = calibrate_views(&views, args)?;
     // Warnings go to stderr in both modes (and are in the JSON report).

@@ -141,20 +141,7 @@ pub fn lens_from(
     args: &RecordingArgs,
     image_size: [u32; 2],
 ) -> Result<[LensModel; 2]> {
-    let paths = if spec.trim() == "recording" {
-        if recordings::detect(input) != Some(RecordingFormat::Euroc) {
-            bail!(
-                "--lens-from recording: '{}' is not an EuRoC folder with cam0/sensor.yaml; give LEFT.yaml,RIGHT.yaml",
-                input.display()
-            );
-        }
-        euroc::sensor_yaml_paths(input, &args.options()?)
-    } else {
-        match spec.split(',').map(str::trim).collect::<Vec<_>>().as_slice() {
-            [l, r] => [l.into(), r.into()],
-            _ => bail!("--lens-from: expected LEFT.yaml,RIGHT.yaml or 'recording', got '{spec}'"),
-        }
-    };
+    let paths = lens_paths(spec, input, args)?;
     let mut lenses = Vec::new();
     for p in &paths {
         let (lens, resolution) = euroc::read_sensor_yaml(p)?;
@@ -173,6 +160,29 @@ pub fn lens_from(
         lenses.push(lens);
     }
     Ok([lenses[0], lenses[1]])
+}
+
+/// The two `sensor.yaml` files a `--lens-from` names, each read once to check it (before
+/// any image is read: a wrong flag fails at once).
+pub fn lens_paths(spec: &str, input: &Path, args: &RecordingArgs) -> Result<[std::path::PathBuf; 2]> {
+    let paths: [std::path::PathBuf; 2] = if spec.trim() == "recording" {
+        if recordings::detect(input) != Some(RecordingFormat::Euroc) {
+            bail!(
+                "--lens-from recording: '{}' is not an EuRoC folder with cam0/sensor.yaml; give LEFT.yaml,RIGHT.yaml",
+                input.display()
+            );
+        }
+        euroc::sensor_yaml_paths(input, &args.options()?)
+    } else {
+        match spec.split(',').map(str::trim).collect::<Vec<_>>().as_slice() {
+            [l, r] => [l.into(), r.into()],
+            _ => bail!("--lens-from: expected LEFT.yaml,RIGHT.yaml or 'recording', got '{spec}'"),
+        }
+    };
+    for p in &paths {
+        euroc::read_sensor_yaml(p)?;
+    }
+    Ok(paths)
 }
 
 #[cfg(test)]

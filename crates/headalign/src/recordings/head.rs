@@ -82,15 +82,21 @@ pub fn verge_tilt_views(still: Vec<RecordedView>) -> Result<Vec<RecordedView>, A
     }
 }
 
-/// A recorded head run played back as a head: the still views in order; reads return the
-/// current view's readings, a move goes to the first still view from the current one on
-/// whose readings are within `tolerance_deg` of the target (the nearest of consecutive
-/// ones that are), a capture returns its images. A move the recording never made is an
-/// error naming the target and where the playback stood.
+/// A recorded head run played back as a head. It stands at a still view (at first the
+/// first one). A move within `tolerance_deg` of that view's readings (per joint) keeps it
+/// there; any other move leaves it, and the next capture goes to the first later still
+/// view within `tolerance_deg` of the last target: captures take the still views in
+/// order, a repeated capture without leaving takes the same view again, and a move
+/// through a place where the recording never stopped (a return to the start between two
+/// rotations) needs no still view of its own. Reads return the readings of the view it
+/// stands at, or after leaving, of the view the target will find (the target itself if
+/// none). A capture the recording does not hold is an error naming the target and where
+/// the playback stood.
 #[derive(Debug)]
 pub struct PlaybackHead {
     views: Vec<RecordedView>,
     at: usize,
+    target: Option<Encoders>,
     tolerance_deg: f64,
     source: PathBuf,
 }
@@ -108,10 +114,10 @@ impl PlaybackHead {
             return Err(AlignError::Recording("the recording holds no still view to play back".into()));
         };
         let source = first.folder.clone();
-        Ok(Self { views, at: 0, tolerance_deg, source })
+        Ok(Self { views, at: 0, target: None, tolerance_deg, source })
     }
 
-    /// Index of the current still view.
+    /// Index of the still view the playback stands at (the last one captured).
     pub fn position(&self) -> usize {
         self.at
     }
@@ -121,35 +127,30 @@ impl PlaybackHead {
         &self.views
     }
 
-    fn current(&self) -> &RecordedView {
-        &self.views[self.at.min(self.views.len() - 1)]
+    /// The first still view after the current one within the tolerance of `target`.
+    fn find(&self, target: &Encoders) -> Option<usize> {
+        (self.at + 1..self.views.len())
+            .find(|&k| largest_difference(&self.views[k].images.encoders, target) <= self.tolerance_deg)
     }
 }
 
 impl StereoHead for PlaybackHead {
     fn image_size(&self) -> [u32; 2] {
-        self.current().images.image_size()
+        self.views[self.at].images.image_size()
     }
 
     fn read_encoders(&mut self) -> Result<Encoders, PlatformError> {
-        Ok(self.current().images.encoders)
+        Ok(match self.target {
+            None => self.views[self.at].images.encoders,
+            Some(t) => self.find(&t).map_or(t, |k| self.views[k].images.encoders),
+        })
     }
 
     fn move_to(&mut self, target: &Encoders) -> Result<(), PlatformError> {
-        let d = |k: usize| largest_difference(&self.views[k].images.encoders, target);
-        let Some(mut k) = (self.at..self.views.len()).find(|&k| d(k) <= self.tolerance_deg) else {
-            return Err(PlatformError::Device(format!(
-                "playback of '{}': no still view from {} on is within {} deg of the target {}: the recorded run did not move there (a different procedure, rotation or seed?)",
-                self.source.display(),
-                self.current().name,
-                self.tolerance_deg,
-                serde_json::to_string(target).unwrap_or_default()
-            )));
-        };
-        while k + 1 < self.views.len() && d(k + 1) < d(k) {
-            k += 1;
+        let here = largest_difference(&self.views[self.at].images.encoders, target) <= self.tolerance_deg;
+        if !(here && self.target.is_none()) {
+            self.target = Some(*target);
         }
-        self.at = k;
         Ok(())
     }
 
@@ -163,7 +164,19 @@ impl StereoHead for PlaybackHead {
 
 impl ImagingHead for PlaybackHead {
     fn capture_images(&mut self) -> Result<StereoImages, PlatformError> {
-        Ok(self.current().images.clone())
+        if let Some(t) = self.target.take() {
+            let Some(k) = self.find(&t) else {
+                return Err(PlatformError::Device(format!(
+                    "playback of '{}': no still view after {} is within {} deg of the target {}: the recorded run did not capture there (a different procedure, rotation or seed?)",
+                    self.source.display(),
+                    self.views[self.at].name,
+                    self.tolerance_deg,
+                    serde_json::to_string(&t).unwrap_or_default()
+                )));
+            };
+            self.at = k;
+        }
+        Ok(self.views[self.at].images.clone())
     }
 }
 
@@ -210,16 +223,25 @@ mod tests {
         assert_eq!(vt.len(), 4);
         let e = verge_tilt_views(s[..3].to_vec()).unwrap_err().to_string();
         assert!(e.contains("no still view") && e.contains("3 still views"), "{e}");
-        // Playback: moves find the recorded still views in order; a move the run never
-        // made is named.
-        let mut head = PlaybackHead::new(s, 0.05).unwrap();
-        head.move_to(&Encoders { verge_right: 1.2, ..Encoders::default() }).unwrap();
+        // Playback: captures take the still views in order; a move that stays keeps the
+        // view, a return to the start between two rotations needs no view of its own, a
+        // capture the run never made is named.
+        let mut head = PlaybackHead::new(s[2..].to_vec(), 0.05).unwrap();
+        let at = |pan: f64, elevation: f64| Encoders { pan, elevation, verge_left: 0.0, verge_right: 1.2 };
         assert_eq!(head.capture_images().unwrap().encoders.verge_right, 1.2);
+        head.move_to(&at(0.002, 0.0)).unwrap();
+        assert_eq!(head.capture_images().unwrap(), head.views()[0].images);
+        head.move_to(&at(0.0, 3.0)).unwrap();
+        assert_eq!(head.read_encoders().unwrap().elevation, 3.0);
+        assert_eq!((head.capture_images().unwrap().encoders.elevation, head.position()), (3.0, 1));
+        head.move_to(&at(0.0, 0.0)).unwrap();
+        assert_eq!(head.read_encoders().unwrap(), at(0.0, 0.0));
+        head.move_to(&at(3.0, 0.0)).unwrap();
+        assert_eq!(head.capture_images().unwrap().encoders.pan, 3.002);
         assert_eq!(head.position(), 2);
-        head.move_to(&Encoders { pan: 3.0, verge_right: 1.2, ..Encoders::default() }).unwrap();
-        assert_eq!(head.position(), 4);
-        // Back to the elevation view: it lies behind, so it is not found.
-        let e = head.move_to(&Encoders { elevation: 3.0, verge_right: 1.2, ..Encoders::default() });
-        assert!(e.unwrap_err().to_string().contains("did not move there"));
+        // Back to the elevation view: it lies behind, so the capture is not found.
+        head.move_to(&at(0.0, 3.0)).unwrap();
+        let e = head.capture_images().unwrap_err().to_string();
+        assert!(e.contains("did not capture there") && e.contains("after p2"), "{e}");
     }
 }
