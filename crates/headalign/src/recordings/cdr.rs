@@ -496,4 +496,17 @@ mod tests {
         w.header(0, "").u32(u32::MAX);
         assert!(matches!(joint_state(&w.finish()), Err(CdrError::Truncated { .. })));
     }
+
+    proptest::proptest! {
+        /// Any bytes after a valid header decode to a message or an error, never a panic
+        /// (the fuzz target `ros2_message` does the same without the header).
+        #[test]
+        fn arbitrary_messages_never_panic(body in proptest::collection::vec(proptest::num::u8::ANY, 0..200), little: bool) {
+            let mut m = vec![0, u8::from(little), 0, 0];
+            m.extend_from_slice(&body);
+            let _ = image(&m);
+            let _ = compressed_image(&m);
+            let _ = joint_state(&m);
+        }
+    }
 }

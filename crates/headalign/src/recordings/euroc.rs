@@ -193,7 +193,7 @@ pub fn parse_sensor_yaml(text: &str, origin: &str) -> Result<(LensModel, Option<
     let resolution = match yaml_value(text, "resolution") {
         Some(_) => {
             let r = numbers("resolution", 2)?;
-            if r.iter().any(|&v| v < 1.0 || v > 100_000.0 || v.fract() != 0.0) {
+            if r.iter().any(|&v| !(1.0..=100_000.0).contains(&v) || v.fract() != 0.0) {
                 return Err(bad(format!("resolution {r:?} is not an image size")));
             }
             Some([r[0] as u32, r[1] as u32])

@@ -32,7 +32,7 @@
 //! `is_bigendian`.
 //!
 //! Degrees of freedom: none. Units: stamps in nanoseconds, joint positions in radians
-//! (converted to degrees by [`super::encoders_at`]). Pitfalls: channel ids are per file
+//! (converted to degrees when the encoders are interpolated). Pitfalls: channel ids are per file
 //! (a split bag repeats them with other meanings); a corrupt record length or chunk size
 //! is an error before anything that large is allocated.
 
@@ -164,13 +164,16 @@ fn decompress(compression: &str, data: &[u8], size: u64, origin: &str) -> Result
     Ok(out)
 }
 
+/// What [`scan`] calls for each message: topic, topic info, CDR bytes.
+pub type Visit<'a> = dyn FnMut(&str, &TopicInfo, &[u8]) -> Result<(), AlignError> + 'a;
+
 /// The records of one file, streamed: schemas and channels are resolved, and each
 /// message is passed to `visit` with its topic and channel.
 struct Scanner<'a> {
     origin: String,
     schemas: HashMap<u16, String>,
     channels: HashMap<u16, (String, TopicInfo)>,
-    visit: &'a mut dyn FnMut(&str, &TopicInfo, &[u8]) -> Result<(), AlignError>,
+    visit: &'a mut Visit<'a>,
     topics: &'a mut BTreeMap<String, TopicInfo>,
 }
 
@@ -243,10 +246,7 @@ impl Scanner<'_> {
 
 /// Stream every message of the bag's files to `visit(topic, info, cdr bytes)`; returns
 /// every topic seen.
-pub fn scan(
-    files: &[PathBuf],
-    visit: &mut dyn FnMut(&str, &TopicInfo, &[u8]) -> Result<(), AlignError>,
-) -> Result<BTreeMap<String, TopicInfo>, AlignError> {
+pub fn scan(files: &[PathBuf], visit: &mut Visit<'_>) -> Result<BTreeMap<String, TopicInfo>, AlignError> {
     let mut topics = BTreeMap::new();
     for path in files {
         let origin = path.display().to_string();
