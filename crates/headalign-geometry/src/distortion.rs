@@ -82,7 +82,9 @@ impl LensKind {
             "radtan" | "radial-tangential" | "plumb-bob" | "pinhole-radtan" | "rational-polynomial" => {
                 Some(LensKind::RadialTangential)
             }
-            "equidistant" | "equi" | "fisheye" | "pinhole-equi" | "kannala-brandt" => Some(LensKind::Equidistant),
+            "equidistant" | "equi" | "fisheye" | "pinhole-equi" | "kannala-brandt" => {
+                Some(LensKind::Equidistant)
+            }
             _ => None,
         }
     }
@@ -192,7 +194,15 @@ impl Distortion {
                 "distortion coefficients beyond k3 (OpenCV's rational model) are not supported".into(),
             ));
         }
-        let out = Self { k1: d[0], k2: d[1], p1: d[2], p2: d[3], k3: d.get(4).copied().unwrap_or(0.0), k4: 0.0, kind: LensKind::RadialTangential };
+        let out = Self {
+            k1: d[0],
+            k2: d[1],
+            p1: d[2],
+            p2: d[3],
+            k3: d.get(4).copied().unwrap_or(0.0),
+            k4: 0.0,
+            kind: LensKind::RadialTangential,
+        };
         out.validate()?;
         Ok(out)
     }
@@ -294,7 +304,10 @@ impl Distortion {
 
     /// Distorted normalised coordinates, `d x_d / d x`, and `d x_d / d slot` for the six
     /// slots of [`Self::slots`] (a slot the model does not have has a zero column).
-    pub fn distort_with_jacobians(&self, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>, SMatrix<f64, 2, 6>) {
+    pub fn distort_with_jacobians(
+        &self,
+        x: &Vector2<f64>,
+    ) -> (Vector2<f64>, Matrix2<f64>, SMatrix<f64, 2, 6>) {
         match self.kind {
             LensKind::RadialTangential => {
                 let (xd, j) = self.radtan(x);
@@ -609,7 +622,8 @@ mod tests {
         bad.p1 = 0.1;
         assert!(bad.validate().is_err());
         // Older JSON without `kind` and `k4` reads as radial-tangential.
-        let old: Distortion = serde_json::from_str(r#"{"k1":-0.2,"k2":0.05,"p1":0.0,"p2":0.0,"k3":0.0}"#).unwrap();
+        let old: Distortion =
+            serde_json::from_str(r#"{"k1":-0.2,"k2":0.05,"p1":0.0,"p2":0.0,"k3":0.0}"#).unwrap();
         assert_eq!(old, Distortion::radial(-0.2, 0.05));
     }
 

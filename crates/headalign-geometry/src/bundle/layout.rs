@@ -163,7 +163,8 @@ impl Layout {
                 p.push(Param::Intr(side, 4));
             }
             if options.estimate_distortion {
-                let kind = if side == Side::Left { state.left_distortion.kind } else { state.right_distortion.kind };
+                let kind =
+                    if side == Side::Left { state.left_distortion.kind } else { state.right_distortion.kind };
                 p.extend(options.distortion_terms.slots(kind).iter().map(|&i| Param::Dist(side, i)));
             }
         }

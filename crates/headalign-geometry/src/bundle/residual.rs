@@ -426,7 +426,7 @@ mod tests {
             &perturb(&f.truth, 140),
             &BundleOptions { estimate_distortion: true, ..BundleOptions::default() },
             &pick,
-        );        // Every radial-tangential coefficient free (k1 k2 p1 p2 k3), and the equidistant
+        ); // Every radial-tangential coefficient free (k1 k2 p1 p2 k3), and the equidistant
         // model with k1..k4 free, with a skew.
         let mut full = perturb(&s.truth, 132);
         full.left_distortion.p1 = 1e-3;

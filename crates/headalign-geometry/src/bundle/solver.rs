@@ -564,7 +564,10 @@ mod tests {
     #[test]
     fn other_lens_models_noise_free_converge_to_truth() {
         use crate::distortion::{DistortionTerms, LensKind};
-        let equi = [Distortion::equidistant([0.02, -0.01, 0.003, -0.001]), Distortion::equidistant([-0.03, 0.01, 0.0, 0.0])];
+        let equi = [
+            Distortion::equidistant([0.02, -0.01, 0.003, -0.001]),
+            Distortion::equidistant([-0.03, 0.01, 0.0, 0.0]),
+        ];
         let radtan = [
             Distortion { k1: -0.2, k2: 0.05, p1: 1e-3, p2: -5e-4, k3: 0.01, ..Distortion::default() },
             Distortion { k1: -0.15, k2: 0.03, p1: -8e-4, p2: 6e-4, k3: -0.005, ..Distortion::default() },
@@ -577,15 +580,20 @@ mod tests {
             let mut start = perturb(&s.truth, seed * 10);
             start.left_distortion = start_lens;
             start.right_distortion = start_lens;
-            let opts =
-                BundleOptions { estimate_distortion: true, distortion_terms: terms, ..BundleOptions::default() };
+            let opts = BundleOptions {
+                estimate_distortion: true,
+                distortion_terms: terms,
+                ..BundleOptions::default()
+            };
             let res = bundle_adjust(&start, &s.obs, &opts).unwrap();
             let d = state_distance(&res.state, &s.truth);
             assert!(res.report.converged, "{:?}", res.report);
             assert!(res.report.final_rms_px < 1e-8, "{:?}", res.report);
             assert!(d < 1e-8, "{terms:?}: distance to truth {d:e}, {:?}", res.report);
             let names: Vec<&str> = lenses[0].kind.coefficient_names().to_vec();
-            for n in names.iter().filter(|n| **n != "k3" || terms == DistortionTerms::Full5 || lenses[0].kind == LensKind::Equidistant) {
+            for n in names.iter().filter(|n| {
+                **n != "k3" || terms == DistortionTerms::Full5 || lenses[0].kind == LensKind::Equidistant
+            }) {
                 assert!(res.covariance.index(&format!("left.{n}")).is_some(), "left.{n} missing");
             }
         }
