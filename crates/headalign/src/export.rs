@@ -450,6 +450,33 @@ mod tests {
         assert_eq!(m2[1], 0.3, "skew kept in OpenCV's camera matrix");
     }
 
+    /// Each camera's model under each format's name, and read back exactly: an
+    /// equidistant left lens and a radial-tangential right one in one OpenCV YAML, an
+    /// equidistant ROS `camera_info`.
+    #[test]
+    fn lens_models_are_written_and_read_back() {
+        use crate::calibrate::read_opencv_lenses;
+        let mut c = sample();
+        c.distortion[0] = Distortion::equidistant([0.01, -0.002, 0.0003, -0.00004]);
+        let y = c.opencv_yaml().unwrap();
+        assert!(y.contains("distortion_model_1: fisheye\ndistortion_model_2: plumb_bob"));
+        assert_eq!(data_after(&y, "D1:").len(), 4);
+        let lenses = read_opencv_lenses(&y, "t").unwrap();
+        assert_eq!(lenses[0].distortion, c.distortion[0]);
+        assert_eq!(lenses[1].distortion, c.distortion[1]);
+        let ros = c.ros_camera_info(0, "left").unwrap();
+        assert!(ros.contains("distortion_model: equidistant"));
+        assert_eq!(read_opencv_lenses(&ros, "t").unwrap()[0].distortion, c.distortion[0]);
+        let kalibr = c.kalibr_camchain().unwrap();
+        assert!(
+            kalibr.contains(
+                "distortion_model: equidistant\n  distortion_coeffs: [0.01, -0.002, 0.0003, -4e-5]"
+            )
+        );
+        assert!(kalibr.contains("distortion_model: radtan"));
+        assert_eq!(c.json().unwrap()["left"]["distortion_model"], "equidistant");
+    }
+
     #[test]
     fn ros_and_kalibr_layouts() {
         let c = sample();

@@ -77,6 +77,7 @@ mod lens;
 pub mod lens_choice;
 mod motion;
 mod report;
+pub mod residuals;
 mod starts;
 mod stereo;
 #[cfg(test)]
@@ -281,6 +282,9 @@ pub struct CalibrateReport {
     pub restarts: usize,
     /// How the lens model was chosen ([`LensChoice::Auto`]; `None` otherwise).
     pub lens_selection: Option<LensSelection>,
+    /// Structure in the final residuals by image radius and region ([`residuals`]), and
+    /// the sigma widening it caused.
+    pub residual_structure: Option<residuals::ResidualStructure>,
     /// Warnings: a poorly determined calibration (focal sigma above
     /// [`CalibrateOptions::warn_focal_sigma_pct`]), one motion in a mostly planar scene
     /// ([`CalibrateOptions::warn_plane_fraction`]), with what to do about it.
@@ -306,10 +310,13 @@ pub struct MotionCalibration {
 /// differ from the first view's are left out (the rig changed).
 pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<MotionCalibration, AlignError> {
     options.validate()?;
-    if options.lens == LensChoice::Auto {
-        return lens_choice::calibrate_choosing_lens(views, options);
-    }
-    calibrate_with_restarts(views, options)
+    let mut result = if options.lens == LensChoice::Auto {
+        lens_choice::calibrate_choosing_lens(views, options)?
+    } else {
+        calibrate_with_restarts(views, options)?
+    };
+    residuals::check_and_widen(&mut result);
+    Ok(result)
 }
 
 /// [`calibrate_rig`] with a fixed lens model: the chain, retried with the next
@@ -426,6 +433,7 @@ fn calibrate_once(
         estimation_seed: est.seed,
         restarts: 0,
         lens_selection: None,
+        residual_structure: None,
         warnings,
     };
     Ok(MotionCalibration {
