@@ -178,8 +178,8 @@ fn camera_residuals(
         })
         .collect();
     let max_radius = samples.iter().map(|s| s.0).fold(1e-9, f64::max);
-    let mut ring_acc = vec![(0usize, 0.0f64, 0.0f64); RINGS];
-    let mut cell_acc = vec![(0usize, nalgebra::Vector2::<f64>::zeros()); GRID * GRID];
+    let mut ring_acc = [(0usize, 0.0f64, 0.0f64); RINGS];
+    let mut cell_acc = [(0usize, nalgebra::Vector2::<f64>::zeros()); GRID * GRID];
     for &(radius, radial, r, x, y) in &samples {
         let i = ((radius / max_radius * RINGS as f64) as usize).min(RINGS - 1);
         ring_acc[i].0 += 1;
