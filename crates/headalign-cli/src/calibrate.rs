@@ -16,16 +16,17 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::{
-    CalibrateOptions, Density, DensityReport, DensityTrial, LensModel, MotionCalibration, calibrate_rig,
-    read_opencv_lenses, require_depth, rig_from_known_intrinsics, undistort_views,
+    CalibrateOptions, Density, DensityReport, DensityTrial, LensChoice, LensModel, MotionCalibration,
+    calibrate_rig, read_opencv_lenses, require_depth, rig_from_known_intrinsics, undistort_views,
 };
 use headalign::error::AlignError;
 use headalign::export::{StereoCalibration, TranslationUnit};
 use headalign::frontend::{FrontEndOptions, Tracker};
 use headalign::observations::View;
 use headalign::session::{SessionInfo, SessionWriter, ViewLabel, read_image_session};
+use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
-use headalign_geometry::distortion::Distortion;
+use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
@@ -51,14 +52,22 @@ pub struct CalibrateArgs {
     // The M1 D1 M2 D2 form is what OpenCV's stereo sample and our opencv_stereo.yaml write.
     #[arg(long)]
     pub distortion: Option<PathBuf>,
-    /// Estimate each camera's radial distortion (k1, k2, OpenCV plumb_bob) in the bundle
-    /// adjustment.
-    #[arg(long, conflicts_with = "distortion")]
+    /// Lens model estimated for each camera: `pinhole`, `radtan`, `equidistant` or `auto`
+    /// (chosen by BIC, reported). Default pinhole.
+    // `headalign::calibrate::LensChoice`; the criterion is in `calibrate::lens_choice`.
+    #[arg(long, value_parser = parse_lens, conflicts_with = "distortion")]
+    pub lens: Option<LensChoice>,
+    /// Lens coefficients estimated: `radial` (k1 k2, default), `4` (radtan k1 k2 p1 p2;
+    /// equidistant k1..k4) or `5` (radtan with k3).
+    #[arg(long, value_parser = parse_terms, default_value = "radial")]
+    pub lens_terms: DistortionTerms,
+    /// Same as `--lens radtan`.
+    #[arg(long, conflicts_with_all = ["distortion", "lens"])]
     pub estimate_distortion: bool,
     /// Known intrinsics and distortion (same file formats): no self-calibration, only the
     /// rig (works with a planar target).
     // The rig comes from the fundamental matrix of all views.
-    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "zero_skew", "square_pixels", "fix_principal_point"])]
+    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "lens", "zero_skew", "square_pixels", "fix_principal_point"])]
     pub intrinsics: Option<PathBuf>,
     /// Write the calibration files here (calibration.json, opencv_stereo.yaml, left.yaml,
     /// right.yaml, camchain.yaml, calibrate_report.json).
@@ -103,11 +112,30 @@ fn options(args: &CalibrateArgs) -> CalibrateOptions {
         zero_skew: args.zero_skew,
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
-        estimate_distortion: args.estimate_distortion,
+        lens: lens_choice(args),
+        lens_terms: args.lens_terms,
         ..CalibrateOptions::default()
     };
     o.estimation.seed = args.seed;
     o
+}
+
+/// The lens model of `--lens` / `--estimate-distortion`.
+pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
+    match args.lens {
+        Some(l) => l,
+        None if args.estimate_distortion => LensChoice::Model(LensKind::RadialTangential),
+        None => LensChoice::Pinhole,
+    }
+}
+
+fn parse_lens(s: &str) -> Result<LensChoice, String> {
+    LensChoice::parse(s)
+        .ok_or_else(|| format!("unknown lens model '{s}': pinhole, radtan, equidistant or auto"))
+}
+
+fn parse_terms(s: &str) -> Result<DistortionTerms, String> {
+    DistortionTerms::parse(s).ok_or_else(|| format!("unknown lens terms '{s}': radial, 4 or 5"))
 }
 
 /// `--patch-refinement`.
@@ -348,18 +376,33 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         "constraints": {"zero_skew": args.zero_skew, "square_pixels": args.square_pixels, "fix_principal_point": args.fix_principal_point},
         "left": cam("left", &st.left), "right": cam("right", &st.right),
         "right_from_left": rig_json(&st.right_from_left),
-        "distortion": {
-            "estimated": args.estimate_distortion,
-            "left": distortion[0].to_opencv(), "right": distortion[1].to_opencv(),
-            "sigma": {"left.k1": c.sigma("left.k1"), "left.k2": c.sigma("left.k2"),
-                      "right.k1": c.sigma("right.k1"), "right.k2": c.sigma("right.k2")},
-        },
+        "distortion": distortion_json(&distortion, lens_choice(args) != LensChoice::Pinhole, c),
         "translation_unit": match stereo.unit { TranslationUnit::Metres => "m", TranslationUnit::Baselines => "baselines" },
         "report": serde_json::to_value(&cal.report)?,
         "density": serde_json::to_value(&density_report)?,
         "seconds": t0.elapsed().as_secs_f64(),
     });
     Ok(Outcome { stereo, json, calibration: Some(cal), density: Some(density_report) })
+}
+
+/// The `distortion` member: each camera's model and coefficients (in the model's order,
+/// OpenCV's `D`), and the sigma of every estimated coefficient.
+fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: &Covariance) -> Value {
+    let mut sigma = serde_json::Map::new();
+    for (side, d) in ["left", "right"].iter().zip(distortion) {
+        for name in d.kind.coefficient_names() {
+            let key = format!("{side}.{name}");
+            if let Some(s) = c.sigma(&key) {
+                sigma.insert(key, json!(s));
+            }
+        }
+    }
+    json!({
+        "estimated": estimated,
+        "model": [distortion[0].kind.ros_name(), distortion[1].kind.ros_name()],
+        "left": distortion[0].coefficients(), "right": distortion[1].coefficients(),
+        "sigma": sigma,
+    })
 }
 
 fn rig_json(m: &Isometry3<f64>) -> Value {
@@ -562,6 +605,8 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         square_pixels: flag("square_pixels"),
         fix_principal_point: flag("fix_principal_point"),
         distortion: None,
+        lens: info.head["calibrate"]["lens"].as_str().and_then(LensChoice::parse),
+        lens_terms: DistortionTerms::Radial2,
         estimate_distortion: flag("estimate_distortion"),
         intrinsics: None,
         out: None,
@@ -586,6 +631,8 @@ mod tests {
             square_pixels: false,
             fix_principal_point: false,
             distortion: None,
+            lens: None,
+            lens_terms: DistortionTerms::Radial2,
             estimate_distortion: false,
             intrinsics: None,
             out: None,

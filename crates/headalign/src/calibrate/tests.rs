@@ -149,8 +149,10 @@ fn reads_opencv_lenses() {
 /// (shortest round-trip number formatting).
 #[test]
 fn reads_back_our_own_export() {
-    let d =
-        [Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.01 }, Distortion::radial(0.1, 0.0)];
+    let d = [
+        Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.01, ..Distortion::default() },
+        Distortion::radial(0.1, 0.0),
+    ];
     let stereo = crate::export::StereoCalibration {
         image_size: [768, 576],
         left: Intrinsics { fx: 700.25, fy: 720.5, skew: 0.0, cx: 390.125, cy: 284.0 },
