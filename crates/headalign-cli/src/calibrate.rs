@@ -17,7 +17,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::{
     CalibrateOptions, Density, DensityReport, DensityTrial, LensModel, MotionCalibration, calibrate_rig,
-    read_opencv_lenses, require_depth, rig_from_known_intrinsics, undistort_views,
+    read_opencv_lenses, require_depth, rig_from_known_intrinsics, select_rig, undistort_views,
 };
 use headalign::error::AlignError;
 use headalign::export::{StereoCalibration, TranslationUnit};
@@ -224,8 +224,29 @@ fn k_json(k: &Intrinsics) -> Value {
     json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy})
 }
 
-/// Run `calibrate` on named views (from disk or memory alike).
+/// Run `calibrate` on named views (from disk or memory alike): on the views of one rig
+/// ([`select_rig`]: a recorded session changes its rig with every vergence reading),
+/// the others named in the report's `skipped`.
 pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
+    let pairs: Vec<(&str, Encoders)> = views.iter().map(|(n, v)| (n.as_str(), v.encoders)).collect();
+    let choice = select_rig(&pairs);
+    let rig: Vec<(String, StereoImages)> = choice.used.iter().map(|&i| views[i].clone()).collect();
+    let mut outcome = calibrate_rig_views(&rig, args)?;
+    if !choice.left_out.is_empty() {
+        let left_out = choice.left_out.into_iter().map(|(_, why)| why);
+        match &mut outcome.calibration {
+            Some(c) => {
+                c.report.skipped.splice(0..0, left_out);
+                outcome.json["report"]["skipped"] = json!(c.report.skipped);
+            }
+            None => outcome.json["skipped"] = json!(left_out.collect::<Vec<_>>()),
+        }
+    }
+    Ok(outcome)
+}
+
+/// [`calibrate_views`] on views of one rig.
+fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
     let t0 = Instant::now();
     if let Some(r) = args.search_px
         && !(r.is_finite() && r > 0.0)
@@ -457,6 +478,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             r.final_rms_px,
             r.bundle_observations
         );
+        if !r.skipped.is_empty() {
+            let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
+            println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
+        }
         for m in &r.motions {
             println!(
                 "  {}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers",
