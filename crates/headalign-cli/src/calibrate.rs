@@ -98,7 +98,7 @@ fn density(args: &CalibrateArgs) -> Density {
 }
 
 /// The options of the library from the flags.
-fn options(args: &CalibrateArgs) -> CalibrateOptions {
+pub fn options(args: &CalibrateArgs) -> CalibrateOptions {
     let mut o = CalibrateOptions {
         zero_skew: args.zero_skew,
         square_pixels: args.square_pixels,
@@ -215,7 +215,7 @@ pub struct Outcome {
     pub density: Option<DensityReport>,
 }
 
-fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
+pub fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     Ok(read_opencv_lenses(&text, &path.display().to_string())?)
 }
@@ -351,6 +351,19 @@ fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
     if density_report.warn {
         cal.report.warnings.push(density_report.note.clone());
     }
+    self_calibration_outcome(cal, Some(density_report), lenses, image_size, args, t0)
+}
+
+/// The outcome of the self-calibration route: the files' content and the JSON report
+/// (`density`: the corner counts tried, `None` for tracked points).
+pub fn self_calibration_outcome(
+    cal: MotionCalibration,
+    density_report: Option<DensityReport>,
+    lenses: Option<[LensModel; 2]>,
+    image_size: [u32; 2],
+    args: &CalibrateArgs,
+    t0: Instant,
+) -> Result<Outcome> {
     let st = &cal.bundle.state;
     let distortion = match lenses {
         Some(l) => [l[0].distortion, l[1].distortion],
@@ -380,7 +393,7 @@ fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         "density": serde_json::to_value(&density_report)?,
         "seconds": t0.elapsed().as_secs_f64(),
     });
-    Ok(Outcome { stereo, json, calibration: Some(cal), density: Some(density_report) })
+    Ok(Outcome { stereo, json, calibration: Some(cal), density: density_report })
 }
 
 fn rig_json(m: &Isometry3<f64>) -> Value {
@@ -423,8 +436,11 @@ fn stereo_calibration(
 
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
-    let views = load_views(&args.dir)?;
-    let outcome = calibrate_views(&views, args)?;
+    let outcome = if headalign::session::is_point_session(&args.dir) {
+        crate::points::calibrate(args)?
+    } else {
+        calibrate_views(&load_views(&args.dir)?, args)?
+    };
     // Warnings go to stderr in both modes (and are in the JSON report).
     if let Some(cal) = &outcome.calibration {
         for w in &cal.report.warnings {
