@@ -7,7 +7,8 @@
 //! - `headalign simulate --out FILE`: record an observation session from the simulator.
 //! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
 //! - `headalign replay DIR`: re-run a recorded session offline ([`replay`]).
-//! - `headalign run --head-cmd CMD`: the image procedure on a driver process ([`headcmd`]).
+//! - `headalign run --head-cmd CMD`: the image procedure and the robot stages on a driver
+//!   process ([`headcmd`]).
 //! - `headalign calibrate DIR`: self-calibration from rig motions ([`calibrate`]).
 
 mod calibrate;
@@ -74,8 +75,8 @@ enum Command {
     Experiment(experiment::ExperimentArgs),
     /// Re-run a recorded session offline (same procedure, recorded images: same result).
     Replay(replay::ReplayArgs),
-    /// Verge, calibrate and align a head driven through the JSON-lines head protocol,
-    /// recording the session.
+    /// Verge, calibrate and align a head driven through the JSON-lines head protocol, then
+    /// run the robot stages on its base (--stages), recording the session.
     Run(headcmd::RunArgs),
     /// Self-calibrate a stereo rig from views related by rigid motions of the whole rig.
     Calibrate(calibrate::CalibrateArgs),

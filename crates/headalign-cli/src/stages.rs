@@ -110,10 +110,15 @@ pub fn summary_line(v: &serde_json::Value) -> Option<String> {
     let stages = v["stages"].as_array()?;
     let v = if v["robot"].is_object() { &v["robot"] } else { v };
     let mut parts = Vec::new();
-    for p in v["pan"].as_array().into_iter().flatten() {
-        if let Some(pan) = p["final_encoders"]["pan"].as_f64() {
-            parts.push(format!("pan stage: pan reading {pan:.3} deg"));
-        }
+    let pans: Vec<String> = v["pan"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|p| p["final_encoders"]["pan"].as_f64())
+        .map(|pan| format!("{pan:.3}"))
+        .collect();
+    if !pans.is_empty() {
+        parts.push(format!("pan reading after each pan stage {} deg", pans.join(", ")));
     }
     if let (Some(zero), Some(sigma)) =
         (v["steering"]["steer_zero_deg"].as_f64(), v["steering"]["sigma_steer_zero_deg"].as_f64())

@@ -99,10 +99,11 @@ fn serve(args: &Args) -> Result<(), String> {
     let before = errors_now(&robot, !args.no_base);
     let mut sim = Sim { robot, base: !args.no_base, before, out: out.clone(), captures: 0 };
     let result = lines(args, &mut sim);
+    // The truth first: headalign waits only briefly for the driver to exit after `bye`.
+    let written = args.truth.as_deref().map_or(Ok(()), |path| write_truth(&sim, args.seed, path));
     if temporary {
         let _ = std::fs::remove_dir_all(&out);
     }
-    let written = args.truth.as_deref().map_or(Ok(()), |path| write_truth(&sim, args.seed, path));
     result.and(written)
 }
 
