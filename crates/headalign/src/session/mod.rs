@@ -41,9 +41,9 @@
 //! a session: planned captures are named by the plan, others `stage-N`, numbered over the
 //! session (a stage that runs twice continues its numbers). Sessions written before names
 //! were unique repeat a stage's names; the readers know such a view by its folder name
-//! (`21-pan-1`). Older sessions (no `session.json`, `view.json` with only `name` and `encoders`)
-//! still read with [`read_image_session`]; they have no events, so only `align --images`
-//! (estimation from the views) works on them, not replay.
+//! (`21-pan-1`). Older sessions (no `session.json`, `view.json` with only `name` and
+//! `encoders`) still read with [`read_image_session`]; they have no events, so only `align
+//! --images` (estimation from the views) works on them, not replay.
 //!
 //! ## Recording and replay
 //!
@@ -64,17 +64,16 @@
 //!
 //! Every bad input is an error naming the file and the problem: a missing or unreadable
 //! image, a malformed `view.json` (wrong types, missing fields, an empty view name, a
-//! repeated name whose folder name is taken too, non-finite encoder readings or readings beyond +-3600 deg), left and right
-//! images of different sizes, a view whose size differs from the first, a blank
-//! (textureless) image, a malformed event line. [`parse_view_json`] and [`check_image`]
-//! are the pure parts of the reader (fuzzed without files: `fuzz/`, targets `view_json`
-//! and `png_decode`).
+//! repeated name whose folder name is taken too, non-finite encoder readings or readings
+//! beyond +-3600 deg), left and right images of different sizes, a view whose size
+//! differs from the first, a blank (textureless) image, a malformed event line.
+//! [`parse_view_json`] and [`check_image`] are the pure parts of the reader (fuzzed
+//! without files: `fuzz/`, targets `view_json` and `png_decode`).
 
+use std::collections::{HashMap, HashSet};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
-
-use std::collections::{HashMap, HashSet};
 
 use headalign_platform::{
     Encoders, GrayImage, ImagingHead, Odometry, PlatformError, StereoCapture, StereoHead, StereoImages,
