@@ -17,7 +17,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::{
     CalibrateOptions, Density, DensityReport, DensityTrial, LensChoice, LensModel, MotionCalibration,
-    calibrate_rig, read_opencv_lenses, require_depth, rig_from_known_intrinsics, undistort_views,
+    calibrate_rig, read_opencv_lenses, require_depth, rig_from_known_intrinsics, select_rig, undistort_views,
 };
 use headalign::error::AlignError;
 use headalign::export::{StereoCalibration, TranslationUnit};
@@ -107,7 +107,7 @@ fn density(args: &CalibrateArgs) -> Density {
 }
 
 /// The options of the library from the flags.
-fn options(args: &CalibrateArgs) -> CalibrateOptions {
+pub fn options(args: &CalibrateArgs) -> CalibrateOptions {
     let mut o = CalibrateOptions {
         zero_skew: args.zero_skew,
         square_pixels: args.square_pixels,
@@ -243,7 +243,7 @@ pub struct Outcome {
     pub density: Option<DensityReport>,
 }
 
-fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
+pub fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     Ok(read_opencv_lenses(&text, &path.display().to_string())?)
 }
@@ -252,8 +252,29 @@ fn k_json(k: &Intrinsics) -> Value {
     json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy})
 }
 
-/// Run `calibrate` on named views (from disk or memory alike).
+/// Run `calibrate` on named views (from disk or memory alike): on the views of one rig
+/// ([`select_rig`]: a recorded session changes its rig with every vergence reading),
+/// the others named in the report's `skipped`.
 pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
+    let pairs: Vec<(&str, Encoders)> = views.iter().map(|(n, v)| (n.as_str(), v.encoders)).collect();
+    let choice = select_rig(&pairs);
+    let rig: Vec<(String, StereoImages)> = choice.used.iter().map(|&i| views[i].clone()).collect();
+    let mut outcome = calibrate_rig_views(&rig, args)?;
+    if !choice.left_out.is_empty() {
+        let left_out = choice.left_out.into_iter().map(|(_, why)| why);
+        match &mut outcome.calibration {
+            Some(c) => {
+                c.report.skipped.splice(0..0, left_out);
+                outcome.json["report"]["skipped"] = json!(c.report.skipped);
+            }
+            None => outcome.json["skipped"] = json!(left_out.collect::<Vec<_>>()),
+        }
+    }
+    Ok(outcome)
+}
+
+/// [`calibrate_views`] on views of one rig.
+fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
     let t0 = Instant::now();
     if let Some(r) = args.search_px
         && !(r.is_finite() && r > 0.0)
@@ -358,6 +379,19 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
     if density_report.warn {
         cal.report.warnings.push(density_report.note.clone());
     }
+    self_calibration_outcome(cal, Some(density_report), lenses, image_size, args, t0)
+}
+
+/// The outcome of the self-calibration route: the files' content and the JSON report
+/// (`density`: the corner counts tried, `None` for tracked points).
+pub fn self_calibration_outcome(
+    cal: MotionCalibration,
+    density_report: Option<DensityReport>,
+    lenses: Option<[LensModel; 2]>,
+    image_size: [u32; 2],
+    args: &CalibrateArgs,
+    t0: Instant,
+) -> Result<Outcome> {
     let st = &cal.bundle.state;
     let distortion = match lenses {
         Some(l) => [l[0].distortion, l[1].distortion],
@@ -382,7 +416,7 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         "density": serde_json::to_value(&density_report)?,
         "seconds": t0.elapsed().as_secs_f64(),
     });
-    Ok(Outcome { stereo, json, calibration: Some(cal), density: Some(density_report) })
+    Ok(Outcome { stereo, json, calibration: Some(cal), density: density_report })
 }
 
 /// The `distortion` member: each camera's model and coefficients (in the model's order,
@@ -445,8 +479,11 @@ fn stereo_calibration(
 
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
-    let views = load_views(&args.dir)?;
-    let outcome = calibrate_views(&views, args)?;
+    let outcome = if headalign::session::is_point_session(&args.dir) {
+        crate::points::calibrate(args)?
+    } else {
+        calibrate_views(&load_views(&args.dir)?, args)?
+    };
     // Warnings go to stderr in both modes (and are in the JSON report).
     if let Some(cal) = &outcome.calibration {
         for w in &cal.report.warnings {
@@ -500,6 +537,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             r.final_rms_px,
             r.bundle_observations
         );
+        if !r.skipped.is_empty() {
+            let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
+            println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
+        }
         for m in &r.motions {
             println!(
                 "  {}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers",

@@ -93,7 +93,7 @@ use serde::Serialize;
 pub use density::{
     DISAGREEMENT_SIGMAS, Density, DensityReport, DensityTrial, disagreement_sigmas, prefer_denser,
 };
-pub use depth::{PlaneCheck, check_planarity, require_depth};
+pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_rig};
 pub use lens::{LensModel, read_opencv_lenses, undistort_views};
 pub use lens_choice::{LensCandidate, LensChoice, LensSelection};
 pub use report::weak_data;
