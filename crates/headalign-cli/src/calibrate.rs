@@ -17,16 +17,17 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::{
-    CalibrateOptions, Density, DensityReport, DensityTrial, LensModel, MotionCalibration, calibrate_rig,
-    read_opencv_lenses, require_depth, rig_from_known_intrinsics, undistort_views,
+    CalibrateOptions, Density, DensityReport, DensityTrial, LensChoice, LensModel, MotionCalibration,
+    calibrate_rig, read_opencv_lenses, require_depth, rig_from_known_intrinsics, select_rig, undistort_views,
 };
 use headalign::error::AlignError;
 use headalign::export::{StereoCalibration, TranslationUnit};
 use headalign::frontend::{FrontEndOptions, Tracker};
 use headalign::observations::View;
 use headalign::session::{SessionInfo, SessionWriter, ViewLabel, read_image_session};
+use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
-use headalign_geometry::distortion::Distortion;
+use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
@@ -54,19 +55,27 @@ pub struct CalibrateArgs {
     // The M1 D1 M2 D2 form is what OpenCV's stereo sample and our opencv_stereo.yaml write.
     #[arg(long)]
     pub distortion: Option<PathBuf>,
-    /// Estimate each camera's radial distortion (k1, k2, OpenCV plumb_bob) in the bundle
-    /// adjustment.
-    #[arg(long, conflicts_with = "distortion")]
+    /// Lens model estimated for each camera: `pinhole`, `radtan`, `equidistant` or `auto`
+    /// (chosen by BIC, reported). Default pinhole.
+    // `headalign::calibrate::LensChoice`; the criterion is in `calibrate::lens_choice`.
+    #[arg(long, value_parser = parse_lens, conflicts_with = "distortion")]
+    pub lens: Option<LensChoice>,
+    /// Lens coefficients estimated: `radial` (k1 k2, default), `4` (radtan k1 k2 p1 p2;
+    /// equidistant k1..k4) or `5` (radtan with k3).
+    #[arg(long, value_parser = parse_terms, default_value = "radial")]
+    pub lens_terms: DistortionTerms,
+    /// Same as `--lens radtan`.
+    #[arg(long, conflicts_with_all = ["distortion", "lens"])]
     pub estimate_distortion: bool,
     /// Known lenses from Kalibr/EuRoC sensor.yaml files: LEFT.yaml,RIGHT.yaml, or
     /// `recording` for an EuRoC folder's own cam0/cam1 sensor.yaml.
     // `recording::lens_from`; fed where --distortion's lenses go.
-    #[arg(long, value_name = "LEFT,RIGHT|recording", conflicts_with_all = ["distortion", "estimate_distortion"])]
+    #[arg(long, value_name = "LEFT,RIGHT|recording", conflicts_with_all = ["distortion", "estimate_distortion", "lens"])]
     pub lens_from: Option<String>,
     /// Known intrinsics and distortion (same file formats): no self-calibration, only the
     /// rig (works with a planar target).
     // The rig comes from the fundamental matrix of all views.
-    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "lens_from", "zero_skew", "square_pixels", "fix_principal_point"])]
+    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "lens", "lens_from", "zero_skew", "square_pixels", "fix_principal_point"])]
     pub intrinsics: Option<PathBuf>,
     /// Write the calibration files here (calibration.json, opencv_stereo.yaml, left.yaml,
     /// right.yaml, camchain.yaml, calibrate_report.json).
@@ -109,16 +118,35 @@ fn density(args: &CalibrateArgs) -> Density {
 }
 
 /// The options of the library from the flags.
-fn options(args: &CalibrateArgs) -> CalibrateOptions {
+pub fn options(args: &CalibrateArgs) -> CalibrateOptions {
     let mut o = CalibrateOptions {
         zero_skew: args.zero_skew,
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
-        estimate_distortion: args.estimate_distortion,
+        lens: lens_choice(args),
+        lens_terms: args.lens_terms,
         ..CalibrateOptions::default()
     };
     o.estimation.seed = args.seed;
     o
+}
+
+/// The lens model of `--lens` / `--estimate-distortion`.
+pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
+    match args.lens {
+        Some(l) => l,
+        None if args.estimate_distortion => LensChoice::Model(LensKind::RadialTangential),
+        None => LensChoice::Pinhole,
+    }
+}
+
+fn parse_lens(s: &str) -> Result<LensChoice, String> {
+    LensChoice::parse(s)
+        .ok_or_else(|| format!("unknown lens model '{s}': pinhole, radtan, equidistant or auto"))
+}
+
+fn parse_terms(s: &str) -> Result<DistortionTerms, String> {
+    DistortionTerms::parse(s).ok_or_else(|| format!("unknown lens terms '{s}': radial, 4 or 5"))
 }
 
 /// `--patch-refinement`.
@@ -230,7 +258,7 @@ pub struct Outcome {
     pub density: Option<DensityReport>,
 }
 
-fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
+pub fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     Ok(read_opencv_lenses(&text, &path.display().to_string())?)
 }
@@ -239,8 +267,29 @@ fn k_json(k: &Intrinsics) -> Value {
     json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy})
 }
 
-/// Run `calibrate` on named views (from disk or memory alike).
+/// Run `calibrate` on named views (from disk or memory alike): on the views of one rig
+/// ([`select_rig`]: a recorded session changes its rig with every vergence reading),
+/// the others named in the report's `skipped`.
 pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
+    let pairs: Vec<(&str, Encoders)> = views.iter().map(|(n, v)| (n.as_str(), v.encoders)).collect();
+    let choice = select_rig(&pairs);
+    let rig: Vec<(String, StereoImages)> = choice.used.iter().map(|&i| views[i].clone()).collect();
+    let mut outcome = calibrate_rig_views(&rig, args)?;
+    if !choice.left_out.is_empty() {
+        let left_out = choice.left_out.into_iter().map(|(_, why)| why);
+        match &mut outcome.calibration {
+            Some(c) => {
+                c.report.skipped.splice(0..0, left_out);
+                outcome.json["report"]["skipped"] = json!(c.report.skipped);
+            }
+            None => outcome.json["skipped"] = json!(left_out.collect::<Vec<_>>()),
+        }
+    }
+    Ok(outcome)
+}
+
+/// [`calibrate_views`] on views of one rig.
+fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
     let t0 = Instant::now();
     if let Some(r) = args.search_px
         && !(r.is_finite() && r > 0.0)
@@ -351,6 +400,19 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
     if density_report.warn {
         cal.report.warnings.push(density_report.note.clone());
     }
+    self_calibration_outcome(cal, Some(density_report), lenses, image_size, args, t0)
+}
+
+/// The outcome of the self-calibration route: the files' content and the JSON report
+/// (`density`: the corner counts tried, `None` for tracked points).
+pub fn self_calibration_outcome(
+    cal: MotionCalibration,
+    density_report: Option<DensityReport>,
+    lenses: Option<[LensModel; 2]>,
+    image_size: [u32; 2],
+    args: &CalibrateArgs,
+    t0: Instant,
+) -> Result<Outcome> {
     let st = &cal.bundle.state;
     let distortion = match lenses {
         Some(l) => [l[0].distortion, l[1].distortion],
@@ -369,18 +431,33 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         "constraints": {"zero_skew": args.zero_skew, "square_pixels": args.square_pixels, "fix_principal_point": args.fix_principal_point},
         "left": cam("left", &st.left), "right": cam("right", &st.right),
         "right_from_left": rig_json(&st.right_from_left),
-        "distortion": {
-            "estimated": args.estimate_distortion,
-            "left": distortion[0].to_opencv(), "right": distortion[1].to_opencv(),
-            "sigma": {"left.k1": c.sigma("left.k1"), "left.k2": c.sigma("left.k2"),
-                      "right.k1": c.sigma("right.k1"), "right.k2": c.sigma("right.k2")},
-        },
+        "distortion": distortion_json(&distortion, lens_choice(args) != LensChoice::Pinhole, c),
         "translation_unit": match stereo.unit { TranslationUnit::Metres => "m", TranslationUnit::Baselines => "baselines" },
         "report": serde_json::to_value(&cal.report)?,
         "density": serde_json::to_value(&density_report)?,
         "seconds": t0.elapsed().as_secs_f64(),
     });
-    Ok(Outcome { stereo, json, calibration: Some(cal), density: Some(density_report) })
+    Ok(Outcome { stereo, json, calibration: Some(cal), density: density_report })
+}
+
+/// The `distortion` member: each camera's model and coefficients (in the model's order,
+/// OpenCV's `D`), and the sigma of every estimated coefficient.
+fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: &Covariance) -> Value {
+    let mut sigma = serde_json::Map::new();
+    for (side, d) in ["left", "right"].iter().zip(distortion) {
+        for name in d.kind.coefficient_names() {
+            let key = format!("{side}.{name}");
+            if let Some(s) = c.sigma(&key) {
+                sigma.insert(key, json!(s));
+            }
+        }
+    }
+    json!({
+        "estimated": estimated,
+        "model": [distortion[0].kind.ros_name(), distortion[1].kind.ros_name()],
+        "left": distortion[0].coefficients(), "right": distortion[1].coefficients(),
+        "sigma": sigma,
+    })
 }
 
 fn rig_json(m: &Isometry3<f64>) -> Value {
@@ -426,8 +503,11 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     if let Some(spec) = &args.lens_from {
         crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
     }
-    let views = load_views(&args.dir, &args.recording)?;
-    let outcome = calibrate_views(&views, args)?;
+    let outcome = if headalign::session::is_point_session(&args.dir) {
+        crate::points::calibrate(args)?
+    } else {
+        calibrate_views(&load_views(&args.dir, &args.recording)?, args)?
+    };
     // Warnings go to stderr in both modes (and are in the JSON report).
     if let Some(cal) = &outcome.calibration {
         for w in &cal.report.warnings {
@@ -481,6 +561,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             r.final_rms_px,
             r.bundle_observations
         );
+        if !r.skipped.is_empty() {
+            let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
+            println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
+        }
         for m in &r.motions {
             println!(
                 "  {}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers",
@@ -586,6 +670,8 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         square_pixels: flag("square_pixels"),
         fix_principal_point: flag("fix_principal_point"),
         distortion: None,
+        lens: info.head["calibrate"]["lens"].as_str().and_then(LensChoice::parse),
+        lens_terms: DistortionTerms::Radial2,
         estimate_distortion: flag("estimate_distortion"),
         intrinsics: None,
         out: None,
@@ -612,6 +698,8 @@ mod tests {
             square_pixels: false,
             fix_principal_point: false,
             distortion: None,
+            lens: None,
+            lens_terms: DistortionTerms::Radial2,
             estimate_distortion: false,
             intrinsics: None,
             out: None,

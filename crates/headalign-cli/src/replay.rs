@@ -173,6 +173,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     } else {
         say!("replayed {} ({views} views)", args.dir.display());
         print_summary(&v);
+        if let Some(line) = crate::stages::summary_line(&v) {
+            say!("{line}");
+        }
     }
     Ok(())
 }

@@ -18,20 +18,20 @@
 //!
 //! Kalibr's camera description as EuRoC ships it, `%YAML:1.0` first:
 //! `camera_model: pinhole`, `intrinsics: [fu, fv, cu, cv]`, `distortion_model:
-//! radial-tangential` (also written `radtan` or `plumb_bob`), `distortion_coefficients: [k1,
-//! k2, p1, p2]` and `resolution: [width, height]`; the rest (`T_BS`, `rate_hz`) is not
-//! read. The reader is a small parser of these top-level keys (flow lists may span lines,
+//! radial-tangential` (also written `radtan` or `plumb_bob`) with `distortion_coefficients:
+//! [k1, k2, p1, p2]`, or `equidistant` with `[k1, k2, k3, k4]`, and `resolution: [width,
+//! height]`; the rest (`T_BS`, `rate_hz`) is not read. The reader is a small parser of these top-level keys (flow lists may span lines,
 //! `#` starts a comment), not a general YAML parser.
 //!
 //! Degrees of freedom: none. Units: stamps in nanoseconds, intrinsics in pixels.
 //! Pitfalls: the coefficients belong to the intrinsics in the same file (see
-//! [`crate::calibrate::LensModel`]); an equidistant (fisheye) model is refused, not
+//! [`crate::calibrate::LensModel`]); other models (Kalibr's `fov`) are refused, not
 //! approximated.
 
 use std::path::{Path, PathBuf};
 
 use headalign_geometry::camera::Intrinsics;
-use headalign_geometry::distortion::Distortion;
+use headalign_geometry::distortion::{Distortion, LensKind};
 use headalign_platform::{Encoders, GrayImage};
 
 use super::{Recording, RecordingFormat, RecordingOptions, Stamped, build_views, pair_streams, select_pairs};
@@ -179,15 +179,15 @@ pub fn parse_sensor_yaml(text: &str, origin: &str) -> Result<(LensModel, Option<
         return Err(bad(format!("intrinsics: focal lengths must be positive, got {} and {}", k.fx, k.fy)));
     }
     let distortion = match scalar("distortion_model").as_deref() {
-        Some("radial-tangential" | "radtan" | "plumb_bob") => {
-            let d = numbers("distortion_coefficients", 4)?;
-            Distortion::from_opencv(&d).map_err(|e| bad(e.to_string()))?
-        }
         Some("none") | None => Distortion::default(),
-        Some(other) => {
-            return Err(bad(format!(
-                "distortion_model '{other}' is not supported (radial-tangential: k1, k2, p1, p2)"
-            )));
+        Some(name) => {
+            let kind = LensKind::parse(name).ok_or_else(|| {
+                bad(format!(
+                    "distortion_model '{name}' is not supported (radial-tangential: k1, k2, p1, p2; equidistant: k1..k4)"
+                ))
+            })?;
+            let d = numbers("distortion_coefficients", 4)?;
+            Distortion::from_coefficients(kind, &d).map_err(|e| bad(e.to_string()))?
         }
     };
     let resolution = match yaml_value(text, "resolution") {
@@ -243,8 +243,12 @@ distortion_coefficients: [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]
         assert_eq!(res, Some([752, 480]));
         assert_eq!((lens.k.fx, lens.k.fy, lens.k.cx, lens.k.cy), (458.654, 457.296, 367.215, 248.375));
         assert_eq!(lens.distortion.to_opencv(), [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05, 0.0]);
-        let e = parse_sensor_yaml(&CAM0.replace("radial-tangential", "equidistant"), "c.yaml").unwrap_err();
-        assert!(e.to_string().contains("'c.yaml': distortion_model 'equidistant' is not supported"), "{e}");
+        let (fisheye, _) =
+            parse_sensor_yaml(&CAM0.replace("radial-tangential", "equidistant"), "c.yaml").unwrap();
+        assert_eq!(fisheye.distortion.kind, LensKind::Equidistant);
+        assert_eq!(fisheye.distortion.coefficients(), [-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]);
+        let e = parse_sensor_yaml(&CAM0.replace("radial-tangential", "fov"), "c.yaml").unwrap_err();
+        assert!(e.to_string().contains("'c.yaml': distortion_model 'fov' is not supported"), "{e}");
         let e = parse_sensor_yaml(&CAM0.replace("[458.654, 457.296, ", "[458.654, "), "c.yaml").unwrap_err();
         assert!(e.to_string().contains("'intrinsics' needs 4"), "{e}");
         let e = parse_sensor_yaml("%YAML:1.0\n", "c.yaml").unwrap_err();
