@@ -8,6 +8,11 @@ usage:
       the EuRoC pairs 3 and 2 of ../shared/data/euroc_v101_pairs as /cam0/image_raw and
       /cam1/image_raw, 0.5 s apart (then: headalign calibrate OUT.mcap --zero-skew
       --square-pixels --lens-from $D/euroc_v101_pairs/cam0_sensor.yaml,$D/euroc_v101_pairs/cam1_sensor.yaml)
+  bench/ros2_bag.py session DIR OUT.mcap
+      a headalign image session (demo --images --session DIR, run) as the bag `ros2 bag
+      record` of that head run would be: three frames per capture, 50 ms apart, and joint
+      states `pan`, `tilt`, `vl`, `vr` (radians) at each frame (then: headalign replay
+      OUT.mcap --joint pan=pan,elevation=tilt,verge_left=vl,verge_right=vr)
   bench/ros2_bag.py fixture OUT.mcap
       the small bag crates/headalign/tests/data/python_mcap_ros2.mcap: three 32x24 mono8
       pairs (pixel = (3 x + 5 y + 17 k + 40 side) mod 256) at t = 10 + 0.1 k s, the right
@@ -15,7 +20,7 @@ usage:
       0.5 (t - 10) rad, `tilt_joint` = -0.1 rad, zstd chunks of 4 KB
 needs: pip install mcap-ros2-support zstandard lz4 pillow numpy (for this script only)
 """
-import argparse, os, sys
+import argparse, json, math, os, sys
 
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer
@@ -92,12 +97,33 @@ def fixture(args):
         w.finish()
 
 
+def session(args):
+    import numpy as np
+    from PIL import Image as Pil
+    folders = sorted(d for d in os.listdir(args.out) if os.path.exists(os.path.join(args.out, d, "view.json")))
+    with open(args.bag, "wb") as f:
+        w = Writer(f)
+        img, js = w.register_msgdef("sensor_msgs/msg/Image", IMAGE), w.register_msgdef("sensor_msgs/msg/JointState", JOINTS)
+        for k, folder in enumerate(folders):
+            e = json.load(open(os.path.join(args.out, folder, "view.json")))["encoders"]
+            pos = [math.radians(e[n]) for n in ["pan", "elevation", "verge_left", "verge_right"]]
+            for j in range(3):
+                t = 10**12 + k * 10**9 + j * 50_000_000
+                w.write_message("/joint_states", js, {"header": header(t, ""), "name": ["pan", "tilt", "vl", "vr"],
+                                                      "position": pos, "velocity": [], "effort": []}, log_time=t)
+                for topic, side in [("/left/image_raw", "left"), ("/right/image_raw", "right")]:
+                    g = np.asarray(Pil.open(os.path.join(args.out, folder, side + ".png")).convert("L"))
+                    w.write_message(topic, img, image(t, side, g.shape[1], g.shape[0], "mono8", g.tobytes()), log_time=t)
+        w.finish()
+
+
 if __name__ == "__main__":
     p = argparse.ArgumentParser()
-    p.add_argument("what", choices=["euroc", "fixture"])
-    p.add_argument("out")
+    p.add_argument("what", choices=["euroc", "fixture", "session"])
+    p.add_argument("out", help="the bag to write (session: the session folder to read)")
+    p.add_argument("bag", nargs="?", help="session: the bag to write")
     p.add_argument("--encoding", default="mono8", choices=["mono8", "rgb8", "bgr8", "mono16", "png"])
     p.add_argument("--compression", default="zstd", choices=["zstd", "lz4", "none"])
     a = p.parse_args()
-    (euroc if a.what == "euroc" else fixture)(a)
-    print(f"wrote {a.out}", file=sys.stderr)
+    {"euroc": euroc, "fixture": fixture, "session": session}[a.what](a)
+    print(f"wrote {a.bag or a.out}", file=sys.stderr)
