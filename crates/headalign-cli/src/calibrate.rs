@@ -7,7 +7,8 @@
 //! `demo --images --save` and `simulate --images` write), or a folder of stereo pairs
 //! (`left01.jpg` + `right01.jpg`, `motorcycle_left.png` + `motorcycle_right.png`: any file
 //! whose name contains `left` with a partner named with `right`), taken as a fixed rig with
-//! zero encoder readings. Output: the calibration files of `export` and
+//! zero encoder readings; or a recording, a ROS 2 bag or an EuRoC folder
+//! ([`crate::recording`]). Output: the calibration files of `export` and
 //! `calibrate_report.json` with `--out`, one JSON object with `--json`.
 
 use std::path::{Path, PathBuf};
@@ -30,13 +31,15 @@ use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
+
+use crate::recording::RecordingArgs;
 use serde_json::{Value, json};
 
 /// Arguments of `headalign calibrate`.
 #[derive(Args)]
 pub struct CalibrateArgs {
-    /// Folder of stereo views: an image session (NN-name/ with left.png, right.png,
-    /// view.json) or stereo pairs (leftNN.png/jpg with rightNN.png/jpg).
+    /// Folder of stereo views: an image session, stereo pairs (leftNN.png with
+    /// rightNN.png), a ROS 2 bag (MCAP) or an EuRoC folder.
     pub dir: PathBuf,
     /// Hold both cameras' skew at zero.
     #[arg(long)]
@@ -64,10 +67,15 @@ pub struct CalibrateArgs {
     /// Same as `--lens radtan`.
     #[arg(long, conflicts_with_all = ["distortion", "lens"])]
     pub estimate_distortion: bool,
+    /// Known lenses from Kalibr/EuRoC sensor.yaml files: LEFT.yaml,RIGHT.yaml, or
+    /// `recording` for an EuRoC folder's own cam0/cam1 sensor.yaml.
+    // `recording::lens_from`; fed where --distortion's lenses go.
+    #[arg(long, value_name = "LEFT,RIGHT|recording", conflicts_with_all = ["distortion", "estimate_distortion", "lens"])]
+    pub lens_from: Option<String>,
     /// Known intrinsics and distortion (same file formats): no self-calibration, only the
     /// rig (works with a planar target).
     // The rig comes from the fundamental matrix of all views.
-    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "lens", "zero_skew", "square_pixels", "fix_principal_point"])]
+    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "lens", "lens_from", "zero_skew", "square_pixels", "fix_principal_point"])]
     pub intrinsics: Option<PathBuf>,
     /// Write the calibration files here (calibration.json, opencv_stereo.yaml, left.yaml,
     /// right.yaml, camchain.yaml, calibrate_report.json).
@@ -99,6 +107,9 @@ pub struct CalibrateArgs {
     // report's `density`; docs/real-data.md.
     #[arg(long)]
     pub corners: Option<usize>,
+    /// How a recording is read (bags, EuRoC folders).
+    #[command(flatten)]
+    pub recording: RecordingArgs,
 }
 
 /// The corner counts of a run: `--corners N` fixed, otherwise [`Density::default`].
@@ -164,8 +175,12 @@ fn front_end(args: &CalibrateArgs, corners: usize) -> FrontEndOptions {
     f
 }
 
-/// Named stereo views of a folder (module docs), in order.
-pub fn load_views(dir: &Path) -> Result<Vec<(String, StereoImages)>> {
+/// Named stereo views of a folder or recording (module docs), in order.
+pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, StereoImages)>> {
+    if headalign::recordings::detect(dir).is_some() {
+        let views = crate::recording::read(dir, recording)?.views;
+        return Ok(views.into_iter().map(|v| (v.name, v.images)).collect());
+    }
     if !dir.is_dir() {
         bail!("'{}' is not a folder", dir.display());
     }
@@ -313,7 +328,13 @@ fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         return Ok(Outcome { stereo, json, calibration: None, density: None });
     }
     let opts = options(args);
-    let lenses = args.distortion.as_deref().map(read_lenses).transpose()?;
+    let lenses = match (&args.distortion, &args.lens_from) {
+        (Some(path), _) => Some(read_lenses(path)?),
+        (None, Some(spec)) => {
+            Some(crate::recording::lens_from(spec, &args.dir, &args.recording, image_size)?)
+        }
+        (None, None) => None,
+    };
     let undistort = |v: Vec<View>| match &lenses {
         Some(l) => undistort_views(&v, l),
         None => v,
@@ -479,10 +500,13 @@ fn stereo_calibration(
 
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
+    if let Some(spec) = &args.lens_from {
+        crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
+    }
     let outcome = if headalign::session::is_point_session(&args.dir) {
         crate::points::calibrate(args)?
     } else {
-        calibrate_views(&load_views(&args.dir)?, args)?
+        calibrate_views(&load_views(&args.dir, &args.recording)?, args)?
     };
     // Warnings go to stderr in both modes (and are in the JSON report).
     if let Some(cal) = &outcome.calibration {
@@ -657,8 +681,10 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         search_px: None,
         patch_refinement: PatchRefinement::Stereo,
         corners: None,
+        recording: RecordingArgs::default(),
+        lens_from: None,
     };
-    Ok(calibrate_views(&load_views(dir)?, &args)?.json)
+    Ok(calibrate_views(&load_views(dir, &args.recording)?, &args)?.json)
 }
 
 #[cfg(test)]
@@ -683,6 +709,8 @@ mod tests {
             search_px: None,
             patch_refinement: PatchRefinement::Stereo,
             corners: None,
+            recording: RecordingArgs::default(),
+            lens_from: None,
         }
     }
 
@@ -794,11 +822,13 @@ mod tests {
 
     #[test]
     fn bad_folders_are_errors() {
-        let e = load_views(Path::new("/nonexistent/headalign")).unwrap_err().to_string();
+        let e = load_views(Path::new("/nonexistent/headalign"), &RecordingArgs::default())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("not a folder"), "{e}");
         let dir = std::env::temp_dir().join(format!("headalign-calibrate-empty-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let e = load_views(&dir).unwrap_err().to_string();
+        let e = load_views(&dir, &RecordingArgs::default()).unwrap_err().to_string();
         std::fs::remove_dir_all(&dir).ok();
         assert!(e.contains("neither an image session"), "{e}");
     }

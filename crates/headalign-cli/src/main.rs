@@ -17,6 +17,7 @@ mod experiment;
 mod headcmd;
 mod images;
 mod points;
+mod recording;
 mod replay;
 mod report_html;
 mod stages;
@@ -156,12 +157,16 @@ struct AlignArgs {
     /// Observation session (JSON, format headalign-observations/1).
     #[arg(long, required_unless_present = "images", conflicts_with = "images")]
     observations: Option<PathBuf>,
-    /// A recorded session instead (as `demo`, `run` and `simulate --images` write); its
-    /// verge/tilt views are tracked by the image front end.
+    /// A recorded session instead (as `demo`, `run` and `simulate --images` write), or a
+    /// ROS 2 bag of a head run; its verge/tilt views are tracked by the image front end.
     // `session::estimation_views`: verging, probes and robot stages are skipped; a
-    // point-mode session's recorded points are used as they are.
+    // point-mode session's recorded points are used as they are. A bag's views are its
+    // still views from the verge/tilt start (`recording::align_views`).
     #[arg(long)]
     images: Option<PathBuf>,
+    /// How a recording is read (bags, EuRoC folders).
+    #[command(flatten)]
+    recording: recording::RecordingArgs,
     /// Print one JSON object instead of the table.
     #[arg(long)]
     json: bool,
@@ -309,7 +314,11 @@ fn read_align_views(args: &AlignArgs) -> Result<(Vec<View>, Option<Vec<RecordedV
                 let r = estimation_views(read_point_session(dir)?, |v| v.stage.as_deref());
                 return Ok((r.into_iter().map(|v| v.view).collect(), None));
             }
-            let r = estimation_views(read_image_session(dir)?, |v| v.stage.as_deref());
+            let r = if headalign::recordings::detect(dir).is_some() {
+                recording::align_views(dir, &args.recording)?
+            } else {
+                estimation_views(read_image_session(dir)?, |v| v.stage.as_deref())
+            };
             let views =
                 headalign::session::track_session(&r, &headalign::frontend::FrontEndOptions::default())?;
             Ok((views, Some(r)))
