@@ -119,7 +119,7 @@ pub struct CalibrateOptions {
     /// The lens model the adjustment estimates for each camera (default
     /// [`LensChoice::Pinhole`]: no distortion, or a known lens removed beforehand with
     /// [`undistort_views`]); [`LensChoice::Auto`] chooses by the criterion of
-    /// [`lens_choice`](self::lens_choice) and reports it.
+    /// [`lens_choice`] and reports it.
     pub lens: LensChoice,
     /// Which coefficients of the model are estimated (default
     /// [`DistortionTerms::Radial2`]: `k1, k2`).
