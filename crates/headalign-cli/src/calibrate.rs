@@ -18,7 +18,8 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::{
     CalibrateOptions, Density, DensityReport, DensityTrial, LensChoice, LensModel, MotionCalibration,
-    calibrate_rig, read_opencv_lenses, require_depth, rig_from_known_intrinsics, select_rig, undistort_views,
+    REFERENCE_ROUTE_MAX_VIEWS, calibrate_tracked, read_opencv_lenses, require_depth,
+    rig_from_known_intrinsics, select_rig, track_views, undistort_views,
 };
 use headalign::error::AlignError;
 use headalign::export::{StereoCalibration, TranslationUnit};
@@ -340,24 +341,19 @@ fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         None => v,
     };
     // The scene-depth check on each view's own matches first: a planar target fails here
-    // with the degeneracy named, not later in matching across views.
-    require_depth(&undistort(stereo_only(views, &front)?), &opts)?;
-    // The front end over the views in order, the first the tracking reference (what
-    // `session::track_session` does, without depending on the session's view type), and
-    // the self-calibration, at a corner count.
+    // with the degeneracy named, not later in matching across views (a long sequence
+    // checks its keyframes instead).
+    if views.len() <= REFERENCE_ROUTE_MAX_VIEWS {
+        require_depth(&undistort(stereo_only(views, &front)?), &opts)?;
+    }
+    // The front end over the views in order, against the first view or through
+    // consecutive views (`track_views` chooses), and the self-calibration by that route,
+    // at a corner count.
     let run = |corners: usize| -> (Result<MotionCalibration>, DensityTrial) {
         let t = Instant::now();
         let result = (|| {
-            let mut tracker = Tracker::new(front_end(args, corners))?;
-            let tracked = views
-                .iter()
-                .map(|(name, images)| {
-                    let (capture, _) =
-                        tracker.track(images, name).with_context(|| format!("view '{name}'"))?;
-                    Ok(View { name: name.clone(), capture })
-                })
-                .collect::<Result<Vec<_>>>()?;
-            Ok(calibrate_rig(&undistort(tracked), &opts)?)
+            let tracked = track_views(views, &front_end(args, corners), &opts)?;
+            Ok(calibrate_tracked(tracked, lenses.as_ref(), &opts)?)
         })();
         let seconds = t.elapsed().as_secs_f64();
         let trial = match &result {
@@ -565,10 +561,24 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
             println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
         }
-        for m in &r.motions {
+        if let Some(seq) = &r.sequence {
             println!(
-                "  {}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers",
-                m.view, m.rotation_deg, m.translation_baselines, m.along_axis_baselines, m.inliers
+                "a sequence of {} views, {} keyframes, {} segments",
+                seq.views,
+                seq.keyframes,
+                seq.segments.len()
+            );
+        }
+        for m in &r.motions {
+            let from = m.relative_to.as_ref().map_or(String::new(), |g| format!(" from {g}"));
+            println!(
+                "  {}{from}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers{}",
+                m.view,
+                m.rotation_deg,
+                m.translation_baselines,
+                m.along_axis_baselines,
+                m.inliers,
+                if m.linear { ", in the linear start" } else { "" }
             );
         }
     }

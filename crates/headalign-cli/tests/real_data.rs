@@ -295,3 +295,66 @@ fn euroc_raw_pairs_lens_models_and_their_files() {
     let rms = back["stereo_rms_px"].as_f64().unwrap();
     assert!(rms < 0.5, "stereo Sampson RMS {rms} px through the equidistant lens read back");
 }
+
+/// The four EuRoC MAV V1_01_easy pairs as a raw folder (`left00.png` = `left_img_3.png`,
+/// `left01` = `_2`, `left02` = `_1`, `left03` = `_0`): pairs 3 -> 2 are one general rig
+/// motion (15.6 deg), 1 -> 0 another (37.5 deg), and 0/1 share no view with 2/3. View 02
+/// overlaps the first by 4 tracks, so the folder is tracked as a sequence: two segments,
+/// each adding its one motion (relative to its own gauge) to one calibration. With the
+/// dataset's own lenses removed (`--distortion`, no constraint) the focal lengths come out
+/// at fx 464.5 / 463.5 px (+1.3 % on the dataset's Kalibr calibration, both cameras),
+/// fy 457.4 / 456.3 (+0.03 %); with the lenses estimated (`--estimate-distortion
+/// --zero-skew`) fx 460.1 / 459.2 (+0.3 %). Bound: 2 %, the bar.
+#[test]
+fn euroc_four_pairs_calibrate_with_both_motions() {
+    let Some(data) = data_dir() else { return };
+    let src = data.join("euroc_v101_pairs");
+    let dir = std::env::temp_dir().join(format!("headalign-euroc4-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (view, pair) in [(0, 3), (1, 2), (2, 1), (3, 0)] {
+        for side in ["left", "right"] {
+            std::fs::copy(
+                src.join(format!("{side}_img_{pair}.png")),
+                dir.join(format!("{side}{view:02}.png")),
+            )
+            .unwrap();
+        }
+    }
+    let lens = fixture("euroc_v101_lenses.yml");
+    let runs = [
+        vec![dir.to_str().unwrap(), "--distortion", lens.to_str().unwrap(), "--json"],
+        vec![dir.to_str().unwrap(), "--estimate-distortion", "--zero-skew", "--json"],
+    ];
+    let truth = [458.654, 457.587];
+    for args in runs {
+        let (ok, j, err) = calibrate(&args);
+        assert!(ok, "{args:?}: {err}");
+        for (side, f) in ["left", "right"].iter().zip(truth) {
+            let fx = j[side]["fx"].as_f64().unwrap();
+            assert!((fx - f).abs() / f < 0.02, "{args:?}: {side} fx {fx} vs {f}");
+        }
+        let report = &j["report"];
+        let segments = report["sequence"]["segments"].as_array().unwrap();
+        let gauges: Vec<&str> = segments.iter().map(|s| s["gauge"].as_str().unwrap()).collect();
+        assert_eq!(gauges, ["left00", "left02"], "{report}");
+        let motions: Vec<(&str, &str, bool)> = report["motions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|m| {
+                (
+                    m["view"].as_str().unwrap(),
+                    m["relative_to"].as_str().unwrap(),
+                    m["linear"].as_bool().unwrap(),
+                )
+            })
+            .collect();
+        assert_eq!(motions, [("left01", "left00", true), ("left03", "left02", true)], "{report}");
+        for (m, deg) in report["motions"].as_array().unwrap().iter().zip([15.6, 37.5]) {
+            let r = m["rotation_deg"].as_f64().unwrap();
+            // The README's motions are known to about 2 deg.
+            assert!((r - deg).abs() < 2.0, "{args:?}: rotation {r} for {deg}");
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,7 +1,9 @@
 //! Synthetic rig bundle-adjustment problems with known truth, for tests, benchmarks and
 //! experiments: a stereo rig moved by rotations about two offset axes, seen in three
-//! views, with Gaussian noise and optional gross outliers (pixels). Seeded: the same seed
-//! gives the same problem bit for bit.
+//! views ([`synth`]), or carried along a wall in a sequence of views that each overlap
+//! only their neighbours, in disconnected segments ([`sequence`]); Gaussian noise and
+//! optional gross outliers (pixels). Seeded: the same seed gives the same problem bit for
+//! bit.
 
 use nalgebra::{Isometry3, Point2, Point3, Translation3, Unit, UnitQuaternion, Vector2, Vector3};
 use rand::{RngExt, SeedableRng};
@@ -154,4 +156,106 @@ pub fn perturb(truth: &RigState, seed: u64) -> RigState {
         *p += rand_vec(&mut rng).normalize() * 0.05;
     }
     s
+}
+
+/// A sequence ([`sequence`]): the problem, and the first view of every segment after the
+/// first (the gauge views the adjustment must hold, `BundleOptions::gauge_views`).
+pub struct SequenceSynth {
+    /// The problem (views of all segments in order; each segment's points in the frame of
+    /// its first view, which is at the identity).
+    pub synth: Synth,
+    /// The first view of each segment after the first.
+    pub gauge_views: Vec<usize>,
+    /// The segment of each point.
+    pub point_segment: Vec<usize>,
+}
+
+/// The rig of [`synth`] carried sideways along a textured wall: `views` views split into
+/// `segments` contiguous segments (at least one view each) that share no point, each a
+/// walk of 0.3 units per view (the baseline is 0.25) with the yaw swinging by +-6 deg and
+/// the pitch by +-4 deg about varied axes; `points_per_segment` points 3-6 units ahead
+/// spread over the walk (an image spans about 5 units at that depth, so a view overlaps
+/// some 15 neighbours either side and no more). Each segment's poses and points are in
+/// the frame of its first view (the identity). Gaussian noise `noise_px`, no outliers.
+pub fn sequence(
+    seed: u64,
+    views: usize,
+    segments: usize,
+    points_per_segment: usize,
+    noise_px: f64,
+) -> SequenceSynth {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let base = synth(seed, 1, 0.0, 0.0, true).truth;
+    let segments = segments.clamp(1, views.max(1));
+    let mut ref_from_cam = Vec::with_capacity(views);
+    let (mut points, mut point_segment, mut gauge_views) = (Vec::new(), Vec::new(), Vec::new());
+    for s in 0..segments {
+        let (a, b) = (s * views / segments, (s + 1) * views / segments);
+        if s > 0 {
+            gauge_views.push(a);
+        }
+        let phase = rng.random_range(0.0..std::f64::consts::TAU);
+        let world: Vec<Isometry3<f64>> = (0..b - a)
+            .map(|j| {
+                let t = j as f64;
+                let yaw = 6.0_f64.to_radians() * (0.4 * t + phase).sin();
+                let pitch = 4.0_f64.to_radians() * (0.27 * t + 2.0 * phase).sin();
+                let roll = 2.0_f64.to_radians() * (0.19 * t).sin();
+                Isometry3::from_parts(
+                    Translation3::new(0.3 * t, 0.1 * (0.3 * t).sin(), 0.05 * (0.23 * t).cos()),
+                    UnitQuaternion::from_euler_angles(pitch, yaw, roll),
+                )
+            })
+            .collect();
+        let gauge = world[0].inverse();
+        ref_from_cam.extend(world.iter().map(|w| gauge * w));
+        let span = 0.3 * (b - a - 1) as f64;
+        for _ in 0..points_per_segment {
+            let p = Point3::new(
+                rng.random_range(-2.5..span + 2.5),
+                rng.random_range(-1.2..1.2),
+                rng.random_range(3.0..6.0),
+            );
+            points.push(gauge * p);
+            point_segment.push(s);
+        }
+    }
+    let truth = RigState { motions: Motions::Free { ref_from_cam }, points, ..base };
+    let segment_of_view = |k: usize| (0..segments).rfind(|&s| s * views / segments <= k).unwrap_or(0);
+    let mut obs = Vec::new();
+    for (p, &s) in point_segment.iter().enumerate() {
+        for view in (0..views).filter(|&k| segment_of_view(k) == s) {
+            for side in [Side::Left, Side::Right] {
+                let o = BundleObservation { point: p, view, side, pixel: Point2::origin() };
+                let Some(r) = residual_pixels(&truth, &o) else { continue };
+                let px = Point2::from(r);
+                if !(0.0..WIDTH).contains(&px.x) || !(0.0..HEIGHT).contains(&px.y) {
+                    continue;
+                }
+                let pixel = px + Vector2::new(gauss(&mut rng), gauss(&mut rng)) * noise_px;
+                obs.push(BundleObservation { pixel, ..o });
+            }
+        }
+    }
+    // Only the points seen in two views (both cameras) stay.
+    let mut count = vec![0usize; truth.points.len()];
+    for o in &obs {
+        count[o.point] += 1;
+    }
+    let mut index = vec![usize::MAX; count.len()];
+    let mut truth = truth;
+    let (mut kept, mut kept_segment) = (Vec::new(), Vec::new());
+    for (i, &c) in count.iter().enumerate() {
+        if c >= 4 {
+            index[i] = kept.len();
+            kept.push(truth.points[i]);
+            kept_segment.push(point_segment[i]);
+        }
+    }
+    truth.points = kept;
+    obs.retain(|o| index[o.point] != usize::MAX);
+    for o in &mut obs {
+        o.point = index[o.point];
+    }
+    SequenceSynth { synth: Synth { truth, obs }, gauge_views, point_segment: kept_segment }
 }

@@ -48,6 +48,7 @@ use super::gt;
 use super::layout::{homogeneous_basis, point_homogeneous};
 use super::normal::{Normal, reduced_camera_system, solve_rhs};
 use super::problem::{Problem, problem};
+use super::sparse::ProfileCholesky;
 use super::state::{BundleObservation, BundleOptions, RigState};
 use crate::{GeometryError, Result};
 
@@ -129,18 +130,15 @@ pub(super) fn covariance(
     let Some((s, l_inv)) = reduced_camera_system(&n, |_| 0.0, true) else {
         return Err(GeometryError::Numerical("reduced camera system is not finite".into()));
     };
-    // W_p V_p^-1 per point.
-    let wv_of: Vec<Option<nalgebra::OMatrix<f64, nalgebra::Dyn, nalgebra::U3>>> = l_inv
-        .iter()
-        .enumerate()
-        .map(|(p, li)| li.map(|li| n.w.columns(3 * p, 3) * (li.transpose() * li)))
-        .collect();
-    let Some(ch) = s.cholesky() else {
-        return Err(GeometryError::Numerical(
+    let singular = || {
+        GeometryError::Numerical(
             "reduced camera system is singular at the solution: a parameter is unobservable".into(),
-        ));
+        )
     };
-    let inv = ch.inverse();
+    let inv = match &n.order {
+        None => s.cholesky().ok_or_else(singular)?.inverse(),
+        Some(order) => ProfileCholesky::new(&s, order.clone()).ok_or_else(singular)?.inverse(),
+    };
     let gaussian = 0.5 * (&inv + inv.transpose()) * (sigma * sigma);
     if model == CovarianceModel::Gaussian {
         return Ok((Covariance { names, matrix: gaussian }, 1.0));
@@ -151,8 +149,9 @@ pub(super) fn covariance(
     let nc = inv.nrows();
     // Sum of the efficient scores per cluster (compact point index -> cluster).
     let mut sums: BTreeMap<usize, DVector<f64>> = BTreeMap::new();
-    for (i, ((gc, gp), wv)) in scores.iter().zip(&wv_of).enumerate() {
-        let Some(wv) = wv else { continue };
+    for (i, ((gc, gp), li)) in scores.iter().zip(&l_inv).enumerate() {
+        // W_p V_p^-1.
+        let Some(wv) = li.map(|li| n.w.times(i, &(li.transpose() * li), nc)) else { continue };
         let cluster = match clusters {
             Some(c) => problem.points.get(i).and_then(|&p| c.get(p)).copied().unwrap_or(usize::MAX),
             None => i,

@@ -173,7 +173,7 @@ impl Layout {
         let v = state.motions.view_count();
         match &state.motions {
             Motions::Free { .. } => {
-                for k in 1..v {
+                for k in (1..v).filter(|k| !options.gauge_views.contains(k)) {
                     p.extend((0..3).map(|i| Param::ViewRot(k, i)));
                     p.extend((0..3).map(|i| Param::ViewTrans(k, i)));
                 }

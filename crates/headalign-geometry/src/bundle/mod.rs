@@ -75,7 +75,11 @@
 //!
 //! The reference frame is fixed by holding view 0 at the identity (for `Joints`, row 0 of
 //! the angles is zero, so view 0 does not depend on the axes); the scale by holding
-//! `|right_from_left.translation|` constant. Everything else is observable given two
+//! `|right_from_left.translation|` constant. Views that share no point with view 0's
+//! group (the disconnected segments of a sequence, `Free` only) need a gauge of their
+//! own: [`BundleOptions::gauge_views`] holds one view per further group at its start pose
+//! (the identity, with the group's points in that view's frame); the groups then share
+//! only the intrinsics and the rig. Everything else is observable given two
 //! rotations about different axes: a caller that wants a different scale (a known
 //! baseline) rescales before or after.
 //!
@@ -234,6 +238,7 @@ mod problem;
 mod residual;
 mod robust;
 mod solver;
+mod sparse;
 mod state;
 #[cfg(test)]
 mod test_support;

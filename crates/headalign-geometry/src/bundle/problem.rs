@@ -37,8 +37,10 @@ use nalgebra::{DVector, Isometry3, Matrix2x3, Point3, Unit, Vector2, Vector3};
 use super::covariance::log_depth_scale_of;
 use super::gt;
 use super::layout::Layout;
+use super::normal::DENSE_SCHUR_MAX_VIEWS;
 use super::residual::{RigGeom, ViewGeom, linearise_obs, rig_geom, view_geoms};
 use super::robust::{robust, truncated_mean_shift};
+use super::sparse::SparseStructure;
 use super::state::{BundleObservation, BundleOptions, Motions, RigState};
 use crate::camera::Intrinsics;
 use crate::so3::Line;
@@ -59,6 +61,11 @@ pub(super) struct Problem<'a> {
     ///
     /// [`bundle_adjust_at_depth_scale`]: super::bundle_adjust_at_depth_scale
     pub(super) depth: Option<(f64, f64)>,
+    /// The normal equations keep `W` per point (`normal.rs`): more than
+    /// `DENSE_SCHUR_MAX_VIEWS` views.
+    pub(super) sparse: bool,
+    /// The sparse form's structure, built at the first linearisation (`sparse.rs`).
+    pub(super) structure: std::cell::OnceCell<std::rc::Rc<SparseStructure>>,
 }
 
 pub(super) struct Eval {
@@ -276,6 +283,14 @@ pub(super) fn problem<'a>(
     }
     let state = prepare_state(initial, options)?;
     let n_views = state.motions.view_count();
+    if let Some(&k) = options.gauge_views.iter().find(|&&k| k == 0 || k >= n_views) {
+        return Err(GeometryError::InvalidOption(format!(
+            "gauge view {k} must be a view other than view 0 (of {n_views})"
+        )));
+    }
+    if !options.gauge_views.is_empty() && !matches!(state.motions, Motions::Free { .. }) {
+        return Err(GeometryError::InvalidOption("gauge views need free view poses".into()));
+    }
     let mut per_view = vec![0usize; n_views];
     for (i, o) in observations.iter().enumerate() {
         if o.view >= n_views || o.point >= state.points.len() {
@@ -349,6 +364,8 @@ pub(super) fn problem<'a>(
         options,
         prior_weight: sigma_opt * sigma_opt,
         depth: None,
+        sparse: n_views > DENSE_SCHUR_MAX_VIEWS,
+        structure: std::cell::OnceCell::new(),
     };
     Ok((state, problem))
 }

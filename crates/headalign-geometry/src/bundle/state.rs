@@ -10,7 +10,8 @@
 //!   camera's frame; the length of its translation is the scale gauge, so every length
 //!   of the solution is in that unit); the [`Motions`] of the views; the scene points in
 //!   the reference frame, the left camera of view 0 (x right, y down, z forward).
-//! - [`Motions`]: `Free`, one rigid pose per view (6 dof for each view `k >= 1`), or
+//! - [`Motions`]: `Free`, one rigid pose per view (6 dof for each view `k >= 1` not among
+//!   [`BundleOptions::gauge_views`]), or
 //!   `Joints`, a chain of revolute axes (4 dof per line) with the angles of every joint in
 //!   every view (radians; one dof each for views `k >= 1` when the angle prior is on, held
 //!   at the commanded values otherwise). A jointed view's pose is the product of
@@ -30,7 +31,9 @@
 //!
 //! # Pitfalls
 //!
-//! - The gauge is part of the data: `Free` needs `ref_from_cam[0]` at the identity and
+//! - The gauge is part of the data: `Free` needs `ref_from_cam[0]` at the identity (and
+//!   a held view in [`BundleOptions::gauge_views`] for every further group of views that
+//!   shares no point with view 0's) and
 //!   `Joints` a zero row 0 of the angles and of the commanded angles; both are checked
 //!   when the problem is set up, not repaired.
 //! - The sign of a joint angle goes with the direction of its axis: keep the initial axes'
@@ -190,6 +193,13 @@ pub struct BundleOptions {
     pub function_tolerance: f64,
     /// Relative step size below which the iteration stops.
     pub parameter_tolerance: f64,
+    /// Views held at their start pose besides view 0 (only with [`Motions::Free`];
+    /// default none): the gauge of each group of views that shares no point with the
+    /// others (the disconnected segments of a sequence), whose points then live in the
+    /// frame of their group's held view. Without one, such a group could move rigidly at
+    /// no cost and the reduced camera system would be singular. Held views have no
+    /// `view{k}` parameters.
+    pub gauge_views: Vec<usize>,
 }
 
 impl Default for BundleOptions {
@@ -209,6 +219,7 @@ impl Default for BundleOptions {
             measurement_window: None,
             function_tolerance: 1e-12,
             parameter_tolerance: 1e-12,
+            gauge_views: Vec::new(),
         }
     }
 }

@@ -48,13 +48,8 @@ pub(super) fn adjust_starts(
     let est = &options.estimation;
     let (first_obs, all_obs) = (&points.first_obs, &points.all_obs);
     let (point_tracks, origin_slot) = (&points.point_tracks, &points.origin_slot);
-    let mut adjust_options = options.estimation.clone();
-    adjust_options.bundle.zero_skew = options.zero_skew;
-    adjust_options.bundle.square_pixels = options.square_pixels;
-    adjust_options.bundle.fix_principal_point = options.fix_principal_point;
+    let adjust_options = adjustment_options(options);
     let kind = options.lens.kind();
-    adjust_options.bundle.estimate_distortion = kind.is_some();
-    adjust_options.bundle.distortion_terms = options.lens_terms;
     let mut results: Vec<Adjustment> = Vec::new();
     let mut last_error = None;
     for (index, start) in starts.into_iter().enumerate() {
@@ -98,6 +93,44 @@ pub(super) fn adjust_starts(
     let adjusted = results.into_iter().min_by(|a, b| truncated_cost(a).total_cmp(&truncated_cost(b)));
     adjusted
         .ok_or_else(|| last_error.unwrap_or_else(|| AlignError::MissingMotion("no initialisation".into())))
+}
+
+/// Steps 5 and 6 for many motions (a sequence's: the cost has one clear valley there):
+/// both starts screened by the short adjustment of [`adjust_from_starts`], only the better
+/// one (by its MSAC score) adjusted to convergence and through [`every_point_pass`]. Half
+/// the cost of [`adjust_starts`], which takes both to convergence for the shallow valleys
+/// of one or two motions.
+pub(super) fn adjust_best_start(
+    starts: [Result<RigState, AlignError>; 2],
+    points: &PointSet,
+    recon: &[Reconstruction],
+    options: &CalibrateOptions,
+) -> Result<Adjustment, AlignError> {
+    let adjust_options = adjustment_options(options);
+    let (point_tracks, origin_slot) = (&points.point_tracks, &points.origin_slot);
+    let a = adjust_from_starts(
+        starts.into_iter().collect(),
+        &points.first_obs,
+        &points.all_obs,
+        point_tracks,
+        origin_slot,
+        recon,
+        &adjust_options,
+    )?;
+    let sources = PointSources { point_tracks, origin_slot, recon };
+    Ok(every_point_pass(a, &points.all_obs, &sources, &adjust_options))
+}
+
+/// The estimation options of the adjustment: the options' constraints and lens model set
+/// in its bundle options.
+fn adjustment_options(options: &CalibrateOptions) -> EstimationOptions {
+    let mut adjust_options = options.estimation.clone();
+    adjust_options.bundle.zero_skew = options.zero_skew;
+    adjust_options.bundle.square_pixels = options.square_pixels;
+    adjust_options.bundle.fix_principal_point = options.fix_principal_point;
+    adjust_options.bundle.estimate_distortion = options.lens.kind().is_some();
+    adjust_options.bundle.distortion_terms = options.lens_terms;
+    adjust_options
 }
 
 /// Where each bundle point came from: its track, the rig view that first reconstructed

@@ -68,7 +68,7 @@ pub fn check_planarity(views: &[View], options: &CalibrateOptions) -> Vec<PlaneC
 }
 
 /// The error of a scene with no depth, naming the planar views.
-fn planar_error(checks: &[PlaneCheck]) -> AlignError {
+pub(super) fn planar_error(checks: &[PlaneCheck]) -> AlignError {
     let named: Vec<String> = checks
         .iter()
         .filter(|c| c.planar)

@@ -73,11 +73,14 @@
 mod adjust;
 mod density;
 mod depth;
+mod graph;
 mod lens;
 pub mod lens_choice;
 mod motion;
 mod report;
 pub mod residuals;
+mod route;
+mod sequence;
 mod starts;
 mod stereo;
 #[cfg(test)]
@@ -94,9 +97,15 @@ pub use density::{
     DISAGREEMENT_SIGMAS, Density, DensityReport, DensityTrial, disagreement_sigmas, prefer_denser,
 };
 pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_rig};
+pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
 pub use lens::{LensModel, read_opencv_lenses, undistort_views};
 pub use lens_choice::{LensCandidate, LensChoice, LensSelection};
 pub use report::weak_data;
+pub use route::{
+    REFERENCE_ROUTE_MAX_VIEWS, Route, SEQUENCE_RANSAC_MIN_ITERATIONS, TrackedViews, calibrate_tracked,
+    track_views,
+};
+pub use sequence::{RANSAC_PAIRS, SequenceReport, calibrate_sequence};
 pub use stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
 
 use crate::error::AlignError;
@@ -154,6 +163,9 @@ pub struct CalibrateOptions {
     /// definite; other seeds converge to the same minimum (estimation seeds 1 and 2:
     /// f 701.2 for a true 700).
     pub restarts: usize,
+    /// Keyframes and links of the sequence route ([`calibrate_sequence`]; defaults of
+    /// [`SequenceOptions`]).
+    pub sequence: SequenceOptions,
 }
 
 impl Default for CalibrateOptions {
@@ -171,6 +183,7 @@ impl Default for CalibrateOptions {
             warn_focal_sigma_pct: 0.5,
             warn_plane_fraction: 0.85,
             restarts: 3,
+            sequence: SequenceOptions::default(),
         }
     }
 }
@@ -194,7 +207,7 @@ impl CalibrateOptions {
         if !(self.warn_focal_sigma_pct.is_finite() && self.warn_focal_sigma_pct > 0.0) {
             return Err(AlignError::InvalidOption("warn_focal_sigma_pct must be positive".into()));
         }
-        Ok(())
+        self.sequence.validate()
     }
 
     fn constraints(&self) -> IntrinsicConstraints {
@@ -219,6 +232,10 @@ pub struct MotionReport {
     pub rms_transfer_px: f64,
     /// Rotation angle of the 3D homography, degrees (a similarity invariant).
     pub homography_rotation_deg: f64,
+    /// The view the motion is relative to when it is not the first view: a sequence's
+    /// segment gauge ([`calibrate_sequence`]); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub relative_to: Option<String>,
     /// True if the motion entered the linear self-calibration.
     pub linear: bool,
     /// Rotation angle after the adjustment, degrees.
@@ -285,6 +302,10 @@ pub struct CalibrateReport {
     /// Structure in the final residuals by image radius and region ([`residuals`]), and
     /// the sigma widening it caused.
     pub residual_structure: Option<residuals::ResidualStructure>,
+    /// The sequence route's segments and keyframes ([`calibrate_sequence`]); absent on
+    /// the reference route.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sequence: Option<SequenceReport>,
     /// Warnings: a poorly determined calibration (focal sigma above
     /// [`CalibrateOptions::warn_focal_sigma_pct`]), one motion in a mostly planar scene
     /// ([`CalibrateOptions::warn_plane_fraction`]), with what to do about it.
@@ -325,12 +346,22 @@ fn calibrate_with_restarts(
     views: &[View],
     options: &CalibrateOptions,
 ) -> Result<MotionCalibration, AlignError> {
+    with_restarts(options, |o, seeded| calibrate_once(views, o, seeded))
+}
+
+/// Run a chain (`once`: [`calibrate_once`], or the sequence's) with the options' seed, and
+/// again with the next seeds while it fails in a seeded stage
+/// ([`CalibrateOptions::restarts`]); the report names the seed that gave the result.
+fn with_restarts(
+    options: &CalibrateOptions,
+    once: impl Fn(&CalibrateOptions, &mut Option<Seeded>) -> Result<MotionCalibration, AlignError>,
+) -> Result<MotionCalibration, AlignError> {
     let mut failures = Vec::new();
     for restart in 0..=options.restarts {
         let mut o = options.clone();
         o.estimation.seed = options.estimation.seed.wrapping_add(restart as u64);
         let mut seeded = None;
-        match calibrate_once(views, &o, &mut seeded) {
+        match once(&o, &mut seeded) {
             Ok(mut c) => {
                 c.report.restarts = restart;
                 if restart > 0 {
@@ -434,6 +465,7 @@ fn calibrate_once(
         restarts: 0,
         lens_selection: None,
         residual_structure: None,
+        sequence: None,
         warnings,
     };
     Ok(MotionCalibration {

@@ -45,7 +45,10 @@ pub(super) struct ViewMotion {
     pub(super) report: MotionReport,
 }
 
-fn fit_motion(
+/// The 3D homography of one view from another (module docs, step 3) over their
+/// quadruplets `quads` (of tracks `tracks`), RANSAC seeded by `seed`; `view` names the
+/// moved view in errors.
+pub(super) fn fit_motion(
     quads: &[Quadruplet],
     tracks: &[u64],
     frame: &StereoFrame,
@@ -126,6 +129,7 @@ fn fit_motion(
                 .iter()
                 .map(|&i| symmetric_transfer_error(&model, &p_l, &p_r, &quads[i]))),
             homography_rotation_deg: angle.to_degrees(),
+            relative_to: None,
             linear: false,
             rotation_deg: f64::NAN,
             axis: [f64::NAN; 3],

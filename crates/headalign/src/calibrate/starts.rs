@@ -55,9 +55,37 @@ pub(super) struct PointSet {
     pub(super) first_obs: Vec<BundleObservation>,
 }
 
+/// How the rig views are linked: per view the view its 3D homography was fitted from
+/// (`None` for a gauge: the first view, and a sequence's other segment gauges) and its
+/// segment (views of different segments share no point).
+pub(super) struct Links {
+    pub(super) parent: Vec<Option<usize>>,
+    pub(super) segment: Vec<usize>,
+}
+
+impl Links {
+    /// Every view's motion fitted from the first, one segment (the reference route).
+    pub(super) fn reference(views: usize) -> Self {
+        Self { parent: (0..views).map(|k| (k > 0).then_some(0)).collect(), segment: vec![0; views] }
+    }
+}
+
 /// The point set and the observations of the rig views (module docs; as in
-/// [`crate::estimate`]).
+/// [`crate::estimate`]), every view's motion fitted from the first.
 pub(super) fn point_set(rig: &[View], recon: &[Reconstruction], motions: &[ViewMotion]) -> PointSet {
+    point_set_linked(rig, recon, motions, &Links::reference(rig.len()))
+}
+
+/// [`point_set`] with the views linked by `links`: a point's observations are those in
+/// the views of its origin view's segment, and the screening observations of a track that
+/// a view and its parent both reconstruct are those the view's 3D homography (from its
+/// parent) counted an inlier.
+pub(super) fn point_set_linked(
+    rig: &[View],
+    recon: &[Reconstruction],
+    motions: &[ViewMotion],
+    links: &Links,
+) -> PointSet {
     let mut point_tracks: Vec<u64> = recon[0].keys().copied().collect();
     let mut origin_slot: Vec<usize> = vec![0; point_tracks.len()];
     let mut seen: std::collections::HashSet<u64> = point_tracks.iter().copied().collect();
@@ -70,11 +98,14 @@ pub(super) fn point_set(rig: &[View], recon: &[Reconstruction], motions: &[ViewM
         }
     }
     let point_index: BTreeMap<u64, usize> = point_tracks.iter().enumerate().map(|(i, &t)| (t, i)).collect();
+    let segment = |slot: usize| links.segment.get(slot).copied().unwrap_or(0);
     let mut all_obs = Vec::new();
     for (slot, v) in rig.iter().enumerate() {
         for (side, list) in [(Side::Left, &v.capture.left), (Side::Right, &v.capture.right)] {
             for o in list {
-                if let Some(&pi) = point_index.get(&o.track) {
+                if let Some(&pi) = point_index.get(&o.track)
+                    && segment(origin_slot[pi]) == segment(slot)
+                {
                     all_obs.push(BundleObservation { point: pi, view: slot, side, pixel: o.pixel });
                 }
             }
@@ -92,9 +123,13 @@ pub(super) fn point_set(rig: &[View], recon: &[Reconstruction], motions: &[ViewM
         .filter(|o| {
             let track = point_tracks[o.point];
             recon[o.view].contains_key(&track)
-                && (o.view == 0
-                    || !recon[0].contains_key(&track)
-                    || quad_inliers[o.view].binary_search(&track).is_ok())
+                && match links.parent.get(o.view).copied().flatten() {
+                    None => true,
+                    Some(parent) => {
+                        !recon[parent].contains_key(&track)
+                            || quad_inliers[o.view].binary_search(&track).is_ok()
+                    }
+                }
         })
         .collect();
     PointSet { point_tracks, origin_slot, all_obs, first_obs }
@@ -175,6 +210,18 @@ pub(super) fn linear_start(
 ) -> LinearStart {
     let used: Vec<bool> =
         motions.iter().map(|m| m.report.homography_rotation_deg >= options.min_rotation_deg).collect();
+    linear_start_from(motions, used, frame, k0, problem, options)
+}
+
+/// [`linear_start`] from the motions marked in `used` (one flag per motion).
+pub(super) fn linear_start_from(
+    motions: &[ViewMotion],
+    used: Vec<bool>,
+    frame: &StereoFrame,
+    k0: &Intrinsics,
+    problem: &Problem<'_>,
+    options: &CalibrateOptions,
+) -> LinearStart {
     let mut diagnostics = LinearDiagnostics { plane_conditioning: None, conic_uniqueness: None };
     let state = linear_chain(motions, &used, frame, k0, problem, options, &mut diagnostics);
     LinearStart {

@@ -45,11 +45,35 @@ pub(super) fn stereo_geometry(
     k0: &Intrinsics,
     est: &EstimationOptions,
 ) -> Result<StereoGeometry, AlignError> {
+    stereo_geometry_sampled(rig, k0, est, None)
+}
+
+/// [`stereo_geometry`] with F's RANSAC run on at most `ransac_pairs` of the stereo
+/// matches (every `n`-th, in view order), then refined on the Sampson distance over the
+/// inliers among all of them and re-selected until stable (at most 10 rounds, as the
+/// RANSAC's own refinement). For a sequence's keyframes (tens of thousands of matches of
+/// one rig): the RANSAC's cost grows with the matches it scores, the refinement's hardly.
+pub(super) fn stereo_geometry_sampled(
+    rig: &[View],
+    k0: &Intrinsics,
+    est: &EstimationOptions,
+    ransac_pairs: Option<usize>,
+) -> Result<StereoGeometry, AlignError> {
     let per_view: Vec<Vec<StereoMatch>> = rig.iter().map(|v| stereo_matches(&v.capture)).collect();
     let pairs: Vec<(Point2<f64>, Point2<f64>)> = per_view.iter().flatten().map(|m| (m.1, m.2)).collect();
-    let f_report = stereo_fundamental(&pairs, est)?;
-    let f: FundamentalMatrix = f_report.model;
-    let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = f_report.inliers.iter().map(|&i| pairs[i]).collect();
+    let (f, inliers) = match ransac_pairs.filter(|&m| pairs.len() > m) {
+        None => {
+            let f_report = stereo_fundamental(&pairs, est)?;
+            (f_report.model, f_report.inliers)
+        }
+        Some(m) => {
+            let step = pairs.len().div_ceil(m.max(1));
+            let sample: Vec<(Point2<f64>, Point2<f64>)> = pairs.iter().copied().step_by(step).collect();
+            let f_report = stereo_fundamental(&sample, est)?;
+            refine_on_all(f_report.model, &pairs, est.fundamental.threshold)
+        }
+    };
+    let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = inliers.iter().map(|&i| pairs[i]).collect();
     let stereo_rms = rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r)));
     let frame = quasi_euclidean_frame(&f.0, k0, &inlier_pairs).step("projective frame")?;
     let (p_l, p_r) = (frame.left_camera(), frame.right_camera());
@@ -65,13 +89,35 @@ pub(super) fn stereo_geometry(
                 .collect()
         })
         .collect();
-    Ok(StereoGeometry {
-        matches: pairs.len(),
-        inliers: f_report.inliers.len(),
-        rms_px: stereo_rms,
-        frame,
-        recon,
-    })
+    Ok(StereoGeometry { matches: pairs.len(), inliers: inliers.len(), rms_px: stereo_rms, frame, recon })
+}
+
+/// `f` refined on the Sampson distance over its inliers (within `threshold`) among all
+/// `pairs`, re-selected until the set is stable or the refinement stops improving (at most
+/// 10 rounds); the model and its inliers.
+fn refine_on_all(
+    f: FundamentalMatrix,
+    pairs: &[(Point2<f64>, Point2<f64>)],
+    threshold: f64,
+) -> (FundamentalMatrix, Vec<usize>) {
+    let select = |f: &FundamentalMatrix| -> Vec<usize> {
+        (0..pairs.len()).filter(|&i| f.sampson_distance(&pairs[i].0, &pairs[i].1) <= threshold).collect()
+    };
+    let (mut f, mut inliers) = (f, select(&f));
+    for _ in 0..10 {
+        let inlier_pairs: Vec<_> = inliers.iter().map(|&i| pairs[i]).collect();
+        let Ok(refined) = f.refine_sampson(&inlier_pairs) else { break };
+        let next = select(&refined);
+        if next.len() < inliers.len() {
+            break;
+        }
+        f = refined;
+        if next == inliers {
+            break;
+        }
+        inliers = next;
+    }
+    (f, inliers)
 }
 
 /// The rig from known intrinsics (no self-calibration): what a planar target or a single

@@ -1,0 +1,170 @@
+//! How the stereo views of a folder are tracked for self-calibration ([`track_views`]):
+//! against the first view, or through consecutive views as a sequence.
+//!
+//! - **Reference** ([`Route::Reference`], the chain of [`super::calibrate_rig`]): every
+//!   view is matched to the first ([`TrackingMode::Reference`]: plane homography, guided
+//!   matching) and every motion is fitted from it. Taken for at most
+//!   [`REFERENCE_ROUTE_MAX_VIEWS`] views when each of them shares at least
+//!   `estimation.min_tracks` tracks seen by both cameras with the first (the reference
+//!   chain's own requirement): head rotations, a few hand-held views around one scene.
+//! - **Sequence** ([`Route::Sequence`], [`super::calibrate_sequence`]): every view is
+//!   matched to the one before ([`TrackingMode::Previous`]: the fundamental matrix of
+//!   each camera across the motion, stereo pairs linked as units), so tracks chain along
+//!   the sequence and a view that links to nothing starts fresh ones (a new segment).
+//!   Taken for longer folders, and for those where tracking against the first failed or
+//!   left a view with too few tracks in common with it. A view whose own stereo matching
+//!   fails is left out with its reason; the next one is matched to the view before it.
+//!
+//! The reference attempt stops at the first view that does not overlap the first, so a
+//! sequence pays for the tracking of the views before it twice (bounded by
+//! [`REFERENCE_ROUTE_MAX_VIEWS`]). Units: track counts. Pitfalls: tracking against the
+//! first view can return a few wrong tracks for a view that shows another place; the
+//! threshold is the reference chain's minimum, so such a view either calibrates on that
+//! route as it always did or goes to the sequence route.
+//!
+//! [`TrackingMode::Reference`]: crate::frontend::TrackingMode::Reference
+//! [`TrackingMode::Previous`]: crate::frontend::TrackingMode::Previous
+
+use headalign_platform::StereoImages;
+use serde::Serialize;
+
+use super::graph::ViewTracks;
+use super::{
+    CalibrateOptions, LensModel, MotionCalibration, calibrate_rig, calibrate_sequence, undistort_views,
+};
+use crate::error::AlignError;
+use crate::frontend::{FrontEndOptions, Tracker, TrackingMode, ViewTracking};
+use crate::observations::View;
+
+/// Folders of more views than this are tracked as sequences whatever their overlap
+/// (module docs): the reference chain adjusts every view, and matching every view to the
+/// first only works while the rig stays in one place.
+pub const REFERENCE_ROUTE_MAX_VIEWS: usize = 20;
+
+/// The sequence route's front end draws at most this many RANSAC samples for each view's
+/// stereo `F` and each camera's `F` to the view before, unless its inlier ratio asks for
+/// more (the adaptive count at confidence 0.999: 80 samples at 70 % inliers, 880 at 50 %);
+/// the front end's own floor is 500. Three such fits per view were a third of the front
+/// end's time; on the 50-view rendered sequence of `benches/sequence.rs` the floor of
+/// 100 took 19.4 -> 13.2 s of CPU time, linked the same tracks to 1 % and gave the same
+/// focal length to 0.001 px.
+pub const SEQUENCE_RANSAC_MIN_ITERATIONS: usize = 100;
+
+/// Which chain the tracked views are for (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Route {
+    /// Every view against the first: [`super::calibrate_rig`].
+    Reference,
+    /// Every view against the one before: [`super::calibrate_sequence`].
+    Sequence,
+}
+
+/// Views tracked for self-calibration.
+#[derive(Debug, Clone)]
+pub struct TrackedViews {
+    /// The chain they are for.
+    pub route: Route,
+    /// The tracked views, in order (views whose tracking failed left out).
+    pub views: Vec<View>,
+    /// The front end's report per tracked view.
+    pub tracking: Vec<ViewTracking>,
+    /// Why the route was taken, and the views whose tracking failed.
+    pub notes: Vec<String>,
+}
+
+/// Self-calibrate views tracked by [`track_views`] by the chain of their route, with a
+/// known lens (`lenses`, left and right) removed from the observations first; a
+/// sequence's report carries the tracking notes.
+pub fn calibrate_tracked(
+    tracked: TrackedViews,
+    lenses: Option<&[LensModel; 2]>,
+    options: &CalibrateOptions,
+) -> Result<MotionCalibration, AlignError> {
+    let views = match lenses {
+        Some(l) => undistort_views(&tracked.views, l),
+        None => tracked.views,
+    };
+    match tracked.route {
+        Route::Reference => calibrate_rig(&views, options),
+        Route::Sequence => {
+            let mut c = calibrate_sequence(&views, options)?;
+            if let Some(s) = c.report.sequence.as_mut() {
+                s.tracking_notes = tracked.notes;
+            }
+            Ok(c)
+        }
+    }
+}
+
+/// Track named stereo views for self-calibration (module docs): against the first while
+/// that works for a folder of at most [`REFERENCE_ROUTE_MAX_VIEWS`], otherwise as a
+/// sequence. `front.mode` is overridden by the route.
+pub fn track_views(
+    images: &[(String, StereoImages)],
+    front: &FrontEndOptions,
+    options: &CalibrateOptions,
+) -> Result<TrackedViews, AlignError> {
+    let mut notes = Vec::new();
+    if images.len() <= REFERENCE_ROUTE_MAX_VIEWS {
+        match against_first(images, front, options.estimation.min_tracks)? {
+            Ok(tracked) => return Ok(tracked),
+            Err(why) => notes.push(why),
+        }
+    } else {
+        notes.push(format!("{} views: tracked as a sequence", images.len()));
+    }
+    let mut sequence = FrontEndOptions { mode: TrackingMode::Previous, ..front.clone() };
+    for r in [&mut sequence.stereo, &mut sequence.drive] {
+        r.min_iterations = r.min_iterations.min(SEQUENCE_RANSAC_MIN_ITERATIONS);
+    }
+    let mut tracker = Tracker::new(sequence)?;
+    let (mut views, mut tracking) = (Vec::new(), Vec::new());
+    for (name, pair) in images {
+        match tracker.track(pair, name) {
+            Ok((capture, report)) => {
+                views.push(View { name: name.clone(), capture });
+                tracking.push(report);
+            }
+            Err(e) => notes.push(format!("{name}: left out: {e}")),
+        }
+    }
+    Ok(TrackedViews { route: Route::Sequence, views, tracking, notes })
+}
+
+/// The reference route's tracking (module docs): `Ok(Err(why))` at the first view that
+/// fails to track against the first or shares fewer than `min_tracks` stereo tracks with
+/// it; an error only if the first view itself fails (as the reference chain always did).
+fn against_first(
+    images: &[(String, StereoImages)],
+    front: &FrontEndOptions,
+    min_tracks: usize,
+) -> Result<Result<TrackedViews, String>, AlignError> {
+    let mut tracker = Tracker::new(FrontEndOptions { mode: TrackingMode::Reference, ..front.clone() })?;
+    let (mut views, mut tracking): (Vec<View>, Vec<ViewTracking>) = (Vec::new(), Vec::new());
+    let mut first: Option<ViewTracks> = None;
+    for (name, pair) in images {
+        let (capture, report) = match tracker.track(pair, name) {
+            Ok(t) => t,
+            Err(e) if first.is_some() => {
+                return Ok(Err(format!("'{name}' does not track against the first view ({e}): a sequence")));
+            }
+            Err(e) => return Err(e),
+        };
+        let view = View { name: name.clone(), capture };
+        let tracks = ViewTracks::of(&view);
+        if let Some(f) = &first {
+            let shared = f.shared(&tracks);
+            if shared < min_tracks {
+                return Ok(Err(format!(
+                    "'{name}' shares {shared} tracks with the first view (fewer than {min_tracks}): a sequence"
+                )));
+            }
+        } else {
+            first = Some(tracks);
+        }
+        views.push(view);
+        tracking.push(report);
+    }
+    Ok(Ok(TrackedViews { route: Route::Reference, views, tracking, notes: Vec::new() }))
+}
