@@ -222,8 +222,9 @@ impl ProfileCholesky {
         for i in (0..n).rev() {
             y[i] /= self.l[i * n + i];
             let xi = y[i];
-            for k in self.first[i]..i {
-                y[k] -= self.l[i * n + k] * xi;
+            let first = self.first[i];
+            for (yk, lik) in y[first..i].iter_mut().zip(&self.l[i * n + first..i * n + i]) {
+                *yk -= lik * xi;
             }
         }
         let mut out = DVector::zeros(n);
