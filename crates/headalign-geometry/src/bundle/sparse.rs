@@ -222,8 +222,8 @@ impl ProfileCholesky {
         for i in (0..n).rev() {
             y[i] /= self.l[i * n + i];
             let xi = y[i];
-            let first = self.first[i];
-            for (yk, lik) in y[first..i].iter_mut().zip(&self.l[i * n + first..i * n + i]) {
+            let row = &self.l[i * n + self.first[i]..i * n + i];
+            for (yk, lik) in y[self.first[i]..i].iter_mut().zip(row) {
                 *yk -= lik * xi;
             }
         }

@@ -69,13 +69,16 @@ pub struct TrackedViews {
     pub views: Vec<View>,
     /// The front end's report per tracked view.
     pub tracking: Vec<ViewTracking>,
-    /// Why the route was taken, and the views whose tracking failed.
+    /// Why the route was taken (empty for the reference route).
     pub notes: Vec<String>,
+    /// Views whose tracking failed, with the reason (`NAME: reason`), left out.
+    pub failed: Vec<String>,
 }
 
 /// Self-calibrate views tracked by [`track_views`] by the chain of their route, with a
 /// known lens (`lenses`, left and right) removed from the observations first; a
-/// sequence's report carries the tracking notes.
+/// sequence's report carries the tracking notes, and the views whose tracking failed
+/// among those `skipped`.
 pub fn calibrate_tracked(
     tracked: TrackedViews,
     lenses: Option<&[LensModel; 2]>,
@@ -92,6 +95,7 @@ pub fn calibrate_tracked(
             if let Some(s) = c.report.sequence.as_mut() {
                 s.tracking_notes = tracked.notes;
             }
+            c.report.skipped.extend(tracked.failed);
             Ok(c)
         }
     }
@@ -119,17 +123,17 @@ pub fn track_views(
         r.min_iterations = r.min_iterations.min(SEQUENCE_RANSAC_MIN_ITERATIONS);
     }
     let mut tracker = Tracker::new(sequence)?;
-    let (mut views, mut tracking) = (Vec::new(), Vec::new());
+    let (mut views, mut tracking, mut failed) = (Vec::new(), Vec::new(), Vec::new());
     for (name, pair) in images {
         match tracker.track(pair, name) {
             Ok((capture, report)) => {
                 views.push(View { name: name.clone(), capture });
                 tracking.push(report);
             }
-            Err(e) => notes.push(format!("{name}: left out: {e}")),
+            Err(e) => failed.push(format!("{name}: tracking failed: {e}")),
         }
     }
-    Ok(TrackedViews { route: Route::Sequence, views, tracking, notes })
+    Ok(TrackedViews { route: Route::Sequence, views, tracking, notes, failed })
 }
 
 /// The reference route's tracking (module docs): `Ok(Err(why))` at the first view that
@@ -166,5 +170,5 @@ fn against_first(
         views.push(view);
         tracking.push(report);
     }
-    Ok(Ok(TrackedViews { route: Route::Reference, views, tracking, notes: Vec::new() }))
+    Ok(Ok(TrackedViews { route: Route::Reference, views, tracking, notes: Vec::new(), failed: Vec::new() }))
 }

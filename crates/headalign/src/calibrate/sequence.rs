@@ -79,8 +79,8 @@ pub struct SequenceReport {
     pub keyframes: usize,
     /// The segments that calibrated, in the adjustment's order.
     pub segments: Vec<SegmentReport>,
-    /// Why the views were tracked as a sequence, and views whose tracking failed
-    /// ([`super::TrackedViews::notes`]; empty when the views came tracked).
+    /// Why the views were tracked as a sequence ([`super::TrackedViews::notes`]; empty
+    /// when the views came tracked).
     pub tracking_notes: Vec<String>,
 }
 
