@@ -7,7 +7,8 @@
 //! `demo --images --save` and `simulate --images` write), or a folder of stereo pairs
 //! (`left01.jpg` + `right01.jpg`, `motorcycle_left.png` + `motorcycle_right.png`: any file
 //! whose name contains `left` with a partner named with `right`), taken as a fixed rig with
-//! zero encoder readings. Output: the calibration files of `export` and
+//! zero encoder readings; or a recording, a ROS 2 bag or an EuRoC folder
+//! ([`crate::recording`]). Output: the calibration files of `export` and
 //! `calibrate_report.json` with `--out`, one JSON object with `--json`.
 
 use std::path::{Path, PathBuf};
@@ -16,27 +17,30 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::{
-    CalibrateOptions, Density, DensityReport, DensityTrial, LensModel, MotionCalibration,
+    CalibrateOptions, Density, DensityReport, DensityTrial, LensChoice, LensModel, MotionCalibration,
     REFERENCE_ROUTE_MAX_VIEWS, calibrate_tracked, read_opencv_lenses, require_depth,
-    rig_from_known_intrinsics, track_views, undistort_views,
+    rig_from_known_intrinsics, select_rig, track_views, undistort_views,
 };
 use headalign::error::AlignError;
 use headalign::export::{StereoCalibration, TranslationUnit};
 use headalign::frontend::{FrontEndOptions, Tracker};
 use headalign::observations::View;
 use headalign::session::{SessionInfo, SessionWriter, ViewLabel, read_image_session};
+use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
-use headalign_geometry::distortion::Distortion;
+use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
+
+use crate::recording::RecordingArgs;
 use serde_json::{Value, json};
 
 /// Arguments of `headalign calibrate`.
 #[derive(Args)]
 pub struct CalibrateArgs {
-    /// Folder of stereo views: an image session (NN-name/ with left.png, right.png,
-    /// view.json) or stereo pairs (leftNN.png/jpg with rightNN.png/jpg).
+    /// Folder of stereo views: an image session, stereo pairs (leftNN.png with
+    /// rightNN.png), a ROS 2 bag (MCAP) or an EuRoC folder.
     pub dir: PathBuf,
     /// Hold both cameras' skew at zero.
     #[arg(long)]
@@ -52,14 +56,27 @@ pub struct CalibrateArgs {
     // The M1 D1 M2 D2 form is what OpenCV's stereo sample and our opencv_stereo.yaml write.
     #[arg(long)]
     pub distortion: Option<PathBuf>,
-    /// Estimate each camera's radial distortion (k1, k2, OpenCV plumb_bob) in the bundle
-    /// adjustment.
-    #[arg(long, conflicts_with = "distortion")]
+    /// Lens model estimated for each camera: `pinhole`, `radtan`, `equidistant` or `auto`
+    /// (chosen by BIC, reported). Default pinhole.
+    // `headalign::calibrate::LensChoice`; the criterion is in `calibrate::lens_choice`.
+    #[arg(long, value_parser = parse_lens, conflicts_with = "distortion")]
+    pub lens: Option<LensChoice>,
+    /// Lens coefficients estimated: `radial` (k1 k2, default), `4` (radtan k1 k2 p1 p2;
+    /// equidistant k1..k4) or `5` (radtan with k3).
+    #[arg(long, value_parser = parse_terms, default_value = "radial")]
+    pub lens_terms: DistortionTerms,
+    /// Same as `--lens radtan`.
+    #[arg(long, conflicts_with_all = ["distortion", "lens"])]
     pub estimate_distortion: bool,
+    /// Known lenses from Kalibr/EuRoC sensor.yaml files: LEFT.yaml,RIGHT.yaml, or
+    /// `recording` for an EuRoC folder's own cam0/cam1 sensor.yaml.
+    // `recording::lens_from`; fed where --distortion's lenses go.
+    #[arg(long, value_name = "LEFT,RIGHT|recording", conflicts_with_all = ["distortion", "estimate_distortion", "lens"])]
+    pub lens_from: Option<String>,
     /// Known intrinsics and distortion (same file formats): no self-calibration, only the
     /// rig (works with a planar target).
     // The rig comes from the fundamental matrix of all views.
-    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "zero_skew", "square_pixels", "fix_principal_point"])]
+    #[arg(long, conflicts_with_all = ["distortion", "estimate_distortion", "lens", "lens_from", "zero_skew", "square_pixels", "fix_principal_point"])]
     pub intrinsics: Option<PathBuf>,
     /// Write the calibration files here (calibration.json, opencv_stereo.yaml, left.yaml,
     /// right.yaml, camchain.yaml, calibrate_report.json).
@@ -91,6 +108,9 @@ pub struct CalibrateArgs {
     // report's `density`; docs/real-data.md.
     #[arg(long)]
     pub corners: Option<usize>,
+    /// How a recording is read (bags, EuRoC folders).
+    #[command(flatten)]
+    pub recording: RecordingArgs,
 }
 
 /// The corner counts of a run: `--corners N` fixed, otherwise [`Density::default`].
@@ -99,16 +119,35 @@ fn density(args: &CalibrateArgs) -> Density {
 }
 
 /// The options of the library from the flags.
-fn options(args: &CalibrateArgs) -> CalibrateOptions {
+pub fn options(args: &CalibrateArgs) -> CalibrateOptions {
     let mut o = CalibrateOptions {
         zero_skew: args.zero_skew,
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
-        estimate_distortion: args.estimate_distortion,
+        lens: lens_choice(args),
+        lens_terms: args.lens_terms,
         ..CalibrateOptions::default()
     };
     o.estimation.seed = args.seed;
     o
+}
+
+/// The lens model of `--lens` / `--estimate-distortion`.
+pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
+    match args.lens {
+        Some(l) => l,
+        None if args.estimate_distortion => LensChoice::Model(LensKind::RadialTangential),
+        None => LensChoice::Pinhole,
+    }
+}
+
+fn parse_lens(s: &str) -> Result<LensChoice, String> {
+    LensChoice::parse(s)
+        .ok_or_else(|| format!("unknown lens model '{s}': pinhole, radtan, equidistant or auto"))
+}
+
+fn parse_terms(s: &str) -> Result<DistortionTerms, String> {
+    DistortionTerms::parse(s).ok_or_else(|| format!("unknown lens terms '{s}': radial, 4 or 5"))
 }
 
 /// `--patch-refinement`.
@@ -137,8 +176,12 @@ fn front_end(args: &CalibrateArgs, corners: usize) -> FrontEndOptions {
     f
 }
 
-/// Named stereo views of a folder (module docs), in order.
-pub fn load_views(dir: &Path) -> Result<Vec<(String, StereoImages)>> {
+/// Named stereo views of a folder or recording (module docs), in order.
+pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, StereoImages)>> {
+    if headalign::recordings::detect(dir).is_some() {
+        let views = crate::recording::read(dir, recording)?.views;
+        return Ok(views.into_iter().map(|v| (v.name, v.images)).collect());
+    }
     if !dir.is_dir() {
         bail!("'{}' is not a folder", dir.display());
     }
@@ -216,7 +259,7 @@ pub struct Outcome {
     pub density: Option<DensityReport>,
 }
 
-fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
+pub fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
     let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     Ok(read_opencv_lenses(&text, &path.display().to_string())?)
 }
@@ -225,8 +268,29 @@ fn k_json(k: &Intrinsics) -> Value {
     json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy})
 }
 
-/// Run `calibrate` on named views (from disk or memory alike).
+/// Run `calibrate` on named views (from disk or memory alike): on the views of one rig
+/// ([`select_rig`]: a recorded session changes its rig with every vergence reading),
+/// the others named in the report's `skipped`.
 pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
+    let pairs: Vec<(&str, Encoders)> = views.iter().map(|(n, v)| (n.as_str(), v.encoders)).collect();
+    let choice = select_rig(&pairs);
+    let rig: Vec<(String, StereoImages)> = choice.used.iter().map(|&i| views[i].clone()).collect();
+    let mut outcome = calibrate_rig_views(&rig, args)?;
+    if !choice.left_out.is_empty() {
+        let left_out = choice.left_out.into_iter().map(|(_, why)| why);
+        match &mut outcome.calibration {
+            Some(c) => {
+                c.report.skipped.splice(0..0, left_out);
+                outcome.json["report"]["skipped"] = json!(c.report.skipped);
+            }
+            None => outcome.json["skipped"] = json!(left_out.collect::<Vec<_>>()),
+        }
+    }
+    Ok(outcome)
+}
+
+/// [`calibrate_views`] on views of one rig.
+fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
     let t0 = Instant::now();
     if let Some(r) = args.search_px
         && !(r.is_finite() && r > 0.0)
@@ -265,7 +329,13 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         return Ok(Outcome { stereo, json, calibration: None, density: None });
     }
     let opts = options(args);
-    let lenses = args.distortion.as_deref().map(read_lenses).transpose()?;
+    let lenses = match (&args.distortion, &args.lens_from) {
+        (Some(path), _) => Some(read_lenses(path)?),
+        (None, Some(spec)) => {
+            Some(crate::recording::lens_from(spec, &args.dir, &args.recording, image_size)?)
+        }
+        (None, None) => None,
+    };
     let undistort = |v: Vec<View>| match &lenses {
         Some(l) => undistort_views(&v, l),
         None => v,
@@ -326,6 +396,19 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
     if density_report.warn {
         cal.report.warnings.push(density_report.note.clone());
     }
+    self_calibration_outcome(cal, Some(density_report), lenses, image_size, args, t0)
+}
+
+/// The outcome of the self-calibration route: the files' content and the JSON report
+/// (`density`: the corner counts tried, `None` for tracked points).
+pub fn self_calibration_outcome(
+    cal: MotionCalibration,
+    density_report: Option<DensityReport>,
+    lenses: Option<[LensModel; 2]>,
+    image_size: [u32; 2],
+    args: &CalibrateArgs,
+    t0: Instant,
+) -> Result<Outcome> {
     let st = &cal.bundle.state;
     let distortion = match lenses {
         Some(l) => [l[0].distortion, l[1].distortion],
@@ -344,18 +427,33 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         "constraints": {"zero_skew": args.zero_skew, "square_pixels": args.square_pixels, "fix_principal_point": args.fix_principal_point},
         "left": cam("left", &st.left), "right": cam("right", &st.right),
         "right_from_left": rig_json(&st.right_from_left),
-        "distortion": {
-            "estimated": args.estimate_distortion,
-            "left": distortion[0].to_opencv(), "right": distortion[1].to_opencv(),
-            "sigma": {"left.k1": c.sigma("left.k1"), "left.k2": c.sigma("left.k2"),
-                      "right.k1": c.sigma("right.k1"), "right.k2": c.sigma("right.k2")},
-        },
+        "distortion": distortion_json(&distortion, lens_choice(args) != LensChoice::Pinhole, c),
         "translation_unit": match stereo.unit { TranslationUnit::Metres => "m", TranslationUnit::Baselines => "baselines" },
         "report": serde_json::to_value(&cal.report)?,
         "density": serde_json::to_value(&density_report)?,
         "seconds": t0.elapsed().as_secs_f64(),
     });
-    Ok(Outcome { stereo, json, calibration: Some(cal), density: Some(density_report) })
+    Ok(Outcome { stereo, json, calibration: Some(cal), density: density_report })
+}
+
+/// The `distortion` member: each camera's model and coefficients (in the model's order,
+/// OpenCV's `D`), and the sigma of every estimated coefficient.
+fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: &Covariance) -> Value {
+    let mut sigma = serde_json::Map::new();
+    for (side, d) in ["left", "right"].iter().zip(distortion) {
+        for name in d.kind.coefficient_names() {
+            let key = format!("{side}.{name}");
+            if let Some(s) = c.sigma(&key) {
+                sigma.insert(key, json!(s));
+            }
+        }
+    }
+    json!({
+        "estimated": estimated,
+        "model": [distortion[0].kind.ros_name(), distortion[1].kind.ros_name()],
+        "left": distortion[0].coefficients(), "right": distortion[1].coefficients(),
+        "sigma": sigma,
+    })
 }
 
 fn rig_json(m: &Isometry3<f64>) -> Value {
@@ -398,8 +496,14 @@ fn stereo_calibration(
 
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
-    let views = load_views(&args.dir)?;
-    let outcome = calibrate_views(&views, args)?;
+    if let Some(spec) = &args.lens_from {
+        crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
+    }
+    let outcome = if headalign::session::is_point_session(&args.dir) {
+        crate::points::calibrate(args)?
+    } else {
+        calibrate_views(&load_views(&args.dir, &args.recording)?, args)?
+    };
     // Warnings go to stderr in both modes (and are in the JSON report).
     if let Some(cal) = &outcome.calibration {
         for w in &cal.report.warnings {
@@ -453,6 +557,10 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             r.final_rms_px,
             r.bundle_observations
         );
+        if !r.skipped.is_empty() {
+            let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
+            println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
+        }
         if let Some(seq) = &r.sequence {
             println!(
                 "a sequence of {} views, {} keyframes, {} segments",
@@ -572,6 +680,8 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         square_pixels: flag("square_pixels"),
         fix_principal_point: flag("fix_principal_point"),
         distortion: None,
+        lens: info.head["calibrate"]["lens"].as_str().and_then(LensChoice::parse),
+        lens_terms: DistortionTerms::Radial2,
         estimate_distortion: flag("estimate_distortion"),
         intrinsics: None,
         out: None,
@@ -581,8 +691,10 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
         search_px: None,
         patch_refinement: PatchRefinement::Stereo,
         corners: None,
+        recording: RecordingArgs::default(),
+        lens_from: None,
     };
-    Ok(calibrate_views(&load_views(dir)?, &args)?.json)
+    Ok(calibrate_views(&load_views(dir, &args.recording)?, &args)?.json)
 }
 
 #[cfg(test)]
@@ -596,6 +708,8 @@ mod tests {
             square_pixels: false,
             fix_principal_point: false,
             distortion: None,
+            lens: None,
+            lens_terms: DistortionTerms::Radial2,
             estimate_distortion: false,
             intrinsics: None,
             out: None,
@@ -605,6 +719,8 @@ mod tests {
             search_px: None,
             patch_refinement: PatchRefinement::Stereo,
             corners: None,
+            recording: RecordingArgs::default(),
+            lens_from: None,
         }
     }
 
@@ -716,11 +832,13 @@ mod tests {
 
     #[test]
     fn bad_folders_are_errors() {
-        let e = load_views(Path::new("/nonexistent/headalign")).unwrap_err().to_string();
+        let e = load_views(Path::new("/nonexistent/headalign"), &RecordingArgs::default())
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("not a folder"), "{e}");
         let dir = std::env::temp_dir().join(format!("headalign-calibrate-empty-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
-        let e = load_views(&dir).unwrap_err().to_string();
+        let e = load_views(&dir, &RecordingArgs::default()).unwrap_err().to_string();
         std::fs::remove_dir_all(&dir).ok();
         assert!(e.contains("neither an image session"), "{e}");
     }

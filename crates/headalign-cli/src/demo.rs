@@ -66,7 +66,7 @@ pub struct DemoArgs {
     #[arg(long)]
     steer_drive: Option<f64>,
     /// Steering settings of the steering stage relative to the start reading, degrees,
-    /// comma separated (default -20,20,30).
+    /// comma separated (default -20,20,30,-30).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     steer_settings: Option<Vec<f64>>,
     /// Tall textured panels about 1 m in front of the robot. Default: 6 when a robot
@@ -104,16 +104,23 @@ pub struct DemoArgs {
 
 /// The robot stages and their settings from the demo's flags.
 fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan> {
+    let stages = stages::RobotPlan::parse_stages(&args.stages)?;
+    if args.images {
+        // The plan of `run --stages` too (`RobotPlan::images`).
+        let settings = args.steer_settings.clone();
+        let mut plan =
+            RobotPlan::images(stages, scenario.drive_m, args.steer_drive, settings, scenario.baseline_m);
+        plan.horizon_from_drive = args.horizon_from_drive;
+        return Ok(plan);
+    }
     Ok(stages::RobotPlan {
-        stages: stages::RobotPlan::parse_stages(&args.stages)?,
+        stages,
         drive_m: scenario.drive_m,
         horizon_from_drive: args.horizon_from_drive,
-        // On images a shorter steering drive: see `stages::IMAGE_STEER_DRIVE_M`.
-        steer_drive_m: args.steer_drive.or(args.images.then_some(stages::IMAGE_STEER_DRIVE_M)),
+        steer_drive_m: args.steer_drive,
         steer_settings_deg: args.steer_settings.clone(),
         baseline_m: scenario.baseline_m,
-        // On images a wider planarity limit: see `stages::IMAGE_PLANARITY_CHI2_MAX`.
-        planarity_chi2_max: args.images.then_some(stages::IMAGE_PLANARITY_CHI2_MAX),
+        planarity_chi2_max: None,
     })
 }
 

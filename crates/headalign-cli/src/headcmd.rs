@@ -1,10 +1,12 @@
 //! `headalign run --head-cmd CMD`: verging, then the verge/tilt procedure on images, on a
 //! head behind a driver process that speaks the JSON-lines head protocol
-//! (`docs/head-protocol.md`; [`headalign::process_head::ProcessHead`]). Every capture is
-//! recorded to the session folder before it is processed (always: a real head's captures
-//! cannot be made again); `report.json` gets the results. A timeout, a driver that exits
-//! or a malformed answer stops the run with one line naming the request and the session
-//! folder, which keeps every view captured so far.
+//! (`docs/head-protocol.md`; [`headalign::process_head::ProcessHead`]), then the robot
+//! stages of `--stages` (pan, steering, ...: [`crate::stages`]) when the driver has a base.
+//! Every capture is recorded to the session folder before it is processed (always: a real
+//! head's captures cannot be made again); `report.json` gets the results. A timeout, a
+//! driver that exits or a malformed answer stops the run with one line naming the request
+//! and the session folder, which keeps every view captured so far. Stages that drive
+//! need a driver with a base: without one the run stops before any request but `hello`.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
@@ -12,10 +14,12 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::process_head::{ProcessHead, ProcessHeadOptions};
+use headalign::robot::PanOptions;
 use headalign_platform::StereoHead;
 use serde_json::json;
 
-use crate::{images, replay};
+use crate::stages::RobotPlan;
+use crate::{images, replay, stages};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {
@@ -46,9 +50,51 @@ pub struct RunArgs {
     // `AutoRotation::default`: up to 10 deg each way, plus pan and elevation together.
     #[arg(long)]
     pub auto_rotation: bool,
+    /// Stages to run in order, comma separated: verge-tilt (first), then pan, steering,
+    /// pan-fixate, one-motion (these drive: the driver needs a base).
+    // Names: `stages::STAGES`; `demo`'s default is verge-tilt,pan,steering,pan.
+    #[arg(long, default_value = "verge-tilt")]
+    pub stages: String,
+    /// Forward drive of the pan, pan-fixate and one-motion stages, metres.
+    // `PanOptions::default().drive_m`, the demo's `Scenario::drive_m`.
+    #[arg(long)]
+    pub drive: Option<f64>,
+    /// Drive per steering setting of the steering stage, metres (default 0.2).
+    // `stages::IMAGE_STEER_DRIVE_M`.
+    #[arg(long)]
+    pub steer_drive: Option<f64>,
+    /// Steering settings of the steering stage relative to the start reading, degrees,
+    /// comma separated (default -20,20,30,-30).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub steer_settings: Option<Vec<f64>>,
+    /// Stereo baseline in metres, to give the wheelbase in metres (default 0.25).
+    // `SteeringOptions::default().baseline_m`, the simulated head's.
+    #[arg(long)]
+    pub baseline_m: Option<f64>,
     /// Print one JSON object instead of the summary.
     #[arg(long)]
     pub json: bool,
+}
+
+/// The stage plan of `run`'s flags; fails when the verge/tilt stage is not first.
+fn plan(args: &RunArgs) -> Result<RobotPlan> {
+    let stages = RobotPlan::parse_stages(&args.stages)?;
+    if stages.first().map(String::as_str) != Some("verge-tilt") {
+        bail!("--stages must start with verge-tilt: every robot stage uses its calibration");
+    }
+    let drive_m = args.drive.unwrap_or(PanOptions::default().drive_m);
+    let baseline_m = args.baseline_m.unwrap_or(headalign::robot::SteeringOptions::default().baseline_m);
+    for (name, v) in
+        [("--drive", Some(drive_m)), ("--steer-drive", args.steer_drive), ("--baseline-m", Some(baseline_m))]
+    {
+        if let Some(v) = v
+            && !(v.is_finite() && v > 0.0)
+        {
+            bail!("{name} must be a positive number of metres, got {v}");
+        }
+    }
+    let settings = args.steer_settings.clone();
+    Ok(RobotPlan::images(stages, drive_m, args.steer_drive, settings, baseline_m))
 }
 
 /// Run `headalign run`.
@@ -60,30 +106,67 @@ pub fn run(args: &RunArgs) -> Result<()> {
     if !(args.rotation.is_finite() && args.rotation > 0.0 && args.rotation < 90.0) {
         bail!("--rotation must be in (0, 90) degrees, got {}", args.rotation);
     }
+    let plan = plan(args)?;
     let options = ProcessHeadOptions { timeout: Duration::from_secs_f64(args.head_timeout) };
     let mut head = ProcessHead::spawn(&args.head_cmd, options).context("head")?;
+    if plan.drives() && !head.has_base() {
+        let driving: Vec<&str> =
+            plan.stages.iter().map(String::as_str).filter(|s| *s != "verge-tilt").collect();
+        let name = if head.name().is_empty() { args.head_cmd.as_str() } else { head.name() };
+        bail!(
+            "stage(s) {} drive the robot, but the head driver '{name}' has no base (its 'hello' answer lists no \"base\" capability): run --stages verge-tilt, or use a driver of a head on a base",
+            driving.join(", ")
+        );
+    }
     let target = match &args.session {
         Some(d) => images::SessionTarget::Dir(d.clone()),
         None => images::SessionTarget::Default,
     };
     let description = json!({"kind": "process", "command": head.command(), "name": head.name()});
     let session = target.resolve().map(|d| {
-        (d, images::session_info(args.rotation, args.auto_rotation, head.image_size(), description))
+        let mut info =
+            images::session_info(args.rotation, args.auto_rotation, head.image_size(), description);
+        if plan.drives() {
+            info.procedure = images::PROCEDURE_ROBOT.to_string();
+            info.stages = serde_json::to_value(&plan).ok();
+        }
+        (d, info)
     });
     let seed = headalign::estimate::EstimationOptions::default().seed;
-    let (run, _, v) = images::recorded(
-        &mut head,
-        session,
-        args.rotation,
-        args.auto_rotation,
-        seed,
-        &mut |_, run, outcome| images::run_json(run, outcome, t0.elapsed().as_secs_f64()),
-    )?;
+    let (run, _, v) = if plan.drives() {
+        images::recorded_robot(
+            &mut head,
+            session,
+            args.rotation,
+            args.auto_rotation,
+            seed,
+            &plan,
+            &mut |_, run, outcome, robot| {
+                let mut v = images::run_json(run, outcome, t0.elapsed().as_secs_f64())?;
+                if let Some(m) = v.as_object_mut() {
+                    m.extend(images::robot_json(&plan, robot)?);
+                }
+                Ok(v)
+            },
+        )?
+    } else {
+        images::recorded(
+            &mut head,
+            session,
+            args.rotation,
+            args.auto_rotation,
+            seed,
+            &mut |_, run, outcome| images::run_json(run, outcome, t0.elapsed().as_secs_f64()),
+        )?
+    };
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         say!("head '{}' ({} views)", args.head_cmd, run.run.views.len());
         replay::print_summary(&v);
+        if let Some(line) = stages::summary_line(&v) {
+            say!("{line}");
+        }
     }
     Ok(())
 }

@@ -7,7 +7,8 @@
 //! - `headalign simulate --out FILE`: record an observation session from the simulator.
 //! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
 //! - `headalign replay DIR`: re-run a recorded session offline ([`replay`]).
-//! - `headalign run --head-cmd CMD`: the image procedure on a driver process ([`headcmd`]).
+//! - `headalign run --head-cmd CMD`: the image procedure and the robot stages on a driver
+//!   process ([`headcmd`]).
 //! - `headalign calibrate DIR`: self-calibration from rig motions ([`calibrate`]).
 
 mod calibrate;
@@ -16,6 +17,7 @@ mod experiment;
 mod headcmd;
 mod images;
 mod points;
+mod recording;
 mod replay;
 mod report_html;
 mod stages;
@@ -74,8 +76,8 @@ enum Command {
     Experiment(experiment::ExperimentArgs),
     /// Re-run a recorded session offline (same procedure, recorded images: same result).
     Replay(replay::ReplayArgs),
-    /// Verge, calibrate and align a head driven through the JSON-lines head protocol,
-    /// recording the session.
+    /// Verge, calibrate and align a head driven through the JSON-lines head protocol, then
+    /// run the robot stages on its base (--stages), recording the session.
     Run(headcmd::RunArgs),
     /// Self-calibrate a stereo rig from views related by rigid motions of the whole rig.
     Calibrate(calibrate::CalibrateArgs),
@@ -155,11 +157,16 @@ struct AlignArgs {
     /// Observation session (JSON, format headalign-observations/1).
     #[arg(long, required_unless_present = "images", conflicts_with = "images")]
     observations: Option<PathBuf>,
-    /// A recorded image session instead (as `demo --images --session DIR` writes); its
-    /// verge/tilt views are tracked by the image front end.
-    // Verging captures are skipped (`RecordedView::is_verge_tilt`).
+    /// A recorded session instead (as `demo`, `run` and `simulate --images` write), or a
+    /// ROS 2 bag of a head run; its verge/tilt views are tracked by the image front end.
+    // `session::estimation_views`: verging, probes and robot stages are skipped; a
+    // point-mode session's recorded points are used as they are. A bag's views are its
+    // still views from the verge/tilt start (`recording::align_views`).
     #[arg(long)]
     images: Option<PathBuf>,
+    /// How a recording is read (bags, EuRoC folders).
+    #[command(flatten)]
+    recording: recording::RecordingArgs,
     /// Print one JSON object instead of the table.
     #[arg(long)]
     json: bool,
@@ -300,12 +307,18 @@ fn read_align_views(args: &AlignArgs) -> Result<(Vec<View>, Option<Vec<RecordedV
     match (&args.observations, &args.images) {
         (Some(file), _) => Ok((read_session(file)?, None)),
         (None, Some(dir)) => {
-            // The verge/tilt views (verging captures are recorded too, but the rig is not
-            // rigid there).
-            let r: Vec<_> = headalign::session::read_image_session(dir)?
-                .into_iter()
-                .filter(RecordedView::is_verge_tilt)
-                .collect();
+            use headalign::session::{estimation_views, read_image_session, read_point_session};
+            // The verge/tilt views (verging captures and robot stages are recorded too, but
+            // the rig is not the same there).
+            if headalign::session::is_point_session(dir) {
+                let r = estimation_views(read_point_session(dir)?, |v| v.stage.as_deref());
+                return Ok((r.into_iter().map(|v| v.view).collect(), None));
+            }
+            let r = if headalign::recordings::detect(dir).is_some() {
+                recording::align_views(dir, &args.recording)?
+            } else {
+                estimation_views(read_image_session(dir)?, |v| v.stage.as_deref())
+            };
             let views =
                 headalign::session::track_session(&r, &headalign::frontend::FrontEndOptions::default())?;
             Ok((views, Some(r)))

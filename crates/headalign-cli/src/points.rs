@@ -5,11 +5,15 @@
 //! by `align --observations`) and the demo's JSON as `report.json`. The robot stages
 //! that follow are recorded too ([`robot_stages`]: their captures in folders named by
 //! stage, drives and steering as events, the stage plan in `session.json` `stages`), and
-//! `replay` re-runs the verge/tilt stage and then those stages.
+//! `replay` re-runs the verge/tilt stage and then those stages. `calibrate DIR` on such a
+//! session self-calibrates from the recorded points ([`calibrate`]).
 
 use std::path::PathBuf;
+use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
+use headalign::calibrate::{calibrate_rig, select_rig, undistort_views};
+use headalign::observations::View;
 use headalign::observations::session_to_json;
 use headalign::procedure::{
     AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
@@ -107,4 +111,32 @@ pub fn robot_stages<R: StereoHead + Vehicle>(
         Ok(r) => Ok((r, Some(writer))),
         Err(e) => Err(crate::images::failed_in_session(&writer, e)),
     }
+}
+
+/// `calibrate DIR` on a point-mode session: the tracked points its views recorded (no
+/// front end, so no corner density), the views of one rig ([`select_rig`], the others
+/// named in the report's `skipped`), self-calibrated as `calibrate` does images.
+pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibrate::Outcome> {
+    let t0 = Instant::now();
+    if args.intrinsics.is_some() {
+        bail!(
+            "'{}' is a point-mode session: --intrinsics calibrates the rig from each view's own stereo matches, which need images",
+            args.dir.display()
+        );
+    }
+    let views: Vec<View> =
+        headalign::session::read_point_session(&args.dir)?.into_iter().map(|r| r.view).collect();
+    let pairs: Vec<(&str, _)> = views.iter().map(|v| (v.name.as_str(), v.capture.encoders)).collect();
+    let choice = select_rig(&pairs);
+    let rig: Vec<View> = choice.used.iter().map(|&i| views[i].clone()).collect();
+    let Some(image_size) = rig.first().map(|v| v.capture.image_size) else { bail!("no views") };
+    let lenses = args.distortion.as_deref().map(crate::calibrate::read_lenses).transpose()?;
+    let rig = match &lenses {
+        Some(l) => undistort_views(&rig, l),
+        None => rig,
+    };
+    let mut cal = calibrate_rig(&rig, &crate::calibrate::options(args))
+        .with_context(|| format!("session {}", args.dir.display()))?;
+    cal.report.skipped.splice(0..0, choice.left_out.into_iter().map(|(_, why)| why));
+    crate::calibrate::self_calibration_outcome(cal, None, lenses, image_size, args, t0)
 }

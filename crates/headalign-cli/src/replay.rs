@@ -3,6 +3,10 @@
 //! checked against the recorded ones) under the same procedure that recorded it, so the
 //! result is the recorded run's, bit for bit. A recording that stopped early (its run
 //! failed) replays up to where it stopped and fails there, naming the event.
+//!
+//! A recording of a head run (a ROS 2 bag with joint states) has no events: its still
+//! views are played back as a head ([`headalign::recordings::PlaybackHead`]) under the
+//! image procedure with the rotation given on the command line, which `run` used too.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -27,15 +31,57 @@ macro_rules! say {
 /// Arguments of `headalign replay`.
 #[derive(Args)]
 pub struct ReplayArgs {
-    /// The session folder (as `demo --images` or `run --head-cmd` recorded it).
+    /// The session folder (as `demo --images` or `run --head-cmd` recorded it), or a
+    /// ROS 2 bag of a head run.
     pub dir: PathBuf,
     /// Print one JSON object instead of the summary.
     #[arg(long)]
     pub json: bool,
+    /// A recording: the rotation of the recorded run's moves, degrees (as `run --rotation`).
+    #[arg(long, default_value_t = 3.0)]
+    pub rotation: f64,
+    /// A recording: the recorded run chose its rotations (as `run --auto-rotation`).
+    #[arg(long)]
+    pub auto_rotation: bool,
+    /// A recording: how far a recorded still view may be from a move's target, degrees.
+    #[arg(long, default_value_t = 0.1)]
+    pub move_tolerance: f64,
+    /// How a recording is read (bags, EuRoC folders).
+    #[command(flatten)]
+    pub recording: crate::recording::RecordingArgs,
+}
+
+/// `replay RECORDING`: the image procedure on the recording's still views.
+fn replay_recording(args: &ReplayArgs) -> Result<()> {
+    let t0 = Instant::now();
+    if !(args.rotation.is_finite() && args.rotation > 0.0 && args.rotation < 90.0) {
+        bail!("--rotation must be in (0, 90) degrees, got {}", args.rotation);
+    }
+    let mut head = crate::recording::playback_head(&args.dir, &args.recording, args.move_tolerance)?;
+    let seed = headalign::estimate::EstimationOptions::default().seed;
+    let (run, outcome) =
+        images::procedure(&mut head, args.rotation, args.auto_rotation, seed, &mut |_, _, _, _| {});
+    let outcome = outcome.with_context(|| format!("replay of '{}'", args.dir.display()))?;
+    let mut v = images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
+    if let Some(m) = v.as_object_mut() {
+        m.insert("replayed".into(), json!(args.dir.display().to_string()));
+        m.insert("still_views".into(), json!(head.views().len()));
+        m.insert("still_views_used".into(), json!(head.position() + 1));
+    }
+    if args.json {
+        say!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        say!("replayed {} ({} views)", args.dir.display(), run.run.views.len());
+        print_summary(&v);
+    }
+    Ok(())
 }
 
 /// Run `headalign replay`.
 pub fn run(args: &ReplayArgs) -> Result<()> {
+    if headalign::recordings::detect(&args.dir).is_some() {
+        return replay_recording(args);
+    }
     let t0 = Instant::now();
     let info = read_session_info(&args.dir)?;
     let mut head = ReplayHead::open(&args.dir)?;
@@ -127,6 +173,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     } else {
         say!("replayed {} ({views} views)", args.dir.display());
         print_summary(&v);
+        if let Some(line) = crate::stages::summary_line(&v) {
+            say!("{line}");
+        }
     }
     Ok(())
 }

@@ -80,6 +80,53 @@ impl RobotPlan {
     pub fn drives(&self) -> bool {
         self.stages.iter().any(|s| s != "verge-tilt")
     }
+
+    /// The plan of an image-mode run (`demo --images`, `run`): the steering drive
+    /// defaults to [`IMAGE_STEER_DRIVE_M`] and the planarity limit is
+    /// [`IMAGE_PLANARITY_CHI2_MAX`].
+    pub fn images(
+        stages: Vec<String>,
+        drive_m: f64,
+        steer_drive_m: Option<f64>,
+        steer_settings_deg: Option<Vec<f64>>,
+        baseline_m: f64,
+    ) -> Self {
+        Self {
+            stages,
+            drive_m,
+            horizon_from_drive: false,
+            steer_drive_m: Some(steer_drive_m.unwrap_or(IMAGE_STEER_DRIVE_M)),
+            steer_settings_deg,
+            baseline_m,
+            planarity_chi2_max: Some(IMAGE_PLANARITY_CHI2_MAX),
+        }
+    }
+}
+
+/// One line naming what the robot stages found, from a run's JSON (`pan`, `steering`
+/// members, or those of its `robot` member in point mode): each pan stage's final pan
+/// reading and the steering zero.
+pub fn summary_line(v: &serde_json::Value) -> Option<String> {
+    let stages = v["stages"].as_array()?;
+    let v = if v["robot"].is_object() { &v["robot"] } else { v };
+    let mut parts = Vec::new();
+    let pans: Vec<String> = v["pan"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|p| p["final_encoders"]["pan"].as_f64())
+        .map(|pan| format!("{pan:.3}"))
+        .collect();
+    if !pans.is_empty() {
+        parts.push(format!("pan reading after each pan stage {} deg", pans.join(", ")));
+    }
+    if let (Some(zero), Some(sigma)) =
+        (v["steering"]["steer_zero_deg"].as_f64(), v["steering"]["sigma_steer_zero_deg"].as_f64())
+    {
+        parts.push(format!("steering zero {zero:.3} +- {sigma:.3} deg"));
+    }
+    let names: Vec<&str> = stages.iter().filter_map(serde_json::Value::as_str).collect();
+    Some(format!("stages {}: {}", names.join(","), parts.join("; ")))
 }
 
 /// What the robot stages found.

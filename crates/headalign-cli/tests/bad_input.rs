@@ -419,11 +419,19 @@ fn align_images_bad_view_json() {
                 vec!["01-elevation/view.json", "name is empty"],
             ),
             (
-                "view.json duplicate name",
-                view_json_case(
-                    r#"{"name": "initial", "encoders": {"pan": 0, "elevation": 3, "verge_left": 0, "verge_right": 0}}"#,
-                ),
-                vec!["01-elevation/view.json", "also the name of"],
+                // A repeated name is known by its folder name (older sessions repeat a
+                // stage's names); an error only when that is taken too.
+                "view.json duplicate name and folder name",
+                Box::new(|d: &Path| {
+                    let json = |elevation: u32| {
+                        format!(
+                            r#"{{"name": "01-elevation", "encoders": {{"pan": 0, "elevation": {elevation}, "verge_left": 0, "verge_right": 0}}}}"#
+                        )
+                    };
+                    std::fs::write(d.join("00-initial/view.json"), json(0)).unwrap();
+                    std::fs::write(d.join("01-elevation/view.json"), json(3)).unwrap();
+                }),
+                vec!["01-elevation/view.json", "also the name of", "its folder name"],
             ),
             (
                 "view.json is a directory",

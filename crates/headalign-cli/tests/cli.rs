@@ -338,16 +338,23 @@ fn align_error_paths_are_one_line_and_named() {
 }
 
 /// `run --head-cmd` with the example driver of the simulator (the simulated head of
-/// `demo --images` for the same seed) runs the same procedure on the same images as the
-/// image demo: the same numbers, bit for bit, and the same views. The demo's own test
-/// bounds these errors (0.5 deg, 2 %); the estimate is identical. The session it records
-/// replays to the same estimate.
+/// `demo --images` for the same seed; `--near-panels 0`: the plain room of a demo without
+/// robot stages) runs the same procedure on the same images as the image demo: the same
+/// numbers, bit for bit, and the same views. The demo's own test bounds these errors
+/// (0.5 deg, 2 %); the estimate is identical. The session it records replays to the same
+/// estimate, and `calibrate` reads it.
 #[test]
 fn a_driver_process_runs_the_procedure_like_the_simulator() {
     let dir = tmp("driver-4");
     std::fs::remove_dir_all(&dir).ok();
     let out = bin()
-        .args(["run", "--head-cmd", &format!("'{}' --seed 4", driver()), "--json", "--session"])
+        .args([
+            "run",
+            "--head-cmd",
+            &format!("'{}' --seed 4 --near-panels 0", driver()),
+            "--json",
+            "--session",
+        ])
         .arg(&dir)
         .output()
         .unwrap();
@@ -364,6 +371,11 @@ fn a_driver_process_runs_the_procedure_like_the_simulator() {
     let info: Value =
         serde_json::from_str(&std::fs::read_to_string(dir.join("session.json")).unwrap()).unwrap();
     assert_eq!(info["head"]["kind"], "process");
+    let out = run(&["calibrate", dir.to_str().unwrap(), "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let c: Value = serde_json::from_slice(&out.stdout).unwrap();
+    // The verge/tilt rig: the last verging capture and initial, elevation+-, pan+-.
+    assert_eq!(c["report"]["views"].as_array().map(Vec::len), Some(6), "{}", c["report"]["views"]);
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -171,6 +171,131 @@ fn chessboard_with_known_intrinsics_agrees_with_the_board() {
     assert!(diff < 0.5, "rotation {ours:?} vs {reference:?} deg ({diff:.3} apart)");
 }
 
+/// The raw EuRoC V1_01 pairs 3 and 2 (one general motion of a real VI-Sensor rig with a
+/// barrel lens, k1 about -0.28) in a temporary folder of `leftNN.png` / `rightNN.png`.
+fn euroc_one_motion(data: &Path, name: &str) -> tempfile_dir::Dir {
+    let src = data.join("euroc_v101_pairs");
+    let dir = tempfile_dir::Dir::new(name);
+    for (i, pair) in [3, 2].iter().enumerate() {
+        for side in ["left", "right"] {
+            std::fs::copy(
+                src.join(format!("{side}_img_{pair}.png")),
+                dir.path().join(format!("{side}{i:02}.png")),
+            )
+            .unwrap();
+        }
+    }
+    dir
+}
+
+/// A temporary folder removed on drop (no dependency for one test helper).
+mod tempfile_dir {
+    use std::path::{Path, PathBuf};
+
+    pub struct Dir(PathBuf);
+
+    impl Dir {
+        pub fn new(name: &str) -> Self {
+            let p = std::env::temp_dir().join(format!("headalign-real-{name}-{}", std::process::id()));
+            let _ = std::fs::remove_dir_all(&p);
+            std::fs::create_dir_all(&p).unwrap();
+            Self(p)
+        }
+
+        pub fn path(&self) -> &Path {
+            &self.0
+        }
+    }
+
+    impl Drop for Dir {
+        fn drop(&mut self) {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+/// The dataset's own calibration (Kalibr, a target): fx, fy of cam0 and cam1.
+const EUROC_FOCAL: [[f64; 2]; 2] = [[458.654, 457.296], [457.587, 456.134]];
+
+/// Relative focal errors of a calibrate JSON against [`EUROC_FOCAL`].
+fn euroc_focal_errors(j: &Value) -> Vec<f64> {
+    ["left", "right"]
+        .iter()
+        .zip(EUROC_FOCAL)
+        .flat_map(|(side, f)| {
+            [("fx", f[0]), ("fy", f[1])].map(|(k, truth)| j[side][k].as_f64().unwrap() / truth - 1.0)
+        })
+        .collect()
+}
+
+/// `--lens auto` on the raw pairs: it compares the pinhole, radial-tangential and
+/// equidistant models by BIC on one set of observations and says so. Measured (seed 0,
+/// zero skew): pinhole chi-square about 117,000, radtan 3,200, equidistant 2,750 on 3,549
+/// observations; equidistant is kept, with every focal length within 1 % of the
+/// dataset's (+0.19, +0.50, +0.13, +0.54 %). The bar is 1 %, the issue's; the focal sigma
+/// is 0.27 %.
+#[test]
+fn euroc_raw_pairs_auto_lens_gives_the_focal_lengths() {
+    let Some(data) = data_dir() else { return };
+    let dir = euroc_one_motion(&data, "auto");
+    let (ok, j, err) = calibrate(&[dir.path().to_str().unwrap(), "--lens", "auto", "--zero-skew", "--json"]);
+    assert!(ok, "{err}");
+    let sel = &j["report"]["lens_selection"];
+    let models: Vec<&str> =
+        sel["candidates"].as_array().unwrap().iter().map(|c| c["model"].as_str().unwrap()).collect();
+    assert_eq!(models, ["pinhole", "radtan", "equidistant"]);
+    let chosen = sel["chosen"].as_str().unwrap();
+    assert!(chosen != "pinhole", "a barrel lens of k1 -0.28 must not be called a pinhole: {sel}");
+    assert!(sel["reason"].as_str().unwrap().contains("BIC"));
+    assert_eq!(
+        j["distortion"]["model"][0].as_str().unwrap(),
+        if chosen == "radtan" { "plumb_bob" } else { "equidistant" }
+    );
+    for e in euroc_focal_errors(&j) {
+        assert!(e.abs() < 0.01, "focal lengths {:?} against the dataset's", euroc_focal_errors(&j));
+    }
+}
+
+/// `--lens radtan` on the raw pairs: both focal lengths of both cameras within 1 % of the
+/// dataset's (measured -0.58, -0.87, -0.52, -0.74 %: the density rule keeps 3000 corners),
+/// `k1` within 0.01 of the dataset's -0.283 (measured -0.291 for both, sigma 0.0023; the
+/// bar is the issue's). The equidistant model's files: OpenCV YAML names `fisheye` and
+/// has 4 coefficients, ROS `equidistant`, Kalibr `equidistant`, and `--intrinsics` reads
+/// that YAML back as an equidistant lens.
+#[test]
+fn euroc_raw_pairs_lens_models_and_their_files() {
+    let Some(data) = data_dir() else { return };
+    let dir = euroc_one_motion(&data, "models");
+    let d = dir.path().to_str().unwrap();
+    let (ok, j, err) = calibrate(&[d, "--lens", "radtan", "--zero-skew", "--json"]);
+    assert!(ok, "{err}");
+    assert!(euroc_focal_errors(&j).iter().all(|e| e.abs() < 0.01), "{:?}", euroc_focal_errors(&j));
+    for side in ["left", "right"] {
+        let k1 = j["distortion"][side][0].as_f64().unwrap();
+        assert!((k1 + 0.2834).abs() < 0.01, "{side} k1 {k1}");
+        assert!(j["distortion"]["sigma"][format!("{side}.k1")].as_f64().unwrap() > 0.0);
+    }
+    let out = dir.path().join("out");
+    let (ok, j, err) =
+        calibrate(&[d, "--lens", "equidistant", "--zero-skew", "--json", "--out", out.to_str().unwrap()]);
+    assert!(ok, "{err}");
+    assert_eq!(j["distortion"]["left"].as_array().unwrap().len(), 4);
+    let read = |f: &str| std::fs::read_to_string(out.join(f)).unwrap();
+    assert!(read("opencv_stereo.yaml").contains("distortion_model: fisheye"));
+    assert!(read("left.yaml").contains("distortion_model: equidistant"));
+    assert!(read("camchain.yaml").contains("distortion_model: equidistant"));
+    // Read back as known intrinsics and lens: the stereo matches undistorted through the
+    // equidistant model fit one rig (Sampson RMS measured 0.29 px; the same coefficients
+    // read as a radial-tangential lens give 0.36 px). The exact reading of the model is
+    // checked in `export`'s unit tests.
+    let yaml = out.join("opencv_stereo.yaml");
+    let (ok, back, err) = calibrate(&[d, "--intrinsics", yaml.to_str().unwrap(), "--json"]);
+    assert!(ok, "{err}");
+    assert!((back["left"]["fx"].as_f64().unwrap() - j["left"]["fx"].as_f64().unwrap()).abs() < 1e-9);
+    let rms = back["stereo_rms_px"].as_f64().unwrap();
+    assert!(rms < 0.5, "stereo Sampson RMS {rms} px through the equidistant lens read back");
+}
+
 /// The four EuRoC MAV V1_01_easy pairs as a raw folder (`left00.png` = `left_img_3.png`,
 /// `left01` = `_2`, `left02` = `_1`, `left03` = `_0`): pairs 3 -> 2 are one general rig
 /// motion (15.6 deg), 1 -> 0 another (37.5 deg), and 0/1 share no view with 2/3. View 02

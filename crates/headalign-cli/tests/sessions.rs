@@ -1,12 +1,15 @@
 //! End-to-end tests of sessions, replay and the head protocol: `demo --images` records a
-//! session (default location or `--session`), `replay` reproduces it bit for bit, and a
+//! session (default location or `--session`), `replay` reproduces it bit for bit, a
 //! driver that dies, garbles or hangs stops the run with one line naming the request and
-//! the session, which keeps every view captured so far. That `run --head-cmd` drives the
-//! example simulator driver through the protocol to the demo's result is in `cli.rs`,
-//! beside the image demo it compares with.
+//! the session, which keeps every view captured so far; `run --stages` drives the
+//! simulated robot through the protocol to the demo's result, and every session a command
+//! writes reads back with `calibrate`, `align --images` and `replay`. That `run
+//! --head-cmd` on a head alone gives the verge/tilt demo's result is in `cli.rs`, beside
+//! the image demo it compares with.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use std::sync::OnceLock;
 
 use serde_json::Value;
 
@@ -58,26 +61,43 @@ fn replay(dir: &Path) -> Value {
     ok_json(&bin().args(["replay", dir.to_str().unwrap(), "--json"]).output().unwrap())
 }
 
+/// The robot demo on images, run once for the tests that use it: its working directory,
+/// its session folder (the default place), its `--json` output and its view folders
+/// (listed before any test touches the session).
+struct RobotDemo {
+    cwd: PathBuf,
+    dir: PathBuf,
+    json: Value,
+    folders: Vec<String>,
+}
+
+/// `demo --images --seed 1 --json` with the default stages (verge-tilt, pan, steering,
+/// pan: the pan stage runs twice), recorded to the default place, as no `--session` is
+/// given: ./headalign-sessions/<UTC time> in the working directory.
+fn robot_demo() -> &'static RobotDemo {
+    static DEMO: OnceLock<RobotDemo> = OnceLock::new();
+    DEMO.get_or_init(|| {
+        let cwd = tmp("cwd");
+        std::fs::create_dir_all(&cwd).unwrap();
+        let out =
+            bin().current_dir(&cwd).args(["demo", "--images", "--seed", "1", "--json"]).output().unwrap();
+        let json = ok_json(&out);
+        let sessions: Vec<_> =
+            std::fs::read_dir(cwd.join("headalign-sessions")).unwrap().filter_map(Result::ok).collect();
+        assert_eq!(sessions.len(), 1);
+        let dir = sessions[0].path();
+        let folders = view_folders(&dir);
+        RobotDemo { cwd, dir, json, folders }
+    })
+}
+
 #[test]
 fn demo_records_to_the_default_place_and_replays_bit_for_bit() {
-    // No --session: ./headalign-sessions/<UTC time> in the working directory.
-    let cwd = tmp("cwd");
-    std::fs::create_dir_all(&cwd).unwrap();
-    // A short robot run: verge/tilt, then the pan stage (drives recorded as events).
-    let out = bin()
-        .current_dir(&cwd)
-        .args(["demo", "--images", "--seed", "1", "--stages", "verge-tilt,pan", "--json"])
-        .output()
-        .unwrap();
-    let live = ok_json(&out);
-    let base = cwd.join("headalign-sessions");
-    let sessions: Vec<_> = std::fs::read_dir(&base).unwrap().filter_map(Result::ok).collect();
-    assert_eq!(sessions.len(), 1);
-    let dir = sessions[0].path();
-    assert_eq!(live["session"].as_str().map(Path::new), Some(dir.strip_prefix(&cwd).unwrap()));
+    let RobotDemo { cwd, dir, json: live, folders } = robot_demo();
+    let (cwd, dir, live) = (cwd.as_path(), dir.as_path(), live.clone());
+    assert_eq!(live["session"].as_str().map(Path::new), Some(dir.strip_prefix(cwd).unwrap()));
     // Verging captures, then the procedure's, each with its metadata; the report is the
     // --json output.
-    let folders = view_folders(&dir);
     assert!(folders[0].ends_with("-verging-1"), "{folders:?}");
     assert!(
         folders.iter().any(|f| f.ends_with("-initial")) && folders.iter().any(|f| f.ends_with("-check-1"))
@@ -93,14 +113,25 @@ fn demo_records_to_the_default_place_and_replays_bit_for_bit() {
     assert_eq!(report, live);
     assert!(dir.join("figure6.png").exists());
     // Replay: the same estimate and checks, bit for bit (JSON numbers round-trip exactly).
-    let r = replay(&dir);
+    let r = replay(dir);
     assert_eq!(r["estimate"], live["estimate"]);
     assert_eq!(r["checks"], live["checks"]);
     assert_eq!(r["images"]["views"], live["images"]["views"]);
     assert_eq!(r["unplayed_events"], 0);
-    // The robot stage too: the same drives, the same pan corrections, bit for bit; its
-    // views record the drives since the capture before.
+    // The robot stages too: the same drives, the same pan corrections and steering zero,
+    // bit for bit; their views record the drives since the capture before, and the
+    // second pan stage continues the first's numbers (view names are unique).
     assert_eq!(r["pan"], live["pan"]);
+    assert_eq!(r["steering"], live["steering"]);
+    assert!(live["steering"]["steer_zero_deg"].is_number());
+    let pan_views = folders
+        .iter()
+        .filter(|f| f.split_once("-pan-").is_some_and(|(_, n)| n.parse::<u32>().is_ok()))
+        .count();
+    assert!(
+        pan_views >= 8 && folders.iter().any(|f| f.ends_with(&format!("-pan-{pan_views}"))),
+        "{folders:?}"
+    );
     assert!(live["pan"][0]["steps"].as_array().is_some_and(|s| s.len() == 2), "{}", live["pan"]);
     assert!(live["errors"]["pan_err_deg"].is_number());
     let pan2 = folders.iter().find(|f| f.ends_with("-pan-2")).expect("a pan-2 view");
@@ -116,7 +147,6 @@ fn demo_records_to_the_default_place_and_replays_bit_for_bit() {
     // Replay of a folder that is not a session.
     let out = bin().args(["replay", cwd.to_str().unwrap()]).output().unwrap();
     assert_clean_failure(&out, &["session.json"]);
-    std::fs::remove_dir_all(&cwd).ok();
 }
 
 #[test]
@@ -136,7 +166,7 @@ fn driver_failures_stop_the_run_and_keep_the_session() {
         let out = bin()
             .args(["run", "--head-timeout", timeout, "--session"])
             .arg(&dir)
-            .args(["--head-cmd", &format!("'{}' --seed 1 {flags}", driver())])
+            .args(["--head-cmd", &format!("'{}' --seed 1 --near-panels 0 {flags}", driver())])
             .output()
             .unwrap();
         let mut parts = expect.clone();
@@ -248,4 +278,138 @@ fn auto_rotation_sessions_record_the_probes_and_replay() {
     }
     assert_eq!(r["estimate"]["aligned_encoders"], live["estimate"]["aligned_encoders"]);
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The robot run through the protocol, run once: `run --stages verge-tilt,pan,steering,pan`
+/// on `headalign-sim-driver --seed 1 --truth FILE` (the simulated robot of the robot
+/// demo): its session folder, its `--json` output and the driver's truth file.
+struct RobotRun {
+    dir: PathBuf,
+    json: Value,
+    truth: Value,
+}
+
+fn robot_run() -> &'static RobotRun {
+    static RUN: OnceLock<RobotRun> = OnceLock::new();
+    RUN.get_or_init(|| {
+        let dir = tmp("robot-run");
+        let truth = tmp("robot-run-truth.json");
+        let out = bin()
+            .args(["run", "--stages", "verge-tilt,pan,steering,pan", "--json", "--session"])
+            .arg(&dir)
+            .args(["--head-cmd", &format!("'{}' --seed 1 --truth '{}'", driver(), truth.display())])
+            .output()
+            .unwrap();
+        let json = ok_json(&out);
+        let truth = serde_json::from_str(&std::fs::read_to_string(&truth).unwrap()).unwrap();
+        RobotRun { dir, json, truth }
+    })
+}
+
+/// The robot stages through the protocol (`drive`, `steer`, `read` with the steering)
+/// on the example driver give the robot demo's result bit for bit: the same estimate,
+/// pan corrections and steering zero, the same views, and the driver's truth file holds
+/// the demo's errors. The session replays to the same result. A driver without a base
+/// refuses the robot stages with one line before any capture.
+#[test]
+fn a_driver_with_a_base_runs_the_robot_stages_like_the_demo() {
+    let (run, demo) = (robot_run(), robot_demo());
+    for key in ["estimate", "checks", "pan", "steering"] {
+        assert_eq!(run.json[key], demo.json[key], "{key}");
+    }
+    assert_eq!(view_folders(&run.dir), demo.folders);
+    for key in [
+        "pan_err_deg",
+        "steer_err_deg",
+        "verge_err_l_deg",
+        "verge_err_r_deg",
+        "elev_err_l_deg",
+        "elev_err_r_deg",
+    ] {
+        assert!(run.truth["errors"][key].is_number(), "{key}: {}", run.truth);
+        assert_eq!(run.truth["errors"][key], demo.json["errors"][key], "{key}");
+        assert_eq!(run.truth["before"][key], demo.json["before"][key], "before {key}");
+    }
+    let info: Value =
+        serde_json::from_str(&std::fs::read_to_string(run.dir.join("session.json")).unwrap()).unwrap();
+    assert_eq!(info["procedure"], "robot-images");
+    let events = std::fs::read_to_string(run.dir.join("events.jsonl")).unwrap();
+    assert!(
+        events.contains(r#"{"op":"drive","distance_m":0.1,"odometry":{"distance_m":0.1}}"#),
+        "no odometry"
+    );
+    assert!(events.contains(r#"{"op":"steer","encoder_deg":"#), "no steer event");
+    let r = replay(&run.dir);
+    for key in ["estimate", "pan", "steering"] {
+        assert_eq!(r[key], run.json[key], "replayed {key}");
+    }
+    assert_eq!(r["unplayed_events"], 0);
+    // A head alone (a version-1 driver) cannot run a stage that drives; nothing but
+    // `hello` is asked of it.
+    let dir = tmp("no-base");
+    let out = bin()
+        .args(["run", "--stages", "verge-tilt,pan", "--session"])
+        .arg(&dir)
+        .args(["--head-cmd", &format!("'{}' --no-base", driver())])
+        .output()
+        .unwrap();
+    assert_clean_failure(&out, &["stage(s) pan drive the robot", "has no base"]);
+    assert!(!dir.exists(), "no session for a run that cannot start");
+    let out = bin().args(["run", "--stages", "pan", "--head-cmd", driver()]).output().unwrap();
+    assert_clean_failure(&out, &["--stages must start with verge-tilt"]);
+}
+
+/// `calibrate --json` on a session: the views it used and left out.
+fn calibrate(dir: &Path) -> Value {
+    ok_json(&bin().args(["calibrate", "--json"]).arg(dir).output().unwrap())
+}
+
+/// `align --images DIR --json`.
+fn align_images(dir: &Path) -> Value {
+    ok_json(&bin().args(["align", "--json", "--images"]).arg(dir).output().unwrap())
+}
+
+/// Every session a command writes reads back with `calibrate`, `align --images` and
+/// `replay`: the robot demo on images (the default stages, a stage that runs twice), the
+/// robot run through the protocol, a point-mode demo and a rendered calibration session
+/// (`simulate --images`). `calibrate` uses the views of the verge/tilt rig (a rig changes
+/// with the vergence readings; the robot stages' rig turns about vertical axes only) and
+/// names the others. The two image robot sessions are replayed by the tests above;
+/// `run` on a head alone and `demo --images --stages verge-tilt` by `cli.rs`.
+#[test]
+fn every_session_reads_back_with_calibrate_align_and_replay() {
+    // Focal lengths within 2 % of the simulated head's (fx 700 and 705; a 3 deg rig
+    // rotation on images gives about 0.1 %, on 200 noisy points about 1 %).
+    let near = |v: &Value, truth: f64| (v.as_f64().unwrap() / truth - 1.0).abs() < 0.02;
+    for dir in [&robot_demo().dir, &robot_run().dir] {
+        let c = calibrate(dir);
+        let used = c["report"]["views"].as_array().unwrap();
+        assert_eq!(used.len(), 6, "verging-2 and the five verge/tilt views of one rig: {used:?}");
+        let skipped = c["report"]["skipped"].as_array().unwrap();
+        assert!(
+            skipped.iter().any(|s| s.as_str().unwrap().starts_with("verging-1: another rig")),
+            "{skipped:?}"
+        );
+        assert!(near(&c["left"]["fx"], 700.0) && near(&c["right"]["fx"], 705.0), "{}", c["left"]);
+        let a = align_images(dir);
+        assert!(near(&a["left"]["fx"], 700.0), "{}", a["left"]);
+    }
+    // Point mode: the recorded points are the views (no images to track).
+    let points = tmp("points-readback");
+    let out = bin().args(["demo", "--seed", "2", "--json", "--session"]).arg(&points).output().unwrap();
+    ok_json(&out);
+    let c = calibrate(&points);
+    assert_eq!(c["report"]["views"].as_array().unwrap().len(), 5, "{}", c["report"]["views"]);
+    assert!(near(&align_images(&points)["left"]["fx"], 700.0));
+    assert_eq!(replay(&points)["unplayed_events"], 0);
+    // A calibration session: its three views are a rig turned by the head.
+    let sim = tmp("simulate-readback");
+    let out = bin().args(["simulate", "--images", "--seed", "2", "--out"]).arg(&sim).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let c = calibrate(&sim);
+    assert!(near(&c["left"]["fx"], 700.0) && c["report"]["skipped"].as_array().unwrap().is_empty());
+    assert!(near(&align_images(&sim)["left"]["fx"], 700.0));
+    assert_eq!(replay(&sim)["left"], c["left"]);
+    std::fs::remove_dir_all(&points).ok();
+    std::fs::remove_dir_all(&sim).ok();
 }

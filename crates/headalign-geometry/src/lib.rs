@@ -10,7 +10,7 @@
 //!
 //! Modules, in the order the alignment procedure uses them:
 //! - [`camera`]: intrinsics `K`, projective 3x4 cameras, rigid poses.
-//! - [`distortion`]: OpenCV's plumb_bob lens model, undistortion of pixels.
+//! - [`distortion`]: the radial-tangential (`plumb_bob`) and equidistant (`fisheye`) lens models, undistortion of pixels.
 //! - [`so3`]: rotation exponential/logarithm safe at zero angle, screw axes.
 //! - [`ransac`]: the `Estimator` trait and one generic, seeded, adaptive RANSAC.
 //! - [`fundamental`]: normalised 8-point and 7-point F, Sampson refinement.

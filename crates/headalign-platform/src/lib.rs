@@ -200,6 +200,25 @@ pub trait ImagingHead: StereoHead {
     fn capture_images(&mut self) -> Result<StereoImages, PlatformError>;
 }
 
+/// What a vehicle's own sensors measured of its last drive (wheel odometry). The
+/// procedures never use it (they measure every motion by vision); sessions record it.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Odometry {
+    /// Distance travelled, signed metres (negative: backwards).
+    pub distance_m: f64,
+    /// Change of heading, degrees, positive turning left (`None`: not measured).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub heading_deg: Option<f64>,
+}
+
+impl Odometry {
+    /// True if every number is finite.
+    pub fn is_finite(&self) -> bool {
+        self.distance_m.is_finite() && self.heading_deg.is_none_or(f64::is_finite)
+    }
+}
+
 /// A wheeled robot carrying the head, as the procedures see it: a tricycle AGV (one
 /// steered front wheel, a fixed rear axle) that drives on the ground plane
 /// (DESIGN.md section 1).
@@ -218,6 +237,10 @@ pub trait Vehicle {
     fn steer_by(&mut self, delta_deg: f64) -> Result<(), PlatformError> {
         let now = self.read_steering()?;
         self.steer_to(now + delta_deg)
+    }
+    /// The odometry of the last drive, if the vehicle reports any (default: none).
+    fn last_odometry(&self) -> Option<Odometry> {
+        None
     }
 }
 

@@ -144,6 +144,10 @@ pub enum AlignError {
     /// An output file could not be produced.
     #[error("output: {0}")]
     Output(String),
+    /// A recording (ROS 2 bag, EuRoC folder) that cannot be read as asked: a missing
+    /// topic, an unsupported encoding, images with no partner, a malformed file.
+    #[error("recording: {0}")]
+    Recording(String),
 }
 
 /// Attach the name of a step to geometry errors.

@@ -16,15 +16,18 @@
 //! written with Rust's shortest round-trip formatting, so reading them back gives the same
 //! `f64`; a non-finite number is an error, never written. Kalibr's pinhole model has no
 //! skew: a non-zero skew is reported in a comment and dropped there only. Distortion is the
-//! given lens model (`plumb_bob`; Kalibr's `radtan` takes `k1 k2 p1 p2`, a `k3` is noted in
-//! a comment), zero when none was given.
+//! lens model each camera has, under each format's own name: radial-tangential is
+//! `plumb_bob` in OpenCV and ROS (`D` = `k1 k2 p1 p2 k3`) and `radtan` in Kalibr (`k1 k2 p1
+//! p2`, a `k3` is noted in a comment); equidistant is OpenCV's `fisheye` (the YAML's
+//! `distortion_model` key; `D` = `k1 k2 k3 k4` for `cv::fisheye`), ROS's `equidistant` and
+//! Kalibr's `equidistant`. Zero radial-tangential when no lens was given.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use headalign_geometry::bundle::BundleResult;
 use headalign_geometry::camera::Intrinsics;
-use headalign_geometry::distortion::Distortion;
+use headalign_geometry::distortion::{Distortion, LensKind};
 use headalign_geometry::rectify::{Rectification, rectify_stereo};
 use nalgebra::{DMatrix, Isometry3, Matrix3};
 use serde_json::{Value, json};
@@ -157,8 +160,8 @@ impl StereoCalibration {
                 "K": rows(&k.matrix()),
                 "fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy,
                 "sigma": {"fx": s.fx, "fy": s.fy, "cx": s.cx, "cy": s.cy, "skew": s.skew},
-                "distortion_model": "plumb_bob",
-                "distortion_coefficients": d.to_opencv(),
+                "distortion_model": d.kind.ros_name(),
+                "distortion_coefficients": d.coefficients(),
             })
         };
         let v = json!({
@@ -189,7 +192,18 @@ impl StereoCalibration {
         let _ = writeln!(s, "# headalign stereo calibration; translation unit: {}", self.unit.name());
         let _ = writeln!(s, "image_width: {}", self.image_size[0]);
         let _ = writeln!(s, "image_height: {}", self.image_size[1]);
-        let d = |i: usize| DMatrix::from_row_slice(1, 5, &self.distortion[i].to_opencv());
+        let d = |i: usize| {
+            let c = self.distortion[i].coefficients();
+            DMatrix::from_row_slice(1, c.len(), &c)
+        };
+        // OpenCV's own name of the model the D vectors belong to (`cv::fisheye` for the
+        // equidistant one); FileStorage readers that do not know the key ignore it.
+        let models = self.distortion.map(|d| opencv_model_name(d.kind));
+        if models[0] == models[1] {
+            let _ = writeln!(s, "distortion_model: {}", models[0]);
+        } else {
+            let _ = writeln!(s, "distortion_model_1: {}\ndistortion_model_2: {}", models[0], models[1]);
+        }
         let t = self.right_from_left.translation.vector;
         let entries: [(&str, DMatrix<f64>); 11] = [
             ("M1", dyn3(&self.left.matrix())),
@@ -241,8 +255,12 @@ impl StereoCalibration {
             yaml_string(camera_name)
         );
         s += &block("camera_matrix", &dyn3(&k.matrix()))?;
-        s += "distortion_model: plumb_bob\n";
-        s += &block("distortion_coefficients", &DMatrix::from_row_slice(1, 5, &dist.to_opencv()))?;
+        let _ = writeln!(s, "distortion_model: {}", dist.kind.ros_name());
+        let coefficients = dist.coefficients();
+        s += &block(
+            "distortion_coefficients",
+            &DMatrix::from_row_slice(1, coefficients.len(), &coefficients),
+        )?;
         s += &block("rectification_matrix", &dyn3(&rect))?;
         s += &block("projection_matrix", &DMatrix::from_column_slice(3, 4, p.as_slice()))?;
         Ok(s)
@@ -252,9 +270,13 @@ impl StereoCalibration {
     /// `right_from_left` as a 4x4 matrix.
     pub fn kalibr_camchain(&self) -> Result<String, AlignError> {
         let cam = |k: &Intrinsics, d: &Distortion, topic: &str| -> Result<String, AlignError> {
-            let coeffs: Result<Vec<String>, _> = [d.k1, d.k2, d.p1, d.p2].iter().map(|&v| num(v)).collect();
+            let four = match d.kind {
+                LensKind::RadialTangential => [d.k1, d.k2, d.p1, d.p2],
+                LensKind::Equidistant => [d.k1, d.k2, d.k3, d.k4],
+            };
+            let coeffs: Result<Vec<String>, _> = four.iter().map(|&v| num(v)).collect();
             let coeffs = coeffs?.join(", ");
-            let k3 = if d.k3 != 0.0 {
+            let k3 = if d.kind == LensKind::RadialTangential && d.k3 != 0.0 {
                 format!("  # k3 = {} is not representable in Kalibr's radtan model\n", num(d.k3)?)
             } else {
                 String::new()
@@ -265,11 +287,12 @@ impl StereoCalibration {
                 String::new()
             };
             Ok(format!(
-                "{skew}{k3}  camera_model: pinhole\n  intrinsics: [{}, {}, {}, {}]\n  distortion_model: radtan\n  distortion_coeffs: [{coeffs}]\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
+                "{skew}{k3}  camera_model: pinhole\n  intrinsics: [{}, {}, {}, {}]\n  distortion_model: {}\n  distortion_coeffs: [{coeffs}]\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
                 num(k.fx)?,
                 num(k.fy)?,
                 num(k.cx)?,
                 num(k.cy)?,
+                d.kind.kalibr_name(),
                 self.image_size[0],
                 self.image_size[1]
             ))
@@ -369,6 +392,15 @@ fn check_finite(v: &Value) -> Result<(), AlignError> {
     }
 }
 
+/// OpenCV's name of a lens model: `plumb_bob` (its default model, `cv::undistort`) or
+/// `fisheye` (`cv::fisheye`).
+fn opencv_model_name(kind: LensKind) -> &'static str {
+    match kind {
+        LensKind::RadialTangential => "plumb_bob",
+        LensKind::Equidistant => "fisheye",
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -386,7 +418,7 @@ mod tests {
             ),
             unit: TranslationUnit::Metres,
             distortion: [
-                Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.0 },
+                Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, ..Distortion::default() },
                 Distortion::default(),
             ],
         }
@@ -416,6 +448,33 @@ mod tests {
         assert_eq!(t, vec![-0.25, 0.001, 0.002]);
         let m2 = data_after(&y, "M2:");
         assert_eq!(m2[1], 0.3, "skew kept in OpenCV's camera matrix");
+    }
+
+    /// Each camera's model under each format's name, and read back exactly: an
+    /// equidistant left lens and a radial-tangential right one in one OpenCV YAML, an
+    /// equidistant ROS `camera_info`.
+    #[test]
+    fn lens_models_are_written_and_read_back() {
+        use crate::calibrate::read_opencv_lenses;
+        let mut c = sample();
+        c.distortion[0] = Distortion::equidistant([0.01, -0.002, 0.0003, -0.00004]);
+        let y = c.opencv_yaml().unwrap();
+        assert!(y.contains("distortion_model_1: fisheye\ndistortion_model_2: plumb_bob"));
+        assert_eq!(data_after(&y, "D1:").len(), 4);
+        let lenses = read_opencv_lenses(&y, "t").unwrap();
+        assert_eq!(lenses[0].distortion, c.distortion[0]);
+        assert_eq!(lenses[1].distortion, c.distortion[1]);
+        let ros = c.ros_camera_info(0, "left").unwrap();
+        assert!(ros.contains("distortion_model: equidistant"));
+        assert_eq!(read_opencv_lenses(&ros, "t").unwrap()[0].distortion, c.distortion[0]);
+        let kalibr = c.kalibr_camchain().unwrap();
+        assert!(
+            kalibr.contains(
+                "distortion_model: equidistant\n  distortion_coeffs: [0.01, -0.002, 0.0003, -4e-5]"
+            )
+        );
+        assert!(kalibr.contains("distortion_model: radtan"));
+        assert_eq!(c.json().unwrap()["left"]["distortion_model"], "equidistant");
     }
 
     #[test]

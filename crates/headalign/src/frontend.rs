@@ -857,6 +857,10 @@ impl<H: ImagingHead + Vehicle> Vehicle for TrackingHead<'_, H> {
     fn read_steering(&mut self) -> Result<f64, PlatformError> {
         self.head.read_steering()
     }
+
+    fn last_odometry(&self) -> Option<headalign_platform::Odometry> {
+        self.head.last_odometry()
+    }
 }
 
 impl<H: ImagingHead> StereoHead for TrackingHead<'_, H> {

@@ -15,6 +15,7 @@
 //!   general motion with constraints, or two rotations about different axes).
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
 //! - [`session`]: sessions on disk (recording head, replay head, the format).
+//! - [`recordings`]: ROS 2 bags (MCAP) and EuRoC folders read as sessions.
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
 //! - [`panfix`]: pan alignment without calibration, by fixating a drive's epipole.
 //!
@@ -58,6 +59,7 @@ pub mod onemotion;
 pub mod panfix;
 pub mod procedure;
 pub mod process_head;
+pub mod recordings;
 pub mod robot;
 pub mod session;
 

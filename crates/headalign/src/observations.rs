@@ -3,9 +3,15 @@
 //!
 //! Reading validates everything a user can get wrong and names it: the format tag, the
 //! image size, view names (unique), encoder readings (finite), pixels (finite, inside the
-//! image: `-0.5 <= x < width - 0.5`), duplicate track ids within one image, and that
-//! there are at least three views. Angles are degrees, pixels have (0, 0) at the centre
-//! of the top-left pixel.
+//! image: `-0.5 <= x < width - 0.5`, or at most [`OUTSIDE_MARGIN_PX`] beyond it),
+//! duplicate track ids within one image, and that there are at least three views. Angles
+//! are degrees, pixels have (0, 0) at the centre of the top-left pixel.
+//!
+//! Pitfall: a corner seen at the image's edge, with pixel noise added by another model of
+//! the head or by a sub-pixel detector, lands a fraction of a pixel outside the image
+//! (`y = -0.5`, `x = 768.02`). Such observations are real measurements and are kept: a
+//! whole session must not be lost for one point. Farther out is a wrong coordinate
+//! convention or a corrupt file, and an error.
 
 use std::collections::HashSet;
 use std::path::Path;
@@ -15,6 +21,10 @@ use nalgebra::Point2;
 use serde::{Deserialize, Serialize};
 
 use crate::error::AlignError;
+
+/// Observations at most this far outside the image (pixels, beyond the edge pixels'
+/// outer borders) are kept as measured; farther out is an error.
+pub const OUTSIDE_MARGIN_PX: f64 = 2.0;
 
 /// The format tag this version reads and writes.
 pub const FORMAT: &str = "headalign-observations/1";
@@ -114,9 +124,10 @@ fn convert_side(
                 "{origin}: view '{view}' {side} track {track}: pixel is not finite"
             )));
         }
-        if x < -0.5 || y < -0.5 || x >= wf - 0.5 || y >= hf - 0.5 {
+        let m = OUTSIDE_MARGIN_PX;
+        if x < -0.5 - m || y < -0.5 - m || x > wf - 0.5 + m || y > hf - 0.5 + m {
             return Err(AlignError::Observations(format!(
-                "{origin}: view '{view}' {side} track {track}: pixel ({x}, {y}) outside the {w} x {h} image"
+                "{origin}: view '{view}' {side} track {track}: pixel ({x}, {y}) more than {m} px outside the {w} x {h} image"
             )));
         }
         if !seen.insert(track) {
@@ -204,6 +215,24 @@ mod tests {
             assert!(err.contains(expected), "expected '{expected}' in '{err}'");
             assert!(err.starts_with("file.json"), "message must name the file: {err}");
             assert!(!err.contains('\n'), "one line: {err}");
+        }
+    }
+
+    /// Noisy observations at the edge (the reported `y = -0.5`, `x = 768.02`, and up to
+    /// 2 px out) are kept as measured; 2.01 px out is an error.
+    #[test]
+    fn points_just_outside_the_image_are_kept() {
+        for (x, y) in [(412.3, -0.5), (768.02, 100.0), (-2.5, -2.5), (769.5, 577.5)] {
+            let text = session(&[view("initial", 0.0), view("elevation", 3.0), view("pan", 0.0)].join(","))
+                .replacen("412.3, 251.9", &format!("{x}, {y}"), 1);
+            let views = parse_session(&text, "t").unwrap();
+            assert_eq!(views[0].capture.left[0].pixel, Point2::new(x, y));
+        }
+        for (x, y) in [(-2.51, 10.0), (10.0, 577.51), (769.51, 10.0)] {
+            let text = session(&[view("initial", 0.0), view("elevation", 3.0), view("pan", 0.0)].join(","))
+                .replacen("412.3, 251.9", &format!("{x}, {y}"), 1);
+            let err = parse_session(&text, "t").unwrap_err().to_string();
+            assert!(err.contains("more than 2 px outside the 768 x 576 image"), "{err}");
         }
     }
 

@@ -1,15 +1,26 @@
 //! A head driven by a child process over a JSON-lines protocol on its stdin/stdout
-//! (`docs/head-protocol.md`, protocol `headalign-head/1`): the way a user's own hardware
-//! plugs in without linking Rust code. [`ProcessHead`] implements [`StereoHead`] and
-//! [`ImagingHead`].
+//! (`docs/head-protocol.md`, protocol `headalign-head/2`): the way a user's own hardware
+//! plugs in without linking Rust code. [`ProcessHead`] implements [`StereoHead`],
+//! [`ImagingHead`] and [`Vehicle`] (the last only works when the driver has a base).
 //!
 //! Each request is one JSON object on one line, `{"id": N, "op": "...", ...}` with `op`
-//! one of `hello` (sent once at start: the answer gives the image size), `read`, `move`
-//! (`target`: encoder readings, degrees), `capture` and `bye`. The driver answers each
-//! request with one line `{"id": N, "ok": true, ...}` (`read` and `capture` carry
-//! `encoders`; `capture` carries `left` and `right`: paths of 8-bit PNG images the driver
-//! wrote, absolute or relative to headalign's working directory) or
-//! `{"id": N, "ok": false, "error": "..."}`. Requests are strictly sequential.
+//! one of `hello` (sent once at start: the answer gives the image size and what the
+//! driver can do, `capabilities`: `["head"]` for a head alone, `["head", "base"]` for a
+//! head on a robot base), `read`, `move` (`target`: encoder readings, degrees),
+//! `capture`, and for a base `drive` (`distance_m`, metres, signed) and `steer`
+//! (`target_deg`: the steering encoder reading to turn to, degrees), then `bye`. The
+//! driver answers each request with one line `{"id": N, "ok": true, ...}` (`read` and
+//! `capture` carry `encoders`, and `read` of a base `steering_deg`; `capture` carries
+//! `left` and `right`: paths of 8-bit PNG images the driver wrote, absolute or relative
+//! to headalign's working directory; `drive` may carry `odometry`, what the base measured
+//! of the drive) or `{"id": N, "ok": false, "error": "..."}`. Requests are strictly
+//! sequential.
+//!
+//! Compatibility: `headalign-head/2` extends `headalign-head/1` (the capabilities and the
+//! base's operations). A driver that answers `hello` as version 1 did (protocol
+//! `headalign-head/1` or none, no capabilities) is a head alone, and headalign never
+//! sends it a base's request: [`Vehicle`] calls then fail at once, and callers check
+//! [`ProcessHead::has_base`] before a stage that needs a base.
 //!
 //! Failures are one-line [`PlatformError::Device`] messages naming the request (op and
 //! id): no answer within [`ProcessHeadOptions::timeout`] (the driver is then killed), the
@@ -33,13 +44,22 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use headalign_platform::{
-    Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages,
+    Encoders, GrayImage, ImagingHead, Odometry, PlatformError, StereoCapture, StereoHead, StereoImages,
+    Vehicle,
 };
 use serde::Deserialize;
 use serde_json::{Value, json};
 
 /// The protocol this version speaks (sent in `hello`; the driver echoes it).
-pub const PROTOCOL: &str = "headalign-head/1";
+pub const PROTOCOL: &str = "headalign-head/2";
+
+/// The protocols whose drivers this version drives: version 1 (a head alone) and
+/// version 2 (capabilities, a base).
+pub const COMPATIBLE_PROTOCOLS: [&str; 2] = ["headalign-head/1", PROTOCOL];
+
+/// The capability of a driver with a robot base (`drive`, `steer`, `read` with
+/// `steering_deg`).
+pub const CAPABILITY_BASE: &str = "base";
 
 /// Answers longer than this are an error (a driver writing garbage must not exhaust
 /// memory), bytes.
@@ -134,6 +154,20 @@ struct Hello {
     name: Option<String>,
     #[serde(default)]
     protocol: Option<String>,
+    /// Absent (version 1): a head alone. Unknown capabilities are ignored.
+    #[serde(default)]
+    capabilities: Option<Vec<String>>,
+}
+
+#[derive(Deserialize)]
+struct SteeringAnswer {
+    steering_deg: f64,
+}
+
+#[derive(Deserialize)]
+struct DriveAnswer {
+    #[serde(default)]
+    odometry: Option<Odometry>,
 }
 
 #[derive(Deserialize)]
@@ -160,6 +194,8 @@ pub struct ProcessHead {
     name: String,
     options: ProcessHeadOptions,
     broken: Option<String>,
+    base: bool,
+    odometry: Option<Odometry>,
 }
 
 impl std::fmt::Debug for ProcessHead {
@@ -233,6 +269,8 @@ impl ProcessHead {
             name: String::new(),
             options,
             broken: None,
+            base: false,
+            odometry: None,
         };
         let answer = head.request("hello", json!({"protocol": PROTOCOL}))?;
         let hello: Hello = head.parse("hello", head.next_id - 1, answer)?;
@@ -241,13 +279,31 @@ impl ProcessHead {
             return Err(head.fail(format!("malformed answer to 'hello': image_size {w} x {h}")));
         }
         if let Some(p) = hello.protocol
-            && p != PROTOCOL
+            && !COMPATIBLE_PROTOCOLS.contains(&p.as_str())
         {
-            return Err(head.fail(format!("the driver speaks '{p}', headalign speaks '{PROTOCOL}'")));
+            return Err(head.fail(format!(
+                "the driver speaks '{p}', headalign speaks '{PROTOCOL}' (and drives '{}' drivers)",
+                COMPATIBLE_PROTOCOLS[0]
+            )));
         }
         head.image_size = hello.image_size;
         head.name = hello.name.unwrap_or_default();
+        head.base = hello.capabilities.is_some_and(|c| c.iter().any(|c| c == CAPABILITY_BASE));
         Ok(head)
+    }
+
+    /// True if the driver said in `hello` that the head rides on a base (capability
+    /// `base`): the robot stages can drive it.
+    pub fn has_base(&self) -> bool {
+        self.base
+    }
+
+    /// The error of a base's request to a driver without one (nothing is sent).
+    fn no_base(&self, op: &str) -> PlatformError {
+        let name = if self.name.is_empty() { self.command.as_str() } else { self.name.as_str() };
+        PlatformError::Device(format!(
+            "head driver '{name}' has no base (its 'hello' answer lists no \"{CAPABILITY_BASE}\" capability): cannot {op}"
+        ))
     }
 
     /// The driver's name from its `hello` answer (empty if it gave none).
@@ -423,6 +479,58 @@ impl ImagingHead for ProcessHead {
     }
 }
 
+/// The base's operations (protocol version 2, capability `base`).
+impl Vehicle for ProcessHead {
+    fn drive(&mut self, distance_m: f64) -> Result<(), PlatformError> {
+        if !self.base {
+            return Err(self.no_base("drive"));
+        }
+        if !distance_m.is_finite() {
+            return Err(PlatformError::InvalidCommand(format!("non-finite drive distance {distance_m}")));
+        }
+        self.odometry = None;
+        let v = self.request("drive", json!({"distance_m": distance_m}))?;
+        let id = self.next_id - 1;
+        let a: DriveAnswer = self.parse("drive", id, v)?;
+        if a.odometry.is_some_and(|o| !o.is_finite()) {
+            return Err(self.fail(format!("malformed answer to 'drive' (request {id}): non-finite odometry")));
+        }
+        self.odometry = a.odometry;
+        Ok(())
+    }
+
+    fn steer_to(&mut self, encoder_deg: f64) -> Result<(), PlatformError> {
+        if !self.base {
+            return Err(self.no_base("steer"));
+        }
+        if !encoder_deg.is_finite() {
+            return Err(PlatformError::InvalidCommand(format!("non-finite steering target {encoder_deg}")));
+        }
+        self.request("steer", json!({"target_deg": encoder_deg}))?;
+        Ok(())
+    }
+
+    /// A `read` request; the answer's `steering_deg`.
+    fn read_steering(&mut self) -> Result<f64, PlatformError> {
+        if !self.base {
+            return Err(self.no_base("read the steering"));
+        }
+        let v = self.request("read", json!({}))?;
+        let id = self.next_id - 1;
+        let a: SteeringAnswer = self.parse("read", id, v)?;
+        if !a.steering_deg.is_finite() {
+            return Err(
+                self.fail(format!("malformed answer to 'read' (request {id}): non-finite steering_deg"))
+            );
+        }
+        Ok(a.steering_deg)
+    }
+
+    fn last_odometry(&self) -> Option<Odometry> {
+        self.odometry
+    }
+}
+
 impl Drop for ProcessHead {
     fn drop(&mut self) {
         if self.broken.is_none()
@@ -538,5 +646,40 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("image_size 0 x 4"), "{e}");
+        let e = sh_head("read l; echo '{\"id\":1,\"ok\":true,\"image_size\":[4,4],\"protocol\":\"headalign-head/3\"}'\nread l\n", 5000)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("the driver speaks 'headalign-head/3'"), "{e}");
+    }
+
+    /// A version-1 driver is a head alone: a base's call fails at once with one line and
+    /// sends nothing (the next request is still answered). A driver with the `base`
+    /// capability drives, steers and reads its steering; odometry is kept.
+    #[cfg(unix)]
+    #[test]
+    fn a_base_is_driven_only_when_the_driver_has_one() {
+        let script = format!(
+            "{HELLO}\nread l; echo '{{\"id\":2,\"ok\":true,\"encoders\":{{\"pan\":1,\"elevation\":2,\"verge_left\":3,\"verge_right\":4}}}}'\nread l\n"
+        );
+        let mut h = sh_head(&script, 5000).unwrap();
+        assert!(!h.has_base());
+        let e = h.drive(0.1).unwrap_err().to_string();
+        assert!(e.contains("has no base") && e.contains("cannot drive") && !e.contains('\n'), "{e}");
+        assert!(h.steer_to(1.0).is_err() && h.read_steering().is_err());
+        assert_eq!(h.read_encoders().unwrap().pan, 1.0);
+        let hello = r#"read l; echo '{"id":1,"ok":true,"image_size":[64,48],"protocol":"headalign-head/2","capabilities":["head","base","lidar"]}'"#;
+        let script = format!(
+            "{hello}\nread l; echo '{{\"id\":2,\"ok\":true,\"odometry\":{{\"distance_m\":0.099}}}}'\nread l; echo '{{\"id\":3,\"ok\":true}}'\nread l; echo '{{\"id\":4,\"ok\":true,\"encoders\":{{\"pan\":0,\"elevation\":0,\"verge_left\":0,\"verge_right\":0}},\"steering_deg\":20.5}}'\nread l; echo '{{\"id\":5,\"ok\":true}}'\nread l; echo '{{\"id\":6,\"ok\":true,\"odometry\":{{\"distance_m\":1e999}}}}'\nread l\n"
+        );
+        let mut h = sh_head(&script, 5000).unwrap();
+        assert!(h.has_base());
+        h.drive(0.1).unwrap();
+        assert_eq!(h.last_odometry(), Some(Odometry { distance_m: 0.099, heading_deg: None }));
+        h.steer_to(20.0).unwrap();
+        assert_eq!(h.read_steering().unwrap(), 20.5);
+        h.drive(-0.1).unwrap();
+        assert_eq!(h.last_odometry(), None);
+        let e = h.drive(0.1).unwrap_err().to_string();
+        assert!(e.contains("malformed answer to 'drive' (request 6)"), "{e}");
     }
 }

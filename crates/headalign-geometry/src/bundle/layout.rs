@@ -8,7 +8,8 @@
 //!   names of [`Covariance::names`] (`Param::name`,
 //!   `Param::parse`): per camera `fx fy skew cx cy` (pixels; `fy` absent with square
 //!   pixels, skew absent with zero skew, `cx cy` absent with a fixed principal point) and
-//!   `k1 k2` with distortion (dimensionless); `rig.rot0..2` (radians) and `rig.tdir0..1`
+//!   the estimated distortion coefficients (dimensionless; `k1 k2` by default, see
+//!   `BundleOptions::distortion_terms`); `rig.rot0..2` (radians) and `rig.tdir0..1`
 //!   (the baseline direction's tangent, radians to first order); then `view{k}.rot0..2`,
 //!   `view{k}.trans0..2` for a free view `k >= 1` (radians, baseline units), or
 //!   `axis{j}.dir0..1`, `axis{j}.pt0..1` per joint axis (radians, baseline units) and
@@ -51,12 +52,15 @@ use crate::so3::{self, Line};
 use crate::{GeometryError, Result};
 
 const INTR_NAMES: [&str; 5] = ["fx", "fy", "skew", "cx", "cy"];
-const DIST_NAMES: [&str; 2] = ["k1", "k2"];
+const DIST_NAMES: [&str; 6] = ["k1", "k2", "p1", "p2", "k3", "k4"];
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) enum Param {
     Intr(Side, usize),
-    /// Radial distortion `k1` (0) or `k2` (1).
+    /// Distortion coefficient in the slot order of [`Distortion::slots`]
+    /// (`k1 k2 p1 p2 k3 k4`).
+    ///
+    /// [`Distortion::slots`]: crate::distortion::Distortion::slots
     Dist(Side, usize),
     RigRot(usize),
     RigTdir(usize),
@@ -125,7 +129,7 @@ impl Param {
 pub(super) struct Layout {
     pub(super) params: Vec<Param>,
     pub(super) intr: [[Option<usize>; 5]; 2],
-    pub(super) dist: [[Option<usize>; 2]; 2],
+    pub(super) dist: [[Option<usize>; 6]; 2],
     pub(super) square: [bool; 2],
     pub(super) rig_rot: [Option<usize>; 3],
     pub(super) rig_tdir: [Option<usize>; 2],
@@ -159,7 +163,9 @@ impl Layout {
                 p.push(Param::Intr(side, 4));
             }
             if options.estimate_distortion {
-                p.extend((0..2).map(|i| Param::Dist(side, i)));
+                let kind =
+                    if side == Side::Left { state.left_distortion.kind } else { state.right_distortion.kind };
+                p.extend(options.distortion_terms.slots(kind).iter().map(|&i| Param::Dist(side, i)));
             }
         }
         p.extend((0..3).map(Param::RigRot));
@@ -197,7 +203,7 @@ impl Layout {
         let mut l = Layout {
             params: Vec::new(),
             intr: [[None; 5]; 2],
-            dist: [[None; 2]; 2],
+            dist: [[None; 6]; 2],
             square: [false; 2],
             rig_rot: [None; 3],
             rig_tdir: [None; 2],
@@ -292,8 +298,11 @@ pub(super) fn retract(state: &RigState, layout: &Layout, delta: &DVector<f64>) -
     }
     for (s, d) in [(0, &mut out.left_distortion), (1, &mut out.right_distortion)] {
         let c = comp(&layout.dist[s], delta);
-        d.k1 += c[0];
-        d.k2 += c[1];
+        for (slot, step) in c.iter().enumerate() {
+            if let Some(v) = d.slot_mut(slot) {
+                *v += step;
+            }
+        }
     }
     let w = comp(&layout.rig_rot, delta);
     let td = comp(&layout.rig_tdir, delta);
@@ -380,7 +389,7 @@ pub(super) fn local(from: &RigState, to: &RigState, params: &[Param]) -> Result<
                 } else {
                     (&from.right_distortion, &to.right_distortion)
                 };
-                if i == 0 { b.k1 - a.k1 } else { b.k2 - a.k2 }
+                b.slots().get(i).copied().ok_or_else(shape)? - a.slots().get(i).copied().ok_or_else(shape)?
             }
             Param::RigRot(i) => rig_rot.get(i).copied().ok_or_else(shape)?,
             Param::RigTdir(i) if along > 0.0 => tdir.get(i).copied().ok_or_else(shape)?,

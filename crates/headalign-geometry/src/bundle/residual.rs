@@ -37,6 +37,7 @@ use nalgebra::{Isometry3, Matrix2x3, Matrix3, Matrix3x2, Point3, Vector2, Vector
 use super::gt;
 use super::layout::{Layout, homogeneous_basis, point_homogeneous, retract_line, side_index, tangent_basis};
 use super::state::{BundleObservation, Motions, RigState, Side, joint_pose};
+use crate::distortion::LensKind;
 use crate::so3;
 
 /// Residual (projected - observed, pixels) of one observation; `None` if the point is
@@ -257,12 +258,23 @@ pub(super) fn linearise_obs(
     }
     let didx = &layout.dist[s];
     if didx.iter().any(Option::is_some) {
-        // d distort / d k1 = x r^2, d / d k2 = x r^4 (x the undistorted normalised point).
         let (u, v) = (xs.x * iz, xs.y * iz);
-        let r2 = u * u + v * v;
-        for (idx, m) in didx.iter().zip([r2, r2 * r2]) {
-            if let Some(idx) = idx {
-                cols.push((*idx, Vector2::new((k.fx * u + k.skew * v) * m, k.fy * v * m)));
+        if dist.kind == LensKind::RadialTangential && didx[2..].iter().all(Option::is_none) {
+            // d distort / d k1 = x r^2, d / d k2 = x r^4 (x the undistorted normalised point).
+            let r2 = u * u + v * v;
+            for (idx, m) in didx.iter().zip([r2, r2 * r2]) {
+                if let Some(idx) = idx {
+                    cols.push((*idx, Vector2::new((k.fx * u + k.skew * v) * m, k.fy * v * m)));
+                }
+            }
+        } else {
+            // Any coefficient of either model: K2 d distort / d coefficient.
+            let (_, _, jc) = dist.distort_with_jacobians(&Vector2::new(u, v));
+            let k2 = nalgebra::Matrix2::new(k.fx, k.skew, 0.0, k.fy);
+            for (slot, idx) in didx.iter().enumerate() {
+                if let Some(idx) = idx {
+                    cols.push((*idx, k2 * jc.column(slot)));
+                }
             }
         }
     }
@@ -298,7 +310,7 @@ mod tests {
     use crate::bundle::BundleOptions;
     use crate::bundle::layout::{retract, retract_point};
     use crate::bundle::test_support::distorted;
-    use crate::distortion::Distortion;
+    use crate::distortion::{Distortion, DistortionTerms};
     use crate::synthetic::{Synth, perturb, synth};
     use nalgebra::DVector;
 
@@ -414,6 +426,23 @@ mod tests {
             &perturb(&f.truth, 140),
             &BundleOptions { estimate_distortion: true, ..BundleOptions::default() },
             &pick,
-        );
+        ); // Every radial-tangential coefficient free (k1 k2 p1 p2 k3), and the equidistant
+        // model with k1..k4 free, with a skew.
+        let mut full = perturb(&s.truth, 132);
+        full.left_distortion.p1 = 1e-3;
+        full.right_distortion.p2 = -2e-3;
+        full.left.skew = 0.8;
+        let five = BundleOptions {
+            estimate_distortion: true,
+            zero_skew: false,
+            distortion_terms: DistortionTerms::Full5,
+            ..BundleOptions::default()
+        };
+        fd_check(&full, &five, &pick);
+        let mut equi = perturb(&s.truth, 133);
+        equi.left_distortion = Distortion::equidistant([0.05, -0.01, 0.002, -0.0005]);
+        equi.right_distortion = Distortion::zero(LensKind::Equidistant);
+        equi.left.skew = -0.6;
+        fd_check(&equi, &BundleOptions { distortion_terms: DistortionTerms::Full4, ..five }, &pick);
     }
 }

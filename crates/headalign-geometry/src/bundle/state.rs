@@ -50,7 +50,7 @@ use super::prior::AnglePrior;
 use super::robust::RobustLoss;
 use super::solver::chi2_of;
 use crate::camera::Intrinsics;
-use crate::distortion::Distortion;
+use crate::distortion::{Distortion, DistortionTerms};
 use crate::so3::{Line, rotation_about_line};
 use crate::{GeometryError, Result};
 
@@ -161,9 +161,13 @@ pub struct BundleOptions {
     pub square_pixels: bool,
     /// Hold the principal points.
     pub fix_principal_point: bool,
-    /// Estimate the radial distortion `k1, k2` of each camera (default off: the state's
-    /// distortion, usually zero, is held).
+    /// Estimate each camera's distortion coefficients `distortion_terms` in the model of
+    /// the state's [`Distortion::kind`] (default off: the state's distortion, usually zero,
+    /// is held).
     pub estimate_distortion: bool,
+    /// Which coefficients `estimate_distortion` frees (default
+    /// [`DistortionTerms::Radial2`]: `k1, k2`; the others are held at the state's values).
+    pub distortion_terms: DistortionTerms,
     /// Sigma of the prior on joint angles around the commanded ones, radians; `None` holds
     /// the angles at the commanded values. Under [`AnglePrior::ReadingDifferences`] (the
     /// default) it is the noise of one encoder reading.
@@ -207,6 +211,7 @@ impl Default for BundleOptions {
             square_pixels: false,
             fix_principal_point: false,
             estimate_distortion: false,
+            distortion_terms: DistortionTerms::Radial2,
             angle_prior_sigma: Some(0.05_f64.to_radians()),
             angle_prior: AnglePrior::ReadingDifferences,
             noise_sigma_px: None,

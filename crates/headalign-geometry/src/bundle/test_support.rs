@@ -31,7 +31,7 @@ pub(super) fn state_distance(a: &RigState, b: &RigState) -> f64 {
         d = d.max((ka.skew - kb.skew).abs() / kb.fx);
     }
     for (da, db) in [(&a.left_distortion, &b.left_distortion), (&a.right_distortion, &b.right_distortion)] {
-        for (x, y) in da.to_opencv().iter().zip(db.to_opencv()) {
+        for (x, y) in da.slots().iter().zip(db.slots()) {
             d = d.max((x - y).abs());
         }
     }
@@ -59,9 +59,14 @@ pub(super) fn state_distance(a: &RigState, b: &RigState) -> f64 {
 /// the left, `-0.15, 0.03` on the right: up to ~6 % radial at the image corners),
 /// noise-free.
 pub(super) fn distorted(seed: u64, n_points: usize, free: bool) -> Synth {
+    distorted_with(seed, n_points, free, [Distortion::radial(-0.2, 0.05), Distortion::radial(-0.15, 0.03)])
+}
+
+/// [`distorted`] with the given lenses (left, right).
+pub(super) fn distorted_with(seed: u64, n_points: usize, free: bool, lenses: [Distortion; 2]) -> Synth {
     let mut s = synth(seed, n_points, 0.0, 0.0, free);
-    s.truth.left_distortion = Distortion::radial(-0.2, 0.05);
-    s.truth.right_distortion = Distortion::radial(-0.15, 0.03);
+    s.truth.left_distortion = lenses[0];
+    s.truth.right_distortion = lenses[1];
     let truth = s.truth.clone();
     s.obs.retain_mut(|o| {
         let at = BundleObservation { pixel: Point2::origin(), ..*o };

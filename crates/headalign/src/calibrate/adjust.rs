@@ -4,7 +4,7 @@
 //!
 //! The adjustment (shared with [`crate::estimate`]: [`adjust_from_starts`]) minimises the
 //! reprojection error (pixels) over both cameras' intrinsics (5 dof each less the
-//! options' constraints, plus `k1, k2` each with `estimate_distortion`), the rig's
+//! options' constraints, plus the estimated lens coefficients of `options.lens`), the rig's
 //! relative pose (5 dof: the baseline is the scale gauge), a free 6-dof pose per moved
 //! view and 3 dof per point, with a robust loss and re-selection at `reselect_sigmas`
 //! times the estimated noise (paper section 3.1, "refine"; Hartley & Zisserman 2nd ed.,
@@ -24,6 +24,7 @@ use headalign_geometry::bundle::{
     BundleObservation, BundleOptions, RigState, RobustLoss, Side, bundle_adjust,
 };
 use headalign_geometry::camera::{ProjectiveCamera, dehomogenise3};
+use headalign_geometry::distortion::Distortion;
 use headalign_geometry::triangulation::triangulate_linear;
 use nalgebra::{Isometry3, Point3};
 
@@ -48,9 +49,19 @@ pub(super) fn adjust_starts(
     let (first_obs, all_obs) = (&points.first_obs, &points.all_obs);
     let (point_tracks, origin_slot) = (&points.point_tracks, &points.origin_slot);
     let adjust_options = adjustment_options(options);
+    let kind = options.lens.kind();
     let mut results: Vec<Adjustment> = Vec::new();
     let mut last_error = None;
     for (index, start) in starts.into_iter().enumerate() {
+        // The start's lens: zero in the estimated model (the equidistant one's zero is
+        // `atan`, a mild barrel: a fair start for a wide lens).
+        let start = start.map(|mut s| {
+            if let Some(kind) = kind {
+                s.left_distortion = Distortion::zero(kind);
+                s.right_distortion = Distortion::zero(kind);
+            }
+            s
+        });
         match adjust_from_starts(
             vec![start],
             first_obs,
@@ -117,7 +128,8 @@ fn adjustment_options(options: &CalibrateOptions) -> EstimationOptions {
     adjust_options.bundle.zero_skew = options.zero_skew;
     adjust_options.bundle.square_pixels = options.square_pixels;
     adjust_options.bundle.fix_principal_point = options.fix_principal_point;
-    adjust_options.bundle.estimate_distortion = options.estimate_distortion;
+    adjust_options.bundle.estimate_distortion = options.lens.kind().is_some();
+    adjust_options.bundle.distortion_terms = options.lens_terms;
     adjust_options
 }
 

@@ -18,7 +18,7 @@
 use headalign_geometry::GeometryError;
 use headalign_geometry::homography2d::Homography2Estimator;
 use headalign_geometry::ransac::{RansacOptions, ransac};
-use headalign_platform::Joint;
+use headalign_platform::{Encoders, Joint};
 use nalgebra::Point2;
 use serde::Serialize;
 
@@ -148,4 +148,66 @@ pub(super) fn select_views(views: &[View], options: &CalibrateOptions) -> Result
         }
     }
     Ok(RigViews { rig, skipped, planarity, image_size: first.capture.image_size })
+}
+
+/// The views of one rig among recorded views ([`select_rig`]): indices into the input.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RigChoice {
+    /// The views used, in order (the first is the reference).
+    pub used: Vec<usize>,
+    /// The views left out, each with the reason.
+    pub left_out: Vec<(usize, String)>,
+}
+
+/// Choose the views of one rig among `(name, encoders)` views whose vergence readings
+/// differ, as a recorded session's do (verging captures, the verge/tilt views, the verge
+/// view, the views after alignment): the rig changes with every vergence reading, and
+/// [`calibrate_rig`](super::calibrate_rig) needs one. The views are grouped by their
+/// vergence readings (both within [`MOVED_DEG`] of the group's first view). The group
+/// kept is the one whose views turn the head about two joints (pan and elevation both
+/// move, by more than [`MOVED_DEG`], within the group: rotations about two axes fix the
+/// plane at infinity and the conic), then the one with more views, then the earlier.
+/// Pitfall: the views of the robot stages share one rig but move it only about vertical
+/// axes (pan, turns of the robot): such planar motions leave a focal length
+/// undetermined (a session of seed 3 calibrated from them gave fy 3286 +- 1957 px for a
+/// true 720), so the two-joint rule prefers the verge/tilt views even when fewer.
+/// Views without encoder readings (all zero) form one group: all are used.
+pub fn select_rig(views: &[(&str, Encoders)]) -> RigChoice {
+    let verge = |e: &Encoders| [e.verge_left, e.verge_right];
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for (i, (_, e)) in views.iter().enumerate() {
+        let same = |g: &&mut Vec<usize>| {
+            let first = verge(&views[g[0]].1);
+            verge(e).iter().zip(first).all(|(a, b)| (a - b).abs() <= MOVED_DEG)
+        };
+        match groups.iter_mut().find(same) {
+            Some(g) => g.push(i),
+            None => groups.push(vec![i]),
+        }
+    }
+    let two_joints = |g: &[usize]| {
+        let e0 = views[g[0]].1;
+        [Joint::Pan, Joint::Elevation]
+            .iter()
+            .all(|&j| g.iter().any(|&i| (views[i].1.get(j) - e0.get(j)).abs() > MOVED_DEG))
+    };
+    // The first best group: `max_by_key` keeps the last of equals, so search reversed.
+    let Some(best) = groups.iter().rev().max_by_key(|g| (two_joints(g), g.len())).cloned() else {
+        return RigChoice { used: Vec::new(), left_out: Vec::new() };
+    };
+    let reference = views[best[0]].0;
+    let left_out = (0..views.len())
+        .filter(|i| !best.contains(i))
+        .map(|i| {
+            let [l, r] = verge(&views[i].1);
+            (
+                i,
+                format!(
+                    "{}: another rig (vergence readings {l:.3}, {r:.3} deg differ from those of the reference view '{reference}')",
+                    views[i].0
+                ),
+            )
+        })
+        .collect();
+    RigChoice { used: best, left_out }
 }

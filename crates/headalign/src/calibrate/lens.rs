@@ -14,7 +14,7 @@
 //! `camera_matrix` and `distortion_coefficients`), not a general YAML parser.
 
 use headalign_geometry::camera::Intrinsics;
-use headalign_geometry::distortion::Distortion;
+use headalign_geometry::distortion::{Distortion, LensKind};
 use headalign_platform::{StereoCapture, TrackObservation};
 
 use crate::error::AlignError;
@@ -76,12 +76,34 @@ fn opencv_matrix(text: &str, name: &str) -> Option<Vec<f64>> {
     rest[open + 1..close].split(',').map(|v| v.trim().parse::<f64>().ok()).collect()
 }
 
+/// The value of a top-level scalar `name: value` (quotes removed), if present.
+fn scalar(text: &str, name: &str) -> Option<String> {
+    let key = format!("{name}:");
+    let line = text.lines().find(|l| l.starts_with(&key))?;
+    let value = line[key.len()..].split('#').next()?.trim().trim_matches(|c| c == '"' || c == '\'');
+    (!value.is_empty()).then(|| value.to_string())
+}
+
 /// Both cameras' lens models from an OpenCV FileStorage YAML: `M1 D1 M2 D2` (OpenCV's
 /// stereo sample and headalign's `opencv_stereo.yaml`), or a single camera's
-/// `camera_matrix` and `distortion_coefficients` (used for both). `origin` names the file
-/// in messages.
+/// `camera_matrix` and `distortion_coefficients` (used for both; a ROS `camera_info`).
+/// The coefficients are radial-tangential unless a `distortion_model` key names the
+/// equidistant model (`fisheye`, `equidistant`; per camera `distortion_model_1`/`_2`).
+/// `origin` names the file in messages.
 pub fn read_opencv_lenses(text: &str, origin: &str) -> Result<[LensModel; 2], AlignError> {
     let bad = |m: String| AlignError::InvalidOption(format!("{origin}: {m}"));
+    // The model of `D1` / `D2` (or of the single camera's coefficients): the YAML's
+    // `distortion_model[_1|_2]` key, radial-tangential (`plumb_bob`) when absent.
+    let model = |keys: &[&str]| -> Result<LensKind, AlignError> {
+        match keys.iter().find_map(|k| scalar(text, k)) {
+            None => Ok(LensKind::RadialTangential),
+            Some(name) => LensKind::parse(&name).ok_or_else(|| {
+                bad(format!(
+                    "distortion model '{name}' is not supported (plumb_bob/radtan or fisheye/equidistant)"
+                ))
+            }),
+        }
+    };
     let lens = |m: &str, d: &str| -> Result<Option<LensModel>, AlignError> {
         let (Some(mv), Some(dv)) = (opencv_matrix(text, m), opencv_matrix(text, d)) else {
             return Ok(None);
@@ -91,7 +113,13 @@ pub fn read_opencv_lenses(text: &str, origin: &str) -> Result<[LensModel; 2], Al
         }
         let k = Intrinsics::from_matrix(&nalgebra::Matrix3::from_row_slice(&mv))
             .map_err(|e| bad(format!("{m}: {e}")))?;
-        let distortion = Distortion::from_opencv(&dv).map_err(|e| bad(format!("{d}: {e}")))?;
+        let keys: &[&str] = match d {
+            "D1" => &["distortion_model_1", "distortion_model"],
+            "D2" => &["distortion_model_2", "distortion_model"],
+            _ => &["distortion_model"],
+        };
+        let distortion =
+            Distortion::from_coefficients(model(keys)?, &dv).map_err(|e| bad(format!("{d}: {e}")))?;
         Ok(Some(LensModel { k, distortion }))
     };
     if let (Some(l), Some(r)) = (lens("M1", "D1")?, lens("M2", "D2")?) {

@@ -51,9 +51,11 @@
 //!
 //! Lens distortion: a known model ([`LensModel`], e.g. read from an OpenCV YAML file with
 //! [`read_opencv_lenses`]) is removed from the observations first ([`undistort_views`]);
-//! everything after is pinhole. Alternatively `estimate_distortion` adds the radial
-//! coefficients `k1, k2` of each camera to the final adjustment (step 5;
-//! [`BundleOptions::estimate_distortion`](headalign_geometry::bundle::BundleOptions)):
+//! everything after is pinhole. Alternatively [`CalibrateOptions::lens`] adds a lens
+//! model's coefficients (radial-tangential or equidistant; `k1, k2` by default, see
+//! [`CalibrateOptions::lens_terms`]) of each camera to the final adjustment (step 5;
+//! [`BundleOptions::estimate_distortion`](headalign_geometry::bundle::BundleOptions)), or
+//! chooses the model ([`LensChoice::Auto`], [`lens_choice`]):
 //! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
 //! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
 //! with sigmas `left.k1` ... in the covariance. With small rotations `k1` correlates with
@@ -79,8 +81,10 @@ mod density;
 mod depth;
 mod graph;
 mod lens;
+pub mod lens_choice;
 mod motion;
 mod report;
+pub mod residuals;
 mod route;
 mod sequence;
 mod starts;
@@ -91,15 +95,17 @@ mod tests;
 use headalign_geometry::GeometryError;
 use headalign_geometry::bundle::{BundleObservation, BundleResult};
 use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::distortion::DistortionTerms;
 use headalign_geometry::selfcal::IntrinsicConstraints;
 use serde::Serialize;
 
 pub use density::{
     DISAGREEMENT_SIGMAS, Density, DensityReport, DensityTrial, disagreement_sigmas, prefer_denser,
 };
-pub use depth::{PlaneCheck, check_planarity, require_depth};
+pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_rig};
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
 pub use lens::{LensModel, read_opencv_lenses, undistort_views};
+pub use lens_choice::{LensCandidate, LensChoice, LensSelection};
 pub use report::weak_data;
 pub use route::{
     REFERENCE_ROUTE_MAX_VIEWS, Route, SEQUENCE_RANSAC_MIN_ITERATIONS, TrackedViews, calibrate_tracked,
@@ -125,9 +131,14 @@ pub struct CalibrateOptions {
     pub square_pixels: bool,
     /// Hold both principal points at the image centre (default false).
     pub fix_principal_point: bool,
-    /// Estimate each camera's radial distortion `k1, k2` in the adjustment (default false:
-    /// pinhole, or a known lens removed beforehand with [`undistort_views`]).
-    pub estimate_distortion: bool,
+    /// The lens model the adjustment estimates for each camera (default
+    /// [`LensChoice::Pinhole`]: no distortion, or a known lens removed beforehand with
+    /// [`undistort_views`]); [`LensChoice::Auto`] chooses by the criterion of
+    /// [`lens_choice`] and reports it.
+    pub lens: LensChoice,
+    /// Which coefficients of the model are estimated (default
+    /// [`DistortionTerms::Radial2`]: `k1, k2`).
+    pub lens_terms: DistortionTerms,
     /// Motions rotating less than this (degrees) do not enter the linear
     /// self-calibration (default 0.5: below it `H - I` is mostly noise); they still enter
     /// the adjustment.
@@ -170,7 +181,8 @@ impl Default for CalibrateOptions {
             zero_skew: false,
             square_pixels: false,
             fix_principal_point: false,
-            estimate_distortion: false,
+            lens: LensChoice::Pinhole,
+            lens_terms: DistortionTerms::Radial2,
             min_rotation_deg: 0.5,
             planar_threshold_px: 2.0,
             planar_fraction: 0.98,
@@ -291,6 +303,11 @@ pub struct CalibrateReport {
     pub estimation_seed: u64,
     /// Runs that failed before this one with earlier seeds ([`CalibrateOptions::restarts`]).
     pub restarts: usize,
+    /// How the lens model was chosen ([`LensChoice::Auto`]; `None` otherwise).
+    pub lens_selection: Option<LensSelection>,
+    /// Structure in the final residuals by image radius and region ([`residuals`]), and
+    /// the sigma widening it caused.
+    pub residual_structure: Option<residuals::ResidualStructure>,
     /// The sequence route's segments and keyframes ([`calibrate_sequence`]); absent on
     /// the reference route.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -320,6 +337,21 @@ pub struct MotionCalibration {
 /// differ from the first view's are left out (the rig changed).
 pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<MotionCalibration, AlignError> {
     options.validate()?;
+    let mut result = if options.lens == LensChoice::Auto {
+        lens_choice::calibrate_choosing_lens(views, options)?
+    } else {
+        calibrate_with_restarts(views, options)?
+    };
+    residuals::check_and_widen(&mut result);
+    Ok(result)
+}
+
+/// [`calibrate_rig`] with a fixed lens model: the chain, retried with the next
+/// estimation seeds when it fails in a seeded stage.
+fn calibrate_with_restarts(
+    views: &[View],
+    options: &CalibrateOptions,
+) -> Result<MotionCalibration, AlignError> {
     with_restarts(options, |o, seeded| calibrate_once(views, o, seeded))
 }
 
@@ -437,6 +469,8 @@ fn calibrate_once(
         plane_share,
         estimation_seed: est.seed,
         restarts: 0,
+        lens_selection: None,
+        residual_structure: None,
         sequence: None,
         warnings,
     };

@@ -96,7 +96,7 @@ pub(super) fn data_warnings(
             fmt_pct(focal_sigma_pct[1]),
             options.warn_focal_sigma_pct
         ));
-        if options.estimate_distortion {
+        if options.lens != super::LensChoice::Pinhole {
             warnings.push(
                 "the lens distortion is estimated: k1 correlates with f (one motion, 0.5 px: the bound of f grows from 0.14-0.40 % to 0.32-0.65 %); a known lens (a lens file) or a second motion tightens it".into(),
             );

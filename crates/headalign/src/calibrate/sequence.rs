@@ -92,7 +92,14 @@ pub fn calibrate_sequence(
     options: &CalibrateOptions,
 ) -> Result<MotionCalibration, AlignError> {
     options.validate()?;
-    super::with_restarts(options, |o, seeded| sequence_once(views, o, seeded))
+    if options.lens == super::LensChoice::Auto {
+        return Err(AlignError::InvalidOption(
+            "--lens auto is not available for sequences yet: give the model (radtan or equidistant)".into(),
+        ));
+    }
+    let mut result = super::with_restarts(options, |o, seeded| sequence_once(views, o, seeded))?;
+    super::residuals::check_and_widen(&mut result);
+    Ok(result)
 }
 
 /// The keyframes of the adjustment and how they link (steps 1-3).
@@ -453,6 +460,8 @@ fn sequence_once(
         plane_share,
         estimation_seed: est.seed,
         restarts: 0,
+        lens_selection: None,
+        residual_structure: None,
         sequence: Some(kf.report),
         warnings,
     };

@@ -149,8 +149,10 @@ fn reads_opencv_lenses() {
 /// (shortest round-trip number formatting).
 #[test]
 fn reads_back_our_own_export() {
-    let d =
-        [Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.01 }, Distortion::radial(0.1, 0.0)];
+    let d = [
+        Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.01, ..Distortion::default() },
+        Distortion::radial(0.1, 0.0),
+    ];
     let stereo = crate::export::StereoCalibration {
         image_size: [768, 576],
         left: Intrinsics { fx: 700.25, fy: 720.5, skew: 0.0, cx: 390.125, cy: 284.0 },
@@ -577,6 +579,43 @@ fn seeded_failures_are_retried_and_named() {
     let options = CalibrateOptions { zero_skew: true, square_pixels: true, ..CalibrateOptions::default() };
     let c = calibrate_rig(&views, &options).unwrap();
     assert_eq!((c.report.restarts, c.report.estimation_seed), (0, options.estimation.seed));
+}
+
+/// The views of a robot session's rigs: two verging captures (the second at the
+/// verge/tilt rig), the verge/tilt views, the verge view, and the views after alignment
+/// (one rig, moved by pan and drives only). The verge/tilt rig is kept although smaller;
+/// every other view is named with the reason. One rig alone is used whole.
+#[test]
+fn the_rig_turned_about_two_joints_is_chosen() {
+    let e = |pan: f64, elevation: f64, verge_left: f64, verge_right: f64| Encoders {
+        pan,
+        elevation,
+        verge_left,
+        verge_right,
+    };
+    let mut views = vec![
+        ("verging-1", e(0.0, 0.0, 0.0, 0.0)),
+        ("verging-2", e(0.0, 0.0, 0.0, -18.0)),
+        ("initial", e(0.0, 0.0, 0.0, -18.0)),
+        ("elevation+", e(0.0, 3.0, 0.0, -18.0)),
+        ("pan+", e(3.0, 0.0, 0.0, -18.05)),
+        ("verge", e(0.0, 0.0, 3.0, -15.0)),
+    ];
+    for k in 0..8 {
+        views.push(("pan-k", e(4.8 + 0.01 * f64::from(k), -7.8, -4.25, -9.0)));
+    }
+    let choice = select_rig(&views);
+    assert_eq!(choice.used, [1, 2, 3, 4]);
+    let out: Vec<usize> = choice.left_out.iter().map(|(i, _)| *i).collect();
+    assert_eq!(out, [0, 5, 6, 7, 8, 9, 10, 11, 12, 13]);
+    assert!(choice.left_out[0].1.starts_with("verging-1: another rig"), "{:?}", choice.left_out[0]);
+    assert!(choice.left_out[0].1.contains("'verging-2'"), "{:?}", choice.left_out[0]);
+    // Without the two-joint group the larger wins; one rig is used whole.
+    let choice = select_rig(&views[5..]);
+    assert_eq!(choice.used, (1..9).collect::<Vec<_>>());
+    let zero: Vec<(&str, Encoders)> = (0..3).map(|_| ("pair", Encoders::default())).collect();
+    assert_eq!(select_rig(&zero), RigChoice { used: vec![0, 1, 2], left_out: Vec::new() });
+    assert!(select_rig(&[]).used.is_empty());
 }
 
 /// A rig carried around the simulated room (point mode): per view 12 deg further about the

@@ -7,16 +7,22 @@
 //! ```text
 //! DIR/
 //!   session.json        what ran: format, created_utc, procedure, rotation_deg,
-//!                       estimation_seed, image_size, head (free-form description)
+//!                       estimation_seed, image_size, head (free-form description), and
+//!                       with robot stages `stages` (their names and settings)
 //!   events.jsonl        every call the procedure made on the head, one JSON object a line:
 //!                       {"op":"read","encoders":{..}} | {"op":"move","target":{..}}
-//!                       | {"op":"capture","folder":"03-pan+"}
+//!                       | {"op":"capture","folder":"03-pan+"}, and on a vehicle
+//!                       {"op":"drive","distance_m":0.1[,"odometry":{"distance_m":..,
+//!                       "heading_deg":..}]} | {"op":"steer","encoder_deg":20.0}
+//!                       | {"op":"read_steering","encoder_deg":0.0}
 //!   NN-name/            one folder per capture, NN = capture index (00, 01, ...)
 //!     left.png right.png   8-bit grey images (image mode)
 //!     view.json         format, index, name, stage, encoders (degrees, read at capture
 //!                       time), commanded (the last move target before the capture, or
 //!                       null), time_s (seconds since the session started), unix_time_s,
-//!                       image_size, and in point mode `capture` (the tracked points)
+//!                       image_size, in point mode `capture` (the tracked points), and on
+//!                       a vehicle `vehicle` (drives_m since the previous capture, the
+//!                       steering_deg, the drives' odometry if the vehicle reports it)
 //!   report.json         the results (the command's `--json` object), written at the end;
 //!                       on failure {"status": "failed", "error": "..."}
 //!   figure6.png aligned.png   annotated images (image mode, after success)
@@ -29,10 +35,15 @@
 //! images (a folder with a `view.json` is complete), and before the procedure sees the
 //! capture: a failure later leaves every captured view on disk. `stage` names the part of
 //! the procedure (`verging`: the right camera verges to a common view, the rig is not
-//! rigid; `verge-tilt`: the captures of the verge/tilt procedure, from its initial view
-//! on). Older sessions (no `session.json`, `view.json` with only `name` and `encoders`)
-//! still read with [`read_image_session`]; they have no events, so only `align --images`
-//! (estimation from the views) works on them, not replay.
+//! rigid; `rotation-probe`: the auto mode's probes; `verge-tilt`: the captures of the
+//! verge/tilt procedure, from its initial view on; `pan`, `steering`, ...: the robot
+//! stages; `calibrate`: the views of a rig-calibration session). View names are unique in
+//! a session: planned captures are named by the plan, others `stage-N`, numbered over the
+//! session (a stage that runs twice continues its numbers). Sessions written before names
+//! were unique repeat a stage's names; the readers know such a view by its folder name
+//! (`21-pan-1`). Older sessions (no `session.json`, `view.json` with only `name` and
+//! `encoders`) still read with [`read_image_session`]; they have no events, so only `align
+//! --images` (estimation from the views) works on them, not replay.
 //!
 //! ## Recording and replay
 //!
@@ -47,22 +58,26 @@
 //! naming the event.
 //!
 //! [`read_image_session`] reads the view folders alone; [`track_session`] runs the image
-//! front end over them, giving the views the estimation consumes.
+//! front end over them, giving the views the estimation consumes. [`read_point_session`]
+//! reads a point-mode session's tracked points instead; [`estimation_views`] picks the
+//! views that estimate the head's rig from its rotations.
 //!
 //! Every bad input is an error naming the file and the problem: a missing or unreadable
-//! image, a malformed `view.json` (wrong types, missing fields, an empty or repeated view
-//! name, non-finite encoder readings or readings beyond +-3600 deg), left and right
-//! images of different sizes, a view whose size differs from the first, a blank
-//! (textureless) image, a malformed event line. [`parse_view_json`] and [`check_image`]
-//! are the pure parts of the reader (fuzzed without files: `fuzz/`, targets `view_json`
-//! and `png_decode`).
+//! image, a malformed `view.json` (wrong types, missing fields, an empty view name, a
+//! repeated name whose folder name is taken too, non-finite encoder readings or readings
+//! beyond +-3600 deg), left and right images of different sizes, a view whose size
+//! differs from the first, a blank (textureless) image, a malformed event line.
+//! [`parse_view_json`] and [`check_image`] are the pure parts of the reader (fuzzed
+//! without files: `fuzz/`, targets `view_json` and `png_decode`).
 
+use std::collections::{HashMap, HashSet};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use headalign_platform::{
-    Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages, Vehicle,
+    Encoders, GrayImage, ImagingHead, Odometry, PlatformError, StereoCapture, StereoHead, StereoImages,
+    Vehicle,
 };
 use serde::{Deserialize, Serialize};
 
@@ -78,6 +93,8 @@ pub const VIEW_FORMAT: &str = "headalign-view/1";
 pub const STAGE_VERGING: &str = "verging";
 /// The stage of the verge/tilt procedure's captures.
 pub const STAGE_VERGE_TILT: &str = "verge-tilt";
+/// The stage of the views of a rig-calibration session (`simulate --images`).
+pub const STAGE_CALIBRATE: &str = "calibrate";
 /// Stage name of the auto mode's probe captures (`procedure::resolve_rotation`): not
 /// estimated from, so `align --images` leaves them out.
 pub const STAGE_ROTATION_PROBE: &str = "rotation-probe";
@@ -159,6 +176,9 @@ pub enum Event {
     Drive {
         /// Metres (negative: backwards).
         distance_m: f64,
+        /// What the vehicle's odometry measured of the drive, if it reports any.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        odometry: Option<Odometry>,
     },
     /// `Vehicle::steer_to` succeeded with this steering encoder target.
     Steer {
@@ -180,6 +200,10 @@ pub struct VehicleActions {
     pub drives_m: Vec<f64>,
     /// The steering encoder, degrees: the last reading or target (`None`: not known yet).
     pub steering_deg: Option<f64>,
+    /// The odometry of those drives, for a vehicle that reports it (in order; empty
+    /// otherwise).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub odometry: Vec<Odometry>,
 }
 
 /// The contents of a `view.json`.
@@ -292,6 +316,10 @@ pub struct SessionWriter {
     start: Instant,
     views: usize,
     events: std::fs::File,
+    /// Every view name written (names are unique in a session).
+    names: HashSet<String>,
+    /// The last number given to each prefix by [`SessionWriter::numbered_name`].
+    numbers: HashMap<String, usize>,
 }
 
 impl SessionWriter {
@@ -319,7 +347,38 @@ impl SessionWriter {
             .append(true)
             .open(&path)
             .map_err(|e| io_err("create", &path, e))?;
-        Ok(Self { dir: dir.to_path_buf(), start: Instant::now(), views: 0, events })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            start: Instant::now(),
+            views: 0,
+            events,
+            names: HashSet::new(),
+            numbers: HashMap::new(),
+        })
+    }
+
+    /// The next unused name `prefix-N` (N counts from 1 per prefix over the whole
+    /// session: a stage that runs twice continues its numbering).
+    pub fn numbered_name(&mut self, prefix: &str) -> String {
+        let n = self.numbers.entry(prefix.to_string()).or_insert(0);
+        loop {
+            *n += 1;
+            let name = format!("{prefix}-{n}");
+            if !self.names.contains(&name) {
+                return name;
+            }
+        }
+    }
+
+    /// `name`, or if a view of the session already has it, `name-2`, `name-3`, ...
+    fn unique_name(&self, name: &str) -> String {
+        let mut unique = name.to_string();
+        let mut k = 1;
+        while self.names.contains(&unique) {
+            k += 1;
+            unique = format!("{name}-{k}");
+        }
+        unique
     }
 
     /// The session folder.
@@ -341,7 +400,8 @@ impl SessionWriter {
     }
 
     /// Write one captured view (images and/or tracked points) as folder `NN-name`;
-    /// returns the folder name.
+    /// returns the folder name. A name that a view of the session already has gets a
+    /// suffix (`-2`, `-3`, ...): view names are unique in a session.
     pub fn write_view(
         &mut self,
         label: &ViewLabel<'_>,
@@ -350,6 +410,7 @@ impl SessionWriter {
         capture: Option<&StereoCapture>,
     ) -> Result<String, AlignError> {
         let ViewLabel { name, stage, commanded, vehicle } = *label;
+        let name = self.unique_name(name.trim());
         let safe: String = name
             .chars()
             .map(|c| if c.is_ascii_alphanumeric() || "+-_.".contains(c) { c } else { '_' })
@@ -368,7 +429,7 @@ impl SessionWriter {
         let meta = ViewMeta {
             format: Some(VIEW_FORMAT.to_string()),
             index: Some(self.views),
-            name: name.to_string(),
+            name: name.clone(),
             stage: Some(stage.to_string()),
             encoders,
             commanded,
@@ -380,6 +441,7 @@ impl SessionWriter {
         };
         write_atomic(&sub.join("view.json"), to_json(&meta)?.as_bytes())?;
         self.views += 1;
+        self.names.insert(name);
         Ok(folder)
     }
 
@@ -402,8 +464,8 @@ pub struct RecordingHead<'a, H> {
     commanded: Option<Encoders>,
     names: Vec<(String, Encoders)>,
     other_name: String,
-    others: usize,
     vehicle: Option<VehicleActions>,
+    odometry: Option<Odometry>,
 }
 
 impl<'a, H> RecordingHead<'a, H> {
@@ -416,19 +478,19 @@ impl<'a, H> RecordingHead<'a, H> {
             commanded: None,
             names: Vec::new(),
             other_name: STAGE_VERGE_TILT.to_string(),
-            others: 0,
             vehicle: None,
+            odometry: None,
         }
     }
 
     /// Start a stage; `plan` names the captures whose commanded target equals a planned
     /// one (as [`crate::procedure::capture_plan`] gives); others are named
-    /// `other_name-1`, `other_name-2`, ...
+    /// `other_name-1`, `other_name-2`, ... (numbered over the session: a stage that runs
+    /// again continues the numbers, [`SessionWriter::numbered_name`]).
     pub fn set_stage(&mut self, stage: &str, plan: Vec<(String, Encoders)>, other_name: &str) {
         self.stage = stage.to_string();
         self.names = plan;
         self.other_name = other_name.to_string();
-        self.others = 0;
     }
 
     /// The session writer (folder, view count, report).
@@ -454,10 +516,7 @@ impl<'a, H> RecordingHead<'a, H> {
         });
         match planned {
             Some((n, _)) => n.clone(),
-            None => {
-                self.others += 1;
-                format!("{}-{}", self.other_name, self.others)
-            }
+            None => self.writer.numbered_name(&self.other_name),
         }
     }
 
@@ -486,6 +545,7 @@ impl<'a, H> RecordingHead<'a, H> {
             .map_err(|e| fail(e, &self.writer.dir))?;
         if let Some(v) = &mut self.vehicle {
             v.drives_m.clear();
+            v.odometry.clear();
         }
         self.writer.log(&Event::Capture { folder }).map_err(|e| fail(e, &self.writer.dir))
     }
@@ -526,8 +586,12 @@ impl<H: StereoHead> StereoHead for RecordingHead<'_, H> {
 impl<H: Vehicle> Vehicle for RecordingHead<'_, H> {
     fn drive(&mut self, distance_m: f64) -> Result<(), PlatformError> {
         self.head.drive(distance_m)?;
-        self.vehicle.get_or_insert_with(VehicleActions::default).drives_m.push(distance_m);
-        self.log(Event::Drive { distance_m })
+        let odometry = self.head.last_odometry();
+        let actions = self.vehicle.get_or_insert_with(VehicleActions::default);
+        actions.drives_m.push(distance_m);
+        actions.odometry.extend(odometry);
+        self.odometry = odometry;
+        self.log(Event::Drive { distance_m, odometry })
     }
 
     fn steer_to(&mut self, encoder_deg: f64) -> Result<(), PlatformError> {
@@ -541,6 +605,10 @@ impl<H: Vehicle> Vehicle for RecordingHead<'_, H> {
         self.vehicle.get_or_insert_with(VehicleActions::default).steering_deg = Some(encoder_deg);
         self.log(Event::ReadSteering { encoder_deg })?;
         Ok(encoder_deg)
+    }
+
+    fn last_odometry(&self) -> Option<Odometry> {
+        self.odometry
     }
 }
 
@@ -603,6 +671,7 @@ pub struct ReplayHead {
     events: Vec<Event>,
     next: usize,
     position: Option<Encoders>,
+    odometry: Option<Odometry>,
 }
 
 impl ReplayHead {
@@ -626,9 +695,10 @@ impl ReplayHead {
                 Event::Capture { folder } => {
                     !folder.is_empty() && !folder.contains(['/', '\\']) && folder != ".." && folder != "."
                 }
-                Event::Drive { distance_m: v }
-                | Event::Steer { encoder_deg: v }
-                | Event::ReadSteering { encoder_deg: v } => v.is_finite(),
+                Event::Drive { distance_m, odometry } => {
+                    distance_m.is_finite() && odometry.as_ref().is_none_or(Odometry::is_finite)
+                }
+                Event::Steer { encoder_deg: v } | Event::ReadSteering { encoder_deg: v } => v.is_finite(),
             };
             if !finite {
                 return Err(AlignError::Images(format!(
@@ -639,7 +709,14 @@ impl ReplayHead {
             }
             events.push(event);
         }
-        Ok(Self { dir: dir.to_path_buf(), image_size: info.image_size, events, next: 0, position: None })
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            image_size: info.image_size,
+            events,
+            next: 0,
+            position: None,
+            odometry: None,
+        })
     }
 
     /// Events not played yet.
@@ -725,7 +802,12 @@ impl Vehicle for ReplayHead {
     fn drive(&mut self, distance_m: f64) -> Result<(), PlatformError> {
         let asked = format!("drive {distance_m} m");
         match self.next_event(&asked)? {
-            Event::Drive { distance_m: d } if (d - distance_m).abs() <= REPLAY_MOVE_TOLERANCE_DEG => Ok(()),
+            Event::Drive { distance_m: d, odometry }
+                if (d - distance_m).abs() <= REPLAY_MOVE_TOLERANCE_DEG =>
+            {
+                self.odometry = odometry;
+                Ok(())
+            }
             other => Err(self.diverged(&asked, &other)),
         }
     }
@@ -743,6 +825,10 @@ impl Vehicle for ReplayHead {
             Event::ReadSteering { encoder_deg } => Ok(encoder_deg),
             other => Err(self.diverged("read the steering", &other)),
         }
+    }
+
+    fn last_odometry(&self) -> Option<Odometry> {
+        self.odometry
     }
 }
 
@@ -856,9 +942,11 @@ fn load_view(
     Ok(RecordedView { name: meta.name, stage: meta.stage, folder: folder.to_path_buf(), images })
 }
 
-/// Read every view folder of `dir` in order (all stages; see
-/// [`RecordedView::is_verge_tilt`]).
-pub fn read_image_session(dir: &Path) -> Result<Vec<RecordedView>, AlignError> {
+/// The view folders of `dir` (those with a `view.json`), sorted, each with its
+/// `view.json`; view names made unique (a name an earlier view already has is replaced by
+/// the folder's name: sessions written before names were unique repeat the names of a
+/// stage that ran twice).
+fn read_view_folders(dir: &Path) -> Result<Vec<(PathBuf, ViewMeta)>, AlignError> {
     let entries = std::fs::read_dir(dir)
         .map_err(|e| AlignError::Images(format!("cannot read session folder '{}': {e}", dir.display())))?;
     let mut folders: Vec<PathBuf> = entries
@@ -873,22 +961,99 @@ pub fn read_image_session(dir: &Path) -> Result<Vec<RecordedView>, AlignError> {
             dir.display()
         )));
     }
-    let mut views: Vec<RecordedView> = Vec::new();
+    let mut out: Vec<(PathBuf, ViewMeta)> = Vec::new();
     for folder in folders {
         let meta_path = folder.join("view.json");
-        let meta = read_view_meta(&meta_path)?;
-        if let Some(other) = views.iter().find(|v| v.name == meta.name) {
-            return Err(AlignError::Images(format!(
-                "'{}': view name '{}' is also the name of '{}'",
-                meta_path.display(),
-                meta.name,
-                other.folder.display()
-            )));
+        let mut meta = read_view_meta(&meta_path)?;
+        if out.iter().any(|(_, m)| m.name == meta.name) {
+            let folder_name = folder.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+            if let Some((other, _)) = out.iter().find(|(_, m)| m.name == folder_name) {
+                return Err(AlignError::Images(format!(
+                    "'{}': view name '{}' is also the name of '{}', and so is its folder name",
+                    meta_path.display(),
+                    meta.name,
+                    other.display()
+                )));
+            }
+            meta.name = folder_name;
         }
+        out.push((folder, meta));
+    }
+    Ok(out)
+}
+
+/// Read every view folder of `dir` in order (all stages; see
+/// [`RecordedView::is_verge_tilt`]). A view whose name an earlier view already has is
+/// known by its folder name (`21-pan-1`).
+pub fn read_image_session(dir: &Path) -> Result<Vec<RecordedView>, AlignError> {
+    let mut views: Vec<RecordedView> = Vec::new();
+    for (folder, meta) in read_view_folders(dir)? {
         let first = views.first().map(|v| v.images.image_size());
         views.push(load_view(&folder, meta, first)?);
     }
     Ok(views)
+}
+
+/// True if `dir` is a point-mode session: its first view folder's `view.json` holds the
+/// tracked points (`capture`) and the folder no `left.png`.
+pub fn is_point_session(dir: &Path) -> bool {
+    read_view_folders(dir)
+        .ok()
+        .and_then(|f| f.into_iter().next())
+        .is_some_and(|(folder, meta)| meta.capture.is_some() && !folder.join("left.png").exists())
+}
+
+/// One view of a point-mode session.
+#[derive(Debug, Clone)]
+pub struct RecordedPoints {
+    /// Its stage (as [`RecordedView::stage`]).
+    pub stage: Option<String>,
+    /// Its folder.
+    pub folder: PathBuf,
+    /// The view: name and tracked points (track ids are the session's).
+    pub view: View,
+}
+
+impl RecordedPoints {
+    /// True for the verge/tilt views (as [`RecordedView::is_verge_tilt`]).
+    pub fn is_verge_tilt(&self) -> bool {
+        self.stage.as_deref().is_none_or(|s| s == STAGE_VERGE_TILT)
+    }
+}
+
+/// Read every view of a point-mode session (`view.json` with `capture`), in order; an
+/// error names a view without tracked points.
+pub fn read_point_session(dir: &Path) -> Result<Vec<RecordedPoints>, AlignError> {
+    read_view_folders(dir)?
+        .into_iter()
+        .map(|(folder, meta)| {
+            let Some(capture) = meta.capture else {
+                return Err(AlignError::Images(format!(
+                    "'{}' holds no tracked points (`capture`): not a point-mode session",
+                    folder.join("view.json").display()
+                )));
+            };
+            let view = View { name: meta.name, capture };
+            Ok(RecordedPoints { stage: meta.stage, folder, view })
+        })
+        .collect()
+}
+
+/// The views of a session that estimate a head's rig from its rotations (`align
+/// --images`), chosen by stage (`stage_of`): the verge/tilt views if the session has any
+/// (stage `verge-tilt` or absent: verging captures, rotation probes and robot stages are
+/// left out), otherwise the views of stage `calibrate` (a rig session as `simulate
+/// --images` records), otherwise every view.
+pub fn estimation_views<T>(views: Vec<T>, stage_of: impl Fn(&T) -> Option<&str>) -> Vec<T> {
+    let verge_tilt = |s: Option<&str>| s.is_none_or(|s| s == STAGE_VERGE_TILT);
+    let keep: fn(Option<&str>) -> bool = if views.iter().any(|v| verge_tilt(stage_of(v))) {
+        |s| s.is_none_or(|s| s == STAGE_VERGE_TILT)
+    } else if views.iter().any(|v| stage_of(v) == Some(STAGE_CALIBRATE)) {
+        |s| s == Some(STAGE_CALIBRATE)
+    } else {
+        |_| true
+    };
+    views.into_iter().filter(|v| keep(stage_of(v))).collect()
 }
 
 /// Run the image front end over recorded views (the first is the tracking reference).
@@ -906,273 +1071,4 @@ pub fn track_session(views: &[RecordedView], options: &FrontEndOptions) -> Resul
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn write_view(dir: &Path, name: &str, left: &GrayImage, right: &GrayImage, json: &str) {
-        let sub = dir.join(name);
-        std::fs::create_dir_all(&sub).unwrap();
-        left.save(&sub.join("left.png")).unwrap();
-        right.save(&sub.join("right.png")).unwrap();
-        std::fs::write(sub.join("view.json"), json).unwrap();
-    }
-
-    fn textured(w: u32, h: u32) -> GrayImage {
-        let data = (0..w * h).map(|i| ((i * 7919) % 251) as u8).collect();
-        GrayImage::new(w, h, data).unwrap()
-    }
-
-    #[test]
-    fn view_json_bad_input_is_named() {
-        let enc = |pan: &str| {
-            format!(
-                r#"{{"name": "a", "encoders": {{"pan": {pan}, "elevation": 0, "verge_left": 0, "verge_right": 0}}}}"#
-            )
-        };
-        let ok = parse_view_json(&enc("1.5"), "v.json").unwrap();
-        assert_eq!((ok.name.as_str(), ok.encoders.pan), ("a", 1.5));
-        let cases: Vec<(String, &str)> = vec![
-            (String::new(), "EOF"),
-            ("{\"name\": \"a\", \"enc".into(), "EOF"),
-            ("[1, 2]".into(), "invalid type"),
-            ("{\"name\": 3}".into(), "invalid type"),
-            ("{\"name\": \"a\"}".into(), "missing field `encoders`"),
-            (enc("1.5").replace("\"a\"", "\"  \""), "name is empty"),
-            (enc("\"x\""), "invalid type"),
-            (enc("1e999"), "number out of range"),
-            (enc("1e308"), "beyond"),
-            (enc("-3600.5"), "beyond"),
-            (enc("99999999999999999999999"), "beyond"),
-            (enc("NaN"), "expected value"),
-        ];
-        for (text, expect) in cases {
-            let e = parse_view_json(&text, "v.json").unwrap_err().to_string();
-            assert!(e.contains("v.json") && e.contains(expect), "'{text}': '{e}' lacks '{expect}'");
-            assert!(!e.contains('\n'), "one line: {e}");
-        }
-    }
-
-    #[test]
-    fn bad_sessions_name_the_file_and_the_problem() {
-        let base = std::env::temp_dir().join(format!("headalign-session-{}", std::process::id()));
-        let ok_json = r#"{"name": "initial", "encoders": {"pan": 0, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#;
-        let case = |name: &str, setup: &dyn Fn(&Path), expect: &[&str]| {
-            let dir = base.join(name);
-            std::fs::create_dir_all(&dir).unwrap();
-            setup(&dir);
-            let e = read_image_session(&dir).unwrap_err().to_string();
-            for part in expect {
-                assert!(e.contains(part), "{name}: '{e}' lacks '{part}'");
-            }
-        };
-        case("empty", &|_| {}, &["holds no view folders"]);
-        case(
-            "blank",
-            &|d| write_view(d, "00-initial", &GrayImage::filled(64, 48, 128), &textured(64, 48), ok_json),
-            &["left.png", "blank"],
-        );
-        case(
-            "mismatch",
-            &|d| write_view(d, "00-initial", &textured(64, 48), &textured(60, 48), ok_json),
-            &["left.png", "right.png", "same size"],
-        );
-        case(
-            "bad-json",
-            &|d| write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), "{\"name\": 3}"),
-            &["view.json"],
-        );
-        case(
-            "unreadable",
-            &|d| {
-                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
-                std::fs::write(d.join("00-initial").join("right.png"), b"not a png").unwrap();
-            },
-            &["right.png"],
-        );
-        case(
-            "missing",
-            &|d| {
-                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
-                std::fs::remove_file(d.join("00-initial").join("left.png")).unwrap();
-            },
-            &["left.png"],
-        );
-        case(
-            "nan",
-            &|d| {
-                let j = r#"{"name": "a", "encoders": {"pan": 1e999, "elevation": 0, "verge_left": 0, "verge_right": 0}}"#;
-                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), j)
-            },
-            &["view.json"],
-        );
-        case(
-            "duplicate-name",
-            &|d| {
-                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
-                write_view(d, "01-again", &textured(64, 48), &textured(64, 48), ok_json);
-            },
-            &["01-again", "view.json", "'initial' is also the name of", "00-initial"],
-        );
-        case(
-            "directory-image",
-            &|d| {
-                write_view(d, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
-                let p = d.join("00-initial").join("left.png");
-                std::fs::remove_file(&p).unwrap();
-                std::fs::create_dir_all(&p).unwrap();
-            },
-            &["left.png", "directory"],
-        );
-        // A good one reads back.
-        let dir = base.join("good");
-        write_view(&dir, "00-initial", &textured(64, 48), &textured(64, 48), ok_json);
-        let v = read_image_session(&dir).unwrap();
-        assert_eq!(v.len(), 1);
-        assert_eq!(v[0].name, "initial");
-        // An older view.json (no stage) counts as a verge/tilt view.
-        assert!(v[0].stage.is_none() && v[0].is_verge_tilt());
-        std::fs::remove_dir_all(&base).ok();
-    }
-
-    /// A head with a deterministic texture that shifts with the pan reading.
-    struct FakeHead {
-        at: Encoders,
-        reads: usize,
-    }
-
-    impl StereoHead for FakeHead {
-        fn image_size(&self) -> [u32; 2] {
-            [64, 48]
-        }
-        fn read_encoders(&mut self) -> Result<Encoders, PlatformError> {
-            // Readings that are not the commanded ones (encoder noise), so a replay that
-            // returned the commanded values would be caught.
-            self.reads += 1;
-            Ok(self.at.moved(headalign_platform::Joint::Pan, 1e-3 * self.reads as f64 + 1.0 / 3.0))
-        }
-        fn move_to(&mut self, target: &Encoders) -> Result<(), PlatformError> {
-            self.at = *target;
-            Ok(())
-        }
-        fn capture(&mut self) -> Result<StereoCapture, PlatformError> {
-            Ok(StereoCapture { encoders: self.at, image_size: [64, 48], left: vec![], right: vec![] })
-        }
-    }
-
-    impl ImagingHead for FakeHead {
-        fn capture_images(&mut self) -> Result<StereoImages, PlatformError> {
-            let shift = (self.at.pan * 10.0).round() as u32;
-            let img = |k: u32| {
-                let data = (0..64 * 48).map(|i| (((i + shift + k) * 7919) % 251) as u8).collect();
-                GrayImage::new(64, 48, data).map_err(|e| PlatformError::Device(e.to_string()))
-            };
-            StereoImages::new(self.at, img(0)?, img(5)?)
-        }
-    }
-
-    /// The calls a small procedure makes, and what it saw.
-    fn script<H: ImagingHead>(head: &mut H) -> Result<Vec<(Encoders, StereoImages)>, PlatformError> {
-        let mut seen = Vec::new();
-        for k in 0..3 {
-            let e = head.read_encoders()?;
-            head.move_to(&e.moved(headalign_platform::Joint::Pan, 0.7 * f64::from(k)))?;
-            seen.push((head.read_encoders()?, head.capture_images()?));
-        }
-        Ok(seen)
-    }
-
-    #[test]
-    fn a_recorded_run_replays_exactly_and_a_diverging_one_is_named() {
-        let dir = std::env::temp_dir().join(format!("headalign-rec-{}", std::process::id()));
-        std::fs::remove_dir_all(&dir).ok();
-        let info = SessionInfo::new("test", 3.0, 0, [64, 48]);
-        let mut fake = FakeHead { at: Encoders { pan: 0.1, ..Encoders::default() }, reads: 0 };
-        let writer = SessionWriter::create(&dir, &info).unwrap();
-        let mut rec = RecordingHead::new(&mut fake, writer);
-        rec.set_stage(
-            STAGE_VERGING,
-            vec![("first".into(), Encoders { pan: 0.1 + 1.0 / 3.0 + 1e-3, ..Encoders::default() })],
-            "x",
-        );
-        let live = script(&mut rec).unwrap();
-        assert_eq!(rec.writer().views(), 3);
-        let writer = rec.into_writer();
-        writer.write_report(&serde_json::json!({"ok": 1})).unwrap();
-        // The folders, named by the plan or numbered, and their metadata.
-        let views = read_image_session(&dir).unwrap();
-        let names: Vec<_> = views.iter().map(|v| v.name.as_str()).collect();
-        assert_eq!(names, ["first", "x-1", "x-2"]);
-        assert!(views.iter().all(|v| !v.is_verge_tilt()));
-        let meta = read_view_meta(&dir.join("01-x-1").join("view.json")).unwrap();
-        assert_eq!(meta.index, Some(1));
-        assert!(meta.commanded.is_some() && meta.time_s.is_some_and(|t| t >= 0.0));
-        // Replay: the same readings and images, bit for bit, and nothing left over.
-        let mut replay = ReplayHead::open(&dir).unwrap();
-        let again = script(&mut replay).unwrap();
-        assert_eq!(replay.remaining(), 0);
-        for ((e1, i1), (e2, i2)) in live.iter().zip(&again) {
-            assert_eq!(e1, e2);
-            assert_eq!(i1, i2);
-        }
-        // One more call than recorded: the end of the recording is named.
-        let e = replay.capture_images().unwrap_err().to_string();
-        assert!(e.contains("ends after 12 events"), "{e}");
-        // A different procedure: the event where it diverges is named.
-        let mut replay = ReplayHead::open(&dir).unwrap();
-        replay.read_encoders().unwrap();
-        let e = replay.move_to(&Encoders::default()).unwrap_err().to_string();
-        assert!(e.contains("diverged") && e.contains("event 2"), "{e}");
-        let mut replay = ReplayHead::open(&dir).unwrap();
-        let e = replay.capture_images().unwrap_err().to_string();
-        assert!(e.contains("asks to capture") && e.contains("\"op\":\"read\""), "{e}");
-        // A session is never overwritten.
-        let e = SessionWriter::create(&dir, &info).unwrap_err().to_string();
-        assert!(e.contains("already holds a session"), "{e}");
-        // Damaged files name themselves.
-        std::fs::write(dir.join("events.jsonl"), "{\"op\":\"capture\",\"folder\":\"../x\"}\n").unwrap();
-        let e = ReplayHead::open(&dir).unwrap_err().to_string();
-        assert!(e.contains("events.jsonl' line 1"), "{e}");
-        std::fs::write(dir.join("events.jsonl"), "{\"op\":\"jump\"}\n").unwrap();
-        assert!(ReplayHead::open(&dir).unwrap_err().to_string().contains("line 1"));
-        std::fs::write(dir.join("session.json"), "{\"format\": 1}").unwrap();
-        assert!(ReplayHead::open(&dir).unwrap_err().to_string().contains("session.json"));
-        std::fs::remove_dir_all(&dir).ok();
-    }
-
-    #[test]
-    fn utc_timestamps_are_civil_dates() {
-        let t = |s: u64| utc_timestamp(UNIX_EPOCH + std::time::Duration::from_secs(s), true);
-        assert_eq!(t(0), "1970-01-01T00:00:00Z");
-        assert_eq!(t(1_700_000_000), "2023-11-14T22:13:20Z");
-        assert_eq!(t(951_782_400), "2000-02-29T00:00:00Z");
-        assert_eq!(
-            utc_timestamp(UNIX_EPOCH + std::time::Duration::from_secs(86_399), false),
-            "19700101T235959Z"
-        );
-    }
-
-    proptest::proptest! {
-        /// Replay is bit for bit only if recorded readings parse back exactly: any finite
-        /// reading survives an event line unchanged (`float_roundtrip`).
-        #[test]
-        fn recorded_readings_round_trip_exactly(
-            pan in proptest::num::f64::NORMAL | proptest::num::f64::SUBNORMAL | proptest::num::f64::ZERO,
-            elevation in -90.0f64..90.0,
-            verge_left in -1e-300f64..1e-300,
-            verge_right in proptest::num::f64::ANY,
-        ) {
-            let verge_right = if verge_right.is_finite() { verge_right } else { 0.0 };
-            let e = Encoders { pan, elevation, verge_left, verge_right };
-            for event in [Event::Read { encoders: e }, Event::Move { target: e }] {
-                let line = serde_json::to_string(&event).unwrap();
-                let back: Event = serde_json::from_str(&line).unwrap();
-                let (Event::Read { encoders: b } | Event::Move { target: b }) = back else {
-                    panic!("wrong event {line}")
-                };
-                for j in headalign_platform::Joint::ALL {
-                    proptest::prop_assert_eq!(b.get(j).to_bits(), e.get(j).to_bits(), "{}", line);
-                }
-            }
-        }
-    }
-}
+mod tests;
