@@ -350,7 +350,7 @@ pub const LINEAR_ROTATION_DEG: f64 = 15.0;
 /// Why: a composed motion carries the drift of every 3D homography along its path, so
 /// the largest rotations of a long chain (the far end of a turning sequence) are the
 /// least accurate; on the 200-view rendered sequence of `benches/sequence.rs` the eight
-/// largest (up to 180 deg, 20-50 edges out) took the screening of the linear start 25
+/// largest (near 180 deg, some 25 edges out) took the screening of the linear start 25
 /// iterations, the eight nearest beyond 15 deg 14.
 fn linear_choice(motions: &[ViewMotion], links: &Links, options: &CalibrateOptions) -> Vec<bool> {
     let depth = |slot: usize| {
