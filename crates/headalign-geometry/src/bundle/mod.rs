@@ -37,8 +37,9 @@
 //!   `R <- exp(w) R`; `rig.tdir0..1`: the *direction* of its translation on the unit
 //!   sphere (tangent-plane update, `t <- |t| normalize(t/|t| + B d)`), its length is held
 //!   fixed (scale gauge).
-//! - [`Motions::Free`]: `view{k}.rot0..2`, `view{k}.trans0..2` for `k >= 1`, the
-//!   left-multiplicative update `ref_from_cam <- (exp(w), v) * ref_from_cam` (6 dof).
+//! - [`Motions::Free`]: `view{k}.rot0..2`, `view{k}.trans0..2` for `k >= 1` (but the
+//!   held [`BundleOptions::gauge_views`]), the left-multiplicative update
+//!   `ref_from_cam <- (exp(w), v) * ref_from_cam` (6 dof).
 //! - [`Motions::Joints`]: `axis{j}.dir0..1` (direction, tangent-plane update) and
 //!   `axis{j}.pt0..1` (the foot point, moved in the plane perpendicular to the direction)
 //!   for every axis (4 dof, a line), then `view{k}.angle{j}` for `k >= 1` when
@@ -111,7 +112,13 @@
 //! observations share the same camera-parameter columns) and `sum_p W_p V_p^-1 W_p^T`
 //! one product `M M^T` with `M_p = W_p L_p^-T` (`V_p = L_p L_p^T`); with the residual-only
 //! evaluation this took the adjustment 35 % faster than per-observation scatter
-//! (`cargo bench -p headalign-geometry --bench bundle`, 80 -> 52 ms).
+//! (`cargo bench -p headalign-geometry --bench bundle`, 80 -> 52 ms). Above 8 views (a
+//! sequence's keyframes) that dense product costs `c^2 n` with both the camera
+//! parameters `c` and the points `n` growing with the views: `W` is then kept per point
+//! over its own rows, `S` formed point by point (`n k^2`, `k` a point's rows) and
+//! factored by a profile Cholesky with the per-view parameters first and the shared ones
+//! last (linear in the views along a sequence; `sparse.rs`). The dense path stays for
+//! few views, so their results are bit for bit what they were.
 //!
 //! Jacobians: projection w.r.t. intrinsics and the camera-frame point are analytic, as
 //! are those w.r.t. the rig and free view poses (tangent updates via [`so3::exp`], safe
@@ -219,6 +226,8 @@
 //!   window's [`truncated_mean_shift`].
 //! - `normal.rs` (the solver's linear algebra): normal equations, reduced camera system
 //!   (Schur complement over the points), Marquardt damping, the damped solve.
+//! - `sparse.rs` (the linear algebra of many views): the per-point structure of `W`, the
+//!   point-by-point Schur complement, the profile Cholesky of the reduced system.
 //! - `solver.rs` (the solver): Levenberg-Marquardt with Nielsen's damping and the entry
 //!   points [`bundle_adjust`], [`bundle_adjust_with_checkpoint`] ([`BundleCheckpoint`]),
 //!   [`bundle_adjust_at_depth_scale`], [`bundle_adjust_holding`].

@@ -12,6 +12,9 @@
 //!   one dense product per (view, side) pair (`CameraBlock`: all its observations share
 //!   the same camera columns); the angle-prior rows add to `U` and `g_c` with the given
 //!   prior weight; the depth-scale pseudo-residual is kept as a row over the points.
+//! - `PointBlocks`: `W` dense (`c x 3n`) for at most `DENSE_SCHUR_MAX_VIEWS` views, per
+//!   point over its own rows above (`sparse.rs`: the reduced system formed point by point
+//!   and factored by a profile Cholesky).
 //! - `reduced_camera_system`: `S = U - sum_p W_p V_p^-1 W_p^T`, formed as `U - M M^T` with
 //!   `M_p = W_p L_p^-T` (`V_p = L_p L_p^T`), with `U` and every `V_p` damped on their
 //!   diagonals (Triggs, McLauchlan, Hartley, Fitzgibbon, "Bundle adjustment - a modern
@@ -284,7 +287,7 @@ pub(super) fn reduced_camera_system(
         PointBlocks::Dense(w) => w,
         PointBlocks::Sparse(structure, values) => {
             let l_inv = schur(&n.v, structure, values, &mut s, &damp, skip_singular)?;
-            return Some((0.5 * (&s + s.transpose()), l_inv));
+            return Some((s, l_inv));
         }
     };
     let mut m = DMatrix::zeros(nc, w.ncols());

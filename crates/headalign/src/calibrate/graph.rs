@@ -50,17 +50,18 @@ pub const END_FLOW_FRACTION: f64 = 0.25;
 pub struct SequenceOptions {
     /// A view becomes a keyframe when it shares fewer than this fraction of the last
     /// keyframe's stereo tracks (default 0.35). Tracks chained through consecutive views
-    /// wear out (on the rendered sequence of `benches/sequence.rs` about a quarter is
-    /// lost per view), so this fraction is reached after a few views even with little
-    /// motion; consecutive keyframes then still share hundreds of tracks (measured
-    /// 270-570 there), plenty for the 3D homography between them.
+    /// wear out (every link loses some), so this fraction is reached after a few views
+    /// even with little motion; consecutive keyframes then still share hundreds of tracks
+    /// (270-570 on the rendered sequence of `benches/sequence.rs`), plenty for the 3D
+    /// homography between them.
     pub keyframe_overlap: f64,
     /// A view becomes a keyframe when the median image motion of the tracks it shares
     /// with the last keyframe reaches this, pixels, left camera (default 60: 8 % of a
     /// 752-pixel image, 7.5 deg of rotation at a focal length of 460 px). Smaller motions
     /// make the 3D homography between keyframes mostly noise and cost adjustment time:
     /// on the 50-view rendered sequence 0.6 / 40 px gave 27 keyframes and 0.35 / 60 px
-    /// 14, for the same focal length to 0.01 % and 40 % less time.
+    /// 14, for the same focal length to 0.01 % and 11 % less CPU time over the whole
+    /// command (13.2 -> 11.8 s).
     pub keyframe_flow_px: f64,
     /// Fewest stereo tracks two views must share to be linked (default 30: the 3D
     /// homography needs 12 inliers, and a link of a few dozen tracks is still a reliable

@@ -5,7 +5,11 @@
 //!
 //! Input: tracked point observations of stereo views (the first is the reference), the
 //! rig fixed between them (views whose vergence readings differ from the first view's are
-//! left out: their rig changed). Chain, each step a pure function of the previous:
+//! left out: their rig changed). Views that do not all overlap the first (hundreds of
+//! views of a moving rig, disconnected pieces) take the sequence chain instead
+//! ([`calibrate_sequence`]: keyframes, a view graph, one gauge per segment);
+//! [`track_views`] tracks a folder of images for the one or the other ([`Route`]). The
+//! reference chain, each step a pure function of the previous:
 //! 1. a scene-depth check per view: if one plane homography explains nearly all stereo
 //!    matches of a view (default 90 % within 2 px), its projective reconstruction is a
 //!    plane and no 3D homography relates it to another view: the view is left out, and if
@@ -68,7 +72,9 @@
 //! known intrinsics), `motion` (step 3), `starts` (the point set and the two starts: step
 //! 4 and the rigid start), `adjust` (steps 5-6), `report` (step 7), `lens` (known lens
 //! models), `density` (the corner density of self-calibration from images);
-//! `calibrate_once` chains them.
+//! `calibrate_once` chains them. Sequences: `route` (which tracking and chain a folder
+//! gets), `graph` (keyframes, view graph, segments, spanning trees), `sequence` (the
+//! sequence chain, reusing the steps above).
 
 mod adjust;
 mod density;

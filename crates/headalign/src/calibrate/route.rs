@@ -46,7 +46,7 @@ pub const REFERENCE_ROUTE_MAX_VIEWS: usize = 20;
 /// more (the adaptive count at confidence 0.999: 80 samples at 70 % inliers, 880 at 50 %);
 /// the front end's own floor is 500. Three such fits per view were a third of the front
 /// end's time; on the 50-view rendered sequence of `benches/sequence.rs` the floor of
-/// 100 took 19.4 -> 13.2 s of CPU time, linked the same tracks to 1 % and gave the same
+/// 100 took `calibrate` from 19.4 to 13.2 s of user time, linked the same tracks to 1 % and gave the same
 /// focal length to 0.001 px.
 pub const SEQUENCE_RANSAC_MIN_ITERATIONS: usize = 100;
 

@@ -19,9 +19,10 @@
 //!    rigid RANSAC, DLT fallback, polished; [`super::motion`]), and each keyframe's motion
 //!    from its gauge as the product along the tree, `H_gk = H_pk H_gp` (and the rigid
 //!    motions likewise);
-//! 6. the linear self-calibration from the [`SequenceOptions::linear_motions`] composed
-//!    motions that rotate most (at least `min_rotation_deg`; all in the one frame, so the
-//!    segments' motions fix the plane at infinity and the conic together), and the rigid
+//! 6. the linear self-calibration from at most [`SequenceOptions::linear_motions`]
+//!    composed motions, those that rotate by 15 deg or more with the fewest edges to their
+//!    gauge first (the least drift; [`LINEAR_ROTATION_DEG`]); all in the one frame, so the
+//!    segments' motions fix the plane at infinity and the conic together; and the rigid
 //!    start;
 //! 7. the adjustment of [`super::calibrate_rig`] over all keyframes of all segments: one
 //!    pair of intrinsics, one rig, 6 dof per keyframe except the gauges, every segment's
@@ -162,7 +163,43 @@ fn keyframes(views: &[View], options: &CalibrateOptions) -> Result<Keyframes, Al
             so.min_link_tracks
         )));
     }
-    // Each view belongs to the last keyframe at or before it (planar ones included).
+    let arranged = arrange(&rig_views, &chosen, &keys, &segments, &alone, &mut skipped);
+    Ok(Keyframes {
+        rig: arranged.rig,
+        links: arranged.links,
+        gauges: arranged.gauges,
+        planarity,
+        skipped,
+        report: SequenceReport {
+            views: views.len(),
+            keyframes: chosen.len(),
+            segments: arranged.reports,
+            tracking_notes: Vec::new(),
+        },
+    })
+}
+
+/// The keyframes of the segments in the adjustment's order ([`arrange`]).
+struct Arranged {
+    rig: Vec<View>,
+    links: Links,
+    gauges: Vec<usize>,
+    reports: Vec<SegmentReport>,
+}
+
+/// The adjustment's order of the keyframes (per segment its tree from the gauge), the
+/// links, the gauges after the first, and each segment's report; every view is counted
+/// with the last keyframe at or before it (`chosen`, before the depth check), and a view
+/// whose keyframe went is added to `skipped`. `keys`: the keyframes kept (view indices),
+/// `segments` and `alone` in positions of `keys`.
+fn arrange(
+    rig_views: &[&View],
+    chosen: &[usize],
+    keys: &[usize],
+    segments: &[graph::Segment],
+    alone: &[usize],
+    skipped: &mut Vec<String>,
+) -> Arranged {
     let mut between = vec![0usize; keys.len()];
     let mut represented_by = None;
     for (i, v) in rig_views.iter().enumerate() {
@@ -211,19 +248,7 @@ fn keyframes(views: &[View], options: &CalibrateOptions) -> Result<Keyframes, Al
         }
         reports.push(seg_report);
     }
-    Ok(Keyframes {
-        rig,
-        links: Links { parent, segment },
-        gauges,
-        planarity,
-        skipped,
-        report: SequenceReport {
-            views: views.len(),
-            keyframes: chosen.len(),
-            segments: reports,
-            tracking_notes: Vec::new(),
-        },
-    })
+    Arranged { rig, links: Links { parent, segment }, gauges, reports }
 }
 
 /// A motion that moves nothing: a segment gauge's, relative to itself.
@@ -314,19 +339,45 @@ fn chain_motions(
     Ok(motions)
 }
 
-/// Step 6's choice (module docs): the motions (not gauges) rotating by `min_rotation_deg`
-/// or more, at most `linear_motions` of them, the largest rotations first.
+/// A composed motion rotating by this much (degrees) conditions the linear
+/// self-calibration well ([`linear_choice`]): the one-motion rule asks for 20-30 deg, two
+/// rotations about different axes work from 3 deg.
+pub const LINEAR_ROTATION_DEG: f64 = 15.0;
+
+/// Step 6's choice (module docs): at most `linear_motions` motions (not gauges) rotating by
+/// `min_rotation_deg` or more: first those rotating by [`LINEAR_ROTATION_DEG`] or more
+/// that are fewest tree edges from their gauge, then the others, largest rotation first.
+/// Why: a composed motion carries the drift of every 3D homography along its path, so
+/// the largest rotations of a long chain (the far end of a turning sequence) are the
+/// least accurate; on the 200-view rendered sequence of `benches/sequence.rs` the eight
+/// largest (near 180 deg, some 25 edges out) took the screening of the linear start 25
+/// iterations, the eight nearest beyond 15 deg 14.
 fn linear_choice(motions: &[ViewMotion], links: &Links, options: &CalibrateOptions) -> Vec<bool> {
-    let mut candidates: Vec<(usize, f64)> = motions
+    let depth = |slot: usize| {
+        let (mut d, mut s) = (0usize, slot);
+        while let Some(Some(p)) = links.parent.get(s) {
+            d += 1;
+            s = *p;
+        }
+        d
+    };
+    let mut candidates: Vec<(bool, usize, f64, usize)> = motions
         .iter()
         .enumerate()
         .filter(|(i, _)| links.parent.get(i + 1).is_some_and(Option::is_some))
         .map(|(i, m)| (i, m.report.homography_rotation_deg))
         .filter(|(_, a)| *a >= options.min_rotation_deg)
+        .map(|(i, a)| (a < LINEAR_ROTATION_DEG, depth(i + 1), a, i))
         .collect();
-    candidates.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+    // Large enough first, then the fewest edges out, then the largest rotation.
+    candidates.sort_by(|a, b| {
+        a.0.cmp(&b.0)
+            .then(if a.0 { std::cmp::Ordering::Equal } else { a.1.cmp(&b.1) })
+            .then(b.2.total_cmp(&a.2))
+            .then(a.3.cmp(&b.3))
+    });
     let mut used = vec![false; motions.len()];
-    for &(i, _) in candidates.iter().take(options.sequence.linear_motions) {
+    for &(_, _, _, i) in candidates.iter().take(options.sequence.linear_motions) {
         used[i] = true;
     }
     used
