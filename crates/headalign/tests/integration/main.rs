@@ -1,0 +1,10 @@
+//! The crate's integration tests, one module per subject, linked into one test binary
+//! (a binary per file costs a link of the whole crate graph each: build time of the suite).
+//! Run one subject with `cargo test --release -p headalign --test integration <module>::`.
+
+mod fixation;
+mod fuzz_regressions;
+mod patch_refinement;
+mod recordings;
+mod robot_images;
+mod rotating_camera;
