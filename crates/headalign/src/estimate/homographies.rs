@@ -129,7 +129,8 @@ pub(super) fn rotation_homographies(
                                 why: format!("no 3D homography ({e})"),
                             });
                         }
-                        without_homography.push(DroppedView { view: views[vi].name.clone(), reason: e.to_string() });
+                        without_homography
+                            .push(DroppedView { view: views[vi].name.clone(), reason: e.to_string() });
                         continue;
                     }
                 }
@@ -411,15 +412,17 @@ fn plane_rotations(
     use std::collections::HashMap;
     let ransac_options =
         RansacOptions { threshold: options.prefilter_px, seed: options.seed, ..RansacOptions::default() };
-    let image = |side: fn(&headalign_platform::StereoCapture) -> &Vec<headalign_platform::TrackObservation>| {
-        let first: HashMap<u64, Point2<f64>> = side(&view0.capture).iter().map(|o| (o.track, o.pixel)).collect();
-        let pairs: Vec<(Point2<f64>, Point2<f64>)> = side(&view1.capture)
-            .iter()
-            .filter(|o| recon0.contains_key(&o.track) || recon1.contains_key(&o.track))
-            .filter_map(|o| first.get(&o.track).map(|p| (*p, o.pixel)))
-            .collect();
-        ransac(&Homography2Estimator, &pairs, &ransac_options).ok().map(|r| r.model.0)
-    };
+    let image =
+        |side: fn(&headalign_platform::StereoCapture) -> &Vec<headalign_platform::TrackObservation>| {
+            let first: HashMap<u64, Point2<f64>> =
+                side(&view0.capture).iter().map(|o| (o.track, o.pixel)).collect();
+            let pairs: Vec<(Point2<f64>, Point2<f64>)> = side(&view1.capture)
+                .iter()
+                .filter(|o| recon0.contains_key(&o.track) || recon1.contains_key(&o.track))
+                .filter_map(|o| first.get(&o.track).map(|p| (*p, o.pixel)))
+                .collect();
+            ransac(&Homography2Estimator, &pairs, &ransac_options).ok().map(|r| r.model.0)
+        };
     image(|c| &c.left).zip(image(|c| &c.right))
 }
 

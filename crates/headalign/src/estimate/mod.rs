@@ -83,7 +83,9 @@
 //!
 //! This file holds the options ([`EstimationOptions`] and its gates), the reports and the
 //! result ([`RigCalibration`]), and [`estimate_rig`], which calls the steps in order and
-//! leaves out a rotated view whose 3D homography fails when the rest still suffice.
+//! leaves out a rotated view whose 3D homography fails when the rest still suffice, and
+//! failing that keeps every view, those without a 3D homography included
+//! ([`EstimationOptions::views_without_homography`]).
 //!
 //! Pitfalls: with 3 deg rotations the linear chain is noisy (focal lengths off by tens of
 //! percent are common), hence several starts; a point can start behind the cameras when
@@ -649,7 +651,9 @@ fn estimate_dropping_views(
             Err(e) => e,
         };
         let at_homography = at_view.is_some() || !dropped.is_empty();
-        let Some(vi) = at_view.filter(|_| options.drop_weak_views) else { return Err((error, at_homography)) };
+        let Some(vi) = at_view.filter(|_| options.drop_weak_views) else {
+            return Err((error, at_homography));
+        };
         let rest: Vec<View> =
             current.iter().enumerate().filter(|&(i, _)| i != vi).map(|(_, v)| v.clone()).collect();
         if classify_views(&rest).is_err() {
