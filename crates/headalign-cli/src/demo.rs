@@ -465,6 +465,9 @@ fn print_errors(outcome: &VergeTiltOutcome, before: &Before, after: &After) {
             d.view, d.reason
         );
     }
+    for d in &report.views_without_homography {
+        eprintln!("note: view '{}' was used without a 3D homography (no linear start): {}", d.view, d.reason);
+    }
     say!("checks after moving: {}", outcome.checks.len());
 }
 

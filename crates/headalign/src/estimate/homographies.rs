@@ -28,6 +28,17 @@
 //! are dropped); the DLT over-weights far points, whose triangulated depth is poor, hence
 //! the polish on transfer error. A view whose homography fails is named by the caller
 //! ([`super::estimate_rig`] can leave it out).
+//!
+//! Without quadruplets ([`HomographyMode::Optional`], the fallback of
+//! [`super::EstimationOptions::views_without_homography`]): with a fraction `e` of wrong
+//! observations only `(1 - e)^4` of the tracks are right in all four images of a rotation
+//! (1/16 at 50 %, 1/39 at 60 %: some 5 of 200 points, fewer than a 3D homography's
+//! sample), while `(1 - e)^2` are right in one camera's image pair. A view whose 3D
+//! homography fails then keeps its place and its observations; it only takes the
+//! linear start away (that start needs every rotation's `H`). The plane homographies of
+//! every rotation come from the image pairs of the tracks reconstructed in either of the
+//! two views (`(1 - e)` of them right, not `(1 - e)^4`; [`plane_rotations`]), so that the
+//! rotating-camera start still gets its intrinsics.
 
 use headalign_geometry::camera::ProjectiveCamera;
 use headalign_geometry::homography2d::Homography2Estimator;
@@ -40,7 +51,7 @@ use nalgebra::{Matrix3, Point2};
 
 use super::frame::{ProjectiveStructure, Reconstruction};
 use super::stereo::rms;
-use super::{EstimationOptions, HomographyReport};
+use super::{DroppedView, EstimationOptions, HomographyReport};
 use crate::error::{AlignError, StepContext};
 use crate::observations::View;
 
@@ -62,16 +73,32 @@ pub(super) struct RotationHomographies {
     /// Plane homographies (left, right) of each rotation whose screening found both, for
     /// the rotation-based start.
     pub image_rotations: Vec<PlanePair>,
+    /// The rotated views without a 3D homography ([`HomographyMode::Optional`]), with the
+    /// error of their fit.
+    pub without_homography: Vec<DroppedView>,
+}
+
+/// Whether every rotated view must have its 3D homography.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum HomographyMode {
+    /// A view whose 3D homography fails is an error (named by `at_view`).
+    Required,
+    /// A view whose 3D homography fails is listed in
+    /// [`RotationHomographies::without_homography`] and blocks the linear start; the
+    /// plane homographies come from the wider pair set of [`plane_rotations`].
+    Optional,
 }
 
 /// The 3D homography of every rotated rig view (`rig[1..]`, indices into `views`) against
 /// the reference view `rig[0]`. While a view is being fitted `at_view` names it (index
-/// into `views`), so that an error can be traced to it; `None` once all are fitted.
+/// into `views`), so that an error can be traced to it; `None` once all are fitted. With
+/// [`HomographyMode::Optional`] a view's failure is recorded instead (module docs).
 pub(super) fn rotation_homographies(
     views: &[View],
     rig: &[usize],
     structure: &ProjectiveStructure,
     options: &EstimationOptions,
+    mode: HomographyMode,
     at_view: &mut Option<usize>,
 ) -> Result<RotationHomographies, AlignError> {
     let (p_l, p_r, recon) = (&structure.p_l, &structure.p_r, &structure.recon);
@@ -81,10 +108,34 @@ pub(super) fn rotation_homographies(
     let mut linear_blocked: Option<AlignError> = None;
     let mut quad_inliers: Vec<Vec<u64>> = vec![Vec::new(); rig.len()];
     let mut image_rotations: Vec<PlanePair> = Vec::new();
+    let mut without_homography = Vec::new();
     for (slot, &vi) in rig.iter().enumerate().skip(1) {
         *at_view = Some(vi);
-        let fit =
-            view_homography(views, vi, (&recon[0], &recon[slot]), &estimator, options, &mut image_rotations)?;
+        let pairs = (&recon[0], &recon[slot]);
+        let fit = match mode {
+            HomographyMode::Required => {
+                view_homography(views, vi, pairs, &estimator, options, &mut image_rotations)?
+            }
+            HomographyMode::Optional => {
+                if let Some(g) = plane_rotations(&views[rig[0]], &views[vi], pairs, options) {
+                    image_rotations.push(g);
+                }
+                match view_homography(views, vi, pairs, &estimator, options, &mut Vec::new()) {
+                    Ok(fit) => fit,
+                    Err(e) => {
+                        if linear_blocked.is_none() {
+                            linear_blocked = Some(AlignError::NotARotation {
+                                view: views[vi].name.clone(),
+                                why: format!("no 3D homography ({e})"),
+                            });
+                        }
+                        without_homography
+                            .push(DroppedView { view: views[vi].name.clone(), reason: e.to_string() });
+                        continue;
+                    }
+                }
+            }
+        };
         h_reports.push(fit.report);
         let h = fit.h;
         // A noisy 3D homography of a small rotation (50 points at 1.5 px in a scene about
@@ -107,6 +158,7 @@ pub(super) fn rotation_homographies(
         linear_blocked,
         quad_inliers,
         image_rotations,
+        without_homography,
     })
 }
 
@@ -343,6 +395,35 @@ fn screen_rotation(quads: &[Quadruplet], threshold_px: f64, seed: u64) -> (Vec<u
     let ((l, gl), (r, gr)) = (keep(&left), keep(&right));
     let kept = (0..quads.len()).filter(|&i| l[i] && r[i]).collect();
     (kept, gl.zip(gr))
+}
+
+/// The plane homographies (left, right) of the rotation from `view0` to `view1` over the
+/// image pairs of every track reconstructed in either view (`recon0`, `recon1`: a right
+/// stereo match there makes the track's pixel in that view likely right, so a pair is
+/// right about as often as one observation), by the 4-point RANSAC of
+/// [`screen_rotation`] (threshold [`EstimationOptions::prefilter_px`]); `None` unless
+/// both are found.
+fn plane_rotations(
+    view0: &View,
+    view1: &View,
+    (recon0, recon1): (&Reconstruction, &Reconstruction),
+    options: &EstimationOptions,
+) -> Option<PlanePair> {
+    use std::collections::HashMap;
+    let ransac_options =
+        RansacOptions { threshold: options.prefilter_px, seed: options.seed, ..RansacOptions::default() };
+    let image =
+        |side: fn(&headalign_platform::StereoCapture) -> &Vec<headalign_platform::TrackObservation>| {
+            let first: HashMap<u64, Point2<f64>> =
+                side(&view0.capture).iter().map(|o| (o.track, o.pixel)).collect();
+            let pairs: Vec<(Point2<f64>, Point2<f64>)> = side(&view1.capture)
+                .iter()
+                .filter(|o| recon0.contains_key(&o.track) || recon1.contains_key(&o.track))
+                .filter_map(|o| first.get(&o.track).map(|p| (*p, o.pixel)))
+                .collect();
+            ransac(&Homography2Estimator, &pairs, &ransac_options).ok().map(|r| r.model.0)
+        };
+    image(|c| &c.left).zip(image(|c| &c.right))
 }
 
 /// `start` polished by Levenberg-Marquardt on the transfer error of `subset`; `None` if the

@@ -83,7 +83,9 @@
 //!
 //! This file holds the options ([`EstimationOptions`] and its gates), the reports and the
 //! result ([`RigCalibration`]), and [`estimate_rig`], which calls the steps in order and
-//! leaves out a rotated view whose 3D homography fails when the rest still suffice.
+//! leaves out a rotated view whose 3D homography fails when the rest still suffice, and
+//! failing that keeps every view, those without a 3D homography included
+//! ([`EstimationOptions::views_without_homography`]).
 //!
 //! Pitfalls: with 3 deg rotations the linear chain is noisy (focal lengths off by tens of
 //! percent are common), hence several starts; a point can start behind the cameras when
@@ -139,7 +141,7 @@ pub(crate) use stereo::{StereoMatch, rms, stereo_matches};
 
 use adjust::{PointSources, first_selection, rig_observations};
 use frame::projective_frame;
-use homographies::rotation_homographies;
+use homographies::{HomographyMode, rotation_homographies};
 use restart::reversed_rig_restart;
 use starts::{InitContext, commanded_angles, initial_states, point_set};
 use stereo::stereo_geometry;
@@ -195,6 +197,16 @@ pub struct EstimationOptions {
     /// needed (1 trial in 150 with the procedure's own rotations) while the other nine
     /// views calibrate the head well.
     pub drop_weak_views: bool,
+    /// When the estimate fails at a rotated view's 3D homography even after
+    /// [`EstimationOptions::drop_weak_views`], run the chain once more with every view, a
+    /// view whose 3D homography fails keeping its observations without one (listed in
+    /// [`EstimationReport::views_without_homography`]; the linear start is then lost, the
+    /// other starts and the adjustment use the view; `homographies.rs` module docs).
+    /// Default true. Why: the 3D homography needs tracks right in all four images of a
+    /// rotation, `(1 - e)^4` of them with a fraction `e` of wrong observations (some 5 of
+    /// 200 at `e` = 60 %), while the rest of the chain needs only stereo pairs and single
+    /// observations. Estimates that succeed without it are unchanged.
+    pub views_without_homography: bool,
     /// After the maximum-likelihood pass, restart the least squares from the
     /// depth-reversed rig (`reversed_rig_restart`, module docs step 8) and keep the
     /// solution of lower cost (default true; needs `final_least_squares`).
@@ -380,6 +392,7 @@ impl Default for EstimationOptions {
             seed: 0,
             final_least_squares: true,
             drop_weak_views: true,
+            views_without_homography: true,
             reversed_rig_restart: true,
             depth_step: None,
             depth_profile: Some(DepthProfile::DEFAULT),
@@ -513,6 +526,10 @@ pub struct EstimationReport {
     /// Rotated views left out of the estimate ([`EstimationOptions::drop_weak_views`]), in
     /// the order they were dropped; empty when every view was used.
     pub dropped_views: Vec<DroppedView>,
+    /// Rotated views used without a 3D homography
+    /// ([`EstimationOptions::views_without_homography`]), with the error of its fit;
+    /// empty when every view had one.
+    pub views_without_homography: Vec<DroppedView>,
     /// The depth-scale profile of the covariance ([`EstimationOptions::depth_profile`]);
     /// `None` when off or when `s` or its sigma could not be computed.
     pub depth_profile: Option<DepthProfileReport>,
@@ -534,7 +551,7 @@ pub struct BootstrapReport {
     pub median_ratio: f64,
 }
 
-/// A rig view [`estimate_rig`] left out, and why.
+/// A rig view [`estimate_rig`] left out (or used without its 3D homography), and why.
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct DroppedView {
     /// The view's name.
@@ -598,26 +615,49 @@ pub fn axes_of(state: &RigState) -> Option<(Line, Line)> {
 /// Run the whole chain on the views (the first is the reference; verge views are
 /// ignored here). A rotated view whose 3D homography fails is left out and the chain run
 /// again without it while a pan-only and an elevation-only rotation remain
-/// ([`EstimationOptions::drop_weak_views`]); otherwise its error is returned.
+/// ([`EstimationOptions::drop_weak_views`]); if that does not succeed either, the chain
+/// runs once more on every view, views without a 3D homography included
+/// ([`EstimationOptions::views_without_homography`]); otherwise the first error is returned.
 pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCalibration, AlignError> {
     options.validate()?;
+    let (error, at_homography) = match estimate_dropping_views(views, options) {
+        Ok(calibration) => return Ok(calibration),
+        Err(e) => e,
+    };
+    if !(at_homography && options.views_without_homography) {
+        return Err(error);
+    }
+    let mut at_view = None;
+    estimate_rig_once(views, options, HomographyMode::Optional, &mut at_view).map_err(|_| error)
+}
+
+/// [`estimate_rig`] with every 3D homography required, weak views left out
+/// ([`EstimationOptions::drop_weak_views`]). The error says whether a 3D homography step
+/// failed on the way (then the fallback may run).
+fn estimate_dropping_views(
+    views: &[View],
+    options: &EstimationOptions,
+) -> Result<RigCalibration, (AlignError, bool)> {
     let mut kept: Vec<View> = Vec::new();
     let mut dropped: Vec<DroppedView> = Vec::new();
     loop {
         let current: &[View] = if dropped.is_empty() { views } else { &kept };
         let mut at_view = None;
-        let error = match estimate_rig_once(current, options, &mut at_view) {
+        let error = match estimate_rig_once(current, options, HomographyMode::Required, &mut at_view) {
             Ok(mut calibration) => {
                 calibration.report.dropped_views = dropped;
                 return Ok(calibration);
             }
             Err(e) => e,
         };
-        let Some(vi) = at_view.filter(|_| options.drop_weak_views) else { return Err(error) };
+        let at_homography = at_view.is_some() || !dropped.is_empty();
+        let Some(vi) = at_view.filter(|_| options.drop_weak_views) else {
+            return Err((error, at_homography));
+        };
         let rest: Vec<View> =
             current.iter().enumerate().filter(|&(i, _)| i != vi).map(|(_, v)| v.clone()).collect();
         if classify_views(&rest).is_err() {
-            return Err(error);
+            return Err((error, true));
         }
         dropped.push(DroppedView { view: current[vi].name.clone(), reason: error.to_string() });
         kept = rest;
@@ -626,10 +666,11 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
 
 /// [`estimate_rig`] on exactly these views: the steps of the module docs, in order;
 /// `at_view` names the view (index into `views`) whose 3D homography step failed, if
-/// that is where it failed.
+/// that is where it failed (with [`HomographyMode::Required`]).
 fn estimate_rig_once(
     views: &[View],
     options: &EstimationOptions,
+    mode: HomographyMode,
     at_view: &mut Option<usize>,
 ) -> Result<RigCalibration, AlignError> {
     // 1. View roles; the rig views are all but the verge views, slot 0 the reference.
@@ -644,7 +685,7 @@ fn estimate_rig_once(
     let structure = projective_frame(&stereo, &k0, options.fundamental.threshold)?;
     let recon = &structure.recon;
     // 4. 3D homographies, screening + polished starts + guided re-selection.
-    let mut rotations = rotation_homographies(views, &rig, &structure, options, at_view)?;
+    let mut rotations = rotation_homographies(views, &rig, &structure, options, mode, at_view)?;
     // 5. The point set and the starts.
     let (point_tracks, origin_slot) = point_set(recon);
     let commanded = commanded_angles(&roles, &rig);
@@ -702,6 +743,7 @@ fn estimate_rig_once(
         sigma_px: final_result.report.sigma_px,
         sigma_inflation: final_result.report.sigma_inflation,
         dropped_views: Vec::new(),
+        views_without_homography: rotations.without_homography,
         depth_profile,
         bootstrap,
     };
