@@ -32,6 +32,7 @@
 //! Each experiment's conditions, series and default trial count are defined in [`catalog`].
 
 mod catalog;
+pub mod lens;
 pub mod ml_spread;
 pub mod pan;
 pub mod plot;
@@ -59,7 +60,7 @@ use self::stats::{coverage, quantity_crb, quantity_rms, rms};
 use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
 
 /// Names accepted by `headalign experiment`.
-pub const NAMES: [&str; 9] = [
+pub const NAMES: [&str; 10] = [
     "fig5-verge-tilt",
     "fig5-pan-tilt",
     "calibration",
@@ -69,14 +70,14 @@ pub const NAMES: [&str; 9] = [
     "coverage",
     "all",
     ml_spread::NAME,
+    lens::NAME,
 ];
 
 /// Arguments of `headalign experiment`.
 #[derive(Args, Debug)]
 pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
-    /// coverage, or all; or ml-spread (the least squares' own spread from the truth; not
-    /// in all).
+    /// coverage, or all; or ml-spread or lens (not in all).
     pub name: String,
     /// Total trials, split evenly over the experiment's conditions; default per
     /// experiment.
@@ -844,6 +845,9 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     if args.name == ml_spread::NAME {
         return ml_spread::run(args);
     }
+    if args.name == lens::NAME {
+        return lens::run(args);
+    }
     let scene = scene_name(&args.scene)?;
     if args.name == "all" && scene != "default" {
         bail!(
@@ -851,7 +855,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         );
     }
     let names: Vec<&str> = if args.name == "all" {
-        NAMES.iter().copied().filter(|n| *n != "all" && *n != ml_spread::NAME).collect()
+        NAMES.iter().copied().filter(|n| *n != "all" && *n != ml_spread::NAME && *n != lens::NAME).collect()
     } else {
         experiment(&args.name, &Scenario::default())?;
         vec![args.name.as_str()]
