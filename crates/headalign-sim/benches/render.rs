@@ -20,10 +20,7 @@ fn bench_render(c: &mut Criterion) {
         ("768x576_ss1_clean", RenderOptions { supersampling: 1, ..RenderOptions::clean() }),
         (
             "768x576_ss2_distorted",
-            RenderOptions {
-                distortion: Distortion::radial(-0.2, 0.05),
-                ..RenderOptions::default()
-            },
+            RenderOptions { distortion: Distortion::radial(-0.2, 0.05), ..RenderOptions::default() },
         ),
         (
             "768x576_ss2_equidistant",

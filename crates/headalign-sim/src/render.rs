@@ -138,7 +138,12 @@ pub fn check_invertible(
     let (w, h) = (f64::from(image_size[0]), f64::from(image_size[1]));
     let probes: Vec<Point2<f64>> = [(-0.5, -0.5), (w - 0.5, -0.5), (-0.5, h - 0.5), (w - 0.5, h - 0.5)]
         .into_iter()
-        .chain([(0.5 * w - 0.5, -0.5), (0.5 * w - 0.5, h - 0.5), (-0.5, 0.5 * h - 0.5), (w - 0.5, 0.5 * h - 0.5)])
+        .chain([
+            (0.5 * w - 0.5, -0.5),
+            (0.5 * w - 0.5, h - 0.5),
+            (-0.5, 0.5 * h - 0.5),
+            (w - 0.5, 0.5 * h - 0.5),
+        ])
         .map(|(x, y)| Point2::new(x, y))
         .collect();
     let rd_max = probes.iter().map(|p| k.unproject(p).xy().norm()).fold(0.0, f64::max);
@@ -160,7 +165,7 @@ pub fn check_invertible(
     let mut reached = false;
     for i in 1..PROFILE_STEPS {
         let v = profile(step * i as f64);
-        if !(v > prev) {
+        if v.is_nan() || v <= prev {
             return Err(fail(format!("the radial profile turns back at {prev:.3}")));
         }
         if v >= rd_max {
@@ -617,9 +622,8 @@ mod tests {
     fn radial_two_term_lens_matches_the_written_out_formula() {
         let k = Scenario::default().left;
         let (k1, k2) = (-0.2, 0.05);
-        let d: Distortion = toml::from_str::<RenderOptions>("[distortion]\nk1 = -0.2\nk2 = 0.05\n")
-            .unwrap()
-            .distortion;
+        let d: Distortion =
+            toml::from_str::<RenderOptions>("[distortion]\nk1 = -0.2\nk2 = 0.05\n").unwrap().distortion;
         assert_eq!(d, Distortion::radial(k1, k2));
         for iy in 0..=12 {
             for ix in 0..=16 {
@@ -853,8 +857,7 @@ mod tests {
         let mut head = clean_head(1, Distortion::default());
         let enc = Encoders::default();
         let plain = head.render_stereo_with(&enc, &RenderOptions::clean(), 0).unwrap().0;
-        let d =
-            RenderOptions { distortion: Distortion::radial(-0.2, 0.0), ..RenderOptions::clean() };
+        let d = RenderOptions { distortion: Distortion::radial(-0.2, 0.0), ..RenderOptions::clean() };
         let distorted = head.render_stereo_with(&enc, &d, 0).unwrap().0;
         let k = head.truth().left;
         let (mut centre_max, mut far_diff, mut far_n) = (0i32, 0.0, 0);
@@ -875,8 +878,7 @@ mod tests {
         assert!(centre_max <= 1, "{centre_max}");
         assert!(far_diff / f64::from(far_n) > 5.0, "{}", far_diff / f64::from(far_n));
         // Not invertible over the image: an error, not a panic.
-        let bad =
-            RenderOptions { distortion: Distortion::radial(-1.9, 0.0), ..RenderOptions::clean() };
+        let bad = RenderOptions { distortion: Distortion::radial(-1.9, 0.0), ..RenderOptions::clean() };
         assert!(matches!(head.render_stereo_with(&enc, &bad, 0), Err(SimError::Render(_))));
     }
 
