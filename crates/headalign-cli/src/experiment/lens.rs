@@ -17,9 +17,9 @@
 //! [`Lens::quantities`]: the estimate, the truth and the reported sigma (after the
 //! residual-structure widening of `calibrate`).
 //!
-//! Reported per lens and noise level: trials that succeeded; RMS over trials of the focal
-//! error in percent (the four focal lengths pooled) and of the `k1` error (both cameras
-//! pooled), each with the RMS reported sigma beside it; the 95 % coverage of every
+//! Reported per lens and noise level: trials that succeeded; RMS and median over trials of
+//! the focal error in percent (the four focal lengths pooled) and of the `k1` error (both
+//! cameras pooled), each with the RMS and median reported sigma beside it; the 95 % coverage of every
 //! quantity (fraction of trials with `|est - truth| <= 1.96 sigma`). Units: pixels of
 //! noise, percent of `f`, lens coefficients dimensionless.
 //!
@@ -30,7 +30,7 @@
 //! 90 % coverage from 95 % by 2.5 binomial standard deviations); `--only` the noise
 //! levels; `--scene` the preset; `--seed` the first seed. The procedure's tuning flags do
 //! not apply (error). Outputs in `--out`: `lens.csv` (one row per trial, failures with
-//! their message), `lens.md` (the tables), `lens.png` / `lens.svg` (RMS errors and RMS
+//! their message), `lens.md` (the tables), `lens.png` / `lens.svg` (median errors and
 //! sigmas against noise).
 //!
 //! Pitfalls (measured, 120 trials per condition, seeds 1-120, `docs/results.md`): with
@@ -261,6 +261,12 @@ struct Summary {
     f_sigma_pct: f64,
     k1_rms: f64,
     k1_sigma: f64,
+    /// Medians of |focal error| (%), focal sigma (%), |k1 error|, k1 sigma (a few
+    /// diverged trials dominate the RMS).
+    f_median_pct: f64,
+    f_sigma_median_pct: f64,
+    k1_median: f64,
+    k1_sigma_median: f64,
     /// Coverage (0-1) per quantity of the lens.
     coverage: Vec<f64>,
 }
@@ -269,10 +275,18 @@ fn summarise(lens: usize, noise_px: f64, trials: &[&Trial]) -> Summary {
     let names = LENSES[lens].quantities();
     let ok: Vec<&Vec<Quantity>> =
         trials.iter().filter_map(|t| t.result.as_ref().ok()).map(|o| &o.quantities).collect();
-    let pick = |pred: &dyn Fn(&str) -> bool, f: &dyn Fn(&Quantity) -> f64| {
-        rms(ok.iter().flat_map(|qs| {
-            names.iter().zip(qs.iter()).filter(|(n, _)| pred(n)).map(|(_, q)| f(q)).collect::<Vec<f64>>()
-        }))
+    let values = |pred: &dyn Fn(&str) -> bool, f: &dyn Fn(&Quantity) -> f64| {
+        ok.iter()
+            .flat_map(|qs| {
+                names.iter().zip(qs.iter()).filter(|(n, _)| pred(n)).map(|(_, q)| f(q)).collect::<Vec<f64>>()
+            })
+            .collect::<Vec<f64>>()
+    };
+    let pick = |pred: &dyn Fn(&str) -> bool, f: &dyn Fn(&Quantity) -> f64| rms(values(pred, f));
+    let median = |pred: &dyn Fn(&str) -> bool, f: &dyn Fn(&Quantity) -> f64| {
+        let mut v: Vec<f64> = values(pred, f).into_iter().filter(|x| x.is_finite()).collect();
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
     };
     let is_f = |n: &str| n.ends_with(".fx") || n.ends_with(".fy");
     let is_k1 = |n: &str| n.ends_with(".k1");
@@ -300,6 +314,10 @@ fn summarise(lens: usize, noise_px: f64, trials: &[&Trial]) -> Summary {
         f_sigma_pct: pick(&is_f, &|q| 100.0 * q.sigma / q.truth),
         k1_rms: pick(&is_k1, &|q| q.est - q.truth),
         k1_sigma: pick(&is_k1, &|q| q.sigma),
+        f_median_pct: median(&is_f, &|q| 100.0 * (q.est - q.truth).abs() / q.truth),
+        f_sigma_median_pct: median(&is_f, &|q| 100.0 * q.sigma / q.truth),
+        k1_median: median(&is_k1, &|q| (q.est - q.truth).abs()),
+        k1_sigma_median: median(&is_k1, &|q| q.sigma),
         coverage,
     }
 }
@@ -357,26 +375,33 @@ fn markdown(seeds: usize, first: u64, preset: &Scenario, sums: &[Summary], secon
     let _ = writeln!(m, "## {NAME} — lens models estimated by `calibrate`: errors and coverage vs noise\n");
     let _ = writeln!(
         m,
-        "{seeds} trials per condition (seeds {first}-{}), {seconds:.0} s. Each trial: the simulated head ({} points, {:.0} % outliers) with the condition's lens in both cameras captures the initial view and views after {} deg of elevation and of pan (point mode); `calibrate` estimates the lens (`LensChoice::Model`) with zero skew. Lenses: `radtan` k1 = -0.3, k2 = 0.08 (k1, k2 estimated); `fisheye` equidistant k1..k4 = 0.00348, 0.000715, -0.00205, 0.000203 (TUM VI cam0; all four estimated). Focal error: RMS over trials of the four focal lengths pooled, in percent, beside the RMS reported sigma; k1 likewise, both cameras pooled.\n",
+        "{seeds} trials per condition (seeds {first}-{}), {seconds:.0} s. Each trial: the simulated head ({} points, {:.0} % outliers) with the condition's lens in both cameras captures the initial view and views after {} deg of elevation and of pan (point mode); `calibrate` estimates the lens (`LensChoice::Model`) with zero skew. Lenses: `radtan` k1 = -0.3, k2 = 0.08 (k1, k2 estimated); `fisheye` equidistant k1..k4 = 0.00348, 0.000715, -0.00205, 0.000203 (TUM VI cam0; all four estimated). Focal error: over trials and the four focal lengths pooled, in percent, the RMS and the median of |error| beside the RMS and the median reported sigma (a few diverged trials dominate the RMS; a calibrated Gaussian error has median |error| = 0.674 sigma); k1 likewise, both cameras pooled.\n",
         first + seeds as u64 - 1,
         preset.points,
         100.0 * preset.outlier_fraction,
         preset.rotation_deg,
     );
-    let _ = writeln!(m, "| lens | noise (px) | ok | f error (%) | f sigma (%) | k1 error | k1 sigma |");
+    let _ = writeln!(
+        m,
+        "| lens | noise (px) | ok | f error RMS / median (%) | f sigma RMS / median (%) | k1 error RMS / median | k1 sigma RMS / median |"
+    );
     let _ = writeln!(m, "|---|---|---|---|---|---|---|");
     for s in sums {
         let _ = writeln!(
             m,
-            "| {} | {} | {}/{} | {} | {} | {} | {} |",
+            "| {} | {} | {}/{} | {} / {} | {} / {} | {} / {} | {} / {} |",
             LENSES[s.lens].label,
             s.noise_px,
             s.ok,
             s.total,
             f(s.f_rms_pct, 3),
+            f(s.f_median_pct, 3),
             f(s.f_sigma_pct, 3),
+            f(s.f_sigma_median_pct, 3),
             f(s.k1_rms, 5),
-            f(s.k1_sigma, 5)
+            f(s.k1_median, 5),
+            f(s.k1_sigma, 5),
+            f(s.k1_sigma_median, 5)
         );
     }
     let n = sums.iter().map(|s| s.ok).min().unwrap_or(0);
@@ -427,15 +452,16 @@ fn markdown(seeds: usize, first: u64, preset: &Scenario, sums: &[Summary], secon
 /// One number of a condition's summary.
 type Pick = fn(&Summary) -> f64;
 
-/// The plot's curves: per lens the RMS focal error and `k1` error (x 100), solid, and
-/// the RMS reported sigmas, dashed.
+/// The plot's curves: per lens the median |focal error| and |`k1` error| (x 100), solid,
+/// and the median reported sigmas, dashed (medians: a few diverged trials would set the
+/// scale of an RMS plot).
 fn curves(sums: &[Summary]) -> Vec<Curve> {
     let mut out = Vec::new();
     for (li, lens) in LENSES.iter().enumerate() {
         let mine: Vec<&Summary> = sums.iter().filter(|s| s.lens == li).collect();
         let series: [(&str, Pick, Pick); 2] = [
-            ("f error (%)", |s| s.f_rms_pct, |s| s.f_sigma_pct),
-            ("k1 error x 100", |s| 100.0 * s.k1_rms, |s| 100.0 * s.k1_sigma),
+            ("median |f error| (%)", |s| s.f_median_pct, |s| s.f_sigma_median_pct),
+            ("median |k1 error| x 100", |s| 100.0 * s.k1_median, |s| 100.0 * s.k1_sigma_median),
         ];
         for (si, (label, err, sigma)) in series.iter().enumerate() {
             let colour = 2 * li + si;
@@ -517,9 +543,9 @@ fn run_files(args: &ExperimentArgs) -> Result<(String, String, Vec<Summary>)> {
     write_csv(&args.out.join(format!("{stem}.csv")), &trials)?;
     write_plots(
         &args.out.join(&stem),
-        "Lens models estimated by calibrate: RMS error vs noise",
+        "Lens models estimated by calibrate: median error and sigma vs noise",
         "image noise (px)",
-        "RMS error (%, k1 x 100)",
+        "median |error| (%, k1 x 100)",
         &curves(&sums),
     )?;
     let mut md = markdown(seeds, args.seed, &Scenario { rotation_deg: rotation, ..preset }, &sums, seconds);
@@ -555,7 +581,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
                     .collect();
                 json!({"lens": LENSES[s.lens].label, "noise_px": s.noise_px, "ok": s.ok, "total": s.total,
                     "f_rms_pct": s.f_rms_pct, "f_sigma_pct": s.f_sigma_pct, "k1_rms": s.k1_rms,
-                    "k1_sigma": s.k1_sigma, "coverage": cov})
+                    "k1_sigma": s.k1_sigma, "f_median_pct": s.f_median_pct, "k1_median": s.k1_median, "coverage": cov})
             })
             .collect();
         let _ = writeln!(stdout, "{}", serde_json::to_string_pretty(&v)?);
