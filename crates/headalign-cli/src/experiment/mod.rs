@@ -86,7 +86,7 @@ pub struct ExperimentArgs {
     // Seeds per condition: `ceil(trials / conditions)`, at least one (`run_one`).
     #[arg(long)]
     pub trials: Option<usize>,
-    /// Rotation of the elevation and pan views of `lens`, degrees (default 10).
+    /// Rotation of the elevation and pan views of `lens`, degrees (default 3).
     #[arg(long)]
     pub rotation: Option<f64>,
     /// First seed.
