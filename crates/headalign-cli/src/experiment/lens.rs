@@ -373,7 +373,10 @@ fn write_csv(path: &Path, trials: &[Trial]) -> Result<()> {
 fn markdown(seeds: usize, first: u64, preset: &Scenario, sums: &[Summary], seconds: f64) -> String {
     let mut m = String::new();
     let _ = writeln!(m, "## {NAME} — lens models estimated by `calibrate`: errors and coverage vs noise\n");
-    let _ = writeln!(m, "Reproduce: `headalign experiment lens --out docs/results` (release build; `experiment all` runs it too).\n");
+    let _ = writeln!(
+        m,
+        "Reproduce: `headalign experiment lens --out docs/results` (release build; `experiment all` runs it too).\n"
+    );
     let _ = writeln!(
         m,
         "{seeds} trials per condition (seeds {first}-{}), {seconds:.0} s. Each trial: the simulated head ({} points, {:.0} % outliers) with the condition's lens in both cameras captures the initial view and views after {} deg of elevation and of pan (point mode); `calibrate` estimates the lens (`LensChoice::Model`) with zero skew. Lenses: `radtan` k1 = -0.3, k2 = 0.08 (k1, k2 estimated); `fisheye` equidistant k1..k4 = 0.00348, 0.000715, -0.00205, 0.000203 (TUM VI cam0; all four estimated). Focal error: over trials and the four focal lengths pooled, in percent, the RMS and the median of |error| beside the RMS and the median reported sigma (a few diverged trials dominate the RMS; a calibrated Gaussian error has median |error| = 0.674 sigma); k1 likewise, both cameras pooled.\n",
