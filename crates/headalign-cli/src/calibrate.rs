@@ -773,8 +773,8 @@ mod tests {
         assert!(err < 0.03, "left fx {} vs {}", memory.stereo.left.fx, t.left.fx);
     }
 
-    /// A barrel lens (k1 = -0.2, k2 = 0.05, the simulator's radial model is OpenCV's
-    /// plumb_bob with p1 = p2 = k3 = 0) on rendered images: without the distortion in the
+    /// A barrel lens (k1 = -0.2, k2 = 0.05: OpenCV's plumb_bob with p1 = p2 = k3 = 0, as
+    /// the simulator draws it) on rendered images: without the distortion in the
     /// model the focal length is tens of percent off (1500 corners, no retry); estimated
     /// in the adjustment it is within 2 % (the default: 1500 corners give 1.2 % with a
     /// sigma of 0.52 %, a weak result, so it re-detects with 3000 and keeps -0.79 %,
@@ -782,7 +782,7 @@ mod tests {
     #[test]
     fn estimated_distortion_recovers_the_focal_length() {
         let mut scenario = Scenario { seed: 2, ..Scenario::default() };
-        scenario.render.distortion = headalign_sim::RadialDistortion { k1: -0.2, k2: 0.05 };
+        scenario.render.distortion = Distortion::radial(-0.2, 0.05);
         let (views, head) = simulate_views(&scenario, "rotations").unwrap();
         let t = head.truth();
         let dir = Path::new("unused");

@@ -3,6 +3,7 @@
 //! `cargo bench -p headalign-sim --bench render`
 
 use criterion::{Criterion, criterion_group, criterion_main};
+use headalign_geometry::distortion::Distortion;
 use headalign_platform::Encoders;
 use headalign_sim::render::{CameraView, RenderOptions, render_view};
 use headalign_sim::{Scenario, SimulatedHead};
@@ -19,8 +20,12 @@ fn bench_render(c: &mut Criterion) {
         ("768x576_ss1_clean", RenderOptions { supersampling: 1, ..RenderOptions::clean() }),
         (
             "768x576_ss2_distorted",
+            RenderOptions { distortion: Distortion::radial(-0.2, 0.05), ..RenderOptions::default() },
+        ),
+        (
+            "768x576_ss2_equidistant",
             RenderOptions {
-                distortion: headalign_sim::RadialDistortion { k1: -0.2, k2: 0.05 },
+                distortion: Distortion::equidistant([0.0035, 0.0007, -0.0021, 0.0002]),
                 ..RenderOptions::default()
             },
         ),

@@ -15,8 +15,9 @@
 //!
 //! Images: [`SimulatedHead::render_stereo`] renders both cameras at the current (true)
 //! pose with the textured version of the same room ([`crate::render`]); the textures are
-//! baked on the first render. With `scenario.render.distortion` non-zero, the point
-//! captures use the same distorted projection as the images.
+//! baked on the first render. With a lens in `scenario.render.distortion` (the geometry
+//! crate's `Distortion`, either model), the point captures use the same distorted
+//! projection as the images ([`crate::render::project`]).
 //!
 //! Randomness: independent ChaCha8 streams, all seeded from `scenario.seed`: head
 //! geometry (0), scene (1), captures (2), encoder readings (3), image noise (4),

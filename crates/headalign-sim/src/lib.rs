@@ -42,7 +42,7 @@ pub mod texture;
 pub use head::SimulatedHead;
 pub use kinematics::HeadTruth;
 pub use metrics::{AlignmentErrors, AxisErrors, CalibrationErrors, ReconErrors, calibration_errors};
-pub use render::{RadialDistortion, RenderOptions};
+pub use render::RenderOptions;
 pub use robot::{RobotTruth, SimulatedRobot};
 pub use scenario::Scenario;
 pub use texture::{TextureReport, TexturedScene};

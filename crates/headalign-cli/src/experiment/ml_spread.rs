@@ -412,6 +412,7 @@ fn refuse_tuning(args: &ExperimentArgs) -> Result<()> {
         (args.angle_prior.is_some(), "--angle-prior"),
         (args.bootstrap.is_some(), "--bootstrap"),
         (args.encoder_noise != ENCODER_SIGMA_DEG, "--encoder-noise"),
+        (args.rotation.is_some(), "--rotation"),
     ];
     if let Some((_, flag)) = given.iter().find(|(g, _)| *g) {
         bail!("{flag} does not apply to {NAME}, which runs the least squares alone from the truth");

@@ -30,8 +30,11 @@
 //! DIR with the paper's numbers and the bars.
 //!
 //! Each experiment's conditions, series and default trial count are defined in [`catalog`].
+//! `lens` ([`lens`] module) runs the `calibrate` route with a lens model instead of the
+//! verge/tilt procedure (its own runner, tables and plot); `all` runs it last.
 
 mod catalog;
+pub mod lens;
 pub mod ml_spread;
 pub mod pan;
 pub mod plot;
@@ -59,7 +62,7 @@ use self::stats::{coverage, quantity_crb, quantity_rms, rms};
 use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
 
 /// Names accepted by `headalign experiment`.
-pub const NAMES: [&str; 9] = [
+pub const NAMES: [&str; 10] = [
     "fig5-verge-tilt",
     "fig5-pan-tilt",
     "calibration",
@@ -69,20 +72,23 @@ pub const NAMES: [&str; 9] = [
     "coverage",
     "all",
     ml_spread::NAME,
+    lens::NAME,
 ];
 
 /// Arguments of `headalign experiment`.
 #[derive(Args, Debug)]
 pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
-    /// coverage, or all; or ml-spread (the least squares' own spread from the truth; not
-    /// in all).
+    /// coverage, lens, or all; or ml-spread (not in all).
     pub name: String,
     /// Total trials, split evenly over the experiment's conditions; default per
     /// experiment.
     // Seeds per condition: `ceil(trials / conditions)`, at least one (`run_one`).
     #[arg(long)]
     pub trials: Option<usize>,
+    /// Rotation of the elevation and pan views of `lens`, degrees (default 3).
+    #[arg(long)]
+    pub rotation: Option<f64>,
     /// First seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -844,6 +850,12 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     if args.name == ml_spread::NAME {
         return ml_spread::run(args);
     }
+    if args.name == lens::NAME {
+        return lens::run(args);
+    }
+    if args.rotation.is_some() {
+        bail!("--rotation applies to the lens experiment only");
+    }
     let scene = scene_name(&args.scene)?;
     if args.name == "all" && scene != "default" {
         bail!(
@@ -851,7 +863,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         );
     }
     let names: Vec<&str> = if args.name == "all" {
-        NAMES.iter().copied().filter(|n| *n != "all" && *n != ml_spread::NAME).collect()
+        NAMES.iter().copied().filter(|n| *n != "all" && *n != ml_spread::NAME && *n != lens::NAME).collect()
     } else {
         experiment(&args.name, &Scenario::default())?;
         vec![args.name.as_str()]
@@ -871,6 +883,17 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         }
     }
     if args.name == "all" {
+        // The lens experiment (its own runner: the calibrate route), after the others.
+        let (stem, markdown) = lens::run_for_all(args)?;
+        produced.push(Produced {
+            name: lens::NAME,
+            scene: "default",
+            stem,
+            markdown,
+            sums: Vec::new(),
+            series_labels: Vec::new(),
+            quantities: &[],
+        });
         let path = results_path(&args.out);
         std::fs::write(&path, report::results_md(&produced, &args.out))
             .with_context(|| format!("cannot write {}", path.display()))?;
@@ -907,6 +930,7 @@ mod tests {
         let args = ExperimentArgs {
             name: "points".into(),
             trials: None,
+            rotation: None,
             seed: 3,
             out: std::env::temp_dir().join(format!("headalign-scene-rows-{}", std::process::id())),
             json: false,

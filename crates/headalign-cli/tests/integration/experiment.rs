@@ -77,6 +77,40 @@ fn outliers_writes_its_files() {
     writes_its_files("outliers");
 }
 
+/// `lens` with one seed per lens at 1 px: its four files, one CSV row per trial with the
+/// header's columns, both lenses in the summary with a coverage table, and the
+/// procedure's tuning flags refused.
+#[test]
+fn lens_writes_its_files() {
+    let dir = out_dir("lens");
+    let out = bin()
+        .args(["experiment", "lens", "--trials", "2", "--only", "1", "--out", dir.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for ext in ["csv", "png", "svg", "md"] {
+        let len = std::fs::metadata(dir.join(format!("lens.{ext}"))).map(|m| m.len()).unwrap_or(0);
+        assert!(len > 100, "lens.{ext} missing or empty");
+    }
+    let csv = std::fs::read_to_string(dir.join("lens.csv")).unwrap();
+    let header_cols = csv.lines().next().unwrap().split(',').count();
+    assert_eq!(csv.lines().count(), 3, "{csv}");
+    for line in csv.lines().skip(1) {
+        assert_eq!(line.split(',').count(), header_cols, "ragged CSV row {line}");
+        assert!(line.contains(",true,"), "failed trial: {line}");
+    }
+    let md = String::from_utf8_lossy(&out.stdout);
+    for words in ["| radtan | 1 | 1/1 |", "| fisheye | 1 | 1/1 |", "95 % coverage", "right.k4"] {
+        assert!(md.contains(words), "'{words}' missing in {md}");
+    }
+    let out = bin()
+        .args(["experiment", "lens", "--bootstrap", "off", "--out", dir.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && stderr.contains("does not apply"), "{stderr}");
+}
+
 #[test]
 fn coverage_writes_its_files() {
     writes_its_files("coverage");

@@ -514,7 +514,7 @@ fn planar_scene_is_named() {
 #[test]
 fn known_distortion_is_removed() {
     let mut scenario = Scenario { noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
-    scenario.render.distortion = headalign_sim::RadialDistortion { k1: -0.2, k2: 0.05 };
+    scenario.render.distortion = Distortion::radial(-0.2, 0.05);
     let mut head = SimulatedHead::new(scenario).unwrap();
     let e0 = head.encoders();
     let views = capture_views(
