@@ -104,6 +104,7 @@
 mod adjust;
 mod frame;
 mod homographies;
+mod lens;
 mod likelihood;
 mod linear;
 mod restart;
@@ -119,6 +120,7 @@ use std::borrow::Cow;
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::bundle::{BundleObservation, BundleOptions, BundleResult, Motions, RigState, Side};
 use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::distortion::DistortionTerms;
 use headalign_geometry::ransac::RansacOptions;
 use headalign_geometry::so3::Line;
 use headalign_platform::Encoders;
@@ -144,8 +146,11 @@ use restart::reversed_rig_restart;
 use starts::{InitContext, commanded_angles, initial_states, point_set};
 use stereo::stereo_geometry;
 
+use crate::calibrate::{LensChoice, undistort_views};
 use crate::error::AlignError;
 use crate::observations::View;
+pub use lens::LensReport;
+use lens::LensStart;
 
 /// Default standard deviation of a commanded joint rotation, degrees: the resolution of a
 /// typical head encoder. The prior on each rotation angle is what fixes the focal lengths
@@ -271,6 +276,17 @@ pub struct EstimationOptions {
     /// 0.5 px. On rendered images (`bench/seeds.py 1 24 --images`) it changes almost
     /// nothing (f 0.035 / 0.043 % with it, 0.035 / 0.043 % without, seeds 1-8 / 9-24).
     pub lone_depth_gate: Option<LoneDepthGate>,
+    /// The lens model [`estimate_rig`] estimates for both cameras (default
+    /// [`LensChoice::Pinhole`]: none, the pipeline exactly as without lenses). A model
+    /// frees its coefficients `lens_terms` of each camera in the adjustments, from a start
+    /// whose linear chain ran on pixels undistorted by a first estimate (`lens.rs`, module
+    /// docs "Lens models"); [`LensChoice::Auto`] chooses among the three by the criterion
+    /// of [`crate::calibrate::lens_choice`] and reports it. [`crate::calibrate`] takes its
+    /// own [`crate::calibrate::CalibrateOptions::lens`] and ignores this one.
+    pub lens: LensChoice,
+    /// Which coefficients of the model are estimated (default [`DistortionTerms::Radial2`]:
+    /// `k1, k2`).
+    pub lens_terms: DistortionTerms,
 }
 
 /// Which points [`lone_depth_outliers`] flags: a point seen once by one camera whose log
@@ -387,6 +403,8 @@ impl Default for EstimationOptions {
             image_border: true,
             min_camera_observations: 1,
             lone_depth_gate: Some(LoneDepthGate::DEFAULT),
+            lens: LensChoice::Pinhole,
+            lens_terms: DistortionTerms::Radial2,
         }
     }
 }
@@ -519,6 +537,9 @@ pub struct EstimationReport {
     /// The bootstrap of the covariance ([`EstimationOptions::bootstrap`]); `None` when off
     /// or when fewer than 3 replicates converged.
     pub bootstrap: Option<BootstrapReport>,
+    /// The lens estimate's start and choice ([`EstimationOptions::lens`]); `None` for the
+    /// pinhole.
+    pub lens: Option<LensReport>,
 }
 
 /// What [`bootstrap_covariance`] did.
@@ -606,7 +627,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
     loop {
         let current: &[View] = if dropped.is_empty() { views } else { &kept };
         let mut at_view = None;
-        let error = match estimate_rig_once(current, options, &mut at_view) {
+        let error = match lens::estimate_with_lens(current, options, &mut at_view) {
             Ok(mut calibration) => {
                 calibration.report.dropped_views = dropped;
                 return Ok(calibration);
@@ -628,10 +649,15 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
 /// `at_view` names the view (index into `views`) whose 3D homography step failed, if
 /// that is where it failed.
 fn estimate_rig_once(
-    views: &[View],
+    original: &[View],
     options: &EstimationOptions,
     at_view: &mut Option<usize>,
+    lens: Option<&LensStart>,
 ) -> Result<RigCalibration, AlignError> {
+    // With a lens start, steps 1-5 run on the pixels undistorted by its first estimate
+    // and the adjustments (6-10) on the original pixels (`lens.rs`).
+    let chain_views = lens.and_then(|l| l.chain.as_ref()).map(|m| undistort_views(original, m));
+    let views: &[View] = chain_views.as_deref().unwrap_or(original);
     // 1. View roles; the rig views are all but the verge views, slot 0 the reference.
     let roles = classify_views(views)?;
     let rig: Vec<usize> = (0..views.len()).filter(|&i| !matches!(roles[i], ViewRole::Verge)).collect();
@@ -659,9 +685,14 @@ fn estimate_rig_once(
     };
     let linear_blocked = rotations.linear_blocked.take();
     let threshold = options.fundamental.threshold;
-    let starts = initial_states(&ctx, linear_blocked, &rotations, &stereo, &structure, &k0, threshold);
+    let mut starts = initial_states(&ctx, linear_blocked, &rotations, &stereo, &structure, &k0, threshold);
+    if let Some(l) = lens {
+        for s in starts.iter_mut().flatten() {
+            [s.left_distortion, s.right_distortion] = l.distortion;
+        }
+    }
     // 6-7. Screening, robust adjustment, maximum-likelihood pass.
-    let all_obs = rig_observations(views, &rig, &point_tracks);
+    let all_obs = rig_observations(original, &rig, &point_tracks);
     let first_obs = first_selection(&all_obs, &point_tracks, recon, &rotations.quad_inliers);
     let adjusted =
         adjust_from_starts(starts, &first_obs, &all_obs, &point_tracks, &origin_slot, recon, options)?;
@@ -704,6 +735,7 @@ fn estimate_rig_once(
         dropped_views: Vec::new(),
         depth_profile,
         bootstrap,
+        lens: None,
     };
     let point_observations =
         reconstructed_point_observations(&final_result.state, &second_obs, point_tracks.len());
