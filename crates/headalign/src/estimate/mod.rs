@@ -538,7 +538,8 @@ pub struct EstimationReport {
     /// or when fewer than 3 replicates converged.
     pub bootstrap: Option<BootstrapReport>,
     /// The lens estimate's start and choice ([`EstimationOptions::lens`]); `None` for the
-    /// pinhole.
+    /// pinhole (and then absent from the JSON).
+    #[serde(skip_serializing_if = "Option::is_none")]
     pub lens: Option<LensReport>,
 }
 

@@ -438,7 +438,7 @@ pub fn capture_plan(e0: &Encoders, options: &VergeTiltOptions) -> Vec<(String, E
 /// ([`crate::estimate::EstimationOptions::lens`]), so that the pinhole resections of the
 /// vergence axes and the checks see the cameras the calibration describes; the capture
 /// itself for pinhole cameras. A pixel outside the lens model's valid range is dropped.
-pub(crate) fn pinhole_capture(
+pub fn pinhole_capture(
     calib: &RigCalibration,
     capture: &headalign_platform::StereoCapture,
 ) -> headalign_platform::StereoCapture {

@@ -134,6 +134,15 @@ pub struct SessionInfo {
     /// `robot-images`); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stages: Option<serde_json::Value>,
+    /// The lens model the estimation used (`radtan`, `equidistant` or `auto`:
+    /// [`crate::estimate::EstimationOptions::lens`]); absent for the pinhole, and in older
+    /// sessions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lens: Option<String>,
+    /// The lens coefficients estimated with `lens` ([`crate::estimate::EstimationOptions::lens_terms`]);
+    /// absent with `lens`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lens_terms: Option<headalign_geometry::distortion::DistortionTerms>,
 }
 
 impl SessionInfo {
@@ -149,6 +158,8 @@ impl SessionInfo {
             image_size,
             head: serde_json::Value::Null,
             stages: None,
+            lens: None,
+            lens_terms: None,
         }
     }
 }
