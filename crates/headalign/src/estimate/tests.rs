@@ -642,3 +642,24 @@ fn lens_terms_free_converge_noise_free() {
     let f_err = (pinhole.bundle.state.left.fx / truth.left.fx - 1.0).abs();
     assert!(f_err > 0.01, "pinhole fx error {f_err}");
 }
+
+/// `lens = auto` in point mode (0.5 px, no outliers): on the barrel lens of
+/// [`with_sim_lens`] the criterion keeps the radial-tangential model (the pinhole's
+/// chi-square is thousands of units worse), on a pinhole camera it keeps the pinhole (the
+/// lens terms lower the chi-square by about their count, less than their `ln n` penalty
+/// of about 9 each); the choice is reported with every candidate.
+#[test]
+fn auto_lens_chooses_by_the_criterion() {
+    let options = EstimationOptions { seed: 4, lens: LensChoice::Auto, ..Default::default() };
+    let base = headalign_sim::Scenario { seed: 4, noise_px: 0.5, outlier_fraction: 0.0, ..Default::default() };
+    let chosen = |scenario: headalign_sim::Scenario| {
+        let calib = estimate_rig(&sim_views(scenario), &options).unwrap();
+        let lens = calib.report.lens.unwrap();
+        let selection = lens.selection.unwrap();
+        assert_eq!(selection.candidates.len(), 3, "{selection:?}");
+        assert_eq!(lens.model, selection.chosen);
+        selection.chosen
+    };
+    assert_eq!(chosen(with_sim_lens(base.clone(), -0.25)), "radtan");
+    assert_eq!(chosen(base), "pinhole");
+}
