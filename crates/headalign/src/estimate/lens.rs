@@ -16,8 +16,8 @@
 //!    with the lens free, so the reported covariance and sigmas include the lens terms
 //!    (`left.k1` ... in the covariance's names).
 //!
-//! Why two passes: a barrel lens of `k1 = -0.25` moves the border pixels of a 640 px
-//! image by some 30 px; the linear steps see that as a projective error (F's RANSAC at
+//! Why two passes: a barrel lens of `k1 = -0.25` moves the corner pixels of a 768 x 576
+//! image by some 55 px; the linear steps see that as a projective error (F's RANSAC at
 //! 3 px keeps mostly the centre, the plane homographies of the rotations are bent), so the
 //! first estimate may start poorly and keep fewer inliers. The second pass starts from
 //! pixels whose remaining distortion is the first estimate's error, a pinhole problem

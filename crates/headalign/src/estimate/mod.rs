@@ -81,6 +81,11 @@
 //!     pixels) the linearised sigmas are too small; this mends that at about one
 //!     warm-started adjustment per replicate.
 //!
+//! Lens models (`lens.rs`, [`EstimationOptions::lens`], default the pinhole): the lens
+//! coefficients of both cameras are freed in steps 6-10; the steps 1-5 run first on the
+//! captured pixels, then again on pixels undistorted by that first estimate, and the
+//! adjustments on the captured pixels (`lens.rs` module docs).
+//!
 //! This file holds the options ([`EstimationOptions`] and its gates), the reports and the
 //! result ([`RigCalibration`]), and [`estimate_rig`], which calls the steps in order and
 //! leaves out a rotated view whose 3D homography fails when the rest still suffice.

@@ -600,7 +600,7 @@ fn with_sim_lens(scenario: headalign_sim::Scenario, k1: f64) -> headalign_sim::S
     s
 }
 
-/// Point mode, noise-free, no outliers, a barrel lens of `k1 = -0.25` (30 px at the
+/// Point mode, noise-free, no outliers, a barrel lens of `k1 = -0.25` (55 px at the
 /// image corners): with `lens = radtan` (`k1, k2` free in both cameras) the estimate
 /// converges to the truth (both focal lengths within 0.1 %, `k1` within 0.002, `k2`
 /// within 0.01: noise-free, the remaining error is the adjustment's stopping tolerance,
@@ -651,7 +651,8 @@ fn lens_terms_free_converge_noise_free() {
 #[test]
 fn auto_lens_chooses_by_the_criterion() {
     let options = EstimationOptions { seed: 4, lens: LensChoice::Auto, ..Default::default() };
-    let base = headalign_sim::Scenario { seed: 4, noise_px: 0.5, outlier_fraction: 0.0, ..Default::default() };
+    let base =
+        headalign_sim::Scenario { seed: 4, noise_px: 0.5, outlier_fraction: 0.0, ..Default::default() };
     let chosen = |scenario: headalign_sim::Scenario| {
         let calib = estimate_rig(&sim_views(scenario), &options).unwrap();
         let lens = calib.report.lens.unwrap();

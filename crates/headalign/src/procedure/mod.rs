@@ -45,6 +45,12 @@
 //! tracker that loses tracks at larger rotations shrinks the choice, as it should (seed 1
 //! on rendered images: 10 deg single-joint views, 3 deg diagonals).
 //!
+//! With a lens model ([`EstimationOptions::lens`]) the vergence view and the check views
+//! are resected on their pixels undistorted with the estimated lens
+//! ([`pinhole_capture`]); the axes' uncertainty then holds those pixels fixed (a
+//! perturbation of the lens terms moves the calibration's points, not the resected
+//! pixels).
+//!
 //! Every captured view is kept in the outcome (and in the error path the caller still has
 //! them through [`VergeTiltRun::views`]). Angles in degrees.
 //!

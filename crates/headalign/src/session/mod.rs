@@ -8,7 +8,8 @@
 //! DIR/
 //!   session.json        what ran: format, created_utc, procedure, rotation_deg,
 //!                       estimation_seed, image_size, head (free-form description), and
-//!                       with robot stages `stages` (their names and settings)
+//!                       with robot stages `stages` (their names and settings); with
+//!                       a lens model `lens` and `lens_terms` (absent: the pinhole)
 //!   events.jsonl        every call the procedure made on the head, one JSON object a line:
 //!                       {"op":"read","encoders":{..}} | {"op":"move","target":{..}}
 //!                       | {"op":"capture","folder":"03-pan+"}, and on a vehicle
