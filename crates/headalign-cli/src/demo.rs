@@ -580,6 +580,9 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
         }
     }
     say!();
+    if let Some(line) = images::lens_line(&v["estimate"]) {
+        say!("{line}");
+    }
     say!("{:<22} {:>12} {:>12}", "alignment error (deg)", "before", "after");
     for (name, key) in [
         ("verge left", "verge_err_l_deg"),

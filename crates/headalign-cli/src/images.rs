@@ -437,6 +437,34 @@ pub fn estimate_json(outcome: &VergeTiltOutcome) -> Result<Value> {
     Ok(v)
 }
 
+/// One line on the estimated lenses of an `estimate` JSON member (`None` without a lens):
+/// each camera's coefficients with their sigmas, and the `auto` choice.
+pub fn lens_line(estimate: &Value) -> Option<String> {
+    let lens = estimate.get("lens")?;
+    let model = lens["estimation"]["model"].as_str().unwrap_or("?");
+    let side = |name: &str| -> String {
+        let names = match lens["model"][usize::from(name == "right")].as_str() {
+            Some("equidistant") => ["k1", "k2", "k3", "k4", ""],
+            _ => ["k1", "k2", "p1", "p2", "k3"],
+        };
+        let values = lens[name].as_array().cloned().unwrap_or_default();
+        let parts: Vec<String> = names
+            .iter()
+            .zip(&values)
+            .filter_map(|(n, v)| {
+                let sigma = lens["sigma"][format!("{name}.{n}")].as_f64()?;
+                Some(format!("{n} {:.4} +- {sigma:.4}", v.as_f64().unwrap_or(f64::NAN)))
+            })
+            .collect();
+        format!("{name} {}", parts.join(", "))
+    };
+    let mut line = format!("lens {model}: {}; {}", side("left"), side("right"));
+    if let Some(reason) = lens["estimation"]["selection"]["reason"].as_str() {
+        line += &format!(" (auto: {reason})");
+    }
+    Some(line)
+}
+
 /// The estimated lenses of a calibration with their sigmas (`None` for a pinhole
 /// estimate): `model` (ROS names, left and right), the coefficients in each model's
 /// order (`k1 k2 p1 p2 k3` or `k1..k4`), `sigma` per estimated coefficient (`left.k1`

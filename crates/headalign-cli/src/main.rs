@@ -490,6 +490,9 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     };
     show_k("left ", &state.left);
     show_k("right", &state.right);
+    if let Some(line) = images::lens_json(&a.calib).and_then(|l| images::lens_line(&json!({ "lens": l }))) {
+        say!("{line}");
+    }
     say!(
         "fixation point: left ({:.2}, {:.2}) px, right ({:.2}, {:.2}) px",
         solution.fixation_px_left[0],

@@ -211,6 +211,9 @@ pub fn print_summary(v: &Value) {
             f(&e[side]["cy"])
         );
     }
+    if let Some(line) = images::lens_line(e) {
+        say!("{line}");
+    }
     let a = &e["aligned_encoders"];
     let s = &e["aligned_sigma_deg"];
     say!(
