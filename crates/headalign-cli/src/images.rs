@@ -285,16 +285,63 @@ pub fn robot_stages<H: ImagingHead + Vehicle>(
     let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
     let prior = move |enc: &Encoders| stereo_fundamental(calib, verge, enc).ok();
     let mut tracking_head = TrackingHead::new(head, options)?.with_stereo_prior(Box::new(prior));
+    // The stages' geometry is pinhole: they see the tracks undistorted with the
+    // calibration's lenses (unchanged for a pinhole calibration).
+    let mut undistorting = Undistorting { inner: &mut tracking_head, calib };
     let outcomes = run_robot_stages(
-        &mut tracking_head,
+        &mut undistorting,
         plan,
         &outcome.calibration,
         &outcome.verge_axes,
         Some(&outcome.axis_perturbations()),
-        &mut |t, stage| on_stage(t.inner(), stage),
+        &mut |t, stage| on_stage(t.inner.inner(), stage),
     )
     .context("robot stages on images")?;
     Ok(RobotRun { outcomes, tracking: std::mem::take(&mut tracking_head.tracking) })
+}
+
+/// A head whose captures are undistorted with a calibration's estimated lenses
+/// (`headalign::procedure::pinhole_capture`; unchanged for a pinhole calibration), for the
+/// robot stages, whose geometry is pinhole. Every other call goes to `inner`.
+struct Undistorting<'a, H> {
+    inner: &'a mut H,
+    calib: &'a RigCalibration,
+}
+
+impl<H: headalign_platform::StereoHead> headalign_platform::StereoHead for Undistorting<'_, H> {
+    fn image_size(&self) -> [u32; 2] {
+        self.inner.image_size()
+    }
+    fn read_encoders(&mut self) -> std::result::Result<Encoders, headalign_platform::PlatformError> {
+        self.inner.read_encoders()
+    }
+    fn move_to(&mut self, target: &Encoders) -> std::result::Result<(), headalign_platform::PlatformError> {
+        self.inner.move_to(target)
+    }
+    fn capture(
+        &mut self,
+    ) -> std::result::Result<headalign_platform::StereoCapture, headalign_platform::PlatformError> {
+        let capture = self.inner.capture()?;
+        Ok(headalign::procedure::pinhole_capture(self.calib, &capture))
+    }
+}
+
+impl<H: Vehicle> Vehicle for Undistorting<'_, H> {
+    fn drive(&mut self, distance_m: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
+        self.inner.drive(distance_m)
+    }
+    fn steer_to(&mut self, encoder_deg: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
+        self.inner.steer_to(encoder_deg)
+    }
+    fn read_steering(&mut self) -> std::result::Result<f64, headalign_platform::PlatformError> {
+        self.inner.read_steering()
+    }
+    fn steer_by(&mut self, delta_deg: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
+        self.inner.steer_by(delta_deg)
+    }
+    fn last_odometry(&self) -> Option<headalign_platform::Odometry> {
+        self.inner.last_odometry()
+    }
 }
 
 /// [`recorded`] followed by the robot stages of `plan` on the same (recording) head, for
