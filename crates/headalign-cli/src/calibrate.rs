@@ -141,12 +141,12 @@ pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
     }
 }
 
-fn parse_lens(s: &str) -> Result<LensChoice, String> {
+pub(crate) fn parse_lens(s: &str) -> Result<LensChoice, String> {
     LensChoice::parse(s)
         .ok_or_else(|| format!("unknown lens model '{s}': pinhole, radtan, equidistant or auto"))
 }
 
-fn parse_terms(s: &str) -> Result<DistortionTerms, String> {
+pub(crate) fn parse_terms(s: &str) -> Result<DistortionTerms, String> {
     DistortionTerms::parse(s).ok_or_else(|| format!("unknown lens terms '{s}': radial, 4 or 5"))
 }
 

@@ -100,6 +100,9 @@ pub struct DemoArgs {
     // `EstimationOptions::bootstrap`; each replicate costs about one more adjustment.
     #[arg(long, value_parser = crate::parse_replicates, conflicts_with = "images")]
     bootstrap: Option<BootstrapOptions>,
+    /// With --images: the lens model estimated (recorded in the session).
+    #[command(flatten)]
+    lens: images::LensArgs,
 }
 
 /// The robot stages and their settings from the demo's flags.
@@ -130,6 +133,12 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     let (scenario, rplan) = scenario_and_plan(args)?;
     if args.images {
         return run_images(args, &scenario, &rplan);
+    }
+    if args.lens.lens != headalign::calibrate::LensChoice::Pinhole {
+        anyhow::bail!(
+            "--lens {} needs --images (point mode: align --observations --lens)",
+            args.lens.lens.name()
+        );
     }
     run_points(args, &scenario, &rplan)
 }
@@ -544,7 +553,7 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
         (None, true) => images::SessionTarget::None,
         (None, false) => images::SessionTarget::Default,
     };
-    let v = images::run(scenario, args.auto_rotation, &target, plan)?;
+    let v = images::run(scenario, args.auto_rotation, &target, plan, &args.lens)?;
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
@@ -574,6 +583,9 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
         }
     }
     say!();
+    if let Some(line) = images::lens_line(&v["estimate"]) {
+        say!("{line}");
+    }
     say!("{:<22} {:>12} {:>12}", "alignment error (deg)", "before", "after");
     for (name, key) in [
         ("verge left", "verge_err_l_deg"),

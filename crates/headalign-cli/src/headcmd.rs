@@ -74,6 +74,9 @@ pub struct RunArgs {
     /// Print one JSON object instead of the summary.
     #[arg(long)]
     pub json: bool,
+    /// The lens model estimated (recorded in the session).
+    #[command(flatten)]
+    pub lens: images::LensArgs,
 }
 
 /// The stage plan of `run`'s flags; fails when the verge/tilt stage is not first.
@@ -124,15 +127,21 @@ pub fn run(args: &RunArgs) -> Result<()> {
     };
     let description = json!({"kind": "process", "command": head.command(), "name": head.name()});
     let session = target.resolve().map(|d| {
-        let mut info =
-            images::session_info(args.rotation, args.auto_rotation, head.image_size(), description);
+        let mut info = images::session_info(
+            args.rotation,
+            args.auto_rotation,
+            head.image_size(),
+            description,
+            &args.lens,
+        );
         if plan.drives() {
             info.procedure = images::PROCEDURE_ROBOT.to_string();
             info.stages = serde_json::to_value(&plan).ok();
         }
         (d, info)
     });
-    let seed = headalign::estimate::EstimationOptions::default().seed;
+    let seed =
+        images::Estimation { seed: headalign::estimate::EstimationOptions::default().seed, lens: args.lens };
     let (run, _, v) = if plan.drives() {
         images::recorded_robot(
             &mut head,

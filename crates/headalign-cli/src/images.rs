@@ -16,6 +16,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use headalign::alignment::AlignmentSolution;
+use headalign::calibrate::LensChoice;
 use headalign::estimate::{EstimationOptions, RigCalibration};
 use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking};
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
@@ -29,6 +30,7 @@ use headalign::session::{
     default_session_dir,
 };
 use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
+use headalign_geometry::distortion::DistortionTerms;
 use headalign_platform::{Encoders, ImagingHead, StereoImages, Vehicle};
 use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
@@ -43,6 +45,61 @@ pub const PROCEDURE: &str = "verge-tilt-images";
 /// The procedure name in `session.json` for image mode followed by robot stages (the
 /// stages and their settings in `session.json`'s `stages`).
 pub const PROCEDURE_ROBOT: &str = "robot-images";
+
+/// `--lens` and `--lens-terms` of the image procedures (`demo --images`, `run`, `align`):
+/// the lens model the estimation frees in both cameras (`EstimationOptions::lens`).
+#[derive(clap::Args, Debug, Clone, Copy)]
+pub struct LensArgs {
+    /// Lens model estimated for both cameras: `pinhole`, `radtan`, `equidistant` or `auto`
+    /// (chosen by BIC, reported).
+    #[arg(long, value_parser = crate::calibrate::parse_lens, default_value = "pinhole")]
+    pub lens: LensChoice,
+    /// Lens coefficients estimated: `radial` (k1 k2), `4` or `5` (as `calibrate --lens-terms`).
+    #[arg(long, value_parser = crate::calibrate::parse_terms, default_value = "radial")]
+    pub lens_terms: DistortionTerms,
+}
+
+impl Default for LensArgs {
+    fn default() -> Self {
+        Self { lens: LensChoice::Pinhole, lens_terms: DistortionTerms::Radial2 }
+    }
+}
+
+impl LensArgs {
+    /// The lens a session recorded (`session.json`'s `lens`, `lens_terms`; the pinhole when
+    /// absent); an unknown name is an error naming it.
+    pub fn of_session(info: &SessionInfo) -> Result<Self> {
+        let lens = match &info.lens {
+            None => LensChoice::Pinhole,
+            Some(name) => LensChoice::parse(name)
+                .with_context(|| format!("session.json: unknown lens model '{name}'"))?,
+        };
+        Ok(Self { lens, lens_terms: info.lens_terms.unwrap_or(DistortionTerms::Radial2) })
+    }
+
+    /// Record this lens in a session description (nothing for the pinhole).
+    pub fn record(&self, info: &mut SessionInfo) {
+        if self.lens != LensChoice::Pinhole {
+            info.lens = Some(self.lens.name().to_string());
+            info.lens_terms = Some(self.lens_terms);
+        }
+    }
+
+    /// The estimation options with this lens.
+    pub fn apply(&self, estimation: EstimationOptions) -> EstimationOptions {
+        EstimationOptions { lens: self.lens, lens_terms: self.lens_terms, ..estimation }
+    }
+}
+
+/// The estimation choices of an image procedure: the seed (recorded: a replay reproduces
+/// the run) and the lens.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Estimation {
+    /// Seed of the estimation's random choices.
+    pub seed: u64,
+    /// The lens model.
+    pub lens: LensArgs,
+}
 
 /// Where sessions go when the user names none: `./headalign-sessions/<UTC time>`.
 pub const DEFAULT_SESSION_BASE: &str = "headalign-sessions";
@@ -98,7 +155,7 @@ pub fn procedure<H: ImagingHead>(
     head: &mut H,
     rotation_deg: f64,
     auto_rotation: bool,
-    estimation_seed: u64,
+    estimation: Estimation,
     on_stage: &mut OnStage<'_, H>,
 ) -> (ImageRun, Result<VergeTiltOutcome>) {
     let mut out = ImageRun::default();
@@ -112,7 +169,7 @@ pub fn procedure<H: ImagingHead>(
         verge_rotation_deg: rotation_deg,
         // The session records the seed: a replay reproduces this run bit for bit (and
         // `align --images`, which uses the default seed, too when the run did).
-        estimation: tracked_estimation(estimation_seed),
+        estimation: estimation.lens.apply(tracked_estimation(estimation.seed)),
         auto_rotation: auto_rotation.then(AutoRotation::default),
         ..VergeTiltOptions::default()
     };
@@ -172,11 +229,11 @@ pub fn recorded<H: ImagingHead>(
     session: Option<(PathBuf, SessionInfo)>,
     rotation_deg: f64,
     auto_rotation: bool,
-    seed: u64,
+    estimation: Estimation,
     report: &mut dyn FnMut(&mut H, &ImageRun, &VergeTiltOutcome) -> Result<Value>,
 ) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
     let Some((dir, info)) = session else {
-        let (run, outcome) = procedure(head, rotation_deg, auto_rotation, seed, &mut |_, _, _, _| {});
+        let (run, outcome) = procedure(head, rotation_deg, auto_rotation, estimation, &mut |_, _, _, _| {});
         let outcome = outcome?;
         let json = report(head, &run, &outcome)?;
         return Ok((run, outcome, json));
@@ -184,7 +241,7 @@ pub fn recorded<H: ImagingHead>(
     let writer = SessionWriter::create(&dir, &info).context("session")?;
     let mut rec = RecordingHead::new(head, writer);
     let (run, outcome) =
-        procedure(&mut rec, rotation_deg, auto_rotation, seed, &mut |h, stage, plan, other| {
+        procedure(&mut rec, rotation_deg, auto_rotation, estimation, &mut |h, stage, plan, other| {
             h.set_stage(stage, plan, other)
         });
     let writer = rec.into_writer();
@@ -228,16 +285,63 @@ pub fn robot_stages<H: ImagingHead + Vehicle>(
     let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
     let prior = move |enc: &Encoders| stereo_fundamental(calib, verge, enc).ok();
     let mut tracking_head = TrackingHead::new(head, options)?.with_stereo_prior(Box::new(prior));
+    // The stages' geometry is pinhole: they see the tracks undistorted with the
+    // calibration's lenses (unchanged for a pinhole calibration).
+    let mut undistorting = Undistorting { inner: &mut tracking_head, calib };
     let outcomes = run_robot_stages(
-        &mut tracking_head,
+        &mut undistorting,
         plan,
         &outcome.calibration,
         &outcome.verge_axes,
         Some(&outcome.axis_perturbations()),
-        &mut |t, stage| on_stage(t.inner(), stage),
+        &mut |t, stage| on_stage(t.inner.inner(), stage),
     )
     .context("robot stages on images")?;
     Ok(RobotRun { outcomes, tracking: std::mem::take(&mut tracking_head.tracking) })
+}
+
+/// A head whose captures are undistorted with a calibration's estimated lenses
+/// (`headalign::procedure::pinhole_capture`; unchanged for a pinhole calibration), for the
+/// robot stages, whose geometry is pinhole. Every other call goes to `inner`.
+struct Undistorting<'a, H> {
+    inner: &'a mut H,
+    calib: &'a RigCalibration,
+}
+
+impl<H: headalign_platform::StereoHead> headalign_platform::StereoHead for Undistorting<'_, H> {
+    fn image_size(&self) -> [u32; 2] {
+        self.inner.image_size()
+    }
+    fn read_encoders(&mut self) -> std::result::Result<Encoders, headalign_platform::PlatformError> {
+        self.inner.read_encoders()
+    }
+    fn move_to(&mut self, target: &Encoders) -> std::result::Result<(), headalign_platform::PlatformError> {
+        self.inner.move_to(target)
+    }
+    fn capture(
+        &mut self,
+    ) -> std::result::Result<headalign_platform::StereoCapture, headalign_platform::PlatformError> {
+        let capture = self.inner.capture()?;
+        Ok(headalign::procedure::pinhole_capture(self.calib, &capture))
+    }
+}
+
+impl<H: Vehicle> Vehicle for Undistorting<'_, H> {
+    fn drive(&mut self, distance_m: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
+        self.inner.drive(distance_m)
+    }
+    fn steer_to(&mut self, encoder_deg: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
+        self.inner.steer_to(encoder_deg)
+    }
+    fn read_steering(&mut self) -> std::result::Result<f64, headalign_platform::PlatformError> {
+        self.inner.read_steering()
+    }
+    fn steer_by(&mut self, delta_deg: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
+        self.inner.steer_by(delta_deg)
+    }
+    fn last_odometry(&self) -> Option<headalign_platform::Odometry> {
+        self.inner.last_odometry()
+    }
 }
 
 /// [`recorded`] followed by the robot stages of `plan` on the same (recording) head, for
@@ -247,12 +351,12 @@ pub fn recorded_robot<H: ImagingHead + Vehicle>(
     session: Option<(PathBuf, SessionInfo)>,
     rotation_deg: f64,
     auto_rotation: bool,
-    seed: u64,
+    estimation: Estimation,
     plan: &RobotPlan,
     report: &mut dyn FnMut(&mut H, &ImageRun, &VergeTiltOutcome, &RobotRun) -> Result<Value>,
 ) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
     let Some((dir, info)) = session else {
-        let (run, outcome) = procedure(head, rotation_deg, auto_rotation, seed, &mut |_, _, _, _| {});
+        let (run, outcome) = procedure(head, rotation_deg, auto_rotation, estimation, &mut |_, _, _, _| {});
         let outcome = outcome?;
         let robot = robot_stages(head, plan, &outcome, &mut |_, _| {})?;
         let json = report(head, &run, &outcome, &robot)?;
@@ -261,7 +365,7 @@ pub fn recorded_robot<H: ImagingHead + Vehicle>(
     let writer = SessionWriter::create(&dir, &info).context("session")?;
     let mut rec = RecordingHead::new(head, writer);
     let (run, outcome) =
-        procedure(&mut rec, rotation_deg, auto_rotation, seed, &mut |h, stage, plan, other| {
+        procedure(&mut rec, rotation_deg, auto_rotation, estimation, &mut |h, stage, plan, other| {
             h.set_stage(stage, plan, other)
         });
     let robot = outcome.and_then(|o| {
@@ -290,6 +394,15 @@ fn finish(
         }
         annotate(writer.dir(), &run, &o)?;
         write_report(writer.dir(), &info_title(&json), &run, &o, &json)?;
+        if let Some(m) = json.as_object_mut()
+            && o.calibration.report.lens.is_some()
+        {
+            let files = write_calibration_files(writer.dir(), &run, &o)?;
+            m.insert(
+                "files".into(),
+                json!(files.iter().map(|p| p.display().to_string()).collect::<Vec<_>>()),
+            );
+        }
         Ok((o, json))
     });
     match result {
@@ -299,6 +412,17 @@ fn finish(
         }
         Err(e) => Err(failed_in_session(writer, e)),
     }
+}
+
+/// `DIR/calibration/`: the calibration files `calibrate --out` and `align --out` write
+/// (OpenCV YAML, ROS `camera_info`, Kalibr camchain, JSON; `StereoCalibration::write_all`)
+/// with the estimated lenses; written by a run with a lens model (`--lens`), so that the
+/// pinhole runs' sessions hold what they always held. The paths written.
+fn write_calibration_files(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<Vec<PathBuf>> {
+    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
+    let stereo = headalign::export::StereoCalibration::from_rig(&outcome.calibration, image_size, None)
+        .context("calibration files")?;
+    Ok(stereo.write_all(&dir.join("calibration"))?)
 }
 
 /// A failure of a recorded run: `report.json` says so (best effort: the error itself is
@@ -329,10 +453,12 @@ pub fn session_info(
     auto_rotation: bool,
     image_size: [u32; 2],
     head: Value,
+    lens: &LensArgs,
 ) -> SessionInfo {
     let mut info = SessionInfo::new(PROCEDURE, rotation_deg, EstimationOptions::default().seed, image_size);
     info.auto_rotation = auto_rotation;
     info.head = head;
+    lens.record(&mut info);
     info
 }
 
@@ -344,13 +470,71 @@ pub fn estimate_json(outcome: &VergeTiltOutcome) -> Result<Value> {
         let g = |p: &str| cov.sigma(&format!("{side}.{p}"));
         json!({"fx": g("fx"), "fy": g("fy"), "cx": g("cx"), "cy": g("cy")})
     };
-    Ok(json!({
+    let mut v = json!({
         "left": {"fx": st.left.fx, "fy": st.left.fy, "cx": st.left.cx, "cy": st.left.cy, "sigma": s("left")},
         "right": {"fx": st.right.fx, "fy": st.right.fy, "cx": st.right.cx, "cy": st.right.cy, "sigma": s("right")},
         "aligned_encoders": serde_json::to_value(outcome.solution.aligned_encoders)?,
         "aligned_sigma_deg": serde_json::to_value(outcome.sigmas)?,
         "fixation_px": {"left": outcome.solution.fixation_px_left, "right": outcome.solution.fixation_px_right},
         "final_encoders": serde_json::to_value(outcome.final_encoders)?,
+    });
+    if let (Some(m), Some(lens)) = (v.as_object_mut(), lens_json(&outcome.calibration)) {
+        m.insert("lens".into(), lens);
+    }
+    Ok(v)
+}
+
+/// One line on the estimated lenses of an `estimate` JSON member (`None` without a lens):
+/// each camera's coefficients with their sigmas, and the `auto` choice.
+pub fn lens_line(estimate: &Value) -> Option<String> {
+    let lens = estimate.get("lens")?;
+    let model = lens["estimation"]["model"].as_str().unwrap_or("?");
+    let side = |name: &str| -> String {
+        let names = match lens["model"][usize::from(name == "right")].as_str() {
+            Some("equidistant") => ["k1", "k2", "k3", "k4", ""],
+            _ => ["k1", "k2", "p1", "p2", "k3"],
+        };
+        let values = lens[name].as_array().cloned().unwrap_or_default();
+        let parts: Vec<String> = names
+            .iter()
+            .zip(&values)
+            .filter_map(|(n, v)| {
+                let sigma = lens["sigma"][format!("{name}.{n}")].as_f64()?;
+                Some(format!("{n} {:.4} +- {sigma:.4}", v.as_f64().unwrap_or(f64::NAN)))
+            })
+            .collect();
+        format!("{name} {}", parts.join(", "))
+    };
+    let mut line = format!("lens {model}: {}; {}", side("left"), side("right"));
+    if let Some(reason) = lens["estimation"]["selection"]["reason"].as_str() {
+        line += &format!(" (auto: {reason})");
+    }
+    Some(line)
+}
+
+/// The estimated lenses of a calibration with their sigmas (`None` for a pinhole
+/// estimate): `model` (ROS names, left and right), the coefficients in each model's
+/// order (`k1 k2 p1 p2 k3` or `k1..k4`), `sigma` per estimated coefficient (`left.k1`
+/// ...), and how they were estimated (`estimation`: first estimate, the auto choice).
+pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
+    let lens = calib.report.lens.as_ref()?;
+    let st = &calib.bundle.state;
+    let cov = &calib.bundle.covariance;
+    let mut sigma = serde_json::Map::new();
+    for (side, d) in [("left", &st.left_distortion), ("right", &st.right_distortion)] {
+        for name in d.kind.coefficient_names() {
+            let key = format!("{side}.{name}");
+            if let Some(s) = cov.sigma(&key) {
+                sigma.insert(key, json!(s));
+            }
+        }
+    }
+    Some(json!({
+        "model": [st.left_distortion.kind.ros_name(), st.right_distortion.kind.ros_name()],
+        "left": st.left_distortion.coefficients(),
+        "right": st.right_distortion.coefficients(),
+        "sigma": sigma,
+        "estimation": serde_json::to_value(lens).ok(),
     }))
 }
 
@@ -385,6 +569,7 @@ pub fn run(
     auto_rotation: bool,
     session: &SessionTarget,
     plan: &RobotPlan,
+    lens: &LensArgs,
 ) -> Result<Value> {
     let t0 = Instant::now();
     let mut robot = SimulatedRobot::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
@@ -394,20 +579,21 @@ pub fn run(
     let steer_before = robot.steer_err_deg(robot.steering_encoder_deg());
     let description = json!({"kind": "simulator", "scenario": serde_json::to_value(scenario)?});
     let session = session.resolve().map(|dir| {
-        let mut info = session_info(scenario.rotation_deg, auto_rotation, scenario.image_size, description);
+        let mut info =
+            session_info(scenario.rotation_deg, auto_rotation, scenario.image_size, description, lens);
         if plan.drives() {
             info.procedure = PROCEDURE_ROBOT.to_string();
             info.stages = serde_json::to_value(plan).ok();
         }
         (dir, info)
     });
-    let seed = EstimationOptions::default().seed;
+    let estimation = Estimation { seed: EstimationOptions::default().seed, lens: *lens };
     let (_, _, json) = recorded_robot(
         &mut robot,
         session,
         scenario.rotation_deg,
         auto_rotation,
-        seed,
+        estimation,
         plan,
         &mut |robot, run, outcome, robot_run| {
             let total = t0.elapsed().as_secs_f64();
@@ -442,6 +628,7 @@ pub fn run(
                     json!({
                         "left": {"fx": truth.left.fx, "fy": truth.left.fy, "cx": truth.left.cx, "cy": truth.left.cy},
                         "right": {"fx": truth.right.fx, "fy": truth.right.fy, "cx": truth.right.cx, "cy": truth.right.cy},
+                        "distortion": serde_json::to_value(scenario.render.distortion)?,
                         "aligned_encoders": serde_json::to_value(true_aligned)?,
                         "steer_zero_deg": robot.truth().steer_zero_deg,
                         "wheelbase_m": robot.truth().wheelbase_m,

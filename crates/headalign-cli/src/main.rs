@@ -184,6 +184,29 @@ struct AlignArgs {
     /// by default).
     #[arg(long, value_parser = parse_replicates)]
     bootstrap: Option<BootstrapOptions>,
+    /// The lens model estimated (a recorded session's own when not given).
+    #[arg(long, value_parser = calibrate::parse_lens)]
+    lens: Option<headalign::calibrate::LensChoice>,
+    /// Lens coefficients estimated: `radial` (k1 k2), `4` or `5` (as `calibrate --lens-terms`).
+    #[arg(long, value_parser = calibrate::parse_terms)]
+    lens_terms: Option<headalign_geometry::distortion::DistortionTerms>,
+}
+
+impl AlignArgs {
+    /// The lens of the estimate: the flags over a recorded session's (`session.json`'s
+    /// `lens`; the pinhole for observation files and sessions without one).
+    fn lens(&self) -> Result<images::LensArgs> {
+        let recorded = match &self.images {
+            Some(dir) if dir.join("session.json").is_file() => {
+                images::LensArgs::of_session(&headalign::session::read_session_info(dir)?)?
+            }
+            _ => images::LensArgs::default(),
+        };
+        Ok(images::LensArgs {
+            lens: self.lens.unwrap_or(recorded.lens),
+            lens_terms: self.lens_terms.unwrap_or(recorded.lens_terms),
+        })
+    }
 }
 
 #[derive(Args)]
@@ -280,7 +303,7 @@ fn align(args: &AlignArgs) -> Result<()> {
         .as_ref()
         .or(args.images.as_ref())
         .map_or(String::new(), |p| p.display().to_string());
-    let a = estimate_alignment(&views, args.bootstrap, &session)?;
+    let a = estimate_alignment(&views, args.bootstrap, args.lens()?, &session)?;
     let (pan, elev) = headalign::estimate::axes_of(&a.calib.bundle.state).context("axes")?;
     let axes = json!({
         "frame": "left camera of the first view; points in baselines",
@@ -345,6 +368,7 @@ struct AlignEstimate {
 fn estimate_alignment(
     views: &[View],
     bootstrap: Option<BootstrapOptions>,
+    lens: images::LensArgs,
     session: &str,
 ) -> Result<AlignEstimate> {
     let in_session = || format!("session {session}");
@@ -356,7 +380,7 @@ fn estimate_alignment(
         .filter(|(_, r)| !matches!(r, ViewRole::Verge))
         .map(|(v, _)| v.clone())
         .collect();
-    let estimation = EstimationOptions { bootstrap, ..EstimationOptions::default() };
+    let estimation = lens.apply(EstimationOptions { bootstrap, ..EstimationOptions::default() });
     let calib = estimate_rig(&rig, &estimation).with_context(in_session)?;
     let state = &calib.bundle.state;
     let reference = views[0].capture.encoders;
@@ -366,9 +390,9 @@ fn estimate_alignment(
         let d = |j: Joint| (v.capture.encoders.get(j) - reference.get(j)).to_radians();
         let chain = headalign::alignment::head_motion(state, d(Joint::Pan), d(Joint::Elevation))
             .with_context(|| format!("session {session}: head model"))?;
-        let measured =
-            measure_cameras(&calib, &v.capture, &chain, &(chain * state.right_from_left.inverse()))
-                .with_context(in_session)?;
+        let capture = headalign::procedure::pinhole_capture(&calib, &v.capture);
+        let measured = measure_cameras(&calib, &capture, &chain, &(chain * state.right_from_left.inverse()))
+            .with_context(in_session)?;
         verge = verge_axes_from_motion(state, &reference, &v.capture.encoders, &measured)
             .with_context(in_session)?;
     }
@@ -430,7 +454,7 @@ fn write_align_files(
 fn align_json(a: &AlignEstimate, axes: Value, written: &[PathBuf]) -> Result<Value> {
     let (calib, solution, sig) = (&a.calib, &a.solution, a.sigmas);
     let state = &calib.bundle.state;
-    Ok(json!({
+    let mut v = json!({
         "left": camera_json(calib, "left", &state.left),
         "right": camera_json(calib, "right", &state.right),
         "fixation_px": {"left": solution.fixation_px_left, "right": solution.fixation_px_right},
@@ -444,7 +468,11 @@ fn align_json(a: &AlignEstimate, axes: Value, written: &[PathBuf]) -> Result<Val
         "roll_left_deg": solution.roll_left_deg, "roll_right_deg": solution.roll_right_deg,
         "report": serde_json::to_value(&calib.report)?,
         "seconds": a.seconds,
-    }))
+    });
+    if let (Some(m), Some(lens)) = (v.as_object_mut(), images::lens_json(calib)) {
+        m.insert("lens".into(), lens);
+    }
+    Ok(v)
 }
 
 /// `align`'s summary: intrinsics, fixation point, axes, aligned readings, files written.
@@ -462,6 +490,9 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     };
     show_k("left ", &state.left);
     show_k("right", &state.right);
+    if let Some(line) = images::lens_json(&a.calib).and_then(|l| images::lens_line(&json!({ "lens": l }))) {
+        say!("{line}");
+    }
     say!(
         "fixation point: left ({:.2}, {:.2}) px, right ({:.2}, {:.2}) px",
         solution.fixation_px_left[0],

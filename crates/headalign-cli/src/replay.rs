@@ -49,6 +49,23 @@ pub struct ReplayArgs {
     /// How a recording is read (bags, EuRoC folders).
     #[command(flatten)]
     pub recording: crate::recording::RecordingArgs,
+    /// Lens model estimated: `pinhole`, `radtan`, `equidistant` or `auto` (default: the
+    /// session's own, pinhole for a recording).
+    #[arg(long, value_parser = crate::calibrate::parse_lens)]
+    pub lens: Option<headalign::calibrate::LensChoice>,
+    /// Lens coefficients estimated: `radial`, `4` or `5` (default: the session's own).
+    #[arg(long, value_parser = crate::calibrate::parse_terms)]
+    pub lens_terms: Option<headalign_geometry::distortion::DistortionTerms>,
+}
+
+impl ReplayArgs {
+    /// The lens of the replay: the flags over the recorded one (`recorded`).
+    fn lens(&self, recorded: images::LensArgs) -> images::LensArgs {
+        images::LensArgs {
+            lens: self.lens.unwrap_or(recorded.lens),
+            lens_terms: self.lens_terms.unwrap_or(recorded.lens_terms),
+        }
+    }
 }
 
 /// `replay RECORDING`: the image procedure on the recording's still views.
@@ -58,7 +75,10 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
         bail!("--rotation must be in (0, 90) degrees, got {}", args.rotation);
     }
     let mut head = crate::recording::playback_head(&args.dir, &args.recording, args.move_tolerance)?;
-    let seed = headalign::estimate::EstimationOptions::default().seed;
+    let seed = images::Estimation {
+        seed: headalign::estimate::EstimationOptions::default().seed,
+        lens: args.lens(images::LensArgs::default()),
+    };
     let (run, outcome) =
         images::procedure(&mut head, args.rotation, args.auto_rotation, seed, &mut |_, _, _, _| {});
     let outcome = outcome.with_context(|| format!("replay of '{}'", args.dir.display()))?;
@@ -86,15 +106,13 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let info = read_session_info(&args.dir)?;
     let mut head = ReplayHead::open(&args.dir)?;
     let context = || format!("replay of '{}'", args.dir.display());
+    let estimation = images::Estimation {
+        seed: info.estimation_seed,
+        lens: args.lens(images::LensArgs::of_session(&info)?),
+    };
     // The verge/tilt part of an image session, as recorded (seed and rotation choice).
     let verge_tilt = |head: &mut ReplayHead| {
-        images::procedure(
-            head,
-            info.rotation_deg,
-            info.auto_rotation,
-            info.estimation_seed,
-            &mut |_, _, _, _| {},
-        )
+        images::procedure(head, info.rotation_deg, info.auto_rotation, estimation, &mut |_, _, _, _| {})
     };
     let (mut v, views) = if info.procedure == images::PROCEDURE {
         let (run, outcome) = verge_tilt(&mut head);
@@ -192,6 +210,9 @@ pub fn print_summary(v: &Value) {
             f(&e[side]["cx"]),
             f(&e[side]["cy"])
         );
+    }
+    if let Some(line) = images::lens_line(e) {
+        say!("{line}");
     }
     let a = &e["aligned_encoders"];
     let s = &e["aligned_sigma_deg"];

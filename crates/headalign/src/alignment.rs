@@ -65,7 +65,9 @@ pub struct AlignmentSolution {
     /// Right camera roll after alignment, degrees.
     pub roll_right_deg: f64,
     /// The fixation point in the reference view's left image: the intersection of the
-    /// invariant lines (the vanishing point of `d`).
+    /// invariant lines (the vanishing point of `d`); with an estimated lens, mapped
+    /// through it into the captured image (the invariant lines stay in the undistorted
+    /// one, where they are lines).
     pub fixation_px_left: [f64; 2],
     /// ... and in its right image.
     pub fixation_px_right: [f64; 2],
@@ -87,6 +89,16 @@ pub struct InvariantLines {
     pub pan_right: [f64; 3],
     /// Elevation rotation's line in the right image.
     pub elevation_right: [f64; 3],
+}
+
+/// A pinhole pixel of camera `k` mapped through its lens `d` into the captured image
+/// (unchanged for a pinhole camera, bit for bit).
+fn through_lens(d: &headalign_geometry::distortion::Distortion, k: &Intrinsics, px: [f64; 2]) -> [f64; 2] {
+    if d.is_zero() {
+        return px;
+    }
+    let p = d.distort_pixel(k, &Point2::new(px[0], px[1]));
+    [p.x, p.y]
 }
 
 /// Invariant lines of the calibrated head's pan and elevation rotations, from the complex
@@ -221,8 +233,8 @@ pub fn solve_alignment(
         predicted_elev_err_r_deg: elev_err_r.to_degrees(),
         roll_left_deg: roll_l,
         roll_right_deg: roll_r,
-        fixation_px_left: fixation_left,
-        fixation_px_right: fixation_right,
+        fixation_px_left: through_lens(&state.left_distortion, &state.left, fixation_left),
+        fixation_px_right: through_lens(&state.right_distortion, &state.right, fixation_right),
         invariant_lines: lines,
         verge_axes_measured: verge.left.is_some() && verge.right.is_some(),
     })

@@ -89,14 +89,17 @@ pub struct StereoCalibration {
 }
 
 impl StereoCalibration {
-    /// From an estimated rig. With `baseline_m` the translation is scaled to metres;
-    /// without, it stays in baselines.
+    /// From an estimated rig, with its estimated lenses (zero for a pinhole estimate:
+    /// [`crate::estimate::EstimationOptions::lens`]). With `baseline_m` the translation is
+    /// scaled to metres; without, it stays in baselines.
     pub fn from_rig(
         calib: &RigCalibration,
         image_size: [u32; 2],
         baseline_m: Option<f64>,
     ) -> Result<Self, AlignError> {
-        Self::from_bundle(&calib.bundle, image_size, baseline_m)
+        let mut c = Self::from_bundle(&calib.bundle, image_size, baseline_m)?;
+        c.distortion = [calib.bundle.state.left_distortion, calib.bundle.state.right_distortion];
+        Ok(c)
     }
 
     /// From any rig bundle adjustment (its state's cameras and rig, its covariance's

@@ -5,6 +5,7 @@
 mod bad_input;
 mod cli;
 mod experiment;
+mod lens;
 mod real_data;
 mod recordings;
 mod sessions;

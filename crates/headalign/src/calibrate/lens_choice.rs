@@ -32,8 +32,10 @@
 //! observed field. The criterion assumes independent Gaussian pixel errors at the
 //! estimated `sigma`; correlated tracking errors inflate every chi-square alike.
 
-use headalign_geometry::bundle::{BundleOptions, RobustLoss, bundle_adjust, residual_pixels};
-use headalign_geometry::distortion::{Distortion, LensKind};
+use headalign_geometry::bundle::{
+    BundleObservation, BundleOptions, RigState, RobustLoss, bundle_adjust, residual_pixels,
+};
+use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use serde::Serialize;
 
 use super::{CalibrateOptions, MotionCalibration, calibrate_with_restarts};
@@ -147,10 +149,38 @@ pub(super) fn calibrate_choosing_lens(
 /// The criterion of the module docs on the observations of `rich` (a radial-tangential
 /// calibration).
 fn select(rich: &MotionCalibration, options: &CalibrateOptions) -> Result<LensSelection, AlignError> {
-    let obs = &rich.observations;
+    let bundle = BundleOptions {
+        zero_skew: options.zero_skew,
+        square_pixels: options.square_pixels,
+        fix_principal_point: options.fix_principal_point,
+        ..options.estimation.bundle.clone()
+    };
+    select_lens(
+        &rich.bundle.state,
+        &rich.observations,
+        rich.bundle.report.sigma_px,
+        &bundle,
+        options.lens_terms,
+    )
+}
+
+/// The criterion of the module docs: each candidate model refitted by least squares from
+/// `state` (a radial-tangential solution) on exactly the observations `obs`, chi-square
+/// at `sigma_px` (the radial-tangential adjustment's noise estimate), the smallest BIC
+/// wins. `bundle` carries the intrinsic constraints and the rest of the adjustment's
+/// options; its loss, noise, lens flags and iteration floor are set here. Shared by
+/// [`super::calibrate_rig`] and the verge/tilt estimator
+/// ([`crate::estimate::EstimationOptions::lens`]).
+pub(crate) fn select_lens(
+    state: &RigState,
+    obs: &[BundleObservation],
+    sigma_px: f64,
+    bundle: &BundleOptions,
+    lens_terms: DistortionTerms,
+) -> Result<LensSelection, AlignError> {
     let n = 2 * obs.len();
-    let sigma = rich.bundle.report.sigma_px.max(1e-6);
-    let per_camera = |kind: LensKind| options.lens_terms.slots(kind).len();
+    let sigma = sigma_px.max(1e-6);
+    let per_camera = |kind: LensKind| lens_terms.slots(kind).len();
     let models = [
         ("pinhole", None, 0),
         ("radtan", Some(LensKind::RadialTangential), 2 * per_camera(LensKind::RadialTangential)),
@@ -158,7 +188,7 @@ fn select(rich: &MotionCalibration, options: &CalibrateOptions) -> Result<LensSe
     ];
     let mut candidates = Vec::new();
     for (name, kind, parameters) in models {
-        let mut state = rich.bundle.state.clone();
+        let mut state = state.clone();
         let lens = kind.map_or_else(Distortion::default, Distortion::zero);
         if kind != Some(LensKind::RadialTangential) {
             state.left_distortion = lens;
@@ -167,13 +197,10 @@ fn select(rich: &MotionCalibration, options: &CalibrateOptions) -> Result<LensSe
         let ls = BundleOptions {
             robust: RobustLoss::None,
             noise_sigma_px: None,
-            max_iterations: options.estimation.bundle.max_iterations.max(FINAL_ITERATIONS),
-            zero_skew: options.zero_skew,
-            square_pixels: options.square_pixels,
-            fix_principal_point: options.fix_principal_point,
+            max_iterations: bundle.max_iterations.max(FINAL_ITERATIONS),
             estimate_distortion: kind.is_some(),
-            distortion_terms: options.lens_terms,
-            ..options.estimation.bundle.clone()
+            distortion_terms: lens_terms,
+            ..bundle.clone()
         };
         let refit = bundle_adjust(&state, obs, &ls)
             .map_err(|cause| AlignError::Geometry { step: format!("lens choice: {name} refit"), cause })?;

@@ -81,6 +81,11 @@
 //!     pixels) the linearised sigmas are too small; this mends that at about one
 //!     warm-started adjustment per replicate.
 //!
+//! Lens models (`lens.rs`, [`EstimationOptions::lens`], default the pinhole): the lens
+//! coefficients of both cameras are freed in steps 6-10; the steps 1-5 run first on the
+//! captured pixels, then again on pixels undistorted by that first estimate, and the
+//! adjustments on the captured pixels (`lens.rs` module docs).
+//!
 //! This file holds the options ([`EstimationOptions`] and its gates), the reports and the
 //! result ([`RigCalibration`]), and [`estimate_rig`], which calls the steps in order and
 //! leaves out a rotated view whose 3D homography fails when the rest still suffice, and
@@ -106,6 +111,7 @@
 mod adjust;
 mod frame;
 mod homographies;
+mod lens;
 mod likelihood;
 mod linear;
 mod restart;
@@ -121,6 +127,7 @@ use std::borrow::Cow;
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::bundle::{BundleObservation, BundleOptions, BundleResult, Motions, RigState, Side};
 use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::distortion::DistortionTerms;
 use headalign_geometry::ransac::RansacOptions;
 use headalign_geometry::so3::Line;
 use headalign_platform::Encoders;
@@ -146,8 +153,11 @@ use restart::reversed_rig_restart;
 use starts::{InitContext, commanded_angles, initial_states, point_set};
 use stereo::stereo_geometry;
 
+use crate::calibrate::{LensChoice, undistort_views};
 use crate::error::AlignError;
 use crate::observations::View;
+pub use lens::LensReport;
+use lens::LensStart;
 
 /// Default standard deviation of a commanded joint rotation, degrees: the resolution of a
 /// typical head encoder. The prior on each rotation angle is what fixes the focal lengths
@@ -283,6 +293,17 @@ pub struct EstimationOptions {
     /// 0.5 px. On rendered images (`bench/seeds.py 1 24 --images`) it changes almost
     /// nothing (f 0.035 / 0.043 % with it, 0.035 / 0.043 % without, seeds 1-8 / 9-24).
     pub lone_depth_gate: Option<LoneDepthGate>,
+    /// The lens model [`estimate_rig`] estimates for both cameras (default
+    /// [`LensChoice::Pinhole`]: none, the pipeline exactly as without lenses). A model
+    /// frees its coefficients `lens_terms` of each camera in the adjustments, from a start
+    /// whose linear chain ran on pixels undistorted by a first estimate (`lens.rs`, module
+    /// docs "Lens models"); [`LensChoice::Auto`] chooses among the three by the criterion
+    /// of [`crate::calibrate::lens_choice`] and reports it. [`crate::calibrate`] takes its
+    /// own [`crate::calibrate::CalibrateOptions::lens`] and ignores this one.
+    pub lens: LensChoice,
+    /// Which coefficients of the model are estimated (default [`DistortionTerms::Radial2`]:
+    /// `k1, k2`).
+    pub lens_terms: DistortionTerms,
 }
 
 /// Which points [`lone_depth_outliers`] flags: a point seen once by one camera whose log
@@ -400,6 +421,8 @@ impl Default for EstimationOptions {
             image_border: true,
             min_camera_observations: 1,
             lone_depth_gate: Some(LoneDepthGate::DEFAULT),
+            lens: LensChoice::Pinhole,
+            lens_terms: DistortionTerms::Radial2,
         }
     }
 }
@@ -536,6 +559,10 @@ pub struct EstimationReport {
     /// The bootstrap of the covariance ([`EstimationOptions::bootstrap`]); `None` when off
     /// or when fewer than 3 replicates converged.
     pub bootstrap: Option<BootstrapReport>,
+    /// The lens estimate's start and choice ([`EstimationOptions::lens`]); `None` for the
+    /// pinhole (and then absent from the JSON).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lens: Option<LensReport>,
 }
 
 /// What [`bootstrap_covariance`] did.
@@ -628,7 +655,7 @@ pub fn estimate_rig(views: &[View], options: &EstimationOptions) -> Result<RigCa
         return Err(error);
     }
     let mut at_view = None;
-    estimate_rig_once(views, options, HomographyMode::Optional, &mut at_view).map_err(|_| error)
+    lens::estimate_with_lens(views, options, HomographyMode::Optional, &mut at_view).map_err(|_| error)
 }
 
 /// [`estimate_rig`] with every 3D homography required, weak views left out
@@ -643,7 +670,7 @@ fn estimate_dropping_views(
     loop {
         let current: &[View] = if dropped.is_empty() { views } else { &kept };
         let mut at_view = None;
-        let error = match estimate_rig_once(current, options, HomographyMode::Required, &mut at_view) {
+        let error = match lens::estimate_with_lens(current, options, HomographyMode::Required, &mut at_view) {
             Ok(mut calibration) => {
                 calibration.report.dropped_views = dropped;
                 return Ok(calibration);
@@ -668,11 +695,16 @@ fn estimate_dropping_views(
 /// `at_view` names the view (index into `views`) whose 3D homography step failed, if
 /// that is where it failed (with [`HomographyMode::Required`]).
 fn estimate_rig_once(
-    views: &[View],
+    original: &[View],
     options: &EstimationOptions,
     mode: HomographyMode,
     at_view: &mut Option<usize>,
+    lens: Option<&LensStart>,
 ) -> Result<RigCalibration, AlignError> {
+    // With a lens start, steps 1-5 run on the pixels undistorted by its first estimate
+    // and the adjustments (6-10) on the original pixels (`lens.rs`).
+    let chain_views = lens.and_then(|l| l.chain.as_ref()).map(|m| undistort_views(original, m));
+    let views: &[View] = chain_views.as_deref().unwrap_or(original);
     // 1. View roles; the rig views are all but the verge views, slot 0 the reference.
     let roles = classify_views(views)?;
     let rig: Vec<usize> = (0..views.len()).filter(|&i| !matches!(roles[i], ViewRole::Verge)).collect();
@@ -700,9 +732,14 @@ fn estimate_rig_once(
     };
     let linear_blocked = rotations.linear_blocked.take();
     let threshold = options.fundamental.threshold;
-    let starts = initial_states(&ctx, linear_blocked, &rotations, &stereo, &structure, &k0, threshold);
+    let mut starts = initial_states(&ctx, linear_blocked, &rotations, &stereo, &structure, &k0, threshold);
+    if let Some(l) = lens {
+        for s in starts.iter_mut().flatten() {
+            [s.left_distortion, s.right_distortion] = l.distortion;
+        }
+    }
     // 6-7. Screening, robust adjustment, maximum-likelihood pass.
-    let all_obs = rig_observations(views, &rig, &point_tracks);
+    let all_obs = rig_observations(original, &rig, &point_tracks);
     let first_obs = first_selection(&all_obs, &point_tracks, recon, &rotations.quad_inliers);
     let adjusted =
         adjust_from_starts(starts, &first_obs, &all_obs, &point_tracks, &origin_slot, recon, options)?;
@@ -746,6 +783,7 @@ fn estimate_rig_once(
         views_without_homography: rotations.without_homography,
         depth_profile,
         bootstrap,
+        lens: None,
     };
     let point_observations =
         reconstructed_point_observations(&final_result.state, &second_obs, point_tracks.len());

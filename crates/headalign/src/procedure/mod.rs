@@ -45,6 +45,12 @@
 //! tracker that loses tracks at larger rotations shrinks the choice, as it should (seed 1
 //! on rendered images: 10 deg single-joint views, 3 deg diagonals).
 //!
+//! With a lens model ([`EstimationOptions::lens`]) the vergence view and the check views
+//! are resected on their pixels undistorted with the estimated lens
+//! ([`pinhole_capture`]); the axes' uncertainty then holds those pixels fixed (a
+//! perturbation of the lens terms moves the calibration's points, not the resected
+//! pixels).
+//!
 //! Every captured view is kept in the outcome (and in the error path the caller still has
 //! them through [`VergeTiltRun::views`]). Angles in degrees.
 //!
@@ -337,10 +343,10 @@ impl VergeTiltRun {
         let reference = self.views[0].capture.encoders;
         let left0 = nalgebra::Isometry3::identity();
         let right0 = state.right_from_left.inverse();
-        let measured = measure_cameras(&calibration, &self.views[verge_view].capture, &left0, &right0)?;
-        let mut verge_axes =
-            verge_axes_from_motion(state, &reference, &self.views[verge_view].capture.encoders, &measured)?;
-        let source = AxisMeasurement { capture: self.views[verge_view].capture.clone(), measured };
+        let verge_capture = pinhole_capture(&calibration, &self.views[verge_view].capture);
+        let measured = measure_cameras(&calibration, &verge_capture, &left0, &right0)?;
+        let mut verge_axes = verge_axes_from_motion(state, &reference, &verge_capture.encoders, &measured)?;
+        let source = AxisMeasurement { capture: verge_capture, measured };
         let mut axis_sources = AxisSources {
             left: verge_axes.left.map(|_| source.clone()),
             right: verge_axes.right.map(|_| source.clone()),
@@ -357,7 +363,8 @@ impl VergeTiltRun {
             let enc = self.views[idx].capture.encoders;
             let d = |j: Joint| (enc.get(j) - reference.get(j)).to_radians();
             let (pl, pr) = predicted_poses(&calibration, &verge_axes, &reference, &enc)?;
-            let measured = measure_cameras(&calibration, &self.views[idx].capture, &pl, &pr)?;
+            let check_capture = pinhole_capture(&calibration, &self.views[idx].capture);
+            let measured = measure_cameras(&calibration, &check_capture, &pl, &pr)?;
             let errors = measured_errors(state, &measured, d(Joint::Pan))
                 .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
             checks.push(CheckStep { encoders: enc, measured: errors });
@@ -385,7 +392,7 @@ impl VergeTiltRun {
                 estimation_seconds += t1.elapsed().as_secs_f64();
                 break;
             }
-            let source = AxisMeasurement { capture: self.views[idx].capture.clone(), measured };
+            let source = AxisMeasurement { capture: check_capture, measured };
             if left.is_some() {
                 axis_sources.left = Some(source.clone());
             }
@@ -431,6 +438,28 @@ pub fn capture_plan(e0: &Encoders, options: &VergeTiltOptions) -> Vec<(String, E
     let v = options.verge_rotation_deg;
     plan.push(("verge".to_string(), e0.moved(Joint::VergeLeft, v).moved(Joint::VergeRight, v)));
     plan
+}
+
+/// The capture with every pixel undistorted by the calibration's estimated lenses
+/// ([`crate::estimate::EstimationOptions::lens`]), so that the pinhole resections of the
+/// vergence axes and the checks see the cameras the calibration describes; the capture
+/// itself for pinhole cameras. A pixel outside the lens model's valid range is dropped.
+pub fn pinhole_capture(
+    calib: &RigCalibration,
+    capture: &headalign_platform::StereoCapture,
+) -> headalign_platform::StereoCapture {
+    let state = &calib.bundle.state;
+    if state.left_distortion.is_zero() && state.right_distortion.is_zero() {
+        return capture.clone();
+    }
+    let lenses = [
+        crate::calibrate::LensModel { k: state.left, distortion: state.left_distortion },
+        crate::calibrate::LensModel { k: state.right, distortion: state.right_distortion },
+    ];
+    let view = View { name: String::new(), capture: capture.clone() };
+    crate::calibrate::undistort_views(std::slice::from_ref(&view), &lenses)
+        .pop()
+        .map_or_else(|| capture.clone(), |v| v.capture)
 }
 
 /// Predicted `ref_from_cam` of both cameras at encoders `enc` from the kinematic model.

@@ -8,7 +8,8 @@
 //! DIR/
 //!   session.json        what ran: format, created_utc, procedure, rotation_deg,
 //!                       estimation_seed, image_size, head (free-form description), and
-//!                       with robot stages `stages` (their names and settings)
+//!                       with robot stages `stages` (their names and settings); with
+//!                       a lens model `lens` and `lens_terms` (absent: the pinhole)
 //!   events.jsonl        every call the procedure made on the head, one JSON object a line:
 //!                       {"op":"read","encoders":{..}} | {"op":"move","target":{..}}
 //!                       | {"op":"capture","folder":"03-pan+"}, and on a vehicle
@@ -134,6 +135,15 @@ pub struct SessionInfo {
     /// `robot-images`); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stages: Option<serde_json::Value>,
+    /// The lens model the estimation used (`radtan`, `equidistant` or `auto`:
+    /// [`crate::estimate::EstimationOptions::lens`]); absent for the pinhole, and in older
+    /// sessions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lens: Option<String>,
+    /// The lens coefficients estimated with `lens` ([`crate::estimate::EstimationOptions::lens_terms`]);
+    /// absent with `lens`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lens_terms: Option<headalign_geometry::distortion::DistortionTerms>,
 }
 
 impl SessionInfo {
@@ -149,6 +159,8 @@ impl SessionInfo {
             image_size,
             head: serde_json::Value::Null,
             stages: None,
+            lens: None,
+            lens_terms: None,
         }
     }
 }
