@@ -350,6 +350,9 @@ fn read_align_views(args: &AlignArgs) -> Result<(Vec<View>, Option<Vec<RecordedV
     }
 }
 
+/// What `align` says when no view moved a vergence joint.
+const NOMINAL_VERGE_WARNING: &str = "no view moved the vergence joints: the vergence readings assume axes perpendicular to the elevation axis with a positive vergence turning each camera right, and their sigmas exclude the cameras' mounting on those axes; add a view with both vergences moved";
+
 /// What `align` estimated from a session.
 struct AlignEstimate {
     calib: RigCalibration,
@@ -464,6 +467,7 @@ fn align_json(a: &AlignEstimate, axes: Value, written: &[PathBuf]) -> Result<Val
         "aligned_encoders": encoders_json(&solution.aligned_encoders),
         "aligned_sigma_deg": serde_json::to_value(sig)?,
         "verge_axes_measured": solution.verge_axes_measured,
+        "warnings": if solution.verge_axes_measured { vec![] } else { vec![NOMINAL_VERGE_WARNING] },
         "predicted_elev_err_r_deg": solution.predicted_elev_err_r_deg,
         "roll_left_deg": solution.roll_left_deg, "roll_right_deg": solution.roll_right_deg,
         "report": serde_json::to_value(&calib.report)?,
@@ -516,7 +520,7 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
         say!("{}", bootstrap_line(b));
     }
     if !solution.verge_axes_measured {
-        say!("note: no view moved the vergence joints; their axes were assumed nominal");
+        say!("warning: {NOMINAL_VERGE_WARNING}");
     }
     for p in written {
         say!("wrote {}", p.display());

@@ -20,8 +20,11 @@
 //! Axis directions come from the bundle adjustment; vergence axes from resection of the
 //! cameras after a vergence move ([`measure_cameras`]), or, if no such move was made, the
 //! nominal assumption (perpendicular to the elevation axis, in the plane of the camera's
-//! y axis, positive encoder turning about the camera's up direction `-y`), flagged in the
-//! result. Angles in degrees at the interface, radians inside.
+//! y axis, positive encoder turning about the camera's down direction `+y`: a positive
+//! vergence turns the camera to the right, the sign of a positive vergence error), flagged in
+//! the result. The data cannot tell that sign (no vergence joint moved), nor the camera's
+//! mounting rotation on its axis: readings from a nominal axis carry both assumptions,
+//! which their sigmas do not include. Angles in degrees at the interface, radians inside.
 
 use headalign_geometry::bundle::RigState;
 use headalign_geometry::camera::Intrinsics;
@@ -164,10 +167,11 @@ fn zero_crossing(a: &Unit<Vector3<f64>>, n: &Vector3<f64>, z: &Vector3<f64>) -> 
 }
 
 /// The nominal vergence axis of a camera whose optical frame in the reference frame has
-/// rotation `ref_from_cam`: the camera's up direction made perpendicular to `a_e`.
+/// rotation `ref_from_cam`: the camera's down direction (`+y`) made perpendicular to
+/// `a_e`, so that a positive vergence turns the camera to the right (module docs).
 fn nominal_verge_axis(ref_from_cam: &Isometry3<f64>, a_e: &Vector3<f64>) -> Unit<Vector3<f64>> {
-    let up = ref_from_cam.rotation * Vector3::new(0.0, -1.0, 0.0);
-    Unit::new_normalize(up - a_e * a_e.dot(&up))
+    let down = ref_from_cam.rotation * Vector3::new(0.0, 1.0, 0.0);
+    Unit::new_normalize(down - a_e * a_e.dot(&down))
 }
 
 /// Solve for the aligned readings (module docs). `reference` are the encoder readings of
