@@ -92,6 +92,24 @@ pub struct Scenario {
     /// Near structure: distance of the panels' fronts from the pan axis, metres (each
     /// drawn in `[1, 1.25] x` this).
     pub near_distance_m: f64,
+    /// What the points lie on (default [`SceneKind::Room`]). `wall`: one textured plane
+    /// ahead, nothing else ([`Scenario::wall`]).
+    pub scene: SceneKind,
+}
+
+/// The surfaces of a simulated scene.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SceneKind {
+    /// The room of [`crate::scene`]: floor, ceiling, four walls, boxes (and near panels).
+    #[default]
+    Room,
+    /// One textured plane in front of the head, large enough to fill both cameras' view
+    /// for every capture of the verge/tilt procedure ([`crate::scene`] module docs): its
+    /// distance from the head centre is drawn uniformly in
+    /// [`Scenario::WALL_DISTANCE_M`], its normal up to 15 deg (yaw) and 10 deg (pitch) off
+    /// the head's forward direction, from its own random stream.
+    Wall,
 }
 
 impl Default for Scenario {
@@ -125,6 +143,7 @@ impl Default for Scenario {
             drive_m: 0.10,
             near_panels: 0,
             near_distance_m: 1.0,
+            scene: SceneKind::Room,
         }
     }
 }
@@ -145,7 +164,36 @@ impl Scenario {
     }
 
     /// Names accepted by [`Scenario::preset`].
-    pub const PRESETS: [&'static str; 3] = ["default", "paper", "robot"];
+    pub const PRESETS: [&'static str; 5] = ["default", "paper", "robot", "wall", "far"];
+
+    /// Range of the `wall` scene's distance from the head centre, metres (drawn per seed).
+    pub const WALL_DISTANCE_M: [f64; 2] = [1.0, 4.0];
+
+    /// The `far` scene's nearest and farthest point, in baselines (`baseline_m`).
+    pub const FAR_BASELINES: [f64; 2] = [240.0, 960.0];
+
+    /// The `wall` scene: the default head, cameras, noise and motions facing one textured
+    /// plane 1-4 m away ([`SceneKind::Wall`]): every stereo pair and every rotation of a
+    /// camera is then related by a plane homography, the degenerate case of the paper's
+    /// section 3.3. Points are kept from 0.5 m to 40 m from the head (the plane decides
+    /// where they lie).
+    pub fn wall() -> Self {
+        Self { scene: SceneKind::Wall, scene_min_m: 0.5, scene_max_m: 40.0, ..Self::default() }
+    }
+
+    /// The `far` scene: the default room scaled so that every point lies
+    /// [`Scenario::FAR_BASELINES`] baselines away (60-240 m with the 0.25 m baseline):
+    /// stereo disparities vary by about 2 px over the scene and a 10 deg rotation about an
+    /// axis 0.13 m off the camera moves a point by well under a pixel of parallax, so
+    /// neither stereo nor the rotations give projective structure (paper section 3.3).
+    /// Why that far rather than 50 baselines: at 12.5-50 m the rotations' parallax (about
+    /// 1 px at 10 deg) would bias any model that takes the scene at infinity by more
+    /// than the noise-free 0.01 deg the planar route is held to.
+    pub fn far_field() -> Self {
+        let base = Self::default();
+        let [lo, hi] = Self::FAR_BASELINES;
+        Self { scene_min_m: lo * base.baseline_m, scene_max_m: hi * base.baseline_m, ..base }
+    }
 
     /// A "paper-like" scene: the default head, cameras, noise and motions in a room whose
     /// points lie 0.6 to 1.5 m from the head (front wall about 1.0-1.2 m away), instead of
@@ -179,12 +227,15 @@ impl Scenario {
     }
 
     /// A named scene preset (see [`Scenario::PRESETS`]): `default` ([`Scenario::default`]),
-    /// `paper` ([`Scenario::paper_lab`]) or `robot` ([`Scenario::robot_room`]).
+    /// `paper` ([`Scenario::paper_lab`]), `robot` ([`Scenario::robot_room`]), `wall`
+    /// ([`Scenario::wall`]) or `far` ([`Scenario::far_field`]).
     pub fn preset(name: &str) -> Result<Self, SimError> {
         match name {
             "default" => Ok(Self::default()),
             "paper" => Ok(Self::paper_lab()),
             "robot" => Ok(Self::robot_room()),
+            "wall" => Ok(Self::wall()),
+            "far" => Ok(Self::far_field()),
             other => Err(SimError::InvalidScenario(format!(
                 "unknown scene preset '{other}'; expected one of {}",
                 Self::PRESETS.join(", ")
@@ -411,8 +462,19 @@ mod tests {
         let r = Scenario::preset("robot").unwrap();
         assert_eq!(r, Scenario { near_panels: Scenario::ROBOT_NEAR_PANELS, ..Scenario::default() });
         r.validate().unwrap();
-        let e = Scenario::preset("far").unwrap_err().to_string();
-        assert!(e.contains("unknown scene preset 'far'") && e.contains("paper"), "{e}");
+        // `wall` and `far` build heads whose initial view sees about `points` points in
+        // both cameras, every one at the preset's range.
+        for name in ["wall", "far"] {
+            let s = Scenario::preset(name).unwrap();
+            s.validate().unwrap();
+            let mut head = crate::SimulatedHead::new(s.clone()).unwrap();
+            let c = headalign_platform::StereoHead::capture(&mut head).unwrap();
+            assert!(c.left.len() > 150 && c.right.len() > 150, "{name}: {} {}", c.left.len(), c.right.len());
+        }
+        let far = Scenario::far_field();
+        assert!(far.scene_min_m >= 50.0 * far.baseline_m);
+        let e = Scenario::preset("lake").unwrap_err().to_string();
+        assert!(e.contains("unknown scene preset 'lake'") && e.contains("wall"), "{e}");
     }
 
     #[test]
