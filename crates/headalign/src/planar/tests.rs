@@ -72,3 +72,23 @@ fn the_default_room_is_general() {
     }
 }
 
+
+/// The procedure switches: on the wall it runs the planar route and ends aligned within
+/// 0.01 deg (noise-free); on the default room it runs the general route.
+#[test]
+fn the_procedure_switches_on_a_wall_only() {
+    use crate::procedure::{RouteOutcome, VergeTiltOptions, VergeTiltRun};
+    let scenario = Scenario { noise_px: 0.0, ..Scenario::wall().with_seed(3) };
+    let mut head = SimulatedHead::new(scenario).unwrap();
+    let out = VergeTiltRun::default().run_detecting(&mut head, &VergeTiltOptions::default()).unwrap();
+    let RouteOutcome::Planar(p) = out else { panic!("the wall went the general way") };
+    assert_eq!(p.calibration.scene.kind, SceneKind::Planar);
+    let err = head.alignment_errors(&head.encoders());
+    let truth = head.alignment_errors(&head.aligned_encoders());
+    for (e, t) in [(err.verge_err_l_deg, truth.verge_err_l_deg), (err.elev_err_l_deg, truth.elev_err_l_deg)] {
+        assert!((e - t).abs() < 0.01, "{e} vs {t}");
+    }
+    let mut head = SimulatedHead::new(Scenario::default().with_seed(3)).unwrap();
+    let out = VergeTiltRun::default().run_detecting(&mut head, &VergeTiltOptions::default()).unwrap();
+    assert!(matches!(out, RouteOutcome::General(_)));
+}
