@@ -110,6 +110,11 @@ pub enum SceneKind {
     /// [`Scenario::WALL_DISTANCE_M`], its normal up to 15 deg (yaw) and 10 deg (pitch) off
     /// the head's forward direction, from its own random stream.
     Wall,
+    /// A far box around the head: a cube centred on the head centre, its faces between
+    /// `scene_min_m` and 1.2 times that away (drawn from its own stream), no floor at the
+    /// ground and no objects, so that every direction sees a point between `scene_min_m`
+    /// and `sqrt 3` times the face distance ([`Scenario::far_field`]).
+    Far,
 }
 
 impl Default for Scenario {
@@ -181,20 +186,21 @@ impl Scenario {
         Self { scene: SceneKind::Wall, scene_min_m: 0.5, scene_max_m: 40.0, ..Self::default() }
     }
 
-    /// The `far` scene: the default room scaled so that every point lies
-    /// [`Scenario::FAR_BASELINES`] baselines away (200-800 m with the 0.25 m baseline):
+    /// The `far` scene ([`SceneKind::Far`]): every point [`Scenario::FAR_BASELINES`]
+    /// baselines away (200-800 m with the 0.25 m baseline; the box's faces at 200-240 m):
     /// stereo disparities then vary by under a pixel over the scene, and a rotation about
     /// an axis 0.13 m off the camera adds well under a tenth of a pixel of parallax, so
     /// neither stereo nor the rotations give projective structure (paper section 3.3).
-    /// Why that far rather than 50 baselines: the planar route takes such a scene as one
-    /// plane, and the depth spread it leaves unmodelled biases the alignment in proportion
-    /// to the inverse distance: noise-free, seed 1, 3 deg rotations, the aligned elevation
-    /// was 0.012 deg off at 240-960 baselines and 0.0004 deg at 800-3200 (the
-    /// `planar::tests` of `headalign`).
+    /// Why a box and not the room scaled up: the room's floor and ceiling stay 1-2 m from
+    /// the head, so at hundreds of metres its points would crowd into a band a few
+    /// pixels high. Why that far rather than 50 baselines: the planar route takes such a
+    /// scene as one plane, and the depth spread it leaves unmodelled biases the alignment
+    /// in proportion to the inverse distance (noise-free: 0.012 deg of elevation at
+    /// 240-960 baselines, 0.0004 deg at 800-3200, seed 1, 3 deg rotations).
     pub fn far_field() -> Self {
         let base = Self::default();
         let [lo, hi] = Self::FAR_BASELINES;
-        Self { scene_min_m: lo * base.baseline_m, scene_max_m: hi * base.baseline_m, ..base }
+        Self { scene: SceneKind::Far, scene_min_m: lo * base.baseline_m, scene_max_m: hi * base.baseline_m, ..base }
     }
 
     /// A "paper-like" scene: the default head, cameras, noise and motions in a room whose

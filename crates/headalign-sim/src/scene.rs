@@ -28,6 +28,11 @@
 //! normal at most sideways, `tan 74 = 3.5`), drawn from its own random stream (7), so
 //! that no other scene changes. It is the only surface: rays that miss it see nothing.
 //!
+//! The `far` scene ([`SceneKind::Far`]): a cube centred on the head centre, half edge
+//! drawn uniformly in `[1, 1.2] x scene_min_m` from its own random stream (8), nothing
+//! else: the room's floor, ceiling and boxes are gone (at hundreds of metres they would
+//! crowd into a thin band about the horizon).
+//!
 //! Density: after casting, the points visible in both cameras at the initial encoder
 //! readings (all zero) are counted, and every point is kept with probability
 //! `points / visible`, so that about `points` are seen by both cameras in the initial
@@ -49,6 +54,9 @@ const STREAM_NEAR: u64 = 6;
 
 /// Random stream of the `wall` scene's plane.
 const STREAM_WALL: u64 = 7;
+
+/// Random stream of the `far` scene's box.
+const STREAM_FAR: u64 = 8;
 
 /// A scene point: track id and position in the world frame.
 pub type ScenePoint = (u64, Point3<f64>);
@@ -370,6 +378,13 @@ pub fn generate_room_and_scene(
 ) -> Result<(Room, Vec<ScenePoint>), SimError> {
     let head_centre = Point3::new(0.0, -(scenario.head_height_m + scenario.elevation_below_cameras_m), 0.0);
     let mut room = Room::draw(scenario, &head_centre, rng);
+    if scenario.scene == SceneKind::Far {
+        let mut far_rng = ChaCha8Rng::seed_from_u64(scenario.seed);
+        far_rng.set_stream(STREAM_FAR);
+        let half = scenario.scene_min_m * (1.0 + 0.2 * far_rng.random::<f64>());
+        let h = Vector3::new(half, half, half);
+        room = Room { min: head_centre.coords - h, max: head_centre.coords + h, boxes: Vec::new(), near: 0, wall: None };
+    }
     if scenario.scene == SceneKind::Wall {
         let mut wall_rng = ChaCha8Rng::seed_from_u64(scenario.seed);
         wall_rng.set_stream(STREAM_WALL);

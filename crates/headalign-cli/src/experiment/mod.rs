@@ -103,7 +103,7 @@ pub struct ExperimentArgs {
     // `--trials` is then split over the conditions kept.
     #[arg(long, value_delimiter = ',')]
     pub only: Vec<f64>,
-    /// Scene preset of every condition: `default`, `paper` or `robot` (as `demo --scene`);
+    /// Scene preset of every condition: `default`, `paper`, `robot`, `wall` or `far` (as `demo --scene`);
     /// outputs of another scene than `default` are named `<experiment>-<scene>`.
     // `Scenario::preset`. `all` refuses it: it runs the default scene, then
     // `OTHER_SCENE_BARS` in the paper and robot scenes.

@@ -90,5 +90,5 @@ fn the_procedure_switches_on_a_wall_only() {
     }
     let mut head = SimulatedHead::new(Scenario::default().with_seed(3)).unwrap();
     let out = VergeTiltRun::default().run_detecting(&mut head, &VergeTiltOptions::default()).unwrap();
-    assert!(matches!(out, RouteOutcome::General(_)));
+    assert!(matches!(out, RouteOutcome::General(..)));
 }

@@ -306,8 +306,8 @@ impl VergeTiltOutcome {
 /// What [`VergeTiltRun::run_detecting`] did: the general route, or the planar one.
 #[derive(Debug, Clone)]
 pub enum RouteOutcome {
-    /// The scene had depth: the general route's outcome.
-    General(Box<VergeTiltOutcome>),
+    /// The scene had depth: the general route's outcome, and the detection's numbers.
+    General(Box<VergeTiltOutcome>, crate::planar::SceneCheck),
     /// The scene was planar or far: the planar route's outcome.
     Planar(Box<PlanarOutcome>),
 }
@@ -374,7 +374,7 @@ impl VergeTiltRun {
         let rig_views = plan.len() - 1;
         let scene = crate::planar::detect_scene(&self.views[..rig_views], &options.estimation.fundamental);
         if scene.kind == crate::planar::SceneKind::General {
-            return self.finish_general(head, &options, &plan).map(|o| RouteOutcome::General(Box::new(o)));
+            return self.finish_general(head, &options, &plan).map(|o| RouteOutcome::General(Box::new(o), scene));
         }
         let t0 = Instant::now();
         let planar_options = crate::planar::PlanarOptions {
