@@ -37,6 +37,7 @@ mod catalog;
 pub mod lens;
 pub mod ml_spread;
 pub mod pan;
+pub mod planar;
 pub mod plot;
 pub mod stats;
 pub mod trial;
@@ -62,7 +63,7 @@ use self::stats::{coverage, quantity_crb, quantity_rms, rms};
 use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
 
 /// Names accepted by `headalign experiment`.
-pub const NAMES: [&str; 10] = [
+pub const NAMES: [&str; 11] = [
     "fig5-verge-tilt",
     "fig5-pan-tilt",
     "calibration",
@@ -73,13 +74,14 @@ pub const NAMES: [&str; 10] = [
     "all",
     ml_spread::NAME,
     lens::NAME,
+    planar::NAME,
 ];
 
 /// Arguments of `headalign experiment`.
 #[derive(Args, Debug)]
 pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
-    /// coverage, lens, or all; or ml-spread (not in all).
+    /// coverage, lens, or all; or ml-spread, planar (not in all).
     pub name: String,
     /// Total trials, split evenly over the experiment's conditions; default per
     /// experiment.
@@ -853,6 +855,9 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     if args.name == lens::NAME {
         return lens::run(args);
     }
+    if args.name == planar::NAME {
+        return planar::run(args);
+    }
     if args.rotation.is_some() {
         bail!("--rotation applies to the lens experiment only");
     }
@@ -863,7 +868,11 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         );
     }
     let names: Vec<&str> = if args.name == "all" {
-        NAMES.iter().copied().filter(|n| *n != "all" && *n != ml_spread::NAME && *n != lens::NAME).collect()
+        NAMES
+            .iter()
+            .copied()
+            .filter(|n| *n != "all" && *n != ml_spread::NAME && *n != lens::NAME && *n != planar::NAME)
+            .collect()
     } else {
         experiment(&args.name, &Scenario::default())?;
         vec![args.name.as_str()]

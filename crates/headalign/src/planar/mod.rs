@@ -73,12 +73,17 @@ pub const NORMAL_UNDETERMINED_DEG: f64 = 10.0;
 /// under 0.1 px).
 pub const FAR_PARALLAX_PX: f64 = 0.5;
 
+/// The homographies' RANSAC threshold is at least this many transfer-error sigmas
+/// (`sqrt 2` times the pixel noise the detection estimated): a noise-only match lies
+/// beyond it with probability `exp(-8)`.
+pub const HOMOGRAPHY_SIGMAS: f64 = 4.0;
+
 /// Options of [`estimate_planar`].
 #[derive(Debug, Clone)]
 pub struct PlanarOptions {
     /// RANSAC of each camera's image homographies; threshold on the transfer error in
-    /// pixels (default 3 px: 3 sigma at 1 px noise; the plane and the far scene leave no
-    /// parallax beyond 0.3 px).
+    /// pixels (default 3 px, raised to [`HOMOGRAPHY_SIGMAS`] sigmas of the noise the
+    /// detection measured; the plane and the far scene leave no parallax beyond 0.3 px).
     pub homography: RansacOptions,
     /// Standard deviation of the prior on each rotation angle, degrees (default
     /// [`ENCODER_SIGMA_DEG`], as the general route).
@@ -217,6 +222,16 @@ pub fn estimate_planar(
 ) -> Result<PlanarCalibration, AlignError> {
     options.validate()?;
     let first = views.first().ok_or_else(|| AlignError::Observations("no views".into()))?;
+    // The homographies' threshold grows with the noise the detection measured: a fixed
+    // 3 px on the one-sided transfer error (noise sqrt 2 sigma a coordinate) keeps only
+    // 40 % of the matches at 2 px, and those whose noise happens to agree with the
+    // homography: a biased sample (2-4 deg of error at 2 px before this rule).
+    let mut options = options.clone();
+    if scene.sigma_px.is_finite() {
+        options.homography.threshold =
+            options.homography.threshold.max(HOMOGRAPHY_SIGMAS * std::f64::consts::SQRT_2 * scene.sigma_px);
+    }
+    let options = &options;
     let mut dropped = Vec::new();
     let left = calibrate_camera(views, Side::Left, options, &mut dropped)?;
     let right = calibrate_camera(views, Side::Right, options, &mut dropped)?;

@@ -12,7 +12,8 @@
 //! [`tangent_basis`] at the current axis); the angles; `m`. Each point's 2 dof are
 //! eliminated by the Schur complement (2x2 blocks).
 //!
-//! Passes: one at `sigma = 1 px` from the start; observations beyond
+//! Passes: one at `sigma = 1 px` from each start of [`PLANE_STARTS`] (the plane enters
+//! bilinearly with the offsets; the fit of least cost is kept); observations beyond
 //! [`super::PlanarOptions::reselect_sigmas`] robust sigmas (1.4826 MAD of the residual
 //! coordinates, at least [`MIN_SIGMA_PX`]) dropped and points left with one observation
 //! removed; one more at the robust sigma. The pixel noise is then the residuals' RMS over
@@ -34,6 +35,9 @@ use crate::error::AlignError;
 /// Floor of the robust pixel sigma of the reselection, pixels: noise-free data keep every
 /// observation within a few hundredths of a pixel of the model (a far scene's parallax).
 pub const MIN_SIGMA_PX: f64 = 0.05;
+
+/// Starts of the plane's inverse distance (per metre, fronto-parallel), module docs.
+pub const PLANE_STARTS: [f64; 3] = [0.25, 1.0 / 3.0, 1.0];
 
 /// A joint's state: its slot in [`camera_joints`], axis direction and a point of the axis
 /// (camera frame of the reference view, metres up to the gauge).
@@ -327,7 +331,24 @@ fn reselect(p: &mut Problem, k: f64) -> f64 {
 /// The passes of the module docs; the covariance at the result.
 pub(super) fn maximum_likelihood(start: Problem, options: &PlanarOptions) -> Result<Fit, AlignError> {
     let angle_sigma = options.angle_prior_sigma_deg.to_radians();
-    let mut p = adjust(start, 1.0, angle_sigma, options.max_iterations)?;
+    // The plane enters bilinearly with the axes' offsets: start it at several distances
+    // and keep the fit of least cost.
+    let mut best: Option<(f64, Problem)> = None;
+    for inverse_distance in PLANE_STARTS {
+        let mut s = start.clone();
+        s.plane = Vector3::new(0.0, 0.0, inverse_distance);
+        let Ok(fit) = adjust(s, 1.0, angle_sigma, options.max_iterations) else { continue };
+        let c = fit.cost(1.0, angle_sigma);
+        if best.as_ref().is_none_or(|b| c < b.0) {
+            best = Some((c, fit));
+        }
+    }
+    let Some((_, mut p)) = best else {
+        return Err(AlignError::Geometry {
+            step: "planar adjustment".into(),
+            cause: headalign_geometry::GeometryError::InvalidEstimate("no start converged".into()),
+        });
+    };
     let robust = reselect(&mut p, options.reselect_sigmas);
     if p.points.len() < options.min_tracks {
         return Err(AlignError::TooFewTracks {
