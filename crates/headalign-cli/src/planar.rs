@@ -34,17 +34,35 @@ fn camera_line(name: &str, c: &CameraPlanar, truth: &headalign_geometry::camera:
     );
     format!(
         "  {name:<5} fx {:.2} ± {:.2} (true {:.2})  fy {:.2} ± {:.2} ({:.2})  cx {:.2} ± {:.2} ({:.2})  cy {:.2} ± {:.2} ({:.2})  rms {:.3} px, {} points; plane normal {normal}",
-        k.fx, s("fx"), truth.fx, k.fy, s("fy"), truth.fy, k.cx, s("cx"), truth.cx, k.cy, s("cy"), truth.cy,
-        c.rms_px, c.points
+        k.fx,
+        s("fx"),
+        truth.fx,
+        k.fy,
+        s("fy"),
+        truth.fy,
+        k.cx,
+        s("cx"),
+        truth.cx,
+        k.cy,
+        s("cy"),
+        truth.cy,
+        c.rms_px,
+        c.points
     )
 }
 
 /// Print (or return as JSON) the planar outcome of a demo run on `head` (after the
 /// procedure, the head at the aligned readings).
-pub fn report(scenario: &Scenario, head: &SimulatedHead, out: &PlanarOutcome, json: bool) -> Result<Option<Value>> {
+pub fn report(
+    scenario: &Scenario,
+    head: &SimulatedHead,
+    out: &PlanarOutcome,
+    json: bool,
+) -> Result<Option<Value>> {
     let truth = head.aligned_encoders();
     let a = out.solution.aligned_encoders;
-    let errors = [a.elevation - truth.elevation, a.verge_left - truth.verge_left, a.verge_right - truth.verge_right];
+    let errors =
+        [a.elevation - truth.elevation, a.verge_left - truth.verge_left, a.verge_right - truth.verge_right];
     let after = head.alignment_errors(&head.encoders());
     let cal = &out.calibration;
     if json {

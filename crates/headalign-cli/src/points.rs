@@ -16,7 +16,8 @@ use headalign::calibrate::{calibrate_rig, select_rig, undistort_views};
 use headalign::observations::View;
 use headalign::observations::session_to_json;
 use headalign::procedure::{
-    AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
+    AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
+    resolve_rotation,
 };
 use headalign::session::{RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
 use headalign_platform::{StereoHead, Vehicle};

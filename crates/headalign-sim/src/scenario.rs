@@ -200,7 +200,12 @@ impl Scenario {
     pub fn far_field() -> Self {
         let base = Self::default();
         let [lo, hi] = Self::FAR_BASELINES;
-        Self { scene: SceneKind::Far, scene_min_m: lo * base.baseline_m, scene_max_m: hi * base.baseline_m, ..base }
+        Self {
+            scene: SceneKind::Far,
+            scene_min_m: lo * base.baseline_m,
+            scene_max_m: hi * base.baseline_m,
+            ..base
+        }
     }
 
     /// A "paper-like" scene: the default head, cameras, noise and motions in a room whose

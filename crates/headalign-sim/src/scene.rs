@@ -46,7 +46,7 @@ use rand_distr::{Distribution, UnitSphere};
 
 use crate::SimError;
 use crate::kinematics::HeadTruth;
-use crate::scenario::{SceneKind, Scenario};
+use crate::scenario::{Scenario, SceneKind};
 use headalign_platform::Encoders;
 
 /// Random stream of the near panels (the head uses 0-5).
@@ -383,7 +383,13 @@ pub fn generate_room_and_scene(
         far_rng.set_stream(STREAM_FAR);
         let half = scenario.scene_min_m * (1.0 + 0.2 * far_rng.random::<f64>());
         let h = Vector3::new(half, half, half);
-        room = Room { min: head_centre.coords - h, max: head_centre.coords + h, boxes: Vec::new(), near: 0, wall: None };
+        room = Room {
+            min: head_centre.coords - h,
+            max: head_centre.coords + h,
+            boxes: Vec::new(),
+            near: 0,
+            wall: None,
+        };
     }
     if scenario.scene == SceneKind::Wall {
         let mut wall_rng = ChaCha8Rng::seed_from_u64(scenario.seed);

@@ -21,9 +21,9 @@ use std::fmt::Write as _;
 use anyhow::{Context, Result};
 use headalign::alignment::solve_alignment_axes;
 use headalign::estimate::EstimationOptions;
+use headalign::observations::View;
 use headalign::planar::{PlanarOptions, SceneKind, alignment_sigmas, detect_scene, estimate_planar};
 use headalign::procedure::{VergeTiltOptions, VergeTiltRun, capture_plan};
-use headalign::observations::View;
 use headalign_platform::StereoHead;
 use headalign_sim::{Scenario, SimulatedHead};
 use rayon::prelude::*;
@@ -53,7 +53,15 @@ struct Trial {
 
 /// Run one planar-route trial.
 fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) -> Trial {
-    let mut t = Trial { scene, noise, seed, route: "planar".into(), err: [f64::NAN; 3], sigma: [f64::NAN; 3], failure: None };
+    let mut t = Trial {
+        scene,
+        noise,
+        seed,
+        route: "planar".into(),
+        err: [f64::NAN; 3],
+        sigma: [f64::NAN; 3],
+        failure: None,
+    };
     let result = (|| -> Result<([f64; 3], [f64; 3], String)> {
         let base = Scenario::preset(scene).map_err(|e| anyhow::anyhow!("{e}"))?;
         let scenario = Scenario {
@@ -82,7 +90,11 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) 
         let a = sol.aligned_encoders;
         let route = if kind == SceneKind::General { "general-detected" } else { calib.scene.kind.name() };
         Ok((
-            [a.elevation - truth.elevation, a.verge_left - truth.verge_left, a.verge_right - truth.verge_right],
+            [
+                a.elevation - truth.elevation,
+                a.verge_left - truth.verge_left,
+                a.verge_right - truth.verge_right,
+            ],
             [s.elevation_deg, s.verge_left_deg, s.verge_right_deg],
             route.to_string(),
         ))
@@ -109,12 +121,18 @@ fn general_trial(noise: f64, seed: u64, encoder_noise: f64) -> Trial {
         sigma: [f64::NAN; 3],
         failure: None,
     };
-    let scenario = Scenario { noise_px: noise, encoder_noise_deg: encoder_noise, ..Scenario::default().with_seed(seed) };
+    let scenario =
+        Scenario { noise_px: noise, encoder_noise_deg: encoder_noise, ..Scenario::default().with_seed(seed) };
     let result = SimulatedHead::new(scenario).map_err(|e| anyhow::anyhow!("{e}")).and_then(|mut head| {
-        let out = VergeTiltRun::default().run(&mut head, &VergeTiltOptions::default()).context("general route")?;
+        let out =
+            VergeTiltRun::default().run(&mut head, &VergeTiltOptions::default()).context("general route")?;
         let (a, truth) = (out.solution.aligned_encoders, head.aligned_encoders());
         Ok((
-            [a.elevation - truth.elevation, a.verge_left - truth.verge_left, a.verge_right - truth.verge_right],
+            [
+                a.elevation - truth.elevation,
+                a.verge_left - truth.verge_left,
+                a.verge_right - truth.verge_right,
+            ],
             [out.sigmas.elevation_deg, out.sigmas.verge_left_deg, out.sigmas.verge_right_deg],
         ))
     });
@@ -131,8 +149,11 @@ fn general_trial(noise: f64, seed: u64, encoder_noise: f64) -> Trial {
 /// Entry point: run, write `planar.csv` and `planar.md` in `--out`, print the summary.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
     let per = args.trials.unwrap_or(DEFAULT_TRIALS).max(1);
-    let noises: Vec<f64> =
-        NOISE_PX.iter().copied().filter(|n| args.only.is_empty() || args.only.iter().any(|o| (o - n).abs() < 1e-9)).collect();
+    let noises: Vec<f64> = NOISE_PX
+        .iter()
+        .copied()
+        .filter(|n| args.only.is_empty() || args.only.iter().any(|o| (o - n).abs() < 1e-9))
+        .collect();
     let mut jobs: Vec<(&'static str, f64, u64)> = Vec::new();
     for scene in ["wall", "far"] {
         for &noise in &noises {
@@ -158,7 +179,9 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         })
         .collect();
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
-    let mut csv = String::from("scene,noise_px,seed,route,err_elevation,err_verge_left,err_verge_right,sigma_elevation,sigma_verge_left,sigma_verge_right,failure\n");
+    let mut csv = String::from(
+        "scene,noise_px,seed,route,err_elevation,err_verge_left,err_verge_right,sigma_elevation,sigma_verge_left,sigma_verge_right,failure\n",
+    );
     for t in &trials {
         let _ = writeln!(
             csv,

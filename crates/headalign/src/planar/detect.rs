@@ -105,7 +105,8 @@ pub fn detect_scene(views: &[View], fundamental: &RansacOptions) -> SceneCheck {
         check.why = format!("{n} stereo matches and no F: nothing to test");
         return check;
     };
-    let mut d: Vec<f64> = f.inliers.iter().map(|&i| f.model.sampson_distance(&pairs[i].0, &pairs[i].1).abs()).collect();
+    let mut d: Vec<f64> =
+        f.inliers.iter().map(|&i| f.model.sampson_distance(&pairs[i].0, &pairs[i].1).abs()).collect();
     d.sort_by(f64::total_cmp);
     let sigma = (1.4826 * d.get(d.len() / 2).copied().unwrap_or(0.0)).max(MIN_SIGMA_PX);
     let threshold = (4.0 * std::f64::consts::SQRT_2 * sigma).max(MIN_THRESHOLD_PX);

@@ -32,8 +32,8 @@
 //! normal when the scene is far (its sigma then exceeds [`NORMAL_UNDETERMINED_DEG`]:
 //! [`CameraPlanar::plane_normal`] is `None` and the scene is reported `far`).
 //!
-//! Degrees of freedom per camera: 4 + 4 per moved joint + 1 per (view, moved joint) + 3
-//! + 2 per point, less the one gauge. Pitfalls: a far scene that is not at infinity is
+//! Degrees of freedom per camera: 4, plus 4 per moved joint, 1 per (view, moved joint), 3
+//! and 2 per point, less the one gauge. Pitfalls: a far scene that is not at infinity is
 //! fitted as one plane, and the depth spread about it is unmodelled (noise-free seed 1 of
 //! the room at 240-960 baselines: 0.012 deg of elevation error; at 800-3200 baselines, the
 //! `far` preset, 0.0004 deg); the two cameras are estimated separately (their rotation angles are
@@ -113,7 +113,9 @@ impl Default for PlanarOptions {
 impl PlanarOptions {
     /// Check every option (field docs).
     pub fn validate(&self) -> Result<(), AlignError> {
-        self.homography.validate().map_err(|e| AlignError::Observations(format!("planar homography: {e}")))?;
+        self.homography
+            .validate()
+            .map_err(|e| AlignError::Observations(format!("planar homography: {e}")))?;
         let bad = |what: &str| Err(AlignError::Observations(format!("planar options: {what}")));
         if !(self.angle_prior_sigma_deg.is_finite() && self.angle_prior_sigma_deg > 0.0) {
             return bad("angle_prior_sigma_deg must be positive");

@@ -222,9 +222,12 @@ fn normal_equations(p: &Problem, sigma: f64, angle_sigma: f64) -> Option<Normal>
     Some(n)
 }
 
+/// The reduced camera matrix, its right-hand side and the inverted point blocks.
+type Reduced = (DMatrix<f64>, DVector<f64>, Vec<Matrix2<f64>>);
+
 /// The reduced camera system `S = U - sum W V^-1 W^T`, `b = -gc + sum W V^-1 gp`, with
 /// Marquardt damping `lambda` on the diagonals (zero for the covariance).
-fn reduced(n: &Normal, lambda: f64) -> Option<(DMatrix<f64>, DVector<f64>, Vec<Matrix2<f64>>)> {
+fn reduced(n: &Normal, lambda: f64) -> Option<Reduced> {
     let mut s = n.u.clone();
     for i in 0..s.nrows() {
         s[(i, i)] += lambda * n.u[(i, i)].max(1e-12);
@@ -246,12 +249,19 @@ fn reduced(n: &Normal, lambda: f64) -> Option<(DMatrix<f64>, DVector<f64>, Vec<M
 }
 
 /// Levenberg-Marquardt on `p` at pixel sigma `sigma` (module docs).
-fn adjust(mut p: Problem, sigma: f64, angle_sigma: f64, max_iterations: usize) -> Result<Problem, AlignError> {
+fn adjust(
+    mut p: Problem,
+    sigma: f64,
+    angle_sigma: f64,
+    max_iterations: usize,
+) -> Result<Problem, AlignError> {
     let mut cost = p.cost(sigma, angle_sigma);
     if !cost.is_finite() {
         return Err(AlignError::Geometry {
             step: "planar adjustment".into(),
-            cause: headalign_geometry::GeometryError::InvalidEstimate("the start projects a point to infinity".into()),
+            cause: headalign_geometry::GeometryError::InvalidEstimate(
+                "the start projects a point to infinity".into(),
+            ),
         });
     }
     let mut lambda = 1e-3;
@@ -267,9 +277,8 @@ fn adjust(mut p: Problem, sigma: f64, angle_sigma: f64, max_iterations: usize) -
                 lambda *= 10.0;
                 continue;
             };
-            let dp: Vec<Vector2<f64>> = (0..p.points.len())
-                .map(|i| v_inv[i] * (-n.gp[i] - n.w[i].transpose() * &dc))
-                .collect();
+            let dp: Vec<Vector2<f64>> =
+                (0..p.points.len()).map(|i| v_inv[i] * (-n.gp[i] - n.w[i].transpose() * &dc)).collect();
             let candidate = p.retract(&dc, &dp);
             let c = candidate.cost(sigma, angle_sigma);
             if c.is_finite() && c < cost {
@@ -385,7 +394,8 @@ impl Fit {
         let p = &self.problem;
         let names = ["pan", "elevation", "verge"];
         let mut rows: Vec<usize> = vec![0, 1, 2, 3];
-        let mut parameter_names: Vec<String> = ["fx", "fy", "cx", "cy"].iter().map(|s| s.to_string()).collect();
+        let mut parameter_names: Vec<String> =
+            ["fx", "fy", "cx", "cy"].iter().map(|s| s.to_string()).collect();
         let (mut pan, mut elevation, mut verge) = ([0.0; 3], [0.0; 3], None);
         for (j, js) in p.joints.iter().enumerate() {
             let a = [js.axis.x, js.axis.y, js.axis.z];

@@ -65,7 +65,11 @@ pub fn alignment_sigmas(calib: &PlanarCalibration) -> Result<AlignmentSigmas, Al
             let h = PROPAGATION_STEP_SIGMAS * sigma;
             let eval = |step: f64| {
                 let m = moved(cam, i, step);
-                if is_left { deltas(&m, &calib.right.axes(), &reference) } else { deltas(&calib.left.axes(), &m, &reference) }
+                if is_left {
+                    deltas(&m, &calib.right.axes(), &reference)
+                } else {
+                    deltas(&calib.left.axes(), &m, &reference)
+                }
             };
             if let (Some(p), Some(q)) = (eval(h), eval(-h)) {
                 for r in 0..3 {

@@ -172,7 +172,8 @@ pub(super) fn initial_problem(data: &CameraData, side: Side) -> Result<Problem, 
     // Points: tracks of the reference view that some rotated view keeps as an inlier.
     let (mut points, mut tracks, mut obs) = (Vec::new(), Vec::new(), Vec::new());
     for (track, px) in &data.views[0].obs {
-        let kept: Vec<usize> = (1..data.views.len()).filter(|&i| data.views[i].inliers.contains(track)).collect();
+        let kept: Vec<usize> =
+            (1..data.views.len()).filter(|&i| data.views[i].inliers.contains(track)).collect();
         if kept.is_empty() {
             continue;
         }

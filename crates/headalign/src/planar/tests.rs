@@ -56,7 +56,12 @@ fn noise_free_wall_and_far_align_within_a_hundredth_of_a_degree() {
         let fx = head.truth().left.fx;
         assert!((calib.left.intrinsics.fx - fx).abs() < 1e-3 * fx, "{preset} {:?}", calib.left.intrinsics);
         let far = preset == "far";
-        assert_eq!(calib.scene.kind, if far { SceneKind::Far } else { SceneKind::Planar }, "{:?}", calib.scene);
+        assert_eq!(
+            calib.scene.kind,
+            if far { SceneKind::Far } else { SceneKind::Planar },
+            "{:?}",
+            calib.scene
+        );
         assert_eq!(calib.left.plane_normal.is_none(), far);
     }
 }
@@ -71,7 +76,6 @@ fn the_default_room_is_general() {
         assert_eq!(check.kind, SceneKind::General, "seed {seed}: {check:?}");
     }
 }
-
 
 /// The procedure switches: on the wall it runs the planar route and ends aligned within
 /// 0.01 deg (noise-free); on the default room it runs the general route.

@@ -374,7 +374,9 @@ impl VergeTiltRun {
         let rig_views = plan.len() - 1;
         let scene = crate::planar::detect_scene(&self.views[..rig_views], &options.estimation.fundamental);
         if scene.kind == crate::planar::SceneKind::General {
-            return self.finish_general(head, &options, &plan).map(|o| RouteOutcome::General(Box::new(o), scene));
+            return self
+                .finish_general(head, &options, &plan)
+                .map(|o| RouteOutcome::General(Box::new(o), scene));
         }
         let t0 = Instant::now();
         let planar_options = crate::planar::PlanarOptions {
