@@ -7,7 +7,7 @@
 //! own views are then related by 3x3 homographies, and those still hold the head's axes
 //! (paper section 3.3): a rotation's homography leaves the image of the line at infinity
 //! perpendicular to its axis fixed. The route, each camera on its own:
-//! 1. **detection** ([`detect`]): the reference view's stereo matches against one
+//! 1. **detection** ([`detect_scene`]): the reference view's stereo matches against one
 //!    homography and against `F` at the same threshold;
 //! 2. **homographies** (`start.rs`): per rotated view, a robust 3x3 homography between
 //!    the reference image and the view's image of this camera (RANSAC on transfer error);
