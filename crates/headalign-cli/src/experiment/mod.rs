@@ -345,6 +345,9 @@ fn fixed(x: f64, scenario: Scenario) -> Condition {
 const COVERAGE_FIXED_PX: [f64; 4] = [0.5, 1.0, 2.0, 3.0];
 /// Noise levels (pixels) of the `coverage` experiment's `robot` group (robot stages).
 const COVERAGE_ROBOT_PX: [f64; 2] = [1.0, 3.0];
+/// Noise levels (pixels) of the `coverage` experiment's `three-view` group (offline
+/// sessions without a vergence view, 10 % outliers as every condition).
+const COVERAGE_THREE_VIEW_PX: [f64; 1] = [1.0];
 /// Default trials per condition of `coverage`: with 300 trials a calibrated 95 % interval
 /// covers 92.5-97.5 % with 95 % probability (binomial standard deviation 1.3 %), so a
 /// coverage of 90 % (or 98 %) is told from 95 % by about 4 (or 2.4) standard deviations.
