@@ -20,8 +20,10 @@
 //! (the last pan correction's, the steering zero's, the verge/tilt ones) get a coverage.
 //! `coverage` runs the verge/tilt procedure at 0.5-3 px and adds `robot` conditions (1
 //! and 3 px) that run the same robot trial, so that it covers every sigma headalign
-//! reports in point mode, with enough trials per condition (300) to tell a 90 % or 98 %
-//! coverage from 95 %.
+//! reports in point mode, and a `three-view` condition (1 px): sessions of three views
+//! (initial, +3 deg elevation, +3 deg pan; no vergence view) aligned offline as `align`
+//! does, with nominal vergence axes; enough trials per condition (300) to tell a 90 % or
+//! 98 % coverage from 95 %.
 //!
 //! Outputs in `--out DIR`: `<name>.csv` (every trial, failures included with their error
 //! message), `<name>.png` and `<name>.svg` (RMS error against the parameter, with the
