@@ -797,6 +797,31 @@ mod tests {
         assert_eq!(pinhole.stereo.distortion, [Distortion::default(); 2]);
     }
 
+    /// The reprojection residuals against the localisation noise measured from the images
+    /// (issue 31 item 3; `headalign::calibrate::image_noise`), on rendered sessions (two
+    /// 5 deg rotations, 1500 corners, no retry):
+    /// - the images' own model (pinhole cameras, pinhole fit): no warning, and `chi2 /
+    ///   dof` near 1 (measured ...);
+    /// - a barrel lens (`k1 = -0.25`) fitted as a pinhole: the warning, naming the symptom,
+    ///   and the sigmas widened (measured ...).
+    #[test]
+    fn residuals_are_checked_against_the_images_noise() {
+        let check = |distortion: Distortion| {
+            let mut scenario = Scenario { seed: 2, rotation_deg: 5.0, ..Scenario::default() };
+            scenario.render.distortion = distortion;
+            let (views, _) = simulate_views(&scenario, "rotations").unwrap();
+            let c = calibrate_views(&views, &CalibrateArgs { corners: Some(1500), ..args(Path::new("unused")) })
+                .unwrap();
+            let cal = c.calibration.unwrap();
+            eprintln!("{}", serde_json::to_string(&cal.report.image_noise).unwrap());
+            eprintln!("{:?}", cal.report.warnings);
+            cal
+        };
+        let fits = check(Distortion::default());
+        let lensed = check(Distortion::radial(-0.25, 0.0));
+        let _ = (fits, lensed);
+    }
+
     /// One general motion on rendered images of a scene dominated by one textured wall
     /// (seed 20: 92 % of the stereo matches on one plane with the photographs). With 1500
     /// corners the few points off the wall let the adjustment settle 19.7 % off in f

@@ -99,6 +99,8 @@ pub fn calibrate_sequence(
     }
     let mut result = super::with_restarts(options, |o, seeded| sequence_once(views, o, seeded))?;
     super::residuals::check_and_widen(&mut result);
+    result.report.image_noise =
+        Some(super::ImageNoiseCheck::skipped(super::image_noise::NO_IMAGES));
     Ok(result)
 }
 
@@ -462,6 +464,7 @@ fn sequence_once(
         restarts: 0,
         lens_selection: None,
         residual_structure: None,
+        image_noise: None,
         sequence: Some(kf.report),
         warnings,
     };

@@ -105,3 +105,59 @@ fn refined_observations_are_closer_to_the_truth() {
         );
     }
 }
+
+/// The front end's localisation variances against the truth (module docs of
+/// `headalign::frontend`, "Localisation noise"): on the rendered pair (2 grey levels of
+/// noise, 0.5 px blur), every observation with a known variance except the tracks'
+/// defining ones, the RMS truth error per coordinate over the RMS predicted sigma.
+#[test]
+fn localisation_sigmas_match_the_truth_errors() {
+    let mut s = Scenario { seed: 3, ..Scenario::default() };
+    s.render.use_photos = false;
+    let mut head = SimulatedHead::new(s.clone()).unwrap();
+    let e0 = head.read_encoders().unwrap();
+    let first = head.capture_images().unwrap();
+    let t0 = head.encoders();
+    head.move_to(&e0.moved(Joint::Pan, s.rotation_deg)).unwrap();
+    let second = head.capture_images().unwrap();
+    let t1 = head.encoders();
+    let mut tracker = Tracker::new(FrontEndOptions::default()).unwrap();
+    let (c0, r0) = tracker.track(&first, "reference").unwrap();
+    let (c1, r1) = tracker.track(&second, "rotated").unwrap();
+    let reports = [&r0, &r1];
+    let truth = head.truth().clone();
+    let (scene_from_left0, _) = head.scene_from_cameras(&t0);
+    // (view, side, squared error, predicted variance)
+    let mut rows = Vec::new();
+    for o in &c0.left {
+        let ray = truth.left.inverse_matrix() * Vector3::new(o.pixel.x, o.pixel.y, 1.0);
+        let origin = Point3::from(scene_from_left0.translation.vector);
+        let Some(x) = head.room().cast(&origin, &(scene_from_left0.rotation * ray)) else { continue };
+        for (vi, (c, e)) in [(&c0, &t0), (&c1, &t1)].into_iter().enumerate() {
+            let (ql, qr) = head.exact_pixels(e, &x);
+            for (side, list, q) in [(0, &c.left, ql), (1, &c.right, qr)] {
+                if vi == 0 && side == 0 {
+                    continue;
+                }
+                let var = reports[vi].localisation_var[side].get(&o.track).copied();
+                if let (Some(p), Some(q), Some(var)) = (list.iter().find(|p| p.track == o.track), q, var) {
+                    rows.push((vi, side, (p.pixel - q).norm_squared(), var));
+                }
+            }
+        }
+    }
+    for (vi, side) in [(0, 1), (1, 0), (1, 1)] {
+        let sel: Vec<&(usize, usize, f64, f64)> =
+            rows.iter().filter(|r| r.0 == vi && r.1 == side && r.2 < 1.0).collect();
+        let n = sel.len().max(1) as f64;
+        let err = (sel.iter().map(|r| r.2).sum::<f64>() / (2.0 * n)).sqrt();
+        let pred = (sel.iter().map(|r| r.3).sum::<f64>() / n).sqrt();
+        let mut z: Vec<f64> = sel.iter().map(|r| (r.2 / r.3).sqrt()).collect();
+        z.sort_by(f64::total_cmp);
+        let zmed = z.get(z.len() / 2).copied().unwrap_or(f64::NAN) / (2.0 * std::f64::consts::LN_2).sqrt();
+        let zrms = (z.iter().map(|v| v * v).sum::<f64>() / (2.0 * n)).sqrt();
+        let z95 = z.get(z.len() * 95 / 100).copied().unwrap_or(f64::NAN);
+        eprintln!("view {vi} side {side}: {} observations, truth RMS {err:.4} px, predicted {pred:.4} px, ratio {:.2}; normalised median {zmed:.2} rms {zrms:.2} p95 {z95:.2}", sel.len(), err / pred);
+    }
+    eprintln!("{:?} {:?}", r0.alignment_sigma_px, r1.alignment_sigma_px);
+}

@@ -1,0 +1,231 @@
+//! The reprojection residuals of a self-calibration against the localisation noise
+//! measured from the images (issue 31 item 3): a chi-square that a model absorbing a
+//! systematic error cannot pass, because its noise level is not the fit's own.
+//!
+//! What it computes, on the final adjustment's observations:
+//! - the measured variance of each observation: the front end's localisation variance of
+//!   that observation relative to its track's defining corner
+//!   ([`crate::frontend::ViewTracking::localisation_var`]: the patch alignments' own
+//!   least-squares precision, from their grey-level residuals; no geometric model);
+//! - the points all of whose observations have a measured variance (the checked set:
+//!   `n` observations of `P` points), their residual sum of squares `RSS` (pixels^2) and
+//!   `sigma_img^2`, the mean measured variance per coordinate over them;
+//! - `chi2 = RSS / sigma_img^2` against its degrees of freedom
+//!   `dof = 2 n - 3 P - p_cam n / N` (`p_cam` the camera and motion parameters, shared by
+//!   all `N` observations of the adjustment and charged in proportion), and the ratio
+//!   `chi2 / dof`: the squared ratio of the residuals' noise to the images' noise.
+//!
+//! The test: under the model `chi2` is chi-square distributed with `dof` degrees of
+//! freedom, so `chi2 / dof` lies within `1 +- 3.1 sqrt(2 / dof)` (99.9 %, Wilson-Hilferty;
+//! [`ImageNoiseCheck::ratio_limit`]); the measured noise itself is a model of the
+//! alignment's precision, accurate to a factor (rendered images: the truth errors' median
+//! within 6 % of the predicted sigma, their RMS 1.1-1.5 times it, a heavy tail of
+//! misalignments; the test `localisation_sigmas_match_the_truth_errors`). So the check
+//! fires when the chi-square is beyond its 99.9 % limit **and** the residuals' noise is
+//! more than [`RESIDUAL_OVER_NOISE_WARN`] times the measured noise: a warning naming
+//! the symptom, and the intrinsics' and lens sigmas widened to `sqrt(chi2 / dof)` times
+//! the adjustment's (a variance inflation for lack of fit, as
+//! [`super::residuals`]; the two widenings are not compounded: this one applies only what
+//! exceeds the residual structure's).
+//!
+//! Units: pixels; chi-square dimensionless. Degrees of freedom: none estimated.
+//!
+//! Pitfalls: the degrees of freedom treat every observation's leverage alike, while a
+//! track's defining corner carries no error (its variance is 0) and the others carry
+//! it: the expectation of `chi2 / dof` under the model is then within tens of per cent of
+//! 1, which is why the threshold is a factor and not the chi-square limit alone. A known
+//! lens removed beforehand ([`super::undistort_views`]) stretches the residuals by the
+//! lens's local magnification (up to a few tens of per cent at a barrel lens's border)
+//! while the variances stay in image pixels. Observations without images (point
+//! sessions), or without patch alignment, have no measured noise: the check is skipped
+//! and says so.
+
+use std::collections::HashMap;
+
+use headalign_geometry::bundle::{Side, residual_pixels};
+use serde::Serialize;
+
+use super::{MotionCalibration, report};
+
+/// The residuals' noise over the measured noise above which (with a significant
+/// chi-square) the check warns and widens: 2 (module docs: the measured noise is accurate
+/// to a factor 1.1-1.5 on rendered images; a lens model that does not fit leaves
+/// residuals tens of times the noise).
+pub const RESIDUAL_OVER_NOISE_WARN: f64 = 2.0;
+
+/// Why the check is skipped when the observations came without their images'
+/// localisation noise ([`super::calibrate_rig`] on point observations).
+pub const NO_IMAGES: &str =
+    "the observations came without images (a points or observations session): no localisation noise was measured";
+
+/// Points with all observations measured below which the check is skipped.
+pub const MIN_CHECKED_POINTS: usize = 30;
+
+/// Each view's measured localisation variances (pixels^2 per coordinate), by view name:
+/// left and right, by track id.
+pub type MeasuredVariances = HashMap<String, [HashMap<u64, f64>; 2]>;
+
+/// The check of the module docs, as the report carries it.
+#[derive(Debug, Clone, Serialize)]
+pub struct ImageNoiseCheck {
+    /// `checked`, or `skipped` (see `reason`).
+    pub status: String,
+    /// Why the check was skipped.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// `sigma_img`: the RMS measured localisation noise per coordinate over the checked
+    /// observations, pixels.
+    pub measured_sigma_px: Option<f64>,
+    /// `sqrt(RSS / dof)`: the residuals' noise over the same observations, pixels.
+    pub residual_sigma_px: Option<f64>,
+    /// Observations checked, and the adjustment's.
+    pub observations: [usize; 2],
+    /// Points checked.
+    pub points: usize,
+    /// `RSS / sigma_img^2`.
+    pub chi2: Option<f64>,
+    /// Its degrees of freedom.
+    pub dof: Option<f64>,
+    /// `chi2 / dof`.
+    pub ratio: Option<f64>,
+    /// The 99.9 % limit of `chi2 / dof` under the model.
+    pub ratio_limit: Option<f64>,
+    /// The factor the intrinsics' and lens sigmas were multiplied by here, on top of the
+    /// residual structure's (1: none).
+    pub sigma_widening: f64,
+}
+
+impl ImageNoiseCheck {
+    /// A check that could not run, and why.
+    pub fn skipped(reason: &str) -> Self {
+        Self {
+            status: "skipped".into(),
+            reason: Some(reason.into()),
+            measured_sigma_px: None,
+            residual_sigma_px: None,
+            observations: [0, 0],
+            points: 0,
+            chi2: None,
+            dof: None,
+            ratio: None,
+            ratio_limit: None,
+            sigma_widening: 1.0,
+        }
+    }
+}
+
+/// The 99.9 % quantile of chi-square over its `dof` (Wilson-Hilferty, real `dof`).
+fn ratio_quantile_999(dof: f64) -> f64 {
+    let a = 2.0 / (9.0 * dof.max(1.0));
+    (1.0 - a + 3.090_232 * a.sqrt()).powi(3)
+}
+
+/// The statistics of the module docs for `calibration` with the measured variances
+/// `measured` (a check without warning or widening yet).
+pub fn image_noise_check(calibration: &MotionCalibration, measured: &MeasuredVariances) -> ImageNoiseCheck {
+    let obs = &calibration.observations;
+    let state = &calibration.bundle.state;
+    let names = &calibration.report.views;
+    // Each observation's measured variance, if any.
+    let var_of = |o: &headalign_geometry::bundle::BundleObservation| -> Option<f64> {
+        let track = calibration.point_tracks.get(o.point)?;
+        let sides = measured.get(names.get(o.view)?)?;
+        sides[usize::from(o.side == Side::Right)].get(track).copied()
+    };
+    let vars: Vec<Option<f64>> = obs.iter().map(var_of).collect();
+    let points = calibration.bundle.state.points.len();
+    let mut complete = vec![true; points];
+    let mut used = vec![false; points];
+    for (o, v) in obs.iter().zip(&vars) {
+        if let (Some(c), Some(u)) = (complete.get_mut(o.point), used.get_mut(o.point)) {
+            *u = true;
+            *c &= v.is_some();
+        }
+    }
+    let checked_points = (0..points).filter(|&p| used[p] && complete[p]).count();
+    let used_points = used.iter().filter(|&&u| u).count();
+    let (mut n, mut rss, mut sum_var) = (0usize, 0.0, 0.0);
+    for (o, v) in obs.iter().zip(&vars) {
+        let (Some(v), true) = (v, complete.get(o.point).copied().unwrap_or(false)) else { continue };
+        let Some(r) = residual_pixels(state, o) else { continue };
+        n += 1;
+        rss += r.norm_squared();
+        sum_var += v;
+    }
+    if checked_points < MIN_CHECKED_POINTS || n == 0 {
+        let mut c = ImageNoiseCheck::skipped(&format!(
+            "{checked_points} points have a measured localisation noise in all their observations (at least {MIN_CHECKED_POINTS} needed): the images' tracks were not patch-aligned"
+        ));
+        c.observations = [n, obs.len()];
+        c.points = checked_points;
+        return c;
+    }
+    let p_cam = calibration.bundle.report.parameters.saturating_sub(3 * used_points) as f64;
+    let dof = 2.0 * n as f64 - 3.0 * checked_points as f64 - p_cam * n as f64 / obs.len().max(1) as f64;
+    let var = sum_var / n as f64;
+    if dof < 1.0 || !(var > 0.0 && var.is_finite()) {
+        let mut c = ImageNoiseCheck::skipped("too few degrees of freedom among the measured observations");
+        c.observations = [n, obs.len()];
+        c.points = checked_points;
+        return c;
+    }
+    let chi2 = rss / var;
+    ImageNoiseCheck {
+        status: "checked".into(),
+        reason: None,
+        measured_sigma_px: Some(var.sqrt()),
+        residual_sigma_px: Some((rss / dof).sqrt()),
+        observations: [n, obs.len()],
+        points: checked_points,
+        chi2: Some(chi2),
+        dof: Some(dof),
+        ratio: Some(chi2 / dof),
+        ratio_limit: Some(ratio_quantile_999(dof)),
+        sigma_widening: 1.0,
+    }
+}
+
+/// Check a calibration's residuals against the measured noise ([`image_noise_check`]):
+/// when the check fires (module docs), warn and widen the intrinsics' and lens sigmas to
+/// `sqrt(chi2 / dof)` times the adjustment's (what exceeds the residual structure's
+/// widening); the report's focal sigmas follow.
+pub fn check_against_images(calibration: &mut MotionCalibration, measured: &MeasuredVariances) {
+    let mut check = image_noise_check(calibration, measured);
+    if let (Some(ratio), Some(limit), Some(residual), Some(noise)) =
+        (check.ratio, check.ratio_limit, check.residual_sigma_px, check.measured_sigma_px)
+        && ratio > limit
+        && ratio.sqrt() > RESIDUAL_OVER_NOISE_WARN
+    {
+        let already = calibration.report.residual_structure.as_ref().map_or(1.0, |s| s.sigma_widening);
+        let extra = (ratio.sqrt() / already).max(1.0);
+        if extra > 1.0 {
+            super::residuals::widen_intrinsics(&mut calibration.bundle.covariance, extra);
+            calibration.report.focal_sigma_pct = report::focal_sigma_pct(&calibration.bundle);
+        }
+        check.sigma_widening = extra;
+        calibration.report.warnings.push(format!(
+            "the reprojection residuals are {:.1} x the localisation noise measured from the images ({residual:.3} px against {noise:.3} px; chi-square {:.0} for {:.0} degrees of freedom, 99.9 % limit {:.0}): the model does not fit these images (lens model? rolling shutter? moving scene?); the intrinsics' and lens sigmas are widened {:.1} times",
+            ratio.sqrt(),
+            check.chi2.unwrap_or(f64::NAN),
+            check.dof.unwrap_or(f64::NAN),
+            limit * check.dof.unwrap_or(f64::NAN),
+            ratio.sqrt().max(already)
+        ));
+    }
+    calibration.report.image_noise = Some(check);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The ratio limit against tabulated chi-square 99.9 % points over their degrees of
+    /// freedom (100 dof: 149.45; 1000 dof: 1143.9); Wilson-Hilferty is within 0.1 % there.
+    #[test]
+    fn ratio_limit_matches_the_tables() {
+        for (dof, table) in [(100.0, 149.45), (1000.0, 1143.9)] {
+            let q = ratio_quantile_999(dof) * dof;
+            assert!((q / table - 1.0).abs() < 0.002, "{dof}: {q} vs {table}");
+        }
+    }
+}
