@@ -557,6 +557,18 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
             r.final_rms_px,
             r.bundle_observations
         );
+        match &r.image_noise {
+            Some(n) if n.status == "checked" => println!(
+                "residuals {:.3} px against {:.3} px expected from the localisation noise measured in the images ({:.3} px): chi-square {:.0} for {:.0} degrees of freedom",
+                n.residual_sigma_px.unwrap_or(f64::NAN),
+                n.expected_residual_sigma_px.unwrap_or(f64::NAN),
+                n.measured_sigma_px.unwrap_or(f64::NAN),
+                n.chi2.unwrap_or(f64::NAN),
+                n.dof.unwrap_or(f64::NAN)
+            ),
+            Some(n) => println!("no check against the images' noise: {}", n.reason.as_deref().unwrap_or("")),
+            None => {}
+        }
         if !r.skipped.is_empty() {
             let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
             println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
@@ -806,20 +818,31 @@ mod tests {
     ///   and the sigmas widened (measured ...).
     #[test]
     fn residuals_are_checked_against_the_images_noise() {
-        let check = |distortion: Distortion| {
+        let check = |distortion: Distortion, lens: Option<LensChoice>| {
             let mut scenario = Scenario { seed: 2, rotation_deg: 5.0, ..Scenario::default() };
             scenario.render.distortion = distortion;
             let (views, _) = simulate_views(&scenario, "rotations").unwrap();
-            let c = calibrate_views(&views, &CalibrateArgs { corners: Some(1500), ..args(Path::new("unused")) })
-                .unwrap();
-            let cal = c.calibration.unwrap();
-            eprintln!("{}", serde_json::to_string(&cal.report.image_noise).unwrap());
-            eprintln!("{:?}", cal.report.warnings);
-            cal
+            let a = CalibrateArgs { corners: Some(1500), lens, ..args(Path::new("unused")) };
+            let cal = calibrate_views(&views, &a).unwrap().calibration.unwrap();
+            let n = cal.report.image_noise.clone().unwrap();
+            let warned =
+                cal.report.warnings.iter().any(|w| w.contains("localisation noise measured from the images"));
+            eprintln!("{}: warned {warned}", serde_json::to_string(&n).unwrap());
+            (n, warned)
         };
-        let fits = check(Distortion::default());
-        let lensed = check(Distortion::radial(-0.25, 0.0));
-        let _ = (fits, lensed);
+        for (n, warned) in [
+            check(Distortion::default(), None),
+            check(
+                Distortion::radial(-0.25, 0.0),
+                Some(LensChoice::Model(headalign_geometry::distortion::LensKind::RadialTangential)),
+            ),
+        ] {
+            assert_eq!(n.status, "checked", "{n:?}");
+            let ratio = n.ratio.unwrap();
+            assert!((0.5..1.5).contains(&ratio) && !warned, "{n:?}");
+        }
+        let (n, warned) = check(Distortion::radial(-0.25, 0.0), None);
+        assert!(warned && n.ratio.unwrap() > 1.5 * 1.5, "{n:?}");
     }
 
     /// One general motion on rendered images of a scene dominated by one textured wall

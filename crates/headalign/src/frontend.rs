@@ -236,12 +236,26 @@ pub struct ViewTracking {
     /// Median localisation sigma of this view's patch alignments, pixels per coordinate
     /// (left, right; module docs, "Localisation noise"); `None` where none was aligned.
     pub alignment_sigma_px: [Option<f64>; 2],
-    /// Each observation's localisation variance relative to its track's defining
-    /// observation (module docs, "Localisation noise"), pixels^2 per coordinate, by track
-    /// id (left, right); observations of unknown variance are absent. Not serialised.
+    /// Each observation's localisation noise (module docs, "Localisation noise"), by track
+    /// id (left, right); observations of unknown noise are absent. Not serialised.
     #[serde(skip)]
-    pub localisation_var: [std::collections::HashMap<u64, f64>; 2],
+    pub localisation: [std::collections::HashMap<u64, Localisation>; 2],
 }
+
+/// The localisation noise of one observation (module docs, "Localisation noise").
+#[derive(Debug, Clone, PartialEq)]
+pub struct Localisation {
+    /// Variance relative to the track's defining observation, pixels^2 per coordinate.
+    pub var: f64,
+    /// The observation it was aligned against: view name and side (0 left, 1 right);
+    /// `None` for the defining observation. Two observations of a track share the error
+    /// of their deepest common ancestor: its variance is their covariance.
+    pub parent: Option<(String, usize)>,
+}
+
+/// Where a corner's alignment reference is: the earlier view's corner (`true`) or this
+/// view's (`false`), and its side.
+type ParentSlot = (bool, usize);
 
 /// The reference view's corners and their track ids.
 #[derive(Debug, Clone)]
@@ -255,6 +269,8 @@ struct Reference {
     /// Each corner's localisation variance ([`ViewCorners::left_var`]).
     left_var: Vec<Option<f64>>,
     right_var: Vec<Option<f64>>,
+    /// The view's name.
+    name: String,
     /// The images (patch refinement).
     left_image: GrayImage,
     right_image: GrayImage,
@@ -325,10 +341,13 @@ fn shared(earlier: &[Option<u64>], current: &[Option<u64>]) -> Vec<(usize, usize
     current.iter().enumerate().filter_map(|(j, id)| id.and_then(|t| by_id.get(&t)).map(|&i| (i, j))).collect()
 }
 
-/// The current corners' side of a refinement: their ids and localisation variances.
+/// The current corners' side of a refinement: their ids, localisation variances and
+/// alignment parents, and where the earlier corners are.
 struct Refined<'a> {
     ids: &'a mut [Option<u64>],
     var: &'a mut [Option<f64>],
+    parent: &'a mut [Option<ParentSlot>],
+    earlier: ParentSlot,
 }
 
 /// Count refined / rejected observations of `side`, drop the rejected ones' ids, and give
@@ -347,6 +366,7 @@ fn tally(
             Some(s) => {
                 report.refined[side] += 1;
                 current.var[j] = earlier_var.get(i).copied().flatten().map(|v| v + s * s);
+                current.parent[j] = current.var[j].map(|_| current.earlier);
             }
             None => {
                 current.ids[j] = None;
@@ -641,7 +661,18 @@ impl Tracker {
         };
         let (left_ids, right_ids) = (vec![None; left.len()], vec![None; right.len()]);
         let (left_var, right_var) = (vec![None; left.len()], vec![None; right.len()]);
-        let mut corners = ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var };
+        let (left_parent, right_parent) = (vec![None; left.len()], vec![None; right.len()]);
+        let mut corners = ViewCorners {
+            left,
+            right,
+            stereo,
+            left_ids,
+            right_ids,
+            left_var,
+            right_var,
+            left_parent,
+            right_parent,
+        };
         // Track ids (module docs, step 4): fresh for the first view, else inherited.
         self.next_id = match &self.reference {
             None => first_view_ids(self.next_id, &mut corners),
@@ -655,9 +686,10 @@ impl Tracker {
         }
         let capture = corners.capture(images);
         report.observations = [capture.left.len(), capture.right.len()];
-        report.localisation_var = corners.localisation_var();
+        let earlier = self.reference.as_ref().map(|r| r.name.as_str());
+        report.localisation = corners.localisation(view, earlier);
         if self.reference.is_none() || self.options.mode == TrackingMode::Previous {
-            let ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var } = corners;
+            let ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var, .. } = corners;
             self.reference = Some(Reference {
                 left,
                 right,
@@ -666,6 +698,7 @@ impl Tracker {
                 stereo,
                 left_var,
                 right_var,
+                name: view.to_string(),
                 left_image: images.left.clone(),
                 right_image: images.right.clone(),
             });
@@ -771,7 +804,17 @@ impl Tracker {
     ) {
         let o = &self.options;
         let k = o.refine_neighbours;
-        let ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var } = view;
+        let ViewCorners {
+            left,
+            right,
+            stereo,
+            left_ids,
+            right_ids,
+            left_var,
+            right_var,
+            left_parent,
+            right_parent,
+        } = view;
         let mut sigmas: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
         match &self.reference {
             Some(r) => {
@@ -783,8 +826,28 @@ impl Tracker {
                     refine_against(&r.right_image, &r.right, &images.right, right, &pr, ro, k),
                 );
                 for (side, (pairs, ok, earlier, current)) in [
-                    (&pl, okl, &r.left_var, Refined { ids: &mut *left_ids, var: &mut *left_var }),
-                    (&pr, okr, &r.right_var, Refined { ids: &mut *right_ids, var: &mut *right_var }),
+                    (
+                        &pl,
+                        okl,
+                        &r.left_var,
+                        Refined {
+                            ids: &mut *left_ids,
+                            var: &mut *left_var,
+                            parent: &mut *left_parent,
+                            earlier: (true, 0),
+                        },
+                    ),
+                    (
+                        &pr,
+                        okr,
+                        &r.right_var,
+                        Refined {
+                            ids: &mut *right_ids,
+                            var: &mut *right_var,
+                            parent: &mut *right_parent,
+                            earlier: (true, 1),
+                        },
+                    ),
                 ]
                 .into_iter()
                 .enumerate()
@@ -803,7 +866,9 @@ impl Tracker {
                         })
                         .collect();
                     let ok = refine_against(&images.left, left, &images.right, right, &fresh, ro, k);
-                    tally(&fresh, &ok, left_var, Refined { ids: right_ids, var: right_var }, report, 1);
+                    let current =
+                        Refined { ids: right_ids, var: right_var, parent: right_parent, earlier: (false, 0) };
+                    tally(&fresh, &ok, left_var, current, report, 1);
                     sigmas[1].extend(ok.iter().flatten());
                 }
             }
@@ -814,7 +879,9 @@ impl Tracker {
                     .filter(|&(a, b)| left_ids[a].is_some() && left_ids[a] == right_ids[b])
                     .collect();
                 let ok = refine_against(&images.left, left, &images.right, right, &pairs, ro, k);
-                tally(&pairs, &ok, left_var, Refined { ids: right_ids, var: right_var }, report, 1);
+                let current =
+                    Refined { ids: right_ids, var: right_var, parent: right_parent, earlier: (false, 0) };
+                tally(&pairs, &ok, left_var, current, report, 1);
                 sigmas[1].extend(ok.iter().flatten());
             }
             None => {}
@@ -837,15 +904,37 @@ struct ViewCorners {
     /// alignment's sigma squared for a refined one, `None` when unknown (not aligned).
     left_var: Vec<Option<f64>>,
     right_var: Vec<Option<f64>>,
+    /// Each aligned corner's alignment reference (`None`: not aligned).
+    left_parent: Vec<Option<ParentSlot>>,
+    right_parent: Vec<Option<ParentSlot>>,
 }
 
 impl ViewCorners {
-    /// [`ViewTracking::localisation_var`]: the known variances of the corners with a track.
-    fn localisation_var(&self) -> [std::collections::HashMap<u64, f64>; 2] {
-        let of = |ids: &[Option<u64>], var: &[Option<f64>]| {
-            ids.iter().zip(var).filter_map(|(id, v)| id.zip(*v)).collect()
+    /// [`ViewTracking::localisation`]: the known noise of the corners with a track, in the
+    /// view `name` tracked against the view `earlier`.
+    fn localisation(
+        &self,
+        name: &str,
+        earlier: Option<&str>,
+    ) -> [std::collections::HashMap<u64, Localisation>; 2] {
+        let of = |ids: &[Option<u64>], var: &[Option<f64>], parent: &[Option<ParentSlot>]| {
+            ids.iter()
+                .zip(var)
+                .zip(parent)
+                .filter_map(|((id, v), p)| {
+                    let parent = match p {
+                        None => None,
+                        Some((true, side)) => Some((earlier?.to_string(), *side)),
+                        Some((false, side)) => Some((name.to_string(), *side)),
+                    };
+                    id.zip(*v).map(|(t, var)| (t, Localisation { var, parent }))
+                })
+                .collect()
         };
-        [of(&self.left_ids, &self.left_var), of(&self.right_ids, &self.right_var)]
+        [
+            of(&self.left_ids, &self.left_var, &self.left_parent),
+            of(&self.right_ids, &self.right_var, &self.right_parent),
+        ]
     }
 
     /// The tracked observations of the view: every corner with a track id.

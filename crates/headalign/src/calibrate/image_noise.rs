@@ -42,28 +42,29 @@
 
 use std::collections::HashMap;
 
-use headalign_geometry::bundle::{Side, residual_pixels};
+use headalign_geometry::bundle::{BundleObservation, Side, residual_pixels, residual_pixels_at};
+use nalgebra::{Matrix2x3, Matrix3};
 use serde::Serialize;
 
 use super::{MotionCalibration, report};
+use crate::frontend::Localisation;
 
 /// The residuals' noise over the measured noise above which (with a significant
 /// chi-square) the check warns and widens: 2 (module docs: the measured noise is accurate
 /// to a factor 1.1-1.5 on rendered images; a lens model that does not fit leaves
 /// residuals tens of times the noise).
-pub const RESIDUAL_OVER_NOISE_WARN: f64 = 2.0;
+pub const RESIDUAL_OVER_NOISE_WARN: f64 = 1.5;
 
 /// Why the check is skipped when the observations came without their images'
 /// localisation noise ([`super::calibrate_rig`] on point observations).
-pub const NO_IMAGES: &str =
-    "the observations came without images (a points or observations session): no localisation noise was measured";
+pub const NO_IMAGES: &str = "the observations came without images (a points or observations session): no localisation noise was measured";
 
 /// Points with all observations measured below which the check is skipped.
 pub const MIN_CHECKED_POINTS: usize = 30;
 
-/// Each view's measured localisation variances (pixels^2 per coordinate), by view name:
-/// left and right, by track id.
-pub type MeasuredVariances = HashMap<String, [HashMap<u64, f64>; 2]>;
+/// Each view's measured localisation noise ([`Localisation`]), by view name: left and
+/// right, by track id.
+pub type MeasuredVariances = HashMap<String, [HashMap<u64, Localisation>; 2]>;
 
 /// The check of the module docs, as the report carries it.
 #[derive(Debug, Clone, Serialize)]
@@ -76,6 +77,9 @@ pub struct ImageNoiseCheck {
     /// `sigma_img`: the RMS measured localisation noise per coordinate over the checked
     /// observations, pixels.
     pub measured_sigma_px: Option<f64>,
+    /// `sqrt(E[RSS] / dof)`: the residuals' noise the measured errors predict (module
+    /// docs), pixels.
+    pub expected_residual_sigma_px: Option<f64>,
     /// `sqrt(RSS / dof)`: the residuals' noise over the same observations, pixels.
     pub residual_sigma_px: Option<f64>,
     /// Observations checked, and the adjustment's.
@@ -102,6 +106,7 @@ impl ImageNoiseCheck {
             status: "skipped".into(),
             reason: Some(reason.into()),
             measured_sigma_px: None,
+            expected_residual_sigma_px: None,
             residual_sigma_px: None,
             observations: [0, 0],
             points: 0,
@@ -120,60 +125,157 @@ fn ratio_quantile_999(dof: f64) -> f64 {
     (1.0 - a + 3.090_232 * a.sqrt()).powi(3)
 }
 
-/// The statistics of the module docs for `calibration` with the measured variances
+/// One observation's node in its track's alignment tree: view name and side.
+type Node<'a> = (&'a str, usize);
+
+/// The covariance of two observations' localisation errors (the variance of their
+/// deepest common ancestor in the alignment tree; module docs), pixels^2 per coordinate;
+/// `None` if a node on either path is unknown.
+fn covariance(measured: &MeasuredVariances, track: u64, a: Node<'_>, b: Node<'_>) -> Option<f64> {
+    let node = |(view, side): Node<'_>| measured.get(view).and_then(|m| m[side.min(1)].get(&track));
+    // a's ancestors (a itself first), with their variances.
+    let mut chain: Vec<((String, usize), f64)> = Vec::new();
+    let mut at = Some((a.0.to_string(), a.1));
+    while let Some(key) = at {
+        let l = node((key.0.as_str(), key.1))?;
+        if chain.len() > 10_000 || chain.iter().any(|(k, _)| *k == key) {
+            return None;
+        }
+        at = l.parent.clone();
+        chain.push((key, l.var));
+    }
+    let mut at = Some((b.0.to_string(), b.1));
+    let mut steps = 0;
+    while let Some(key) = at {
+        if let Some((_, v)) = chain.iter().find(|(k, _)| *k == key) {
+            return Some(*v);
+        }
+        at = node((key.0.as_str(), key.1))?.parent.clone();
+        steps += 1;
+        if steps > 10_000 {
+            return None;
+        }
+    }
+    // Different roots: independent.
+    Some(0.0)
+}
+
+/// The expected residual sum of squares of one point's observations `obs` under the
+/// measured errors (module docs): `tr((I - P) S)`, `P` the projection onto the point's
+/// three coordinates (numerical Jacobian), `S` the errors' covariance (isotropic per
+/// observation pair); `None` if any covariance is unknown or the Jacobian degenerate.
+fn expected_rss(
+    state: &headalign_geometry::bundle::RigState,
+    obs: &[&BundleObservation],
+    nodes: &[Node<'_>],
+    track: u64,
+    measured: &MeasuredVariances,
+) -> Option<f64> {
+    let x = *state.points.get(obs.first()?.point)?;
+    let h = 1e-6 * x.coords.norm().max(1.0);
+    // Per observation its 2x3 Jacobian of the residual in the point.
+    let mut jac = Vec::with_capacity(obs.len());
+    for o in obs {
+        let pose = state.motions.ref_from_cam(o.view);
+        let mut j = Matrix2x3::zeros();
+        for k in 0..3 {
+            let (mut xp, mut xm) = (x, x);
+            xp[k] += h;
+            xm[k] -= h;
+            let d = (residual_pixels_at(state, &pose, &xp, o)? - residual_pixels_at(state, &pose, &xm, o)?)
+                / (2.0 * h);
+            j.set_column(k, &d);
+        }
+        jac.push(j);
+    }
+    let m = obs.len();
+    let mut cov = vec![0.0; m * m];
+    for a in 0..m {
+        for b in a..m {
+            let c = covariance(measured, track, nodes[a], nodes[b])?;
+            cov[a * m + b] = c;
+            cov[b * m + a] = c;
+        }
+    }
+    let normal: Matrix3<f64> = jac.iter().map(|j| j.transpose() * j).sum();
+    let inv = normal.try_inverse()?;
+    // tr(P S) = tr(N^-1 J^T S J), J^T S J = sum_ab c_ab J_a^T J_b (S isotropic per pair).
+    let mut jsj = Matrix3::zeros();
+    for a in 0..m {
+        for b in 0..m {
+            let c = cov[a * m + b];
+            if c != 0.0 {
+                jsj += c * jac[a].transpose() * jac[b];
+            }
+        }
+    }
+    let trace_s: f64 = (0..m).map(|a| 2.0 * cov[a * m + a]).sum();
+    let e = trace_s - (inv * jsj).trace();
+    e.is_finite().then_some(e.max(0.0))
+}
+
+/// The statistics of the module docs for `calibration` with the measured noise
 /// `measured` (a check without warning or widening yet).
 pub fn image_noise_check(calibration: &MotionCalibration, measured: &MeasuredVariances) -> ImageNoiseCheck {
     let obs = &calibration.observations;
     let state = &calibration.bundle.state;
     let names = &calibration.report.views;
-    // Each observation's measured variance, if any.
-    let var_of = |o: &headalign_geometry::bundle::BundleObservation| -> Option<f64> {
-        let track = calibration.point_tracks.get(o.point)?;
-        let sides = measured.get(names.get(o.view)?)?;
-        sides[usize::from(o.side == Side::Right)].get(track).copied()
-    };
-    let vars: Vec<Option<f64>> = obs.iter().map(var_of).collect();
-    let points = calibration.bundle.state.points.len();
-    let mut complete = vec![true; points];
-    let mut used = vec![false; points];
-    for (o, v) in obs.iter().zip(&vars) {
-        if let (Some(c), Some(u)) = (complete.get_mut(o.point), used.get_mut(o.point)) {
-            *u = true;
-            *c &= v.is_some();
+    let points = state.points.len();
+    let mut by_point: Vec<Vec<&BundleObservation>> = vec![Vec::new(); points];
+    for o in obs {
+        if let Some(list) = by_point.get_mut(o.point) {
+            list.push(o);
         }
     }
-    let checked_points = (0..points).filter(|&p| used[p] && complete[p]).count();
-    let used_points = used.iter().filter(|&&u| u).count();
-    let (mut n, mut rss, mut sum_var) = (0usize, 0.0, 0.0);
-    for (o, v) in obs.iter().zip(&vars) {
-        let (Some(v), true) = (v, complete.get(o.point).copied().unwrap_or(false)) else { continue };
-        let Some(r) = residual_pixels(state, o) else { continue };
-        n += 1;
-        rss += r.norm_squared();
-        sum_var += v;
+    let used_points = by_point.iter().filter(|l| !l.is_empty()).count();
+    let (mut n, mut checked_points, mut rss, mut expected, mut sum_var) = (0usize, 0usize, 0.0, 0.0, 0.0);
+    for (p, list) in by_point.iter().enumerate() {
+        let Some(&track) = calibration.point_tracks.get(p) else { continue };
+        let nodes: Option<Vec<Node<'_>>> = list
+            .iter()
+            .map(|o| names.get(o.view).map(|v| (v.as_str(), usize::from(o.side == Side::Right))))
+            .collect();
+        let Some(nodes) = nodes.filter(|v| !v.is_empty()) else { continue };
+        let vars: Option<Vec<f64>> = nodes
+            .iter()
+            .map(|&(v, side)| measured.get(v).and_then(|m| m[side].get(&track)).map(|l| l.var))
+            .collect();
+        let (Some(vars), Some(e)) = (vars, expected_rss(state, list, &nodes, track, measured)) else {
+            continue;
+        };
+        let r: Option<f64> = list.iter().map(|o| residual_pixels(state, o).map(|r| r.norm_squared())).sum();
+        let Some(r) = r else { continue };
+        n += list.len();
+        checked_points += 1;
+        rss += r;
+        expected += e;
+        sum_var += vars.iter().sum::<f64>();
     }
+    let skipped = |reason: String| ImageNoiseCheck {
+        observations: [n, obs.len()],
+        points: checked_points,
+        ..ImageNoiseCheck::skipped(&reason)
+    };
     if checked_points < MIN_CHECKED_POINTS || n == 0 {
-        let mut c = ImageNoiseCheck::skipped(&format!(
+        return skipped(format!(
             "{checked_points} points have a measured localisation noise in all their observations (at least {MIN_CHECKED_POINTS} needed): the images' tracks were not patch-aligned"
         ));
-        c.observations = [n, obs.len()];
-        c.points = checked_points;
-        return c;
     }
+    // The camera and motion parameters, charged to the checked observations in proportion.
     let p_cam = calibration.bundle.report.parameters.saturating_sub(3 * used_points) as f64;
-    let dof = 2.0 * n as f64 - 3.0 * checked_points as f64 - p_cam * n as f64 / obs.len().max(1) as f64;
-    let var = sum_var / n as f64;
-    if dof < 1.0 || !(var > 0.0 && var.is_finite()) {
-        let mut c = ImageNoiseCheck::skipped("too few degrees of freedom among the measured observations");
-        c.observations = [n, obs.len()];
-        c.points = checked_points;
-        return c;
+    let share = n as f64 / obs.len().max(1) as f64;
+    let dof = 2.0 * n as f64 - 3.0 * checked_points as f64 - p_cam * share;
+    let expected = expected * dof / (dof + p_cam * share);
+    if dof < 1.0 || !(expected > 0.0 && expected.is_finite()) {
+        return skipped("too few degrees of freedom among the measured observations".into());
     }
-    let chi2 = rss / var;
+    let effective_var = expected / dof;
+    let chi2 = rss / effective_var;
     ImageNoiseCheck {
         status: "checked".into(),
         reason: None,
-        measured_sigma_px: Some(var.sqrt()),
+        measured_sigma_px: Some((sum_var / n as f64).sqrt()),
+        expected_residual_sigma_px: Some(effective_var.sqrt()),
         residual_sigma_px: Some((rss / dof).sqrt()),
         observations: [n, obs.len()],
         points: checked_points,
@@ -192,7 +294,7 @@ pub fn image_noise_check(calibration: &MotionCalibration, measured: &MeasuredVar
 pub fn check_against_images(calibration: &mut MotionCalibration, measured: &MeasuredVariances) {
     let mut check = image_noise_check(calibration, measured);
     if let (Some(ratio), Some(limit), Some(residual), Some(noise)) =
-        (check.ratio, check.ratio_limit, check.residual_sigma_px, check.measured_sigma_px)
+        (check.ratio, check.ratio_limit, check.residual_sigma_px, check.expected_residual_sigma_px)
         && ratio > limit
         && ratio.sqrt() > RESIDUAL_OVER_NOISE_WARN
     {

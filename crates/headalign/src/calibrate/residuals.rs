@@ -245,8 +245,11 @@ pub(super) fn check_and_widen(calibration: &mut super::MotionCalibration) {
 /// Multiply the sigmas of the intrinsics and lens coefficients (`left.*`, `right.*`) by
 /// `f`: `C' = D C D`, `D` the factor on those parameters and 1 elsewhere.
 pub(super) fn widen_intrinsics(cov: &mut headalign_geometry::bundle::Covariance, f: f64) {
-    let scale: Vec<f64> =
-        cov.names.iter().map(|n| if n.starts_with("left.") || n.starts_with("right.") { f } else { 1.0 }).collect();
+    let scale: Vec<f64> = cov
+        .names
+        .iter()
+        .map(|n| if n.starts_with("left.") || n.starts_with("right.") { f } else { 1.0 })
+        .collect();
     let m = &mut cov.matrix;
     for i in 0..m.nrows() {
         for j in 0..m.ncols() {

@@ -91,7 +91,7 @@ pub fn calibrate_tracked(
         None => tracked.views,
     };
     let measured: MeasuredVariances =
-        views.iter().zip(tracked.tracking).map(|(v, t)| (v.name.clone(), t.localisation_var)).collect();
+        views.iter().zip(tracked.tracking).map(|(v, t)| (v.name.clone(), t.localisation)).collect();
     let mut c = match tracked.route {
         Route::Reference => calibrate_rig(&views, options)?,
         Route::Sequence => {

@@ -99,8 +99,7 @@ pub fn calibrate_sequence(
     }
     let mut result = super::with_restarts(options, |o, seeded| sequence_once(views, o, seeded))?;
     super::residuals::check_and_widen(&mut result);
-    result.report.image_noise =
-        Some(super::ImageNoiseCheck::skipped(super::image_noise::NO_IMAGES));
+    result.report.image_noise = Some(super::ImageNoiseCheck::skipped(super::image_noise::NO_IMAGES));
     Ok(result)
 }
 

@@ -139,7 +139,7 @@ fn localisation_sigmas_match_the_truth_errors() {
                 if vi == 0 && side == 0 {
                     continue;
                 }
-                let var = reports[vi].localisation_var[side].get(&o.track).copied();
+                let var = reports[vi].localisation[side].get(&o.track).map(|l| l.var);
                 if let (Some(p), Some(q), Some(var)) = (list.iter().find(|p| p.track == o.track), q, var) {
                     rows.push((vi, side, (p.pixel - q).norm_squared(), var));
                 }
@@ -157,7 +157,11 @@ fn localisation_sigmas_match_the_truth_errors() {
         let zmed = z.get(z.len() / 2).copied().unwrap_or(f64::NAN) / (2.0 * std::f64::consts::LN_2).sqrt();
         let zrms = (z.iter().map(|v| v * v).sum::<f64>() / (2.0 * n)).sqrt();
         let z95 = z.get(z.len() * 95 / 100).copied().unwrap_or(f64::NAN);
-        eprintln!("view {vi} side {side}: {} observations, truth RMS {err:.4} px, predicted {pred:.4} px, ratio {:.2}; normalised median {zmed:.2} rms {zrms:.2} p95 {z95:.2}", sel.len(), err / pred);
+        eprintln!(
+            "view {vi} side {side}: {} observations, truth RMS {err:.4} px, predicted {pred:.4} px, ratio {:.2}; normalised median {zmed:.2} rms {zrms:.2} p95 {z95:.2}",
+            sel.len(),
+            err / pred
+        );
     }
     eprintln!("{:?} {:?}", r0.alignment_sigma_px, r1.alignment_sigma_px);
 }
