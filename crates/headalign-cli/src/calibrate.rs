@@ -812,10 +812,16 @@ mod tests {
     /// The reprojection residuals against the localisation noise measured from the images
     /// (issue 31 item 3; `headalign::calibrate::image_noise`), on rendered sessions (two
     /// 5 deg rotations, 1500 corners, no retry):
-    /// - the images' own model (pinhole cameras, pinhole fit): no warning, and `chi2 /
-    ///   dof` near 1 (measured ...);
-    /// - a barrel lens (`k1 = -0.25`) fitted as a pinhole: the warning, naming the symptom,
-    ///   and the sigmas widened (measured ...).
+    /// - the images' own model: pinhole cameras fitted as pinholes, and a barrel lens
+    ///   (`k1 = -0.25`) estimated as `radtan`: no warning, and `chi2 / dof` 0.73 and 0.69
+    ///   (residuals 0.032 px against 0.037 and 0.038 px predicted from the measured
+    ///   noise). The bar 0.5-1.5 is the noise model's accuracy, not the chi-square's
+    ///   sampling spread (its 99.9 % limit is 1.06 at these 5,800 degrees of freedom): the
+    ///   measured noise predicts the truth errors' median to 6 % and their RMS to 1.1-1.5
+    ///   times (`patch_refinement` integration test), and the shared alignments' errors
+    ///   that the points absorb are modelled only in part;
+    /// - the same barrel lens fitted as a pinhole: the warning, naming the symptom
+    ///   (measured: residuals 0.124 px against 0.040 px, `chi2 / dof` 9.8).
     #[test]
     fn residuals_are_checked_against_the_images_noise() {
         let check = |distortion: Distortion, lens: Option<LensChoice>| {
@@ -842,7 +848,8 @@ mod tests {
             assert!((0.5..1.5).contains(&ratio) && !warned, "{n:?}");
         }
         let (n, warned) = check(Distortion::radial(-0.25, 0.0), None);
-        assert!(warned && n.ratio.unwrap() > 1.5 * 1.5, "{n:?}");
+        let limit = headalign::calibrate::image_noise::RESIDUAL_OVER_NOISE_WARN;
+        assert!(warned && n.ratio.unwrap() > limit * limit, "{n:?}");
     }
 
     /// One general motion on rendered images of a scene dominated by one textured wall

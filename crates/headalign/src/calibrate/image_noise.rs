@@ -20,7 +20,8 @@
 //! [`ImageNoiseCheck::ratio_limit`]); the measured noise itself is a model of the
 //! alignment's precision, accurate to a factor (rendered images: the truth errors' median
 //! within 6 % of the predicted sigma, their RMS 1.1-1.5 times it, a heavy tail of
-//! misalignments; the test `localisation_sigmas_match_the_truth_errors`). So the check
+//! misalignments; the test `localisation_sigmas_match_the_truth_errors`; and with the
+//! images' own model the residuals' noise is 0.83-0.85 times the prediction). So the check
 //! fires when the chi-square is beyond its 99.9 % limit **and** the residuals' noise is
 //! more than [`RESIDUAL_OVER_NOISE_WARN`] times the measured noise: a warning naming
 //! the symptom, and the intrinsics' and lens sigmas widened to `sqrt(chi2 / dof)` times
@@ -49,11 +50,14 @@ use serde::Serialize;
 use super::{MotionCalibration, report};
 use crate::frontend::Localisation;
 
-/// The residuals' noise over the measured noise above which (with a significant
-/// chi-square) the check warns and widens: 2 (module docs: the measured noise is accurate
-/// to a factor 1.1-1.5 on rendered images; a lens model that does not fit leaves
-/// residuals tens of times the noise).
-pub const RESIDUAL_OVER_NOISE_WARN: f64 = 1.5;
+/// The residuals' noise over the predicted noise above which (with a significant
+/// chi-square) the check warns and widens: 1.25. Why: with the images' own model the
+/// rendered sessions leave 0.83-0.85 times the prediction (test
+/// `residuals_are_checked_against_the_images_noise` in the CLI), so 1.25 is 1.5 times
+/// what a fitting model gives there, room for scenes whose alignments fit worse than the
+/// simulator's; a barrel lens fitted as a pinhole leaves 3.1 times, the real EuRoC pairs
+/// with an estimated lens 1.4-1.6 times (docs/real-data.md).
+pub const RESIDUAL_OVER_NOISE_WARN: f64 = 1.25;
 
 /// Why the check is skipped when the observations came without their images'
 /// localisation noise ([`super::calibrate_rig`] on point observations).
