@@ -3,17 +3,25 @@
 //! systematic error cannot pass, because its noise level is not the fit's own.
 //!
 //! What it computes, on the final adjustment's observations:
-//! - the measured variance of each observation: the front end's localisation variance of
-//!   that observation relative to its track's defining corner
-//!   ([`crate::frontend::ViewTracking::localisation_var`]: the patch alignments' own
-//!   least-squares precision, from their grey-level residuals; no geometric model);
-//! - the points all of whose observations have a measured variance (the checked set:
-//!   `n` observations of `P` points), their residual sum of squares `RSS` (pixels^2) and
-//!   `sigma_img^2`, the mean measured variance per coordinate over them;
-//! - `chi2 = RSS / sigma_img^2` against its degrees of freedom
-//!   `dof = 2 n - 3 P - p_cam n / N` (`p_cam` the camera and motion parameters, shared by
-//!   all `N` observations of the adjustment and charged in proportion), and the ratio
-//!   `chi2 / dof`: the squared ratio of the residuals' noise to the images' noise.
+//! - the measured noise of each observation: the front end's localisation variance of
+//!   that observation relative to its track's defining corner, and the observation it
+//!   was aligned against ([`crate::frontend::ViewTracking::localisation`]: the patch
+//!   alignments' own least-squares precision, from their grey-level residuals; no
+//!   geometric model). Two observations of a track share the error of their deepest
+//!   common ancestor in that alignment tree: its variance is their covariance (per
+//!   coordinate, isotropic);
+//! - the points all of whose observations have a measured noise (the checked set: `n`
+//!   observations of `P` points), their residual sum of squares `RSS` (pixels^2) and its
+//!   expectation under the measured noise, per point `tr((I - P_x) S)` (`S` the
+//!   observations' error covariance, `P_x` the projection onto what the point's three
+//!   coordinates absorb, from the numerical Jacobian of its residuals), scaled by
+//!   `dof / (2 n - 3 P)` for the camera and motion parameters;
+//! - `dof = 2 n - 3 P - p_cam n / N` (`p_cam` the camera and motion parameters, shared
+//!   by all `N` observations of the adjustment and charged in proportion), the predicted
+//!   residual variance `sigma^2 = E[RSS] / dof`, `chi2 = RSS / sigma^2` and the ratio
+//!   `chi2 / dof`: the squared ratio of the residuals' noise to the noise the images
+//!   predict. `measured_sigma_px` reports the plain RMS of the observations' measured
+//!   sigmas.
 //!
 //! The test: under the model `chi2` is chi-square distributed with `dof` degrees of
 //! freedom, so `chi2 / dof` lies within `1 +- 3.1 sqrt(2 / dof)` (99.9 %, Wilson-Hilferty;
@@ -23,7 +31,7 @@
 //! misalignments; the test `localisation_sigmas_match_the_truth_errors`; and with the
 //! images' own model the residuals' noise is 0.83-0.85 times the prediction). So the check
 //! fires when the chi-square is beyond its 99.9 % limit **and** the residuals' noise is
-//! more than [`RESIDUAL_OVER_NOISE_WARN`] times the measured noise: a warning naming
+//! more than [`RESIDUAL_OVER_NOISE_WARN`] times the predicted noise: a warning naming
 //! the symptom, and the intrinsics' and lens sigmas widened to `sqrt(chi2 / dof)` times
 //! the adjustment's (a variance inflation for lack of fit, as
 //! [`super::residuals`]; the two widenings are not compounded: this one applies only what
@@ -31,10 +39,10 @@
 //!
 //! Units: pixels; chi-square dimensionless. Degrees of freedom: none estimated.
 //!
-//! Pitfalls: the degrees of freedom treat every observation's leverage alike, while a
-//! track's defining corner carries no error (its variance is 0) and the others carry
-//! it: the expectation of `chi2 / dof` under the model is then within tens of per cent of
-//! 1, which is why the threshold is a factor and not the chi-square limit alone. A known
+//! Pitfalls: the alignment tree models the errors that chain along it, not the part of
+//! two alignments' errors that comes from one shared template's noise (which the point
+//! absorbs): with the images' own model the ratio comes out 0.69-0.73 on rendered
+//! sessions, which is why the threshold is a factor and not the chi-square limit alone. A known
 //! lens removed beforehand ([`super::undistort_views`]) stretches the residuals by the
 //! lens's local magnification (up to a few tens of per cent at a barrel lens's border)
 //! while the variances stay in image pixels. Observations without images (point
@@ -78,7 +86,7 @@ pub struct ImageNoiseCheck {
     /// Why the check was skipped.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
-    /// `sigma_img`: the RMS measured localisation noise per coordinate over the checked
+    /// The RMS measured localisation noise per coordinate over the checked
     /// observations, pixels.
     pub measured_sigma_px: Option<f64>,
     /// `sqrt(E[RSS] / dof)`: the residuals' noise the measured errors predict (module
@@ -90,7 +98,7 @@ pub struct ImageNoiseCheck {
     pub observations: [usize; 2],
     /// Points checked.
     pub points: usize,
-    /// `RSS / sigma_img^2`.
+    /// `RSS / sigma^2` (`sigma` the predicted residual noise, `expected_residual_sigma_px`).
     pub chi2: Option<f64>,
     /// Its degrees of freedom.
     pub dof: Option<f64>,
