@@ -441,8 +441,7 @@ impl WindowFit<'_> {
             }
         }
         let mut trace = 0.0;
-        for t in 0..2 {
-            let row = &hinv[t];
+        for row in hinv.iter().take(2) {
             let mut v = 0.0;
             for p in 0..np {
                 for q in 0..np {

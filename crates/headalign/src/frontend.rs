@@ -38,7 +38,7 @@
 //!    self-calibration by 1-3 %); aligned patches make every observation in a camera
 //!    that camera's reference corner's point (with `refine_stereo`, the left one's).
 //!
-//! Localisation noise ([`ViewTracking::localisation_var`]): every patch alignment reports
+//! Localisation noise ([`ViewTracking::localisation`]): every patch alignment reports
 //! its own localisation sigma ([`headalign_vision::Refinement::sigma_px`]: the
 //! least-squares precision of the two windows, measured from their grey-level residual;
 //! no geometry). A track is defined by the corner that starts it (a fresh pair's left

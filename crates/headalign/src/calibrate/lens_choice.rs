@@ -22,7 +22,7 @@
 //! When the winner is not the radial-tangential model, the chain runs again with it, so
 //! that the reported calibration, its inliers and its sigmas are that model's own. The
 //! chain is the reference chain of [`super::calibrate_rig`] or the sequence chain of
-//! [`super::calibrate_sequence`] ([`choose_lens`]); a sequence's refits hold its segment
+//! [`super::calibrate_sequence`] (`choose_lens`); a sequence's refits hold its segment
 //! gauges as its adjustment does.
 //!
 //! Degrees of freedom: per camera 0 (pinhole), or the coefficients of
