@@ -150,7 +150,8 @@ pub struct Refinement {
     /// The alignment's localisation sigma, pixels per coordinate (module docs,
     /// "Precision"): `sqrt(trace(C) / 2)` of the translation's covariance `C`, from the
     /// window's gradients and its residual grey-level scatter. Model-free (no geometry):
-    /// what the two patches themselves say of how precisely they align.
+    /// what the two patches themselves say of how precisely they align. NaN when it
+    /// cannot be computed (a singular normal matrix at the solution).
     pub sigma_px: f64,
 }
 
@@ -378,7 +379,9 @@ pub fn refine_point_against_patch(
         np,
         noise_scale: (1.0 + gain * gain) / (v_target + gain * gain * v_reference),
     };
-    let sigma_px = fit.sigma_px().ok_or(RefineFailure::NotConverged)?;
+    // A precision that cannot be computed does not reject the alignment (the point is as
+    // good as before): it is reported as NaN, unknown.
+    let sigma_px = fit.sigma_px().unwrap_or(f64::NAN);
     let zncc = zncc_of(&templ, &warped);
     if zncc.is_nan() || zncc < options.min_zncc {
         return Err(RefineFailure::LowZncc(zncc));

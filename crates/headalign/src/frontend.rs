@@ -365,7 +365,8 @@ fn tally(
         match sigma {
             Some(s) => {
                 report.refined[side] += 1;
-                current.var[j] = earlier_var.get(i).copied().flatten().map(|v| v + s * s);
+                current.var[j] =
+                    earlier_var.get(i).copied().flatten().map(|v| v + s * s).filter(|v| v.is_finite());
                 current.parent[j] = current.var[j].map(|_| current.earlier);
             }
             None => {
@@ -376,8 +377,9 @@ fn tally(
     }
 }
 
-/// The median of `values`, `None` if empty.
+/// The median of the finite `values`, `None` if there are none.
 fn median(mut values: Vec<f64>) -> Option<f64> {
+    values.retain(|v| v.is_finite());
     if values.is_empty() {
         return None;
     }
