@@ -80,6 +80,7 @@ mod adjust;
 mod density;
 mod depth;
 mod graph;
+pub mod image_noise;
 mod lens;
 pub mod lens_choice;
 mod motion;
@@ -104,6 +105,7 @@ pub use density::{
 };
 pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_rig};
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
+pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
 pub use lens::{LensModel, read_opencv_lenses, undistort_views};
 pub use lens_choice::{LensCandidate, LensChoice, LensSelection};
 pub use report::weak_data;
@@ -308,6 +310,9 @@ pub struct CalibrateReport {
     /// Structure in the final residuals by image radius and region ([`residuals`]), and
     /// the sigma widening it caused.
     pub residual_structure: Option<residuals::ResidualStructure>,
+    /// The reprojection residuals against the localisation noise measured from the
+    /// images ([`image_noise`]), or why that check was skipped.
+    pub image_noise: Option<ImageNoiseCheck>,
     /// The sequence route's segments and keyframes ([`calibrate_sequence`]); absent on
     /// the reference route.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -343,6 +348,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
         calibrate_with_restarts(views, options)?
     };
     residuals::check_and_widen(&mut result);
+    result.report.image_noise = Some(ImageNoiseCheck::skipped(image_noise::NO_IMAGES));
     Ok(result)
 }
 
@@ -471,6 +477,7 @@ fn calibrate_once(
         restarts: 0,
         lens_selection: None,
         residual_structure: None,
+        image_noise: None,
         sequence: None,
         warnings,
     };
