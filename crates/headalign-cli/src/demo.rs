@@ -15,7 +15,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Args;
 use headalign::estimate::EstimationOptions;
-use headalign::procedure::{AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
+use headalign::procedure::{AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
 use headalign::session::SessionInfo;
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_platform::{Encoders, StereoHead};
@@ -292,13 +292,29 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     let options = verge_tilt_options(args, scenario);
     let mut run = VergeTiltRun::default();
     let session = point_session(args, scenario, &options, rplan, &robot);
-    let (outcome, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session)?;
+    let (route, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session)?;
+    let (outcome, scene) = match route {
+        RouteOutcome::General(outcome, scene) => (*outcome, scene),
+        RouteOutcome::Planar(p) => {
+            let out = crate::planar::report(scenario, robot.head(), &p, args.json || writer.is_some())?;
+            if let (Some(out), Some(w)) = (&out, &writer) {
+                w.write_report(out).context("session")?;
+            }
+            if let (Some(out), true) = (out, args.json) {
+                say!("{}", serde_json::to_string_pretty(&out)?);
+            }
+            return Ok(());
+        }
+    };
     let (robot_out, writer) = points::robot_stages(&mut robot, rplan, &outcome, writer)?;
     let total = t0.elapsed().as_secs_f64();
     let after = After::read(&robot, &outcome, &robot_out);
     if args.json || writer.is_some() {
         let run = PointRun { scenario, stages: &rplan.stages, outcome: &outcome, robot: &robot_out, total };
-        let out = points_json(args, &run, &before, &after)?;
+        let mut out = points_json(args, &run, &before, &after)?;
+        if let Some(map) = out.as_object_mut() {
+            map.insert("scene".into(), serde_json::to_value(&scene)?);
+        }
         if let Some(w) = &writer {
             w.write_report(&out).context("session")?;
         }
@@ -307,6 +323,7 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
             return Ok(());
         }
     }
+    say!("{}", crate::planar::scene_line(&scene));
     print_calibration(scenario, &outcome, &after);
     print_errors(&outcome, &before, &after);
     print_robot_stages(&robot_out, &before, &after);

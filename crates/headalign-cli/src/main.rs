@@ -16,6 +16,7 @@ mod demo;
 mod experiment;
 mod headcmd;
 mod images;
+mod planar;
 mod points;
 mod recording;
 mod replay;
@@ -101,8 +102,8 @@ struct ScenarioArgs {
     /// Scenario file (TOML) overriding the defaults; flags override the file.
     #[arg(long, conflicts_with = "scene")]
     scenario: Option<PathBuf>,
-    /// Scene preset instead of the default room: `default`, `paper` (points 0.6-1.5 m) or
-    /// `robot` (6 panels about 1 m ahead); flags override it.
+    /// Scene preset instead of the default room: `default`, `paper`, `robot`, `wall` (one
+    /// plane 1-4 m ahead) or `far` (200-800 m); flags override it.
     // Resolved by `Scenario::preset`, as `experiment --scene`.
     #[arg(long)]
     scene: Option<String>,

@@ -16,7 +16,8 @@ use headalign::calibrate::{calibrate_rig, select_rig, undistort_views};
 use headalign::observations::View;
 use headalign::observations::session_to_json;
 use headalign::procedure::{
-    AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
+    AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
+    resolve_rotation,
 };
 use headalign::session::{RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
 use headalign_platform::{StereoHead, Vehicle};
@@ -29,15 +30,15 @@ pub const PROCEDURE: &str = "verge-tilt-points";
 /// Run the verge/tilt procedure on `head`, recording into `session` if given (the view
 /// folders are named by [`capture_plan`]; with the auto mode its probes are recorded first,
 /// in stage `rotation-probe`). On failure the session keeps the views and the message says
-/// where.
+/// where. A planar or far scene takes the planar route ([`VergeTiltRun::run_detecting`]).
 pub fn verge_tilt<H: StereoHead>(
     run: &mut VergeTiltRun,
     head: &mut H,
     options: &VergeTiltOptions,
     session: Option<(PathBuf, SessionInfo)>,
-) -> Result<(VergeTiltOutcome, Option<SessionWriter>)> {
+) -> Result<(RouteOutcome, Option<SessionWriter>)> {
     let Some((dir, info)) = session else {
-        return Ok((run.run(head, options).context("verge/tilt procedure")?, None));
+        return Ok((run.run_detecting(head, options).context("verge/tilt procedure")?, None));
     };
     let writer = SessionWriter::create(&dir, &info).context("session")?;
     let mut rec = RecordingHead::new(head, writer);
@@ -47,7 +48,7 @@ pub fn verge_tilt<H: StereoHead>(
         // Not recorded: a replay re-runs `run`, which makes no such read.
         let plan = capture_plan(&rec.inner().read_encoders()?, &options);
         rec.set_stage(STAGE_VERGE_TILT, plan, "check");
-        run.run(&mut rec, &options).context("verge/tilt procedure")
+        run.run_detecting(&mut rec, &options).context("verge/tilt procedure")
     })();
     let writer = rec.into_writer();
     let observations = dir.join("observations.json");

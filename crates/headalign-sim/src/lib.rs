@@ -44,7 +44,7 @@ pub use kinematics::HeadTruth;
 pub use metrics::{AlignmentErrors, AxisErrors, CalibrationErrors, ReconErrors, calibration_errors};
 pub use render::RenderOptions;
 pub use robot::{RobotTruth, SimulatedRobot};
-pub use scenario::Scenario;
+pub use scenario::{Scenario, SceneKind};
 pub use texture::{TextureReport, TexturedScene};
 
 use thiserror::Error;

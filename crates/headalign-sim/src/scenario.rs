@@ -92,6 +92,29 @@ pub struct Scenario {
     /// Near structure: distance of the panels' fronts from the pan axis, metres (each
     /// drawn in `[1, 1.25] x` this).
     pub near_distance_m: f64,
+    /// What the points lie on (default [`SceneKind::Room`]). `wall`: one textured plane
+    /// ahead, nothing else ([`Scenario::wall`]).
+    pub scene: SceneKind,
+}
+
+/// The surfaces of a simulated scene.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SceneKind {
+    /// The room of [`crate::scene`]: floor, ceiling, four walls, boxes (and near panels).
+    #[default]
+    Room,
+    /// One textured plane in front of the head, large enough to fill both cameras' view
+    /// for every capture of the verge/tilt procedure ([`crate::scene`] module docs): its
+    /// distance from the head centre is drawn uniformly in
+    /// [`Scenario::WALL_DISTANCE_M`], its normal up to 15 deg (yaw) and 10 deg (pitch) off
+    /// the head's forward direction, from its own random stream.
+    Wall,
+    /// A far box around the head: a cube centred on the head centre, its faces between
+    /// `scene_min_m` and 1.2 times that away (drawn from its own stream), no floor at the
+    /// ground and no objects, so that every direction sees a point between `scene_min_m`
+    /// and `sqrt 3` times the face distance ([`Scenario::far_field`]).
+    Far,
 }
 
 impl Default for Scenario {
@@ -125,6 +148,7 @@ impl Default for Scenario {
             drive_m: 0.10,
             near_panels: 0,
             near_distance_m: 1.0,
+            scene: SceneKind::Room,
         }
     }
 }
@@ -145,7 +169,44 @@ impl Scenario {
     }
 
     /// Names accepted by [`Scenario::preset`].
-    pub const PRESETS: [&'static str; 3] = ["default", "paper", "robot"];
+    pub const PRESETS: [&'static str; 5] = ["default", "paper", "robot", "wall", "far"];
+
+    /// Range of the `wall` scene's distance from the head centre, metres (drawn per seed).
+    pub const WALL_DISTANCE_M: [f64; 2] = [1.0, 4.0];
+
+    /// The `far` scene's nearest and farthest point, in baselines (`baseline_m`).
+    pub const FAR_BASELINES: [f64; 2] = [800.0, 3200.0];
+
+    /// The `wall` scene: the default head, cameras, noise and motions facing one textured
+    /// plane 1-4 m away ([`SceneKind::Wall`]): every stereo pair and every rotation of a
+    /// camera is then related by a plane homography, the degenerate case of the paper's
+    /// section 3.3. Points are kept from 0.5 m to 40 m from the head (the plane decides
+    /// where they lie).
+    pub fn wall() -> Self {
+        Self { scene: SceneKind::Wall, scene_min_m: 0.5, scene_max_m: 40.0, ..Self::default() }
+    }
+
+    /// The `far` scene ([`SceneKind::Far`]): every point [`Scenario::FAR_BASELINES`]
+    /// baselines away (200-800 m with the 0.25 m baseline; the box's faces at 200-240 m):
+    /// stereo disparities then vary by under a pixel over the scene, and a rotation about
+    /// an axis 0.13 m off the camera adds well under a tenth of a pixel of parallax, so
+    /// neither stereo nor the rotations give projective structure (paper section 3.3).
+    /// Why a box and not the room scaled up: the room's floor and ceiling stay 1-2 m from
+    /// the head, so at hundreds of metres its points would crowd into a band a few
+    /// pixels high. Why that far rather than 50 baselines: the planar route takes such a
+    /// scene as one plane, and the depth spread it leaves unmodelled biases the alignment
+    /// in proportion to the inverse distance (noise-free: 0.012 deg of elevation at
+    /// 240-960 baselines, 0.0004 deg at 800-3200, seed 1, 3 deg rotations).
+    pub fn far_field() -> Self {
+        let base = Self::default();
+        let [lo, hi] = Self::FAR_BASELINES;
+        Self {
+            scene: SceneKind::Far,
+            scene_min_m: lo * base.baseline_m,
+            scene_max_m: hi * base.baseline_m,
+            ..base
+        }
+    }
 
     /// A "paper-like" scene: the default head, cameras, noise and motions in a room whose
     /// points lie 0.6 to 1.5 m from the head (front wall about 1.0-1.2 m away), instead of
@@ -179,12 +240,15 @@ impl Scenario {
     }
 
     /// A named scene preset (see [`Scenario::PRESETS`]): `default` ([`Scenario::default`]),
-    /// `paper` ([`Scenario::paper_lab`]) or `robot` ([`Scenario::robot_room`]).
+    /// `paper` ([`Scenario::paper_lab`]), `robot` ([`Scenario::robot_room`]), `wall`
+    /// ([`Scenario::wall`]) or `far` ([`Scenario::far_field`]).
     pub fn preset(name: &str) -> Result<Self, SimError> {
         match name {
             "default" => Ok(Self::default()),
             "paper" => Ok(Self::paper_lab()),
             "robot" => Ok(Self::robot_room()),
+            "wall" => Ok(Self::wall()),
+            "far" => Ok(Self::far_field()),
             other => Err(SimError::InvalidScenario(format!(
                 "unknown scene preset '{other}'; expected one of {}",
                 Self::PRESETS.join(", ")
@@ -411,8 +475,19 @@ mod tests {
         let r = Scenario::preset("robot").unwrap();
         assert_eq!(r, Scenario { near_panels: Scenario::ROBOT_NEAR_PANELS, ..Scenario::default() });
         r.validate().unwrap();
-        let e = Scenario::preset("far").unwrap_err().to_string();
-        assert!(e.contains("unknown scene preset 'far'") && e.contains("paper"), "{e}");
+        // `wall` and `far` build heads whose initial view sees about `points` points in
+        // both cameras, every one at the preset's range.
+        for name in ["wall", "far"] {
+            let s = Scenario::preset(name).unwrap();
+            s.validate().unwrap();
+            let mut head = crate::SimulatedHead::new(s.clone()).unwrap();
+            let c = headalign_platform::StereoHead::capture(&mut head).unwrap();
+            assert!(c.left.len() > 150 && c.right.len() > 150, "{name}: {} {}", c.left.len(), c.right.len());
+        }
+        let far = Scenario::far_field();
+        assert!(far.scene_min_m >= 50.0 * far.baseline_m);
+        let e = Scenario::preset("lake").unwrap_err().to_string();
+        assert!(e.contains("unknown scene preset 'lake'") && e.contains("wall"), "{e}");
     }
 
     #[test]

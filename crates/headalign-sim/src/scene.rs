@@ -20,6 +20,19 @@
 //! scenario without them gives exactly the room and points it gave before they existed.
 //! Points are then observed from [`Scenario::min_range_m`] on.
 //!
+//! The `wall` scene ([`SceneKind::Wall`]): one rectangle instead of the room, its centre
+//! straight ahead of the head centre (world +z) at a distance drawn uniformly in
+//! [`Scenario::WALL_DISTANCE_M`], its normal turned up to 15 deg about the vertical and up
+//! to 10 deg about the horizontal from facing the head, 8 x 4 times its distance wide and
+//! high (a camera panned 20 deg and turned 10 deg more still sees only wall: 74 deg off the
+//! normal at most sideways, `tan 74 = 3.5`), drawn from its own random stream (7), so
+//! that no other scene changes. It is the only surface: rays that miss it see nothing.
+//!
+//! The `far` scene ([`SceneKind::Far`]): a cube centred on the head centre, half edge
+//! drawn uniformly in `[1, 1.2] x scene_min_m` from its own random stream (8), nothing
+//! else: the room's floor, ceiling and boxes are gone (at hundreds of metres they would
+//! crowd into a thin band about the horizon).
+//!
 //! Density: after casting, the points visible in both cameras at the initial encoder
 //! readings (all zero) are counted, and every point is kept with probability
 //! `points / visible`, so that about `points` are seen by both cameras in the initial
@@ -33,11 +46,17 @@ use rand_distr::{Distribution, UnitSphere};
 
 use crate::SimError;
 use crate::kinematics::HeadTruth;
-use crate::scenario::Scenario;
+use crate::scenario::{Scenario, SceneKind};
 use headalign_platform::Encoders;
 
 /// Random stream of the near panels (the head uses 0-5).
 const STREAM_NEAR: u64 = 6;
+
+/// Random stream of the `wall` scene's plane.
+const STREAM_WALL: u64 = 7;
+
+/// Random stream of the `far` scene's box.
+const STREAM_FAR: u64 = 8;
 
 /// A scene point: track id and position in the world frame.
 pub type ScenePoint = (u64, Point3<f64>);
@@ -113,6 +132,8 @@ pub struct Room {
     boxes: Vec<FloorBox>,
     /// The last `near` boxes are the near panels.
     near: usize,
+    /// The `wall` scene: this rectangle is the only surface (module docs).
+    wall: Option<PlanarQuad>,
 }
 
 /// A planar rectangle in the world frame: `corner + a * u + b * v` for `a` in
@@ -185,7 +206,29 @@ impl Room {
             max: Vector3::new(right, 0.0, front),
             boxes,
             near: 0,
+            wall: None,
         }
+    }
+
+    /// The `wall` scene's rectangle (module docs), drawn from `rng`, facing `head_centre`.
+    fn draw_wall(head_centre: &Point3<f64>, rng: &mut ChaCha8Rng) -> PlanarQuad {
+        let mut u = |a: f64, b: f64| a + (b - a) * rng.random::<f64>();
+        let [lo, hi] = Scenario::WALL_DISTANCE_M;
+        let distance = u(lo, hi);
+        let yaw = u(-15.0, 15.0).to_radians();
+        let pitch = u(-10.0, 10.0).to_radians();
+        let turn = Rotation3::from_axis_angle(&Vector3::y_axis(), yaw)
+            * Rotation3::from_axis_angle(&Vector3::x_axis(), pitch);
+        let centre = head_centre + Vector3::z() * distance;
+        // Visible side faces the head (-z before the turn): y cross x = -z.
+        let half_u = turn * Vector3::y() * (2.0 * distance);
+        let half_v = turn * Vector3::x() * (4.0 * distance);
+        PlanarQuad::centred(centre, half_u, half_v)
+    }
+
+    /// The `wall` scene's plane, if this is one (module docs).
+    pub fn wall(&self) -> Option<&PlanarQuad> {
+        self.wall.as_ref()
     }
 
     /// Add `scenario.near_panels` tall panels about `near_distance_m` in front of the pan
@@ -212,6 +255,9 @@ impl Room {
     /// For each quad of [`Self::quads`], in order: true for the faces of the near panels
     /// (the renderer textures them finer: they are seen from about 1 m).
     pub fn near_quads(&self) -> Vec<bool> {
+        if self.wall.is_some() {
+            return vec![true];
+        }
         let far_boxes = self.boxes.len() - self.near;
         let mut v = vec![false; 6 + 5 * far_boxes];
         v.resize(6 + 5 * self.boxes.len(), true);
@@ -222,6 +268,9 @@ impl Room {
     /// that order), then for each box its top and four sides (the bottom stands on the
     /// floor and is never seen).
     pub fn quads(&self) -> Vec<PlanarQuad> {
+        if let Some(w) = self.wall {
+            return vec![w];
+        }
         let (lo, hi) = (self.min, self.max);
         let c = (lo + hi) * 0.5;
         let h = (hi - lo) * 0.5;
@@ -257,6 +306,9 @@ impl Room {
     /// First surface hit by the ray `origin + t dir` (origin inside the room, `t > 0`),
     /// world frame: what a camera at `origin` sees in direction `dir`.
     pub fn cast(&self, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<Point3<f64>> {
+        if let Some(w) = &self.wall {
+            return cast_quad(w, origin, dir);
+        }
         let mut t_hit = f64::INFINITY;
         for i in 0..3 {
             if dir[i] > 1e-15 {
@@ -272,6 +324,20 @@ impl Room {
         }
         t_hit.is_finite().then(|| origin + dir * t_hit)
     }
+}
+
+/// Where the ray `origin + t dir` (`t > 0`) meets the quad's visible side, if it does.
+fn cast_quad(q: &PlanarQuad, origin: &Point3<f64>, dir: &Vector3<f64>) -> Option<Point3<f64>> {
+    let n = q.normal();
+    let along = dir.dot(&n);
+    if along > -1e-12 {
+        return None;
+    }
+    let t = (q.corner - origin).dot(&n) / along;
+    let hit = origin + dir * t;
+    let d = hit - q.corner;
+    let (a, b) = (d.dot(&q.u), d.dot(&q.v));
+    (t > 0.0 && (0.0..=q.size_m[0]).contains(&a) && (0.0..=q.size_m[1]).contains(&b)).then_some(hit)
 }
 
 /// Number of scene points visible in both cameras at the given encoders.
@@ -312,6 +378,24 @@ pub fn generate_room_and_scene(
 ) -> Result<(Room, Vec<ScenePoint>), SimError> {
     let head_centre = Point3::new(0.0, -(scenario.head_height_m + scenario.elevation_below_cameras_m), 0.0);
     let mut room = Room::draw(scenario, &head_centre, rng);
+    if scenario.scene == SceneKind::Far {
+        let mut far_rng = ChaCha8Rng::seed_from_u64(scenario.seed);
+        far_rng.set_stream(STREAM_FAR);
+        let half = scenario.scene_min_m * (1.0 + 0.2 * far_rng.random::<f64>());
+        let h = Vector3::new(half, half, half);
+        room = Room {
+            min: head_centre.coords - h,
+            max: head_centre.coords + h,
+            boxes: Vec::new(),
+            near: 0,
+            wall: None,
+        };
+    }
+    if scenario.scene == SceneKind::Wall {
+        let mut wall_rng = ChaCha8Rng::seed_from_u64(scenario.seed);
+        wall_rng.set_stream(STREAM_WALL);
+        room.wall = Some(Room::draw_wall(&head_centre, &mut wall_rng));
+    }
     if scenario.near_panels > 0 {
         let mut near_rng = ChaCha8Rng::seed_from_u64(scenario.seed);
         near_rng.set_stream(STREAM_NEAR);
@@ -396,6 +480,30 @@ mod tests {
                         && (-1e-9..=q.size_m[1] + 1e-9).contains(&c)
                 });
                 assert!(on, "seed {seed}: point {p} on no quad");
+            }
+        }
+    }
+
+    /// The `wall` scene: every point on the one plane, 1-4 m ahead, and the room of the
+    /// default scene unchanged by the new field.
+    #[test]
+    fn wall_scene_is_one_plane_ahead() {
+        for seed in 1..=3 {
+            let s = Scenario::wall().with_seed(seed);
+            let mut rng = ChaCha8Rng::seed_from_u64(seed);
+            let truth = HeadTruth::draw(&s, &mut rng);
+            let (room, points) = generate_room_and_scene(&s, &truth, &mut rng).unwrap();
+            let quads = room.quads();
+            assert_eq!((quads.len(), room.near_quads().len()), (1, 1));
+            let q = quads[0];
+            // Signed distance of the head centre in front of the visible side: 1-4 m
+            // (the wall turns by at most 15 deg about its own centre line).
+            let head = Point3::new(0.0, -(s.head_height_m + s.elevation_below_cameras_m), 0.0);
+            let dist = (head - q.corner).dot(&q.normal());
+            assert!((0.9..=4.0).contains(&dist), "seed {seed}: {dist}");
+            assert!(points.len() > 100, "{}", points.len());
+            for (_, p) in &points {
+                assert!((p - q.corner).dot(&q.normal()).abs() < 1e-9);
             }
         }
     }

@@ -244,6 +244,101 @@ pub fn solve_alignment(
     })
 }
 
+/// One camera's intrinsics and the head's axes in that camera's frame at the reference
+/// view, directed like their encoders: what alignment needs, without a baseline or the
+/// rig's pose (the planar route estimates each camera on its own, [`crate::planar`]).
+#[derive(Debug, Clone, Copy)]
+pub struct CameraAxes {
+    /// Intrinsics.
+    pub intrinsics: Intrinsics,
+    /// Pan axis direction.
+    pub pan: Unit<Vector3<f64>>,
+    /// Elevation axis direction.
+    pub elevation: Unit<Vector3<f64>>,
+    /// This camera's vergence axis direction, if measured (else the nominal one).
+    pub verge: Option<Unit<Vector3<f64>>>,
+}
+
+/// [`solve_alignment`] from each camera's own axes ([`CameraAxes`]): the same steps, the
+/// right camera's in its own frame (every quantity is a dot product of directions, so the
+/// rig rotation drops out); the invariant lines are `K^-T a` and the fixation points
+/// `K (a_e x a_p)` (paper section 3.2 steps 5-7; section 3.3 for a plane). `reference`:
+/// the reference view's encoder readings.
+pub fn solve_alignment_axes(
+    left: &CameraAxes,
+    right: &CameraAxes,
+    reference: &Encoders,
+) -> Result<AlignmentSolution, AlignError> {
+    let z = Vector3::z();
+    let degenerate = |why: String| AlignError::Geometry {
+        step: "alignment".into(),
+        cause: headalign_geometry::GeometryError::Degenerate(why),
+    };
+    let target = |c: &CameraAxes| -> Result<Vector3<f64>, AlignError> {
+        let d = c.elevation.cross(&c.pan);
+        let n = d.norm();
+        if n < 1e-6 {
+            return Err(degenerate("pan and elevation axes are parallel".into()));
+        }
+        Ok(if d.dot(&z) < 0.0 { -d / n } else { d / n })
+    };
+    let (d_l, d_r) = (target(left)?, target(right)?);
+    let verge_axis =
+        |c: &CameraAxes| c.verge.unwrap_or_else(|| nominal_verge_axis(&Isometry3::identity(), &c.elevation));
+    let (v_l, v_r) = (verge_axis(left), verge_axis(right));
+    let no_solution = |side: &str| {
+        degenerate(format!(
+            "the {side} vergence axis cannot bring the optical axis perpendicular to the elevation axis"
+        ))
+    };
+    let g_l = zero_crossing(&v_l, &left.elevation, &z).ok_or_else(|| no_solution("left"))?;
+    let g_r = zero_crossing(&v_r, &right.elevation, &z).ok_or_else(|| no_solution("right"))?;
+    let u_l = rotate(&v_l, g_l, &z);
+    let a_e = left.elevation;
+    let de = a_e.dot(&u_l.cross(&d_l)).atan2(u_l.dot(&d_l));
+    let final_r = rotate(&right.elevation, de, &rotate(&v_r, g_r, &z));
+    let elev_err_r = final_r.dot(&right.pan).clamp(-1.0, 1.0).asin();
+    let roll = |c: &CameraAxes, g: f64, v: &Unit<Vector3<f64>>| {
+        let x = rotate(&c.elevation, de, &rotate(v, g, &Vector3::x()));
+        x.dot(&c.pan).clamp(-1.0, 1.0).asin().to_degrees()
+    };
+    let line = |c: &CameraAxes, a: &Unit<Vector3<f64>>| {
+        let l = c.intrinsics.inverse_matrix().transpose() * a.into_inner();
+        let l = l / l.norm();
+        [l.x, l.y, l.z]
+    };
+    let fixation = |c: &CameraAxes, d: &Vector3<f64>| -> Result<[f64; 2], AlignError> {
+        let x = c.intrinsics.matrix() * d;
+        if x.z.abs() < 1e-12 {
+            return Err(degenerate("the invariant lines meet at infinity".into()));
+        }
+        Ok([x.x / x.z, x.y / x.z])
+    };
+    let mut aligned = *reference;
+    aligned.elevation += de.to_degrees();
+    aligned.verge_left += g_l.to_degrees();
+    aligned.verge_right += g_r.to_degrees();
+    Ok(AlignmentSolution {
+        target_direction: [d_l.x, d_l.y, d_l.z],
+        aligned_encoders: aligned,
+        delta_elevation_deg: de.to_degrees(),
+        delta_verge_left_deg: g_l.to_degrees(),
+        delta_verge_right_deg: g_r.to_degrees(),
+        predicted_elev_err_r_deg: elev_err_r.to_degrees(),
+        roll_left_deg: roll(left, g_l, &v_l),
+        roll_right_deg: roll(right, g_r, &v_r),
+        fixation_px_left: fixation(left, &d_l)?,
+        fixation_px_right: fixation(right, &d_r)?,
+        invariant_lines: InvariantLines {
+            pan_left: line(left, &left.pan),
+            elevation_left: line(left, &left.elevation),
+            pan_right: line(right, &right.pan),
+            elevation_right: line(right, &right.elevation),
+        },
+        verge_axes_measured: left.verge.is_some() && right.verge.is_some(),
+    })
+}
+
 /// The chain's pose change for pan/elevation differences (radians) from the reference:
 /// `Rot(a_p, dp) Rot(a_e, de)`.
 pub fn head_motion(state: &RigState, d_pan: f64, d_elev: f64) -> Option<Isometry3<f64>> {

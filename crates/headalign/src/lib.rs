@@ -57,6 +57,7 @@ pub mod imaging;
 pub mod observations;
 pub mod onemotion;
 pub mod panfix;
+pub mod planar;
 pub mod procedure;
 pub mod process_head;
 pub mod recordings;

@@ -39,6 +39,7 @@ mod catalog;
 pub mod lens;
 pub mod ml_spread;
 pub mod pan;
+pub mod planar;
 pub mod plot;
 pub mod stats;
 pub mod trial;
@@ -64,7 +65,7 @@ use self::stats::{coverage, quantity_crb, quantity_rms, rms};
 use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
 
 /// Names accepted by `headalign experiment`.
-pub const NAMES: [&str; 10] = [
+pub const NAMES: [&str; 11] = [
     "fig5-verge-tilt",
     "fig5-pan-tilt",
     "calibration",
@@ -75,13 +76,14 @@ pub const NAMES: [&str; 10] = [
     "all",
     ml_spread::NAME,
     lens::NAME,
+    planar::NAME,
 ];
 
 /// Arguments of `headalign experiment`.
 #[derive(Args, Debug)]
 pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
-    /// coverage, lens, or all; or ml-spread (not in all).
+    /// coverage, lens, or all; or ml-spread, planar (not in all).
     pub name: String,
     /// Total trials, split evenly over the experiment's conditions; default per
     /// experiment.
@@ -105,7 +107,7 @@ pub struct ExperimentArgs {
     // `--trials` is then split over the conditions kept.
     #[arg(long, value_delimiter = ',')]
     pub only: Vec<f64>,
-    /// Scene preset of every condition: `default`, `paper` or `robot` (as `demo --scene`);
+    /// Scene preset of every condition: `default`, `paper`, `robot`, `wall` or `far` (as `demo --scene`);
     /// outputs of another scene than `default` are named `<experiment>-<scene>`.
     // `Scenario::preset`. `all` refuses it: it runs the default scene, then
     // `OTHER_SCENE_BARS` in the paper and robot scenes.
@@ -858,6 +860,9 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     if args.name == lens::NAME {
         return lens::run(args);
     }
+    if args.name == planar::NAME {
+        return planar::run(args);
+    }
     if args.rotation.is_some() {
         bail!("--rotation applies to the lens experiment only");
     }
@@ -868,7 +873,11 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         );
     }
     let names: Vec<&str> = if args.name == "all" {
-        NAMES.iter().copied().filter(|n| *n != "all" && *n != ml_spread::NAME && *n != lens::NAME).collect()
+        NAMES
+            .iter()
+            .copied()
+            .filter(|n| *n != "all" && *n != ml_spread::NAME && *n != lens::NAME && *n != planar::NAME)
+            .collect()
     } else {
         experiment(&args.name, &Scenario::default())?;
         vec![args.name.as_str()]

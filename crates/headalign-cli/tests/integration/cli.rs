@@ -365,3 +365,23 @@ fn invalid_demo_options_are_errors() {
     assert_clean_failure(&run(&["demo", "--noise=-1"]), &["noise"]);
     assert_clean_failure(&run(&["demo", "--outliers", "1.5"]), &["outlier"]);
 }
+
+/// `demo --scene wall` takes the planar route and says so (JSON `scene`, `route`), aligns
+/// to within a few sigmas of the truth, and names what a plane cannot give; the default
+/// room reports `scene: general` in its text.
+#[test]
+fn demo_on_a_wall_takes_the_planar_route() {
+    let out = run(&["demo", "--scene", "wall", "--stages", "verge-tilt", "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["route"], "planar");
+    assert!(["planar", "far"].contains(&v["scene"]["kind"].as_str().unwrap()), "{}", v["scene"]);
+    assert!(v["planar"]["undetermined"].as_array().unwrap().len() >= 4);
+    for j in ["elevation", "verge_left", "verge_right"] {
+        let (e, s) =
+            (v["aligned_reading_errors_deg"][j].as_f64().unwrap(), v["sigmas_deg"][j].as_f64().unwrap());
+        assert!(e.abs() < 4.0 * s, "{j}: {e} vs sigma {s}");
+    }
+    let out = run(&["demo", "--stages", "verge-tilt"]);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("scene: general ("));
+}

@@ -117,7 +117,7 @@ mod linear;
 mod restart;
 mod roles;
 mod sigmas;
-mod starts;
+pub(crate) mod starts;
 mod stereo;
 #[cfg(test)]
 mod tests;

@@ -263,7 +263,7 @@ fn rough_initial_state(ctx: &InitContext<'_>, frame: &StereoFrame) -> Result<Rig
 /// rotating-camera self-calibration: `G w* G^T = w*`, the solver of
 /// [`headalign_geometry::selfcal::dual_image_of_absolute_conic`]), in coordinates
 /// conditioned by `k0`. Falls back to `k0` if the conic is not positive definite.
-fn k_from_rotations(gs: &[Matrix3<f64>], k0: &Intrinsics) -> Intrinsics {
+pub(crate) fn k_from_rotations(gs: &[Matrix3<f64>], k0: &Intrinsics) -> Intrinsics {
     let (k, k_inv) = (k0.matrix(), k0.inverse_matrix());
     let ms: Vec<Matrix3<f64>> = gs
         .iter()

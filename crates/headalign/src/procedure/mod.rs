@@ -306,6 +306,38 @@ impl VergeTiltOutcome {
     }
 }
 
+/// What [`VergeTiltRun::run_detecting`] did: the general route, or the planar one.
+#[derive(Debug, Clone)]
+pub enum RouteOutcome {
+    /// The scene had depth: the general route's outcome, and the detection's numbers.
+    General(Box<VergeTiltOutcome>, crate::planar::SceneCheck),
+    /// The scene was planar or far: the planar route's outcome.
+    Planar(Box<PlanarOutcome>),
+}
+
+/// The planar route's outcome ([`crate::planar`]): the head is moved to the aligned
+/// readings; no check by vision follows (the check resects the cameras against the
+/// calibrated 3D points, which a plane does not give).
+#[derive(Debug, Clone)]
+pub struct PlanarOutcome {
+    /// The planar calibration (scene verdict, each camera, what is undetermined).
+    pub calibration: crate::planar::PlanarCalibration,
+    /// The alignment solution.
+    pub solution: AlignmentSolution,
+    /// Uncertainty of the aligned readings.
+    pub sigmas: AlignmentSigmas,
+    /// Final encoder readings (aligned).
+    pub final_encoders: Encoders,
+    /// Elevation/pan rotation used, degrees.
+    pub rotation_deg: f64,
+    /// Diagonal rotation used, degrees (0 if none).
+    pub diagonal_rotation_deg: f64,
+    /// Vergence move used, degrees.
+    pub verge_rotation_deg: f64,
+    /// Seconds spent estimating.
+    pub estimation_seconds: f64,
+}
+
 /// A run of the procedure: the views captured so far survive any error.
 #[derive(Debug, Default)]
 pub struct VergeTiltRun {
@@ -320,25 +352,102 @@ impl VergeTiltRun {
         Ok(self.views.len() - 1)
     }
 
-    /// Run the procedure on `head`.
+    /// Run the procedure on `head` (the general route only: a planar or depth-less scene
+    /// fails at the estimation; [`VergeTiltRun::run_detecting`] switches to
+    /// [`crate::planar`] instead).
     pub fn run<H: StereoHead>(
         &mut self,
         head: &mut H,
         options: &VergeTiltOptions,
     ) -> Result<VergeTiltOutcome, AlignError> {
+        let (options, plan) = self.capture_views(head, options)?;
+        self.finish_general(head, &options, &plan)
+    }
+
+    /// Run the procedure on `head`, and after the captures detect a planar or depth-less
+    /// scene from the reference view's stereo matches ([`crate::planar::detect_scene`]):
+    /// then the planar route aligns instead ([`PlanarOutcome`]); otherwise exactly
+    /// [`VergeTiltRun::run`] (the detection only reads the captured views).
+    pub fn run_detecting<H: StereoHead>(
+        &mut self,
+        head: &mut H,
+        options: &VergeTiltOptions,
+    ) -> Result<RouteOutcome, AlignError> {
+        let (options, plan) = self.capture_views(head, options)?;
+        let rig_views = plan.len() - 1;
+        let scene = crate::planar::detect_scene(&self.views[..rig_views], &options.estimation.fundamental);
+        if scene.kind == crate::planar::SceneKind::General {
+            return self
+                .finish_general(head, &options, &plan)
+                .map(|o| RouteOutcome::General(Box::new(o), scene));
+        }
+        let t0 = Instant::now();
+        let planar_options = crate::planar::PlanarOptions {
+            homography: headalign_geometry::ransac::RansacOptions {
+                seed: options.estimation.seed,
+                ..crate::planar::PlanarOptions::default().homography
+            },
+            angle_prior_sigma_deg: options
+                .estimation
+                .bundle
+                .angle_prior_sigma
+                .map_or(crate::estimate::ENCODER_SIGMA_DEG, f64::to_degrees),
+            ..crate::planar::PlanarOptions::default()
+        };
+        let calibration = crate::planar::estimate_planar(&self.views, scene, &planar_options)?;
+        let reference = self.views[0].capture.encoders;
+        let solution = crate::alignment::solve_alignment_axes(
+            &calibration.left.axes(),
+            &calibration.right.axes(),
+            &reference,
+        )?;
+        let reading_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
+        let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
+        let estimation_seconds = t0.elapsed().as_secs_f64();
+        head.move_to(&solution.aligned_encoders)?;
+        let final_encoders = head.read_encoders()?;
+        Ok(RouteOutcome::Planar(Box::new(PlanarOutcome {
+            calibration,
+            solution,
+            sigmas,
+            final_encoders,
+            rotation_deg: options.rotation_deg,
+            diagonal_rotation_deg: options.diagonal_rotation_deg,
+            verge_rotation_deg: options.verge_rotation_deg,
+            estimation_seconds,
+        })))
+    }
+
+    /// The captures of the plan (after choosing the rotation), the head back at the start.
+    fn capture_views<H: StereoHead>(
+        &mut self,
+        head: &mut H,
+        options: &VergeTiltOptions,
+    ) -> Result<(VergeTiltOptions, Vec<(String, Encoders)>), AlignError> {
         options.validate()?;
-        let options = &resolve_rotation(head, options)?;
+        let options = resolve_rotation(head, options)?;
         let e0 = head.read_encoders()?;
-        let (rotation_deg, diagonal_rotation_deg) = (options.rotation_deg, options.diagonal_rotation_deg);
-        let plan = capture_plan(&e0, options);
+        let plan = capture_plan(&e0, &options);
         for (name, encoders) in &plan {
             head.move_to(encoders)?;
             self.capture(head, name)?;
         }
+        head.move_to(&e0)?;
+        Ok((options, plan))
+    }
+
+    /// The general route after the captures: estimation, vergence axes, alignment, moves
+    /// and checks.
+    fn finish_general<H: StereoHead>(
+        &mut self,
+        head: &mut H,
+        options: &VergeTiltOptions,
+        plan: &[(String, Encoders)],
+    ) -> Result<VergeTiltOutcome, AlignError> {
+        let (rotation_deg, diagonal_rotation_deg) = (options.rotation_deg, options.diagonal_rotation_deg);
         // Every view of the plan but the last (the vergence move) keeps the rig rigid.
         let rig_views = plan.len() - 1;
         let verge_view = rig_views;
-        head.move_to(&e0)?;
 
         let t0 = Instant::now();
         let calibration = estimate_rig(&self.views[..rig_views], &options.estimation)?;
