@@ -91,6 +91,7 @@ mod starts;
 mod stereo;
 #[cfg(test)]
 mod tests;
+mod two_pass;
 
 use headalign_geometry::GeometryError;
 use headalign_geometry::bundle::{BundleObservation, BundleResult};
@@ -340,7 +341,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     let mut result = if options.lens == LensChoice::Auto {
         lens_choice::calibrate_choosing_lens(views, options)?
     } else {
-        calibrate_with_restarts(views, options)?
+        two_pass::calibrate_two_pass(views, options)?
     };
     residuals::check_and_widen(&mut result);
     Ok(result)
@@ -416,15 +417,29 @@ fn calibrate_once(
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
 ) -> Result<MotionCalibration, AlignError> {
+    calibrate_once_from(views, options, seeded, None)
+}
+
+/// [`calibrate_once`] with an optional lens start ([`two_pass`]): steps 2-4 then run on
+/// the rig views' pixels undistorted by its lenses, the adjustment on the original pixels
+/// from starts that carry its distortion.
+fn calibrate_once_from(
+    views: &[View],
+    options: &CalibrateOptions,
+    seeded: &mut Option<Seeded>,
+    lens_start: Option<&two_pass::LensStart>,
+) -> Result<MotionCalibration, AlignError> {
     // 1. The views of the rig.
     let depth::RigViews { rig, skipped, planarity, image_size } = depth::select_views(views, options)?;
     let [w, h] = image_size;
     let k0 = Intrinsics::rough_guess(w, h);
     let est = &options.estimation;
+    let chain_rig = lens_start.map(|l| undistort_views(&rig, &l.chain));
+    let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
     // 2. F from all views, frame, triangulation.
-    let stereo = stereo::stereo_geometry(&rig, &k0, est)?;
+    let stereo = stereo::stereo_geometry(chain, &k0, est)?;
     // 3. 3D homographies from the reference.
-    let motions = motion::fit_motions(&rig, &stereo.recon, &stereo.frame, options, seeded)?;
+    let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
     // The point set and the observations (as in estimate).
     let points = starts::point_set(&rig, &stereo.recon, &motions);
     let problem = starts::Problem {
@@ -435,10 +450,16 @@ fn calibrate_once(
     };
     // 4. The linear self-calibration, and the rigid start.
     let linear = starts::linear_start(&motions, &stereo.frame, &k0, &problem, options);
-    let (linear_k, linear_error) = starts::linear_summary(&linear.state)?;
     let rigid = starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
-    // 5-6. The adjustment from both starts.
-    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, &stereo.recon, options)
+    let (linear_k, linear_error) = starts::linear_summary(&linear.state)?;
+    // 5-6. The adjustment from both starts (on the original pixels: the stereo matches'
+    // pixels too, for the points the adjustment triangulates itself).
+    let (start_lens, raw_recon) = match lens_start {
+        Some(l) => (Some(l.distortion), Some(two_pass::original_pixels(&stereo.recon, &rig))),
+        None => (None, None),
+    };
+    let recon = raw_recon.as_deref().unwrap_or(&stereo.recon);
+    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, recon, options, start_lens)
         .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
     // 7. The report: final motions, the rotation test, sigmas, warnings.
     let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);

@@ -413,7 +413,7 @@ fn sequence_once(
     let moving = kf.links.parent.iter().filter(|p| p.is_some()).count();
     let starts = [linear.state, rigid];
     let adjusted = if moving <= 2 {
-        adjust::adjust_starts(starts, &points, &stereo.recon, &held)
+        adjust::adjust_starts(starts, &points, &stereo.recon, &held, None)
     } else {
         adjust::adjust_best_start(starts, &points, &stereo.recon, &held)
     };
