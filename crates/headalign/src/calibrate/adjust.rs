@@ -125,7 +125,7 @@ pub(super) fn adjust_best_start(
 
 /// The estimation options of the adjustment: the options' constraints and lens model set
 /// in its bundle options.
-fn adjustment_options(options: &CalibrateOptions) -> EstimationOptions {
+pub(super) fn adjustment_options(options: &CalibrateOptions) -> EstimationOptions {
     let mut adjust_options = options.estimation.clone();
     adjust_options.bundle.zero_skew = options.zero_skew;
     adjust_options.bundle.square_pixels = options.square_pixels;

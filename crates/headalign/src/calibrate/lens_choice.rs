@@ -38,7 +38,8 @@ use headalign_geometry::bundle::{
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use serde::Serialize;
 
-use super::{CalibrateOptions, MotionCalibration, calibrate_with_restarts};
+use super::two_pass::calibrate_two_pass;
+use super::{CalibrateOptions, MotionCalibration};
 use crate::error::AlignError;
 use crate::estimate::FINAL_ITERATIONS;
 use crate::observations::View;
@@ -120,7 +121,7 @@ pub(super) fn calibrate_choosing_lens(
     options: &CalibrateOptions,
 ) -> Result<MotionCalibration, AlignError> {
     let with = |lens: LensChoice| CalibrateOptions { lens, ..options.clone() };
-    let rich = calibrate_with_restarts(views, &with(LensChoice::Model(LensKind::RadialTangential)))?;
+    let rich = calibrate_two_pass(views, &with(LensChoice::Model(LensKind::RadialTangential)))?;
     let selection = select(&rich, options)?;
     let chosen = match selection.chosen.as_str() {
         "pinhole" => LensChoice::Pinhole,
@@ -130,7 +131,7 @@ pub(super) fn calibrate_choosing_lens(
     let mut result = if chosen == LensChoice::Model(LensKind::RadialTangential) {
         rich
     } else {
-        match calibrate_with_restarts(views, &with(chosen)) {
+        match calibrate_two_pass(views, &with(chosen)) {
             Ok(c) => c,
             Err(e) => {
                 let mut r = rich;

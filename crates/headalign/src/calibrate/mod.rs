@@ -82,6 +82,7 @@ mod depth;
 mod graph;
 mod lens;
 pub mod lens_choice;
+pub mod lens_sigmas;
 mod motion;
 mod report;
 pub mod residuals;
@@ -309,6 +310,10 @@ pub struct CalibrateReport {
     /// Structure in the final residuals by image radius and region ([`residuals`]), and
     /// the sigma widening it caused.
     pub residual_structure: Option<residuals::ResidualStructure>,
+    /// The bootstrap widening of the focal-length and lens sigmas when a lens model is
+    /// estimated ([`lens_sigmas`]); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lens_sigmas: Option<lens_sigmas::LensSigmaReport>,
     /// The sequence route's segments and keyframes ([`calibrate_sequence`]); absent on
     /// the reference route.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -343,6 +348,13 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     } else {
         two_pass::calibrate_two_pass(views, options)?
     };
+    // The model estimated: the options' own, or the one `auto` chose.
+    let chosen = match (&options.lens, &result.report.lens_selection) {
+        (LensChoice::Auto, Some(s)) => LensChoice::parse(&s.chosen).unwrap_or(LensChoice::Pinhole),
+        (lens, _) => *lens,
+    };
+    let estimated = CalibrateOptions { lens: chosen, ..options.clone() };
+    result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(&mut result, &estimated);
     residuals::check_and_widen(&mut result);
     Ok(result)
 }
@@ -451,7 +463,16 @@ fn calibrate_once_from(
     // 4. The linear self-calibration, and the rigid start.
     let linear = starts::linear_start(&motions, &stereo.frame, &k0, &problem, options);
     let rigid = starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
-    let (linear_k, linear_error) = starts::linear_summary(&linear.state)?;
+    let (linear_k, linear_error) = match starts::linear_summary(&linear.state) {
+        // With a lens estimated and no lens start, the 3D homographies of distorted pixels
+        // are not conjugate to rigid motions and their angle readings (from the trace)
+        // can clamp to 0 deg: the rigid start carries the run, and the adjusted motions
+        // decide whether the rig turned (step 7).
+        Err(AlignError::MissingMotion(m)) if options.lens.kind().is_some() && lens_start.is_none() => {
+            (None, Some(m))
+        }
+        other => other?,
+    };
     // 5-6. The adjustment from both starts (on the original pixels: the stereo matches'
     // pixels too, for the points the adjustment triangulates itself).
     let (start_lens, raw_recon) = match lens_start {
@@ -492,6 +513,7 @@ fn calibrate_once_from(
         restarts: 0,
         lens_selection: None,
         residual_structure: None,
+        lens_sigmas: None,
         sequence: None,
         warnings,
     };

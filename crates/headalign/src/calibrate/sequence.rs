@@ -462,6 +462,7 @@ fn sequence_once(
         restarts: 0,
         lens_selection: None,
         residual_structure: None,
+        lens_sigmas: None,
         sequence: Some(kf.report),
         warnings,
     };
