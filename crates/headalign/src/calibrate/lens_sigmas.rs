@@ -70,7 +70,7 @@ fn widened(name: &str) -> bool {
 
 /// Widen the focal-length and lens sigmas of `cal` to the bootstrap spread (module docs);
 /// `None` (nothing done) when no lens model is estimated or too few replicates converge.
-pub(super) fn bootstrap_lens_sigmas(
+pub fn bootstrap_lens_sigmas(
     cal: &mut MotionCalibration,
     options: &CalibrateOptions,
 ) -> Option<LensSigmaReport> {

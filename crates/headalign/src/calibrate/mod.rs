@@ -58,8 +58,12 @@
 //! chooses the model ([`LensChoice::Auto`], [`lens_choice`]):
 //! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
 //! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
-//! with sigmas `left.k1` ... in the covariance. With small rotations `k1` correlates with
-//! the focal length: without it a barrel lens biases `f` (see README).
+//! with sigmas `left.k1` ... in the covariance. When that chain fails or ends outside the
+//! plausible focal range (a strong lens in 10 deg views), it runs again on pixels
+//! undistorted by a lens chosen on a grid of corner displacements (`two_pass`). With
+//! small rotations `k1` correlates with the focal length: without it a barrel lens biases
+//! `f` (see README); the focal-length and lens sigmas are widened to the bootstrap spread
+//! over tracks (`lens_sigmas`, [`CalibrateReport::lens_sigmas`]).
 //!
 //! Pitfalls: a pure rotation, or a planar motion (translation perpendicular to the axis),
 //! fixes a pencil of planes: with one such motion the plane at infinity is undetermined
@@ -71,7 +75,9 @@
 //! Code layout, one file per step: `depth` (step 1), `stereo` (step 2, and the rig from
 //! known intrinsics), `motion` (step 3), `starts` (the point set and the two starts: step
 //! 4 and the rigid start), `adjust` (steps 5-6), `report` (step 7), `lens` (known lens
-//! models), `density` (the corner density of self-calibration from images);
+//! models), `two_pass` (the start of a lens estimate when the chain fails),
+//! `lens_sigmas` (the bootstrap of the lens and focal sigmas), `density` (the corner
+//! density of self-calibration from images);
 //! `calibrate_once` chains them. Sequences: `route` (which tracking and chain a folder
 //! gets), `graph` (keyframes, view graph, segments, spanning trees), `sequence` (the
 //! sequence chain, reusing the steps above).
