@@ -49,7 +49,10 @@
 //! With `--rotation 10` the chain on distorted pixels alone fails in 2.5-15 % of the
 //! trials (the 3D homographies read 0-11 deg for 10, the linear start fails, the rigid
 //! start drifts to f of 10^4-10^5 px); `calibrate` then starts again on pixels undistorted
-//! by a grid lens (`two_pass`), and every trial calibrates (ROT10).
+//! by a grid lens (`two_pass`): `--rotation 10 --trials 240` (30 per condition) gives 240
+//! of 240 calibrated, coverage 86.7-100 % (30 trials: 87-100 % for calibrated sigmas), and
+//! 3 trials in another minimum (radtan 0.25 px f +288 % with a sigma of 56 %, radtan
+//! 2 px +5000 % with a sigma of 26,750 %, fisheye 0.5 px -20 % with a sigma of 7 %).
 //! The coverage of one parameter is over the trials that succeeded; a failed
 //! trial is counted in the table, not hidden. The linear steps of `calibrate` see the
 //! distorted pixels as a pinhole's (the start is approximate; the adjustment removes it).
