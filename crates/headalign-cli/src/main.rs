@@ -28,18 +28,16 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
-use headalign::alignment::{
-    AlignmentSolution, VergeAxes, measure_cameras, solve_alignment, verge_axes_from_motion,
-};
-use headalign::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
+use headalign::alignment::{AlignmentSolution, VergeAxes};
+use headalign::estimate::{EstimationOptions, RigCalibration};
 use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
-use headalign::procedure::{AlignmentSigmas, VergeTiltOptions, alignment_sigmas, capture_plan};
+use headalign::procedure::{AlignmentSigmas, VergeTiltOptions, align_session, capture_plan};
 use headalign::session::RecordedView;
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::so3::Line;
-use headalign_platform::{Encoders, Joint, StereoHead};
+use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead};
 use serde_json::{Value, json};
 
@@ -365,8 +363,7 @@ struct AlignEstimate {
     seconds: f64,
 }
 
-/// Calibration from the rig's views, vergence axes from the first view where a vergence
-/// moved (nominal if none), then the aligned readings with their sigmas; errors name
+/// [`align_session`] on `views` with the estimation options of `align`; errors name
 /// `session`.
 fn estimate_alignment(
     views: &[View],
@@ -374,35 +371,18 @@ fn estimate_alignment(
     lens: images::LensArgs,
     session: &str,
 ) -> Result<AlignEstimate> {
-    let in_session = || format!("session {session}");
     let t0 = Instant::now();
-    let roles = classify_views(views).with_context(in_session)?;
-    let rig: Vec<View> = views
-        .iter()
-        .zip(&roles)
-        .filter(|(_, r)| !matches!(r, ViewRole::Verge))
-        .map(|(v, _)| v.clone())
-        .collect();
     let estimation = lens.apply(EstimationOptions { bootstrap, ..EstimationOptions::default() });
-    let calib = estimate_rig(&rig, &estimation).with_context(in_session)?;
-    let state = &calib.bundle.state;
-    let reference = views[0].capture.encoders;
-    // Vergence axes from the first view where a vergence moved, if any.
-    let mut verge = VergeAxes::default();
-    if let Some((v, _)) = views.iter().zip(&roles).find(|(_, r)| matches!(r, ViewRole::Verge)) {
-        let d = |j: Joint| (v.capture.encoders.get(j) - reference.get(j)).to_radians();
-        let chain = headalign::alignment::head_motion(state, d(Joint::Pan), d(Joint::Elevation))
-            .with_context(|| format!("session {session}: head model"))?;
-        let capture = headalign::procedure::pinhole_capture(&calib, &v.capture);
-        let measured = measure_cameras(&calib, &capture, &chain, &(chain * state.right_from_left.inverse()))
-            .with_context(in_session)?;
-        verge = verge_axes_from_motion(state, &reference, &v.capture.encoders, &measured)
-            .with_context(in_session)?;
-    }
-    let solution = solve_alignment(state, &verge, &reference).with_context(in_session)?;
-    let sigmas = alignment_sigmas(&calib, &verge, &reference).with_context(in_session)?;
+    let a = align_session(views, &estimation).with_context(|| format!("session {session}"))?;
     let seconds = t0.elapsed().as_secs_f64();
-    Ok(AlignEstimate { calib, reference, verge, solution, sigmas, seconds })
+    Ok(AlignEstimate {
+        calib: a.calibration,
+        reference: a.reference,
+        verge: a.verge_axes,
+        solution: a.solution,
+        sigmas: a.sigmas,
+        seconds,
+    })
 }
 
 /// `align --out DIR`: the calibration files, head.json, alignment.json and report.html;

@@ -38,6 +38,18 @@
 //!    self-calibration by 1-3 %); aligned patches make every observation in a camera
 //!    that camera's reference corner's point (with `refine_stereo`, the left one's).
 //!
+//! Localisation noise ([`ViewTracking::localisation`]): every patch alignment reports
+//! its own localisation sigma ([`headalign_vision::Refinement::sigma_px`]: the
+//! least-squares precision of the two windows, measured from their grey-level residual;
+//! no geometry). A track is defined by the corner that starts it (a fresh pair's left
+//! corner: variance 0, the surface point under that pixel is the track's point); an
+//! aligned corner inherits the variance of the corner it was aligned against and adds its
+//! alignment's sigma squared (errors along a chain of alignments add up: in
+//! [`TrackingMode::Previous`] a track's variance grows with its length). A corner that was
+//! not aligned (refinement off, a later view's fresh right corner in
+//! [`TrackingMode::Reference`]) has none. Self-calibration compares its reprojection
+//! residuals with these ([`crate::calibrate::image_noise`]).
+//!
 //! Two tracking modes ([`TrackingMode`]):
 //! - [`TrackingMode::Reference`] (the verge/tilt procedure): every view is matched to the
 //!   first, as in step 3 above; the head only rotates about a fixed rig, so the plane
@@ -221,7 +233,29 @@ pub struct ViewTracking {
     pub refined: [usize; 2],
     /// Observations dropped because their patch refinement failed (left, right).
     pub refine_rejected: [usize; 2],
+    /// Median localisation sigma of this view's patch alignments, pixels per coordinate
+    /// (left, right; module docs, "Localisation noise"); `None` where none was aligned.
+    pub alignment_sigma_px: [Option<f64>; 2],
+    /// Each observation's localisation noise (module docs, "Localisation noise"), by track
+    /// id (left, right); observations of unknown noise are absent. Not serialised.
+    #[serde(skip)]
+    pub localisation: [std::collections::HashMap<u64, Localisation>; 2],
 }
+
+/// The localisation noise of one observation (module docs, "Localisation noise").
+#[derive(Debug, Clone, PartialEq)]
+pub struct Localisation {
+    /// Variance relative to the track's defining observation, pixels^2 per coordinate.
+    pub var: f64,
+    /// The observation it was aligned against: view name and side (0 left, 1 right);
+    /// `None` for the defining observation. Two observations of a track share the error
+    /// of their deepest common ancestor: its variance is their covariance.
+    pub parent: Option<(String, usize)>,
+}
+
+/// Where a corner's alignment reference is: the earlier view's corner (`true`) or this
+/// view's (`false`), and its side.
+type ParentSlot = (bool, usize);
 
 /// The reference view's corners and their track ids.
 #[derive(Debug, Clone)]
@@ -232,6 +266,11 @@ struct Reference {
     right_ids: Vec<Option<u64>>,
     /// The stereo pairs `(left index, right index)`.
     stereo: Vec<(usize, usize)>,
+    /// Each corner's localisation variance ([`ViewCorners::left_var`]).
+    left_var: Vec<Option<f64>>,
+    right_var: Vec<Option<f64>>,
+    /// The view's name.
+    name: String,
     /// The images (patch refinement).
     left_image: GrayImage,
     right_image: GrayImage,
@@ -302,22 +341,51 @@ fn shared(earlier: &[Option<u64>], current: &[Option<u64>]) -> Vec<(usize, usize
     current.iter().enumerate().filter_map(|(j, id)| id.and_then(|t| by_id.get(&t)).map(|&i| (i, j))).collect()
 }
 
-/// Count refined / rejected observations of `side` and drop the rejected ones' ids.
+/// The current corners' side of a refinement: their ids, localisation variances and
+/// alignment parents, and where the earlier corners are.
+struct Refined<'a> {
+    ids: &'a mut [Option<u64>],
+    var: &'a mut [Option<f64>],
+    parent: &'a mut [Option<ParentSlot>],
+    earlier: ParentSlot,
+}
+
+/// Count refined / rejected observations of `side`, drop the rejected ones' ids, and give
+/// each refined corner its localisation variance: the earlier corner's (`earlier_var`)
+/// plus its alignment's sigma squared (`sigmas`, one per pair; `None`: rejected).
 fn tally(
     pairs: &[(usize, usize)],
-    ok: &[bool],
-    ids: &mut [Option<u64>],
+    sigmas: &[Option<f64>],
+    earlier_var: &[Option<f64>],
+    current: Refined<'_>,
     report: &mut ViewTracking,
     side: usize,
 ) {
-    for (&(_, j), &good) in pairs.iter().zip(ok) {
-        if good {
-            report.refined[side] += 1;
-        } else {
-            ids[j] = None;
-            report.refine_rejected[side] += 1;
+    for (&(i, j), sigma) in pairs.iter().zip(sigmas) {
+        match sigma {
+            Some(s) => {
+                report.refined[side] += 1;
+                current.var[j] =
+                    earlier_var.get(i).copied().flatten().map(|v| v + s * s).filter(|v| v.is_finite());
+                current.parent[j] = current.var[j].map(|_| current.earlier);
+            }
+            None => {
+                current.ids[j] = None;
+                report.refine_rejected[side] += 1;
+            }
         }
     }
+}
+
+/// The median of the finite `values`, `None` if there are none.
+fn median(mut values: Vec<f64>) -> Option<f64> {
+    values.retain(|v| v.is_finite());
+    if values.is_empty() {
+        return None;
+    }
+    let mid = values.len() / 2;
+    values.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(values[mid])
 }
 
 /// Least-squares affine map (its 2x2 part) of the correspondences `idx` of `pairs`
@@ -367,7 +435,8 @@ fn affine_of(pairs: &[(Point2<f64>, Point2<f64>)], idx: &[usize]) -> Option<[[f6
 }
 
 /// Refine each current corner `pairs[k].1` against the earlier corner `pairs[k].0`'s patch
-/// (module docs, step 5), moving the corner in `current`; per pair, whether it succeeded.
+/// (module docs, step 5), moving the corner in `current`; per pair, the alignment's
+/// localisation sigma (pixels), or `None` if it failed.
 fn refine_against(
     earlier_image: &GrayImage,
     earlier: &Features,
@@ -376,7 +445,7 @@ fn refine_against(
     pairs: &[(usize, usize)],
     options: &PatchRefineOptions,
     neighbours: usize,
-) -> Vec<bool> {
+) -> Vec<Option<f64>> {
     let pts: Vec<(Point2<f64>, Point2<f64>)> =
         pairs.iter().map(|&(i, j)| (point(earlier, i), point(current, j))).collect();
     let all: Vec<usize> = (0..pts.len()).collect();
@@ -390,7 +459,7 @@ fn refine_against(
         grid.entry(cell(s)).or_default().push(m);
     }
     let mut dist: Vec<(f64, usize)> = Vec::new();
-    let moved: Vec<Option<[f64; 2]>> = pts
+    let moved: Vec<Option<([f64; 2], f64)>> = pts
         .iter()
         .map(|(s, d)| {
             let (cx, cy) = cell(s);
@@ -415,16 +484,16 @@ fn refine_against(
             let a = affine_of(&pts, &near).unwrap_or(global);
             refine_point_against_patch(earlier_image, [s.x, s.y], current_image, [d.x, d.y], a, options)
                 .ok()
-                .map(|r| r.point)
+                .map(|r| (r.point, r.sigma_px))
         })
         .collect();
     for (&(_, j), m) in pairs.iter().zip(&moved) {
-        if let Some(p) = m {
+        if let Some((p, _)) = m {
             current.keypoints[j].x = p[0] as f32;
             current.keypoints[j].y = p[1] as f32;
         }
     }
-    moved.iter().map(Option::is_some).collect()
+    moved.iter().map(|m| m.map(|(_, s)| s)).collect()
 }
 
 impl Tracker {
@@ -593,7 +662,19 @@ impl Tracker {
             ..ViewTracking::default()
         };
         let (left_ids, right_ids) = (vec![None; left.len()], vec![None; right.len()]);
-        let mut corners = ViewCorners { left, right, stereo, left_ids, right_ids };
+        let (left_var, right_var) = (vec![None; left.len()], vec![None; right.len()]);
+        let (left_parent, right_parent) = (vec![None; left.len()], vec![None; right.len()]);
+        let mut corners = ViewCorners {
+            left,
+            right,
+            stereo,
+            left_ids,
+            right_ids,
+            left_var,
+            right_var,
+            left_parent,
+            right_parent,
+        };
         // Track ids (module docs, step 4): fresh for the first view, else inherited.
         self.next_id = match &self.reference {
             None => first_view_ids(self.next_id, &mut corners),
@@ -607,14 +688,19 @@ impl Tracker {
         }
         let capture = corners.capture(images);
         report.observations = [capture.left.len(), capture.right.len()];
+        let earlier = self.reference.as_ref().map(|r| r.name.as_str());
+        report.localisation = corners.localisation(view, earlier);
         if self.reference.is_none() || self.options.mode == TrackingMode::Previous {
-            let ViewCorners { left, right, stereo, left_ids, right_ids } = corners;
+            let ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var, .. } = corners;
             self.reference = Some(Reference {
                 left,
                 right,
                 left_ids,
                 right_ids,
                 stereo,
+                left_var,
+                right_var,
+                name: view.to_string(),
                 left_image: images.left.clone(),
                 right_image: images.right.clone(),
             });
@@ -644,6 +730,7 @@ impl Tracker {
         let mut fresh = self.next_id;
         for (k, &(a, b)) in stereo.iter().enumerate() {
             let id = ids[k].unwrap_or_else(|| {
+                view.left_var[a] = Some(0.0);
                 fresh += 1;
                 fresh - 1
             });
@@ -695,6 +782,7 @@ impl Tracker {
                 (None, None) => {
                     left_ids[a] = Some(fresh);
                     right_ids[b] = Some(fresh);
+                    view.left_var[a] = Some(0.0);
                     fresh += 1;
                 }
                 _ => {}
@@ -718,7 +806,18 @@ impl Tracker {
     ) {
         let o = &self.options;
         let k = o.refine_neighbours;
-        let ViewCorners { left, right, stereo, left_ids, right_ids } = view;
+        let ViewCorners {
+            left,
+            right,
+            stereo,
+            left_ids,
+            right_ids,
+            left_var,
+            right_var,
+            left_parent,
+            right_parent,
+        } = view;
+        let mut sigmas: [Vec<f64>; 2] = [Vec::new(), Vec::new()];
         match &self.reference {
             Some(r) => {
                 // Each camera against the same camera's earlier image, by shared id.
@@ -728,10 +827,35 @@ impl Tracker {
                     refine_against(&r.left_image, &r.left, &images.left, left, &pl, ro, k),
                     refine_against(&r.right_image, &r.right, &images.right, right, &pr, ro, k),
                 );
-                for (side, (pairs, ok, ids)) in
-                    [(&pl, okl, &mut *left_ids), (&pr, okr, &mut *right_ids)].into_iter().enumerate()
+                for (side, (pairs, ok, earlier, current)) in [
+                    (
+                        &pl,
+                        okl,
+                        &r.left_var,
+                        Refined {
+                            ids: &mut *left_ids,
+                            var: &mut *left_var,
+                            parent: &mut *left_parent,
+                            earlier: (true, 0),
+                        },
+                    ),
+                    (
+                        &pr,
+                        okr,
+                        &r.right_var,
+                        Refined {
+                            ids: &mut *right_ids,
+                            var: &mut *right_var,
+                            parent: &mut *right_parent,
+                            earlier: (true, 1),
+                        },
+                    ),
+                ]
+                .into_iter()
+                .enumerate()
                 {
-                    tally(pairs, &ok, ids, report, side);
+                    tally(pairs, &ok, earlier, current, report, side);
+                    sigmas[side].extend(ok.iter().flatten());
                 }
                 if o.refine_stereo && o.mode == TrackingMode::Previous {
                     // Unlinked pairs start fresh tracks here: right against left.
@@ -744,7 +868,10 @@ impl Tracker {
                         })
                         .collect();
                     let ok = refine_against(&images.left, left, &images.right, right, &fresh, ro, k);
-                    tally(&fresh, &ok, right_ids, report, 1);
+                    let current =
+                        Refined { ids: right_ids, var: right_var, parent: right_parent, earlier: (false, 0) };
+                    tally(&fresh, &ok, left_var, current, report, 1);
+                    sigmas[1].extend(ok.iter().flatten());
                 }
             }
             None if o.refine_stereo => {
@@ -754,10 +881,14 @@ impl Tracker {
                     .filter(|&(a, b)| left_ids[a].is_some() && left_ids[a] == right_ids[b])
                     .collect();
                 let ok = refine_against(&images.left, left, &images.right, right, &pairs, ro, k);
-                tally(&pairs, &ok, right_ids, report, 1);
+                let current =
+                    Refined { ids: right_ids, var: right_var, parent: right_parent, earlier: (false, 0) };
+                tally(&pairs, &ok, left_var, current, report, 1);
+                sigmas[1].extend(ok.iter().flatten());
             }
             None => {}
         }
+        report.alignment_sigma_px = sigmas.map(median);
     }
 }
 
@@ -769,9 +900,45 @@ struct ViewCorners {
     stereo: Vec<(usize, usize)>,
     left_ids: Vec<Option<u64>>,
     right_ids: Vec<Option<u64>>,
+    /// Each corner's localisation variance relative to its track's defining observation,
+    /// pixels^2 per coordinate (module docs, "Localisation noise"): 0 for the corner that
+    /// starts a track (a fresh pair's left corner), the earlier corner's plus the
+    /// alignment's sigma squared for a refined one, `None` when unknown (not aligned).
+    left_var: Vec<Option<f64>>,
+    right_var: Vec<Option<f64>>,
+    /// Each aligned corner's alignment reference (`None`: not aligned).
+    left_parent: Vec<Option<ParentSlot>>,
+    right_parent: Vec<Option<ParentSlot>>,
 }
 
 impl ViewCorners {
+    /// [`ViewTracking::localisation`]: the known noise of the corners with a track, in the
+    /// view `name` tracked against the view `earlier`.
+    fn localisation(
+        &self,
+        name: &str,
+        earlier: Option<&str>,
+    ) -> [std::collections::HashMap<u64, Localisation>; 2] {
+        let of = |ids: &[Option<u64>], var: &[Option<f64>], parent: &[Option<ParentSlot>]| {
+            ids.iter()
+                .zip(var)
+                .zip(parent)
+                .filter_map(|((id, v), p)| {
+                    let parent = match p {
+                        None => None,
+                        Some((true, side)) => Some((earlier?.to_string(), *side)),
+                        Some((false, side)) => Some((name.to_string(), *side)),
+                    };
+                    id.zip(*v).map(|(t, var)| (t, Localisation { var, parent }))
+                })
+                .collect()
+        };
+        [
+            of(&self.left_ids, &self.left_var, &self.left_parent),
+            of(&self.right_ids, &self.right_var, &self.right_parent),
+        ]
+    }
+
     /// The tracked observations of the view: every corner with a track id.
     fn capture(&self, images: &StereoImages) -> StereoCapture {
         let observe = |f: &Features, ids: &[Option<u64>]| -> Vec<TrackObservation> {
@@ -795,6 +962,7 @@ fn first_view_ids(mut next_id: u64, view: &mut ViewCorners) -> u64 {
     for &(a, b) in &view.stereo {
         let id = next_id;
         next_id += 1;
+        view.left_var[a] = Some(0.0);
         view.left_ids[a] = Some(id);
         view.right_ids[b] = Some(id);
     }

@@ -11,9 +11,10 @@ use headalign_platform::Encoders;
 use headalign_sim::Scenario;
 
 use super::{
-    COVERAGE_FIXED_PX, COVERAGE_ROBOT_PX, COVERAGE_TRIALS, Condition, Experiment, NOISE_GRID, PAN_INDEX,
-    ROBOT_QUANTITIES, RotationMode, SIGMA_QUANTITIES, Series, alignment_series, base, elevation_left, fixed,
-    focal_pooled, q_crb_pct, q_rel_pct, recon_median, recon_rms, verge_left, worst_focal,
+    COVERAGE_FIXED_PX, COVERAGE_ROBOT_PX, COVERAGE_THREE_VIEW_PX, COVERAGE_TRIALS, Condition, Experiment,
+    NOISE_GRID, PAN_INDEX, ROBOT_QUANTITIES, RotationMode, SIGMA_QUANTITIES, Series, alignment_series, base,
+    elevation_left, fixed, focal_pooled, q_crb_pct, q_rel_pct, recon_median, recon_rms, verge_left,
+    worst_focal,
 };
 
 /// `fig5-verge-tilt` (paper Figure 5 left): the aligned readings' errors against image
@@ -174,10 +175,11 @@ pub(super) fn coverage(scene: &Scenario) -> Experiment {
         title: "Reported sigma vs actual error (3 deg, 200 points)",
         x_label: "image noise (px)",
         y_label: "RMS error (deg)",
-        default_trials: COVERAGE_TRIALS * COVERAGE_FIXED_PX.len() + COVERAGE_TRIALS * COVERAGE_ROBOT_PX.len(),
+        default_trials: COVERAGE_TRIALS
+            * (COVERAGE_FIXED_PX.len() + COVERAGE_ROBOT_PX.len() + COVERAGE_THREE_VIEW_PX.len()),
         robot: false,
         quantities: &ROBOT_QUANTITIES,
-        note: "Groups: `fixed` runs the verge/tilt procedure in the plain room at each noise level; `robot` runs the robot stages as `fig5-pan-tilt` does (verge/tilt, pan, steering, pan; 6 near panels, pan zeros up to 20 deg, 0.10 m drive) at 1 and 3 px, which adds the final pan reading (`pan.aligned`: its sigma is the last drive's: the verge/tilt calibration's uncertainty, the drive motion's (all 6 dof, through the derotated flow and the half turn) and the flow's, propagated) and the steering zero (`steer.zero`), and repeats the verge/tilt quantities in the robot's scene. These are every sigma headalign reports in point mode (the intrinsics, the aligned readings, the pan and elevation axes' directions, the pan reading and the steering zero).",
+        note: "Groups: `fixed` runs the verge/tilt procedure in the plain room at each noise level; `robot` runs the robot stages as `fig5-pan-tilt` does (verge/tilt, pan, steering, pan; 6 near panels, pan zeros up to 20 deg, 0.10 m drive) at 1 and 3 px, which adds the final pan reading (`pan.aligned`: its sigma is the last drive's: the verge/tilt calibration's uncertainty, the drive motion's (all 6 dof, through the derotated flow and the half turn) and the flow's, propagated) and the steering zero (`steer.zero`), and repeats the verge/tilt quantities in the robot's scene; `three-view` aligns recorded three-view sessions offline as `headalign align` does (the initial view, 3 deg of elevation, 3 deg of pan, one direction each, no vergence view: nominal vergence axes, sigmas that hold them fixed) at 1 px, then moves the head to the aligned readings. These are every sigma headalign reports in point mode (the intrinsics, the aligned readings, the pan and elevation axes' directions, the pan reading and the steering zero).",
         positions: vec![Encoders::default()],
         conditions: {
             let mut c: Vec<Condition> = COVERAGE_FIXED_PX.iter().map(|&n| fixed(n, base(n))).collect();
@@ -187,6 +189,13 @@ pub(super) fn coverage(scene: &Scenario) -> Experiment {
                 scenario: base(n),
                 rotation: RotationMode::Fixed,
                 robot: true,
+            }));
+            c.extend(COVERAGE_THREE_VIEW_PX.iter().map(|&n| Condition {
+                group: "three-view",
+                x: n,
+                scenario: base(n),
+                rotation: RotationMode::ThreeView,
+                robot: false,
             }));
             c
         },

@@ -20,8 +20,10 @@
 //! (the last pan correction's, the steering zero's, the verge/tilt ones) get a coverage.
 //! `coverage` runs the verge/tilt procedure at 0.5-3 px and adds `robot` conditions (1
 //! and 3 px) that run the same robot trial, so that it covers every sigma headalign
-//! reports in point mode, with enough trials per condition (300) to tell a 90 % or 98 %
-//! coverage from 95 %.
+//! reports in point mode, and a `three-view` condition (1 px): sessions of three views
+//! (initial, +3 deg elevation, +3 deg pan; no vergence view) aligned offline as `align`
+//! does, with nominal vergence axes; enough trials per condition (300) to tell a 90 % or
+//! 98 % coverage from 95 %.
 //!
 //! Outputs in `--out DIR`: `<name>.csv` (every trial, failures included with their error
 //! message), `<name>.png` and `<name>.svg` (RMS error against the parameter, with the
@@ -345,6 +347,9 @@ fn fixed(x: f64, scenario: Scenario) -> Condition {
 const COVERAGE_FIXED_PX: [f64; 4] = [0.5, 1.0, 2.0, 3.0];
 /// Noise levels (pixels) of the `coverage` experiment's `robot` group (robot stages).
 const COVERAGE_ROBOT_PX: [f64; 2] = [1.0, 3.0];
+/// Noise levels (pixels) of the `coverage` experiment's `three-view` group (offline
+/// sessions without a vergence view, 10 % outliers as every condition).
+const COVERAGE_THREE_VIEW_PX: [f64; 1] = [1.0];
 /// Default trials per condition of `coverage`: with 300 trials a calibrated 95 % interval
 /// covers 92.5-97.5 % with 95 % probability (binomial standard deviation 1.3 %), so a
 /// coverage of 90 % (or 98 %) is told from 95 % by about 4 (or 2.4) standard deviations.

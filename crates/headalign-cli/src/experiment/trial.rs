@@ -53,8 +53,10 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow};
 use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate, RigCalibration, axes_of};
+use headalign::observations::View;
 use headalign::procedure::{
-    AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, alignment_sigmas,
+    AutoRotation, AxisSources, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, align_session,
+    alignment_sigmas,
 };
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::bundle::{AnglePrior, BundleOptions, Covariance, RobustLoss, bundle_adjust};
@@ -108,6 +110,11 @@ pub enum RotationMode {
     /// The procedure chooses (default [`AutoRotation`]: up to 10 deg each way, diagonal
     /// views and the vergence move, as far as the scene stays in view).
     Auto,
+    /// Not the procedure: a recorded three-view session (the initial view, the
+    /// scenario's `rotation_deg` of elevation, as much pan; one direction each, no
+    /// vergence view) aligned offline as `headalign align` does ([`align_session`]:
+    /// nominal vergence axes), after which the head moves to the aligned readings.
+    ThreeView,
 }
 
 /// What one trial runs.
@@ -205,7 +212,7 @@ fn procedure_options(spec: &TrialSpec) -> VergeTiltOptions {
         verge_rotation_deg: 3.0,
         estimation: estimation_options(spec),
         auto_rotation: match spec.rotation {
-            RotationMode::Fixed => None,
+            RotationMode::Fixed | RotationMode::ThreeView => None,
             RotationMode::Auto => Some(AutoRotation::default()),
         },
         ..VergeTiltOptions::default()
@@ -228,7 +235,46 @@ pub(super) fn verge_tilt_on(head: &mut SimulatedHead, spec: &TrialSpec) -> Resul
 
 fn run_on(head: &mut SimulatedHead, run: &mut VergeTiltRun, spec: &TrialSpec) -> Result<VergeTiltOutcome> {
     head.move_to(&spec.initial).map_err(|e| anyhow!("simulator: {e}"))?;
+    if spec.rotation == RotationMode::ThreeView {
+        return three_view_on(head, run, spec);
+    }
     run.run(head, &procedure_options(spec)).context("verge/tilt procedure")
+}
+
+/// [`RotationMode::ThreeView`]: capture the three views into `run.views`, align them
+/// offline, move to the aligned readings; the outcome has no vergence view, no axis
+/// sources and no checks.
+fn three_view_on(
+    head: &mut SimulatedHead,
+    run: &mut VergeTiltRun,
+    spec: &TrialSpec,
+) -> Result<VergeTiltOutcome> {
+    let e0 = spec.initial;
+    let r = spec.scenario.rotation_deg;
+    let plan =
+        [("initial", e0), ("elevation", e0.moved(Joint::Elevation, r)), ("pan", e0.moved(Joint::Pan, r))];
+    for (name, encoders) in plan {
+        head.move_to(&encoders).map_err(|e| anyhow!("simulator: {e}"))?;
+        let capture = head.capture().map_err(|e| anyhow!("simulator: {e}"))?;
+        run.views.push(View { name: name.into(), capture });
+    }
+    let t0 = Instant::now();
+    let a = align_session(&run.views, &estimation_options(spec)).context("three-view session")?;
+    let estimation_seconds = t0.elapsed().as_secs_f64();
+    head.move_to(&a.solution.aligned_encoders).map_err(|e| anyhow!("simulator: {e}"))?;
+    Ok(VergeTiltOutcome {
+        calibration: a.calibration,
+        verge_axes: a.verge_axes,
+        axis_sources: AxisSources { left: None, right: None },
+        solution: a.solution,
+        sigmas: a.sigmas,
+        checks: Vec::new(),
+        final_encoders: head.encoders(),
+        rotation_deg: r,
+        diagonal_rotation_deg: 0.0,
+        verge_rotation_deg: 0.0,
+        estimation_seconds,
+    })
 }
 
 /// The values of [`SIGMA_QUANTITIES`] of an outcome: estimates and reported sigmas.

@@ -4,37 +4,18 @@
 //! driver through the head protocol to that image demo's result.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::sync::OnceLock;
 
+use super::common::{assert_clean_failure, bin, driver, scratch};
 use serde_json::Value;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_headalign"))
-}
-
-fn driver() -> &'static str {
-    env!("CARGO_BIN_EXE_headalign-sim-driver")
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("headalign-cli-tests-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir.join(name)
+    scratch("cli", name)
 }
 
 fn run(args: &[&str]) -> Output {
     bin().args(args).output().unwrap()
-}
-
-/// A failure must be a non-zero exit with exactly one line on stderr that names the
-/// problem, and never a panic.
-fn assert_clean_failure(out: &Output, expected: &str) {
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "expected failure, got success; stderr: {stderr}");
-    assert!(!stderr.contains("panicked"), "panic: {stderr}");
-    assert_eq!(stderr.trim_end().lines().count(), 1, "one line expected: {stderr}");
-    assert!(stderr.to_lowercase().contains(&expected.to_lowercase()), "expected '{expected}' in: {stderr}");
 }
 
 fn simulate(path: &Path, extra: &[&str]) {
@@ -157,7 +138,7 @@ fn align_writes_the_calibration_files() {
         dir.to_str().unwrap(),
         "--baseline-m=-1",
     ]);
-    assert_clean_failure(&out, "baseline must be positive");
+    assert_clean_failure(&out, &["baseline must be positive"]);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -271,7 +252,7 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
     let bad = dir.join(format!("{:02}-{}", verging + 1, views[1].as_str().unwrap())).join("right.png");
     std::fs::write(&bad, b"truncated").unwrap();
     let out = run(&["align", "--images", dir.to_str().unwrap()]);
-    assert_clean_failure(&out, "right.png");
+    assert_clean_failure(&out, &["right.png"]);
     std::fs::remove_dir_all(dir).ok();
     // --no-session needs --images (point mode records only with --session).
     let out = run(&["demo", "--no-session"]);
@@ -298,17 +279,17 @@ fn align_error_paths_are_one_line_and_named() {
     simulate(&base, &["--seed", "5"]);
 
     // Missing file.
-    assert_clean_failure(&run(&["align", "--observations", "/nonexistent/x.json"]), "cannot read");
+    assert_clean_failure(&run(&["align", "--observations", "/nonexistent/x.json"]), &["cannot read"]);
     // Malformed JSON.
     let bad = tmp("bad.json");
     std::fs::write(&bad, "{\"format\": \"headalign-observations/1\", \"views\": [").unwrap();
-    assert_clean_failure(&run(&["align", "--observations", bad.to_str().unwrap()]), "malformed JSON");
+    assert_clean_failure(&run(&["align", "--observations", bad.to_str().unwrap()]), &["malformed JSON"]);
     // Wrong type.
     let f = session_with(&base, |v| v["views"][0]["encoders"]["pan"] = Value::String("x".into()));
-    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "malformed JSON");
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), &["malformed JSON"]);
     // Inconsistent: pixel outside the image.
     let f = session_with(&base, |v| v["views"][1]["left"][0][1] = serde_json::json!(5000.0));
-    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "outside");
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), &["outside"]);
     // Too few tracks.
     let f = session_with(&base, |v| {
         for view in v["views"].as_array_mut().unwrap() {
@@ -317,13 +298,13 @@ fn align_error_paths_are_one_line_and_named() {
             }
         }
     });
-    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "too few tracks");
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), &["too few tracks"]);
     // A motion that is not a rotation: same readings as the initial view.
     let f = session_with(&base, |v| {
         let e = v["views"][0]["encoders"].clone();
         v["views"][2]["encoders"] = e;
     });
-    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "not a rotation");
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), &["not a rotation"]);
     // Two rotations about the same axis: only the initial and the two elevation views.
     let f = session_with(&base, |v| {
         let names: Vec<String> =
@@ -331,10 +312,10 @@ fn align_error_paths_are_one_line_and_named() {
         assert_eq!(names[..3], ["initial", "elevation+", "elevation-"]);
         v["views"].as_array_mut().unwrap().truncate(3);
     });
-    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "same axis");
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), &["same axis"]);
     // Fewer than three views.
     let f = session_with(&base, |v| v["views"].as_array_mut().unwrap().truncate(2));
-    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), "at least 3");
+    assert_clean_failure(&run(&["align", "--observations", f.to_str().unwrap()]), &["at least 3"]);
 }
 
 /// `run --head-cmd` with the example driver of the simulator (the simulated head of
@@ -381,6 +362,6 @@ fn a_driver_process_runs_the_procedure_like_the_simulator() {
 
 #[test]
 fn invalid_demo_options_are_errors() {
-    assert_clean_failure(&run(&["demo", "--noise=-1"]), "noise");
-    assert_clean_failure(&run(&["demo", "--outliers", "1.5"]), "outlier");
+    assert_clean_failure(&run(&["demo", "--noise=-1"]), &["noise"]);
+    assert_clean_failure(&run(&["demo", "--outliers", "1.5"]), &["outlier"]);
 }

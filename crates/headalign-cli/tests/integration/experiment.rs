@@ -7,12 +7,9 @@
 //! one process. The Monte-Carlo statistics themselves are `headalign experiment`'s
 //! (`docs/results`), not these tests'.
 
+use super::common::bin;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_headalign"))
-}
+use std::process::Output;
 
 fn out_dir(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("headalign-exp-tests-{}-{name}", std::process::id()));

@@ -5,25 +5,12 @@
 //! same images is far off.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
+use super::common::{bin, ok_json, scratch};
 use serde_json::Value;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_headalign"))
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("headalign-lens-tests-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let p = dir.join(name);
-    std::fs::remove_dir_all(&p).ok();
-    p
-}
-
-fn ok_json(out: &Output) -> Value {
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    serde_json::from_slice(&out.stdout).unwrap()
+    scratch("lens", name)
 }
 
 /// A scenario file whose cameras have a barrel lens `k1` (the simulator's

@@ -4,6 +4,7 @@
 
 mod bad_input;
 mod cli;
+mod common;
 mod experiment;
 mod lens;
 mod real_data;

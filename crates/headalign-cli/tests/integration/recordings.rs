@@ -4,38 +4,18 @@
 //! missing topic, an unsupported encoding and images with no partner.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 
+use super::common::{assert_clean_failure, bin, ok_json, scratch};
 use headalign::recordings::cdr::{encode_image, encode_joint_state};
 use headalign::recordings::rosbag::{BagWriter, MessageKind};
 use headalign::session::{STAGE_VERGE_TILT, SessionInfo, SessionWriter, ViewLabel};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use serde_json::Value;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_headalign"))
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let p = std::env::temp_dir().join(format!("headalign-recording-tests-{}", std::process::id())).join(name);
-    std::fs::remove_dir_all(&p).ok();
+    let p = scratch("recording", name);
     std::fs::create_dir_all(&p).unwrap();
     p
-}
-
-fn ok_json(out: &Output) -> Value {
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    serde_json::from_slice(&out.stdout).unwrap()
-}
-
-/// A non-zero exit with one line on stderr holding every `expected` part.
-fn assert_clean_failure(out: &Output, expected: &[&str]) {
-    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
-    assert!(!out.status.success() && !stderr.contains("panicked"), "{stderr}");
-    assert_eq!(stderr.trim_end().lines().count(), 1, "one line expected: {stderr}");
-    for part in expected {
-        assert!(stderr.contains(part), "expected '{part}' in: {stderr}");
-    }
 }
 
 fn euroc_data() -> Option<PathBuf> {

@@ -8,42 +8,13 @@
 //! the image demo it compares with.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use std::sync::OnceLock;
 
+use super::common::{assert_clean_failure, bin, driver, ok_json, scratch};
 use serde_json::Value;
 
-fn bin() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_headalign"))
-}
-
-fn driver() -> &'static str {
-    env!("CARGO_BIN_EXE_headalign-sim-driver")
-}
-
 fn tmp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("headalign-session-tests-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let p = dir.join(name);
-    std::fs::remove_dir_all(&p).ok();
-    p
-}
-
-fn ok_json(out: &Output) -> Value {
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    serde_json::from_slice(&out.stdout).unwrap()
-}
-
-/// A non-zero exit with exactly one line on stderr containing every `expected` part.
-fn assert_clean_failure(out: &Output, expected: &[&str]) -> String {
-    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
-    assert!(!out.status.success(), "expected failure; stderr: {stderr}");
-    assert!(!stderr.contains("panicked"), "panic: {stderr}");
-    assert_eq!(stderr.trim_end().lines().count(), 1, "one line expected: {stderr}");
-    for part in expected {
-        assert!(stderr.contains(part), "expected '{part}' in: {stderr}");
-    }
-    stderr
+    scratch("session", name)
 }
 
 fn view_folders(dir: &Path) -> Vec<String> {

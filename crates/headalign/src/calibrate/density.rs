@@ -100,11 +100,17 @@ impl DensityTrial {
         let st = &cal.bundle.state;
         let centre = Intrinsics::rough_guess(cal.image_size[0], cal.image_size[1]);
         let offset = |k: &Intrinsics| (k.cx - centre.cx).hypot(k.cy - centre.cy);
+        // The choice sees the sigmas without the widening of the check against the images'
+        // noise (`image_noise`): that check says the model does not fit, whichever density
+        // is kept, and must not change which estimate is.
+        let undo = cal.report.image_noise.as_ref().map_or(1.0, |n| n.sigma_widening.max(1.0));
+        let mut report = cal.report.clone();
+        report.focal_sigma_pct = report.focal_sigma_pct.map(|s| s.map(|v| v / undo));
         Self {
             corners,
             focal_px: [st.left.fx, st.right.fx],
-            focal_sigma_pct: cal.report.focal_sigma_pct,
-            weak: weak_data(&cal.report, options),
+            focal_sigma_pct: report.focal_sigma_pct,
+            weak: weak_data(&report, options),
             principal_point_offset_px: Some(0.5 * (offset(&st.left) + offset(&st.right))),
             error: None,
             seconds,

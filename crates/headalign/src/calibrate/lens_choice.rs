@@ -20,7 +20,10 @@
 //! about 9 chi-square units for 2,000 observations, so that a lens term is kept only when
 //! the data need it). Two models with the same `p` are decided by their chi-square alone.
 //! When the winner is not the radial-tangential model, the chain runs again with it, so
-//! that the reported calibration, its inliers and its sigmas are that model's own.
+//! that the reported calibration, its inliers and its sigmas are that model's own. The
+//! chain is the reference chain of [`super::calibrate_rig`] or the sequence chain of
+//! [`super::calibrate_sequence`] (`choose_lens`); a sequence's refits hold its segment
+//! gauges as its adjustment does.
 //!
 //! Degrees of freedom: per camera 0 (pinhole), or the coefficients of
 //! [`CalibrateOptions::lens_terms`] (`k1, k2` by default, in either model).
@@ -120,8 +123,19 @@ pub(super) fn calibrate_choosing_lens(
     views: &[View],
     options: &CalibrateOptions,
 ) -> Result<MotionCalibration, AlignError> {
+    choose_lens(options, |o| calibrate_two_pass(views, o))
+}
+
+/// [`LensChoice::Auto`] (module docs) over a chain with a fixed lens model (`chain`: the
+/// reference chain of [`super::calibrate_rig`] or the sequence chain of
+/// [`super::calibrate_sequence`], with its restarts): the radial-tangential run, the
+/// criterion on its observations, and the chosen model's own run.
+pub(super) fn choose_lens(
+    options: &CalibrateOptions,
+    chain: impl Fn(&CalibrateOptions) -> Result<MotionCalibration, AlignError>,
+) -> Result<MotionCalibration, AlignError> {
     let with = |lens: LensChoice| CalibrateOptions { lens, ..options.clone() };
-    let rich = calibrate_two_pass(views, &with(LensChoice::Model(LensKind::RadialTangential)))?;
+    let rich = chain(&with(LensChoice::Model(LensKind::RadialTangential)))?;
     let selection = select(&rich, options)?;
     let chosen = match selection.chosen.as_str() {
         "pinhole" => LensChoice::Pinhole,
@@ -131,7 +145,7 @@ pub(super) fn calibrate_choosing_lens(
     let mut result = if chosen == LensChoice::Model(LensKind::RadialTangential) {
         rich
     } else {
-        match calibrate_two_pass(views, &with(chosen)) {
+        match chain(&with(chosen)) {
             Ok(c) => c,
             Err(e) => {
                 let mut r = rich;
@@ -148,12 +162,18 @@ pub(super) fn calibrate_choosing_lens(
 }
 
 /// The criterion of the module docs on the observations of `rich` (a radial-tangential
-/// calibration).
+/// calibration); a sequence's segment gauges after the first stay held in the refits, as
+/// in its adjustment.
 fn select(rich: &MotionCalibration, options: &CalibrateOptions) -> Result<LensSelection, AlignError> {
+    let views = &rich.report.views;
+    let gauge_views: Vec<usize> = rich.report.sequence.as_ref().map_or_else(Vec::new, |s| {
+        s.segments.iter().skip(1).filter_map(|g| views.iter().position(|v| *v == g.gauge)).collect()
+    });
     let bundle = BundleOptions {
         zero_skew: options.zero_skew,
         square_pixels: options.square_pixels,
         fix_principal_point: options.fix_principal_point,
+        gauge_views,
         ..options.estimation.bundle.clone()
     };
     select_lens(

@@ -86,6 +86,7 @@ mod adjust;
 mod density;
 mod depth;
 mod graph;
+pub mod image_noise;
 mod lens;
 pub mod lens_choice;
 pub mod lens_sigmas;
@@ -112,6 +113,7 @@ pub use density::{
 };
 pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_rig};
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
+pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
 pub use lens::{LensModel, read_opencv_lenses, undistort_views};
 pub use lens_choice::{LensCandidate, LensChoice, LensSelection};
 pub use report::weak_data;
@@ -320,6 +322,9 @@ pub struct CalibrateReport {
     /// estimated ([`lens_sigmas`]); absent otherwise.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub lens_sigmas: Option<lens_sigmas::LensSigmaReport>,
+    /// The reprojection residuals against the localisation noise measured from the
+    /// images ([`image_noise`]), or why that check was skipped.
+    pub image_noise: Option<ImageNoiseCheck>,
     /// The sequence route's segments and keyframes ([`calibrate_sequence`]); absent on
     /// the reference route.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -362,6 +367,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     let estimated = CalibrateOptions { lens: chosen, ..options.clone() };
     result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(&mut result, &estimated);
     residuals::check_and_widen(&mut result);
+    result.report.image_noise = Some(ImageNoiseCheck::skipped(image_noise::NO_IMAGES));
     Ok(result)
 }
 
@@ -520,6 +526,7 @@ fn calibrate_once_from(
         lens_selection: None,
         residual_structure: None,
         lens_sigmas: None,
+        image_noise: None,
         sequence: None,
         warnings,
     };

@@ -235,22 +235,27 @@ pub(super) fn check_and_widen(calibration: &mut super::MotionCalibration) {
     );
     let f = structure.sigma_widening;
     if f > 1.0 {
-        let cov = &mut calibration.bundle.covariance;
-        let scale: Vec<f64> = cov
-            .names
-            .iter()
-            .map(|n| if n.starts_with("left.") || n.starts_with("right.") { f } else { 1.0 })
-            .collect();
-        let m = &mut cov.matrix;
-        for i in 0..m.nrows() {
-            for j in 0..m.ncols() {
-                m[(i, j)] *= scale.get(i).copied().unwrap_or(1.0) * scale.get(j).copied().unwrap_or(1.0);
-            }
-        }
+        widen_intrinsics(&mut calibration.bundle.covariance, f);
         calibration.report.focal_sigma_pct = super::report::focal_sigma_pct(&calibration.bundle);
     }
     calibration.report.warnings.extend(structure.warnings.iter().cloned());
     calibration.report.residual_structure = Some(structure);
+}
+
+/// Multiply the sigmas of the intrinsics and lens coefficients (`left.*`, `right.*`) by
+/// `f`: `C' = D C D`, `D` the factor on those parameters and 1 elsewhere.
+pub(super) fn widen_intrinsics(cov: &mut headalign_geometry::bundle::Covariance, f: f64) {
+    let scale: Vec<f64> = cov
+        .names
+        .iter()
+        .map(|n| if n.starts_with("left.") || n.starts_with("right.") { f } else { 1.0 })
+        .collect();
+    let m = &mut cov.matrix;
+    for i in 0..m.nrows() {
+        for j in 0..m.ncols() {
+            m[(i, j)] *= scale.get(i).copied().unwrap_or(1.0) * scale.get(j).copied().unwrap_or(1.0);
+        }
+    }
 }
 
 #[cfg(test)]

@@ -30,7 +30,8 @@ use serde::Serialize;
 
 use super::graph::ViewTracks;
 use super::{
-    CalibrateOptions, LensModel, MotionCalibration, calibrate_rig, calibrate_sequence, undistort_views,
+    CalibrateOptions, LensModel, MeasuredVariances, MotionCalibration, calibrate_rig, calibrate_sequence,
+    image_noise, undistort_views,
 };
 use crate::error::AlignError;
 use crate::frontend::{FrontEndOptions, Tracker, TrackingMode, ViewTracking};
@@ -78,7 +79,8 @@ pub struct TrackedViews {
 /// Self-calibrate views tracked by [`track_views`] by the chain of their route, with a
 /// known lens (`lenses`, left and right) removed from the observations first; a
 /// sequence's report carries the tracking notes, and the views whose tracking failed
-/// among those `skipped`.
+/// among those `skipped`. The residuals are checked against the localisation noise the
+/// front end measured ([`image_noise`]).
 pub fn calibrate_tracked(
     tracked: TrackedViews,
     lenses: Option<&[LensModel; 2]>,
@@ -88,17 +90,21 @@ pub fn calibrate_tracked(
         Some(l) => undistort_views(&tracked.views, l),
         None => tracked.views,
     };
-    match tracked.route {
-        Route::Reference => calibrate_rig(&views, options),
+    let measured: MeasuredVariances =
+        views.iter().zip(tracked.tracking).map(|(v, t)| (v.name.clone(), t.localisation)).collect();
+    let mut c = match tracked.route {
+        Route::Reference => calibrate_rig(&views, options)?,
         Route::Sequence => {
             let mut c = calibrate_sequence(&views, options)?;
             if let Some(s) = c.report.sequence.as_mut() {
                 s.tracking_notes = tracked.notes;
             }
             c.report.skipped.extend(tracked.failed);
-            Ok(c)
+            c
         }
-    }
+    };
+    image_noise::check_against_images(&mut c, &measured);
+    Ok(c)
 }
 
 /// Track named stereo views for self-calibration (module docs): against the first while

@@ -92,13 +92,15 @@ pub fn calibrate_sequence(
     options: &CalibrateOptions,
 ) -> Result<MotionCalibration, AlignError> {
     options.validate()?;
-    if options.lens == super::LensChoice::Auto {
-        return Err(AlignError::InvalidOption(
-            "--lens auto is not available for sequences yet: give the model (radtan or equidistant)".into(),
-        ));
-    }
-    let mut result = super::with_restarts(options, |o, seeded| sequence_once(views, o, seeded))?;
+    let with_restarts =
+        |o: &CalibrateOptions| super::with_restarts(o, |o, seeded| sequence_once(views, o, seeded));
+    let mut result = if options.lens == super::LensChoice::Auto {
+        super::lens_choice::choose_lens(options, with_restarts)?
+    } else {
+        with_restarts(options)?
+    };
     super::residuals::check_and_widen(&mut result);
+    result.report.image_noise = Some(super::ImageNoiseCheck::skipped(super::image_noise::NO_IMAGES));
     Ok(result)
 }
 
@@ -463,6 +465,7 @@ fn sequence_once(
         lens_selection: None,
         residual_structure: None,
         lens_sigmas: None,
+        image_noise: None,
         sequence: Some(kf.report),
         warnings,
     };

@@ -55,10 +55,12 @@
 //! them through [`VergeTiltRun::views`]). Angles in degrees.
 //!
 //! Code layout: `rotation` (the rotation choice), `sigmas` (the aligned readings'
-//! uncertainty), `axes` (the vergence axes' measurement and its uncertainty); the
-//! procedure itself, its options and the capture plan here.
+//! uncertainty), `axes` (the vergence axes' measurement and its uncertainty), `offline`
+//! (the same estimate from a recorded session, without moving the head:
+//! [`align_session`]); the procedure itself, its options and the capture plan here.
 
 mod axes;
+mod offline;
 mod rotation;
 mod sigmas;
 #[cfg(test)]
@@ -74,6 +76,7 @@ pub use axes::{
     AXIS_BOOTSTRAP_DRAWS, AxisMeasurement, AxisPerturbations, AxisSources, AxisStep, axis_perturbations,
     resection_pose_covariance, resection_pose_covariance_bootstrap,
 };
+pub use offline::{SessionAlignment, align_session};
 pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
 pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured};
 

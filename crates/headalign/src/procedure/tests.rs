@@ -770,9 +770,14 @@ fn nominal_vergence_axes_follow_the_encoder_sign() {
             head.move_to(&e).unwrap();
             views.push(crate::observations::View { name: name.into(), capture: head.capture().unwrap() });
         }
-        let calib = crate::estimate::estimate_rig(&views, &EstimationOptions::default()).unwrap();
-        let sol = solve_alignment(&calib.bundle.state, &VergeAxes::default(), &e0).unwrap();
+        // Through the offline alignment `align` runs: no vergence view, nominal axes.
+        let session = super::align_session(&views, &EstimationOptions::default()).unwrap();
+        assert!(session.verge_view.is_none() && session.verge_axes.left.is_none());
+        let sol = session.solution;
         assert!(!sol.verge_axes_measured);
+        // Sigmas hold the reading noise (0.01 deg) and stay far below the tolerance.
+        let g = session.sigmas;
+        assert!(g.elevation_deg >= 0.01 && g.verge_left_deg < 0.05, "{g:?}");
         let truth = head.aligned_encoders();
         let (a, t) = (sol.aligned_encoders, truth);
         for (name, err) in [

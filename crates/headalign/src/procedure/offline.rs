@@ -1,0 +1,82 @@
+//! The alignment of a recorded session without moving the head (what `headalign align`
+//! computes from an observation or image session): the rig calibration from the views in
+//! which no vergence joint moved, the vergence axes from the first view in which one did
+//! (nominal axes if none), the aligned readings and their sigmas.
+//!
+//! Degrees of freedom: those of [`estimate_rig`] (the rig bundle adjustment), then per
+//! camera one vergence axis (a pose resected from the vergence view, screw axis against
+//! the modelled pan/elevation chain; 2 dof of direction each) and the three aligned
+//! readings ([`solve_alignment`]). Units: degrees for readings and sigmas, pixels for the
+//! adjustment's residuals.
+//!
+//! Paper section 3.2 steps 1-7 without the head's moves: the procedure
+//! ([`super::VergeTiltRun`]) additionally moves to the aligned readings and checks them by
+//! vision; a session has no such check.
+//!
+//! Pitfalls: with no vergence view the vergence axes are nominal (the camera's down
+//! direction made perpendicular to the elevation axis: a positive vergence turns the
+//! camera right, [`crate::alignment::solve_alignment`]); their sign and the cameras'
+//! mounting on them are assumptions the data cannot check, and the sigmas
+//! ([`alignment_sigmas`]) hold those axes fixed. The sigmas include the reference view's
+//! reading noise (the estimation's angle prior sigma per joint, as the procedure adds it:
+//! the aligned readings are that view's readings plus the solved turns).
+
+use headalign_platform::{Encoders, Joint};
+
+use super::{AlignmentSigmas, alignment_sigmas, pinhole_capture};
+use crate::alignment::{
+    AlignmentSolution, VergeAxes, head_motion, measure_cameras, solve_alignment, verge_axes_from_motion,
+};
+use crate::error::AlignError;
+use crate::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
+use crate::observations::View;
+
+/// What [`align_session`] estimated.
+#[derive(Debug, Clone)]
+pub struct SessionAlignment {
+    /// The rig calibration from the views in which no vergence joint moved.
+    pub calibration: RigCalibration,
+    /// Readings of the first view: the reference of the alignment.
+    pub reference: Encoders,
+    /// Vergence axes measured from the first vergence view (`None` each: nominal).
+    pub verge_axes: VergeAxes,
+    /// Index into the session's views of the view the vergence axes came from, if any.
+    pub verge_view: Option<usize>,
+    /// The aligned readings.
+    pub solution: AlignmentSolution,
+    /// Their 1-sigma uncertainties (module docs: what they include and hold fixed).
+    pub sigmas: AlignmentSigmas,
+}
+
+/// Align a recorded session (module docs): `views[0]` is the reference.
+///
+/// Errors: those of [`classify_views`] (too few or inconsistent views), [`estimate_rig`],
+/// the vergence view's resection and [`solve_alignment`].
+pub fn align_session(views: &[View], estimation: &EstimationOptions) -> Result<SessionAlignment, AlignError> {
+    let roles = classify_views(views)?;
+    let rig: Vec<View> = views
+        .iter()
+        .zip(&roles)
+        .filter(|(_, r)| !matches!(r, ViewRole::Verge))
+        .map(|(v, _)| v.clone())
+        .collect();
+    let calibration = estimate_rig(&rig, estimation)?;
+    let state = &calibration.bundle.state;
+    let reference = views.first().map(|v| v.capture.encoders).unwrap_or_default();
+    let verge_view = roles.iter().position(|r| matches!(r, ViewRole::Verge));
+    let mut verge_axes = VergeAxes::default();
+    if let Some(v) = verge_view.and_then(|i| views.get(i)) {
+        let d = |j: Joint| (v.capture.encoders.get(j) - reference.get(j)).to_radians();
+        let chain = head_motion(state, d(Joint::Pan), d(Joint::Elevation))
+            .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes of the head model".into()))?;
+        let capture = pinhole_capture(&calibration, &v.capture);
+        let measured =
+            measure_cameras(&calibration, &capture, &chain, &(chain * state.right_from_left.inverse()))?;
+        verge_axes = verge_axes_from_motion(state, &reference, &v.capture.encoders, &measured)?;
+    }
+    let solution = solve_alignment(state, &verge_axes, &reference)?;
+    let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
+    let sigmas =
+        alignment_sigmas(&calibration, &verge_axes, &reference)?.with_reading_noise(reading_sigma_deg);
+    Ok(SessionAlignment { calibration, reference, verge_axes, verge_view, solution, sigmas })
+}
