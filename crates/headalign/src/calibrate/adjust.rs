@@ -38,12 +38,14 @@ use crate::estimate::{
 /// Steps 5 and 6 (module docs): adjust from each start (`starts[0]` the linear one, `[1]`
 /// the rigid one), run [`every_point_pass`] on each result, keep the one with the lower
 /// truncated cost over all observations. The error of the last start that failed if both
-/// did.
+/// did. With the lens estimated, the starts carry `start_lens` (left, right), or the
+/// model's zero lens when it is `None`.
 pub(super) fn adjust_starts(
     starts: [Result<RigState, AlignError>; 2],
     points: &PointSet,
     recon: &[Reconstruction],
     options: &CalibrateOptions,
+    start_lens: Option<[Distortion; 2]>,
 ) -> Result<Adjustment, AlignError> {
     let est = &options.estimation;
     let (first_obs, all_obs) = (&points.first_obs, &points.all_obs);
@@ -53,12 +55,12 @@ pub(super) fn adjust_starts(
     let mut results: Vec<Adjustment> = Vec::new();
     let mut last_error = None;
     for (index, start) in starts.into_iter().enumerate() {
-        // The start's lens: zero in the estimated model (the equidistant one's zero is
-        // `atan`, a mild barrel: a fair start for a wide lens).
+        // The start's lens: `start_lens`, else zero in the estimated model (the
+        // equidistant one's zero is `atan`, a mild barrel: a fair start for a wide lens).
         let start = start.map(|mut s| {
             if let Some(kind) = kind {
-                s.left_distortion = Distortion::zero(kind);
-                s.right_distortion = Distortion::zero(kind);
+                [s.left_distortion, s.right_distortion] =
+                    start_lens.unwrap_or([Distortion::zero(kind), Distortion::zero(kind)]);
             }
             s
         });
@@ -123,7 +125,7 @@ pub(super) fn adjust_best_start(
 
 /// The estimation options of the adjustment: the options' constraints and lens model set
 /// in its bundle options.
-fn adjustment_options(options: &CalibrateOptions) -> EstimationOptions {
+pub(super) fn adjustment_options(options: &CalibrateOptions) -> EstimationOptions {
     let mut adjust_options = options.estimation.clone();
     adjust_options.bundle.zero_skew = options.zero_skew;
     adjust_options.bundle.square_pixels = options.square_pixels;

@@ -41,7 +41,8 @@ use headalign_geometry::bundle::{
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use serde::Serialize;
 
-use super::{CalibrateOptions, MotionCalibration, calibrate_with_restarts};
+use super::two_pass::calibrate_two_pass;
+use super::{CalibrateOptions, MotionCalibration};
 use crate::error::AlignError;
 use crate::estimate::FINAL_ITERATIONS;
 use crate::observations::View;
@@ -122,7 +123,7 @@ pub(super) fn calibrate_choosing_lens(
     views: &[View],
     options: &CalibrateOptions,
 ) -> Result<MotionCalibration, AlignError> {
-    choose_lens(options, |o| calibrate_with_restarts(views, o))
+    choose_lens(options, |o| calibrate_two_pass(views, o))
 }
 
 /// [`LensChoice::Auto`] (module docs) over a chain with a fixed lens model (`chain`: the

@@ -58,8 +58,12 @@
 //! chooses the model ([`LensChoice::Auto`], [`lens_choice`]):
 //! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
 //! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
-//! with sigmas `left.k1` ... in the covariance. With small rotations `k1` correlates with
-//! the focal length: without it a barrel lens biases `f` (see README).
+//! with sigmas `left.k1` ... in the covariance. When that chain fails or ends outside the
+//! plausible focal range (a strong lens in 10 deg views), it runs again on pixels
+//! undistorted by a lens chosen on a grid of corner displacements (`two_pass`). With
+//! small rotations `k1` correlates with the focal length: without it a barrel lens biases
+//! `f` (see README); the focal-length and lens sigmas are widened to the bootstrap spread
+//! over tracks (`lens_sigmas`, [`CalibrateReport::lens_sigmas`]).
 //!
 //! Pitfalls: a pure rotation, or a planar motion (translation perpendicular to the axis),
 //! fixes a pencil of planes: with one such motion the plane at infinity is undetermined
@@ -71,7 +75,9 @@
 //! Code layout, one file per step: `depth` (step 1), `stereo` (step 2, and the rig from
 //! known intrinsics), `motion` (step 3), `starts` (the point set and the two starts: step
 //! 4 and the rigid start), `adjust` (steps 5-6), `report` (step 7), `lens` (known lens
-//! models), `density` (the corner density of self-calibration from images);
+//! models), `two_pass` (the start of a lens estimate when the chain fails),
+//! `lens_sigmas` (the bootstrap of the lens and focal sigmas), `density` (the corner
+//! density of self-calibration from images);
 //! `calibrate_once` chains them. Sequences: `route` (which tracking and chain a folder
 //! gets), `graph` (keyframes, view graph, segments, spanning trees), `sequence` (the
 //! sequence chain, reusing the steps above).
@@ -83,6 +89,7 @@ mod graph;
 pub mod image_noise;
 mod lens;
 pub mod lens_choice;
+pub mod lens_sigmas;
 mod motion;
 mod report;
 pub mod residuals;
@@ -92,6 +99,7 @@ mod starts;
 mod stereo;
 #[cfg(test)]
 mod tests;
+mod two_pass;
 
 use headalign_geometry::GeometryError;
 use headalign_geometry::bundle::{BundleObservation, BundleResult};
@@ -310,6 +318,10 @@ pub struct CalibrateReport {
     /// Structure in the final residuals by image radius and region ([`residuals`]), and
     /// the sigma widening it caused.
     pub residual_structure: Option<residuals::ResidualStructure>,
+    /// The bootstrap widening of the focal-length and lens sigmas when a lens model is
+    /// estimated ([`lens_sigmas`]); absent otherwise.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lens_sigmas: Option<lens_sigmas::LensSigmaReport>,
     /// The reprojection residuals against the localisation noise measured from the
     /// images ([`image_noise`]), or why that check was skipped.
     pub image_noise: Option<ImageNoiseCheck>,
@@ -345,8 +357,15 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     let mut result = if options.lens == LensChoice::Auto {
         lens_choice::calibrate_choosing_lens(views, options)?
     } else {
-        calibrate_with_restarts(views, options)?
+        two_pass::calibrate_two_pass(views, options)?
     };
+    // The model estimated: the options' own, or the one `auto` chose.
+    let chosen = match (&options.lens, &result.report.lens_selection) {
+        (LensChoice::Auto, Some(s)) => LensChoice::parse(&s.chosen).unwrap_or(LensChoice::Pinhole),
+        (lens, _) => *lens,
+    };
+    let estimated = CalibrateOptions { lens: chosen, ..options.clone() };
+    result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(&mut result, &estimated);
     residuals::check_and_widen(&mut result);
     result.report.image_noise = Some(ImageNoiseCheck::skipped(image_noise::NO_IMAGES));
     Ok(result)
@@ -422,15 +441,29 @@ fn calibrate_once(
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
 ) -> Result<MotionCalibration, AlignError> {
+    calibrate_once_from(views, options, seeded, None)
+}
+
+/// [`calibrate_once`] with an optional lens start ([`two_pass`]): steps 2-4 then run on
+/// the rig views' pixels undistorted by its lenses, the adjustment on the original pixels
+/// from starts that carry its distortion.
+fn calibrate_once_from(
+    views: &[View],
+    options: &CalibrateOptions,
+    seeded: &mut Option<Seeded>,
+    lens_start: Option<&two_pass::LensStart>,
+) -> Result<MotionCalibration, AlignError> {
     // 1. The views of the rig.
     let depth::RigViews { rig, skipped, planarity, image_size } = depth::select_views(views, options)?;
     let [w, h] = image_size;
     let k0 = Intrinsics::rough_guess(w, h);
     let est = &options.estimation;
+    let chain_rig = lens_start.map(|l| undistort_views(&rig, &l.chain));
+    let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
     // 2. F from all views, frame, triangulation.
-    let stereo = stereo::stereo_geometry(&rig, &k0, est)?;
+    let stereo = stereo::stereo_geometry(chain, &k0, est)?;
     // 3. 3D homographies from the reference.
-    let motions = motion::fit_motions(&rig, &stereo.recon, &stereo.frame, options, seeded)?;
+    let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
     // The point set and the observations (as in estimate).
     let points = starts::point_set(&rig, &stereo.recon, &motions);
     let problem = starts::Problem {
@@ -441,10 +474,25 @@ fn calibrate_once(
     };
     // 4. The linear self-calibration, and the rigid start.
     let linear = starts::linear_start(&motions, &stereo.frame, &k0, &problem, options);
-    let (linear_k, linear_error) = starts::linear_summary(&linear.state)?;
     let rigid = starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
-    // 5-6. The adjustment from both starts.
-    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, &stereo.recon, options)
+    let (linear_k, linear_error) = match starts::linear_summary(&linear.state) {
+        // With a lens estimated and no lens start, the 3D homographies of distorted pixels
+        // are not conjugate to rigid motions and their angle readings (from the trace)
+        // can clamp to 0 deg: the rigid start carries the run, and the adjusted motions
+        // decide whether the rig turned (step 7).
+        Err(AlignError::MissingMotion(m)) if options.lens.kind().is_some() && lens_start.is_none() => {
+            (None, Some(m))
+        }
+        other => other?,
+    };
+    // 5-6. The adjustment from both starts (on the original pixels: the stereo matches'
+    // pixels too, for the points the adjustment triangulates itself).
+    let (start_lens, raw_recon) = match lens_start {
+        Some(l) => (Some(l.distortion), Some(two_pass::original_pixels(&stereo.recon, &rig))),
+        None => (None, None),
+    };
+    let recon = raw_recon.as_deref().unwrap_or(&stereo.recon);
+    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, recon, options, start_lens)
         .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
     // 7. The report: final motions, the rotation test, sigmas, warnings.
     let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
@@ -477,6 +525,7 @@ fn calibrate_once(
         restarts: 0,
         lens_selection: None,
         residual_structure: None,
+        lens_sigmas: None,
         image_noise: None,
         sequence: None,
         warnings,

@@ -415,7 +415,7 @@ fn sequence_once(
     let moving = kf.links.parent.iter().filter(|p| p.is_some()).count();
     let starts = [linear.state, rigid];
     let adjusted = if moving <= 2 {
-        adjust::adjust_starts(starts, &points, &stereo.recon, &held)
+        adjust::adjust_starts(starts, &points, &stereo.recon, &held, None)
     } else {
         adjust::adjust_best_start(starts, &points, &stereo.recon, &held)
     };
@@ -464,6 +464,7 @@ fn sequence_once(
         restarts: 0,
         lens_selection: None,
         residual_structure: None,
+        lens_sigmas: None,
         image_noise: None,
         sequence: Some(kf.report),
         warnings,
