@@ -225,6 +225,95 @@ fn solve_spd(m: &[[f64; 4]; 4], v: &[f64; 4], n: usize) -> Option<[f64; 4]> {
     x.iter().all(|e| e.is_finite()).then_some(x)
 }
 
+/// The reference window around a point: offsets from the point, Gaussian weights, grey
+/// values and central-difference gradients, sampled once.
+struct ReferenceWindow {
+    offsets: Vec<(f64, f64)>,
+    weights: Vec<f64>,
+    templ: Vec<f64>,
+    grads: Vec<(f64, f64)>,
+}
+
+impl ReferenceWindow {
+    /// Sample the window of `options.radius_px` around `point` and reject it when its
+    /// structure tensor's smaller eigenvalue is below `options.min_texture`.
+    fn sample(
+        reference: &crate::GrayImage,
+        point: [f64; 2],
+        options: &PatchRefineOptions,
+    ) -> Result<Self, RefineFailure> {
+        let r = options.radius_px as i64;
+        let inv2s2 = 0.5 / (options.weight_sigma_px * options.weight_sigma_px);
+        let n = ((2 * r + 1) * (2 * r + 1)) as usize;
+        let mut window = Self {
+            offsets: Vec::with_capacity(n),
+            weights: Vec::with_capacity(n),
+            templ: Vec::with_capacity(n),
+            grads: Vec::with_capacity(n),
+        };
+        let (mut sxx, mut sxy, mut syy, mut sw) = (0.0, 0.0, 0.0, 0.0);
+        // The reference sampled once on the window's grid plus a one-pixel rim: the central
+        // differences at integer offsets are the grid's neighbours.
+        let side = (2 * r + 3) as usize;
+        let mut grid = Vec::with_capacity(side * side);
+        for dy in -(r + 1)..=r + 1 {
+            for dx in -(r + 1)..=r + 1 {
+                let v = bilinear(reference, point[0] + dx as f64, point[1] + dy as f64)
+                    .ok_or(RefineFailure::OutsideImage)?;
+                grid.push(v);
+            }
+        }
+        for iy in 1..side - 1 {
+            for ix in 1..side - 1 {
+                let (ux, uy) = ((ix as i64 - r - 1) as f64, (iy as i64 - r - 1) as f64);
+                let v = grid[iy * side + ix];
+                let gx = 0.5 * (grid[iy * side + ix + 1] - grid[iy * side + ix - 1]);
+                let gy = 0.5 * (grid[(iy + 1) * side + ix] - grid[(iy - 1) * side + ix]);
+                let w = (-(ux * ux + uy * uy) * inv2s2).exp();
+                window.offsets.push((ux, uy));
+                window.weights.push(w);
+                window.templ.push(v);
+                window.grads.push((gx, gy));
+                sxx += w * gx * gx;
+                sxy += w * gx * gy;
+                syy += w * gy * gy;
+                sw += w;
+            }
+        }
+        let (a, b, c) = (sxx / sw, sxy / sw, syy / sw);
+        let min_eig = 0.5 * (a + c) - (0.25 * (a - c) * (a - c) + b * b).sqrt();
+        if min_eig.is_nan() || min_eig < options.min_texture || min_eig <= 0.0 {
+            return Err(RefineFailure::Textureless(min_eig));
+        }
+        Ok(window)
+    }
+}
+
+/// Where the Gauss-Newton alignment ended: the target point, the photometric model
+/// `target = gain template + bias`, and the iterations used.
+struct Aligned {
+    t: [f64; 2],
+    gain: f64,
+    bias: f64,
+    iterations: usize,
+}
+
+/// Sample `target` at `t + A u` for every window offset `u` into `out`.
+fn sample_warped(
+    target: &crate::GrayImage,
+    t: [f64; 2],
+    local_affine: [[f64; 2]; 2],
+    offsets: &[(f64, f64)],
+    out: &mut [f64],
+) -> Result<(), RefineFailure> {
+    let [[a11, a12], [a21, a22]] = local_affine;
+    for (k, &(ux, uy)) in offsets.iter().enumerate() {
+        out[k] = bilinear(target, t[0] + a11 * ux + a12 * uy, t[1] + a21 * ux + a22 * uy)
+            .ok_or(RefineFailure::OutsideImage)?;
+    }
+    Ok(())
+}
+
 /// Refine `initial_in_target` so that the target window around it, warped by
 /// `local_affine` (row-major `[[a11, a12], [a21, a22]]`, reference offsets to target
 /// offsets), matches the reference window around `point_in_reference` (module docs).
@@ -241,48 +330,7 @@ pub fn refine_point_against_patch(
     if !finite.into_iter().all(|v| v.is_finite()) {
         return Err(RefineFailure::OutsideImage);
     }
-    let r = options.radius_px as i64;
-    let inv2s2 = 0.5 / (options.weight_sigma_px * options.weight_sigma_px);
-    // The reference window: offsets, weights, values; and its structure tensor.
-    let n = ((2 * r + 1) * (2 * r + 1)) as usize;
-    let mut offsets = Vec::with_capacity(n);
-    let mut weights = Vec::with_capacity(n);
-    let mut templ = Vec::with_capacity(n);
-    let mut grads = Vec::with_capacity(n);
-    let (mut sxx, mut sxy, mut syy, mut sw) = (0.0, 0.0, 0.0, 0.0);
-    // The reference sampled once on the window's grid plus a one-pixel rim: the central
-    // differences at integer offsets are the grid's neighbours.
-    let side = (2 * r + 3) as usize;
-    let mut grid = Vec::with_capacity(side * side);
-    for dy in -(r + 1)..=r + 1 {
-        for dx in -(r + 1)..=r + 1 {
-            let v = bilinear(reference, point_in_reference[0] + dx as f64, point_in_reference[1] + dy as f64)
-                .ok_or(RefineFailure::OutsideImage)?;
-            grid.push(v);
-        }
-    }
-    for iy in 1..side - 1 {
-        for ix in 1..side - 1 {
-            let (ux, uy) = ((ix as i64 - r - 1) as f64, (iy as i64 - r - 1) as f64);
-            let v = grid[iy * side + ix];
-            let gx = 0.5 * (grid[iy * side + ix + 1] - grid[iy * side + ix - 1]);
-            let gy = 0.5 * (grid[(iy + 1) * side + ix] - grid[(iy - 1) * side + ix]);
-            let w = (-(ux * ux + uy * uy) * inv2s2).exp();
-            offsets.push((ux, uy));
-            weights.push(w);
-            templ.push(v);
-            grads.push((gx, gy));
-            sxx += w * gx * gx;
-            sxy += w * gx * gy;
-            syy += w * gy * gy;
-            sw += w;
-        }
-    }
-    let (a, b, c) = (sxx / sw, sxy / sw, syy / sw);
-    let min_eig = 0.5 * (a + c) - (0.25 * (a - c) * (a - c) + b * b).sqrt();
-    if min_eig.is_nan() || min_eig < options.min_texture || min_eig <= 0.0 {
-        return Err(RefineFailure::Textureless(min_eig));
-    }
+    let window = ReferenceWindow::sample(reference, point_in_reference, options)?;
     let np = if options.photometric { 4 } else { 2 };
     let [[a11, a12], [a21, a22]] = local_affine;
     // The target's gradient at the aligned sample, from the template's: with
@@ -293,33 +341,81 @@ pub fn refine_point_against_patch(
     if det.abs() < 1e-6 {
         return Err(RefineFailure::NotConverged);
     }
-    let jt: Vec<(f64, f64)> =
-        grads.iter().map(|&(gx, gy)| ((a22 * gx - a21 * gy) / det, (-a12 * gx + a11 * gy) / det)).collect();
-    // Model: target = g template + b (g, b fitted when photometric).
+    let jt: Vec<(f64, f64)> = window
+        .grads
+        .iter()
+        .map(|&(gx, gy)| ((a22 * gx - a21 * gy) / det, (-a12 * gx + a11 * gy) / det))
+        .collect();
+    let aligned = align_window(&window, &jt, target, initial_in_target, local_affine, options)?;
+    let (t, gain, bias) = (aligned.t, aligned.gain, aligned.bias);
+    let shift_px = (t[0] - initial_in_target[0]).hypot(t[1] - initial_in_target[1]);
+    if shift_px > options.max_shift_px {
+        return Err(RefineFailure::MovedTooFar(shift_px));
+    }
+    // ZNCC of the windows at the final point (the samples of the last iteration are at
+    // most `convergence_px` away; re-sample for the exact value).
+    let mut warped = vec![0.0; window.offsets.len()];
+    sample_warped(target, t, local_affine, &window.offsets, &mut warped)?;
+    let fit = WindowFit {
+        weights: &window.weights,
+        templ: &window.templ,
+        warped: &warped,
+        jt: &jt,
+        gain,
+        bias,
+        np,
+        noise_scale: interpolation_noise_scale(point_in_reference, t, local_affine, &window.offsets, gain),
+    };
+    // A precision that cannot be computed does not reject the alignment (the point is as
+    // good as before): it is reported as NaN, unknown.
+    let sigma_px = fit.sigma_px().unwrap_or(f64::NAN);
+    let zncc = zncc_of(&window.templ, &warped);
+    if zncc.is_nan() || zncc < options.min_zncc {
+        return Err(RefineFailure::LowZncc(zncc));
+    }
+    if gain.is_nan() || gain.abs() <= 1e-9 {
+        return Err(RefineFailure::NotConverged);
+    }
+    Ok(Refinement {
+        point: t,
+        shift_px,
+        zncc,
+        gain_bias: [1.0 / gain, -bias / gain],
+        iterations: aligned.iterations,
+        sigma_px,
+    })
+}
+
+/// Gauss-Newton on the translation (and gain and bias when photometric) from
+/// `initial_in_target`, until a step is below `options.convergence_px`.
+fn align_window(
+    window: &ReferenceWindow,
+    jt: &[(f64, f64)],
+    target: &crate::GrayImage,
+    initial_in_target: [f64; 2],
+    local_affine: [[f64; 2]; 2],
+    options: &PatchRefineOptions,
+) -> Result<Aligned, RefineFailure> {
+    let np = if options.photometric { 4 } else { 2 };
+    let [[a11, a12], [a21, a22]] = local_affine;
     let mut t = initial_in_target;
     let (mut gain, mut bias) = (1.0, 0.0);
-    let mut converged = false;
-    let mut iterations = 0;
-    let mut warped = vec![0.0; n];
+    let mut warped = vec![0.0; window.offsets.len()];
     // The window's extent in the target around `t`, for one bounds check per iteration.
-    let rf = r as f64;
+    let rf = options.radius_px as f64;
     let (ex, ey) = ((a11.abs() + a12.abs()) * rf, (a21.abs() + a22.abs()) * rf);
     let (w_max, h_max) = (f64::from(target.width()) - 1.0, f64::from(target.height()) - 1.0);
     for it in 0..options.max_iterations {
-        iterations = it + 1;
         if !(t[0] - ex >= 0.0 && t[1] - ey >= 0.0 && t[0] + ex <= w_max && t[1] + ey <= h_max) {
             return Err(RefineFailure::OutsideImage);
         }
+        sample_warped(target, t, local_affine, &window.offsets, &mut warped)?;
         let mut h = [[0.0; 4]; 4];
         let mut g = [0.0; 4];
-        for (k, &(ux, uy)) in offsets.iter().enumerate() {
-            let x = t[0] + a11 * ux + a12 * uy;
-            let y = t[1] + a21 * ux + a22 * uy;
-            let v = bilinear(target, x, y).ok_or(RefineFailure::OutsideImage)?;
-            warped[k] = v;
-            let res = v - gain * templ[k] - bias;
-            let j = [gain * jt[k].0, gain * jt[k].1, -templ[k], -1.0];
-            let w = weights[k];
+        for (k, &v) in warped.iter().enumerate() {
+            let res = v - gain * window.templ[k] - bias;
+            let j = [gain * jt[k].0, gain * jt[k].1, -window.templ[k], -1.0];
+            let w = window.weights[k];
             for p in 0..np {
                 g[p] += w * j[p] * res;
                 for q in 0..np {
@@ -339,26 +435,23 @@ pub fn refine_point_against_patch(
             return Err(RefineFailure::MovedTooFar(moved));
         }
         if step[0].hypot(step[1]) < options.convergence_px {
-            converged = true;
-            break;
+            return Ok(Aligned { t, gain, bias, iterations: it + 1 });
         }
     }
-    if !converged {
-        return Err(RefineFailure::NotConverged);
-    }
-    let shift_px = (t[0] - initial_in_target[0]).hypot(t[1] - initial_in_target[1]);
-    if shift_px > options.max_shift_px {
-        return Err(RefineFailure::MovedTooFar(shift_px));
-    }
-    // ZNCC of the windows at the final point (the samples of the last iteration are at
-    // most `convergence_px` away; re-sample for the exact value).
-    for (k, &(ux, uy)) in offsets.iter().enumerate() {
-        let x = t[0] + a11 * ux + a12 * uy;
-        let y = t[1] + a21 * ux + a22 * uy;
-        warped[k] = bilinear(target, x, y).ok_or(RefineFailure::OutsideImage)?;
-    }
-    // Bilinear interpolation's variance factor of white noise at each window's fractional
-    // sample positions (module docs, Precision): the reference's are all at `p`'s fraction.
+    Err(RefineFailure::NotConverged)
+}
+
+/// `(1 + g^2) / (v_t + g^2 v_r)`: bilinear interpolation's variance factor of white noise
+/// at each window's fractional sample positions (module docs, Precision); the reference's
+/// samples are all at `point_in_reference`'s fraction.
+fn interpolation_noise_scale(
+    point_in_reference: [f64; 2],
+    t: [f64; 2],
+    local_affine: [[f64; 2]; 2],
+    offsets: &[(f64, f64)],
+    gain: f64,
+) -> f64 {
+    let [[a11, a12], [a21, a22]] = local_affine;
     let interp = |v: f64| {
         let f = v - v.floor();
         (1.0 - f) * (1.0 - f) + f * f
@@ -368,28 +461,8 @@ pub fn refine_point_against_patch(
         .iter()
         .map(|&(ux, uy)| interp(t[0] + a11 * ux + a12 * uy) * interp(t[1] + a21 * ux + a22 * uy))
         .sum::<f64>()
-        / n as f64;
-    let fit = WindowFit {
-        weights: &weights,
-        templ: &templ,
-        warped: &warped,
-        jt: &jt,
-        gain,
-        bias,
-        np,
-        noise_scale: (1.0 + gain * gain) / (v_target + gain * gain * v_reference),
-    };
-    // A precision that cannot be computed does not reject the alignment (the point is as
-    // good as before): it is reported as NaN, unknown.
-    let sigma_px = fit.sigma_px().unwrap_or(f64::NAN);
-    let zncc = zncc_of(&templ, &warped);
-    if zncc.is_nan() || zncc < options.min_zncc {
-        return Err(RefineFailure::LowZncc(zncc));
-    }
-    if gain.is_nan() || gain.abs() <= 1e-9 {
-        return Err(RefineFailure::NotConverged);
-    }
-    Ok(Refinement { point: t, shift_px, zncc, gain_bias: [1.0 / gain, -bias / gain], iterations, sigma_px })
+        / offsets.len() as f64;
+    (1.0 + gain * gain) / (v_target + gain * gain * v_reference)
 }
 
 /// The aligned windows at the solution, for the precision of the module docs.
