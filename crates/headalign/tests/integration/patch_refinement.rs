@@ -5,41 +5,19 @@
 //! the point the track stands for. Refinement must bring the observations closer to it.
 
 use headalign::frontend::{FrontEndOptions, Tracker};
-use headalign_platform::{ImagingHead, Joint, StereoCapture, StereoHead};
+use headalign_platform::{Encoders, ImagingHead, Joint, StereoCapture, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Point2, Point3, Vector3};
 
-/// Truth errors (pixels) of every observation of both views except the reference-left
-/// ones, which define the tracks: `(view, side, error)`.
-fn truth_errors(
-    head: &SimulatedHead,
-    captures: &[(StereoCapture, headalign_platform::Encoders)],
-) -> Vec<(usize, usize, f64)> {
-    let truth = head.truth().clone();
-    let (e0, c0) = (&captures[0].1, &captures[0].0);
-    let (scene_from_left0, _) = head.scene_from_cameras(e0);
-    let mut errors = Vec::new();
-    for o in &c0.left {
-        let ray = truth.left.inverse_matrix() * Vector3::new(o.pixel.x, o.pixel.y, 1.0);
-        let origin = Point3::from(scene_from_left0.translation.vector);
-        let Some(x) = head.room().cast(&origin, &(scene_from_left0.rotation * ray)) else { continue };
-        for (vi, (c, e)) in captures.iter().enumerate() {
-            let (ql, qr) = head.exact_pixels(e, &x);
-            for (side, list, q) in [(0, &c.left, ql), (1, &c.right, qr)] {
-                if vi == 0 && side == 0 {
-                    continue;
-                }
-                if let (Some(p), Some(q)) = (list.iter().find(|p| p.track == o.track), q) {
-                    errors.push((vi, side, (p.pixel - q).norm()));
-                }
-            }
-        }
-    }
-    errors
+/// The rendered pair of both tests: seed 3 of the default room, the reference view and
+/// one after a pan of the scenario's rotation, with the encoders' true readings.
+struct RenderedPair {
+    head: SimulatedHead,
+    images: [StereoImages; 2],
+    encoders: [Encoders; 2],
 }
 
-#[test]
-fn refined_observations_are_closer_to_the_truth() {
+fn rendered_pair() -> RenderedPair {
     let mut s = Scenario { seed: 3, ..Scenario::default() };
     s.render.use_photos = false; // the same textures with or without ../shared/data
     let mut head = SimulatedHead::new(s.clone()).unwrap();
@@ -49,6 +27,42 @@ fn refined_observations_are_closer_to_the_truth() {
     head.move_to(&e0.moved(Joint::Pan, s.rotation_deg)).unwrap();
     let second = head.capture_images().unwrap();
     let t1 = head.encoders();
+    RenderedPair { head, images: [first, second], encoders: [t0, t1] }
+}
+
+/// Every observation of the tracks defined by the reference-left corners of `captures`
+/// except those defining ones, with its truth: `visit(view, side, track, observed, true)`
+/// pixels. The truth is the true projection of the surface point cast through the
+/// track's reference-left pixel.
+fn for_each_observation(
+    head: &SimulatedHead,
+    captures: &[(&StereoCapture, &Encoders)],
+    mut visit: impl FnMut(usize, usize, u64, Point2<f64>, Point2<f64>),
+) {
+    let truth = head.truth().clone();
+    let (c0, e0) = captures[0];
+    let (scene_from_left0, _) = head.scene_from_cameras(e0);
+    for o in &c0.left {
+        let ray = truth.left.inverse_matrix() * Vector3::new(o.pixel.x, o.pixel.y, 1.0);
+        let origin = Point3::from(scene_from_left0.translation.vector);
+        let Some(x) = head.room().cast(&origin, &(scene_from_left0.rotation * ray)) else { continue };
+        for (vi, &(c, e)) in captures.iter().enumerate() {
+            let (ql, qr) = head.exact_pixels(e, &x);
+            for (side, list, q) in [(0, &c.left, ql), (1, &c.right, qr)] {
+                if vi == 0 && side == 0 {
+                    continue;
+                }
+                if let (Some(p), Some(q)) = (list.iter().find(|p| p.track == o.track), q) {
+                    visit(vi, side, o.track, p.pixel, q);
+                }
+            }
+        }
+    }
+}
+
+#[test]
+fn refined_observations_are_closer_to_the_truth() {
+    let RenderedPair { head, images: [first, second], encoders: [t0, t1] } = rendered_pair();
     // (fraction over 1 px, median, count) of: all observations, the later left ones.
     let stats_of = |e: &mut Vec<f64>| {
         e.sort_by(f64::total_cmp);
@@ -70,7 +84,10 @@ fn refined_observations_are_closer_to_the_truth() {
         if refine {
             assert!(report.refined[0] > 200 && report.refined[1] > 200, "{report:?}");
         }
-        let e = truth_errors(&head, &[(c0, t0), (c1, t1)]);
+        let mut e = Vec::new();
+        for_each_observation(&head, &[(&c0, &t0), (&c1, &t1)], |vi, side, _, p, q| {
+            e.push((vi, side, (p - q).norm()))
+        });
         let mut all: Vec<f64> = e.iter().map(|x| x.2).collect();
         let mut later_left: Vec<f64> = e.iter().filter(|x| x.0 == 1 && x.1 == 0).map(|x| x.2).collect();
         let (a, l) = (stats_of(&mut all), stats_of(&mut later_left));
@@ -120,44 +137,24 @@ fn refined_observations_are_closer_to_the_truth() {
 /// and the RMS below 2 (the tail, which the adjustment's re-selection removes).
 #[test]
 fn localisation_sigmas_match_the_truth_errors() {
-    let mut s = Scenario { seed: 3, ..Scenario::default() };
-    s.render.use_photos = false;
-    let mut head = SimulatedHead::new(s.clone()).unwrap();
-    let e0 = head.read_encoders().unwrap();
-    let first = head.capture_images().unwrap();
-    let t0 = head.encoders();
-    head.move_to(&e0.moved(Joint::Pan, s.rotation_deg)).unwrap();
-    let second = head.capture_images().unwrap();
-    let t1 = head.encoders();
+    let RenderedPair { head, images: [first, second], encoders: [t0, t1] } = rendered_pair();
     let mut tracker = Tracker::new(FrontEndOptions::default()).unwrap();
     let (c0, r0) = tracker.track(&first, "reference").unwrap();
     let (c1, r1) = tracker.track(&second, "rotated").unwrap();
     assert!(r0.alignment_sigma_px[1].is_some() && r1.alignment_sigma_px[0].is_some(), "{r0:?} {r1:?}");
     let reports = [&r0, &r1];
-    let truth = head.truth().clone();
-    let (scene_from_left0, _) = head.scene_from_cameras(&t0);
-    // (view, side, squared error, predicted variance)
-    let mut rows = Vec::new();
     for o in &c0.left {
         // The defining observation: variance 0, no parent.
         let own = r0.localisation[0].get(&o.track);
         assert!(own.is_some_and(|l| l.var == 0.0 && l.parent.is_none()), "{own:?}");
-        let ray = truth.left.inverse_matrix() * Vector3::new(o.pixel.x, o.pixel.y, 1.0);
-        let origin = Point3::from(scene_from_left0.translation.vector);
-        let Some(x) = head.room().cast(&origin, &(scene_from_left0.rotation * ray)) else { continue };
-        for (vi, (c, e)) in [(&c0, &t0), (&c1, &t1)].into_iter().enumerate() {
-            let (ql, qr) = head.exact_pixels(e, &x);
-            for (side, list, q) in [(0, &c.left, ql), (1, &c.right, qr)] {
-                if vi == 0 && side == 0 {
-                    continue;
-                }
-                let var = reports[vi].localisation[side].get(&o.track).map(|l| l.var);
-                if let (Some(p), Some(q), Some(var)) = (list.iter().find(|p| p.track == o.track), q, var) {
-                    rows.push((vi, side, (p.pixel - q).norm_squared(), var));
-                }
-            }
-        }
     }
+    // (view, side, squared error, predicted variance)
+    let mut rows = Vec::new();
+    for_each_observation(&head, &[(&c0, &t0), (&c1, &t1)], |vi, side, track, p, q| {
+        if let Some(l) = reports[vi].localisation[side].get(&track) {
+            rows.push((vi, side, (p - q).norm_squared(), l.var));
+        }
+    });
     for (vi, side) in [(0, 1), (1, 0), (1, 1)] {
         // Gross mismatches (over 1 px) are not localisation noise.
         let sel: Vec<&(usize, usize, f64, f64)> =
