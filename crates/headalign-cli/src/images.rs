@@ -349,6 +349,12 @@ impl<H: Vehicle> Vehicle for Undistorting<'_, H> {
     }
 }
 
+/// The report of [`recorded_robot`]: the JSON of the run from the head, the captures,
+/// the route's outcome and the robot stages' results (`None` on the planar route, which
+/// runs none).
+pub type RobotReport<'a, H> =
+    dyn FnMut(&mut H, &ImageRun, &RouteOutcome, Option<&RobotRun>) -> Result<Value> + 'a;
+
 /// [`recorded`] followed by the robot stages of `plan` on the same (recording) head, for
 /// a head that is also a vehicle; `report` also sees the robot stages' results.
 pub fn recorded_robot<H: ImagingHead + Vehicle>(
@@ -358,7 +364,7 @@ pub fn recorded_robot<H: ImagingHead + Vehicle>(
     auto_rotation: bool,
     estimation: Estimation,
     plan: &RobotPlan,
-    report: &mut dyn FnMut(&mut H, &ImageRun, &RouteOutcome, Option<&RobotRun>) -> Result<Value>,
+    report: &mut RobotReport<'_, H>,
 ) -> Result<(ImageRun, RouteOutcome, Value)> {
     let Some((dir, info)) = session else {
         let (run, outcome) = procedure(head, rotation_deg, auto_rotation, estimation, &mut |_, _, _, _| {});
@@ -413,7 +419,7 @@ fn finish(
             }
         };
         annotate(writer.dir(), &run, o)?;
-        write_report(writer.dir(), &info_title(&json), &run, &o, &json)?;
+        write_report(writer.dir(), &info_title(&json), &run, o, &json)?;
         if let Some(m) = json.as_object_mut()
             && o.calibration.report.lens.is_some()
         {

@@ -462,7 +462,7 @@ struct AlignEstimate {
 /// What `align` estimated, by route.
 enum AlignRoute {
     /// The general route and the scene check that chose it.
-    General(AlignEstimate, headalign::planar::SceneCheck),
+    General(Box<AlignEstimate>, headalign::planar::SceneCheck),
     /// The planar route (a planar or far scene) and its wall time, seconds.
     Planar(Box<PlanarSessionAlignment>, f64),
 }
@@ -484,14 +484,14 @@ fn estimate_alignment(
         SessionRoute::Planar(p) => return Ok(AlignRoute::Planar(p, seconds)),
     };
     Ok(AlignRoute::General(
-        AlignEstimate {
+        Box::new(AlignEstimate {
             calib: a.calibration,
             reference: a.reference,
             verge: a.verge_axes,
             solution: a.solution,
             sigmas: a.sigmas,
             seconds,
-        },
+        }),
         scene,
     ))
 }
