@@ -435,3 +435,36 @@ fn wall_sessions_take_the_planar_route_in_replay_and_align() {
     assert!(text.contains(&format!("scene: {kind}")) && text.contains("undetermined:"), "{text}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Rendered images of a wall (`demo --images --scene wall`, seed 1, about 10 s): the
+/// front end's tracks take the planar route (`route`, `scene`, the check after the move,
+/// the robot stages skipped), the aligned readings within 0.05 deg of the truth (seed 1:
+/// 0.032 deg at most; the route's pixel noise is 0.05 px there), and the session replays
+/// on the same route bit for bit and reads back with `align --images` on it.
+#[test]
+fn rendered_wall_sessions_take_the_planar_route() {
+    let dir = tmp("images-wall");
+    let live = ok_json(
+        &bin()
+            .args(["demo", "--images", "--scene", "wall", "--seed", "1", "--stages", "verge-tilt", "--json"])
+            .arg("--session")
+            .arg(&dir)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(live["route"], "planar", "{}", live["scene"]);
+    assert!(live["checks"].as_array().is_some_and(|c| c.len() == 1), "{}", live["check_failure"]);
+    assert!(live["robot_stages"].as_str().is_some_and(|s| s.starts_with("skipped")));
+    for key in ["elevation", "verge_left", "verge_right"] {
+        let e = live["aligned_reading_errors_deg"][key].as_f64().unwrap_or(f64::NAN);
+        assert!(e.abs() < 0.05, "{key}: {e} deg");
+    }
+    let r = replay(&dir);
+    assert_eq!(r["route"], "planar");
+    assert_eq!(r["estimate"]["aligned_encoders"], live["estimate"]["aligned_encoders"]);
+    assert_eq!(r["checks"], live["checks"]);
+    let a = align_images(&dir);
+    assert_eq!(a["route"], "planar");
+    assert_eq!(a["scene"]["kind"], live["scene"]["kind"]);
+    std::fs::remove_dir_all(&dir).ok();
+}
