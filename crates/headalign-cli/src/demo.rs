@@ -641,7 +641,7 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
     );
     say!("time: total {:.2} s", v["timings"]["total_s"].as_f64().unwrap_or(f64::NAN));
     if let Some(dir) = v["session"].as_str() {
-        say!("session (views, report.json, figure6.png, aligned.png): {dir}");
+        say!("session ({}): {dir}", crate::planar::session_files(v));
     }
     Ok(())
 }

@@ -11,8 +11,9 @@
 //! --head-cmd` on a driver, `replay` on a recorded session; the same code on the same
 //! images gives the same numbers. It detects a planar or far scene from the tracked views
 //! ([`VergeTiltRun::run_detecting`]) and then takes the planar route: no robot stages,
-//! no `figure6.png` or `report.html` (they draw the general route's calibration), the
-//! report's `route`, `scene`, `planar` and `checks` members ([`crate::planar::outcome_json`]).
+//! no `figure6.png` (it draws the general route's calibration), the report's `route`,
+//! `scene`, `planar` and `checks` members ([`crate::planar::outcome_json`]) and a
+//! `report.html` of the planar route's numbers ([`crate::planar::html_sections`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -413,8 +414,9 @@ fn finish(
         }
         let o = match &route {
             RouteOutcome::General(o, _) => o,
-            RouteOutcome::Planar(_) => {
+            RouteOutcome::Planar(p) => {
                 aligned_image(writer.dir(), &run)?;
+                write_planar_report(writer.dir(), &info_title(&json), &run, p, &json)?;
                 return Ok((route, json));
             }
         };
@@ -868,6 +870,16 @@ fn write_report(
             ),
         ],
     );
+    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
+    rep.write(&dir.join(REPORT_FILE))
+}
+
+/// The note above the captured views' links in `report.html`.
+const VIEW_LINKS_NOTE: &str =
+    "Every captured view (PNG and view.json in each folder): headalign replay DIR re-runs them.";
+
+/// Links to both images of every view folder of the session `dir`, in order.
+fn view_links(dir: &Path) -> Vec<(String, String)> {
     let mut folders: Vec<String> = std::fs::read_dir(dir)
         .map(|entries| {
             entries
@@ -878,14 +890,43 @@ fn write_report(
         })
         .unwrap_or_default();
     folders.sort();
-    let links = folders
+    folders
         .iter()
         .flat_map(|f| ["left", "right"].map(|side| (format!("{f}/{side}.png"), format!("{f} {side}"))))
-        .collect();
-    rep.links(
-        "Captured views",
-        "Every captured view (PNG and view.json in each folder): headalign replay DIR re-runs them.",
-        links,
+        .collect()
+}
+
+/// `DIR/report.html` of a planar-route run: its numbers ([`crate::planar::html_sections`]),
+/// the errors against the truth when simulated, `aligned.png` and the captured views.
+fn write_planar_report(
+    dir: &Path,
+    title: &str,
+    run: &ImageRun,
+    outcome: &headalign::procedure::PlanarOutcome,
+    json: &Value,
+) -> Result<()> {
+    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
+    let mut rep = HtmlReport::new(title);
+    rep.intro(&format!(
+        "{} x {} images, vision front end (verging, FAST+BRIEF features, matching); {} verge/tilt views captured; session folder {}.",
+        image_size[0],
+        image_size[1],
+        run.run.views.len(),
+        dir.display()
+    ));
+    crate::planar::html_sections(&mut rep, outcome);
+    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
+        (json.get("before"), json.get("errors"))
+    {
+        rep.errors_vs_truth(before, errors);
+    }
+    rep.figures(
+        "Annotated images",
+        &[(
+            "aligned.png".into(),
+            "aligned.png: the check view after alignment, with the image centres marked (magenta).".into(),
+        )],
     );
+    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
     rep.write(&dir.join(REPORT_FILE))
 }

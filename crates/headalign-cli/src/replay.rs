@@ -255,7 +255,7 @@ pub fn print_summary(v: &Value) {
     );
     say!("checks after moving: {}", v["checks"].as_array().map_or(0, Vec::len));
     if let Some(dir) = v["session"].as_str() {
-        say!("session (views, report.json, figure6.png, aligned.png): {dir}");
+        say!("session ({}): {dir}", crate::planar::session_files(v));
     }
 }
 

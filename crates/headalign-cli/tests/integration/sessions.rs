@@ -439,7 +439,8 @@ fn wall_sessions_take_the_planar_route_in_replay_and_align() {
 /// Rendered images of a wall (`demo --images --scene wall`, seed 1, about 10 s): the
 /// front end's tracks take the planar route (`route`, `scene`, the check after the move,
 /// the robot stages skipped), the aligned readings within 0.05 deg of the truth (seed 1:
-/// 0.032 deg at most; the route's pixel noise is 0.05 px there), and the session replays
+/// 0.032 deg at most; the route's pixel noise is 0.05 px there), `report.html` holds the
+/// planar route's numbers, and the session replays
 /// on the same route bit for bit and reads back with `align --images` on it.
 #[test]
 fn rendered_wall_sessions_take_the_planar_route() {
@@ -455,6 +456,9 @@ fn rendered_wall_sessions_take_the_planar_route() {
     assert_eq!(live["route"], "planar", "{}", live["scene"]);
     assert!(live["checks"].as_array().is_some_and(|c| c.len() == 1), "{}", live["check_failure"]);
     assert!(live["robot_stages"].as_str().is_some_and(|s| s.starts_with("skipped")));
+    let html = std::fs::read_to_string(dir.join("report.html")).unwrap_or_default();
+    assert!(html.contains("Undetermined") && html.contains("Check after the move"), "report.html");
+    assert!(dir.join("aligned.png").is_file() && !dir.join("figure6.png").exists());
     for key in ["elevation", "verge_left", "verge_right"] {
         let e = live["aligned_reading_errors_deg"][key].as_f64().unwrap_or(f64::NAN);
         assert!(e.abs() < 0.05, "{key}: {e} deg");
