@@ -600,6 +600,18 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
         }
     }
     say!();
+    for line in crate::planar::summary_lines(v) {
+        say!("{line}");
+    }
+    if let Some(e) = v.get("aligned_reading_errors_deg") {
+        let f = |k: &str| e[k].as_f64().unwrap_or(f64::NAN);
+        say!(
+            "aligned reading errors (deg): elevation {:+.4}, verge_left {:+.4}, verge_right {:+.4}",
+            f("elevation"),
+            f("verge_left"),
+            f("verge_right")
+        );
+    }
     if let Some(line) = images::lens_line(&v["estimate"]) {
         say!("{line}");
     }
@@ -629,7 +641,7 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
     );
     say!("time: total {:.2} s", v["timings"]["total_s"].as_f64().unwrap_or(f64::NAN));
     if let Some(dir) = v["session"].as_str() {
-        say!("session (views, report.json, figure6.png, aligned.png): {dir}");
+        say!("session ({}): {dir}", crate::planar::session_files(v));
     }
     Ok(())
 }

@@ -150,9 +150,9 @@ pub fn run(args: &RunArgs) -> Result<()> {
             args.auto_rotation,
             seed,
             &plan,
-            &mut |_, run, outcome, robot| {
-                let mut v = images::run_json(run, outcome, t0.elapsed().as_secs_f64())?;
-                if let Some(m) = v.as_object_mut() {
+            &mut |_, run, route, robot| {
+                let mut v = images::route_json(run, route, t0.elapsed().as_secs_f64())?;
+                if let (Some(m), Some(robot)) = (v.as_object_mut(), robot) {
                     m.extend(images::robot_json(&plan, robot)?);
                 }
                 Ok(v)
@@ -165,7 +165,7 @@ pub fn run(args: &RunArgs) -> Result<()> {
             args.rotation,
             args.auto_rotation,
             seed,
-            &mut |_, run, outcome| images::run_json(run, outcome, t0.elapsed().as_secs_f64()),
+            &mut |_, run, route| images::route_json(run, route, t0.elapsed().as_secs_f64()),
         )?
     };
     if args.json {

@@ -9,7 +9,11 @@
 //!
 //! [`procedure`] is the one image-mode procedure: the demo runs it on the simulator, `run
 //! --head-cmd` on a driver, `replay` on a recorded session; the same code on the same
-//! images gives the same numbers.
+//! images gives the same numbers. It detects a planar or far scene from the tracked views
+//! ([`VergeTiltRun::run_detecting`]) and then takes the planar route: no robot stages,
+//! no `figure6.png` (it draws the general route's calibration), the report's `route`,
+//! `scene`, `planar` and `checks` members ([`crate::planar::outcome_json`]) and a
+//! `report.html` of the planar route's numbers ([`crate::planar::html_sections`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -22,7 +26,8 @@ use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTrack
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
 use headalign::observations::View;
 use headalign::procedure::{
-    AutoRotation, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
+    AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
+    resolve_rotation,
 };
 use headalign::robot::stereo_fundamental;
 use headalign::session::{
@@ -157,7 +162,7 @@ pub fn procedure<H: ImagingHead>(
     auto_rotation: bool,
     estimation: Estimation,
     on_stage: &mut OnStage<'_, H>,
-) -> (ImageRun, Result<VergeTiltOutcome>) {
+) -> (ImageRun, Result<RouteOutcome>) {
     let mut out = ImageRun::default();
     on_stage(head, STAGE_VERGING, Vec::new(), STAGE_VERGING);
     let verging = match verge_to_common_view(head, &VergingOptions::default()).context("verging") {
@@ -196,7 +201,8 @@ pub fn procedure<H: ImagingHead>(
         Ok(t) => t,
         Err(e) => return (out, Err(e.into())),
     };
-    let outcome = out.run.run(&mut tracking_head, &options).context("verge/tilt procedure on images");
+    let outcome =
+        out.run.run_detecting(&mut tracking_head, &options).context("verge/tilt procedure on images");
     out.images = std::mem::take(&mut tracking_head.images);
     out.tracking = std::mem::take(&mut tracking_head.tracking);
     (out, outcome)
@@ -230,8 +236,8 @@ pub fn recorded<H: ImagingHead>(
     rotation_deg: f64,
     auto_rotation: bool,
     estimation: Estimation,
-    report: &mut dyn FnMut(&mut H, &ImageRun, &VergeTiltOutcome) -> Result<Value>,
-) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
+    report: &mut dyn FnMut(&mut H, &ImageRun, &RouteOutcome) -> Result<Value>,
+) -> Result<(ImageRun, RouteOutcome, Value)> {
     let Some((dir, info)) = session else {
         let (run, outcome) = procedure(head, rotation_deg, auto_rotation, estimation, &mut |_, _, _, _| {});
         let outcome = outcome?;
@@ -344,6 +350,12 @@ impl<H: Vehicle> Vehicle for Undistorting<'_, H> {
     }
 }
 
+/// The report of [`recorded_robot`]: the JSON of the run from the head, the captures,
+/// the route's outcome and the robot stages' results (`None` on the planar route, which
+/// runs none).
+pub type RobotReport<'a, H> =
+    dyn FnMut(&mut H, &ImageRun, &RouteOutcome, Option<&RobotRun>) -> Result<Value> + 'a;
+
 /// [`recorded`] followed by the robot stages of `plan` on the same (recording) head, for
 /// a head that is also a vehicle; `report` also sees the robot stages' results.
 pub fn recorded_robot<H: ImagingHead + Vehicle>(
@@ -353,13 +365,16 @@ pub fn recorded_robot<H: ImagingHead + Vehicle>(
     auto_rotation: bool,
     estimation: Estimation,
     plan: &RobotPlan,
-    report: &mut dyn FnMut(&mut H, &ImageRun, &VergeTiltOutcome, &RobotRun) -> Result<Value>,
-) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
+    report: &mut RobotReport<'_, H>,
+) -> Result<(ImageRun, RouteOutcome, Value)> {
     let Some((dir, info)) = session else {
         let (run, outcome) = procedure(head, rotation_deg, auto_rotation, estimation, &mut |_, _, _, _| {});
         let outcome = outcome?;
-        let robot = robot_stages(head, plan, &outcome, &mut |_, _| {})?;
-        let json = report(head, &run, &outcome, &robot)?;
+        let robot = match &outcome {
+            RouteOutcome::General(o, _) => Some(robot_stages(head, plan, o, &mut |_, _| {})?),
+            RouteOutcome::Planar(_) => None,
+        };
+        let json = report(head, &run, &outcome, robot.as_ref())?;
         return Ok((run, outcome, json));
     };
     let writer = SessionWriter::create(&dir, &info).context("session")?;
@@ -369,12 +384,17 @@ pub fn recorded_robot<H: ImagingHead + Vehicle>(
             h.set_stage(stage, plan, other)
         });
     let robot = outcome.and_then(|o| {
-        let r = robot_stages(&mut rec, plan, &o, &mut |h, stage| h.set_stage(stage, Vec::new(), stage))?;
+        let r = match &o {
+            RouteOutcome::General(g, _) => {
+                Some(robot_stages(&mut rec, plan, g, &mut |h, stage| h.set_stage(stage, Vec::new(), stage))?)
+            }
+            RouteOutcome::Planar(_) => None,
+        };
         Ok((o, r))
     });
     let writer = rec.into_writer();
     let result = robot.and_then(|(o, r)| {
-        let json = report(head, &run, &o, &r)?;
+        let json = report(head, &run, &o, r.as_ref())?;
         Ok((o, json))
     });
     finish(&writer, run, result)
@@ -386,24 +406,32 @@ pub fn recorded_robot<H: ImagingHead + Vehicle>(
 fn finish(
     writer: &SessionWriter,
     run: ImageRun,
-    result: Result<(VergeTiltOutcome, Value)>,
-) -> Result<(ImageRun, VergeTiltOutcome, Value)> {
-    let result = result.and_then(|(o, mut json)| {
+    result: Result<(RouteOutcome, Value)>,
+) -> Result<(ImageRun, RouteOutcome, Value)> {
+    let result = result.and_then(|(route, mut json)| {
         if let Some(m) = json.as_object_mut() {
             m.insert("session".into(), json!(writer.dir().display().to_string()));
         }
-        annotate(writer.dir(), &run, &o)?;
-        write_report(writer.dir(), &info_title(&json), &run, &o, &json)?;
+        let o = match &route {
+            RouteOutcome::General(o, _) => o,
+            RouteOutcome::Planar(p) => {
+                aligned_image(writer.dir(), &run)?;
+                write_planar_report(writer.dir(), &info_title(&json), &run, p, &json)?;
+                return Ok((route, json));
+            }
+        };
+        annotate(writer.dir(), &run, o)?;
+        write_report(writer.dir(), &info_title(&json), &run, o, &json)?;
         if let Some(m) = json.as_object_mut()
             && o.calibration.report.lens.is_some()
         {
-            let files = write_calibration_files(writer.dir(), &run, &o)?;
+            let files = write_calibration_files(writer.dir(), &run, o)?;
             m.insert(
                 "files".into(),
                 json!(files.iter().map(|p| p.display().to_string()).collect::<Vec<_>>()),
             );
         }
-        Ok((o, json))
+        Ok((route, json))
     });
     match result {
         Ok((o, json)) => {
@@ -538,6 +566,28 @@ pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
     }))
 }
 
+/// The JSON of an image-mode run without truth on either route (`run --head-cmd`,
+/// `replay`): [`run_json`] with the scene check on the general route, the planar route's
+/// report ([`crate::planar::outcome_json`]) with the front end's on the planar one.
+pub fn route_json(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> Result<Value> {
+    let mut v = match route {
+        RouteOutcome::General(o, scene) => {
+            let mut v = run_json(run, o, total_s)?;
+            if let Some(m) = v.as_object_mut() {
+                m.insert("scene".into(), serde_json::to_value(scene)?);
+            }
+            v
+        }
+        RouteOutcome::Planar(p) => crate::planar::outcome_json(p)?,
+    };
+    if let (Some(m), RouteOutcome::Planar(p)) = (v.as_object_mut(), route) {
+        m.insert("mode".into(), json!("images"));
+        m.insert("images".into(), images_json(run)?);
+        m.insert("timings".into(), json!({"estimation_s": p.estimation_seconds, "total_s": total_s}));
+    }
+    Ok(v)
+}
+
 /// The JSON of an image-mode run without truth (`run --head-cmd`, `replay`).
 pub fn run_json(run: &ImageRun, outcome: &VergeTiltOutcome, total_s: f64) -> Result<Value> {
     Ok(json!({
@@ -595,31 +645,43 @@ pub fn run(
         auto_rotation,
         estimation,
         plan,
-        &mut |robot, run, outcome, robot_run| {
+        &mut |robot, run, route, robot_run| {
             let total = t0.elapsed().as_secs_f64();
             let head = robot.head();
             let after = head.alignment_errors(&head.encoders());
-            let st = &outcome.calibration.bundle.state;
             let truth = head.truth().clone();
-            let cal = calibration_errors(&truth.left, &truth.right, &st.left, &st.right);
+            let (k_left, k_right) = match route {
+                RouteOutcome::General(o, _) => {
+                    (o.calibration.bundle.state.left, o.calibration.bundle.state.right)
+                }
+                RouteOutcome::Planar(p) => (p.calibration.left.intrinsics, p.calibration.right.intrinsics),
+            };
+            let cal = calibration_errors(&truth.left, &truth.right, &k_left, &k_right);
             let true_aligned = head.aligned_encoders();
             let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
-            let pan_after = robot_run.outcomes.panned().then(|| robot.pan_err_deg(&head.encoders()));
-            let steer_after = robot_run
-                .outcomes
-                .steering
-                .as_ref()
-                .map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
-            let mut json = run_json(run, outcome, total)?;
+            let mut json = route_json(run, route, total)?;
             if let Some(m) = json.as_object_mut() {
                 let mut errors = errors_json(&after, unavoidable_r, &cal, None);
                 let mut before_j = before_json(&before);
-                if plan.drives() {
+                if let (true, Some(robot_run)) = (plan.drives(), robot_run) {
+                    let pan_after = robot_run.outcomes.panned().then(|| robot.pan_err_deg(&head.encoders()));
+                    let steer_after = robot_run
+                        .outcomes
+                        .steering
+                        .as_ref()
+                        .map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
                     errors.insert("pan_err_deg".into(), json!(pan_after));
                     errors.insert("steer_err_deg".into(), json!(steer_after));
                     before_j.insert("pan_err_deg".into(), json!(pan_before));
                     before_j.insert("steer_err_deg".into(), json!(steer_before));
                     m.extend(robot_json(plan, robot_run)?);
+                }
+                if let RouteOutcome::Planar(p) = route {
+                    let a = p.solution.aligned_encoders;
+                    m.insert(
+                        "aligned_reading_errors_deg".into(),
+                        json!({"elevation": a.elevation - true_aligned.elevation, "verge_left": a.verge_left - true_aligned.verge_left, "verge_right": a.verge_right - true_aligned.verge_right}),
+                    );
                 }
                 m.insert("errors".into(), Value::Object(errors));
                 m.insert("before".into(), Value::Object(before_j));
@@ -732,13 +794,17 @@ pub fn figure6(
 /// Caption of `figure6.png` in the reports.
 pub const FIGURE6_CAPTION: &str = "figure6.png: the first view (left | right) as the paper's Figure 6: features the bundle adjustment used (green) and not (red), the invariant lines of the pan (blue) and elevation (yellow) rotations, and the fixation point (magenta).";
 
-/// `figure6.png` (see [`figure6`]) and `aligned.png`, the last check view with the image
-/// centres marked.
+/// `figure6.png` (see [`figure6`]) and `aligned.png` ([`aligned_image`]).
 fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()> {
     let images = &run.images;
     let (Some(first), Some(view0)) = (images.first(), run.run.views.first()) else { return Ok(()) };
     figure6(first, view0, &outcome.calibration, &outcome.solution).save(&dir.join("figure6.png"))?;
-    if let Some(last) = images.last() {
+    aligned_image(dir, run)
+}
+
+/// `aligned.png`: the last check view with the image centres marked.
+fn aligned_image(dir: &Path, run: &ImageRun) -> Result<()> {
+    if let Some(last) = run.images.last() {
         let mut c = Canvas::side_by_side(&last.left, &last.right);
         let [w, h] = last.image_size();
         let centre = [(f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0];
@@ -804,6 +870,16 @@ fn write_report(
             ),
         ],
     );
+    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
+    rep.write(&dir.join(REPORT_FILE))
+}
+
+/// The note above the captured views' links in `report.html`.
+const VIEW_LINKS_NOTE: &str =
+    "Every captured view (PNG and view.json in each folder): headalign replay DIR re-runs them.";
+
+/// Links to both images of every view folder of the session `dir`, in order.
+fn view_links(dir: &Path) -> Vec<(String, String)> {
     let mut folders: Vec<String> = std::fs::read_dir(dir)
         .map(|entries| {
             entries
@@ -814,14 +890,43 @@ fn write_report(
         })
         .unwrap_or_default();
     folders.sort();
-    let links = folders
+    folders
         .iter()
         .flat_map(|f| ["left", "right"].map(|side| (format!("{f}/{side}.png"), format!("{f} {side}"))))
-        .collect();
-    rep.links(
-        "Captured views",
-        "Every captured view (PNG and view.json in each folder): headalign replay DIR re-runs them.",
-        links,
+        .collect()
+}
+
+/// `DIR/report.html` of a planar-route run: its numbers ([`crate::planar::html_sections`]),
+/// the errors against the truth when simulated, `aligned.png` and the captured views.
+fn write_planar_report(
+    dir: &Path,
+    title: &str,
+    run: &ImageRun,
+    outcome: &headalign::procedure::PlanarOutcome,
+    json: &Value,
+) -> Result<()> {
+    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
+    let mut rep = HtmlReport::new(title);
+    rep.intro(&format!(
+        "{} x {} images, vision front end (verging, FAST+BRIEF features, matching); {} verge/tilt views captured; session folder {}.",
+        image_size[0],
+        image_size[1],
+        run.run.views.len(),
+        dir.display()
+    ));
+    crate::planar::html_sections(&mut rep, outcome);
+    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
+        (json.get("before"), json.get("errors"))
+    {
+        rep.errors_vs_truth(before, errors);
+    }
+    rep.figures(
+        "Annotated images",
+        &[(
+            "aligned.png".into(),
+            "aligned.png: the check view after alignment, with the image centres marked (magenta).".into(),
+        )],
     );
+    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
     rep.write(&dir.join(REPORT_FILE))
 }

@@ -33,7 +33,10 @@ use headalign::alignment::{AlignmentSolution, VergeAxes};
 use headalign::estimate::{EstimationOptions, RigCalibration};
 use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
-use headalign::procedure::{AlignmentSigmas, VergeTiltOptions, align_session, capture_plan};
+use headalign::procedure::{
+    AlignmentSigmas, PlanarSessionAlignment, SessionRoute, VergeTiltOptions, align_session_detecting,
+    capture_plan,
+};
 use headalign::session::RecordedView;
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::camera::Intrinsics;
@@ -302,7 +305,10 @@ fn align(args: &AlignArgs) -> Result<()> {
         .as_ref()
         .or(args.images.as_ref())
         .map_or(String::new(), |p| p.display().to_string());
-    let a = estimate_alignment(&views, args.bootstrap, args.lens()?, &session)?;
+    let (a, scene) = match estimate_alignment(&views, args.bootstrap, args.lens()?, &session)? {
+        AlignRoute::General(a, scene) => (a, scene),
+        AlignRoute::Planar(p, seconds) => return align_planar(args, &p, seconds),
+    };
     let (pan, elev) = headalign::estimate::axes_of(&a.calib.bundle.state).context("axes")?;
     let axes = json!({
         "frame": "left camera of the first view; points in baselines",
@@ -316,10 +322,99 @@ fn align(args: &AlignArgs) -> Result<()> {
         written = write_align_files(dir, args, &views, recorded.as_deref(), &a, &axes)?;
     }
     if args.json {
-        say!("{}", serde_json::to_string_pretty(&align_json(&a, axes, &written)?)?);
+        let mut v = align_json(&a, axes, &written)?;
+        if let Some(m) = v.as_object_mut() {
+            m.insert("scene".into(), serde_json::to_value(&scene)?);
+        }
+        say!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());
     }
+    say!("{}", planar::scene_line(&scene));
     print_alignment(&a, &pan, &elev, &written);
+    Ok(())
+}
+
+/// `align` on a planar or far scene: the planar route's report (JSON or lines); with
+/// `--out`, `alignment.json` only (the calibration files and `head.json` need the rig's
+/// translation and the axes' positions, which a plane leaves undetermined).
+fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> Result<()> {
+    let cal = &p.calibration;
+    let mut written = Vec::new();
+    if let Some(dir) = &args.out {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let path = dir.join("alignment.json");
+        let value = json!({
+            "format": "headalign-alignment/1",
+            "route": "planar",
+            "reference_encoders": encoders_json(&p.reference),
+            "aligned_encoders": encoders_json(&p.solution.aligned_encoders),
+            "aligned_sigma_deg": serde_json::to_value(p.sigmas)?,
+            "verge_axes_measured": p.solution.verge_axes_measured,
+            "predicted_elev_err_r_deg": p.solution.predicted_elev_err_r_deg,
+            "undetermined": cal.undetermined,
+        });
+        std::fs::write(&path, serde_json::to_string_pretty(&value)? + "\n")
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        written.push(path);
+    }
+    let not_written = "calibration files and head.json: not written (the rig's translation and the axes' positions are undetermined on a plane)";
+    if args.json {
+        let camera = |c: &headalign::planar::CameraPlanar| {
+            let k = &c.intrinsics;
+            json!({"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
+                "sigma": {"fx": c.sigma("fx"), "fy": c.sigma("fy"), "cx": c.sigma("cx"), "cy": c.sigma("cy")}})
+        };
+        let v = json!({
+            "route": "planar",
+            "scene": serde_json::to_value(&cal.scene)?,
+            "planar": serde_json::to_value(cal)?,
+            "left": camera(&cal.left),
+            "right": camera(&cal.right),
+            "fixation_px": {"left": p.solution.fixation_px_left, "right": p.solution.fixation_px_right},
+            "invariant_lines": serde_json::to_value(p.solution.invariant_lines)?,
+            "aligned_encoders": encoders_json(&p.solution.aligned_encoders),
+            "aligned_sigma_deg": serde_json::to_value(p.sigmas)?,
+            "verge_axes_measured": p.solution.verge_axes_measured,
+            "undetermined": cal.undetermined,
+            "warnings": if p.solution.verge_axes_measured { vec![not_written] } else { vec![not_written, NOMINAL_VERGE_WARNING] },
+            "files": written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
+            "seconds": seconds,
+        });
+        say!("{}", serde_json::to_string_pretty(&v)?);
+        return Ok(());
+    }
+    say!("{}", planar::scene_line(&cal.scene));
+    say!("planar route (paper section 3.3): each camera from its own plane homographies");
+    for (name, c) in [("left ", &cal.left), ("right", &cal.right)] {
+        let k = &c.intrinsics;
+        say!(
+            "{name} K = [[{:.2}, 0, {:.2}], [0, {:.2}, {:.2}], [0, 0, 1]]  rms {:.3} px, {} points",
+            k.fx,
+            k.cx,
+            k.fy,
+            k.cy,
+            c.rms_px,
+            c.points
+        );
+    }
+    say!("undetermined: {}", cal.undetermined.join("; "));
+    let (e, sig) = (p.solution.aligned_encoders, p.sigmas);
+    say!(
+        "aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
+        e.elevation,
+        sig.elevation_deg,
+        e.verge_left,
+        sig.verge_left_deg,
+        e.verge_right,
+        sig.verge_right_deg
+    );
+    if !p.solution.verge_axes_measured {
+        say!("warning: {NOMINAL_VERGE_WARNING}");
+    }
+    say!("{not_written}");
+    for p in &written {
+        say!("wrote {}", p.display());
+    }
     Ok(())
 }
 
@@ -364,26 +459,41 @@ struct AlignEstimate {
     seconds: f64,
 }
 
-/// [`align_session`] on `views` with the estimation options of `align`; errors name
-/// `session`.
+/// What `align` estimated, by route.
+enum AlignRoute {
+    /// The general route and the scene check that chose it.
+    General(Box<AlignEstimate>, headalign::planar::SceneCheck),
+    /// The planar route (a planar or far scene) and its wall time, seconds.
+    Planar(Box<PlanarSessionAlignment>, f64),
+}
+
+/// [`align_session_detecting`] on `views` with the estimation options of `align`; errors
+/// name `session`.
 fn estimate_alignment(
     views: &[View],
     bootstrap: Option<BootstrapOptions>,
     lens: images::LensArgs,
     session: &str,
-) -> Result<AlignEstimate> {
+) -> Result<AlignRoute> {
     let t0 = Instant::now();
     let estimation = lens.apply(EstimationOptions { bootstrap, ..EstimationOptions::default() });
-    let a = align_session(views, &estimation).with_context(|| format!("session {session}"))?;
+    let route = align_session_detecting(views, &estimation).with_context(|| format!("session {session}"))?;
     let seconds = t0.elapsed().as_secs_f64();
-    Ok(AlignEstimate {
-        calib: a.calibration,
-        reference: a.reference,
-        verge: a.verge_axes,
-        solution: a.solution,
-        sigmas: a.sigmas,
-        seconds,
-    })
+    let (a, scene) = match route {
+        SessionRoute::General(a, scene) => (a, scene),
+        SessionRoute::Planar(p) => return Ok(AlignRoute::Planar(p, seconds)),
+    };
+    Ok(AlignRoute::General(
+        Box::new(AlignEstimate {
+            calib: a.calibration,
+            reference: a.reference,
+            verge: a.verge_axes,
+            solution: a.solution,
+            sigmas: a.sigmas,
+            seconds,
+        }),
+        scene,
+    ))
 }
 
 /// `align --out DIR`: the calibration files, head.json, alignment.json and report.html;

@@ -1,7 +1,8 @@
-//! `headalign demo` on a planar or far scene (point mode): the planar route's report
-//! ([`headalign::planar`]) against the simulator's truth, as a table or one JSON object.
-//! The robot stages need the 3D reconstruction a plane does not give: they are skipped,
-//! and the report says so.
+//! The planar route's report ([`headalign::planar`]): `demo` on a planar or far scene
+//! (point mode, against the simulator's truth, as a table or one JSON object), and the
+//! JSON and summary lines every command shares (`demo --images`, `replay`, `run`,
+//! `align`): [`outcome_json`], [`summary_lines`]. The robot stages need the 3D
+//! reconstruction a plane does not give: they are skipped, and the report says so.
 
 use anyhow::Result;
 use headalign::planar::{CameraPlanar, SceneCheck};
@@ -22,6 +23,158 @@ macro_rules! say {
 /// The text line of a scene check: `scene: kind (why)`.
 pub fn scene_line(check: &SceneCheck) -> String {
     format!("scene: {} ({})", check.kind.name(), check.why)
+}
+
+/// What the robot stages say on the planar route.
+pub const ROBOT_STAGES_SKIPPED: &str = "skipped: they need the 3D reconstruction a plane does not give";
+
+/// The planar route's members of a report (no truth): `route`, `scene`, `planar` (each
+/// camera, what is undetermined), `estimate` (intrinsics with sigmas, aligned readings
+/// and sigmas, fixation points, final readings: the members `replay` prints),
+/// `checks` (the check after the move, what it cannot check), `check_failure`.
+pub fn outcome_json(out: &PlanarOutcome) -> Result<Value> {
+    let cal = &out.calibration;
+    let camera = |c: &CameraPlanar| {
+        let k = &c.intrinsics;
+        json!({"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
+            "sigma": {"fx": c.sigma("fx"), "fy": c.sigma("fy"), "cx": c.sigma("cx"), "cy": c.sigma("cy")}})
+    };
+    Ok(json!({
+        "route": "planar",
+        "scene": serde_json::to_value(&cal.scene)?,
+        "planar": serde_json::to_value(cal)?,
+        "estimate": {
+            "left": camera(&cal.left),
+            "right": camera(&cal.right),
+            "aligned_encoders": serde_json::to_value(out.solution.aligned_encoders)?,
+            "aligned_sigma_deg": serde_json::to_value(out.sigmas)?,
+            "fixation_px": {"left": out.solution.fixation_px_left, "right": out.solution.fixation_px_right},
+            "final_encoders": serde_json::to_value(out.final_encoders)?,
+        },
+        "checks": serde_json::to_value(&out.checks)?,
+        "check_failure": out.check_failure,
+        "robot_stages": ROBOT_STAGES_SKIPPED,
+        "timings": {"estimation_s": out.estimation_seconds},
+        "rotations": {"rotation_deg": out.rotation_deg, "diagonal_rotation_deg": out.diagonal_rotation_deg, "verge_rotation_deg": out.verge_rotation_deg},
+    }))
+}
+
+/// The lines every command prints about the route from a report's JSON: the scene
+/// (`scene: kind (why)`, when the report has one) and, on the planar route, what is
+/// undetermined, the check after the move and what it cannot check.
+pub fn summary_lines(v: &Value) -> Vec<String> {
+    let mut lines = Vec::new();
+    if let Some(kind) = v["scene"]["kind"].as_str() {
+        lines.push(format!("scene: {kind} ({})", v["scene"]["why"].as_str().unwrap_or("")));
+    }
+    if v["route"].as_str() != Some("planar") {
+        return lines;
+    }
+    lines.push("planar route (paper section 3.3): each camera from its own plane homographies".into());
+    let join = |x: &Value| {
+        x.as_array()
+            .map_or(String::new(), |a| a.iter().filter_map(Value::as_str).collect::<Vec<_>>().join("; "))
+    };
+    lines.push(format!("undetermined: {}", join(&v["planar"]["undetermined"])));
+    let f = |x: &Value| x.as_f64().unwrap_or(f64::NAN);
+    if let Some(c) = v["checks"].as_array().and_then(|c| c.last()) {
+        let m = &c["measured"];
+        lines.push(format!(
+            "check after the move (deg, each camera against its own axes): verge_err_l {:+.4}, verge_err_r {:+.4}, elev_err_l {:+.4}, elev_err_r {:+.4}; unmodelled rotation left {:.4}, right {:.4} ({} / {} tracks)",
+            f(&m["verge_err_l_deg"]),
+            f(&m["verge_err_r_deg"]),
+            f(&m["elev_err_l_deg"]),
+            f(&m["elev_err_r_deg"]),
+            f(&c["left"]["unmodelled_rotation_deg"]),
+            f(&c["right"]["unmodelled_rotation_deg"]),
+            c["left"]["tracks"],
+            c["right"]["tracks"]
+        ));
+        lines.push(format!("not checked: {}", join(&c["unchecked"])));
+    }
+    if let Some(why) = v["check_failure"].as_str() {
+        lines.push(format!("check after the move: not made ({why})"));
+    }
+    lines.push(format!("robot stages: {ROBOT_STAGES_SKIPPED}"));
+    lines
+}
+
+/// What an image session holds besides its views, by the report's route (the planar route
+/// draws no `figure6.png`).
+pub fn session_files(v: &Value) -> &'static str {
+    if v["route"].as_str() == Some("planar") {
+        "views, report.json, report.html, aligned.png"
+    } else {
+        "views, report.json, figure6.png, aligned.png"
+    }
+}
+
+/// The planar route's sections of a `report.html`: the scene and route, each camera's
+/// intrinsics, the aligned readings, the check after the move and what is undetermined.
+pub fn html_sections(rep: &mut crate::report_html::HtmlReport, out: &PlanarOutcome) {
+    let cal = &out.calibration;
+    rep.intro(&scene_line(&cal.scene));
+    rep.intro("Planar route (paper section 3.3): each camera from its own plane homographies; the robot stages are skipped (they need the 3D reconstruction a plane does not give).");
+    let pm = |v: f64, s: Option<f64>| format!("{v:.2} ± {:.2}", s.unwrap_or(f64::NAN));
+    let rows = [("left", &cal.left), ("right", &cal.right)]
+        .iter()
+        .map(|(name, c)| {
+            let k = &c.intrinsics;
+            vec![
+                name.to_string(),
+                pm(k.fx, c.sigma("fx")),
+                pm(k.fy, c.sigma("fy")),
+                pm(k.cx, c.sigma("cx")),
+                pm(k.cy, c.sigma("cy")),
+                format!("{:.3}", c.rms_px),
+                c.points.to_string(),
+            ]
+        })
+        .collect();
+    rep.table(
+        "Intrinsics",
+        Some("Pixels, 1-sigma from the planar model's covariance."),
+        &["camera", "fx", "fy", "cx", "cy", "rms (px)", "points"],
+        rows,
+    );
+    let (a, s) = (out.solution.aligned_encoders, out.sigmas);
+    let rows = [
+        ("elevation", a.elevation, s.elevation_deg),
+        ("verge_left", a.verge_left, s.verge_left_deg),
+        ("verge_right", a.verge_right, s.verge_right_deg),
+    ]
+    .iter()
+    .map(|(n, v, s)| vec![n.to_string(), format!("{v:.4}"), format!("{s:.4}")])
+    .collect();
+    rep.table("Aligned readings", None, &["reading", "value (deg)", "sigma (deg)"], rows);
+    if let Some(c) = out.checks.last() {
+        let m = c.measured;
+        let rows = [
+            ("verge left", m.verge_err_l_deg),
+            ("verge right", m.verge_err_r_deg),
+            ("elevation left", m.elev_err_l_deg),
+            ("elevation right", m.elev_err_r_deg),
+        ]
+        .iter()
+        .map(|(n, v)| vec![n.to_string(), format!("{v:+.4}")])
+        .collect();
+        let note = format!(
+            "Each camera against its own estimated axes; unmodelled rotation left {:.4} deg, right {:.4} deg. Not checked: {}.",
+            c.left.unmodelled_rotation_deg,
+            c.right.unmodelled_rotation_deg,
+            c.unchecked.join("; ")
+        );
+        rep.table("Check after the move", Some(&note), &["error", "measured (deg)"], rows);
+    } else if let Some(why) = &out.check_failure {
+        rep.table("Check after the move", Some(&format!("Not made: {why}.")), &["error"], Vec::new());
+    }
+    let rows = cal.undetermined.iter().map(|u| vec![u.clone()]).collect();
+    rep.table(
+        "Undetermined",
+        Some("What a plane cannot give: reported, never a number."),
+        &["quantity"],
+        rows,
+    );
 }
 
 /// One camera's line: intrinsics with sigmas, residual, plane normal.
@@ -80,7 +233,9 @@ pub fn report(
             "truth": { "aligned_encoders": encoders_json(&truth) },
             "aligned_reading_errors_deg": { "elevation": errors[0], "verge_left": errors[1], "verge_right": errors[2] },
             "alignment_errors_after": after,
-            "robot_stages": "skipped: they need the 3D reconstruction a plane does not give",
+            "checks": serde_json::to_value(&out.checks)?,
+            "check_failure": out.check_failure,
+            "robot_stages": ROBOT_STAGES_SKIPPED,
             "estimation_seconds": out.estimation_seconds,
         })));
     }
@@ -112,7 +267,10 @@ pub fn report(
         after.elev_err_l_deg,
         after.elev_err_r_deg
     );
-    say!("robot stages: skipped (they need the 3D reconstruction a plane does not give)");
+    let v = json!({"route": "planar", "planar": {"undetermined": cal.undetermined}, "checks": serde_json::to_value(&out.checks)?, "check_failure": out.check_failure});
+    for line in summary_lines(&v).into_iter().skip(2) {
+        say!("{line}");
+    }
     say!("time: estimation {:.1} ms", 1e3 * out.estimation_seconds);
     Ok(None)
 }

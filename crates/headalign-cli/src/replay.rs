@@ -18,7 +18,7 @@ use serde_json::{Value, json};
 
 use crate::stages::RobotPlan;
 use crate::{calibrate, images, points};
-use headalign::procedure::VergeTiltRun;
+use headalign::procedure::{RouteOutcome, VergeTiltRun};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {
@@ -82,7 +82,7 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
     let (run, outcome) =
         images::procedure(&mut head, args.rotation, args.auto_rotation, seed, &mut |_, _, _, _| {});
     let outcome = outcome.with_context(|| format!("replay of '{}'", args.dir.display()))?;
-    let mut v = images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
+    let mut v = images::route_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
     if let Some(m) = v.as_object_mut() {
         m.insert("replayed".into(), json!(args.dir.display().to_string()));
         m.insert("still_views".into(), json!(head.views().len()));
@@ -114,10 +114,10 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let verge_tilt = |head: &mut ReplayHead| {
         images::procedure(head, info.rotation_deg, info.auto_rotation, estimation, &mut |_, _, _, _| {})
     };
-    let (mut v, views) = if info.procedure == images::PROCEDURE {
+    let (v, views) = if info.procedure == images::PROCEDURE {
         let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
-        (images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
+        (images::route_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
     } else if info.procedure == images::PROCEDURE_ROBOT {
         let plan = session_plan(&args.dir, &info)?.with_context(|| {
             format!(
@@ -128,16 +128,36 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         })?;
         let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
-        let robot = images::robot_stages(&mut head, &plan, &outcome, &mut |_, _| {}).with_context(context)?;
-        let mut v = images::run_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
-        if let Some(m) = v.as_object_mut() {
-            m.extend(images::robot_json(&plan, &robot)?);
+        let robot = match &outcome {
+            RouteOutcome::General(o, _) => {
+                Some(images::robot_stages(&mut head, &plan, o, &mut |_, _| {}).with_context(context)?)
+            }
+            RouteOutcome::Planar(_) => None,
+        };
+        let mut v = images::route_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
+        if let (Some(m), Some(robot)) = (v.as_object_mut(), &robot) {
+            m.extend(images::robot_json(&plan, robot)?);
         }
-        (v, run.run.views.len() + robot.tracking.len())
+        (v, run.run.views.len() + robot.map_or(0, |r| r.tracking.len()))
     } else if info.procedure == points::PROCEDURE {
         let mut run = VergeTiltRun::default();
-        let outcome = run.run(&mut head, &points::options(&info)).with_context(context)?;
+        let route = run.run_detecting(&mut head, &points::options(&info)).with_context(context)?;
+        let (outcome, scene) = match route {
+            RouteOutcome::General(o, scene) => (*o, scene),
+            RouteOutcome::Planar(p) => {
+                let mut v = crate::planar::outcome_json(&p)?;
+                if let Some(m) = v.as_object_mut() {
+                    m.insert("mode".into(), json!("points"));
+                    m.insert(
+                        "views".into(),
+                        json!(run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>()),
+                    );
+                }
+                return finish_replay(args, v, &head, run.views.len());
+            }
+        };
         let mut v = json!({
+            "scene": serde_json::to_value(&scene)?,
             "mode": "points",
             "estimate": images::estimate_json(&outcome)?,
             "report": serde_json::to_value(&outcome.calibration.report)?,
@@ -182,6 +202,11 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             calibrate::PROCEDURE
         );
     };
+    finish_replay(args, v, &head, views)
+}
+
+/// Print a replay's result (`views` views replayed) with where it came from.
+fn finish_replay(args: &ReplayArgs, mut v: Value, head: &ReplayHead, views: usize) -> Result<()> {
     if let Some(m) = v.as_object_mut() {
         m.insert("replayed".into(), json!(args.dir.display().to_string()));
         m.insert("unplayed_events".into(), json!(head.remaining()));
@@ -200,6 +225,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
 
 /// The human-readable summary of an image-mode run without truth (`replay`, `run`).
 pub fn print_summary(v: &Value) {
+    for line in crate::planar::summary_lines(v) {
+        say!("{line}");
+    }
     let e = &v["estimate"];
     let f = |x: &Value| x.as_f64().unwrap_or(f64::NAN);
     for side in ["left", "right"] {
@@ -227,7 +255,7 @@ pub fn print_summary(v: &Value) {
     );
     say!("checks after moving: {}", v["checks"].as_array().map_or(0, Vec::len));
     if let Some(dir) = v["session"].as_str() {
-        say!("session (views, report.json, figure6.png, aligned.png): {dir}");
+        say!("session ({}): {dir}", crate::planar::session_files(v));
     }
 }
 

@@ -40,6 +40,7 @@
 //! the same joints' but are not tied), which loses a little precision and keeps each
 //! problem small.
 
+mod check;
 mod detect;
 mod refine;
 mod sigmas;
@@ -50,10 +51,12 @@ mod tests;
 use headalign_geometry::bundle::Side;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::ransac::RansacOptions;
+use headalign_geometry::so3::Line;
 use headalign_platform::{Encoders, Joint};
 use nalgebra::{DMatrix, Unit, Vector3};
 use serde::Serialize;
 
+pub use check::{CameraCheck, PlanarCheck, UNCHECKED, check_alignment};
 pub use detect::{SceneCheck, SceneKind, detect_scene};
 pub use sigmas::alignment_sigmas;
 
@@ -167,6 +170,14 @@ pub struct CameraPlanar {
     pub observations: usize,
     /// Points in the final fit.
     pub points: usize,
+    /// Each moved joint's estimated line (pan, elevation, vergence order; camera frame of
+    /// the reference view, points in the scale gauge of the module docs), for the check
+    /// after the move ([`check_alignment`]); not reported: its points are no distances.
+    #[serde(skip)]
+    pub joint_lines: Vec<(Joint, Line)>,
+    /// The plane `m = n / d` in the same gauge (only `p m^T` products are observable).
+    #[serde(skip)]
+    pub plane_m: [f64; 3],
 }
 
 impl CameraPlanar {

@@ -450,6 +450,12 @@ impl Fit {
             rms_px: self.rms_px,
             observations: p.obs.len(),
             points: p.points.len(),
+            joint_lines: p
+                .joints
+                .iter()
+                .map(|j| (camera_joints(side)[j.slot], Line::new(j.axis, Point3::from(j.point))))
+                .collect(),
+            plane_m: [m.x, m.y, m.z],
         }
     }
 }

@@ -76,7 +76,9 @@ pub use axes::{
     AXIS_BOOTSTRAP_DRAWS, AxisMeasurement, AxisPerturbations, AxisSources, AxisStep, axis_perturbations,
     resection_pose_covariance, resection_pose_covariance_bootstrap,
 };
-pub use offline::{SessionAlignment, align_session};
+pub use offline::{
+    PlanarSessionAlignment, SessionAlignment, SessionRoute, align_session, align_session_detecting,
+};
 pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
 pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured};
 
@@ -316,8 +318,9 @@ pub enum RouteOutcome {
 }
 
 /// The planar route's outcome ([`crate::planar`]): the head is moved to the aligned
-/// readings; no check by vision follows (the check resects the cameras against the
-/// calibrated 3D points, which a plane does not give).
+/// readings and one check view is captured there and measured against each camera's
+/// planar model ([`crate::planar::check_alignment`]: what it cannot check, it names). No
+/// corrective move follows: the planar model already holds the vergence axes.
 #[derive(Debug, Clone)]
 pub struct PlanarOutcome {
     /// The planar calibration (scene verdict, each camera, what is undetermined).
@@ -326,6 +329,10 @@ pub struct PlanarOutcome {
     pub solution: AlignmentSolution,
     /// Uncertainty of the aligned readings.
     pub sigmas: AlignmentSigmas,
+    /// The check after the move (empty when it failed: [`PlanarOutcome::check_failure`]).
+    pub checks: Vec<crate::planar::PlanarCheck>,
+    /// Why the check could not be made, if it could not (the alignment stands).
+    pub check_failure: Option<String>,
     /// Final encoder readings (aligned).
     pub final_encoders: Encoders,
     /// Elevation/pan rotation used, degrees.
@@ -382,18 +389,7 @@ impl VergeTiltRun {
                 .map(|o| RouteOutcome::General(Box::new(o), scene));
         }
         let t0 = Instant::now();
-        let planar_options = crate::planar::PlanarOptions {
-            homography: headalign_geometry::ransac::RansacOptions {
-                seed: options.estimation.seed,
-                ..crate::planar::PlanarOptions::default().homography
-            },
-            angle_prior_sigma_deg: options
-                .estimation
-                .bundle
-                .angle_prior_sigma
-                .map_or(crate::estimate::ENCODER_SIGMA_DEG, f64::to_degrees),
-            ..crate::planar::PlanarOptions::default()
-        };
+        let planar_options = planar_options(&options.estimation);
         let calibration = crate::planar::estimate_planar(&self.views, scene, &planar_options)?;
         let reference = self.views[0].capture.encoders;
         let solution = crate::alignment::solve_alignment_axes(
@@ -403,13 +399,24 @@ impl VergeTiltRun {
         )?;
         let reading_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
         let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
-        let estimation_seconds = t0.elapsed().as_secs_f64();
+        let mut estimation_seconds = t0.elapsed().as_secs_f64();
         head.move_to(&solution.aligned_encoders)?;
+        let idx = self.capture(head, "check-1")?;
+        let t1 = Instant::now();
+        let check =
+            crate::planar::check_alignment(&calibration, &self.views[0].capture, &self.views[idx].capture);
+        estimation_seconds += t1.elapsed().as_secs_f64();
+        let (checks, check_failure) = match check {
+            Ok(c) => (vec![c], None),
+            Err(e) => (Vec::new(), Some(e.to_string())),
+        };
         let final_encoders = head.read_encoders()?;
         Ok(RouteOutcome::Planar(Box::new(PlanarOutcome {
             calibration,
             solution,
             sigmas,
+            checks,
+            check_failure,
             final_encoders,
             rotation_deg: options.rotation_deg,
             diagonal_rotation_deg: options.diagonal_rotation_deg,
@@ -532,6 +539,23 @@ impl VergeTiltRun {
             verge_rotation_deg: options.verge_rotation_deg,
             estimation_seconds,
         })
+    }
+}
+
+/// The planar route's options from the estimation's: its RANSAC seed, and its angle prior
+/// (the encoder prior of the bundle adjustment, [`crate::estimate::ENCODER_SIGMA_DEG`]
+/// without one).
+pub fn planar_options(estimation: &EstimationOptions) -> crate::planar::PlanarOptions {
+    crate::planar::PlanarOptions {
+        homography: headalign_geometry::ransac::RansacOptions {
+            seed: estimation.seed,
+            ..crate::planar::PlanarOptions::default().homography
+        },
+        angle_prior_sigma_deg: estimation
+            .bundle
+            .angle_prior_sigma
+            .map_or(crate::estimate::ENCODER_SIGMA_DEG, f64::to_degrees),
+        ..crate::planar::PlanarOptions::default()
     }
 }
 

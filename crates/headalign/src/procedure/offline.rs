@@ -20,6 +20,13 @@
 //! ([`alignment_sigmas`]) hold those axes fixed. The sigmas include the reference view's
 //! reading noise (the estimation's angle prior sigma per joint, as the procedure adds it:
 //! the aligned readings are that view's readings plus the solved turns).
+//!
+//! [`align_session_detecting`] first asks whether the scene is planar or far
+//! ([`crate::planar::detect_scene`] on the reference and rig views, as
+//! [`super::VergeTiltRun::run_detecting`] does) and then runs the planar route
+//! ([`crate::planar::estimate_planar`] on the reference, rig and first vergence views: the
+//! views the procedure estimates from) instead; what a plane leaves undetermined is named
+//! in its [`crate::planar::PlanarCalibration::undetermined`].
 
 use headalign_platform::{Encoders, Joint};
 
@@ -30,6 +37,7 @@ use crate::alignment::{
 use crate::error::AlignError;
 use crate::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
 use crate::observations::View;
+use crate::planar::{PlanarCalibration, SceneCheck, SceneKind, detect_scene, estimate_planar};
 
 /// What [`align_session`] estimated.
 #[derive(Debug, Clone)]
@@ -79,4 +87,62 @@ pub fn align_session(views: &[View], estimation: &EstimationOptions) -> Result<S
     let sigmas =
         alignment_sigmas(&calibration, &verge_axes, &reference)?.with_reading_noise(reading_sigma_deg);
     Ok(SessionAlignment { calibration, reference, verge_axes, verge_view, solution, sigmas })
+}
+
+/// What [`align_session_detecting`] estimated: the general route with the detection's
+/// numbers, or the planar route.
+#[derive(Debug, Clone)]
+pub enum SessionRoute {
+    /// The scene had depth: [`align_session`]'s result and the detection.
+    General(Box<SessionAlignment>, SceneCheck),
+    /// The scene was planar or far.
+    Planar(Box<PlanarSessionAlignment>),
+}
+
+/// The planar route on a recorded session.
+#[derive(Debug, Clone)]
+pub struct PlanarSessionAlignment {
+    /// Each camera's planar calibration, the scene verdict and what is undetermined.
+    pub calibration: PlanarCalibration,
+    /// Readings of the first view: the reference of the alignment.
+    pub reference: Encoders,
+    /// The aligned readings (each camera from its own axes).
+    pub solution: AlignmentSolution,
+    /// Their 1-sigma uncertainties (both cameras' covariances and the reading noise).
+    pub sigmas: AlignmentSigmas,
+}
+
+/// Align a recorded session, detecting a planar or far scene first (module docs).
+///
+/// Errors: those of [`classify_views`], then of [`align_session`] or of the planar route
+/// ([`estimate_planar`], [`crate::alignment::solve_alignment_axes`]).
+pub fn align_session_detecting(
+    views: &[View],
+    estimation: &EstimationOptions,
+) -> Result<SessionRoute, AlignError> {
+    let roles = classify_views(views)?;
+    let rig: Vec<View> = views
+        .iter()
+        .zip(&roles)
+        .filter(|(_, r)| !matches!(r, ViewRole::Verge))
+        .map(|(v, _)| v.clone())
+        .collect();
+    let scene = detect_scene(&rig, &estimation.fundamental);
+    if scene.kind == SceneKind::General {
+        return align_session(views, estimation).map(|a| SessionRoute::General(Box::new(a), scene));
+    }
+    let mut used = rig;
+    if let Some(v) = roles.iter().position(|r| matches!(r, ViewRole::Verge)).and_then(|i| views.get(i)) {
+        used.push(v.clone());
+    }
+    let calibration = estimate_planar(&used, scene, &super::planar_options(estimation))?;
+    let reference = views.first().map(|v| v.capture.encoders).unwrap_or_default();
+    let solution = crate::alignment::solve_alignment_axes(
+        &calibration.left.axes(),
+        &calibration.right.axes(),
+        &reference,
+    )?;
+    let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
+    let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
+    Ok(SessionRoute::Planar(Box::new(PlanarSessionAlignment { calibration, reference, solution, sigmas })))
 }
