@@ -661,20 +661,7 @@ impl Tracker {
             stereo_matches: stereo.len(),
             ..ViewTracking::default()
         };
-        let (left_ids, right_ids) = (vec![None; left.len()], vec![None; right.len()]);
-        let (left_var, right_var) = (vec![None; left.len()], vec![None; right.len()]);
-        let (left_parent, right_parent) = (vec![None; left.len()], vec![None; right.len()]);
-        let mut corners = ViewCorners {
-            left,
-            right,
-            stereo,
-            left_ids,
-            right_ids,
-            left_var,
-            right_var,
-            left_parent,
-            right_parent,
-        };
+        let mut corners = ViewCorners::new(left, right, stereo);
         // Track ids (module docs, step 4): fresh for the first view, else inherited.
         self.next_id = match &self.reference {
             None => first_view_ids(self.next_id, &mut corners),
@@ -912,6 +899,22 @@ struct ViewCorners {
 }
 
 impl ViewCorners {
+    /// Both images' features and their stereo pairs, no corner tracked or aligned yet.
+    fn new(left: Features, right: Features, stereo: Vec<(usize, usize)>) -> Self {
+        let (nl, nr) = (left.len(), right.len());
+        Self {
+            left,
+            right,
+            stereo,
+            left_ids: vec![None; nl],
+            right_ids: vec![None; nr],
+            left_var: vec![None; nl],
+            right_var: vec![None; nr],
+            left_parent: vec![None; nl],
+            right_parent: vec![None; nr],
+        }
+    }
+
     /// [`ViewTracking::localisation`]: the known noise of the corners with a track, in the
     /// view `name` tracked against the view `earlier`.
     fn localisation(
