@@ -161,11 +161,13 @@ struct Quantity {
 }
 
 /// What one successful trial reports: the quantities, the adjustment's own noise
-/// estimate (pixels) and the residual check's sigma widening (1: none).
+/// estimate (pixels), the residual check's sigma widening (1: none) and the start the
+/// adjustment kept (`linear`, `rigid` or `lens grid`: `CalibrateReport::start`).
 struct Outcome {
     quantities: Vec<Quantity>,
     sigma_px: f64,
     widening: f64,
+    start: String,
 }
 
 /// One trial.
@@ -253,7 +255,7 @@ fn run_trial(preset: &Scenario, lens: &Lens, noise_px: f64, seed: u64, rotation_
         })
         .collect::<Result<Vec<Quantity>>>()?;
     let widening = cal.report.residual_structure.as_ref().map_or(1.0, |r| r.sigma_widening);
-    Ok(Outcome { quantities, sigma_px: cal.report.sigma_px, widening })
+    Ok(Outcome { quantities, sigma_px: cal.report.sigma_px, widening, start: cal.report.start.clone() })
 }
 
 /// The summary of one condition.
@@ -343,7 +345,7 @@ fn write_csv(path: &Path, trials: &[Trial]) -> Result<()> {
             }
         }
     }
-    let mut s = String::from("experiment,lens,noise_px,seed,ok,error,seconds,sigma_px,widening");
+    let mut s = String::from("experiment,lens,noise_px,seed,ok,error,seconds,sigma_px,widening,start");
     for q in &all {
         let _ = write!(s, ",{q}.est,{q}.truth,{q}.sigma");
     }
@@ -354,7 +356,7 @@ fn write_csv(path: &Path, trials: &[Trial]) -> Result<()> {
         match &t.result {
             Ok(o) => {
                 let qs = &o.quantities;
-                let _ = write!(s, "true,,{:.3},{},{}", t.seconds, o.sigma_px, o.widening);
+                let _ = write!(s, "true,,{:.3},{},{},{}", t.seconds, o.sigma_px, o.widening, o.start);
                 let names = lens.quantities();
                 for q in &all {
                     match names.iter().position(|n| n == q).and_then(|i| qs.get(i)) {
@@ -366,7 +368,7 @@ fn write_csv(path: &Path, trials: &[Trial]) -> Result<()> {
                 }
             }
             Err(e) => {
-                let _ = write!(s, "false,{},{:.3},,", e.replace([',', '\n', '"'], ";"), t.seconds);
+                let _ = write!(s, "false,{},{:.3},,,", e.replace([',', '\n', '"'], ";"), t.seconds);
                 s.push_str(&",".repeat(3 * all.len()));
             }
         }

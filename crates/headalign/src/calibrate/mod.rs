@@ -58,9 +58,12 @@
 //! chooses the model ([`LensChoice::Auto`], [`lens_choice`]):
 //! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
 //! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
-//! with sigmas `left.k1` ... in the covariance. When that chain fails or ends outside the
-//! plausible focal range (a strong lens in 10 deg views), it runs again on pixels
-//! undistorted by a lens chosen on a grid of corner displacements (`two_pass`). With
+//! with sigmas `left.k1` ... in the covariance. The chain also runs on pixels undistorted
+//! by a lens chosen on a grid of corner displacements (`two_pass`); that run's result is a
+//! third start of the first chain's adjustment (the lowest truncated cost wins: the
+//! linear and rigid starts on distorted pixels can end in another minimum of the f-k1
+//! valley), and it is reported itself when the first chain fails or ends outside the
+//! plausible focal range (a strong lens in 10 deg views). With
 //! small rotations `k1` correlates with the focal length: without it a barrel lens biases
 //! `f` (see README); the focal-length and lens sigmas are widened to the bootstrap spread
 //! over tracks (`lens_sigmas`, [`CalibrateReport::lens_sigmas`]).
@@ -289,7 +292,8 @@ pub struct CalibrateReport {
     pub linear: Option<[Intrinsics; 2]>,
     /// Why the linear chain failed, if it did.
     pub linear_error: Option<String>,
-    /// The start the adjustment kept: "linear" or "rigid".
+    /// The start the adjustment kept: "linear", "rigid", or "lens grid" (the lens-grid
+    /// run's result, `two_pass`).
     pub start: String,
     /// Observations of the final adjustment.
     pub bundle_observations: usize,
@@ -441,17 +445,19 @@ fn calibrate_once(
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
 ) -> Result<MotionCalibration, AlignError> {
-    calibrate_once_from(views, options, seeded, None)
+    calibrate_once_from(views, options, seeded, None, None)
 }
 
 /// [`calibrate_once`] with an optional lens start ([`two_pass`]): steps 2-4 then run on
 /// the rig views' pixels undistorted by its lenses, the adjustment on the original pixels
-/// from starts that carry its distortion.
+/// from starts that carry its distortion; and an optional third start of the adjustment,
+/// another run's result `other` (its cameras, lenses and motions; [`two_pass`]).
 fn calibrate_once_from(
     views: &[View],
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
     lens_start: Option<&two_pass::LensStart>,
+    other: Option<&headalign_geometry::bundle::RigState>,
 ) -> Result<MotionCalibration, AlignError> {
     // 1. The views of the rig.
     let depth::RigViews { rig, skipped, planarity, image_size } = depth::select_views(views, options)?;
@@ -492,7 +498,7 @@ fn calibrate_once_from(
         None => (None, None),
     };
     let recon = raw_recon.as_deref().unwrap_or(&stereo.recon);
-    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, recon, options, start_lens)
+    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, recon, options, start_lens, other)
         .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
     // 7. The report: final motions, the rotation test, sigmas, warnings.
     let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
@@ -512,7 +518,12 @@ fn calibrate_once_from(
         conic_uniqueness: linear.conic_uniqueness,
         linear: linear_k,
         linear_error,
-        start: if adjusted.start_index == 0 { "linear" } else { "rigid" }.to_string(),
+        start: match adjusted.start_index {
+            0 => "linear",
+            1 => "rigid",
+            _ => "lens grid",
+        }
+        .to_string(),
         bundle_observations: adjusted.observations.len(),
         bundle_points: points.point_tracks.len(),
         bundle_iterations: adjusted.last.report.iterations,

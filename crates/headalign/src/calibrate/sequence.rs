@@ -415,7 +415,7 @@ fn sequence_once(
     let moving = kf.links.parent.iter().filter(|p| p.is_some()).count();
     let starts = [linear.state, rigid];
     let adjusted = if moving <= 2 {
-        adjust::adjust_starts(starts, &points, &stereo.recon, &held, None)
+        adjust::adjust_starts(starts, &points, &stereo.recon, &held, None, None)
     } else {
         adjust::adjust_best_start(starts, &points, &stereo.recon, &held)
     };
