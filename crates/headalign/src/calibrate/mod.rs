@@ -363,16 +363,22 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     } else {
         two_pass::calibrate_two_pass(views, options)?
     };
-    // The model estimated: the options' own, or the one `auto` chose.
+    widen_lens_sigmas(&mut result, options);
+    residuals::check_and_widen(&mut result);
+    result.report.image_noise = Some(ImageNoiseCheck::skipped(image_noise::NO_IMAGES));
+    Ok(result)
+}
+
+/// The bootstrap widening of the focal-length and lens sigmas ([`lens_sigmas`]) of a
+/// result of `options`, for the model estimated: the options' own, or the one
+/// [`LensChoice::Auto`] chose (none for the pinhole).
+fn widen_lens_sigmas(result: &mut MotionCalibration, options: &CalibrateOptions) {
     let chosen = match (&options.lens, &result.report.lens_selection) {
         (LensChoice::Auto, Some(s)) => LensChoice::parse(&s.chosen).unwrap_or(LensChoice::Pinhole),
         (lens, _) => *lens,
     };
     let estimated = CalibrateOptions { lens: chosen, ..options.clone() };
-    result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(&mut result, &estimated);
-    residuals::check_and_widen(&mut result);
-    result.report.image_noise = Some(ImageNoiseCheck::skipped(image_noise::NO_IMAGES));
-    Ok(result)
+    result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(result, &estimated);
 }
 
 /// [`calibrate_rig`] with a fixed lens model: the chain, retried with the next

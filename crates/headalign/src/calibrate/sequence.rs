@@ -29,7 +29,9 @@
 //!    points in its gauge's frame (`BundleOptions::gauge_views`), both starts, the pass
 //!    over every point;
 //! 8. the report: the segments with their keyframes and links, each motion relative to
-//!    its gauge (which entered the linear start), the views left out and why.
+//!    its gauge (which entered the linear start), the views left out and why; with a lens
+//!    model estimated, the focal-length and lens sigmas widened to the bootstrap spread
+//!    over tracks as on the reference route ([`super::lens_sigmas`], the gauges held).
 //!
 //! Degrees of freedom: as [`super::calibrate_rig`] with `6 (K - S)` pose parameters for
 //! `K` keyframes in `S` segments. Units: pixels, degrees, baselines.
@@ -99,6 +101,7 @@ pub fn calibrate_sequence(
     } else {
         with_restarts(options)?
     };
+    super::widen_lens_sigmas(&mut result, options);
     super::residuals::check_and_widen(&mut result);
     result.report.image_noise = Some(super::ImageNoiseCheck::skipped(super::image_noise::NO_IMAGES));
     Ok(result)

@@ -794,9 +794,13 @@ fn a_sequence_chooses_its_lens() {
         let (st, t) = (&cal.bundle.state, head.truth());
         if k1 == 0.0 {
             assert_eq!(sel.chosen, "pinhole", "{}", sel.reason);
+            assert!(cal.report.lens_sigmas.is_none(), "the pinhole keeps its linearised sigmas");
         } else {
             assert_ne!(sel.chosen, "pinhole", "{}", sel.reason);
             assert!(st.left_distortion.k1 < -0.1, "{:?}", st.left_distortion);
+            // The chosen lens's sigmas are bootstrapped, the segment gauges held.
+            let boot = cal.report.lens_sigmas.as_ref().expect("lens bootstrap of a sequence");
+            assert!(boot.replicates >= 3 && boot.widening.iter().all(|(_, w)| *w >= 1.0), "{boot:?}");
         }
         for (est, truth) in [(&st.left, &t.left), (&st.right, &t.right)] {
             assert!(f_err_pct(est, truth) < 1.0, "k1 {k1}: {est:?} vs {truth:?}");
