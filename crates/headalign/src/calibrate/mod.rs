@@ -509,44 +509,24 @@ fn calibrate_once_from(
     // 7. The report: final motions, the rotation test, sigmas, warnings.
     let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
     report::require_rotation(&motions, &motion_reports, options)?;
-    let focal_sigma_pct = report::focal_sigma_pct(&adjusted.last);
-    let plane_share = report::plane_share(&planarity);
-    let warnings = report::data_warnings(&focal_sigma_pct, plane_share, motions.len(), options);
-    let report = CalibrateReport {
-        views: rig.iter().map(|v| v.name.clone()).collect(),
-        skipped,
-        planarity,
-        stereo_matches: stereo.matches,
-        stereo_inliers: stereo.inliers,
-        stereo_rms_px: stereo.rms_px,
-        motions: motion_reports,
-        plane_conditioning: linear.plane_conditioning,
-        conic_uniqueness: linear.conic_uniqueness,
-        linear: linear_k,
-        linear_error,
-        start: match adjusted.start_index {
-            0 => "linear",
-            1 => "rigid",
-            _ => "lens grid",
-        }
-        .to_string(),
-        bundle_observations: adjusted.observations.len(),
-        bundle_points: points.point_tracks.len(),
-        bundle_iterations: adjusted.last.report.iterations,
-        initial_rms_px: adjusted.first.report.initial_rms_px,
-        final_rms_px: adjusted.last.report.final_rms_px,
-        sigma_px: adjusted.last.report.sigma_px,
-        focal_sigma_pct,
-        plane_share,
-        estimation_seed: est.seed,
-        restarts: 0,
-        lens_selection: None,
-        residual_structure: None,
-        lens_sigmas: None,
-        image_noise: None,
-        sequence: None,
-        warnings,
-    };
+    let report = report::chain_report(
+        report::ChainRun {
+            views: rig.iter().map(|v| v.name.clone()).collect(),
+            skipped,
+            planarity,
+            stereo: &stereo,
+            motions: motion_reports,
+            motions_fitted: motions.len(),
+            plane_conditioning: linear.plane_conditioning,
+            conic_uniqueness: linear.conic_uniqueness,
+            linear_k,
+            linear_error,
+            adjusted: &adjusted,
+            points: points.point_tracks.len(),
+            sequence: None,
+        },
+        options,
+    );
     Ok(MotionCalibration {
         bundle: adjusted.last,
         point_tracks: points.point_tracks,
