@@ -71,7 +71,7 @@ use crate::observations::View;
 /// cost grows with the matches it scores. The refinement runs over all of them.
 pub const RANSAC_PAIRS: usize = 5000;
 
-/// What the report says of a sequence ([`CalibrateReport::sequence`]).
+/// What the report says of a sequence ([`CalibrateReport::sequence`](super::CalibrateReport::sequence)).
 #[derive(Debug, Clone, Serialize)]
 pub struct SequenceReport {
     /// Views given.
