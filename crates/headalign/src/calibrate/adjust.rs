@@ -14,8 +14,12 @@
 //! result, floor 0.05 px): each adjustment re-selects its own inliers, and a result that
 //! keeps fewer of them would look better by its own RMS.
 //!
+//! With a lens estimated, a third start can join (`super::two_pass`): another run's
+//! result (the lens-grid run's cameras, lenses and motions) with this run's points
+//! triangulated under it, compared on the same truncated cost.
+//!
 //! Pitfalls: with one general motion the cost has shallow valleys: a start that screens
-//! better after a few iterations can end in the worse minimum, hence both starts to
+//! better after a few iterations can end in the worse minimum, hence every start to
 //! convergence. The adjustment is seeded by nothing, but its starts are (step 3): when it
 //! fails from both, the run is retried with the next seed.
 
@@ -39,13 +43,17 @@ use crate::estimate::{
 /// the rigid one), run [`every_point_pass`] on each result, keep the one with the lower
 /// truncated cost over all observations. The error of the last start that failed if both
 /// did. With the lens estimated, the starts carry `start_lens` (left, right), or the
-/// model's zero lens when it is `None`.
+/// model's zero lens when it is `None`. `other`, when given, is a third start: the
+/// cameras, lenses and motions of another run's result (the lens-grid run of
+/// [`super::two_pass`]) with this run's points triangulated under them ([`transplant`]),
+/// so that the starts' minima are compared on the same observations.
 pub(super) fn adjust_starts(
     starts: [Result<RigState, AlignError>; 2],
     points: &PointSet,
     recon: &[Reconstruction],
     options: &CalibrateOptions,
     start_lens: Option<[Distortion; 2]>,
+    other: Option<&RigState>,
 ) -> Result<Adjustment, AlignError> {
     let est = &options.estimation;
     let (first_obs, all_obs) = (&points.first_obs, &points.all_obs);
@@ -54,16 +62,25 @@ pub(super) fn adjust_starts(
     let kind = options.lens.kind();
     let mut results: Vec<Adjustment> = Vec::new();
     let mut last_error = None;
-    for (index, start) in starts.into_iter().enumerate() {
-        // The start's lens: `start_lens`, else zero in the estimated model (the
-        // equidistant one's zero is `atan`, a mild barrel: a fair start for a wide lens).
-        let start = start.map(|mut s| {
-            if let Some(kind) = kind {
-                [s.left_distortion, s.right_distortion] =
-                    start_lens.unwrap_or([Distortion::zero(kind), Distortion::zero(kind)]);
-            }
-            s
-        });
+    let sources = PointSources { point_tracks, origin_slot, recon };
+    // The start's lens: `start_lens`, else zero in the estimated model (the equidistant
+    // one's zero is `atan`, a mild barrel: a fair start for a wide lens).
+    let mut all_starts: Vec<Result<RigState, AlignError>> = starts
+        .into_iter()
+        .map(|start| {
+            start.map(|mut s| {
+                if let Some(kind) = kind {
+                    [s.left_distortion, s.right_distortion] =
+                        start_lens.unwrap_or([Distortion::zero(kind), Distortion::zero(kind)]);
+                }
+                s
+            })
+        })
+        .collect();
+    if let Some(other) = other {
+        all_starts.push(Ok(transplant(other, &sources)));
+    }
+    for (index, start) in all_starts.into_iter().enumerate() {
         match adjust_from_starts(
             vec![start],
             first_obs,
@@ -80,7 +97,6 @@ pub(super) fn adjust_starts(
             Err(e) => last_error = Some(e),
         }
     }
-    let sources = PointSources { point_tracks, origin_slot, recon };
     let results: Vec<Adjustment> =
         results.into_iter().map(|a| every_point_pass(a, all_obs, &sources, &adjust_options)).collect();
     let gate = est.reselect_sigmas * results.iter().map(|a| a.last.report.sigma_px).fold(0.05, f64::max);
@@ -156,6 +172,29 @@ fn triangulate_in_state(state: &RigState, src: &PointSources<'_>, i: usize) -> O
     let x = triangulate_linear(&p_l, &p_r, &l, &r).ok()?;
     let p = dehomogenise3(&x)?;
     (p.z > 0.0 && (state.right_from_left * p).z > 0.0).then(|| state.motions.ref_from_cam(slot) * p)
+}
+
+/// The start of [`adjust_starts`] from another run's result `other`: its cameras, lenses,
+/// rig and motions, and every point of `src` triangulated under them
+/// ([`triangulate_in_state`]; a point that does not triangulate in front of both cameras
+/// is put at the reference camera's centre, where it projects nowhere and the screening
+/// leaves it out until the adjustment re-triangulates it). The rig views must be the same
+/// (they are: the view selection is deterministic).
+fn transplant(other: &RigState, src: &PointSources<'_>) -> RigState {
+    let mut state = RigState {
+        left: other.left,
+        right: other.right,
+        left_distortion: other.left_distortion,
+        right_distortion: other.right_distortion,
+        right_from_left: other.right_from_left,
+        motions: other.motions.clone(),
+        points: Vec::new(),
+    };
+    let points: Vec<Point3<f64>> = (0..src.point_tracks.len())
+        .map(|i| triangulate_in_state(&state, src, i).unwrap_or_else(Point3::origin))
+        .collect();
+    state.points = points;
+    state
 }
 
 /// Width of the first gate of [`every_point_pass`], in re-selection gates (about 14

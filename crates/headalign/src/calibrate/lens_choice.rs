@@ -161,14 +161,20 @@ pub(super) fn choose_lens(
     Ok(result)
 }
 
+/// The views (indices of [`super::CalibrateReport::views`]) whose poses a refit of `cal`
+/// holds: a sequence's segment gauges after the first (none on the reference route).
+pub(super) fn held_gauges(cal: &MotionCalibration) -> Vec<usize> {
+    let views = &cal.report.views;
+    cal.report.sequence.as_ref().map_or_else(Vec::new, |s| {
+        s.segments.iter().skip(1).filter_map(|g| views.iter().position(|v| *v == g.gauge)).collect()
+    })
+}
+
 /// The criterion of the module docs on the observations of `rich` (a radial-tangential
 /// calibration); a sequence's segment gauges after the first stay held in the refits, as
 /// in its adjustment.
 fn select(rich: &MotionCalibration, options: &CalibrateOptions) -> Result<LensSelection, AlignError> {
-    let views = &rich.report.views;
-    let gauge_views: Vec<usize> = rich.report.sequence.as_ref().map_or_else(Vec::new, |s| {
-        s.segments.iter().skip(1).filter_map(|g| views.iter().position(|v| *v == g.gauge)).collect()
-    });
+    let gauge_views = held_gauges(rich);
     let bundle = BundleOptions {
         zero_skew: options.zero_skew,
         square_pixels: options.square_pixels,

@@ -28,6 +28,9 @@
 //! dimensionless coefficients). Cost: [`BOOTSTRAP_REPLICATES`] warm-started adjustments
 //! (measured in `experiment lens` at 0.5 px: about 0.5-1 s of 2-4 s per calibration).
 //!
+//! A sequence's calibration ([`super::calibrate_sequence`]) is bootstrapped the same way,
+//! its segment gauges after the first held as in its adjustment.
+//!
 //! Pitfalls: a sigma from 30 replicates is known to about 13 %, and the widening takes
 //! the larger of two sigmas, so it errs towards wider intervals; the random draws are
 //! seeded by the estimation seed (the same run gives the same sigmas). With fewer than 3
@@ -82,6 +85,7 @@ pub fn bootstrap_lens_sigmas(
     let ls = BundleOptions {
         robust: RobustLoss::None,
         noise_sigma_px: Some(noise),
+        gauge_views: super::lens_choice::held_gauges(cal),
         ..super::adjust::adjustment_options(options).bundle
     };
     let boot = BootstrapOptions {

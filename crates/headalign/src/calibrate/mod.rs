@@ -58,9 +58,12 @@
 //! chooses the model ([`LensChoice::Auto`], [`lens_choice`]):
 //! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
 //! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
-//! with sigmas `left.k1` ... in the covariance. When that chain fails or ends outside the
-//! plausible focal range (a strong lens in 10 deg views), it runs again on pixels
-//! undistorted by a lens chosen on a grid of corner displacements (`two_pass`). With
+//! with sigmas `left.k1` ... in the covariance. The chain also runs on pixels undistorted
+//! by a lens chosen on a grid of corner displacements (`two_pass`); that run's result is a
+//! third start of the first chain's adjustment (the lowest truncated cost wins: the
+//! linear and rigid starts on distorted pixels can end in another minimum of the f-k1
+//! valley), and it is reported itself when the first chain fails or ends outside the
+//! plausible focal range (a strong lens in 10 deg views). With
 //! small rotations `k1` correlates with the focal length: without it a barrel lens biases
 //! `f` (see README); the focal-length and lens sigmas are widened to the bootstrap spread
 //! over tracks (`lens_sigmas`, [`CalibrateReport::lens_sigmas`]).
@@ -289,7 +292,8 @@ pub struct CalibrateReport {
     pub linear: Option<[Intrinsics; 2]>,
     /// Why the linear chain failed, if it did.
     pub linear_error: Option<String>,
-    /// The start the adjustment kept: "linear" or "rigid".
+    /// The start the adjustment kept: "linear", "rigid", or "lens grid" (the lens-grid
+    /// run's result, `two_pass`).
     pub start: String,
     /// Observations of the final adjustment.
     pub bundle_observations: usize,
@@ -359,16 +363,22 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     } else {
         two_pass::calibrate_two_pass(views, options)?
     };
-    // The model estimated: the options' own, or the one `auto` chose.
+    widen_lens_sigmas(&mut result, options);
+    residuals::check_and_widen(&mut result);
+    result.report.image_noise = Some(ImageNoiseCheck::skipped(image_noise::NO_IMAGES));
+    Ok(result)
+}
+
+/// The bootstrap widening of the focal-length and lens sigmas ([`lens_sigmas`]) of a
+/// result of `options`, for the model estimated: the options' own, or the one
+/// [`LensChoice::Auto`] chose (none for the pinhole).
+fn widen_lens_sigmas(result: &mut MotionCalibration, options: &CalibrateOptions) {
     let chosen = match (&options.lens, &result.report.lens_selection) {
         (LensChoice::Auto, Some(s)) => LensChoice::parse(&s.chosen).unwrap_or(LensChoice::Pinhole),
         (lens, _) => *lens,
     };
     let estimated = CalibrateOptions { lens: chosen, ..options.clone() };
-    result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(&mut result, &estimated);
-    residuals::check_and_widen(&mut result);
-    result.report.image_noise = Some(ImageNoiseCheck::skipped(image_noise::NO_IMAGES));
-    Ok(result)
+    result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(result, &estimated);
 }
 
 /// [`calibrate_rig`] with a fixed lens model: the chain, retried with the next
@@ -441,17 +451,19 @@ fn calibrate_once(
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
 ) -> Result<MotionCalibration, AlignError> {
-    calibrate_once_from(views, options, seeded, None)
+    calibrate_once_from(views, options, seeded, None, None)
 }
 
 /// [`calibrate_once`] with an optional lens start ([`two_pass`]): steps 2-4 then run on
 /// the rig views' pixels undistorted by its lenses, the adjustment on the original pixels
-/// from starts that carry its distortion.
+/// from starts that carry its distortion; and an optional third start of the adjustment,
+/// another run's result `other` (its cameras, lenses and motions; [`two_pass`]).
 fn calibrate_once_from(
     views: &[View],
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
     lens_start: Option<&two_pass::LensStart>,
+    other: Option<&headalign_geometry::bundle::RigState>,
 ) -> Result<MotionCalibration, AlignError> {
     // 1. The views of the rig.
     let depth::RigViews { rig, skipped, planarity, image_size } = depth::select_views(views, options)?;
@@ -492,44 +504,29 @@ fn calibrate_once_from(
         None => (None, None),
     };
     let recon = raw_recon.as_deref().unwrap_or(&stereo.recon);
-    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, recon, options, start_lens)
+    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, recon, options, start_lens, other)
         .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
     // 7. The report: final motions, the rotation test, sigmas, warnings.
     let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
     report::require_rotation(&motions, &motion_reports, options)?;
-    let focal_sigma_pct = report::focal_sigma_pct(&adjusted.last);
-    let plane_share = report::plane_share(&planarity);
-    let warnings = report::data_warnings(&focal_sigma_pct, plane_share, motions.len(), options);
-    let report = CalibrateReport {
-        views: rig.iter().map(|v| v.name.clone()).collect(),
-        skipped,
-        planarity,
-        stereo_matches: stereo.matches,
-        stereo_inliers: stereo.inliers,
-        stereo_rms_px: stereo.rms_px,
-        motions: motion_reports,
-        plane_conditioning: linear.plane_conditioning,
-        conic_uniqueness: linear.conic_uniqueness,
-        linear: linear_k,
-        linear_error,
-        start: if adjusted.start_index == 0 { "linear" } else { "rigid" }.to_string(),
-        bundle_observations: adjusted.observations.len(),
-        bundle_points: points.point_tracks.len(),
-        bundle_iterations: adjusted.last.report.iterations,
-        initial_rms_px: adjusted.first.report.initial_rms_px,
-        final_rms_px: adjusted.last.report.final_rms_px,
-        sigma_px: adjusted.last.report.sigma_px,
-        focal_sigma_pct,
-        plane_share,
-        estimation_seed: est.seed,
-        restarts: 0,
-        lens_selection: None,
-        residual_structure: None,
-        lens_sigmas: None,
-        image_noise: None,
-        sequence: None,
-        warnings,
-    };
+    let report = report::chain_report(
+        report::ChainRun {
+            views: rig.iter().map(|v| v.name.clone()).collect(),
+            skipped,
+            planarity,
+            stereo: &stereo,
+            motions: motion_reports,
+            motions_fitted: motions.len(),
+            plane_conditioning: linear.plane_conditioning,
+            conic_uniqueness: linear.conic_uniqueness,
+            linear_k,
+            linear_error,
+            adjusted: &adjusted,
+            points: points.point_tracks.len(),
+            sequence: None,
+        },
+        options,
+    );
     Ok(MotionCalibration {
         bundle: adjusted.last,
         point_tracks: points.point_tracks,

@@ -17,10 +17,89 @@
 use headalign_geometry::bundle::{BundleResult, RigState};
 use headalign_geometry::so3::screw_from_isometry;
 
+use headalign_geometry::camera::Intrinsics;
+
 use super::depth::PlaneCheck;
 use super::motion::{ViewMotion, no_rotation};
+use super::sequence::SequenceReport;
+use super::stereo::StereoGeometry;
 use super::{CalibrateOptions, CalibrateReport, MotionReport};
 use crate::error::AlignError;
+use crate::estimate::Adjustment;
+
+/// What one run of a chain (the reference route's or a sequence's) hands its report
+/// ([`chain_report`]).
+pub(super) struct ChainRun<'a> {
+    /// The rig views used, in the adjustment's order.
+    pub(super) views: Vec<String>,
+    /// Views left out, with the reason.
+    pub(super) skipped: Vec<String>,
+    /// The scene-depth check of every view.
+    pub(super) planarity: Vec<PlaneCheck>,
+    /// Step 2: F, the frame, the triangulations.
+    pub(super) stereo: &'a StereoGeometry,
+    /// The reported motions (after the adjustment).
+    pub(super) motions: Vec<MotionReport>,
+    /// Motions fitted by step 3 (the count the warnings judge).
+    pub(super) motions_fitted: usize,
+    /// Step 4: its plane-at-infinity conditioning and conic uniqueness, its intrinsics
+    /// or why it failed.
+    pub(super) plane_conditioning: Option<f64>,
+    pub(super) conic_uniqueness: Option<f64>,
+    pub(super) linear_k: Option<[Intrinsics; 2]>,
+    pub(super) linear_error: Option<String>,
+    /// Steps 5-6.
+    pub(super) adjusted: &'a Adjustment,
+    /// Points of the adjustment.
+    pub(super) points: usize,
+    /// The sequence route's segments (absent on the reference route).
+    pub(super) sequence: Option<SequenceReport>,
+}
+
+/// The report of one run of a chain (step 7): its parts, the focal sigmas, the plane
+/// share and the data warnings; the later stages (restarts, lens choice and sigmas, the
+/// residual checks) fill in their own fields.
+pub(super) fn chain_report(run: ChainRun<'_>, options: &CalibrateOptions) -> CalibrateReport {
+    let adjusted = run.adjusted;
+    let focal_sigma_pct = focal_sigma_pct(&adjusted.last);
+    let plane_share = plane_share(&run.planarity);
+    let warnings = data_warnings(&focal_sigma_pct, plane_share, run.motions_fitted, options);
+    CalibrateReport {
+        views: run.views,
+        skipped: run.skipped,
+        planarity: run.planarity,
+        stereo_matches: run.stereo.matches,
+        stereo_inliers: run.stereo.inliers,
+        stereo_rms_px: run.stereo.rms_px,
+        motions: run.motions,
+        plane_conditioning: run.plane_conditioning,
+        conic_uniqueness: run.conic_uniqueness,
+        linear: run.linear_k,
+        linear_error: run.linear_error,
+        start: match adjusted.start_index {
+            0 => "linear",
+            1 => "rigid",
+            _ => "lens grid",
+        }
+        .to_string(),
+        bundle_observations: adjusted.observations.len(),
+        bundle_points: run.points,
+        bundle_iterations: adjusted.last.report.iterations,
+        initial_rms_px: adjusted.first.report.initial_rms_px,
+        final_rms_px: adjusted.last.report.final_rms_px,
+        sigma_px: adjusted.last.report.sigma_px,
+        focal_sigma_pct,
+        plane_share,
+        estimation_seed: options.estimation.seed,
+        restarts: 0,
+        lens_selection: None,
+        residual_structure: None,
+        lens_sigmas: None,
+        image_noise: None,
+        sequence: run.sequence,
+        warnings,
+    }
+}
 
 /// Each motion's report with the adjusted pose of its view (`state`, view `i + 1` for
 /// motion `i`) and whether it entered the linear chain (`linear_used`).

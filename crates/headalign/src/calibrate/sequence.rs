@@ -29,7 +29,9 @@
 //!    points in its gauge's frame (`BundleOptions::gauge_views`), both starts, the pass
 //!    over every point;
 //! 8. the report: the segments with their keyframes and links, each motion relative to
-//!    its gauge (which entered the linear start), the views left out and why.
+//!    its gauge (which entered the linear start), the views left out and why; with a lens
+//!    model estimated, the focal-length and lens sigmas widened to the bootstrap spread
+//!    over tracks as on the reference route ([`super::lens_sigmas`], the gauges held).
 //!
 //! Degrees of freedom: as [`super::calibrate_rig`] with `6 (K - S)` pose parameters for
 //! `K` keyframes in `S` segments. Units: pixels, degrees, baselines.
@@ -59,9 +61,7 @@ use super::graph::{self, SegmentReport, ViewTracks};
 use super::motion::{ViewMotion, fit_motion};
 use super::starts::{self, Links};
 use super::stereo::StereoGeometry;
-use super::{
-    CalibrateOptions, CalibrateReport, MotionCalibration, MotionReport, Seeded, adjust, depth, report, stereo,
-};
+use super::{CalibrateOptions, MotionCalibration, MotionReport, Seeded, adjust, depth, report, stereo};
 use crate::error::AlignError;
 use crate::estimate::MOVED_DEG;
 use crate::observations::View;
@@ -71,7 +71,7 @@ use crate::observations::View;
 /// cost grows with the matches it scores. The refinement runs over all of them.
 pub const RANSAC_PAIRS: usize = 5000;
 
-/// What the report says of a sequence ([`CalibrateReport::sequence`]).
+/// What the report says of a sequence ([`CalibrateReport::sequence`](super::CalibrateReport::sequence)).
 #[derive(Debug, Clone, Serialize)]
 pub struct SequenceReport {
     /// Views given.
@@ -99,6 +99,7 @@ pub fn calibrate_sequence(
     } else {
         with_restarts(options)?
     };
+    super::widen_lens_sigmas(&mut result, options);
     super::residuals::check_and_widen(&mut result);
     result.report.image_noise = Some(super::ImageNoiseCheck::skipped(super::image_noise::NO_IMAGES));
     Ok(result)
@@ -415,7 +416,7 @@ fn sequence_once(
     let moving = kf.links.parent.iter().filter(|p| p.is_some()).count();
     let starts = [linear.state, rigid];
     let adjusted = if moving <= 2 {
-        adjust::adjust_starts(starts, &points, &stereo.recon, &held, None)
+        adjust::adjust_starts(starts, &points, &stereo.recon, &held, None, None)
     } else {
         adjust::adjust_best_start(starts, &points, &stereo.recon, &held)
     };
@@ -436,39 +437,25 @@ fn sequence_once(
         .map(|(_, r)| r)
         .collect();
     report::require_rotation(&motions, &motion_reports, options)?;
-    let focal_sigma_pct = report::focal_sigma_pct(&adjusted.last);
-    let plane_share = report::plane_share(&kf.planarity);
-    let warnings = report::data_warnings(&focal_sigma_pct, plane_share, motion_reports.len(), options);
-    let report = CalibrateReport {
-        views: kf.rig.iter().map(|v| v.name.clone()).collect(),
-        skipped: kf.skipped,
-        planarity: kf.planarity,
-        stereo_matches: stereo.matches,
-        stereo_inliers: stereo.inliers,
-        stereo_rms_px: stereo.rms_px,
-        motions: motion_reports,
-        plane_conditioning: linear.plane_conditioning,
-        conic_uniqueness: linear.conic_uniqueness,
-        linear: linear_k,
-        linear_error,
-        start: if adjusted.start_index == 0 { "linear" } else { "rigid" }.to_string(),
-        bundle_observations: adjusted.observations.len(),
-        bundle_points: points.point_tracks.len(),
-        bundle_iterations: adjusted.last.report.iterations,
-        initial_rms_px: adjusted.first.report.initial_rms_px,
-        final_rms_px: adjusted.last.report.final_rms_px,
-        sigma_px: adjusted.last.report.sigma_px,
-        focal_sigma_pct,
-        plane_share,
-        estimation_seed: est.seed,
-        restarts: 0,
-        lens_selection: None,
-        residual_structure: None,
-        lens_sigmas: None,
-        image_noise: None,
-        sequence: Some(kf.report),
-        warnings,
-    };
+    let motions_fitted = motion_reports.len();
+    let report = report::chain_report(
+        report::ChainRun {
+            views: kf.rig.iter().map(|v| v.name.clone()).collect(),
+            skipped: kf.skipped,
+            planarity: kf.planarity,
+            stereo: &stereo,
+            motions: motion_reports,
+            motions_fitted,
+            plane_conditioning: linear.plane_conditioning,
+            conic_uniqueness: linear.conic_uniqueness,
+            linear_k,
+            linear_error,
+            adjusted: &adjusted,
+            points: points.point_tracks.len(),
+            sequence: Some(kf.report),
+        },
+        options,
+    );
     Ok(MotionCalibration {
         bundle: adjusted.last,
         point_tracks: points.point_tracks,

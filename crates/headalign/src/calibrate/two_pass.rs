@@ -1,46 +1,60 @@
-//! The start of a self-calibration that estimates a lens model
-//! ([`super::CalibrateOptions::lens`]) when the chain on the captured pixels fails.
+//! The starts of a self-calibration that estimates a lens model
+//! ([`super::CalibrateOptions::lens`]): the chain on the captured pixels, and the chain
+//! on pixels undistorted by a lens chosen on a grid, compared on the same observations.
 //!
 //! What it computes, [`calibrate_two_pass`]:
-//! 1. **first estimate**: the chain of [`super::calibrate_rig`] on the captured pixels,
-//!    its linear steps (F, the projective frame, the 3D homographies, the linear
+//! 1. **a lens to undistort with** ([`grid_start`]): per lens whose `k1` alone moves the
+//!    image corner by -30 % to +30 % of its radius (steps of 5 %), the pixels undistorted
+//!    with it and F, the frame and the 3D homographies fitted; the lens whose homographies
+//!    keep the most quadruplets wins;
+//! 2. **the lens-grid run**: the chain's steps 2-4 on the pixels undistorted with that
+//!    lens, the adjustment on the captured pixels from starts that carry it;
+//! 3. **the first estimate**: the chain of [`super::calibrate_rig`] on the captured
+//!    pixels, its linear steps (F, the projective frame, the 3D homographies, the linear
 //!    self-calibration) treating them as pinhole pixels, the adjustment with the lens
-//!    terms free from the model's zero lens. Reported if it succeeds with every focal
-//!    length in the plausible range ([`plausible`], [`MAX_FOCAL_WIDTHS`]);
-//! 2. otherwise **a lens to undistort with** ([`grid_start`]): per lens whose `k1` alone
-//!    moves the image corner by -30 % to +30 % of its radius (steps of 5 %), the pixels
-//!    undistorted with it and F, the frame and the 3D homographies fitted; the lens whose
-//!    homographies keep the most quadruplets wins;
-//! 3. **the chain again on undistorted pixels**: steps 2-4 on the pixels undistorted
-//!    with that lens, the adjustment on the captured pixels from starts that carry it.
-//!    Reported if plausible (or if the first estimate failed outright).
+//!    terms free from three starts: the linear and the rigid one from the model's zero
+//!    lens, and the lens-grid run's result (its cameras, lenses and motions, this run's
+//!    points triangulated under them) when that is plausible. The start with the lowest
+//!    truncated cost over this run's observations wins (`adjust::adjust_starts`): the
+//!    maximum-likelihood estimate is the lowest minimum found, whichever start reached it.
+//!    Reported if it succeeds with every focal length in the plausible range
+//!    ([`plausible`], [`MAX_FOCAL_WIDTHS`]); otherwise the lens-grid run's result if
+//!    plausible (or if the first estimate failed outright).
 //!
-//! Why: a barrel lens of `k1 = -0.3` moves the corners of a 768 x 576 image by some
-//! 55 px. The linear steps see that as projective error: F's RANSAC keeps mostly the
-//! centre, the quasi-Euclidean frame is bent, and with 10 deg views the 3D homographies
-//! read rotations of 0-11 deg (measured, `experiment lens --rotation 10 --only 0.25`,
-//! seeds 1-40: the rigid 3-point motions 0.1-11 deg for a true 10). The linear chain then
-//! fails ("too few tracks in front of the cameras", a conic that is not positive
-//! definite) and the rigid start, far from the truth with the lens free from zero, can
-//! follow the f-k1 valley to the affine limit (f of 10^4-10^5 px, `k1` of 30-6600: 6 of
-//! 40 radtan trials there). On undistorted pixels the remaining distortion is the grid
-//! lens's error: nearly a pinhole problem, where the linear chain works (40 of 40).
+//! Why the lens-grid run's result as a start: with the procedure's 3 deg views the focal
+//! length and `k1` share a long, shallow valley of the cost, and the linear and rigid
+//! starts on distorted pixels can end in another minimum along it. Measured (`headalign
+//! experiment lens --only 0.25,2 --trials 320`, 80 trials per condition, before this
+//! start): radtan 0.25 px seed 6 ended at f +78-85 % (left fx 1249 for 700, `k1` -0.254) with
+//! a truncated cost of 693 px^2, where the lens-grid run's result, adjusted on the same
+//! observations, reaches f within 0.1 % at 477 px^2; seed 36 (f +15.5 %, cost 981 against
+//! 358) and the fisheye's seed 36 (f +14 %, 1015 against 379) likewise. Those few trials
+//! set the RMS focal error (radtan 0.25 px: 9.5 % RMS against a median of 0.54 %).
 //!
-//! Why not always the second pass (as the image procedures do): on the raw EuRoC pairs
-//! (`real_data::euroc_raw_*` tests) the chain on pixels undistorted by the first
-//! estimate keeps other tracks near the border and ends with focal lengths 1.8-2.0 %
-//! short, against 0.9 % for the first estimate: it is kept for the starts that fail.
+//! Why the lens-grid run alone is not enough: with 10 deg views a barrel lens of
+//! `k1 = -0.3` moves the corners of a 768 x 576 image by some 55 px. The linear steps see
+//! that as projective error: F's RANSAC keeps mostly the centre, the quasi-Euclidean
+//! frame is bent, and the 3D homographies read rotations of 0-11 deg (measured,
+//! `experiment lens --rotation 10 --only 0.25`, seeds 1-40: the rigid 3-point motions
+//! 0.1-11 deg for a true 10). The linear chain then fails and the rigid start can follow
+//! the valley to the affine limit (f of 10^4-10^5 px, `k1` of 30-6600: 6 of 40 radtan
+//! trials there); on undistorted pixels the remaining distortion is the grid lens's
+//! error, nearly a pinhole problem where the linear chain works (40 of 40). Why the
+//! first estimate's observations are the ones compared on: on the raw EuRoC pairs
+//! (`real_data::euroc_raw_*` tests) the lens-grid run on its own keeps other tracks near
+//! the border and ends with focal lengths 1.8-2.0 % short, against 0.9 % for the first
+//! estimate.
 //!
 //! Degrees of freedom and units: none added (those of the adjustment); pixels; corner
-//! displacements as fractions of the corner's radius.
+//! displacements as fractions of the corner's radius; costs in pixels^2.
 //!
-//! Pitfalls: the fallback costs 13 fits of F and the homographies and a second run of the
-//! chain. The grid lens is normalised by the image-size guess `K0`; the final adjustment
-//! refits everything. Observations the lens cannot undistort are left out of the linear
-//! steps only. A true focal length beyond [`MAX_FOCAL_WIDTHS`] image widths takes the
-//! fallback too and keeps the first estimate when the fallback is not plausible either.
-//! The pinhole ([`super::LensChoice::Pinhole`]) runs the chain once, exactly as without
-//! this module.
+//! Pitfalls: a lens estimate costs 13 fits of F and the homographies, a second run of the
+//! chain and a third adjustment of the first. The grid lens is normalised by the
+//! image-size guess `K0`; the final adjustment refits everything. Observations the lens
+//! cannot undistort are left out of the linear steps only. A true focal length beyond
+//! [`MAX_FOCAL_WIDTHS`] image widths keeps the first estimate when the lens-grid run is
+//! not plausible either. The pinhole ([`super::LensChoice::Pinhole`]) runs the chain
+//! once, exactly as without this module.
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
@@ -106,16 +120,22 @@ pub(super) fn calibrate_two_pass(
     let Some(kind) = options.lens.kind() else {
         return calibrate_with_restarts(views, options);
     };
-    let first = calibrate_with_restarts(views, options);
+    // The run on pixels undistorted by the grid's lens (steps 2-3).
+    let second = grid_start(views, options, kind).map(|start| {
+        with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, Some(&start), None))
+    });
+    // The first estimate, its adjustment also started from the second run's result.
+    let other = match &second {
+        Some(Ok(c)) if plausible(c) => Some(&c.bundle.state),
+        _ => None,
+    };
+    let first = with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, None, other));
     if first.as_ref().is_ok_and(plausible) {
         return first;
     }
-    // The first estimate failed or left the plausible range: its lens when plausible is
-    // none to undistort with, so the grid's.
-    let Some(start) = grid_start(views, options, kind) else { return first };
-    match with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, Some(&start))) {
-        Ok(second) if plausible(&second) || first.is_err() => Ok(second),
-        Err(e) if first.is_err() => Err(e),
+    match second {
+        Some(Ok(second)) if plausible(&second) || first.is_err() => Ok(second),
+        Some(Err(e)) if first.is_err() => Err(e),
         _ => first,
     }
 }
@@ -126,7 +146,7 @@ fn grid_displacements() -> impl Iterator<Item = f64> {
     (-6..=6).map(|i| f64::from(i) * 0.05)
 }
 
-/// Step 2's lens when the first estimate failed or is not plausible: per lens of the
+/// Step 1's lens: per lens of the
 /// model `kind` whose `k1` alone moves the image corner radially by a fraction
 /// [`grid_displacements`] of its radius (under the image-size guess `K0`), the pixels
 /// undistorted with it and steps 2-3 of the chain run (F, frame, 3D homographies); the
