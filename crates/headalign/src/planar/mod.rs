@@ -96,6 +96,10 @@ pub struct PlanarOptions {
     pub min_tracks: usize,
     /// Levenberg-Marquardt iterations per pass (default 100).
     pub max_iterations: usize,
+    /// Pixel noise (per coordinate) that weights the covariance, pixels; `None` (default):
+    /// the fit's own estimate from its residuals. Experiments set it to the simulated
+    /// noise on exact observations to get the Cramér-Rao bound at the truth.
+    pub covariance_sigma_px: Option<f64>,
 }
 
 impl Default for PlanarOptions {
@@ -106,6 +110,7 @@ impl Default for PlanarOptions {
             reselect_sigmas: 4.0,
             min_tracks: 12,
             max_iterations: 100,
+            covariance_sigma_px: None,
         }
     }
 }
@@ -122,6 +127,9 @@ impl PlanarOptions {
         }
         if !(self.reselect_sigmas.is_finite() && self.reselect_sigmas > 1.0) {
             return bad("reselect_sigmas must exceed 1");
+        }
+        if self.covariance_sigma_px.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
+            return bad("covariance_sigma_px must be positive");
         }
         if self.min_tracks < 4 || self.max_iterations == 0 {
             return bad("min_tracks must be at least 4 and max_iterations positive");

@@ -372,7 +372,8 @@ pub(super) fn maximum_likelihood(start: Problem, options: &PlanarOptions) -> Res
     let dof = (2 * res.len()).saturating_sub(2 * p.points.len() + p.n_camera() - 1).max(1);
     let sigma_px = (sum / dof as f64).sqrt().max(1e-12);
     let rms_px = (sum / (res.len().max(1) as f64)).sqrt();
-    let n = normal_equations(&p, sigma_px, angle_sigma).ok_or_else(|| AlignError::Geometry {
+    let weight_px = options.covariance_sigma_px.unwrap_or(sigma_px);
+    let n = normal_equations(&p, weight_px, angle_sigma).ok_or_else(|| AlignError::Geometry {
         step: "planar covariance".into(),
         cause: headalign_geometry::GeometryError::Numerical("a point projects to infinity".into()),
     })?;
