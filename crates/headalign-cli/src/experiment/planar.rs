@@ -14,7 +14,15 @@
 //! Summary per scene and noise: RMS error of each reading, the RMS of the reported sigmas
 //! (the planar model's own bound: its covariance at the estimate, which at these noise
 //! levels is its covariance at the truth to first order), their ratio, and the 95 %
-//! coverage (`|error| <= 1.96 sigma`). Not in `all`.
+//! coverage (`|error| <= 1.96 sigma`), and beside them the Cramér-Rao bound at the truth:
+//! the planar model's covariance ([`PlanarOptions::covariance_sigma_px`] at the simulated
+//! noise, no profile) at the fit of each view's exact observations ([`crb_views`]: the
+//! simulator's noise-free pixels of the tracks whose noisy observation is no outlier,
+//! the noisy encoder readings as the angle priors), propagated to the readings as the
+//! reported sigmas are. `--only` picks noise levels (any, in pixels), `--scene wall` or
+//! `far` one scene (and no general route). Not run by `all`, which takes about 20 minutes
+//! for it at the default trials on a loaded 2-core machine; `all` keeps the planar section
+//! of the `results.md` it regenerates ([`kept_section`]).
 
 use std::fmt::Write as _;
 
@@ -104,10 +112,13 @@ fn crb_views(head: &SimulatedHead, noisy: &[View], truth: &[Encoders], noise: f6
         .collect()
 }
 
+/// A planar trial's errors, sigmas, bounds (degrees) and route.
+type TrialNumbers = ([f64; 3], [f64; 3], [f64; 3], String);
+
 /// Run one planar-route trial.
 fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) -> Trial {
     let mut t = Trial::new(scene, noise, seed, "planar");
-    let result = (|| -> Result<([f64; 3], [f64; 3], [f64; 3], String)> {
+    let result = (|| -> Result<TrialNumbers> {
         let base = Scenario::preset(scene).map_err(|e| anyhow::anyhow!("{e}"))?;
         let scenario = Scenario {
             noise_px: noise,
@@ -134,7 +145,11 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) 
         let s = alignment_sigmas(&calib)?.with_reading_noise(reading);
         let crb = if noise > 0.0 {
             let exact = crb_views(&head, &views, &truth, noise);
-            let options = PlanarOptions { covariance_sigma_px: Some(noise), ..PlanarOptions::default() };
+            let options = PlanarOptions {
+                covariance_sigma_px: Some(noise),
+                normal_profile_z: None,
+                ..PlanarOptions::default()
+            };
             let at_truth = estimate_planar(&exact, check, &options).context("the bound's fit")?;
             let b = alignment_sigmas(&at_truth)?.with_reading_noise(reading);
             [b.elevation_deg, b.verge_left_deg, b.verge_right_deg]
@@ -264,6 +279,20 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     Ok(())
 }
 
+/// Heading of the planar section of `results.md` (written by hand from this experiment's
+/// `planar.md`; [`kept_section`]).
+pub const SECTION_HEADING: &str = "## planar — ";
+
+/// The planar section of an existing `results.md` (from [`SECTION_HEADING`] to the next
+/// `## ` heading or the end), which `experiment all` keeps when it rewrites the file.
+pub fn kept_section(existing: &str) -> Option<String> {
+    let start = existing.find(&format!("\n{SECTION_HEADING}"))? + 1;
+    let rest = &existing[start..];
+    let end =
+        rest[SECTION_HEADING.len()..].find("\n## ").map_or(rest.len(), |i| i + SECTION_HEADING.len() + 1);
+    Some(rest[..end].trim_end().to_string() + "\n")
+}
+
 /// The Markdown summary (module docs).
 fn summary(trials: &[Trial], per: usize, seed: u64) -> String {
     let mut md = format!(
@@ -307,4 +336,19 @@ fn summary(trials: &[Trial], per: usize, seed: u64) -> String {
         }
     }
     md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The planar section is cut from its heading to the next one, or to the end.
+    #[test]
+    fn the_planar_section_is_kept() {
+        let md = "# R\n\n## lens\n\ntext\n\n## planar — walls\n\n| a |\n\n## other\n\nx\n";
+        assert_eq!(kept_section(md).as_deref(), Some("## planar — walls\n\n| a |\n"));
+        let last = "# R\n\n## planar — walls\n\nend\n";
+        assert_eq!(kept_section(last).as_deref(), Some("## planar — walls\n\nend\n"));
+        assert_eq!(kept_section("# R\n\n## lens\n"), None);
+    }
 }

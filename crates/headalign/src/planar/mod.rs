@@ -23,7 +23,11 @@
 //!    point's 2 dof on it; residuals in pixels, model and analytic Jacobians in
 //!    [`headalign_geometry::planar`]; Levenberg-Marquardt with a Schur complement over
 //!    the points; covariance from the normal equations;
-//! 5. **alignment**: [`crate::alignment::solve_alignment_axes`] from each camera's axes
+//! 5. **profile** (`profile.rs`, [`PlanarOptions::normal_profile_z`]): the covariance
+//!    widened to the largest of its linearisations at the estimate and at the camera
+//!    re-adjusted with the plane's normal held one sigma either side (the normal is the
+//!    ill-determined direction of a wall a few metres away);
+//! 6. **alignment**: [`crate::alignment::solve_alignment_axes`] from each camera's axes
 //!    and intrinsics (alignment needs no baseline); sigmas by [`alignment_sigmas`].
 //!
 //! What a plane cannot give is not reported as a number: the distances (the plane's, the
@@ -41,6 +45,7 @@
 //! problem small.
 
 mod detect;
+mod profile;
 mod refine;
 mod sigmas;
 mod start;
@@ -100,6 +105,11 @@ pub struct PlanarOptions {
     /// the fit's own estimate from its residuals. Experiments set it to the simulated
     /// noise on exact observations to get the Cramér-Rao bound at the truth.
     pub covariance_sigma_px: Option<f64>,
+    /// The covariance's profile over the plane normal (`profile.rs`): the ends lie this
+    /// many sigmas of the normal's direction either side (default `Some(1.0)`, as the
+    /// general route's depth-scale profile); `None`: the linearised covariance at the
+    /// estimate.
+    pub normal_profile_z: Option<f64>,
 }
 
 impl Default for PlanarOptions {
@@ -111,6 +121,7 @@ impl Default for PlanarOptions {
             min_tracks: 12,
             max_iterations: 100,
             covariance_sigma_px: None,
+            normal_profile_z: Some(1.0),
         }
     }
 }
@@ -130,6 +141,9 @@ impl PlanarOptions {
         }
         if self.covariance_sigma_px.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
             return bad("covariance_sigma_px must be positive");
+        }
+        if self.normal_profile_z.is_some_and(|z| !(z.is_finite() && z > 0.0)) {
+            return bad("normal_profile_z must be positive");
         }
         if self.min_tracks < 4 || self.max_iterations == 0 {
             return bad("min_tracks must be at least 4 and max_iterations positive");
@@ -171,6 +185,9 @@ pub struct CameraPlanar {
     pub sigma_px: f64,
     /// RMS residual of the final fit, pixels.
     pub rms_px: f64,
+    /// Largest sigma ratio the profile over the plane normal applied (1: none;
+    /// [`PlanarOptions::normal_profile_z`]).
+    pub profile_widening: f64,
     /// Observations in the final fit.
     pub observations: usize,
     /// Points in the final fit.
