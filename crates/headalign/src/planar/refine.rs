@@ -490,3 +490,30 @@ impl Fit {
         }
     }
 }
+
+/// Test support: `reg`'s observations re-fitted at its pixel sigma from `truth`'s
+/// parameters (the same tracks' points where `truth` has them); the costs of `reg` and of
+/// the re-fit, and the re-fit (with `reg`'s covariance).
+#[cfg(test)]
+pub(super) fn restart_from(reg: &Fit, truth: &Fit, options: &PlanarOptions) -> (f64, f64, Option<Fit>) {
+    let angle_sigma = options.angle_prior_sigma_deg.to_radians();
+    let t = &truth.problem;
+    let mut s = reg.problem.clone();
+    s.k = t.k;
+    s.joints = t.joints.clone();
+    s.angles = t.angles.clone();
+    s.plane = t.plane;
+    for (i, tr) in s.tracks.iter().enumerate() {
+        if let Some(j) = t.tracks.iter().position(|x| x == tr) {
+            s.points[i] = t.points[j];
+        }
+    }
+    let sig = reg.sigma_px;
+    let c_reg = reg.problem.cost(sig, angle_sigma);
+    let Ok(problem) = adjust(s, sig, angle_sigma, options.max_iterations) else {
+        return (c_reg, f64::INFINITY, None);
+    };
+    let c = problem.cost(sig, angle_sigma);
+    let fit = Fit { problem, covariance: reg.covariance.clone(), ..*reg };
+    (c_reg, c, Some(fit))
+}
