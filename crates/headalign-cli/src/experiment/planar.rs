@@ -20,9 +20,9 @@
 //! simulator's noise-free pixels of the tracks whose noisy observation is no outlier,
 //! the noisy encoder readings as the angle priors), propagated to the readings as the
 //! reported sigmas are. `--only` picks noise levels (any, in pixels), `--scene wall` or
-//! `far` one scene (and no general route). Not run by `all`, which takes about 20 minutes
-//! for it at the default trials on a loaded 2-core machine; `all` keeps the planar section
-//! of the `results.md` it regenerates ([`kept_section`]).
+//! `far` one scene (and no general route). Not run by `all` (400 planar trials at the
+//! default, and 200 wall trials at 1 px take 16.6 min on a loaded 2-core machine); `all`
+//! keeps the planar section of the `results.md` it regenerates ([`kept_section`]).
 
 use std::fmt::Write as _;
 

@@ -20,9 +20,10 @@
 //! the degrees of freedom, and the covariance the inverse of the reduced normal
 //! equations weighted by it (the angle prior keeps its own sigma, as the general route's
 //! maximum-likelihood pass does; [`super::PlanarOptions::covariance_sigma_px`] replaces
-//! the estimated pixel noise, and `profile.rs` then widens it). Levenberg-Marquardt: Marquardt's diagonal scaling,
-//! `lambda` from 1e-3, tenfold up on a failed step and down on a good one; stops when the
-//! cost falls by less than 1e-12 relative or after `max_iterations`.
+//! the estimated pixel noise, and `profile.rs` then widens it). Levenberg-Marquardt:
+//! Marquardt's diagonal scaling, `lambda` from 1e-3, tenfold up on a failed step and down
+//! on a good one; stops when the cost falls by less than 1e-12 relative or after
+//! `max_iterations`.
 
 use headalign_geometry::bundle::Side;
 use headalign_geometry::camera::Intrinsics;
