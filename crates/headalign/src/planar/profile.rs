@@ -16,7 +16,10 @@
 //! The point estimate is unchanged; the normal's own sigma, and with it the `far`
 //! verdict ([`super::NORMAL_UNDETERMINED_DEG`]), comes from the widened covariance (at
 //! 1 px every wall of `experiment planar --scene wall --only 1 --trials 200` is reported
-//! `far`). Units: `m` per metre, the normal's tangent sigma in radians. Pitfalls: an end
+//! `far`). Only a plane that moves some view by [`super::FAR_PARALLAX_PX`] is profiled:
+//! the far scene's normal moves no pixel, and its ends widened the far scene's sigmas by a
+//! third (coverage 96.5-98.5 % at 1 px, `experiment planar --scene far --only 1 --trials
+//! 200`). Units: `m` per metre, the normal's tangent sigma in radians. Pitfalls: an end
 //! whose ratio exceeds [`crate::estimate::MAX_END_WIDENING`] (a parameter nearly
 //! unobservable there) or whose adjustment fails is skipped; the ends hold the direction
 //! by a linear penalty on `m` across it whose own sigma is 1e-3 of the normal's.

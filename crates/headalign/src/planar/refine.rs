@@ -114,6 +114,20 @@ impl Problem {
             .collect()
     }
 
+    /// The plane's own effect: the largest displacement `f |t_i| |m|` it adds to the
+    /// infinite homography over the views, pixels (gauge-free: `t_i` scales as `1 / |m|`).
+    pub(super) fn plane_parallax_px(&self) -> f64 {
+        let mn = self.plane.norm();
+        (0..self.view_factors.len())
+            .map(|v| {
+                let pose = self.factors(v).iter().fold(nalgebra::Isometry3::identity(), |acc, f| {
+                    acc * rotation_about_line(&Line::new(f.axis, f.point), f.angle)
+                });
+                self.k.mean_focal() * pose.translation.vector.norm() * mn
+            })
+            .fold(0.0, f64::max)
+    }
+
     /// Pixel residuals of every observation (`None` where a point projects to infinity).
     fn residuals(&self) -> Vec<Option<Vector2<f64>>> {
         let factors: Vec<Vec<JointFactor>> = (0..self.view_factors.len()).map(|v| self.factors(v)).collect();
@@ -417,9 +431,13 @@ pub(super) fn maximum_likelihood(start: Problem, options: &PlanarOptions) -> Res
             "a point projects to infinity or the normal equations are singular".into(),
         ),
     })?;
+    // A plane that moves no view by FAR_PARALLAX_PX has a normal the images do not feel
+    // (the far scene): nothing to profile.
     let profile = match options.normal_profile_z {
-        Some(z) => profile_normal(&p, &mut covariance, weight_px, angle_sigma, z),
-        None => NormalProfile { max_widening: 1.0, ..NormalProfile::default() },
+        Some(z) if p.plane_parallax_px() >= FAR_PARALLAX_PX => {
+            profile_normal(&p, &mut covariance, weight_px, angle_sigma, z)
+        }
+        _ => NormalProfile { max_widening: 1.0, ..NormalProfile::default() },
     };
     Ok(Fit { problem: p, covariance, sigma_px, rms_px, profile })
 }
@@ -460,16 +478,7 @@ impl Fit {
         } else {
             (Vector3::zeros(), 90.0)
         };
-        // The plane's own effect: the largest displacement `f |t_i| |m|` it adds to the
-        // infinite homography over the views (gauge-free: `t_i` scales as `1 / |m|`).
-        let parallax_px = (0..p.view_factors.len())
-            .map(|v| {
-                let pose = p.factors(v).iter().fold(nalgebra::Isometry3::identity(), |acc, f| {
-                    acc * rotation_about_line(&Line::new(f.axis, f.point), f.angle)
-                });
-                p.k.mean_focal() * pose.translation.vector.norm() * mn
-            })
-            .fold(0.0, f64::max);
+        let parallax_px = p.plane_parallax_px();
         let determined = sigma_deg < NORMAL_UNDETERMINED_DEG && parallax_px >= FAR_PARALLAX_PX;
         let _ = camera_joints(side);
         CameraPlanar {
