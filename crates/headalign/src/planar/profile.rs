@@ -35,9 +35,9 @@ use crate::estimate::MAX_END_WIDENING;
 /// Gauss-Newton steps reach the end's minimum).
 pub const PROFILE_END_ITERATIONS: usize = 20;
 
-/// Largest angle of an end from the estimated normal, radians (60 deg): a far scene's
-/// normal has sigmas beyond 90 deg, where a tangent step no longer says which way; the
-/// ends then stay 60 deg off (the far scene's covariance barely depends on the normal).
+/// Largest angle of an end from the estimated normal, radians (60 deg): a normal whose
+/// `z` sigmas reach it is not profiled (its ends would say nothing of where it lies: a far
+/// scene's normal has sigmas near 90 deg, and 60 deg ends widened its sigmas by a third).
 pub const MAX_END_ANGLE_RAD: f64 = std::f64::consts::FRAC_PI_3;
 
 /// What the profile did for one camera.
@@ -73,6 +73,12 @@ pub(super) fn profile_normal(
     let basis = [b1, b2];
     let t = Matrix2::from_fn(|r, c| basis[r].dot(&(&cm * basis[c])) / (mn * mn));
     let eig = t.symmetric_eigen();
+    // A normal whose sigma reaches MAX_END_ANGLE_RAD is not determined at all: no end
+    // says where it could be (the far scene).
+    if eig.eigenvalues.iter().any(|v| !(v.max(0.0).sqrt() * z < MAX_END_ANGLE_RAD)) {
+        report.sigma_rad = [eig.eigenvalues[0].max(0.0).sqrt(), eig.eigenvalues[1].max(0.0).sqrt()];
+        return report;
+    }
     let n = covariance.nrows();
     let mut widen = vec![1.0_f64; n];
     for k in 0..2 {
@@ -83,8 +89,7 @@ pub(super) fn profile_normal(
         }
         let e = b1 * eig.eigenvectors[(0, k)] + b2 * eig.eigenvectors[(1, k)];
         for sign in [-1.0, 1.0] {
-            let angle = (z * sigma).min(MAX_END_ANGLE_RAD);
-            let dir = Unit::new_normalize(u.into_inner() + e * (sign * angle).tan());
+            let dir = Unit::new_normalize(u.into_inner() + e * (sign * z * sigma).tan());
             let (c1, c2) = tangent_basis(&dir);
             let mut end = p.clone();
             end.plane = dir.into_inner() * mn;
