@@ -75,7 +75,9 @@ pub(super) fn profile_normal(
     let eig = t.symmetric_eigen();
     // A normal whose sigma reaches MAX_END_ANGLE_RAD is not determined at all: no end
     // says where it could be (the far scene).
-    if eig.eigenvalues.iter().any(|v| !(v.max(0.0).sqrt() * z < MAX_END_ANGLE_RAD)) {
+    let determined =
+        |v: &f64| (v.max(0.0).sqrt() * z).partial_cmp(&MAX_END_ANGLE_RAD) == Some(std::cmp::Ordering::Less);
+    if !eig.eigenvalues.iter().all(determined) {
         report.sigma_rad = [eig.eigenvalues[0].max(0.0).sqrt(), eig.eigenvalues[1].max(0.0).sqrt()];
         return report;
     }
