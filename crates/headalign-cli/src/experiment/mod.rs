@@ -909,8 +909,13 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
             quantities: &[],
         });
         let path = results_path(&args.out);
-        std::fs::write(&path, report::results_md(&produced, &args.out))
-            .with_context(|| format!("cannot write {}", path.display()))?;
+        // The planar section is not regenerated here (`planar` module docs): kept as it is.
+        let kept = std::fs::read_to_string(&path).ok().and_then(|old| planar::kept_section(&old));
+        let mut md = report::results_md(&produced, &args.out);
+        if let Some(section) = kept {
+            md = format!("{}\n\n{section}", md.trim_end());
+        }
+        std::fs::write(&path, md).with_context(|| format!("cannot write {}", path.display()))?;
     }
     use std::io::Write as _;
     let mut stdout = std::io::stdout();

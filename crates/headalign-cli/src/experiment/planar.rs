@@ -14,7 +14,15 @@
 //! Summary per scene and noise: RMS error of each reading, the RMS of the reported sigmas
 //! (the planar model's own bound: its covariance at the estimate, which at these noise
 //! levels is its covariance at the truth to first order), their ratio, and the 95 %
-//! coverage (`|error| <= 1.96 sigma`). Not in `all`.
+//! coverage (`|error| <= 1.96 sigma`), and beside them the Cramér-Rao bound at the truth:
+//! the planar model's covariance ([`PlanarOptions::covariance_sigma_px`] at the simulated
+//! noise, no profile) at the fit of each view's exact observations ([`crb_views`]: the
+//! simulator's noise-free pixels of the tracks whose noisy observation is no outlier,
+//! the noisy encoder readings as the angle priors), propagated to the readings as the
+//! reported sigmas are. `--only` picks noise levels (any, in pixels), `--scene wall` or
+//! `far` one scene (and no general route). Not run by `all` (400 planar trials at the
+//! default, and 200 wall trials at 1 px take 16.6 min on a loaded 2-core machine); `all`
+//! keeps the planar section of the `results.md` it regenerates ([`kept_section`]).
 
 use std::fmt::Write as _;
 
@@ -24,7 +32,7 @@ use headalign::estimate::EstimationOptions;
 use headalign::observations::View;
 use headalign::planar::{PlanarOptions, SceneKind, alignment_sigmas, detect_scene, estimate_planar};
 use headalign::procedure::{VergeTiltOptions, VergeTiltRun, capture_plan};
-use headalign_platform::StereoHead;
+use headalign_platform::{Encoders, StereoCapture, StereoHead, TrackObservation};
 use headalign_sim::{Scenario, SimulatedHead};
 use rayon::prelude::*;
 
@@ -45,24 +53,72 @@ struct Trial {
     noise: f64,
     seed: u64,
     route: String,
-    /// Errors (elevation, left, right vergence), degrees; sigmas the same.
+    /// Errors (elevation, left, right vergence), degrees; sigmas and bounds the same.
     err: [f64; 3],
     sigma: [f64; 3],
+    /// The Cramér-Rao bound at the truth ([`crb_views`]); NaN for the general route.
+    crb: [f64; 3],
     failure: Option<String>,
 }
 
+impl Trial {
+    fn new(scene: &'static str, noise: f64, seed: u64, route: &str) -> Self {
+        Self {
+            scene,
+            noise,
+            seed,
+            route: route.into(),
+            err: [f64::NAN; 3],
+            sigma: [f64::NAN; 3],
+            crb: [f64::NAN; 3],
+            failure: None,
+        }
+    }
+}
+
+/// Largest distance (pixels) between a noisy observation and its exact pixel for the
+/// exact one to enter the bound's views: five noise sigmas (a 2D Gaussian residual lies
+/// beyond with probability `exp(-12.5)`); the simulated outliers, uniform over the image,
+/// fall outside and stay out, as the estimator drops them.
+const CRB_GATE_SIGMAS: f64 = 5.0;
+
+/// The views of the Cramér-Rao bound (module docs): each view's exact observations
+/// (simulator truth, at the joints' true positions `truth`) of the tracks whose noisy
+/// observation in `noisy` is an inlier, with the noisy view's encoder readings (the same
+/// angle priors).
+fn crb_views(head: &SimulatedHead, noisy: &[View], truth: &[Encoders], noise: f64) -> Vec<View> {
+    let gate = CRB_GATE_SIGMAS * noise.max(1e-9);
+    let keep = |exact: Vec<TrackObservation>, noisy: &[TrackObservation]| -> Vec<TrackObservation> {
+        exact
+            .into_iter()
+            .filter(|o| noisy.iter().any(|n| n.track == o.track && (n.pixel - o.pixel).norm() <= gate))
+            .collect()
+    };
+    noisy
+        .iter()
+        .zip(truth)
+        .map(|(v, e)| {
+            let exact = head.exact_capture(e);
+            View {
+                name: v.name.clone(),
+                capture: StereoCapture {
+                    encoders: v.capture.encoders,
+                    image_size: exact.image_size,
+                    left: keep(exact.left, &v.capture.left),
+                    right: keep(exact.right, &v.capture.right),
+                },
+            }
+        })
+        .collect()
+}
+
+/// A planar trial's errors, sigmas, bounds (degrees) and route.
+type TrialNumbers = ([f64; 3], [f64; 3], [f64; 3], String);
+
 /// Run one planar-route trial.
 fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) -> Trial {
-    let mut t = Trial {
-        scene,
-        noise,
-        seed,
-        route: "planar".into(),
-        err: [f64::NAN; 3],
-        sigma: [f64::NAN; 3],
-        failure: None,
-    };
-    let result = (|| -> Result<([f64; 3], [f64; 3], String)> {
+    let mut t = Trial::new(scene, noise, seed, "planar");
+    let result = (|| -> Result<TrialNumbers> {
         let base = Scenario::preset(scene).map_err(|e| anyhow::anyhow!("{e}"))?;
         let scenario = Scenario {
             noise_px: noise,
@@ -72,20 +128,34 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) 
         let mut head = SimulatedHead::new(scenario).map_err(|e| anyhow::anyhow!("{e}"))?;
         let options = VergeTiltOptions::default();
         let e0 = head.read_encoders()?;
-        let mut views = Vec::new();
+        let (mut views, mut truth) = (Vec::new(), Vec::new());
         for (name, e) in capture_plan(&e0, &options) {
             head.move_to(&e)?;
             views.push(View { name, capture: head.capture()? });
+            truth.push(e);
         }
         let rig = views.len() - 1;
         let estimation = EstimationOptions::default();
         let check = detect_scene(&views[..rig], &estimation.fundamental);
         let kind = check.kind;
-        let calib = estimate_planar(&views, check, &PlanarOptions::default())?;
+        let calib = estimate_planar(&views, check.clone(), &PlanarOptions::default())?;
         let reference = views[0].capture.encoders;
         let sol = solve_alignment_axes(&calib.left.axes(), &calib.right.axes(), &reference)?;
         let reading = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
         let s = alignment_sigmas(&calib)?.with_reading_noise(reading);
+        let crb = if noise > 0.0 {
+            let exact = crb_views(&head, &views, &truth, noise);
+            let options = PlanarOptions {
+                covariance_sigma_px: Some(noise),
+                normal_profile_z: None,
+                ..PlanarOptions::default()
+            };
+            let at_truth = estimate_planar(&exact, check, &options).context("the bound's fit")?;
+            let b = alignment_sigmas(&at_truth)?.with_reading_noise(reading);
+            [b.elevation_deg, b.verge_left_deg, b.verge_right_deg]
+        } else {
+            [f64::NAN; 3]
+        };
         let truth = head.aligned_encoders();
         let a = sol.aligned_encoders;
         let route = if kind == SceneKind::General { "general-detected" } else { calib.scene.kind.name() };
@@ -96,13 +166,15 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) 
                 a.verge_right - truth.verge_right,
             ],
             [s.elevation_deg, s.verge_left_deg, s.verge_right_deg],
+            crb,
             route.to_string(),
         ))
     })();
     match result {
-        Ok((err, sigma, route)) => {
+        Ok((err, sigma, crb, route)) => {
             t.err = err;
             t.sigma = sigma;
+            t.crb = crb;
             t.route = route;
         }
         Err(e) => t.failure = Some(format!("{e:#}")),
@@ -112,15 +184,7 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) 
 
 /// Run one general-route trial in the default room.
 fn general_trial(noise: f64, seed: u64, encoder_noise: f64) -> Trial {
-    let mut t = Trial {
-        scene: "default",
-        noise,
-        seed,
-        route: "general".into(),
-        err: [f64::NAN; 3],
-        sigma: [f64::NAN; 3],
-        failure: None,
-    };
+    let mut t = Trial::new("default", noise, seed, "general");
     let scenario =
         Scenario { noise_px: noise, encoder_noise_deg: encoder_noise, ..Scenario::default().with_seed(seed) };
     let result = SimulatedHead::new(scenario).map_err(|e| anyhow::anyhow!("{e}")).and_then(|mut head| {
@@ -149,13 +213,18 @@ fn general_trial(noise: f64, seed: u64, encoder_noise: f64) -> Trial {
 /// Entry point: run, write `planar.csv` and `planar.md` in `--out`, print the summary.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
     let per = args.trials.unwrap_or(DEFAULT_TRIALS).max(1);
-    let noises: Vec<f64> = NOISE_PX
-        .iter()
-        .copied()
-        .filter(|n| args.only.is_empty() || args.only.iter().any(|o| (o - n).abs() < 1e-9))
-        .collect();
+    let noises: Vec<f64> = if args.only.is_empty() { NOISE_PX.to_vec() } else { args.only.clone() };
+    if noises.iter().any(|n| !(n.is_finite() && *n >= 0.0)) {
+        anyhow::bail!("--only: noise levels must be non-negative pixels, got {noises:?}");
+    }
+    let scenes: Vec<&'static str> = match args.scene.as_str() {
+        "default" => vec!["wall", "far"],
+        "wall" => vec!["wall"],
+        "far" => vec!["far"],
+        other => anyhow::bail!("experiment planar: --scene wall or far (default: both), got '{other}'"),
+    };
     let mut jobs: Vec<(&'static str, f64, u64)> = Vec::new();
-    for scene in ["wall", "far"] {
+    for &scene in &scenes {
         for &noise in &noises {
             for t in 0..per as u64 {
                 jobs.push((scene, noise, args.seed + t));
@@ -163,7 +232,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         }
     }
     let general_n = per.min(50) as u64;
-    if noises.iter().any(|n| (n - 1.0).abs() < 1e-9) {
+    if args.scene == "default" && noises.iter().any(|n| (n - 1.0).abs() < 1e-9) {
         for t in 0..general_n {
             jobs.push(("default", 1.0, args.seed + t));
         }
@@ -180,12 +249,12 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         .collect();
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
     let mut csv = String::from(
-        "scene,noise_px,seed,route,err_elevation,err_verge_left,err_verge_right,sigma_elevation,sigma_verge_left,sigma_verge_right,failure\n",
+        "scene,noise_px,seed,route,err_elevation,err_verge_left,err_verge_right,sigma_elevation,sigma_verge_left,sigma_verge_right,crb_elevation,crb_verge_left,crb_verge_right,failure\n",
     );
     for t in &trials {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             t.scene,
             t.noise,
             t.seed,
@@ -196,6 +265,9 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
             t.sigma[0],
             t.sigma[1],
             t.sigma[2],
+            t.crb[0],
+            t.crb[1],
+            t.crb[2],
             t.failure.as_deref().unwrap_or("").replace([',', '\n'], ";")
         );
     }
@@ -207,10 +279,24 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     Ok(())
 }
 
+/// Heading of the planar section of `results.md` (written by hand from this experiment's
+/// `planar.md`; [`kept_section`]).
+pub const SECTION_HEADING: &str = "## planar — ";
+
+/// The planar section of an existing `results.md` (from [`SECTION_HEADING`] to the next
+/// `## ` heading or the end), which `experiment all` keeps when it rewrites the file.
+pub fn kept_section(existing: &str) -> Option<String> {
+    let start = existing.find(&format!("\n{SECTION_HEADING}"))? + 1;
+    let rest = &existing[start..];
+    let end =
+        rest[SECTION_HEADING.len()..].find("\n## ").map_or(rest.len(), |i| i + SECTION_HEADING.len() + 1);
+    Some(rest[..end].trim_end().to_string() + "\n")
+}
+
 /// The Markdown summary (module docs).
 fn summary(trials: &[Trial], per: usize, seed: u64) -> String {
     let mut md = format!(
-        "## Planar route (`experiment planar --trials {per} --seed {seed}`)\n\nAligned-reading errors (deg) against the truth: RMS, the RMS of the reported sigmas (the model's own bound), their ratio and the 95 % coverage.\n\n| scene | noise px | ok / n | routes | reading | RMS deg | sigma RMS deg | RMS / sigma | coverage 95 % |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
+        "## Planar route (`experiment planar --trials {per} --seed {seed}`)\n\nAligned-reading errors (deg) against the truth: RMS, the RMS of the reported sigmas, the RMS of the planar model's Cramér-Rao bound at the truth (CRB), the ratios, and the reported sigmas' 95 % coverage.\n\n| scene | noise px | ok / n | routes | reading | RMS deg | sigma RMS deg | RMS / sigma | CRB RMS deg | RMS / CRB | coverage 95 % |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
     );
     let mut keys: Vec<(&str, f64)> = Vec::new();
     for t in trials {
@@ -232,10 +318,17 @@ fn summary(trials: &[Trial], per: usize, seed: u64) -> String {
             let srms = (ok.iter().map(|t| t.sigma[i].powi(2)).sum::<f64>() / n).sqrt();
             let cov = ok.iter().filter(|t| t.err[i].abs() <= 1.96 * t.sigma[i]).count() as f64 / n;
             let ratio = if srms > 0.0 { format!("{:.3}", rms / srms) } else { "-".into() };
+            let bounded: Vec<f64> = ok.iter().map(|t| t.crb[i]).filter(|b| b.is_finite()).collect();
+            let (crb, crb_ratio) = if bounded.len() == ok.len() && !bounded.is_empty() {
+                let c = (bounded.iter().map(|b| b * b).sum::<f64>() / n).sqrt();
+                (format!("{c:.4}"), if c > 0.0 { format!("{:.3}", rms / c) } else { "-".into() })
+            } else {
+                ("-".into(), "-".into())
+            };
             let coverage = if noise > 0.0 { format!("{:.1} %", 100.0 * cov) } else { "-".into() };
             let _ = writeln!(
                 md,
-                "| {scene} | {noise} | {} / {} | {} | {name} | {rms:.4} | {srms:.4} | {ratio} | {coverage} |",
+                "| {scene} | {noise} | {} / {} | {} | {name} | {rms:.4} | {srms:.4} | {ratio} | {crb} | {crb_ratio} | {coverage} |",
                 ok.len(),
                 group.len(),
                 routes.join(", "),
@@ -243,4 +336,19 @@ fn summary(trials: &[Trial], per: usize, seed: u64) -> String {
         }
     }
     md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The planar section is cut from its heading to the next one, or to the end.
+    #[test]
+    fn the_planar_section_is_kept() {
+        let md = "# R\n\n## lens\n\ntext\n\n## planar — walls\n\n| a |\n\n## other\n\nx\n";
+        assert_eq!(kept_section(md).as_deref(), Some("## planar — walls\n\n| a |\n"));
+        let last = "# R\n\n## planar — walls\n\nend\n";
+        assert_eq!(kept_section(last).as_deref(), Some("## planar — walls\n\nend\n"));
+        assert_eq!(kept_section("# R\n\n## lens\n"), None);
+    }
 }

@@ -19,9 +19,11 @@
 //! removed; one more at the robust sigma. The pixel noise is then the residuals' RMS over
 //! the degrees of freedom, and the covariance the inverse of the reduced normal
 //! equations weighted by it (the angle prior keeps its own sigma, as the general route's
-//! maximum-likelihood pass does). Levenberg-Marquardt: Marquardt's diagonal scaling,
-//! `lambda` from 1e-3, tenfold up on a failed step and down on a good one; stops when the
-//! cost falls by less than 1e-12 relative or after `max_iterations`.
+//! maximum-likelihood pass does; [`super::PlanarOptions::covariance_sigma_px`] replaces
+//! the estimated pixel noise, and `profile.rs` then widens it). Levenberg-Marquardt:
+//! Marquardt's diagonal scaling, `lambda` from 1e-3, tenfold up on a failed step and down
+//! on a good one; stops when the cost falls by less than 1e-12 relative or after
+//! `max_iterations`.
 
 use headalign_geometry::bundle::Side;
 use headalign_geometry::camera::Intrinsics;
@@ -29,6 +31,7 @@ use headalign_geometry::planar::{JointFactor, project_plane_point, tangent_basis
 use headalign_geometry::so3::{Line, rotation_about_line};
 use nalgebra::{DMatrix, DVector, Matrix2, Point2, Point3, Unit, Vector2, Vector3};
 
+use super::profile::{NormalProfile, profile_normal};
 use super::{CameraPlanar, FAR_PARALLAX_PX, NORMAL_UNDETERMINED_DEG, PlanarOptions, camera_joints};
 use crate::error::AlignError;
 
@@ -56,6 +59,14 @@ pub(super) struct Observation {
     pub pixel: Point2<f64>,
 }
 
+/// A linear penalty `weight ((m . c1)^2 + (m . c2)^2)` holding the plane's normal along
+/// the direction perpendicular to `across` (the profile's ends, `profile.rs`).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct PlaneHold {
+    pub across: [Vector3<f64>; 2],
+    pub weight: f64,
+}
+
 /// One camera's planar problem (module docs).
 #[derive(Debug, Clone)]
 pub(super) struct Problem {
@@ -69,6 +80,8 @@ pub(super) struct Problem {
     pub points: Vec<Point2<f64>>,
     pub tracks: Vec<u64>,
     pub obs: Vec<Observation>,
+    /// The profile's hold on the normal (`None` in the adjustment proper).
+    pub plane_hold: Option<PlaneHold>,
 }
 
 /// The adjusted problem with its covariance.
@@ -78,6 +91,7 @@ pub(super) struct Fit {
     covariance: DMatrix<f64>,
     sigma_px: f64,
     rms_px: f64,
+    profile: NormalProfile,
 }
 
 impl Problem {
@@ -85,7 +99,7 @@ impl Problem {
         4 + 4 * self.joints.len() + self.angles.len() + 3
     }
 
-    fn plane_index(&self) -> usize {
+    pub(super) fn plane_index(&self) -> usize {
         4 + 4 * self.joints.len() + self.angles.len()
     }
 
@@ -98,6 +112,20 @@ impl Problem {
                 angle: self.angles[a],
             })
             .collect()
+    }
+
+    /// The plane's own effect: the largest displacement `f |t_i| |m|` it adds to the
+    /// infinite homography over the views, pixels (gauge-free: `t_i` scales as `1 / |m|`).
+    pub(super) fn plane_parallax_px(&self) -> f64 {
+        let mn = self.plane.norm();
+        (0..self.view_factors.len())
+            .map(|v| {
+                let pose = self.factors(v).iter().fold(nalgebra::Isometry3::identity(), |acc, f| {
+                    acc * rotation_about_line(&Line::new(f.axis, f.point), f.angle)
+                });
+                self.k.mean_focal() * pose.translation.vector.norm() * mn
+            })
+            .fold(0.0, f64::max)
     }
 
     /// Pixel residuals of every observation (`None` where a point projects to infinity).
@@ -123,6 +151,9 @@ impl Problem {
         }
         for (a, b) in self.angles.iter().zip(&self.angle_cmd) {
             c += ((a - b) / angle_sigma).powi(2);
+        }
+        if let Some(h) = &self.plane_hold {
+            c += h.weight * h.across.iter().map(|a| a.dot(&self.plane).powi(2)).sum::<f64>();
         }
         c + self.joints.iter().map(|j| j.point.norm_squared()).sum::<f64>() + self.plane.norm_squared()
     }
@@ -219,6 +250,18 @@ fn normal_equations(p: &Problem, sigma: f64, angle_sigma: f64) -> Option<Normal>
         n.u[(m0 + i, m0 + i)] += 1.0;
         n.gc[m0 + i] += p.plane[i];
     }
+    if let Some(h) = &p.plane_hold {
+        for a in &h.across {
+            let g = a * (h.weight * a.dot(&p.plane));
+            let hess = a * a.transpose() * h.weight;
+            for r in 0..3 {
+                n.gc[m0 + r] += g[r];
+                for c in 0..3 {
+                    n.u[(m0 + r, m0 + c)] += hess[(r, c)];
+                }
+            }
+        }
+    }
     Some(n)
 }
 
@@ -249,7 +292,7 @@ fn reduced(n: &Normal, lambda: f64) -> Option<Reduced> {
 }
 
 /// Levenberg-Marquardt on `p` at pixel sigma `sigma` (module docs).
-fn adjust(
+pub(super) fn adjust(
     mut p: Problem,
     sigma: f64,
     angle_sigma: f64,
@@ -337,6 +380,15 @@ fn reselect(p: &mut Problem, k: f64) -> f64 {
     sigma
 }
 
+/// The covariance of the camera block at `p` (the inverse of the reduced normal equations
+/// at pixel weight `sigma`), `None` where a point projects to infinity or the system is
+/// singular.
+pub(super) fn covariance_at(p: &Problem, sigma: f64, angle_sigma: f64) -> Option<DMatrix<f64>> {
+    let n = normal_equations(p, sigma, angle_sigma)?;
+    let (s, _, _) = reduced(&n, 0.0)?;
+    s.try_inverse()
+}
+
 /// The passes of the module docs; the covariance at the result.
 pub(super) fn maximum_likelihood(start: Problem, options: &PlanarOptions) -> Result<Fit, AlignError> {
     let angle_sigma = options.angle_prior_sigma_deg.to_radians();
@@ -372,19 +424,22 @@ pub(super) fn maximum_likelihood(start: Problem, options: &PlanarOptions) -> Res
     let dof = (2 * res.len()).saturating_sub(2 * p.points.len() + p.n_camera() - 1).max(1);
     let sigma_px = (sum / dof as f64).sqrt().max(1e-12);
     let rms_px = (sum / (res.len().max(1) as f64)).sqrt();
-    let n = normal_equations(&p, sigma_px, angle_sigma).ok_or_else(|| AlignError::Geometry {
+    let weight_px = options.covariance_sigma_px.unwrap_or(sigma_px);
+    let mut covariance = covariance_at(&p, weight_px, angle_sigma).ok_or_else(|| AlignError::Geometry {
         step: "planar covariance".into(),
-        cause: headalign_geometry::GeometryError::Numerical("a point projects to infinity".into()),
+        cause: headalign_geometry::GeometryError::Numerical(
+            "a point projects to infinity or the normal equations are singular".into(),
+        ),
     })?;
-    let (s, _, _) = reduced(&n, 0.0).ok_or_else(|| AlignError::Geometry {
-        step: "planar covariance".into(),
-        cause: headalign_geometry::GeometryError::Numerical("singular point block".into()),
-    })?;
-    let covariance = s.try_inverse().ok_or_else(|| AlignError::Geometry {
-        step: "planar covariance".into(),
-        cause: headalign_geometry::GeometryError::Numerical("singular normal equations".into()),
-    })?;
-    Ok(Fit { problem: p, covariance, sigma_px, rms_px })
+    // A plane that moves no view by FAR_PARALLAX_PX has a normal the images do not feel
+    // (the far scene): nothing to profile.
+    let profile = match options.normal_profile_z {
+        Some(z) if p.plane_parallax_px() >= FAR_PARALLAX_PX => {
+            profile_normal(&p, &mut covariance, weight_px, angle_sigma, z)
+        }
+        _ => NormalProfile { max_widening: 1.0, ..NormalProfile::default() },
+    };
+    Ok(Fit { problem: p, covariance, sigma_px, rms_px, profile })
 }
 
 impl Fit {
@@ -423,16 +478,7 @@ impl Fit {
         } else {
             (Vector3::zeros(), 90.0)
         };
-        // The plane's own effect: the largest displacement `f |t_i| |m|` it adds to the
-        // infinite homography over the views (gauge-free: `t_i` scales as `1 / |m|`).
-        let parallax_px = (0..p.view_factors.len())
-            .map(|v| {
-                let pose = p.factors(v).iter().fold(nalgebra::Isometry3::identity(), |acc, f| {
-                    acc * rotation_about_line(&Line::new(f.axis, f.point), f.angle)
-                });
-                p.k.mean_focal() * pose.translation.vector.norm() * mn
-            })
-            .fold(0.0, f64::max);
+        let parallax_px = p.plane_parallax_px();
         let determined = sigma_deg < NORMAL_UNDETERMINED_DEG && parallax_px >= FAR_PARALLAX_PX;
         let _ = camera_joints(side);
         CameraPlanar {
@@ -448,6 +494,7 @@ impl Fit {
             parameter_names,
             sigma_px: self.sigma_px,
             rms_px: self.rms_px,
+            profile_widening: self.profile.max_widening,
             observations: p.obs.len(),
             points: p.points.len(),
             joint_lines: p
@@ -458,4 +505,31 @@ impl Fit {
             plane_m: [m.x, m.y, m.z],
         }
     }
+}
+
+/// Test support: `reg`'s observations re-fitted at its pixel sigma from `truth`'s
+/// parameters (the same tracks' points where `truth` has them); the costs of `reg` and of
+/// the re-fit, and the re-fit (with `reg`'s covariance).
+#[cfg(test)]
+pub(super) fn restart_from(reg: &Fit, truth: &Fit, options: &PlanarOptions) -> (f64, f64, Option<Fit>) {
+    let angle_sigma = options.angle_prior_sigma_deg.to_radians();
+    let t = &truth.problem;
+    let mut s = reg.problem.clone();
+    s.k = t.k;
+    s.joints = t.joints.clone();
+    s.angles = t.angles.clone();
+    s.plane = t.plane;
+    for (i, tr) in s.tracks.iter().enumerate() {
+        if let Some(j) = t.tracks.iter().position(|x| x == tr) {
+            s.points[i] = t.points[j];
+        }
+    }
+    let sig = reg.sigma_px;
+    let c_reg = reg.problem.cost(sig, angle_sigma);
+    let Ok(problem) = adjust(s, sig, angle_sigma, options.max_iterations) else {
+        return (c_reg, f64::INFINITY, None);
+    };
+    let c = problem.cost(sig, angle_sigma);
+    let fit = Fit { problem, covariance: reg.covariance.clone(), ..*reg };
+    (c_reg, c, Some(fit))
 }

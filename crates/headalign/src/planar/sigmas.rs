@@ -1,4 +1,4 @@
-//! Step 5 of the planar route ([`super`] module docs): the sigmas of the aligned readings.
+//! Step 6 of the planar route ([`super`] module docs): the sigmas of the aligned readings.
 //!
 //! Each camera's covariance (intrinsics in pixels, axis directions as tangent components
 //! in radians, [`super::CameraPlanar::parameter_names`]) is propagated to the aligned

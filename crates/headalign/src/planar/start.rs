@@ -198,5 +198,6 @@ pub(super) fn initial_problem(data: &CameraData, side: Side) -> Result<Problem, 
         points,
         tracks,
         obs,
+        plane_hold: None,
     })
 }
