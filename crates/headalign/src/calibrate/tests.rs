@@ -538,6 +538,35 @@ fn known_distortion_is_removed() {
     assert!(off > 0.5, "ignoring the lens only cost {off} %");
 }
 
+/// `calibrate` with a radial-tangential lens estimated (zero skew) on the simulated head
+/// of `seed` at 0.25 px with `lens` in both cameras: the initial view and views after
+/// `rotation_deg` of elevation and of pan. Returns the calibration and the truth.
+fn calibrate_strong_lens(
+    lens: Distortion,
+    seed: u64,
+    rotation_deg: f64,
+) -> (MotionCalibration, headalign_sim::HeadTruth) {
+    let mut scenario = Scenario { seed, noise_px: 0.25, rotation_deg, ..Scenario::default() };
+    scenario.render.distortion = lens;
+    let mut head = SimulatedHead::new(scenario).unwrap();
+    let e0 = head.encoders();
+    let views = capture_views(
+        &mut head,
+        &[
+            ("initial", e0),
+            ("elevation", e0.moved(Joint::Elevation, rotation_deg)),
+            ("pan", e0.moved(Joint::Pan, rotation_deg)),
+        ],
+    );
+    let options = CalibrateOptions {
+        estimation: EstimationOptions::scaled_for_noise(0.25, seed),
+        zero_skew: true,
+        lens: LensChoice::Model(headalign_geometry::distortion::LensKind::RadialTangential),
+        ..CalibrateOptions::default()
+    };
+    (calibrate_rig(&views, &options).unwrap(), head.truth().clone())
+}
+
 /// A strong barrel lens (radial-tangential `k1 = -0.3, k2 = 0.08`, `experiment lens`'s)
 /// seen in 10 deg views at 0.25 px, lens estimated: estimation seeds 1 and 21, where the
 /// chain on the distorted pixels alone drifted to f = 50,000 px (seed 1) or stopped at a
@@ -549,26 +578,8 @@ fn known_distortion_is_removed() {
 fn a_strong_lens_in_ten_degree_views_starts_well() {
     let lens = Distortion::radial(-0.3, 0.08);
     for seed in [1, 21] {
-        let mut scenario = Scenario { seed, noise_px: 0.25, rotation_deg: 10.0, ..Scenario::default() };
-        scenario.render.distortion = lens;
-        let mut head = SimulatedHead::new(scenario).unwrap();
-        let e0 = head.encoders();
-        let views = capture_views(
-            &mut head,
-            &[
-                ("initial", e0),
-                ("elevation", e0.moved(Joint::Elevation, 10.0)),
-                ("pan", e0.moved(Joint::Pan, 10.0)),
-            ],
-        );
-        let options = CalibrateOptions {
-            estimation: EstimationOptions::scaled_for_noise(0.25, seed),
-            zero_skew: true,
-            lens: LensChoice::Model(headalign_geometry::distortion::LensKind::RadialTangential),
-            ..CalibrateOptions::default()
-        };
-        let cal = calibrate_rig(&views, &options).unwrap();
-        let (st, t) = (&cal.bundle.state, head.truth());
+        let (cal, truth) = calibrate_strong_lens(lens, seed, 10.0);
+        let (st, t) = (&cal.bundle.state, &truth);
         assert!(f_err_pct(&st.left, &t.left) < 1.0, "seed {seed}: {:?} vs {:?}", st.left, t.left);
         assert!(f_err_pct(&st.right, &t.right) < 1.0, "seed {seed}: {:?} vs {:?}", st.right, t.right);
         assert!((st.left_distortion.k1 - lens.k1).abs() < 0.01, "seed {seed}: {:?}", st.left_distortion);
@@ -597,26 +608,8 @@ fn a_strong_lens_in_ten_degree_views_starts_well() {
 fn a_strong_lens_in_three_degree_views_keeps_the_lowest_minimum() {
     let lens = Distortion::radial(-0.3, 0.08);
     let seed = 6;
-    let mut scenario = Scenario { seed, noise_px: 0.25, rotation_deg: 3.0, ..Scenario::default() };
-    scenario.render.distortion = lens;
-    let mut head = SimulatedHead::new(scenario).unwrap();
-    let e0 = head.encoders();
-    let views = capture_views(
-        &mut head,
-        &[
-            ("initial", e0),
-            ("elevation", e0.moved(Joint::Elevation, 3.0)),
-            ("pan", e0.moved(Joint::Pan, 3.0)),
-        ],
-    );
-    let options = CalibrateOptions {
-        estimation: EstimationOptions::scaled_for_noise(0.25, seed),
-        zero_skew: true,
-        lens: LensChoice::Model(headalign_geometry::distortion::LensKind::RadialTangential),
-        ..CalibrateOptions::default()
-    };
-    let cal = calibrate_rig(&views, &options).unwrap();
-    let (st, t) = (&cal.bundle.state, head.truth());
+    let (cal, truth) = calibrate_strong_lens(lens, seed, 3.0);
+    let (st, t) = (&cal.bundle.state, &truth);
     assert!(f_err_pct(&st.left, &t.left) < 2.0, "{:?} vs {:?}", st.left, t.left);
     assert!(f_err_pct(&st.right, &t.right) < 2.0, "{:?} vs {:?}", st.right, t.right);
     assert!((st.left_distortion.k1 - lens.k1).abs() < 0.01, "{:?}", st.left_distortion);
