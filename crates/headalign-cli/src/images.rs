@@ -836,15 +836,7 @@ fn write_report(
     outcome: &VergeTiltOutcome,
     json: &Value,
 ) -> Result<()> {
-    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
-    let mut rep = HtmlReport::new(title);
-    rep.intro(&format!(
-        "{} x {} images, vision front end (verging, FAST+BRIEF features, matching); {} verge/tilt views captured; session folder {}.",
-        image_size[0],
-        image_size[1],
-        run.run.views.len(),
-        dir.display()
-    ));
+    let (image_size, mut rep) = report_with_intro(dir, title, run);
     rep.alignment_results(&AlignmentResults {
         calibration: &outcome.calibration,
         image_size,
@@ -896,15 +888,9 @@ fn view_links(dir: &Path) -> Vec<(String, String)> {
         .collect()
 }
 
-/// `DIR/report.html` of a planar-route run: its numbers ([`crate::planar::html_sections`]),
-/// the errors against the truth when simulated, `aligned.png` and the captured views.
-fn write_planar_report(
-    dir: &Path,
-    title: &str,
-    run: &ImageRun,
-    outcome: &headalign::procedure::PlanarOutcome,
-    json: &Value,
-) -> Result<()> {
+/// The session report's page with its introduction (image size, views, folder), and the
+/// image size.
+fn report_with_intro(dir: &Path, title: &str, run: &ImageRun) -> ([u32; 2], HtmlReport) {
     let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
     let mut rep = HtmlReport::new(title);
     rep.intro(&format!(
@@ -914,6 +900,19 @@ fn write_planar_report(
         run.run.views.len(),
         dir.display()
     ));
+    (image_size, rep)
+}
+
+/// `DIR/report.html` of a planar-route run: its numbers ([`crate::planar::html_sections`]),
+/// the errors against the truth when simulated, `aligned.png` and the captured views.
+fn write_planar_report(
+    dir: &Path,
+    title: &str,
+    run: &ImageRun,
+    outcome: &headalign::procedure::PlanarOutcome,
+    json: &Value,
+) -> Result<()> {
+    let (_, mut rep) = report_with_intro(dir, title, run);
     crate::planar::html_sections(&mut rep, outcome);
     if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
         (json.get("before"), json.get("errors"))

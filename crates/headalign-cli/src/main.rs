@@ -399,15 +399,7 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
     }
     say!("undetermined: {}", cal.undetermined.join("; "));
     let (e, sig) = (p.solution.aligned_encoders, p.sigmas);
-    say!(
-        "aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
-        e.elevation,
-        sig.elevation_deg,
-        e.verge_left,
-        sig.verge_left_deg,
-        e.verge_right,
-        sig.verge_right_deg
-    );
+    say!("{}", aligned_readings_line(&e, &sig));
     if !p.solution.verge_axes_measured {
         say!("warning: {NOMINAL_VERGE_WARNING}");
     }
@@ -598,15 +590,7 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     let d = |l: &Line| format!("({:+.4}, {:+.4}, {:+.4})", l.direction.x, l.direction.y, l.direction.z);
     say!("pan axis direction {}   elevation axis direction {}", d(pan), d(elev));
     let e = solution.aligned_encoders;
-    say!(
-        "aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
-        e.elevation,
-        sig.elevation_deg,
-        e.verge_left,
-        sig.verge_left_deg,
-        e.verge_right,
-        sig.verge_right_deg
-    );
+    say!("{}", aligned_readings_line(&e, sig));
     if let Some(b) = &a.calib.report.bootstrap {
         say!("{}", bootstrap_line(b));
     }
@@ -650,4 +634,12 @@ fn simulate(args: &SimulateArgs) -> Result<()> {
     std::fs::write(&args.out, text).with_context(|| format!("cannot write {}", args.out.display()))?;
     eprintln!("wrote {} views to {}", views.len(), args.out.display());
     Ok(())
+}
+
+/// `aligned readings: ...` with each reading's sigma, degrees.
+fn aligned_readings_line(e: &Encoders, sig: &AlignmentSigmas) -> String {
+    format!(
+        "aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
+        e.elevation, sig.elevation_deg, e.verge_left, sig.verge_left_deg, e.verge_right, sig.verge_right_deg
+    )
 }
