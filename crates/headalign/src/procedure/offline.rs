@@ -62,12 +62,7 @@ pub struct SessionAlignment {
 /// the vergence view's resection and [`solve_alignment`].
 pub fn align_session(views: &[View], estimation: &EstimationOptions) -> Result<SessionAlignment, AlignError> {
     let roles = classify_views(views)?;
-    let rig: Vec<View> = views
-        .iter()
-        .zip(&roles)
-        .filter(|(_, r)| !matches!(r, ViewRole::Verge))
-        .map(|(v, _)| v.clone())
-        .collect();
+    let rig = rig_views(views, &roles);
     let calibration = estimate_rig(&rig, estimation)?;
     let state = &calibration.bundle.state;
     let reference = views.first().map(|v| v.capture.encoders).unwrap_or_default();
@@ -112,6 +107,11 @@ pub struct PlanarSessionAlignment {
     pub sigmas: AlignmentSigmas,
 }
 
+/// The views that move the whole rig (every view but the vergence one), in order.
+fn rig_views(views: &[View], roles: &[ViewRole]) -> Vec<View> {
+    views.iter().zip(roles).filter(|(_, r)| !matches!(r, ViewRole::Verge)).map(|(v, _)| v.clone()).collect()
+}
+
 /// Align a recorded session, detecting a planar or far scene first (module docs).
 ///
 /// Errors: those of [`classify_views`], then of [`align_session`] or of the planar route
@@ -121,12 +121,7 @@ pub fn align_session_detecting(
     estimation: &EstimationOptions,
 ) -> Result<SessionRoute, AlignError> {
     let roles = classify_views(views)?;
-    let rig: Vec<View> = views
-        .iter()
-        .zip(&roles)
-        .filter(|(_, r)| !matches!(r, ViewRole::Verge))
-        .map(|(v, _)| v.clone())
-        .collect();
+    let rig = rig_views(views, &roles);
     let scene = detect_scene(&rig, &estimation.fundamental);
     if scene.kind == SceneKind::General {
         return align_session(views, estimation).map(|a| SessionRoute::General(Box::new(a), scene));
