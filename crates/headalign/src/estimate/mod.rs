@@ -330,6 +330,21 @@ impl LoneDepthGate {
     /// 941 with 50 points at 1.5 px; z = 6 flags half as many of those inliers and lets 0-9 %
     /// more outliers through, a roughness of 0 flags 1.4-2 times as many inliers.
     pub const DEFAULT: LoneDepthGate = LoneDepthGate { z: 5.0, roughness: 0.1, neighbours: 10 };
+
+    /// Check every field: a positive finite `z`, a finite `roughness >= 0`, at least 3
+    /// neighbours.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        let ok = self.z.is_finite()
+            && self.z > 0.0
+            && self.roughness.is_finite()
+            && self.roughness >= 0.0
+            && self.neighbours >= 3;
+        ok.then_some(()).ok_or_else(|| {
+            AlignError::InvalidOption(
+                "lone_depth_gate needs a positive finite z, a finite roughness >= 0 and at least 3 neighbours".into(),
+            )
+        })
+    }
 }
 
 /// How [`profile_depth_scale`] widens the reported covariance: the estimate is
@@ -354,6 +369,19 @@ impl DepthProfile {
     /// The default: ends at 1 sigma of the depth scale, profiled when its sigma exceeds
     /// 0.01 (field docs).
     pub const DEFAULT: DepthProfile = DepthProfile { z: 1.0, min_sigma_log_depth: 0.01 };
+
+    /// Check every field: a positive finite `z`, a finite `min_sigma_log_depth >= 0`.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        let ok = self.z.is_finite()
+            && self.z > 0.0
+            && self.min_sigma_log_depth.is_finite()
+            && self.min_sigma_log_depth >= 0.0;
+        ok.then_some(()).ok_or_else(|| {
+            AlignError::InvalidOption(
+                "depth_profile needs a positive finite z and a finite min_sigma_log_depth >= 0".into(),
+            )
+        })
+    }
 }
 
 /// What [`profile_depth_scale`] did.
@@ -395,6 +423,17 @@ impl DepthStepGate {
     /// moved and the focal and elevation errors grew (README), so nothing sets it by
     /// default.
     pub const IMAGES: DepthStepGate = DepthStepGate { radius_px: 40.0, ratio: 1.15 };
+
+    /// Check every field: a positive finite radius, a finite ratio above 1.
+    pub fn validate(&self) -> Result<(), AlignError> {
+        let ok =
+            self.radius_px.is_finite() && self.radius_px > 0.0 && self.ratio.is_finite() && self.ratio > 1.0;
+        ok.then_some(()).ok_or_else(|| {
+            AlignError::InvalidOption(
+                "depth_step needs a positive finite radius and a finite ratio above 1".into(),
+            )
+        })
+    }
 }
 
 impl Default for EstimationOptions {
@@ -459,37 +498,12 @@ impl EstimationOptions {
         if !self.reselect_sigmas.is_finite() || self.reselect_sigmas <= 1.0 {
             return Err(AlignError::InvalidOption("reselect_sigmas must be a finite number above 1".into()));
         }
-        if let Some(g) = self.depth_step
-            && !(g.radius_px.is_finite() && g.radius_px > 0.0 && g.ratio.is_finite() && g.ratio > 1.0)
-        {
-            return Err(AlignError::InvalidOption(
-                "depth_step needs a positive finite radius and a finite ratio above 1".into(),
-            ));
-        }
-        if let Some(g) = self.lone_depth_gate
-            && !(g.z.is_finite()
-                && g.z > 0.0
-                && g.roughness.is_finite()
-                && g.roughness >= 0.0
-                && g.neighbours >= 3)
-        {
-            return Err(AlignError::InvalidOption(
-                "lone_depth_gate needs a positive finite z, a finite roughness >= 0 and at least 3 neighbours".into(),
-            ));
-        }
+        self.depth_step.as_ref().map_or(Ok(()), DepthStepGate::validate)?;
+        self.lone_depth_gate.as_ref().map_or(Ok(()), LoneDepthGate::validate)?;
         if self.min_tracks < 8 {
             return Err(AlignError::InvalidOption("min_tracks must be at least 8".into()));
         }
-        if let Some(p) = self.depth_profile
-            && !(p.z.is_finite()
-                && p.z > 0.0
-                && p.min_sigma_log_depth.is_finite()
-                && p.min_sigma_log_depth >= 0.0)
-        {
-            return Err(AlignError::InvalidOption(
-                "depth_profile needs a positive finite z and a finite min_sigma_log_depth >= 0".into(),
-            ));
-        }
+        self.depth_profile.as_ref().map_or(Ok(()), DepthProfile::validate)?;
         if let Some(b) = self.bootstrap {
             b.validate().map_err(|e| match e {
                 headalign_geometry::GeometryError::InvalidOption(m) => AlignError::InvalidOption(m),
