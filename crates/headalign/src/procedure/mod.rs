@@ -389,16 +389,7 @@ impl VergeTiltRun {
                 .map(|o| RouteOutcome::General(Box::new(o), scene));
         }
         let t0 = Instant::now();
-        let planar_options = planar_options(&options.estimation);
-        let calibration = crate::planar::estimate_planar(&self.views, scene, &planar_options)?;
-        let reference = self.views[0].capture.encoders;
-        let solution = crate::alignment::solve_alignment_axes(
-            &calibration.left.axes(),
-            &calibration.right.axes(),
-            &reference,
-        )?;
-        let reading_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
-        let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
+        let (calibration, solution, sigmas) = planar_alignment(&self.views, scene, &options.estimation)?;
         let mut estimation_seconds = t0.elapsed().as_secs_f64();
         head.move_to(&solution.aligned_encoders)?;
         let idx = self.capture(head, "check-1")?;
@@ -557,6 +548,25 @@ pub fn planar_options(estimation: &EstimationOptions) -> crate::planar::PlanarOp
             .map_or(crate::estimate::ENCODER_SIGMA_DEG, f64::to_degrees),
         ..crate::planar::PlanarOptions::default()
     }
+}
+
+/// The planar route's alignment of `views` (the first is the reference): the planar
+/// estimate, the aligned readings from each camera's own axes, and their sigmas with the
+/// readings' own noise (the estimation's angle prior).
+pub(crate) fn planar_alignment(
+    views: &[View],
+    scene: crate::planar::SceneCheck,
+    estimation: &EstimationOptions,
+) -> Result<(crate::planar::PlanarCalibration, AlignmentSolution, AlignmentSigmas), AlignError> {
+    let calibration = crate::planar::estimate_planar(views, scene, &planar_options(estimation))?;
+    let solution = crate::alignment::solve_alignment_axes(
+        &calibration.left.axes(),
+        &calibration.right.axes(),
+        &calibration.reference_encoders,
+    )?;
+    let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
+    let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
+    Ok((calibration, solution, sigmas))
 }
 
 /// The views the procedure captures, in order, from the initial readings `e0`: the

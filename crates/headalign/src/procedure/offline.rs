@@ -37,7 +37,7 @@ use crate::alignment::{
 use crate::error::AlignError;
 use crate::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
 use crate::observations::View;
-use crate::planar::{PlanarCalibration, SceneCheck, SceneKind, detect_scene, estimate_planar};
+use crate::planar::{PlanarCalibration, SceneCheck, SceneKind, detect_scene};
 
 /// What [`align_session`] estimated.
 #[derive(Debug, Clone)]
@@ -115,7 +115,7 @@ fn rig_views(views: &[View], roles: &[ViewRole]) -> Vec<View> {
 /// Align a recorded session, detecting a planar or far scene first (module docs).
 ///
 /// Errors: those of [`classify_views`], then of [`align_session`] or of the planar route
-/// ([`estimate_planar`], [`crate::alignment::solve_alignment_axes`]).
+/// ([`crate::planar::estimate_planar`], [`crate::alignment::solve_alignment_axes`]).
 pub fn align_session_detecting(
     views: &[View],
     estimation: &EstimationOptions,
@@ -130,14 +130,7 @@ pub fn align_session_detecting(
     if let Some(v) = roles.iter().position(|r| matches!(r, ViewRole::Verge)).and_then(|i| views.get(i)) {
         used.push(v.clone());
     }
-    let calibration = estimate_planar(&used, scene, &super::planar_options(estimation))?;
-    let reference = views.first().map(|v| v.capture.encoders).unwrap_or_default();
-    let solution = crate::alignment::solve_alignment_axes(
-        &calibration.left.axes(),
-        &calibration.right.axes(),
-        &reference,
-    )?;
-    let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
-    let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
+    let (calibration, solution, sigmas) = super::planar_alignment(&used, scene, estimation)?;
+    let reference = calibration.reference_encoders;
     Ok(SessionRoute::Planar(Box::new(PlanarSessionAlignment { calibration, reference, solution, sigmas })))
 }
