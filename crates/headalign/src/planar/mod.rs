@@ -63,6 +63,7 @@ use serde::Serialize;
 
 pub use check::{CameraCheck, PlanarCheck, UNCHECKED, check_alignment};
 pub use detect::{SceneCheck, SceneKind, detect_scene};
+pub use profile::{PLANE_TEST_Z, PlaneTest, chi_square_quantile};
 pub use sigmas::alignment_sigmas;
 
 use crate::alignment::CameraAxes;
@@ -191,6 +192,9 @@ pub struct CameraPlanar {
     /// Largest sigma ratio the profile over the plane normal applied (1: none;
     /// [`PlanarOptions::normal_profile_z`]).
     pub profile_widening: f64,
+    /// The fitted plane against the plane at infinity ([`PlaneTest`]): a plane it does not
+    /// reject is neither profiled nor reported.
+    pub plane_test: PlaneTest,
     /// Observations in the final fit.
     pub observations: usize,
     /// Points in the final fit.

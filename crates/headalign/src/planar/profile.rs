@@ -27,7 +27,7 @@
 //! neither rule above stops it, and why its ends widen is not known.
 
 use headalign_geometry::planar::tangent_basis;
-use nalgebra::{DMatrix, Matrix2, Unit};
+use nalgebra::{DMatrix, Matrix2, Unit, Vector3};
 
 use super::refine::{PlaneHold, Problem, adjust, covariance_at};
 use crate::estimate::MAX_END_WIDENING;
@@ -40,6 +40,64 @@ pub const PROFILE_END_ITERATIONS: usize = 20;
 /// Largest angle of an end from the estimated normal, radians (60 deg): a normal whose
 /// `z` sigmas reach it is not profiled (its ends would say nothing of where it lies).
 pub const MAX_END_ANGLE_RAD: f64 = std::f64::consts::FRAC_PI_3;
+
+/// One-sided standard normal quantile of the plane test's level (5 %, module docs), for
+/// [`chi_square_quantile`].
+pub const PLANE_TEST_Z: f64 = 1.644_853_6;
+
+/// Weight of the hold of `m` at zero in the plane test, per (inverse metre)^2: `m` held to
+/// 1e-6 per metre in the scale gauge, a displacement below 1e-4 px for any offset under
+/// 10 m and focal length under 10^4 px.
+const INFINITY_HOLD_WEIGHT: f64 = 1e12;
+
+/// Quantile of the chi-square distribution with `dof` degrees of freedom at the standard
+/// normal quantile `z` (Wilson-Hilferty's cube-root approximation: within 0.05 of the
+/// tables for 6-30 dof at the 5 % level).
+pub fn chi_square_quantile(dof: f64, z: f64) -> f64 {
+    let a = 2.0 / (9.0 * dof);
+    dof * (1.0 - a + z * a.sqrt()).powi(3)
+}
+
+/// The test of the fitted plane against the plane at infinity (module docs).
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct PlaneTest {
+    /// Rise of the whitened cost when `m` is held at zero and the camera re-adjusted
+    /// (chi-square units: squared residuals over the pixel noise); NaN if that fit failed.
+    pub rise: f64,
+    /// Degrees of freedom of the bound: 6 per moved joint (module docs).
+    pub dof: usize,
+    /// The bound's quantile at [`PLANE_TEST_Z`].
+    pub threshold: f64,
+}
+
+impl PlaneTest {
+    /// Whether the data reject the plane at infinity: only then do they determine a plane.
+    pub fn determines_plane(&self) -> bool {
+        self.rise > self.threshold
+    }
+}
+
+/// Test the plane of `p` (the adjusted camera) against the plane at infinity at pixel
+/// weight `weight_px`: `p` re-adjusted (`iterations` at most) with `m` held at zero
+/// (module docs).
+pub(super) fn test_plane_at_infinity(
+    p: &Problem,
+    weight_px: f64,
+    angle_sigma: f64,
+    iterations: usize,
+) -> PlaneTest {
+    let dof = 6 * p.joints.len();
+    let threshold = chi_square_quantile(dof as f64, PLANE_TEST_Z);
+    let mut at_infinity = p.clone();
+    at_infinity.plane = Vector3::zeros();
+    at_infinity.plane_hold = Some(PlaneHold {
+        across: vec![Vector3::x(), Vector3::y(), Vector3::z()],
+        weight: INFINITY_HOLD_WEIGHT,
+    });
+    let rise = adjust(at_infinity, weight_px, angle_sigma, iterations)
+        .map_or(f64::NAN, |q| q.cost(weight_px, angle_sigma) - p.cost(weight_px, angle_sigma));
+    PlaneTest { rise, dof, threshold }
+}
 
 /// What the profile did for one camera.
 #[derive(Debug, Clone, Copy, Default)]
@@ -96,7 +154,7 @@ pub(super) fn profile_normal(
             let (c1, c2) = tangent_basis(&dir);
             let mut end = p.clone();
             end.plane = dir.into_inner() * mn;
-            end.plane_hold = Some(PlaneHold { across: [c1, c2], weight: (1e3 / (sigma * mn)).powi(2) });
+            end.plane_hold = Some(PlaneHold { across: vec![c1, c2], weight: (1e3 / (sigma * mn)).powi(2) });
             let Ok(mut end) = adjust(end, weight_px, angle_sigma, PROFILE_END_ITERATIONS) else { continue };
             end.plane_hold = None;
             let Some(c_end) = covariance_at(&end, weight_px, angle_sigma) else { continue };
