@@ -78,9 +78,9 @@ pub const MAX_END_ANGLE_RAD: f64 = std::f64::consts::FRAC_PI_3;
 /// [`chi_square_quantile`].
 pub const PLANE_TEST_Z: f64 = 1.644_853_6;
 
-/// Weight of the hold of `m` at zero in the plane test, per (inverse metre)^2: `m` held to
-/// 1e-6 per metre in the scale gauge, a displacement below 1e-4 px for any offset under
-/// 10 m and focal length under 10^4 px.
+/// Weight of the hold of `m` at zero in the plane test: a prior of sigma 1e-6 per metre on
+/// each component, in the scale gauge where a fitted plane's `|m|` is 0.1-0.3 per metre
+/// (`refine.rs`).
 const INFINITY_HOLD_WEIGHT: f64 = 1e12;
 
 /// Quantile of the chi-square distribution with `dof` degrees of freedom at the standard
