@@ -26,15 +26,21 @@
 //! 5. **profile** (`profile.rs`, [`PlanarOptions::normal_profile_z`]): the covariance
 //!    widened to the largest of its linearisations at the estimate and at the camera
 //!    re-adjusted with the plane's normal held one sigma either side (the normal is the
-//!    ill-determined direction of a wall a few metres away);
+//!    ill-determined direction of a wall a few metres away), only where the data
+//!    determine a plane: it moves some view by [`FAR_PARALLAX_PX`] and the camera
+//!    re-adjusted with the plane at infinity (`m = 0`) costs more than the chi-square
+//!    bound at 5 % ([`PlaneTest`]; at 1 px the far scene's fitted plane is noise that
+//!    moves the views by a pixel or two);
 //! 6. **alignment**: [`crate::alignment::solve_alignment_axes`] from each camera's axes
 //!    and intrinsics (alignment needs no baseline); sigmas by [`alignment_sigmas`].
 //!
 //! What a plane cannot give is not reported as a number: the distances (the plane's, the
 //! axes' offsets, the baseline: a gauge, fixed by a unit-variance prior on the offsets
 //! and on `m` that no observable quantity feels), the rig's translation, the plane's
-//! normal when the scene is far (its sigma then exceeds [`NORMAL_UNDETERMINED_DEG`]:
-//! [`CameraPlanar::plane_normal`] is `None` and the scene is reported `far`).
+//! normal when the scene is far (its sigma then exceeds [`NORMAL_UNDETERMINED_DEG`], the
+//! plane moves no view by [`FAR_PARALLAX_PX`], or the plane at infinity explains the data
+//! ([`PlaneTest`]): [`CameraPlanar::plane_normal`] is `None` and the scene is reported
+//! `far`).
 //!
 //! Degrees of freedom per camera: 4, plus 4 per moved joint, 1 per (view, moved joint), 3
 //! and 2 per point, less the one gauge. Pitfalls: a far scene that is not at infinity is
@@ -63,6 +69,7 @@ use serde::Serialize;
 
 pub use check::{CameraCheck, PlanarCheck, UNCHECKED, check_alignment};
 pub use detect::{SceneCheck, SceneKind, detect_scene};
+pub use profile::{PLANE_TEST_Z, PlaneTest, chi_square_quantile};
 pub use sigmas::alignment_sigmas;
 
 use crate::alignment::CameraAxes;
@@ -170,7 +177,7 @@ pub struct CameraPlanar {
     /// This camera's vergence axis direction, if a view turned it.
     pub verge: Option<[f64; 3]>,
     /// The plane's unit normal (camera frame, towards the camera), `None` when the data
-    /// cannot tell it (far scene).
+    /// cannot tell it (far scene: module docs).
     pub plane_normal: Option<[f64; 3]>,
     /// Sigma of the plane normal's direction, degrees.
     pub plane_normal_sigma_deg: f64,
@@ -191,6 +198,9 @@ pub struct CameraPlanar {
     /// Largest sigma ratio the profile over the plane normal applied (1: none;
     /// [`PlanarOptions::normal_profile_z`]).
     pub profile_widening: f64,
+    /// The fitted plane against the plane at infinity ([`PlaneTest`]): a plane it does not
+    /// reject is neither profiled nor reported.
+    pub plane_test: PlaneTest,
     /// Observations in the final fit.
     pub observations: usize,
     /// Points in the final fit.
@@ -278,8 +288,15 @@ pub fn estimate_planar(
     if left.plane_normal.is_none() && right.plane_normal.is_none() {
         scene.kind = SceneKind::Far;
         scene.why.push_str(&format!(
-            "; the plane's distance moves the images by at most {:.2} / {:.2} px (left / right) and its normal's sigma is {:.1} / {:.1} deg: the scene acts as the plane at infinity",
-            left.plane_parallax_px, right.plane_parallax_px, left.plane_normal_sigma_deg, right.plane_normal_sigma_deg
+            "; the plane's distance moves the images by at most {:.2} / {:.2} px (left / right), its normal's sigma is {:.1} / {:.1} deg and the plane at infinity raises the cost by {:.1} / {:.1} (5 % bounds {:.1} / {:.1}): the scene acts as the plane at infinity",
+            left.plane_parallax_px,
+            right.plane_parallax_px,
+            left.plane_normal_sigma_deg,
+            right.plane_normal_sigma_deg,
+            left.plane_test.rise,
+            right.plane_test.rise,
+            left.plane_test.threshold,
+            right.plane_test.threshold
         ));
         undetermined.push("plane normal (far scene)".into());
     } else {

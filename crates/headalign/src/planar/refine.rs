@@ -31,7 +31,7 @@ use headalign_geometry::planar::{JointFactor, project_plane_point, tangent_basis
 use headalign_geometry::so3::{Line, rotation_about_line};
 use nalgebra::{DMatrix, DVector, Matrix2, Point2, Point3, Unit, Vector2, Vector3};
 
-use super::profile::{NormalProfile, profile_normal};
+use super::profile::{NormalProfile, PlaneTest, profile_normal, test_plane_at_infinity};
 use super::{CameraPlanar, FAR_PARALLAX_PX, NORMAL_UNDETERMINED_DEG, PlanarOptions, camera_joints};
 use crate::error::AlignError;
 
@@ -59,11 +59,13 @@ pub(super) struct Observation {
     pub pixel: Point2<f64>,
 }
 
-/// A linear penalty `weight ((m . c1)^2 + (m . c2)^2)` holding the plane's normal along
-/// the direction perpendicular to `across` (the profile's ends, `profile.rs`).
-#[derive(Debug, Clone, Copy)]
+/// A penalty `weight sum_k (m . c_k)^2` over the directions `c_k` of `across`: with the
+/// two directions perpendicular to a normal it holds the plane's normal there (the
+/// profile's ends), with all three it holds `m` at zero (the plane at infinity; both in
+/// `profile.rs`).
+#[derive(Debug, Clone)]
 pub(super) struct PlaneHold {
-    pub across: [Vector3<f64>; 2],
+    pub across: Vec<Vector3<f64>>,
     pub weight: f64,
 }
 
@@ -92,6 +94,7 @@ pub(super) struct Fit {
     sigma_px: f64,
     rms_px: f64,
     profile: NormalProfile,
+    plane_test: PlaneTest,
 }
 
 impl Problem {
@@ -141,7 +144,7 @@ impl Problem {
     }
 
     /// Whitened cost at pixel sigma `sigma`, infinite if a point projects to infinity.
-    fn cost(&self, sigma: f64, angle_sigma: f64) -> f64 {
+    pub(super) fn cost(&self, sigma: f64, angle_sigma: f64) -> f64 {
         let mut c = 0.0;
         for r in self.residuals() {
             match r {
@@ -431,15 +434,16 @@ pub(super) fn maximum_likelihood(start: Problem, options: &PlanarOptions) -> Res
             "a point projects to infinity or the normal equations are singular".into(),
         ),
     })?;
-    // A plane that moves no view by FAR_PARALLAX_PX has a normal the images do not feel
-    // (the far scene): nothing to profile.
+    // Only a plane the data determine is profiled (profile.rs): one that moves some view
+    // by FAR_PARALLAX_PX and that the plane at infinity does not explain as well.
+    let plane_test = test_plane_at_infinity(&p, weight_px, angle_sigma, options.max_iterations);
     let profile = match options.normal_profile_z {
-        Some(z) if p.plane_parallax_px() >= FAR_PARALLAX_PX => {
+        Some(z) if p.plane_parallax_px() >= FAR_PARALLAX_PX && plane_test.determines_plane() => {
             profile_normal(&p, &mut covariance, weight_px, angle_sigma, z)
         }
         _ => NormalProfile { max_widening: 1.0, ..NormalProfile::default() },
     };
-    Ok(Fit { problem: p, covariance, sigma_px, rms_px, profile })
+    Ok(Fit { problem: p, covariance, sigma_px, rms_px, profile, plane_test })
 }
 
 impl Fit {
@@ -479,7 +483,9 @@ impl Fit {
             (Vector3::zeros(), 90.0)
         };
         let parallax_px = p.plane_parallax_px();
-        let determined = sigma_deg < NORMAL_UNDETERMINED_DEG && parallax_px >= FAR_PARALLAX_PX;
+        let determined = sigma_deg < NORMAL_UNDETERMINED_DEG
+            && parallax_px >= FAR_PARALLAX_PX
+            && self.plane_test.determines_plane();
         let _ = camera_joints(side);
         CameraPlanar {
             side,
@@ -495,6 +501,7 @@ impl Fit {
             sigma_px: self.sigma_px,
             rms_px: self.rms_px,
             profile_widening: self.profile.max_widening,
+            plane_test: self.plane_test,
             observations: p.obs.len(),
             points: p.points.len(),
             joint_lines: p
