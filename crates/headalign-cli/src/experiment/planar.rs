@@ -48,8 +48,7 @@ const NOISE_PX: [f64; 4] = [0.0, 0.5, 1.0, 2.0];
 /// Default trials per (scene, noise) condition.
 const DEFAULT_TRIALS: usize = 50;
 
-/// Largest `--rotation`, degrees: the lens experiment's limit; the wall preset's nearest
-/// points (1 m) leave a 60-degree view beyond it.
+/// Largest `--rotation`, degrees (the lens experiment's limit).
 const MAX_ROTATION_DEG: f64 = 30.0;
 
 /// The rotation of every moved view, degrees: `--rotation`, or the verge/tilt procedure's
