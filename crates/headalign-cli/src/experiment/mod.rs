@@ -90,7 +90,8 @@ pub struct ExperimentArgs {
     // Seeds per condition: `ceil(trials / conditions)`, at least one (`run_one`).
     #[arg(long)]
     pub trials: Option<usize>,
-    /// Rotation of the elevation and pan views of `lens`, degrees (default 3).
+    /// Rotation of the elevation and pan views of `lens`, and of every moved view of `planar`,
+    /// degrees (default 3).
     #[arg(long)]
     pub rotation: Option<f64>,
     /// First seed.
@@ -854,6 +855,9 @@ const OTHER_SCENE_BARS: [(&str, &str, f64); 4] = [
 
 /// Entry point of `headalign experiment`.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
+    if args.rotation.is_some() && args.name != lens::NAME && args.name != planar::NAME {
+        bail!("--rotation applies to the lens and planar experiments only");
+    }
     if args.name == ml_spread::NAME {
         return ml_spread::run(args);
     }
@@ -862,9 +866,6 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     }
     if args.name == planar::NAME {
         return planar::run(args);
-    }
-    if args.rotation.is_some() {
-        bail!("--rotation applies to the lens experiment only");
     }
     let scene = scene_name(&args.scene)?;
     if args.name == "all" && scene != "default" {

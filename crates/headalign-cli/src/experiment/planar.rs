@@ -3,8 +3,9 @@
 //! the default room.
 //!
 //! A trial: the simulated head of the scene (seed `seed + t`, the noise level, 10 %
-//! outliers, encoder noise `--encoder-noise`), the procedure's default views (reference,
-//! elevation and pan +-3 deg, both vergences +3 deg) captured in point mode, the scene
+//! outliers, encoder noise `--encoder-noise`), the procedure's views (reference,
+//! elevation and pan +-r, both vergences +r; `--rotation` r degrees, default the
+//! procedure's 3 deg: [`procedure_options`]) captured in point mode, the scene
 //! detection, the planar estimate, the aligned readings ([`solve_alignment_axes`]) and
 //! their sigmas ([`headalign::planar::alignment_sigmas`] plus the reading noise). The
 //! general scene runs [`VergeTiltRun::run`] (the general route, no detection), at 1 px
@@ -46,6 +47,28 @@ const NOISE_PX: [f64; 4] = [0.0, 0.5, 1.0, 2.0];
 
 /// Default trials per (scene, noise) condition.
 const DEFAULT_TRIALS: usize = 50;
+
+/// Largest `--rotation`, degrees (the lens experiment's limit).
+const MAX_ROTATION_DEG: f64 = 30.0;
+
+/// The rotation of every moved view, degrees: `--rotation`, or the verge/tilt procedure's
+/// default `rotation_deg` (3); in (0, [`MAX_ROTATION_DEG`]].
+fn rotation_deg(rotation: Option<f64>) -> Result<f64> {
+    let r = rotation.unwrap_or(VergeTiltOptions::default().rotation_deg);
+    if !(r.is_finite() && r > 0.0 && r <= MAX_ROTATION_DEG) {
+        anyhow::bail!("--rotation must be in (0, {MAX_ROTATION_DEG}] degrees, got {r}");
+    }
+    Ok(r)
+}
+
+/// The procedure's options of every trial (planar and general route): the elevation and
+/// pan views (`rotation_deg`) and the vergence view (`verge_rotation_deg`, both vergences)
+/// turned by `rotation` degrees, as the procedure's automatic choice turns them when the
+/// scene allows ([`headalign::procedure::AutoRotation::choose_verge`]); the rest default.
+/// At the default 3 deg these are the default options.
+fn procedure_options(rotation: f64) -> VergeTiltOptions {
+    VergeTiltOptions { rotation_deg: rotation, verge_rotation_deg: rotation, ..VergeTiltOptions::default() }
+}
 
 /// One trial's result.
 struct Trial {
@@ -116,7 +139,7 @@ fn crb_views(head: &SimulatedHead, noisy: &[View], truth: &[Encoders], noise: f6
 type TrialNumbers = ([f64; 3], [f64; 3], [f64; 3], String);
 
 /// Run one planar-route trial.
-fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) -> Trial {
+fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64, rotation: f64) -> Trial {
     let mut t = Trial::new(scene, noise, seed, "planar");
     let result = (|| -> Result<TrialNumbers> {
         let base = Scenario::preset(scene).map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -126,7 +149,7 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) 
             ..base.with_seed(seed)
         };
         let mut head = SimulatedHead::new(scenario).map_err(|e| anyhow::anyhow!("{e}"))?;
-        let options = VergeTiltOptions::default();
+        let options = procedure_options(rotation);
         let e0 = head.read_encoders()?;
         let (mut views, mut truth) = (Vec::new(), Vec::new());
         for (name, e) in capture_plan(&e0, &options) {
@@ -183,13 +206,13 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64) 
 }
 
 /// Run one general-route trial in the default room.
-fn general_trial(noise: f64, seed: u64, encoder_noise: f64) -> Trial {
+fn general_trial(noise: f64, seed: u64, encoder_noise: f64, rotation: f64) -> Trial {
     let mut t = Trial::new("default", noise, seed, "general");
     let scenario =
         Scenario { noise_px: noise, encoder_noise_deg: encoder_noise, ..Scenario::default().with_seed(seed) };
     let result = SimulatedHead::new(scenario).map_err(|e| anyhow::anyhow!("{e}")).and_then(|mut head| {
         let out =
-            VergeTiltRun::default().run(&mut head, &VergeTiltOptions::default()).context("general route")?;
+            VergeTiltRun::default().run(&mut head, &procedure_options(rotation)).context("general route")?;
         let (a, truth) = (out.solution.aligned_encoders, head.aligned_encoders());
         Ok((
             [
@@ -213,6 +236,7 @@ fn general_trial(noise: f64, seed: u64, encoder_noise: f64) -> Trial {
 /// Entry point: run, write `planar.csv` and `planar.md` in `--out`, print the summary.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
     let per = args.trials.unwrap_or(DEFAULT_TRIALS).max(1);
+    let rotation = rotation_deg(args.rotation)?;
     let noises: Vec<f64> = if args.only.is_empty() { NOISE_PX.to_vec() } else { args.only.clone() };
     if noises.iter().any(|n| !(n.is_finite() && *n >= 0.0)) {
         anyhow::bail!("--only: noise levels must be non-negative pixels, got {noises:?}");
@@ -241,9 +265,9 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         .par_iter()
         .map(|&(scene, noise, seed)| {
             if scene == "default" {
-                general_trial(noise, seed, args.encoder_noise)
+                general_trial(noise, seed, args.encoder_noise, rotation)
             } else {
-                planar_trial(scene, noise, seed, args.encoder_noise)
+                planar_trial(scene, noise, seed, args.encoder_noise, rotation)
             }
         })
         .collect();
@@ -272,7 +296,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         );
     }
     std::fs::write(args.out.join("planar.csv"), csv).context("planar.csv")?;
-    let md = summary(&trials, per, args.seed);
+    let md = summary(&trials, per, args.seed, args.rotation);
     std::fs::write(args.out.join("planar.md"), &md).context("planar.md")?;
     use std::io::Write as _;
     let _ = writeln!(std::io::stdout(), "{md}");
@@ -293,10 +317,11 @@ pub fn kept_section(existing: &str) -> Option<String> {
     Some(rest[..end].trim_end().to_string() + "\n")
 }
 
-/// The Markdown summary (module docs).
-fn summary(trials: &[Trial], per: usize, seed: u64) -> String {
+/// The Markdown summary (module docs); the heading names `--rotation` when it was given.
+fn summary(trials: &[Trial], per: usize, seed: u64, rotation: Option<f64>) -> String {
+    let rotation = rotation.map_or_else(String::new, |r| format!(" --rotation {r}"));
     let mut md = format!(
-        "## Planar route (`experiment planar --trials {per} --seed {seed}`)\n\nAligned-reading errors (deg) against the truth: RMS, the RMS of the reported sigmas, the RMS of the planar model's Cramér-Rao bound at the truth (CRB), the ratios, and the reported sigmas' 95 % coverage.\n\n| scene | noise px | ok / n | routes | reading | RMS deg | sigma RMS deg | RMS / sigma | CRB RMS deg | RMS / CRB | coverage 95 % |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
+        "## Planar route (`experiment planar --trials {per} --seed {seed}{rotation}`)\n\nAligned-reading errors (deg) against the truth: RMS, the RMS of the reported sigmas, the RMS of the planar model's Cramér-Rao bound at the truth (CRB), the ratios, and the reported sigmas' 95 % coverage.\n\n| scene | noise px | ok / n | routes | reading | RMS deg | sigma RMS deg | RMS / sigma | CRB RMS deg | RMS / CRB | coverage 95 % |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
     );
     let mut keys: Vec<(&str, f64)> = Vec::new();
     for t in trials {
@@ -341,6 +366,63 @@ fn summary(trials: &[Trial], per: usize, seed: u64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::Parser;
+
+    /// `headalign experiment`'s arguments alone.
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: ExperimentArgs,
+    }
+
+    fn parse(words: &[&str]) -> ExperimentArgs {
+        let cli = Cli::try_parse_from(std::iter::once("experiment").chain(words.iter().copied()));
+        cli.map(|c| c.args).unwrap_or_else(|e| panic!("{words:?}: {e}"))
+    }
+
+    /// `--rotation`: parsed for `planar`, the procedure's 3 deg when absent (then the
+    /// default options), any size in (0, 30] deg turning the elevation, pan and vergence
+    /// views; out of range, or given to an experiment without it, a clean error before any
+    /// trial runs.
+    #[test]
+    fn rotation_turns_every_moved_view() {
+        let args = parse(&["planar", "--scene", "wall", "--rotation", "6", "--only", "1"]);
+        let r = rotation_deg(args.rotation).unwrap();
+        assert_eq!(r, 6.0);
+        let plan = capture_plan(&Encoders::default(), &procedure_options(r));
+        let moved: Vec<(&str, f64, f64, f64, f64)> =
+            plan.iter().map(|(n, e)| (n.as_str(), e.elevation, e.pan, e.verge_left, e.verge_right)).collect();
+        assert_eq!(
+            moved,
+            [
+                ("initial", 0.0, 0.0, 0.0, 0.0),
+                ("elevation+", 6.0, 0.0, 0.0, 0.0),
+                ("elevation-", -6.0, 0.0, 0.0, 0.0),
+                ("pan+", 0.0, 6.0, 0.0, 0.0),
+                ("pan-", 0.0, -6.0, 0.0, 0.0),
+                ("verge", 0.0, 0.0, 6.0, 6.0),
+            ]
+        );
+        let default = rotation_deg(parse(&["planar"]).rotation).unwrap();
+        let (o, d) = (procedure_options(default), VergeTiltOptions::default());
+        assert_eq!(
+            (o.rotation_deg, o.verge_rotation_deg, o.diagonal_rotation_deg, o.both_directions),
+            (d.rotation_deg, d.verge_rotation_deg, d.diagonal_rotation_deg, d.both_directions)
+        );
+        assert!(o.auto_rotation.is_none());
+        for bad in ["0", "-3", "31", "NaN", "inf"] {
+            let args = parse(&["planar", &format!("--rotation={bad}")]);
+            assert!(rotation_deg(args.rotation).is_err(), "{bad}");
+        }
+        let out = std::env::temp_dir().join(format!("headalign-planar-rotation-{}", std::process::id()));
+        let out = out.to_string_lossy().into_owned();
+        for (name, rotation) in [("planar", "40"), ("points", "6"), ("ml-spread", "6")] {
+            let args = parse(&[name, "--rotation", rotation, "--trials", "1", "--out", &out]);
+            let e = super::super::run(&args).err().map(|e| e.to_string()).unwrap_or_default();
+            assert!(e.contains("--rotation"), "{name}: {e}");
+        }
+        assert!(!std::path::Path::new(&out).exists(), "no trial ran");
+    }
 
     /// The planar section is cut from its heading to the next one, or to the end.
     #[test]
