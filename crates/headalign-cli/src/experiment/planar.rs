@@ -22,8 +22,11 @@
 //! the noisy encoder readings as the angle priors), propagated to the readings as the
 //! reported sigmas are. `--only` picks noise levels (any, in pixels), `--scene wall` or
 //! `far` one scene (and no general route). Not run by `all` (400 planar trials at the
-//! default, and 200 wall trials at 1 px take 16.6 min on a loaded 2-core machine); `all`
+//! default, and 200 wall trials at 1 px take 9-17 min on a loaded 2-core machine); `all`
 //! keeps the planar section of the `results.md` it regenerates ([`kept_section`]).
+//! `planar.csv` has one row per trial: the errors, sigmas and bounds, and per camera the
+//! plane test's cost rise, the fitted plane's largest displacement of a view (pixels) and
+//! the profile's widening (1: not profiled), which show where the normal was profiled.
 
 use std::fmt::Write as _;
 
@@ -81,6 +84,11 @@ struct Trial {
     sigma: [f64; 3],
     /// The Cramér-Rao bound at the truth ([`crb_views`]); NaN for the general route.
     crb: [f64; 3],
+    /// Per camera (left, right) of the planar route: the plane test's cost rise
+    /// (`CameraPlanar::plane_test`), the plane's largest displacement of a view in pixels
+    /// (`plane_parallax_px`) and the profile's largest widening (`profile_widening`, 1:
+    /// not profiled); NaN for the general route.
+    plane: [[f64; 3]; 2],
     failure: Option<String>,
 }
 
@@ -94,6 +102,7 @@ impl Trial {
             err: [f64::NAN; 3],
             sigma: [f64::NAN; 3],
             crb: [f64::NAN; 3],
+            plane: [[f64::NAN; 3]; 2],
             failure: None,
         }
     }
@@ -135,8 +144,9 @@ fn crb_views(head: &SimulatedHead, noisy: &[View], truth: &[Encoders], noise: f6
         .collect()
 }
 
-/// A planar trial's errors, sigmas, bounds (degrees) and route.
-type TrialNumbers = ([f64; 3], [f64; 3], [f64; 3], String);
+/// A planar trial's errors, sigmas, bounds (degrees), route and per-camera plane numbers
+/// ([`Trial::plane`]).
+type TrialNumbers = ([f64; 3], [f64; 3], [f64; 3], String, [[f64; 3]; 2]);
 
 /// Run one planar-route trial.
 fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64, rotation: f64) -> Trial {
@@ -182,6 +192,8 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64, 
         let truth = head.aligned_encoders();
         let a = sol.aligned_encoders;
         let route = if kind == SceneKind::General { "general-detected" } else { calib.scene.kind.name() };
+        let plane = [&calib.left, &calib.right]
+            .map(|c| [c.plane_test.rise, c.plane_parallax_px, c.profile_widening]);
         Ok((
             [
                 a.elevation - truth.elevation,
@@ -191,14 +203,16 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64, 
             [s.elevation_deg, s.verge_left_deg, s.verge_right_deg],
             crb,
             route.to_string(),
+            plane,
         ))
     })();
     match result {
-        Ok((err, sigma, crb, route)) => {
+        Ok((err, sigma, crb, route, plane)) => {
             t.err = err;
             t.sigma = sigma;
             t.crb = crb;
             t.route = route;
+            t.plane = plane;
         }
         Err(e) => t.failure = Some(format!("{e:#}")),
     }
@@ -273,12 +287,12 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         .collect();
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
     let mut csv = String::from(
-        "scene,noise_px,seed,route,err_elevation,err_verge_left,err_verge_right,sigma_elevation,sigma_verge_left,sigma_verge_right,crb_elevation,crb_verge_left,crb_verge_right,failure\n",
+        "scene,noise_px,seed,route,err_elevation,err_verge_left,err_verge_right,sigma_elevation,sigma_verge_left,sigma_verge_right,crb_elevation,crb_verge_left,crb_verge_right,plane_rise_left,plane_parallax_px_left,widening_left,plane_rise_right,plane_parallax_px_right,widening_right,failure\n",
     );
     for t in &trials {
         let _ = writeln!(
             csv,
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             t.scene,
             t.noise,
             t.seed,
@@ -292,6 +306,12 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
             t.crb[0],
             t.crb[1],
             t.crb[2],
+            t.plane[0][0],
+            t.plane[0][1],
+            t.plane[0][2],
+            t.plane[1][0],
+            t.plane[1][1],
+            t.plane[1][2],
             t.failure.as_deref().unwrap_or("").replace([',', '\n'], ";")
         );
     }
@@ -317,11 +337,21 @@ pub fn kept_section(existing: &str) -> Option<String> {
     Some(rest[..end].trim_end().to_string() + "\n")
 }
 
+/// Mean of `values` and its standard error (sample standard deviation over `sqrt n`; NaN
+/// below two values).
+fn mean_and_standard_error(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let v: Vec<f64> = values.collect();
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (mean, if v.len() < 2 { f64::NAN } else { (var / n).sqrt() })
+}
+
 /// The Markdown summary (module docs); the heading names `--rotation` when it was given.
 fn summary(trials: &[Trial], per: usize, seed: u64, rotation: Option<f64>) -> String {
     let rotation = rotation.map_or_else(String::new, |r| format!(" --rotation {r}"));
     let mut md = format!(
-        "## Planar route (`experiment planar --trials {per} --seed {seed}{rotation}`)\n\nAligned-reading errors (deg) against the truth: RMS, the RMS of the reported sigmas, the RMS of the planar model's Cramér-Rao bound at the truth (CRB), the ratios, and the reported sigmas' 95 % coverage.\n\n| scene | noise px | ok / n | routes | reading | RMS deg | sigma RMS deg | RMS / sigma | CRB RMS deg | RMS / CRB | coverage 95 % |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
+        "## Planar route (`experiment planar --trials {per} --seed {seed}{rotation}`)\n\nAligned-reading errors (deg) against the truth: RMS, the RMS of the reported sigmas, the RMS of the planar model's Cramér-Rao bound at the truth (CRB), the ratios, the reported sigmas' 95 % coverage, the mean error with its standard error, the trials whose error exceeds three times their bound (a Gaussian error does so with probability 0.0027), and the cameras whose covariance the profile over the plane's normal widened.\n\n| scene | noise px | ok / n | routes | reading | RMS deg | sigma RMS deg | RMS / sigma | CRB RMS deg | RMS / CRB | coverage 95 % | mean error deg (standard error) | beyond 3 CRB | profiled cameras |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n"
     );
     let mut keys: Vec<(&str, f64)> = Vec::new();
     for t in trials {
@@ -351,9 +381,21 @@ fn summary(trials: &[Trial], per: usize, seed: u64, rotation: Option<f64>) -> St
                 ("-".into(), "-".into())
             };
             let coverage = if noise > 0.0 { format!("{:.1} %", 100.0 * cov) } else { "-".into() };
+            let (mean, se) = mean_and_standard_error(ok.iter().map(|t| t.err[i]));
+            let beyond = if bounded.len() == ok.len() && !bounded.is_empty() {
+                ok.iter().filter(|t| t.err[i].abs() > 3.0 * t.crb[i]).count().to_string()
+            } else {
+                "-".into()
+            };
+            let profiled = if scene == "default" {
+                "-".to_string()
+            } else {
+                let n = ok.iter().flat_map(|t| t.plane).filter(|p| p[2] > 1.0).count();
+                format!("{n} of {}", 2 * ok.len())
+            };
             let _ = writeln!(
                 md,
-                "| {scene} | {noise} | {} / {} | {} | {name} | {rms:.4} | {srms:.4} | {ratio} | {crb} | {crb_ratio} | {coverage} |",
+                "| {scene} | {noise} | {} / {} | {} | {name} | {rms:.4} | {srms:.4} | {ratio} | {crb} | {crb_ratio} | {coverage} | {mean:+.3} ({se:.3}) | {beyond} | {profiled} |",
                 ok.len(),
                 group.len(),
                 routes.join(", "),
@@ -432,5 +474,24 @@ mod tests {
         let last = "# R\n\n## planar — walls\n\nend\n";
         assert_eq!(kept_section(last).as_deref(), Some("## planar — walls\n\nend\n"));
         assert_eq!(kept_section("# R\n\n## lens\n"), None);
+    }
+    /// Two wall trials: errors 0.1 and 0.5 deg against bounds 0.1 (one beyond three bounds),
+    /// one camera of three profiled; the mean 0.3 with standard error 0.2 (sample sd
+    /// 0.2828 over sqrt 2).
+    #[test]
+    fn the_summary_counts_tails_and_profiles() {
+        let trial = |seed: u64, e: f64, widening: [f64; 2]| Trial {
+            err: [e; 3],
+            sigma: [0.3; 3],
+            crb: [0.1; 3],
+            plane: [[40.0, 1.5, widening[0]], [40.0, 1.5, widening[1]]],
+            ..Trial::new("wall", 1.0, seed, "far")
+        };
+        let md = summary(&[trial(1, 0.1, [1.0, 1.4]), trial(2, 0.5, [1.0, 1.0])], 2, 1, None);
+        let row = md.lines().find(|l| l.contains("| elevation |")).unwrap_or_default();
+        assert!(row.ends_with("| +0.300 (0.200) | 1 | 1 of 4 |"), "{row}");
+        let (m, se) = mean_and_standard_error([1.0, 2.0, 3.0].into_iter());
+        assert!((m - 2.0).abs() < 1e-12 && (se - (1.0f64 / 3.0).sqrt()).abs() < 1e-12);
+        assert!(mean_and_standard_error([1.0].into_iter()).1.is_nan());
     }
 }
