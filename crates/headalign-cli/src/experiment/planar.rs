@@ -192,8 +192,8 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64, 
         let truth = head.aligned_encoders();
         let a = sol.aligned_encoders;
         let route = if kind == SceneKind::General { "general-detected" } else { calib.scene.kind.name() };
-        let plane = [&calib.left, &calib.right]
-            .map(|c| [c.plane_test.rise, c.plane_parallax_px, c.profile_widening]);
+        let plane =
+            [&calib.left, &calib.right].map(|c| [c.plane_test.rise, c.plane_parallax_px, c.profile_widening]);
         Ok((
             [
                 a.elevation - truth.elevation,
