@@ -277,10 +277,18 @@ struct Summary {
     f_sigma_median_pct: f64,
     k1_median: f64,
     k1_sigma_median: f64,
-    /// Coverage (0-1) per quantity of the lens.
-    coverage: Vec<f64>,
     /// Per quantity: trials whose interval covers the truth, trials with a sigma.
     coverage_counts: Vec<(usize, usize)>,
+}
+
+impl Summary {
+    /// Coverage (0-1) per quantity of the lens; NaN where no trial has a sigma.
+    fn coverage(&self) -> Vec<f64> {
+        self.coverage_counts
+            .iter()
+            .map(|&(h, n)| if n == 0 { f64::NAN } else { h as f64 / n as f64 })
+            .collect()
+    }
 }
 
 fn summarise(lens: usize, noise_px: f64, trials: &[&Trial]) -> Summary {
@@ -313,8 +321,6 @@ fn summarise(lens: usize, noise_px: f64, trials: &[&Trial]) -> Summary {
             (hits.iter().filter(|h| **h).count(), hits.len())
         })
         .collect();
-    let coverage =
-        coverage_counts.iter().map(|&(h, n)| if n == 0 { f64::NAN } else { h as f64 / n as f64 }).collect();
     Summary {
         lens,
         noise_px,
@@ -328,7 +334,6 @@ fn summarise(lens: usize, noise_px: f64, trials: &[&Trial]) -> Summary {
         f_sigma_median_pct: median(&is_f, &|q| 100.0 * q.sigma / q.truth),
         k1_median: median(&is_k1, &|q| (q.est - q.truth).abs()),
         k1_sigma_median: median(&is_k1, &|q| q.sigma),
-        coverage,
         coverage_counts,
     }
 }
@@ -427,8 +432,7 @@ fn markdown(seeds: usize, first: u64, preset: &Scenario, sums: &[Summary], secon
         100.0 * lo,
         100.0 * hi
     );
-    let all: Vec<f64> =
-        sums.iter().flat_map(|s| s.coverage.iter().copied()).filter(|c| c.is_finite()).collect();
+    let all: Vec<f64> = sums.iter().flat_map(|s| s.coverage()).filter(|c| c.is_finite()).collect();
     let (lo_c, hi_c) = (
         all.iter().copied().fold(f64::INFINITY, f64::min),
         all.iter().copied().fold(f64::NEG_INFINITY, f64::max),
@@ -460,7 +464,7 @@ fn markdown(seeds: usize, first: u64, preset: &Scenario, sums: &[Summary], secon
         let _ = writeln!(m, "\n|---|{}", "---|".repeat(names.len()));
         for s in sums.iter().filter(|s| s.lens == li) {
             let _ = write!(m, "| {} |", s.noise_px);
-            for c in &s.coverage {
+            for c in &s.coverage() {
                 let _ = write!(m, " {} |", f(100.0 * c, 1));
             }
             m.push('\n');
@@ -492,7 +496,7 @@ fn pooled_counts(sums: &[Summary], li: usize) -> Vec<(usize, usize)> {
 fn pooled_coverage_line(sums: &[Summary]) -> String {
     let counts: Vec<(usize, usize)> =
         (0..LENSES.len()).flat_map(|li| pooled_counts(sums, li)).filter(|c| c.1 > 0).collect();
-    let (Some(n), false) = (counts.iter().map(|c| c.1).min(), counts.is_empty()) else {
+    let Some(n) = counts.iter().map(|c| c.1).min() else {
         return String::new();
     };
     let cov: Vec<f64> = counts.iter().map(|&(h, t)| h as f64 / t as f64).collect();
@@ -637,7 +641,7 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
                 let cov: serde_json::Map<String, serde_json::Value> = LENSES[s.lens]
                     .quantities()
                     .into_iter()
-                    .zip(&s.coverage)
+                    .zip(s.coverage())
                     .map(|(n, c)| (n, if c.is_finite() { json!(c) } else { serde_json::Value::Null }))
                     .collect();
                 json!({"lens": LENSES[s.lens].label, "noise_px": s.noise_px, "ok": s.ok, "total": s.total,
@@ -672,7 +676,6 @@ mod tests {
             f_sigma_median_pct: 1.0,
             k1_median: 0.007,
             k1_sigma_median: 0.01,
-            coverage: vec![hits as f64 / n as f64; q],
             coverage_counts: vec![(hits, n); q],
         }
     }

@@ -41,6 +41,7 @@ use headalign_sim::{Scenario, SimulatedHead};
 use rayon::prelude::*;
 
 use super::ExperimentArgs;
+use super::stats::mean_and_standard_error;
 
 /// The experiment's name.
 pub const NAME: &str = "planar";
@@ -144,14 +145,10 @@ fn crb_views(head: &SimulatedHead, noisy: &[View], truth: &[Encoders], noise: f6
         .collect()
 }
 
-/// A planar trial's errors, sigmas, bounds (degrees), route and per-camera plane numbers
-/// ([`Trial::plane`]).
-type TrialNumbers = ([f64; 3], [f64; 3], [f64; 3], String, [[f64; 3]; 2]);
-
 /// Run one planar-route trial.
 fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64, rotation: f64) -> Trial {
-    let mut t = Trial::new(scene, noise, seed, "planar");
-    let result = (|| -> Result<TrialNumbers> {
+    let t = Trial::new(scene, noise, seed, "planar");
+    let result = (|| -> Result<Trial> {
         let base = Scenario::preset(scene).map_err(|e| anyhow::anyhow!("{e}"))?;
         let scenario = Scenario {
             noise_px: noise,
@@ -192,59 +189,43 @@ fn planar_trial(scene: &'static str, noise: f64, seed: u64, encoder_noise: f64, 
         let truth = head.aligned_encoders();
         let a = sol.aligned_encoders;
         let route = if kind == SceneKind::General { "general-detected" } else { calib.scene.kind.name() };
-        let plane =
-            [&calib.left, &calib.right].map(|c| [c.plane_test.rise, c.plane_parallax_px, c.profile_widening]);
-        Ok((
-            [
+        Ok(Trial {
+            err: [
                 a.elevation - truth.elevation,
                 a.verge_left - truth.verge_left,
                 a.verge_right - truth.verge_right,
             ],
-            [s.elevation_deg, s.verge_left_deg, s.verge_right_deg],
+            sigma: [s.elevation_deg, s.verge_left_deg, s.verge_right_deg],
             crb,
-            route.to_string(),
-            plane,
-        ))
+            route: route.to_string(),
+            plane: [&calib.left, &calib.right]
+                .map(|c| [c.plane_test.rise, c.plane_parallax_px, c.profile_widening]),
+            ..Trial::new(scene, noise, seed, "planar")
+        })
     })();
-    match result {
-        Ok((err, sigma, crb, route, plane)) => {
-            t.err = err;
-            t.sigma = sigma;
-            t.crb = crb;
-            t.route = route;
-            t.plane = plane;
-        }
-        Err(e) => t.failure = Some(format!("{e:#}")),
-    }
-    t
+    result.unwrap_or_else(|e| Trial { failure: Some(format!("{e:#}")), ..t })
 }
 
 /// Run one general-route trial in the default room.
 fn general_trial(noise: f64, seed: u64, encoder_noise: f64, rotation: f64) -> Trial {
-    let mut t = Trial::new("default", noise, seed, "general");
+    let t = Trial::new("default", noise, seed, "general");
     let scenario =
         Scenario { noise_px: noise, encoder_noise_deg: encoder_noise, ..Scenario::default().with_seed(seed) };
     let result = SimulatedHead::new(scenario).map_err(|e| anyhow::anyhow!("{e}")).and_then(|mut head| {
         let out =
             VergeTiltRun::default().run(&mut head, &procedure_options(rotation)).context("general route")?;
         let (a, truth) = (out.solution.aligned_encoders, head.aligned_encoders());
-        Ok((
-            [
+        Ok(Trial {
+            err: [
                 a.elevation - truth.elevation,
                 a.verge_left - truth.verge_left,
                 a.verge_right - truth.verge_right,
             ],
-            [out.sigmas.elevation_deg, out.sigmas.verge_left_deg, out.sigmas.verge_right_deg],
-        ))
+            sigma: [out.sigmas.elevation_deg, out.sigmas.verge_left_deg, out.sigmas.verge_right_deg],
+            ..Trial::new("default", noise, seed, "general")
+        })
     });
-    match result {
-        Ok((err, sigma)) => {
-            t.err = err;
-            t.sigma = sigma;
-        }
-        Err(e) => t.failure = Some(format!("{e:#}")),
-    }
-    t
+    result.unwrap_or_else(|e| Trial { failure: Some(format!("{e:#}")), ..t })
 }
 
 /// Entry point: run, write `planar.csv` and `planar.md` in `--out`, print the summary.
@@ -337,16 +318,6 @@ pub fn kept_section(existing: &str) -> Option<String> {
     Some(rest[..end].trim_end().to_string() + "\n")
 }
 
-/// Mean of `values` and its standard error (sample standard deviation over `sqrt n`; NaN
-/// below two values).
-fn mean_and_standard_error(values: impl Iterator<Item = f64>) -> (f64, f64) {
-    let v: Vec<f64> = values.collect();
-    let n = v.len() as f64;
-    let mean = v.iter().sum::<f64>() / n;
-    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
-    (mean, if v.len() < 2 { f64::NAN } else { (var / n).sqrt() })
-}
-
 /// The Markdown summary (module docs); the heading names `--rotation` when it was given.
 fn summary(trials: &[Trial], per: usize, seed: u64, rotation: Option<f64>) -> String {
     let rotation = rotation.map_or_else(String::new, |r| format!(" --rotation {r}"));
@@ -367,6 +338,12 @@ fn summary(trials: &[Trial], per: usize, seed: u64, rotation: Option<f64>) -> St
         routes.dedup();
         let count = |r: &str| ok.iter().filter(|t| t.route == r).count();
         let routes: Vec<String> = routes.iter().map(|r| format!("{r} {}", count(r))).collect();
+        let profiled = if scene == "default" {
+            "-".to_string()
+        } else {
+            let n = ok.iter().flat_map(|t| t.plane).filter(|p| p[2] > 1.0).count();
+            format!("{n} of {}", 2 * ok.len())
+        };
         for (i, name) in ["elevation", "verge_left", "verge_right"].iter().enumerate() {
             let n = ok.len().max(1) as f64;
             let rms = (ok.iter().map(|t| t.err[i].powi(2)).sum::<f64>() / n).sqrt();
@@ -374,7 +351,8 @@ fn summary(trials: &[Trial], per: usize, seed: u64, rotation: Option<f64>) -> St
             let cov = ok.iter().filter(|t| t.err[i].abs() <= 1.96 * t.sigma[i]).count() as f64 / n;
             let ratio = if srms > 0.0 { format!("{:.3}", rms / srms) } else { "-".into() };
             let bounded: Vec<f64> = ok.iter().map(|t| t.crb[i]).filter(|b| b.is_finite()).collect();
-            let (crb, crb_ratio) = if bounded.len() == ok.len() && !bounded.is_empty() {
+            let every_bounded = bounded.len() == ok.len() && !bounded.is_empty();
+            let (crb, crb_ratio) = if every_bounded {
                 let c = (bounded.iter().map(|b| b * b).sum::<f64>() / n).sqrt();
                 (format!("{c:.4}"), if c > 0.0 { format!("{:.3}", rms / c) } else { "-".into() })
             } else {
@@ -382,16 +360,10 @@ fn summary(trials: &[Trial], per: usize, seed: u64, rotation: Option<f64>) -> St
             };
             let coverage = if noise > 0.0 { format!("{:.1} %", 100.0 * cov) } else { "-".into() };
             let (mean, se) = mean_and_standard_error(ok.iter().map(|t| t.err[i]));
-            let beyond = if bounded.len() == ok.len() && !bounded.is_empty() {
+            let beyond = if every_bounded {
                 ok.iter().filter(|t| t.err[i].abs() > 3.0 * t.crb[i]).count().to_string()
             } else {
                 "-".into()
-            };
-            let profiled = if scene == "default" {
-                "-".to_string()
-            } else {
-                let n = ok.iter().flat_map(|t| t.plane).filter(|p| p[2] > 1.0).count();
-                format!("{n} of {}", 2 * ok.len())
             };
             let _ = writeln!(
                 md,
@@ -476,7 +448,7 @@ mod tests {
         assert_eq!(kept_section("# R\n\n## lens\n"), None);
     }
     /// Two wall trials: errors 0.1 and 0.5 deg against bounds 0.1 (one beyond three bounds),
-    /// one camera of three profiled; the mean 0.3 with standard error 0.2 (sample sd
+    /// one camera of four profiled; the mean 0.3 with standard error 0.2 (sample sd
     /// 0.2828 over sqrt 2).
     #[test]
     fn the_summary_counts_tails_and_profiles() {
@@ -490,8 +462,5 @@ mod tests {
         let md = summary(&[trial(1, 0.1, [1.0, 1.4]), trial(2, 0.5, [1.0, 1.0])], 2, 1, None);
         let row = md.lines().find(|l| l.contains("| elevation |")).unwrap_or_default();
         assert!(row.ends_with("| +0.300 (0.200) | 1 | 1 of 4 |"), "{row}");
-        let (m, se) = mean_and_standard_error([1.0, 2.0, 3.0].into_iter());
-        assert!((m - 2.0).abs() < 1e-12 && (se - (1.0f64 / 3.0).sqrt()).abs() < 1e-12);
-        assert!(mean_and_standard_error([1.0].into_iter()).1.is_nan());
     }
 }

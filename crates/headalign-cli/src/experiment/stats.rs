@@ -56,6 +56,16 @@ pub fn coverage_interval(n: usize) -> (f64, f64) {
     ((0.95 - 1.96 * sd).max(0.0), (0.95 + 1.96 * sd).min(1.0))
 }
 
+/// Mean of `values` and its standard error (sample standard deviation over `sqrt n`; NaN
+/// below two values).
+pub fn mean_and_standard_error(values: impl Iterator<Item = f64>) -> (f64, f64) {
+    let v: Vec<f64> = values.collect();
+    let n = v.len() as f64;
+    let mean = v.iter().sum::<f64>() / n;
+    let var = v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0);
+    (mean, if v.len() < 2 { f64::NAN } else { (var / n).sqrt() })
+}
+
 /// Probability that a calibrated 95 % interval covers the truth in a fraction between `lo`
 /// and `hi` (inclusive) of `n` independent trials: the exact binomial sum (log-space terms,
 /// exact for any `n`). 0 for `n = 0`. The bar 90-98 % over 60 trials: 0.78.
@@ -114,6 +124,14 @@ mod tests {
         assert!(ratio_interval(0).0.is_nan());
         let (lo, hi) = coverage_interval(100);
         assert!((lo - 0.9073).abs() < 1e-3 && (hi - 0.9927).abs() < 1e-3, "{lo} {hi}");
+    }
+
+    /// 1, 2, 3: mean 2, sample sd 1, standard error 1 / sqrt 3; one value has none.
+    #[test]
+    fn mean_and_its_standard_error() {
+        let (m, se) = mean_and_standard_error([1.0, 2.0, 3.0].into_iter());
+        assert!((m - 2.0).abs() < 1e-12 && (se - (1.0f64 / 3.0).sqrt()).abs() < 1e-12);
+        assert!(mean_and_standard_error([1.0].into_iter()).1.is_nan());
     }
 
     /// Exact binomial sums computed independently (Python `math.comb`): over 60 trials,
