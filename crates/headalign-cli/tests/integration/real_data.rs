@@ -174,9 +174,15 @@ fn chessboard_with_known_intrinsics_agrees_with_the_board() {
 /// The raw EuRoC V1_01 pairs 3 and 2 (one general motion of a real VI-Sensor rig with a
 /// barrel lens, k1 about -0.28) in a temporary folder of `leftNN.png` / `rightNN.png`.
 fn euroc_one_motion(data: &Path, name: &str) -> tempfile_dir::Dir {
+    euroc_pairs(data, name, [3, 2])
+}
+
+/// The raw EuRoC V1_01 pairs `pairs` (the shared folder's numbers) in a temporary folder
+/// of `leftNN.png` / `rightNN.png`, in that order.
+fn euroc_pairs(data: &Path, name: &str, pairs: [usize; 2]) -> tempfile_dir::Dir {
     let src = data.join("euroc_v101_pairs");
     let dir = tempfile_dir::Dir::new(name);
-    for (i, pair) in [3, 2].iter().enumerate() {
+    for (i, pair) in pairs.iter().enumerate() {
         for side in ["left", "right"] {
             std::fs::copy(
                 src.join(format!("{side}_img_{pair}.png")),
@@ -262,14 +268,16 @@ const EUROC_CENTRE: [[f64; 2]; 2] = [[367.215, 248.375], [379.999, 255.238]];
 /// Issue 31 item 3 on the real pairs: the residuals were checked against the noise
 /// measured from the images, and each intrinsic (fx, fy, cx, cy of both cameras) is within
 /// 3 reported sigmas of the dataset's, or a warning says why not (the residuals against
-/// the images' noise, or their structure).
+/// the images' noise, or their structure). With square pixels `fy` is `fx`, with its sigma.
 fn euroc_intrinsics_within_3_sigmas_or_warned(j: &Value) {
     let noise = &j["report"]["image_noise"];
     assert_eq!(noise["status"], "checked", "{noise}");
     let mut beyond = Vec::new();
     for (side, (f, c)) in ["left", "right"].iter().zip(EUROC_FOCAL.iter().zip(EUROC_CENTRE)) {
         for (k, truth) in [("fx", f[0]), ("fy", f[1]), ("cx", c[0]), ("cy", c[1])] {
-            let z = (j[side][k].as_f64().unwrap() - truth) / j[side]["sigma"][k].as_f64().unwrap();
+            // With square pixels fy is fx (no sigma of its own).
+            let sigma = j[side]["sigma"][k].as_f64().or_else(|| j[side]["sigma"]["fx"].as_f64()).unwrap();
+            let z = (j[side][k].as_f64().unwrap() - truth) / sigma;
             if z.abs() > 3.0 {
                 beyond.push(format!("{side}.{k} {z:+.1} sigmas"));
             }
@@ -322,6 +330,133 @@ fn euroc_raw_pairs_lens_models_and_their_files() {
     assert!((back["left"]["fx"].as_f64().unwrap() - j["left"]["fx"].as_f64().unwrap()).abs() < 1e-9);
     let rms = back["stereo_rms_px"].as_f64().unwrap();
     assert!(rms < 0.5, "stereo Sampson RMS {rms} px through the equidistant lens read back");
+}
+
+/// Issue 31 items 2-3 on a real motion held out from the bar's pairs: EuRoC pairs 1 -> 0
+/// (37.5 deg and 0.44 m, 98 s apart, the same place revisited; docs/real-data.md). One
+/// weak motion: about 270 tracks seen in both views (480 for pairs 3 -> 2). Measured: `--lens radtan --zero-skew` puts the focal lengths +34 / +19 % off (5-8
+/// sigmas, cx and cy too) and warns that the focal length is poorly determined and that the
+/// residuals are 1.6 times the images' noise; `--lens auto --zero-skew --square-pixels`
+/// (the docs' advice for one motion) gives +1.2 to +1.6 %, every intrinsic within 3
+/// sigmas. Each run: every intrinsic within 3 sigmas of the dataset's or a warning says
+/// why, and a focal error beyond 3 % is flagged as poorly determined.
+#[test]
+fn euroc_held_out_weak_motion_is_warned() {
+    let Some(data) = data_dir() else { return };
+    let dir = euroc_pairs(&data, "held-out", [1, 0]);
+    let d = dir.path().to_str().unwrap();
+    for flags in
+        [&["--lens", "radtan", "--zero-skew"][..], &["--lens", "auto", "--zero-skew", "--square-pixels"]]
+    {
+        let (ok, j, err) = calibrate(&[&[d, "--json"][..], flags].concat());
+        assert!(ok, "{flags:?}: {err}");
+        euroc_intrinsics_within_3_sigmas_or_warned(&j);
+        let errors = euroc_focal_errors(&j);
+        let flagged = j["report"]["warnings"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|w| w.as_str().unwrap_or("").contains("poorly determined"));
+        eprintln!("{flags:?}: focal errors {errors:?}, poorly determined warned: {flagged}");
+        assert!(errors.iter().all(|e| e.abs() < 0.03) || flagged, "{flags:?}: {errors:?} unflagged");
+    }
+}
+
+/// The dataset's calibration against the tracks (docs/real-data.md, "A held-out motion"):
+/// on the tracks of `calibrate --lens radtan --zero-skew` (3000 corners, as the density
+/// rule keeps), the adjustment with the dataset's intrinsics and lenses held (rig, motion
+/// and points free) against the estimate, and the adjustment freed from there. Prints the
+/// chi-squares at the estimate's noise. `cargo test --release -p headalign-cli --test
+/// integration euroc_dataset_calibration_held -- --ignored --nocapture`.
+#[test]
+#[ignore = "diagnostic: prints the likelihood of the dataset's calibration on the EuRoC tracks"]
+fn euroc_dataset_calibration_held() {
+    use headalign::calibrate::{CalibrateOptions, LensChoice, calibrate_tracked, track_views};
+    use headalign::frontend::FrontEndOptions;
+    use headalign_geometry::bundle::{
+        BundleObservation, BundleOptions, RigState, RobustLoss, bundle_adjust, bundle_adjust_holding,
+        residual_pixels,
+    };
+    use headalign_geometry::camera::Intrinsics;
+    use headalign_geometry::distortion::{Distortion, LensKind};
+    use headalign_platform::{GrayImage, StereoImages};
+
+    let Some(data) = data_dir() else { return };
+    let rss = |state: &RigState, obs: &[BundleObservation]| -> f64 {
+        obs.iter().filter_map(|o| residual_pixels(state, o)).map(|r| r.norm_squared()).sum()
+    };
+    let lens = |k: [f64; 4]| Distortion {
+        kind: LensKind::RadialTangential,
+        k1: k[0],
+        k2: k[1],
+        p1: k[2],
+        p2: k[3],
+        k3: 0.0,
+        k4: 0.0,
+    };
+    for pairs in [[3, 2], [1, 0]] {
+        let dir = euroc_pairs(&data, "held", pairs);
+        let views: Vec<(String, StereoImages)> = (0..2)
+            .map(|i| {
+                let load =
+                    |side: &str| GrayImage::load(&dir.path().join(format!("{side}{i:02}.png"))).unwrap();
+                (
+                    format!("left{i:02}"),
+                    StereoImages::new(Default::default(), load("left"), load("right")).unwrap(),
+                )
+            })
+            .collect();
+        let mut front = FrontEndOptions::default();
+        front.features.max_features = 3000;
+        let options = CalibrateOptions {
+            zero_skew: true,
+            lens: LensChoice::Model(LensKind::RadialTangential),
+            ..CalibrateOptions::default()
+        };
+        let tracked = track_views(&views, &front, &options).unwrap();
+        let cal = calibrate_tracked(tracked, None, &options).unwrap();
+        let (est, obs, sigma) = (&cal.bundle.state, &cal.observations, cal.bundle.report.sigma_px);
+        let mut dataset = est.clone();
+        dataset.left = Intrinsics::new(458.654, 457.296, 367.215, 248.375);
+        dataset.right = Intrinsics::new(457.587, 456.134, 379.999, 255.238);
+        dataset.left_distortion = lens([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]);
+        dataset.right_distortion = lens([-0.28368365, 0.07451284, -0.00010473, -3.55590700e-05]);
+        let ls = BundleOptions {
+            robust: RobustLoss::None,
+            noise_sigma_px: None,
+            max_iterations: 200,
+            zero_skew: true,
+            estimate_distortion: true,
+            ..options.estimation.bundle.clone()
+        };
+        let robust = BundleOptions { robust: options.estimation.bundle.robust, ..ls.clone() };
+        let held: Vec<String> = ["left", "right"]
+            .iter()
+            .flat_map(|s| ["fx", "fy", "cx", "cy", "k1", "k2"].map(|k| format!("{s}.{k}")))
+            .collect();
+        let held: Vec<&str> = held.iter().map(String::as_str).collect();
+        let near = bundle_adjust_holding(&dataset, obs, &robust, &held).unwrap();
+        let at_dataset = bundle_adjust_holding(&near.state, obs, &ls, &held).unwrap();
+        let freed = bundle_adjust(&at_dataset.state, obs, &ls).unwrap();
+        let chi2 = |s: &RigState| rss(s, obs) / (sigma * sigma);
+        let motion = |s: &RigState| {
+            let m = s.motions.ref_from_cam(1);
+            (m.rotation.angle().to_degrees(), m.translation.vector.norm())
+        };
+        eprintln!(
+            "pairs {pairs:?}: {} observations, noise {sigma:.3} px; chi-square at the estimate {:.0} \
+             (left fx {:.1}, motion {:.2?}), with the dataset's calibration held {:.0} (motion {:.2?}), \
+             freed from there {:.0} (left fx {:.1})",
+            obs.len(),
+            chi2(est),
+            est.left.fx,
+            motion(est),
+            chi2(&at_dataset.state),
+            motion(&at_dataset.state),
+            chi2(&freed.state),
+            freed.state.left.fx,
+        );
+    }
 }
 
 /// The four EuRoC MAV V1_01_easy pairs as a raw folder (`left00.png` = `left_img_3.png`,
