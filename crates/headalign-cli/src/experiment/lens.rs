@@ -48,7 +48,7 @@
 //! lens-grid run's result (`two_pass`), and keeps the lowest cost; column `start` of
 //! `lens.csv` names the winner. Without that start, radtan 0.25 px had an RMS focal error of
 //! 9.5 % against a median of 0.54 % (80 trials); with it, 0.77 % against 0.49 %. The run
-//! takes 2071 s for the 480 trials on 2 shared cores. With `--rotation 10`, the chain
+//! takes 439 s for the 480 trials on 2 cores. With `--rotation 10`, the chain
 //! on distorted pixels alone fails in 2.5-15 % of the trials (the 3D homographies read
 //! 0-11 deg for 10, the linear start fails, the rigid start drifts to f of 10^4-10^5
 //! px), and the lens-grid run carries them. `--rotation 10 --trials 240` (30 per

@@ -11,7 +11,9 @@
 //! calibration from general rig motions ([`crate::calibrate`]):
 //! 1. every start's short adjustment ([`SCREEN_ITERATIONS`]) on the first selection
 //!    ([`first_selection`]: stereo inliers of `F`, and quadruplet inliers where the point
-//!    was in a quadruplet), its gross residuals left out; the best MSAC score over the common selection wins
+//!    was in a quadruplet), its gross residuals left out ([`without_gross_residuals`]: a
+//!    view's links are cut at their own median where one cut would leave it none); the
+//!    best MSAC score over the common selection wins
 //!    ([`start_score`]);
 //! 2. the points its start put behind a camera re-triangulated under the winning rig;
 //! 3. every raw observation ([`rig_observations`]) re-selected by its residual
@@ -135,7 +137,7 @@ pub(crate) fn adjust_from_starts(
     recon: &[Reconstruction],
     options: &EstimationOptions,
 ) -> Result<Adjustment, AlignError> {
-    let (first, linear_focal, start_index) = screen_starts(starts, first_obs, options)?;
+    let (first, linear_focal, start_index) = screen_starts(starts, first_obs, origin_slot, options)?;
 
     // Points the first adjustment could not use (behind a camera under its start) are
     // re-triangulated with the calibrated rig, then every raw observation is re-selected
@@ -214,6 +216,7 @@ pub(crate) fn adjust_from_starts(
 fn screen_starts(
     starts: Vec<Result<RigState, AlignError>>,
     first_obs: &[BundleObservation],
+    origin_slot: &[usize],
     options: &EstimationOptions,
 ) -> Result<(BundleResult, [f64; 4], usize), AlignError> {
     let mut linear_focal = [f64::NAN; 4];
@@ -231,21 +234,7 @@ fn screen_starts(
         if linear_focal[0].is_nan() {
             linear_focal = [state.left.fx, state.left.fy, state.right.fx, state.right.fy];
         }
-        // Gross residuals under this start (wrong matches that no quadruplet checked, points
-        // placed badly by a rough start) are left out of its first adjustment: above 5 times
-        // the median residual, and at least 10 px. The re-selection of
-        // `adjust_from_starts` re-admits them.
-        let start_obs: Vec<BundleObservation> = {
-            let mut r: Vec<f64> =
-                first_obs.iter().filter_map(|o| residual_pixels(&state, o).map(|v| v.norm())).collect();
-            r.sort_by(f64::total_cmp);
-            let cut = r.get(r.len() / 2).map_or(f64::INFINITY, |m| (5.0 * m).max(10.0));
-            first_obs
-                .iter()
-                .copied()
-                .filter(|o| residual_pixels(&state, o).is_some_and(|v| v.norm() <= cut))
-                .collect()
-        };
+        let start_obs = without_gross_residuals(&state, first_obs, origin_slot, options.min_tracks);
         // A short adjustment screens each start; only the best continues to convergence.
         let screen = BundleOptions {
             max_iterations: options.bundle.max_iterations.min(SCREEN_ITERATIONS),
@@ -330,6 +319,56 @@ pub(super) fn start_score(state: &RigState, obs: &[BundleObservation], tau: f64)
 
 /// Robust noise estimate: 1.4826 x median of the residual norms scaled for a 2D
 /// Gaussian (the median of a Rayleigh variable is sigma sqrt(2 ln 2)).
+/// The observations of `first_obs` without their gross residuals under `state` (this
+/// file's module docs, step 1: wrong matches that no quadruplet checked, points placed
+/// badly by a rough start): above 5 times the median residual, and at least 10 px. If
+/// that cut leaves a moved view fewer than `min_tracks` points linked to it (observed
+/// there but reconstructed in another view: the links carry its motion) out of at least
+/// as many, the links are cut at their own median instead, and the rest at theirs. Why:
+/// under a rough start's motions the links miss by far more than the stereo
+/// observations, which any start fits (its rig comes from `F`); where links are few the
+/// median of all is the stereo observations' and the cut removes every link, leaving the
+/// motion unobserved (measured on the EuRoC pairs 1 -> 0 with the dataset's lens: every
+/// start failed with a singular system). The re-selection of [`adjust_from_starts`]
+/// re-admits what is cut here.
+pub(super) fn without_gross_residuals(
+    state: &RigState,
+    first_obs: &[BundleObservation],
+    origin_slot: &[usize],
+    min_tracks: usize,
+) -> Vec<BundleObservation> {
+    let is_link = |o: &BundleObservation| origin_slot.get(o.point).is_some_and(|&s| s != o.view);
+    let residual = |o: &BundleObservation| residual_pixels(state, o).map(|v| v.norm());
+    let cut_of = |class: &dyn Fn(&BundleObservation) -> bool| {
+        let mut r: Vec<f64> = first_obs.iter().filter(|o| class(o)).filter_map(residual).collect();
+        r.sort_by(f64::total_cmp);
+        r.get(r.len() / 2).map_or(f64::INFINITY, |m| (5.0 * m).max(10.0))
+    };
+    let cut = cut_of(&|_| true);
+    let kept: Vec<BundleObservation> =
+        first_obs.iter().copied().filter(|o| residual(o).is_some_and(|r| r <= cut)).collect();
+    let linked_points = |obs: &[BundleObservation]| {
+        let mut per_view: BTreeMap<usize, std::collections::BTreeSet<usize>> = BTreeMap::new();
+        for o in obs.iter().filter(|o| is_link(o)) {
+            per_view.entry(o.view).or_default().insert(o.point);
+        }
+        per_view
+    };
+    let (before, after) = (linked_points(first_obs), linked_points(&kept));
+    let unobserved = before.iter().any(|(view, points)| {
+        points.len() >= min_tracks && after.get(view).map_or(0, std::collections::BTreeSet::len) < min_tracks
+    });
+    if !unobserved {
+        return kept;
+    }
+    let cuts = [cut_of(&|o| !is_link(o)), cut_of(&is_link)];
+    first_obs
+        .iter()
+        .copied()
+        .filter(|o| residual(o).is_some_and(|r| r <= cuts[usize::from(is_link(o))]))
+        .collect()
+}
+
 pub(super) fn robust_sigma(state: &RigState, obs: &[BundleObservation]) -> f64 {
     let mut r: Vec<f64> = obs.iter().filter_map(|o| residual_pixels(state, o).map(|v| v.norm())).collect();
     if r.is_empty() {

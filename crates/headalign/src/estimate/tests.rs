@@ -8,12 +8,15 @@
 use std::collections::BTreeMap;
 
 use headalign_geometry::bundle::{
-    RobustLoss, bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale, residual_pixels_at,
+    RobustLoss, bundle_adjust, bundle_adjust_at_depth_scale, log_depth_scale, residual_pixels,
+    residual_pixels_at,
 };
 use headalign_platform::StereoCapture;
 use nalgebra::{Isometry3, Point2, Vector3, Vector4};
 
-use super::adjust::{PointSources, retriangulate_points, retriangulate_points_by_support, start_score};
+use super::adjust::{
+    PointSources, retriangulate_points, retriangulate_points_by_support, start_score, without_gross_residuals,
+};
 use super::likelihood::plausible_points;
 use super::*;
 
@@ -62,6 +65,53 @@ fn points_seen_once_by_a_camera_are_left_out() {
     assert_eq!(points_of(plausible_points(&state, obs.clone(), &with(2), 1.0)), [1, 2]);
     assert_eq!(points_of(plausible_points(&state, obs.clone(), &with(1), 1.0)), [0, 1, 2]);
     assert_eq!(plausible_points(&state, obs.clone(), &with(1), 1.0).len(), obs.len());
+}
+
+/// The screening's gross-residual cut ([`without_gross_residuals`]): 300 points seen by
+/// both cameras of their own view (exact), 15 of the reference's also seen by the moved
+/// view's left camera 30 px off (a rough start's motion), one of them 500 px off (a wrong
+/// match). One median over all is the stereo observations' (0 px), its cut (10 px) would
+/// leave the moved view no link: the links are cut at their own median instead (5 x 30
+/// px), which keeps the 14 and drops the wrong one, and the stereo observations stay. With
+/// links 3 px off the common cut keeps them all and the selection is that cut's.
+#[test]
+fn the_screening_cut_keeps_the_links_of_a_rough_start() {
+    let mut state = state_at(&[]);
+    state.motions =
+        Motions::Free { ref_from_cam: vec![Isometry3::identity(), Isometry3::translation(0.2, 0.0, 0.0)] };
+    let mut origin_slot = Vec::new();
+    for i in 0..300 {
+        let (x, y) = ((i % 20) as f64 * 0.2 - 2.0, (i / 20) as f64 * 0.2 - 1.5);
+        state.points.push(nalgebra::Point3::new(x, y, 8.0 + (i % 7) as f64));
+        origin_slot.push(usize::from(i >= 150));
+    }
+    let exact = |point: usize, view: usize, side: Side, offset: f64| {
+        let o = obs_at(point, view, side, 0.0, 0.0);
+        let r = residual_pixels(&state, &o).unwrap();
+        obs_at(point, view, side, r.x + offset, r.y)
+    };
+    let session = |link_offset: f64| -> Vec<BundleObservation> {
+        let mut obs = Vec::new();
+        for (p, &slot) in origin_slot.iter().enumerate() {
+            obs.push(exact(p, slot, Side::Left, 0.0));
+            obs.push(exact(p, slot, Side::Right, 0.0));
+        }
+        for p in 0..15 {
+            obs.push(exact(p, 1, Side::Left, if p == 0 { 500.0 } else { link_offset }));
+        }
+        obs
+    };
+    let links = |kept: &[BundleObservation]| kept.iter().filter(|o| o.view != origin_slot[o.point]).count();
+    let rough = session(30.0);
+    let kept = without_gross_residuals(&state, &rough, &origin_slot, 12);
+    assert_eq!(links(&kept), 14);
+    assert_eq!(kept.len(), rough.len() - 1);
+    let close = session(3.0);
+    let kept = without_gross_residuals(&state, &close, &origin_slot, 12);
+    assert_eq!((links(&kept), kept.len()), (14, close.len() - 1));
+    // Fewer links than `min_tracks` to begin with: the common cut stands.
+    let kept = without_gross_residuals(&state, &rough, &origin_slot, 20);
+    assert_eq!(links(&kept), 0);
 }
 
 /// `lone_depth_outliers`: on a wall at 10 baselines (35 points seen twice by each

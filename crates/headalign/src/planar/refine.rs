@@ -486,7 +486,6 @@ impl Fit {
         let determined = sigma_deg < NORMAL_UNDETERMINED_DEG
             && parallax_px >= FAR_PARALLAX_PX
             && self.plane_test.determines_plane();
-        let _ = camera_joints(side);
         CameraPlanar {
             side,
             intrinsics: p.k,
