@@ -317,15 +317,13 @@ pub(super) fn start_score(state: &RigState, obs: &[BundleObservation], tau: f64)
     sum / obs.len().max(1) as f64
 }
 
-/// Robust noise estimate: 1.4826 x median of the residual norms scaled for a 2D
-/// Gaussian (the median of a Rayleigh variable is sigma sqrt(2 ln 2)).
 /// The observations of `first_obs` without their gross residuals under `state` (this
 /// file's module docs, step 1: wrong matches that no quadruplet checked, points placed
 /// badly by a rough start): above 5 times the median residual, and at least 10 px. If
 /// that cut leaves a moved view fewer than `min_tracks` points linked to it (observed
 /// there but reconstructed in another view: the links carry its motion) out of at least
-/// as many, the links are cut at their own median instead, and the rest at theirs. Why:
-/// under a rough start's motions the links miss by far more than the stereo
+/// as many, the links are cut at 5 times their own median instead, and the rest at
+/// theirs. Why: under a rough start's motions the links miss by far more than the stereo
 /// observations, which any start fits (its rig comes from `F`); where links are few the
 /// median of all is the stereo observations' and the cut removes every link, leaving the
 /// motion unobserved (measured on the EuRoC pairs 1 -> 0 with the dataset's lens: every
@@ -369,6 +367,8 @@ pub(super) fn without_gross_residuals(
         .collect()
 }
 
+/// Robust noise estimate: 1.4826 x median of the residual norms scaled for a 2D
+/// Gaussian (the median of a Rayleigh variable is sigma sqrt(2 ln 2)).
 pub(super) fn robust_sigma(state: &RigState, obs: &[BundleObservation]) -> f64 {
     let mut r: Vec<f64> = obs.iter().filter_map(|o| residual_pixels(state, o).map(|v| v.norm())).collect();
     if r.is_empty() {
