@@ -334,8 +334,9 @@ fn euroc_raw_pairs_lens_models_and_their_files() {
 
 /// Issue 31 items 2-3 on a real motion held out from the bar's pairs: EuRoC pairs 1 -> 0
 /// (37.5 deg and 0.44 m, 98 s apart, the same place revisited; docs/real-data.md). One
-/// weak motion: about 270 tracks seen in both views (480 for pairs 3 -> 2). Measured: `--lens radtan --zero-skew` puts the focal lengths +34 / +19 % off (5-8
-/// sigmas, cx and cy too) and warns that the focal length is poorly determined and that the
+/// weak motion: about 270 tracks seen in both views (480 for pairs 3 -> 2). Measured:
+/// `--lens radtan --zero-skew` puts the focal lengths +34 / +19 % off (5-8 sigmas, cx and
+/// cy too) and warns that the focal length is poorly determined and that the
 /// residuals are 1.6 times the images' noise; `--lens auto --zero-skew --square-pixels`
 /// (the docs' advice for one motion) gives +1.2 to +1.6 %, every intrinsic within 3
 /// sigmas; with the dataset's lens removed (`--distortion`, square pixels) +10 to +11 %
@@ -376,29 +377,25 @@ fn euroc_held_out_weak_motion_is_warned() {
 #[test]
 #[ignore = "diagnostic: prints the likelihood of the dataset's calibration on the EuRoC tracks"]
 fn euroc_dataset_calibration_held() {
-    use headalign::calibrate::{CalibrateOptions, LensChoice, calibrate_tracked, track_views};
+    use headalign::calibrate::{
+        CalibrateOptions, LensChoice, calibrate_tracked, read_opencv_lenses, track_views,
+    };
     use headalign::frontend::FrontEndOptions;
     use headalign_geometry::bundle::{
         BundleObservation, BundleOptions, RigState, RobustLoss, bundle_adjust, bundle_adjust_holding,
         residual_pixels,
     };
     use headalign_geometry::camera::Intrinsics;
-    use headalign_geometry::distortion::{Distortion, LensKind};
+    use headalign_geometry::distortion::LensKind;
     use headalign_platform::{GrayImage, StereoImages};
 
     let Some(data) = data_dir() else { return };
     let rss = |state: &RigState, obs: &[BundleObservation]| -> f64 {
         obs.iter().filter_map(|o| residual_pixels(state, o)).map(|r| r.norm_squared()).sum()
     };
-    let lens = |k: [f64; 4]| Distortion {
-        kind: LensKind::RadialTangential,
-        k1: k[0],
-        k2: k[1],
-        p1: k[2],
-        p2: k[3],
-        k3: 0.0,
-        k4: 0.0,
-    };
+    let file = fixture("euroc_v101_lenses.yml");
+    let lenses =
+        read_opencv_lenses(&std::fs::read_to_string(&file).unwrap(), "euroc_v101_lenses.yml").unwrap();
     for pairs in [[3, 2], [1, 0]] {
         let dir = euroc_pairs(&data, "held", pairs);
         let views: Vec<(String, StereoImages)> = (0..2)
@@ -422,10 +419,11 @@ fn euroc_dataset_calibration_held() {
         let cal = calibrate_tracked(tracked, None, &options).unwrap();
         let (est, obs, sigma) = (&cal.bundle.state, &cal.observations, cal.bundle.report.sigma_px);
         let mut dataset = est.clone();
-        dataset.left = Intrinsics::new(458.654, 457.296, 367.215, 248.375);
-        dataset.right = Intrinsics::new(457.587, 456.134, 379.999, 255.238);
-        dataset.left_distortion = lens([-0.28340811, 0.07395907, 0.00019359, 1.76187114e-05]);
-        dataset.right_distortion = lens([-0.28368365, 0.07451284, -0.00010473, -3.55590700e-05]);
+        let k = |c: usize| {
+            Intrinsics::new(EUROC_FOCAL[c][0], EUROC_FOCAL[c][1], EUROC_CENTRE[c][0], EUROC_CENTRE[c][1])
+        };
+        (dataset.left, dataset.right) = (k(0), k(1));
+        (dataset.left_distortion, dataset.right_distortion) = (lenses[0].distortion, lenses[1].distortion);
         let ls = BundleOptions {
             robust: RobustLoss::None,
             noise_sigma_px: None,
