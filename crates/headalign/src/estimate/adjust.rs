@@ -35,7 +35,7 @@
 //! depth; an outlier within the stereo threshold of its epipolar line can put a point's
 //! first triangulation at a wrong depth, so that all its good observations miss the gate.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use headalign_geometry::bundle::{
     BundleObservation, BundleOptions, BundleResult, RigState, Side, bundle_adjust, residual_pixels,
@@ -335,36 +335,40 @@ pub(super) fn without_gross_residuals(
     origin_slot: &[usize],
     min_tracks: usize,
 ) -> Vec<BundleObservation> {
-    let is_link = |o: &BundleObservation| origin_slot.get(o.point).is_some_and(|&s| s != o.view);
-    let residual = |o: &BundleObservation| residual_pixels(state, o).map(|v| v.norm());
-    let cut_of = |class: &dyn Fn(&BundleObservation) -> bool| {
-        let mut r: Vec<f64> = first_obs.iter().filter(|o| class(o)).filter_map(residual).collect();
+    let is_link: Vec<bool> =
+        first_obs.iter().map(|o| origin_slot.get(o.point).is_some_and(|&s| s != o.view)).collect();
+    let residual: Vec<Option<f64>> =
+        first_obs.iter().map(|o| residual_pixels(state, o).map(|v| v.norm())).collect();
+    let cut_of = |class: &dyn Fn(usize) -> bool| {
+        let mut r: Vec<f64> =
+            (0..first_obs.len()).filter(|&i| class(i)).filter_map(|i| residual[i]).collect();
         r.sort_by(f64::total_cmp);
         r.get(r.len() / 2).map_or(f64::INFINITY, |m| (5.0 * m).max(10.0))
     };
-    let cut = cut_of(&|_| true);
-    let kept: Vec<BundleObservation> =
-        first_obs.iter().copied().filter(|o| residual(o).is_some_and(|r| r <= cut)).collect();
-    let linked_points = |obs: &[BundleObservation]| {
-        let mut per_view: BTreeMap<usize, std::collections::BTreeSet<usize>> = BTreeMap::new();
-        for o in obs.iter().filter(|o| is_link(o)) {
-            per_view.entry(o.view).or_default().insert(o.point);
+    let select = |cut: &dyn Fn(usize) -> f64| -> Vec<usize> {
+        (0..first_obs.len()).filter(|&i| residual[i].is_some_and(|r| r <= cut(i))).collect()
+    };
+    let common = cut_of(&|_| true);
+    let kept = select(&|_| common);
+    let linked_points = |indices: &mut dyn Iterator<Item = usize>| {
+        let mut per_view: BTreeMap<usize, BTreeSet<usize>> = BTreeMap::new();
+        for i in indices.filter(|&i| is_link[i]) {
+            per_view.entry(first_obs[i].view).or_default().insert(first_obs[i].point);
         }
         per_view
     };
-    let (before, after) = (linked_points(first_obs), linked_points(&kept));
+    let (before, after) =
+        (linked_points(&mut (0..first_obs.len())), linked_points(&mut kept.iter().copied()));
     let unobserved = before.iter().any(|(view, points)| {
-        points.len() >= min_tracks && after.get(view).map_or(0, std::collections::BTreeSet::len) < min_tracks
+        points.len() >= min_tracks && after.get(view).map_or(0, BTreeSet::len) < min_tracks
     });
-    if !unobserved {
-        return kept;
-    }
-    let cuts = [cut_of(&|o| !is_link(o)), cut_of(&is_link)];
-    first_obs
-        .iter()
-        .copied()
-        .filter(|o| residual(o).is_some_and(|r| r <= cuts[usize::from(is_link(o))]))
-        .collect()
+    let kept = if unobserved {
+        let cuts = [cut_of(&|i| !is_link[i]), cut_of(&|i| is_link[i])];
+        select(&|i| cuts[usize::from(is_link[i])])
+    } else {
+        kept
+    };
+    kept.into_iter().map(|i| first_obs[i]).collect()
 }
 
 /// Robust noise estimate: 1.4826 x median of the residual norms scaled for a 2D
