@@ -33,22 +33,24 @@
 //! their message), `lens.md` (the tables), `lens.png` / `lens.svg` (median errors and
 //! sigmas against noise).
 //!
-//! Pitfalls (measured, `--trials 480`: 60 trials per condition, seeds 1-60,
+//! Pitfalls (measured, the default 960 trials: 120 per condition, seeds 1-120,
 //! `docs/results.md`): with 3 deg views the focal length is determined to about 1.5 % at
 //! 0.5 px once the lens is free (the f-k1 valley of short motions). Every trial
-//! calibrates (480 of 480). The reported sigmas are the linearised ones widened to the
+//! calibrates (960 of 960). The reported sigmas are the linearised ones widened to the
 //! bootstrap spread over tracks (`calibrate`'s `lens_sigmas`). The 95 % coverage is
-//! 86.7-100 % over the 80 entries; 89-100 % is what calibrated sigmas give over 60
-//! trials, and they land within the bar 90-98 % per entry with probability 0.78 only
-//! ([`coverage_in_bar`]: 62 of 80 expected, 57 measured). Pooled over the noise levels
-//! (rows `all`, 240 trials per quantity): 90.8-98.3 %. Below 90 %: left fx and fy of the fisheye at 2 px, left fy of the radtan at
-//! 2 px. There a few trials end in another minimum of the valley at a lower truncated cost
-//! than the minimum near the truth (radtan 2 px seed 16: f +73 % with sigma 18 %), which no
-//! interval at the estimate covers. `calibrate` adjusts from three starts, the third its
+//! 90.8-99.2 % over the 60 entries at 0.25-1 px, the range calibrated sigmas give over
+//! 120 trials; they land within the bar 90-98 % per entry with probability 0.94
+//! ([`coverage_in_bar`]: 56 of 60 expected, 56 measured). At 2 px it is 85.8-99.2 %;
+//! pooled over the noise levels (rows `all`, 480 trials per quantity) 90.6-97.3 %. The
+//! 2 px misses are trials far along the valley, a few in another minimum at a lower
+//! truncated cost than the minimum near the truth (radtan 2 px seed 16: right fx +73 %
+//! with sigma 18 %), which no interval at the estimate covers. `fy` runs 5-30 % beyond
+//! its sigma at the median (seeds 1-120; seeds 61-180 calibrated). `calibrate` adjusts
+//! from three starts, the third its
 //! lens-grid run's result (`two_pass`), and keeps the lowest cost; column `start` of
 //! `lens.csv` names the winner. Without that start, radtan 0.25 px had an RMS focal error of
-//! 9.5 % against a median of 0.54 % (80 trials); with it, 0.77 % against 0.49 %. The run
-//! takes 439 s for the 480 trials on 2 cores. With `--rotation 10`, the chain
+//! 9.5 % against a median of 0.54 % (80 trials); with it, 0.75 % against 0.50 % (120
+//! trials). The run takes 753 s for the 960 trials on 2 cores. With `--rotation 10`, the chain
 //! on distorted pixels alone fails in 2.5-15 % of the trials (the 3D homographies read
 //! 0-11 deg for 10, the linear start fails, the rigid start drifts to f of 10^4-10^5
 //! px), and the lens-grid run carries them. `--rotation 10 --trials 240` (30 per
