@@ -436,6 +436,37 @@ pub fn self_calibration_outcome(
     Ok(Outcome { stereo, json, calibration: Some(cal), density: density_report })
 }
 
+/// One line per camera of the `distortion` member of the report: the model and every
+/// coefficient, with its sigma where estimated; one line `none` for a pinhole given as
+/// such; nothing when the member is absent (the known-poses route has none).
+fn print_lenses(distortion: &Value) {
+    let estimated = distortion["estimated"].as_bool().unwrap_or(false);
+    let zero =
+        |side: &str| distortion[side].as_array().is_some_and(|c| c.iter().all(|v| v.as_f64() == Some(0.0)));
+    if !estimated && zero("left") && zero("right") {
+        println!("lens: none (pinhole)");
+        return;
+    }
+    for (i, side) in ["left", "right"].iter().enumerate() {
+        let (Some(model), Some(coefficients)) =
+            (distortion["model"][i].as_str(), distortion[side].as_array())
+        else {
+            continue;
+        };
+        let kind = if model == "equidistant" { LensKind::Equidistant } else { LensKind::RadialTangential };
+        let mut line = format!("{side:<5} lens {model}");
+        for (name, v) in kind.coefficient_names().iter().zip(coefficients) {
+            let v = v.as_f64().unwrap_or(f64::NAN);
+            match distortion["sigma"][format!("{side}.{name}")].as_f64() {
+                Some(sd) => line.push_str(&format!(" {name} {v:.5} +- {sd:.5}")),
+                None => line.push_str(&format!(" {name} {v:.5}")),
+            }
+        }
+        line.push_str(if estimated { " (estimated)" } else { " (given)" });
+        println!("{line}");
+    }
+}
+
 /// The `distortion` member: each camera's model and coefficients (in the model's order,
 /// OpenCV's `D`), and the sigma of every estimated coefficient.
 fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: &Covariance) -> Value {
@@ -547,8 +578,12 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     show("left ", &s.left, &s.sigmas[0]);
     show("right", &s.right, &s.sigmas[1]);
     println!("rig: {}", outcome.json["right_from_left"]);
+    print_lenses(&outcome.json["distortion"]);
     if let Some(cal) = &outcome.calibration {
         let r = &cal.report;
+        if let Some(sel) = &r.lens_selection {
+            println!("lens model {} (--lens auto): {}", sel.chosen, sel.reason);
+        }
         println!(
             "{} views ({} skipped), {} stereo inliers, final RMS {:.3} px over {} observations",
             r.views.len(),
