@@ -18,8 +18,8 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::{
     CalibrateOptions, Density, DensityReport, DensityTrial, LensChoice, LensModel, MotionCalibration,
-    REFERENCE_ROUTE_MAX_VIEWS, calibrate_tracked, read_opencv_lenses, require_depth,
-    rig_from_known_intrinsics, select_rig, track_views, undistort_views,
+    REFERENCE_ROUTE_MAX_VIEWS, Route, calibrate_tracked, read_opencv_lenses, require_depth,
+    rig_from_known_intrinsics, select_rig, track_views_reporting, undistort_views,
 };
 use headalign::error::AlignError;
 use headalign::export::{StereoCalibration, TranslationUnit};
@@ -204,7 +204,9 @@ pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, 
         .collect();
     names.sort();
     let mut out = Vec::new();
+    let bar = crate::progress::views("reading", names.len());
     for name in names {
+        bar.inc(1);
         let partner =
             name.replacen("left", "right", 1).replacen("Left", "Right", 1).replacen("LEFT", "RIGHT", 1);
         let (lp, rp) = (dir.join(&name), dir.join(&partner));
@@ -224,6 +226,7 @@ pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, 
         let stem = name.rsplit_once('.').map_or(name.as_str(), |(s, _)| s).to_string();
         out.push((stem, pair));
     }
+    bar.finish_and_clear();
     if out.is_empty() {
         bail!(
             "'{}' holds neither an image session (NN-name/ with left.png, right.png, view.json) nor stereo pairs (files named left*/right*)",
@@ -352,8 +355,19 @@ fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
     let run = |corners: usize| -> (Result<MotionCalibration>, DensityTrial) {
         let t = Instant::now();
         let result = (|| {
-            let tracked = track_views(views, &front_end(args, corners), &opts)?;
-            Ok(calibrate_tracked(tracked, lenses.as_ref(), &opts)?)
+            let bar = crate::progress::views(&format!("tracking ({corners} corners)"), views.len());
+            let tracked = track_views_reporting(views, &front_end(args, corners), &opts, &mut |p| {
+                bar.set_message(match p.route {
+                    Route::Reference => "against the first",
+                    Route::Sequence => "as a sequence",
+                });
+                bar.set_position(p.done as u64);
+            });
+            bar.finish_and_clear();
+            let spin = crate::progress::spinner(format!("self-calibration of {} views", views.len()));
+            let cal = calibrate_tracked(tracked?, lenses.as_ref(), &opts);
+            spin.finish_and_clear();
+            Ok(cal?)
         })();
         let seconds = t.elapsed().as_secs_f64();
         let trial = match &result {

@@ -18,6 +18,7 @@ mod headcmd;
 mod images;
 mod planar;
 mod points;
+mod progress;
 mod recording;
 mod replay;
 mod report_html;

@@ -121,8 +121,8 @@ pub use lens::{LensModel, read_opencv_lenses, undistort_views};
 pub use lens_choice::{LensCandidate, LensChoice, LensSelection};
 pub use report::weak_data;
 pub use route::{
-    REFERENCE_ROUTE_MAX_VIEWS, Route, SEQUENCE_RANSAC_MIN_ITERATIONS, TrackedViews, calibrate_tracked,
-    track_views,
+    REFERENCE_ROUTE_MAX_VIEWS, Route, SEQUENCE_RANSAC_MIN_ITERATIONS, TrackedViews, TrackingProgress,
+    calibrate_tracked, track_views, track_views_reporting,
 };
 pub use sequence::{RANSAC_PAIRS, SequenceReport, calibrate_sequence};
 pub use stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};

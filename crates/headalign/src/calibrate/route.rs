@@ -115,9 +115,34 @@ pub fn track_views(
     front: &FrontEndOptions,
     options: &CalibrateOptions,
 ) -> Result<TrackedViews, AlignError> {
+    track_views_reporting(images, front, options, &mut |_| {})
+}
+
+/// What [`track_views_reporting`] tells its caller after each view.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TrackingProgress {
+    /// The route being tracked (the reference attempt may give way to the sequence
+    /// route, which starts again from the first view).
+    pub route: Route,
+    /// Views tracked (or failed) on this route so far.
+    pub done: usize,
+    /// Views in all.
+    pub total: usize,
+}
+
+/// [`track_views`], calling `progress` after each view (the front end is most of a long
+/// sequence's time: a progress bar).
+pub fn track_views_reporting(
+    images: &[(String, StereoImages)],
+    front: &FrontEndOptions,
+    options: &CalibrateOptions,
+    progress: &mut dyn FnMut(TrackingProgress),
+) -> Result<TrackedViews, AlignError> {
     let mut notes = Vec::new();
+    let total = images.len();
     if images.len() <= REFERENCE_ROUTE_MAX_VIEWS {
-        match against_first(images, front, options.estimation.min_tracks)? {
+        let mut on_view = |done| progress(TrackingProgress { route: Route::Reference, done, total });
+        match against_first(images, front, options.estimation.min_tracks, &mut on_view)? {
             Ok(tracked) => return Ok(tracked),
             Err(why) => notes.push(why),
         }
@@ -130,7 +155,7 @@ pub fn track_views(
     }
     let mut tracker = Tracker::new(sequence)?;
     let (mut views, mut tracking, mut failed) = (Vec::new(), Vec::new(), Vec::new());
-    for (name, pair) in images {
+    for (i, (name, pair)) in images.iter().enumerate() {
         match tracker.track(pair, name) {
             Ok((capture, report)) => {
                 views.push(View { name: name.clone(), capture });
@@ -138,6 +163,7 @@ pub fn track_views(
             }
             Err(e) => failed.push(format!("{name}: tracking failed: {e}")),
         }
+        progress(TrackingProgress { route: Route::Sequence, done: i + 1, total });
     }
     Ok(TrackedViews { route: Route::Sequence, views, tracking, notes, failed })
 }
@@ -149,6 +175,7 @@ fn against_first(
     images: &[(String, StereoImages)],
     front: &FrontEndOptions,
     min_tracks: usize,
+    on_view: &mut dyn FnMut(usize),
 ) -> Result<Result<TrackedViews, String>, AlignError> {
     let mut tracker = Tracker::new(FrontEndOptions { mode: TrackingMode::Reference, ..front.clone() })?;
     let (mut views, mut tracking): (Vec<View>, Vec<ViewTracking>) = (Vec::new(), Vec::new());
@@ -175,6 +202,7 @@ fn against_first(
         }
         views.push(view);
         tracking.push(report);
+        on_view(views.len());
     }
     Ok(Ok(TrackedViews { route: Route::Reference, views, tracking, notes: Vec::new(), failed: Vec::new() }))
 }

@@ -8,3 +8,4 @@ mod patch_refinement;
 mod recordings;
 mod robot_images;
 mod rotating_camera;
+mod tracking_progress;
