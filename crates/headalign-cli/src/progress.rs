@@ -1,8 +1,9 @@
-//! Progress on stderr for the long steps of `calibrate` (reading a folder's images,
-//! tracking its views, the self-calibration itself): a bar per view, a spinner for a step
-//! of unknown length. Drawn only when stderr is a terminal (indicatif hides them
-//! otherwise), so scripts, pipes and `--json` consumers see nothing; cleared when the step
-//! ends or its function returns early with an error, so the results print as before. No degrees of freedom, no units but views.
+//! Progress on stderr for long steps (reading a folder's images or a recording,
+//! tracking a folder's views, the self-calibration of `calibrate`): a bar over views, a
+//! spinner for a step of unknown length. Drawn only when stderr is a terminal (indicatif
+//! hides them otherwise), so scripts, pipes and `--json` consumers see nothing; cleared
+//! when the step ends or its function returns early with an error, so the results print
+//! as before. No degrees of freedom, no units but views.
 
 use std::time::Duration;
 

@@ -99,7 +99,11 @@ impl RecordingArgs {
 
 /// Read the recording at `path`; its notes (what was left out) go to stderr.
 pub fn read(path: &Path, args: &RecordingArgs) -> Result<Recording> {
-    let rec = recordings::read_recording(path, &args.options()?)?;
+    let options = args.options()?;
+    let spin = crate::progress::spinner(format!("reading {}", path.display()));
+    let rec = recordings::read_recording(path, &options);
+    spin.finish_and_clear();
+    let rec = rec?;
     for n in &rec.notes {
         eprintln!("note: {n}");
     }
