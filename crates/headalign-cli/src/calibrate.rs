@@ -190,6 +190,7 @@ pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, 
         .filter_map(Result::ok)
         .any(|e| e.path().join("view.json").exists());
     if has_session {
+        recording.only_for_recordings(dir, "an image session", false)?;
         let views = read_image_session(dir)?;
         return Ok(views.into_iter().map(|v| (v.name, v.images)).collect());
     }
@@ -202,7 +203,12 @@ pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, 
             l.contains("left") && (l.ends_with(".png") || l.ends_with(".jpg") || l.ends_with(".jpeg"))
         })
         .collect();
+    recording.only_for_recordings(dir, "a folder of stereo pairs", true)?;
+    if recording.every == 0 {
+        bail!("--every must be at least 1");
+    }
     names.sort();
+    let names: Vec<String> = names.into_iter().step_by(recording.every).collect();
     let mut out = Vec::new();
     let bar = crate::progress::views("reading", names.len());
     for name in names {
@@ -545,6 +551,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
     }
     let outcome = if headalign::session::is_point_session(&args.dir) {
+        args.recording.only_for_recordings(&args.dir, "a point session", false)?;
         crate::points::calibrate(args)?
     } else {
         calibrate_views(&load_views(&args.dir, &args.recording)?, args)?

@@ -420,11 +420,15 @@ fn read_align_views(args: &AlignArgs) -> Result<(Vec<View>, Option<Vec<RecordedV
             use headalign::session::{estimation_views, read_image_session, read_point_session};
             // The verge/tilt views (verging captures and robot stages are recorded too, but
             // the rig is not the same there).
+            let recorded = headalign::recordings::detect(dir).is_some();
+            if !recorded {
+                args.recording.only_for_recordings(dir, "an image or point session", false)?;
+            }
             if headalign::session::is_point_session(dir) {
                 let r = estimation_views(read_point_session(dir)?, |v| v.stage.as_deref());
                 return Ok((r.into_iter().map(|v| v.view).collect(), None));
             }
-            let r = if headalign::recordings::detect(dir).is_some() {
+            let r = if recorded {
                 recording::align_views(dir, &args.recording)?
             } else {
                 estimation_views(read_image_session(dir)?, |v| v.stage.as_deref())

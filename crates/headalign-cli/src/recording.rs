@@ -29,7 +29,7 @@ pub struct RecordingArgs {
     /// Largest stamp difference of a left and a right image in one pair, milliseconds.
     #[arg(long, default_value_t = 1.0)]
     pub pair_tolerance_ms: f64,
-    /// Keep every N-th pair of a recording.
+    /// Keep every N-th pair of a recording or a folder of stereo pairs.
     #[arg(long, default_value_t = 1)]
     pub every: usize,
     /// Keep a recording's pairs from this many seconds after its first pair.
@@ -74,6 +74,40 @@ fn parse_joints(spec: &str) -> Result<Vec<(Joint, String)>> {
 }
 
 impl RecordingArgs {
+    /// The flags given with other than their default values, as the user spells them.
+    fn given(&self) -> Vec<&'static str> {
+        let d = Self::default();
+        [
+            ("--topics", self.topics.is_some()),
+            ("--joint", self.joint.is_some()),
+            ("--joint-topic", self.joint_topic != d.joint_topic),
+            ("--pair-tolerance-ms", self.pair_tolerance_ms != d.pair_tolerance_ms),
+            ("--every", self.every != d.every),
+            ("--from", self.from.is_some()),
+            ("--to", self.to.is_some()),
+        ]
+        .into_iter()
+        .filter_map(|(name, given)| given.then_some(name))
+        .collect()
+    }
+
+    /// An error naming the recording flags given for `dir`, which is `what` and not a
+    /// recording (they would be ignored); `--every` is allowed where `every_applies` (a
+    /// folder of stereo pairs keeps every N-th pair too).
+    pub fn only_for_recordings(&self, dir: &Path, what: &str, every_applies: bool) -> Result<()> {
+        let given: Vec<&str> =
+            self.given().into_iter().filter(|f| !(every_applies && *f == "--every")).collect();
+        if !given.is_empty() {
+            bail!(
+                "{} {} only to a recording (a ROS 2 bag or an EuRoC folder); '{}' is {what}",
+                given.join(", "),
+                if given.len() == 1 { "applies" } else { "apply" },
+                dir.display()
+            );
+        }
+        Ok(())
+    }
+
     /// The library's options from the flags.
     pub fn options(&self) -> Result<RecordingOptions> {
         let topics = match &self.topics {

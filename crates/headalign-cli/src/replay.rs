@@ -102,6 +102,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     if headalign::recordings::detect(&args.dir).is_some() {
         return replay_recording(args);
     }
+    args.recording.only_for_recordings(&args.dir, "an image session", false)?;
     let t0 = Instant::now();
     let info = read_session_info(&args.dir)?;
     let mut head = ReplayHead::open(&args.dir)?;

@@ -1,5 +1,6 @@
 //! Bad input of every kind, for every command that reads a file: `align --observations
-//! FILE`, `align --images DIR` and `demo --scenario FILE`. Each case must fail with a
+//! FILE`, `align --images DIR`, `demo --scenario FILE`, and the recording flags on folders
+//! that are no recording. Each case must fail with a
 //! non-zero exit and exactly one line on stderr that names the file (or folder) and the
 //! problem; never a panic or a backtrace. The inputs that fuzzing (`fuzz/`) found are
 //! replayed here too, so CI checks them without a nightly toolchain.
@@ -567,6 +568,53 @@ fn align_images_bad_folders() {
         &run(&["align", "--images", f]),
         &[f, "cannot read session folder"],
     );
+    std::fs::remove_dir_all(&root).ok();
+}
+
+/// The flags of a recording (`--topics`, `--every`, `--from`, ...) given for a folder that
+/// is no recording are an error naming them and what the folder is, not ignored; a folder
+/// of stereo pairs takes `--every` (and refuses 0).
+#[test]
+fn recording_flags_on_other_folders() {
+    let root = base("recording-flags");
+    let session = root.join("session");
+    image_session(&session);
+    let pairs = root.join("pairs");
+    std::fs::create_dir_all(&pairs).unwrap();
+    for (i, side) in [(0, "left"), (1, "right")] {
+        textured(64, 48, i).save(&pairs.join(format!("{side}00.png"))).unwrap();
+    }
+    let (s, p) = (session.to_str().unwrap(), pairs.to_str().unwrap());
+    let cases: [(&str, Vec<&str>, Vec<&str>); 5] = [
+        (
+            "align, image session",
+            vec!["align", "--images", s, "--every", "2"],
+            vec!["--every applies only", s],
+        ),
+        (
+            "replay, image session",
+            vec!["replay", s, "--from", "1"],
+            vec!["--from applies only", "image session"],
+        ),
+        (
+            "calibrate, image session",
+            vec!["calibrate", s, "--topics", "a,b", "--to", "3"],
+            vec!["--topics, --to apply only to a recording", "an image session"],
+        ),
+        (
+            "calibrate, pairs",
+            vec!["calibrate", p, "--joint", "pan=a"],
+            vec!["--joint applies only", "stereo pairs"],
+        ),
+        (
+            "calibrate, pairs, every 0",
+            vec!["calibrate", p, "--every", "0"],
+            vec!["--every must be at least 1"],
+        ),
+    ];
+    for (case, args, expected) in cases {
+        assert_clean_failure(case, &run(&args), &expected);
+    }
     std::fs::remove_dir_all(&root).ok();
 }
 
