@@ -141,6 +141,15 @@ pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
     }
 }
 
+/// An error when `--lens-terms` other than the default come without a lens model to
+/// estimate (the pinhole estimates none: the flag would be ignored).
+pub(crate) fn check_lens_terms(lens: LensChoice, terms: DistortionTerms) -> Result<()> {
+    if lens == LensChoice::Pinhole && terms != DistortionTerms::Radial2 {
+        bail!("--lens-terms needs a lens model to estimate (--lens radtan, equidistant or auto)");
+    }
+    Ok(())
+}
+
 pub(crate) fn parse_lens(s: &str) -> Result<LensChoice, String> {
     LensChoice::parse(s)
         .ok_or_else(|| format!("unknown lens model '{s}': pinhole, radtan, equidistant or auto"))
@@ -547,6 +556,7 @@ fn stereo_calibration(
 
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
+    check_lens_terms(lens_choice(args), args.lens_terms)?;
     if let Some(spec) = &args.lens_from {
         crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
     }

@@ -130,6 +130,7 @@ fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan>
 /// Run `headalign demo`: the scenario and the stage plan from the flags, then point mode
 /// ([`run_points`]) or image mode ([`run_images`]).
 pub fn run(args: &DemoArgs) -> Result<()> {
+    args.lens.validate()?;
     let (scenario, rplan) = scenario_and_plan(args)?;
     if args.images {
         return run_images(args, &scenario, &rplan);

@@ -103,6 +103,7 @@ fn plan(args: &RunArgs) -> Result<RobotPlan> {
 /// Run `headalign run`.
 pub fn run(args: &RunArgs) -> Result<()> {
     let t0 = Instant::now();
+    args.lens.validate()?;
     if !(args.head_timeout.is_finite() && args.head_timeout > 0.0 && args.head_timeout < 1e6) {
         bail!("--head-timeout must be a positive number of seconds, got {}", args.head_timeout);
     }

@@ -71,6 +71,12 @@ impl Default for LensArgs {
 }
 
 impl LensArgs {
+    /// An error when lens terms other than the default are asked of the pinhole (nothing
+    /// would be estimated: the flag would be ignored).
+    pub fn validate(&self) -> Result<()> {
+        crate::calibrate::check_lens_terms(self.lens, self.lens_terms)
+    }
+
     /// The lens a session recorded (`session.json`'s `lens`, `lens_terms`; the pinhole when
     /// absent); an unknown name is an error naming it.
     pub fn of_session(info: &SessionInfo) -> Result<Self> {

@@ -205,10 +205,12 @@ impl AlignArgs {
             }
             _ => images::LensArgs::default(),
         };
-        Ok(images::LensArgs {
+        let lens = images::LensArgs {
             lens: self.lens.unwrap_or(recorded.lens),
             lens_terms: self.lens_terms.unwrap_or(recorded.lens_terms),
-        })
+        };
+        lens.validate()?;
+        Ok(lens)
     }
 }
 
@@ -299,6 +301,7 @@ fn encoders_json(e: &headalign_platform::Encoders) -> Value {
 }
 
 fn align(args: &AlignArgs) -> Result<()> {
+    let lens = args.lens()?;
     let (views, recorded) = read_align_views(args)?;
     // Errors past reading name the session too.
     let session = args
@@ -306,7 +309,7 @@ fn align(args: &AlignArgs) -> Result<()> {
         .as_ref()
         .or(args.images.as_ref())
         .map_or(String::new(), |p| p.display().to_string());
-    let (a, scene) = match estimate_alignment(&views, args.bootstrap, args.lens()?, &session)? {
+    let (a, scene) = match estimate_alignment(&views, args.bootstrap, lens, &session)? {
         AlignRoute::General(a, scene) => (a, scene),
         AlignRoute::Planar(p, seconds) => return align_planar(args, &p, seconds),
     };

@@ -60,11 +60,13 @@ pub struct ReplayArgs {
 
 impl ReplayArgs {
     /// The lens of the replay: the flags over the recorded one (`recorded`).
-    fn lens(&self, recorded: images::LensArgs) -> images::LensArgs {
-        images::LensArgs {
+    fn lens(&self, recorded: images::LensArgs) -> Result<images::LensArgs> {
+        let lens = images::LensArgs {
             lens: self.lens.unwrap_or(recorded.lens),
             lens_terms: self.lens_terms.unwrap_or(recorded.lens_terms),
-        }
+        };
+        lens.validate()?;
+        Ok(lens)
     }
 }
 
@@ -77,7 +79,7 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
     let mut head = crate::recording::playback_head(&args.dir, &args.recording, args.move_tolerance)?;
     let seed = images::Estimation {
         seed: headalign::estimate::EstimationOptions::default().seed,
-        lens: args.lens(images::LensArgs::default()),
+        lens: args.lens(images::LensArgs::default())?,
     };
     let (run, outcome) =
         images::procedure(&mut head, args.rotation, args.auto_rotation, seed, &mut |_, _, _, _| {});
@@ -109,7 +111,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let context = || format!("replay of '{}'", args.dir.display());
     let estimation = images::Estimation {
         seed: info.estimation_seed,
-        lens: args.lens(images::LensArgs::of_session(&info)?),
+        lens: args.lens(images::LensArgs::of_session(&info)?)?,
     };
     // The verge/tilt part of an image session, as recorded (seed and rotation choice).
     let verge_tilt = |head: &mut ReplayHead| {

@@ -618,6 +618,24 @@ fn recording_flags_on_other_folders() {
     std::fs::remove_dir_all(&root).ok();
 }
 
+/// `--lens-terms` without a lens model to estimate is an error, not ignored, in every
+/// command that takes it.
+#[test]
+fn lens_terms_without_a_lens() {
+    let root = base("lens-terms");
+    let r = root.to_str().unwrap();
+    let cases: [(&str, Vec<&str>); 4] = [
+        ("calibrate", vec!["calibrate", r, "--lens-terms", "4"]),
+        ("calibrate, --lens pinhole", vec!["calibrate", r, "--lens", "pinhole", "--lens-terms", "5"]),
+        ("demo", vec!["demo", "--images", "--lens-terms", "4"]),
+        ("align", vec!["align", "--observations", r, "--lens-terms", "4"]),
+    ];
+    for (case, args) in cases {
+        assert_clean_failure(case, &run(&args), &["--lens-terms needs a lens model"]);
+    }
+    std::fs::remove_dir_all(&root).ok();
+}
+
 #[test]
 fn demo_scenario_bad_input_table() {
     let dir = base("scenario");
