@@ -116,7 +116,9 @@ pub fn robot_stages<R: StereoHead + Vehicle>(
 
 /// `calibrate DIR` on a point-mode session: the tracked points its views recorded (no
 /// front end, so no corner density), the views of one rig ([`select_rig`], the others
-/// named in the report's `skipped`), self-calibrated as `calibrate` does images.
+/// named in the report's `skipped`), a known lens (`--distortion`, `--lens-from`) removed
+/// first, self-calibrated as `calibrate` does images. The front end's flags (`--corners`,
+/// `--search-px`, `--patch-refinement`) are an error here: there is no front end.
 pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibrate::Outcome> {
     let t0 = Instant::now();
     if args.intrinsics.is_some() {
@@ -125,13 +127,35 @@ pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibr
             args.dir.display()
         );
     }
+    let front_end: Vec<&str> = [
+        ("--corners", args.corners.is_some()),
+        ("--search-px", args.search_px.is_some()),
+        ("--patch-refinement", args.patch_refinement != crate::calibrate::PatchRefinement::Stereo),
+    ]
+    .into_iter()
+    .filter_map(|(flag, given)| given.then_some(flag))
+    .collect();
+    if !front_end.is_empty() {
+        bail!(
+            "'{}' is a point-mode session (tracked points, no images): {} {} only to images",
+            args.dir.display(),
+            front_end.join(", "),
+            if front_end.len() == 1 { "applies" } else { "apply" }
+        );
+    }
     let views: Vec<View> =
         headalign::session::read_point_session(&args.dir)?.into_iter().map(|r| r.view).collect();
     let pairs: Vec<(&str, _)> = views.iter().map(|v| (v.name.as_str(), v.capture.encoders)).collect();
     let choice = select_rig(&pairs);
     let rig: Vec<View> = choice.used.iter().map(|&i| views[i].clone()).collect();
     let Some(image_size) = rig.first().map(|v| v.capture.image_size) else { bail!("no views") };
-    let lenses = args.distortion.as_deref().map(crate::calibrate::read_lenses).transpose()?;
+    let lenses = match (&args.distortion, &args.lens_from) {
+        (Some(path), _) => Some(crate::calibrate::read_lenses(path)?),
+        (None, Some(spec)) => {
+            Some(crate::recording::lens_from(spec, &args.dir, &args.recording, image_size)?)
+        }
+        (None, None) => None,
+    };
     let rig = match &lenses {
         Some(l) => undistort_views(&rig, l),
         None => rig,

@@ -371,6 +371,15 @@ fn every_session_reads_back_with_calibrate_align_and_replay() {
     ok_json(&out);
     let c = calibrate(&points);
     assert_eq!(c["report"]["views"].as_array().unwrap().len(), 5, "{}", c["report"]["views"]);
+    // The flags of the front end and of recordings do not apply to tracked points: named.
+    for (flag, expected) in [
+        (["--corners", "3000"], "--corners applies only to images"),
+        (["--every", "2"], "--every applies only to a recording"),
+    ] {
+        let out = bin().arg("calibrate").arg(&points).args(flag).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(expected), "{flag:?}: {err}");
+    }
     assert!(near(&align_images(&points)["left"]["fx"], 700.0));
     assert_eq!(replay(&points)["unplayed_events"], 0);
     // A calibration session: its three views are a rig turned by the head.
