@@ -571,9 +571,9 @@ fn align_images_bad_folders() {
     std::fs::remove_dir_all(&root).ok();
 }
 
-/// The flags of a recording (`--topics`, `--every`, `--from`, ...) given for a folder that
-/// is no recording are an error naming them and what the folder is, not ignored; a folder
-/// of stereo pairs takes `--every` (and refuses 0).
+/// The flags of a recording (`--topics`, `--every`, `--from`, ...; `replay`'s
+/// `--rotation`, ...) given for a folder that is no recording are an error naming them and
+/// what the folder is, not ignored; a folder of stereo pairs takes `--every` (and refuses 0).
 #[test]
 fn recording_flags_on_other_folders() {
     let root = base("recording-flags");
@@ -585,7 +585,12 @@ fn recording_flags_on_other_folders() {
         textured(64, 48, i).save(&pairs.join(format!("{side}00.png"))).unwrap();
     }
     let (s, p) = (session.to_str().unwrap(), pairs.to_str().unwrap());
-    let cases: [(&str, Vec<&str>, Vec<&str>); 5] = [
+    let cases: [(&str, Vec<&str>, Vec<&str>); 6] = [
+        (
+            "replay, image session, moves",
+            vec!["replay", s, "--rotation", "5", "--auto-rotation"],
+            vec!["--rotation, --auto-rotation apply only to a recording of a head run", s],
+        ),
         (
             "align, image session",
             vec!["align", "--images", s, "--every", "2"],
