@@ -133,6 +133,7 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     args.lens.validate()?;
     let (scenario, rplan) = scenario_and_plan(args)?;
     if args.images {
+        args.scenario.refuse_point_mode_flags()?;
         return run_images(args, &scenario, &rplan);
     }
     if args.lens.lens != headalign::calibrate::LensChoice::Pinhole {

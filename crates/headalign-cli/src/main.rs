@@ -114,6 +114,28 @@ struct ScenarioArgs {
 }
 
 impl ScenarioArgs {
+    /// An error naming the point-mode flags (`--noise`, `--points`, `--outliers`) when the
+    /// run renders images instead: the front end finds its own points there, and the
+    /// flags would be ignored.
+    fn refuse_point_mode_flags(&self) -> Result<()> {
+        let given: Vec<&str> = [
+            ("--noise", self.noise.is_some()),
+            ("--points", self.points.is_some()),
+            ("--outliers", self.outliers.is_some()),
+        ]
+        .into_iter()
+        .filter_map(|(flag, on)| on.then_some(flag))
+        .collect();
+        if !given.is_empty() {
+            bail!(
+                "{} {} only to point mode; with --images the scene is rendered and the front end finds its own points (the images' noise: render.noise_sigma_grey in a --scenario file)",
+                given.join(", "),
+                if given.len() == 1 { "applies" } else { "apply" }
+            );
+        }
+        Ok(())
+    }
+
     fn scenario(&self) -> Result<Scenario> {
         let mut s = match &self.scenario {
             Some(path) => {
@@ -621,6 +643,7 @@ fn bootstrap_line(b: &headalign::estimate::BootstrapReport) -> String {
 fn simulate(args: &SimulateArgs) -> Result<()> {
     let scenario = args.scenario.scenario()?;
     if args.images {
+        args.scenario.refuse_point_mode_flags()?;
         return calibrate::simulate_to_disk(&scenario, &args.motion, &args.out);
     }
     let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;

@@ -364,6 +364,15 @@ fn a_driver_process_runs_the_procedure_like_the_simulator() {
 fn invalid_demo_options_are_errors() {
     assert_clean_failure(&run(&["demo", "--noise=-1"]), &["noise"]);
     assert_clean_failure(&run(&["demo", "--outliers", "1.5"]), &["outlier"]);
+    // The point-mode flags do not apply to rendered images: named, not ignored.
+    assert_clean_failure(
+        &run(&["demo", "--images", "--noise", "2", "--points", "50"]),
+        &["--noise, --points apply only to point mode"],
+    );
+    assert_clean_failure(
+        &run(&["simulate", "--images", "--outliers", "0.2", "--out", "unused"]),
+        &["--outliers applies only to point mode"],
+    );
 }
 
 /// `demo --scene wall` takes the planar route and says so (JSON `scene`, `route`), aligns
