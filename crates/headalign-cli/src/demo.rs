@@ -108,6 +108,15 @@ pub struct DemoArgs {
 /// The robot stages and their settings from the demo's flags.
 fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan> {
     let stages = stages::RobotPlan::parse_stages(&args.stages)?;
+    RobotPlan::refuse_unused_flags(
+        &stages,
+        &[
+            ("--drive", args.drive.is_some()),
+            ("--steer-drive", args.steer_drive.is_some()),
+            ("--steer-settings", args.steer_settings.is_some()),
+            ("--horizon-from-drive", args.horizon_from_drive),
+        ],
+    )?;
     if args.images {
         // The plan of `run --stages` too (`RobotPlan::images`).
         let settings = args.steer_settings.clone();

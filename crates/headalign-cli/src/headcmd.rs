@@ -85,6 +85,14 @@ fn plan(args: &RunArgs) -> Result<RobotPlan> {
     if stages.first().map(String::as_str) != Some("verge-tilt") {
         bail!("--stages must start with verge-tilt: every robot stage uses its calibration");
     }
+    RobotPlan::refuse_unused_flags(
+        &stages,
+        &[
+            ("--drive", args.drive.is_some()),
+            ("--steer-drive", args.steer_drive.is_some()),
+            ("--steer-settings", args.steer_settings.is_some()),
+        ],
+    )?;
     let drive_m = args.drive.unwrap_or(PanOptions::default().drive_m);
     let baseline_m = args.baseline_m.unwrap_or(headalign::robot::SteeringOptions::default().baseline_m);
     for (name, v) in

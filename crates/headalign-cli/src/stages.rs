@@ -64,6 +64,27 @@ pub struct RobotPlan {
 }
 
 impl RobotPlan {
+    /// An error naming each stage flag given (`given`: flag name, whether given) whose
+    /// stages `stages` leaves out: the flag would be ignored.
+    pub fn refuse_unused_flags(stages: &[String], given: &[(&str, bool)]) -> Result<()> {
+        for &(flag, on) in given {
+            let users: &[&str] = match flag {
+                "--drive" => &["pan", "pan-fixate", "one-motion"],
+                "--steer-drive" | "--steer-settings" => &["steering"],
+                "--horizon-from-drive" => &["one-motion"],
+                _ => continue,
+            };
+            if on && !stages.iter().any(|s| users.contains(&s.as_str())) {
+                let (names, noun) = match users {
+                    [one] => (one.to_string(), "stage"),
+                    many => (many.join(", "), "stages"),
+                };
+                bail!("{flag} applies to the {names} {noun}, which --stages leaves out");
+            }
+        }
+        Ok(())
+    }
+
     /// Parse a comma-separated stage list; unknown names are errors.
     pub fn parse_stages(list: &str) -> Result<Vec<String>> {
         let stages: Vec<String> =

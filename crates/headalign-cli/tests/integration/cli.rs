@@ -364,6 +364,15 @@ fn a_driver_process_runs_the_procedure_like_the_simulator() {
 fn invalid_demo_options_are_errors() {
     assert_clean_failure(&run(&["demo", "--noise=-1"]), &["noise"]);
     assert_clean_failure(&run(&["demo", "--outliers", "1.5"]), &["outlier"]);
+    // A stage flag whose stage --stages leaves out: named, not ignored.
+    assert_clean_failure(
+        &run(&["demo", "--stages", "verge-tilt", "--steer-drive", "0.5"]),
+        &["--steer-drive applies to the steering stage, which --stages leaves out"],
+    );
+    assert_clean_failure(
+        &run(&["demo", "--stages", "verge-tilt,steering", "--drive", "0.2"]),
+        &["--drive applies to the pan, pan-fixate, one-motion stages"],
+    );
     // The point-mode flags do not apply to rendered images: named, not ignored.
     assert_clean_failure(
         &run(&["demo", "--images", "--noise", "2", "--points", "50"]),
