@@ -14,6 +14,7 @@
 mod calibrate;
 mod demo;
 mod experiment;
+mod flags;
 mod headcmd;
 mod images;
 mod planar;
@@ -118,22 +119,14 @@ impl ScenarioArgs {
     /// run renders images instead: the front end finds its own points there, and the
     /// flags would be ignored.
     fn refuse_point_mode_flags(&self) -> Result<()> {
-        let given: Vec<&str> = [
-            ("--noise", self.noise.is_some()),
-            ("--points", self.points.is_some()),
-            ("--outliers", self.outliers.is_some()),
-        ]
-        .into_iter()
-        .filter_map(|(flag, on)| on.then_some(flag))
-        .collect();
-        if !given.is_empty() {
-            bail!(
-                "{} {} only to point mode; with --images the scene is rendered and the front end finds its own points (the images' noise: render.noise_sigma_grey in a --scenario file)",
-                given.join(", "),
-                if given.len() == 1 { "applies" } else { "apply" }
-            );
-        }
-        Ok(())
+        flags::refuse(
+            &[
+                ("--noise", self.noise.is_some()),
+                ("--points", self.points.is_some()),
+                ("--outliers", self.outliers.is_some()),
+            ],
+            "point mode; with --images the scene is rendered and the front end finds its own points (the images' noise: render.noise_sigma_grey in a --scenario file)",
+        )
     }
 
     fn scenario(&self) -> Result<Scenario> {

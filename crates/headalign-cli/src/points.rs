@@ -127,22 +127,14 @@ pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibr
             args.dir.display()
         );
     }
-    let front_end: Vec<&str> = [
-        ("--corners", args.corners.is_some()),
-        ("--search-px", args.search_px.is_some()),
-        ("--patch-refinement", args.patch_refinement != crate::calibrate::PatchRefinement::Stereo),
-    ]
-    .into_iter()
-    .filter_map(|(flag, given)| given.then_some(flag))
-    .collect();
-    if !front_end.is_empty() {
-        bail!(
-            "'{}' is a point-mode session (tracked points, no images): {} {} only to images",
-            args.dir.display(),
-            front_end.join(", "),
-            if front_end.len() == 1 { "applies" } else { "apply" }
-        );
-    }
+    crate::flags::refuse(
+        &[
+            ("--corners", args.corners.is_some()),
+            ("--search-px", args.search_px.is_some()),
+            ("--patch-refinement", args.patch_refinement != crate::calibrate::PatchRefinement::Stereo),
+        ],
+        &format!("images; '{}' is a point-mode session (tracked points, no images)", args.dir.display()),
+    )?;
     let views: Vec<View> =
         headalign::session::read_point_session(&args.dir)?.into_iter().map(|r| r.view).collect();
     let pairs: Vec<(&str, _)> = views.iter().map(|v| (v.name.as_str(), v.capture.encoders)).collect();

@@ -74,38 +74,23 @@ fn parse_joints(spec: &str) -> Result<Vec<(Joint, String)>> {
 }
 
 impl RecordingArgs {
-    /// The flags given with other than their default values, as the user spells them.
-    fn given(&self) -> Vec<&'static str> {
-        let d = Self::default();
-        [
-            ("--topics", self.topics.is_some()),
-            ("--joint", self.joint.is_some()),
-            ("--joint-topic", self.joint_topic != d.joint_topic),
-            ("--pair-tolerance-ms", self.pair_tolerance_ms != d.pair_tolerance_ms),
-            ("--every", self.every != d.every),
-            ("--from", self.from.is_some()),
-            ("--to", self.to.is_some()),
-        ]
-        .into_iter()
-        .filter_map(|(name, given)| given.then_some(name))
-        .collect()
-    }
-
-    /// An error naming the recording flags given for `dir`, which is `what` and not a
-    /// recording (they would be ignored); `--every` is allowed where `every_applies` (a
-    /// folder of stereo pairs keeps every N-th pair too).
+    /// An error naming the recording flags given (other than their defaults) for `dir`,
+    /// which is `what` and not a recording (they would be ignored); `--every` is allowed
+    /// where `every_applies` (a folder of stereo pairs keeps every N-th pair too).
     pub fn only_for_recordings(&self, dir: &Path, what: &str, every_applies: bool) -> Result<()> {
-        let given: Vec<&str> =
-            self.given().into_iter().filter(|f| !(every_applies && *f == "--every")).collect();
-        if !given.is_empty() {
-            bail!(
-                "{} {} only to a recording (a ROS 2 bag or an EuRoC folder); '{}' is {what}",
-                given.join(", "),
-                if given.len() == 1 { "applies" } else { "apply" },
-                dir.display()
-            );
-        }
-        Ok(())
+        let d = Self::default();
+        crate::flags::refuse(
+            &[
+                ("--topics", self.topics.is_some()),
+                ("--joint", self.joint.is_some()),
+                ("--joint-topic", self.joint_topic != d.joint_topic),
+                ("--pair-tolerance-ms", self.pair_tolerance_ms != d.pair_tolerance_ms),
+                ("--every", self.every != d.every && !every_applies),
+                ("--from", self.from.is_some()),
+                ("--to", self.to.is_some()),
+            ],
+            &format!("a recording (a ROS 2 bag or an EuRoC folder); '{}' is {what}", dir.display()),
+        )
     }
 
     /// The library's options from the flags.

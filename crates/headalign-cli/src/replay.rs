@@ -105,22 +105,17 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         return replay_recording(args);
     }
     args.recording.only_for_recordings(&args.dir, "an image session", false)?;
-    let given: Vec<&str> = [
-        ("--rotation", args.rotation != 3.0),
-        ("--auto-rotation", args.auto_rotation),
-        ("--move-tolerance", args.move_tolerance != 0.1),
-    ]
-    .into_iter()
-    .filter_map(|(flag, on)| on.then_some(flag))
-    .collect();
-    if !given.is_empty() {
-        bail!(
-            "{} {} only to a recording of a head run; the session '{}' replays its own recorded moves",
-            given.join(", "),
-            if given.len() == 1 { "applies" } else { "apply" },
+    crate::flags::refuse(
+        &[
+            ("--rotation", args.rotation != 3.0),
+            ("--auto-rotation", args.auto_rotation),
+            ("--move-tolerance", args.move_tolerance != 0.1),
+        ],
+        &format!(
+            "a recording of a head run; the session '{}' replays its own recorded moves",
             args.dir.display()
-        );
-    }
+        ),
+    )?;
     let t0 = Instant::now();
     let info = read_session_info(&args.dir)?;
     let mut head = ReplayHead::open(&args.dir)?;
