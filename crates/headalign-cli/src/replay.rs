@@ -28,6 +28,12 @@ macro_rules! say {
     }};
 }
 
+/// Default of `--rotation` (a recording's), degrees: `run`'s.
+const DEFAULT_ROTATION_DEG: f64 = 3.0;
+
+/// Default of `--move-tolerance` (a recording's), degrees.
+const DEFAULT_MOVE_TOLERANCE_DEG: f64 = 0.1;
+
 /// Arguments of `headalign replay`.
 #[derive(Args)]
 pub struct ReplayArgs {
@@ -38,13 +44,13 @@ pub struct ReplayArgs {
     #[arg(long)]
     pub json: bool,
     /// A recording: the rotation of the recorded run's moves, degrees (as `run --rotation`).
-    #[arg(long, default_value_t = 3.0)]
+    #[arg(long, default_value_t = DEFAULT_ROTATION_DEG)]
     pub rotation: f64,
     /// A recording: the recorded run chose its rotations (as `run --auto-rotation`).
     #[arg(long)]
     pub auto_rotation: bool,
     /// A recording: how far a recorded still view may be from a move's target, degrees.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = DEFAULT_MOVE_TOLERANCE_DEG)]
     pub move_tolerance: f64,
     /// How a recording is read (bags, EuRoC folders).
     #[command(flatten)]
@@ -104,12 +110,12 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     if headalign::recordings::detect(&args.dir).is_some() {
         return replay_recording(args);
     }
-    args.recording.only_for_recordings(&args.dir, "an image session", false)?;
+    args.recording.only_for_recordings(&args.dir, "a recorded session", false)?;
     crate::flags::refuse(
         &[
-            ("--rotation", args.rotation != 3.0),
+            ("--rotation", args.rotation != DEFAULT_ROTATION_DEG),
             ("--auto-rotation", args.auto_rotation),
-            ("--move-tolerance", args.move_tolerance != 0.1),
+            ("--move-tolerance", args.move_tolerance != DEFAULT_MOVE_TOLERANCE_DEG),
         ],
         &format!(
             "a recording of a head run; the session '{}' replays its own recorded moves",

@@ -599,7 +599,7 @@ fn recording_flags_on_other_folders() {
         (
             "replay, image session",
             vec!["replay", s, "--from", "1"],
-            vec!["--from applies only", "image session"],
+            vec!["--from applies only", "recorded session"],
         ),
         (
             "calibrate, image session",
