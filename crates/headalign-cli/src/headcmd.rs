@@ -151,6 +151,7 @@ pub fn run(args: &RunArgs) -> Result<()> {
     });
     let seed =
         images::Estimation { seed: headalign::estimate::EstimationOptions::default().seed, lens: args.lens };
+    let mut head = crate::progress::Narrated::new(&mut head, "run");
     let (run, _, v) = if plan.drives() {
         images::recorded_robot(
             &mut head,
@@ -177,6 +178,7 @@ pub fn run(args: &RunArgs) -> Result<()> {
             &mut |_, run, route| images::route_json(run, route, t0.elapsed().as_secs_f64()),
         )?
     };
+    drop(head); // the spinner goes before the results print
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
     } else {
