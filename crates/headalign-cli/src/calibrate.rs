@@ -142,10 +142,17 @@ pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
 }
 
 /// An error when `--lens-terms` other than the default come without a lens model to
-/// estimate (the pinhole estimates none: the flag would be ignored).
+/// estimate (the pinhole estimates none: the flag would be ignored), or ask the
+/// equidistant model for the radial-tangential `k3` (`5`: it has four coefficients, and
+/// would silently estimate those of `4`).
 pub(crate) fn check_lens_terms(lens: LensChoice, terms: DistortionTerms) -> Result<()> {
     if lens == LensChoice::Pinhole && terms != DistortionTerms::Radial2 {
         bail!("--lens-terms needs a lens model to estimate (--lens radtan, equidistant or auto)");
+    }
+    if lens == LensChoice::Model(LensKind::Equidistant) && terms == DistortionTerms::Full5 {
+        bail!(
+            "--lens-terms 5 adds the radial-tangential k3; the equidistant model has four coefficients (--lens-terms 4)"
+        );
     }
     Ok(())
 }

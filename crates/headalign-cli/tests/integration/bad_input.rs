@@ -624,7 +624,7 @@ fn recording_flags_on_other_folders() {
 }
 
 /// `--lens-terms` without a lens model to estimate is an error, not ignored, in every
-/// command that takes it.
+/// command that takes it; so is the radial-tangential `k3` (`5`) of the equidistant model.
 #[test]
 fn lens_terms_without_a_lens() {
     let root = base("lens-terms");
@@ -638,6 +638,11 @@ fn lens_terms_without_a_lens() {
     for (case, args) in cases {
         assert_clean_failure(case, &run(&args), &["--lens-terms needs a lens model"]);
     }
+    assert_clean_failure(
+        "calibrate, equidistant with k3",
+        &run(&["calibrate", r, "--lens", "equidistant", "--lens-terms", "5"]),
+        &["the equidistant model has four coefficients"],
+    );
     std::fs::remove_dir_all(&root).ok();
 }
 
