@@ -472,28 +472,19 @@ pub fn self_calibration_outcome(
     Ok(Outcome { stereo, json, calibration: Some(cal), density: density_report })
 }
 
-/// One line per camera of the `distortion` member of the report: the model and every
-/// coefficient, with its sigma where estimated; one line `none` for a pinhole given as
-/// such; nothing when the member is absent (the known-poses route has none).
-fn print_lenses(distortion: &Value) {
-    let estimated = distortion["estimated"].as_bool().unwrap_or(false);
-    let zero =
-        |side: &str| distortion[side].as_array().is_some_and(|c| c.iter().all(|v| v.as_f64() == Some(0.0)));
-    if !estimated && zero("left") && zero("right") {
+/// One line per camera of a self-calibration's lenses (`distortion`, left and right): the
+/// model and every coefficient, with its sigma in `covariance` where estimated; one line
+/// `none` for a pinhole given as such.
+fn print_lenses(distortion: &[Distortion; 2], estimated: bool, covariance: &Covariance) {
+    let zero = |d: &Distortion| d.coefficients().iter().all(|&v| v == 0.0);
+    if !estimated && distortion.iter().all(zero) {
         println!("lens: none (pinhole)");
         return;
     }
-    for (i, side) in ["left", "right"].iter().enumerate() {
-        let (Some(model), Some(coefficients)) =
-            (distortion["model"][i].as_str(), distortion[side].as_array())
-        else {
-            continue;
-        };
-        let kind = if model == "equidistant" { LensKind::Equidistant } else { LensKind::RadialTangential };
-        let mut line = format!("{side:<5} lens {model}");
-        for (name, v) in kind.coefficient_names().iter().zip(coefficients) {
-            let v = v.as_f64().unwrap_or(f64::NAN);
-            match distortion["sigma"][format!("{side}.{name}")].as_f64() {
+    for (side, d) in ["left", "right"].iter().zip(distortion) {
+        let mut line = format!("{side:<5} lens {}", d.kind.ros_name());
+        for (name, v) in d.kind.coefficient_names().iter().zip(d.coefficients()) {
+            match covariance.sigma(&format!("{side}.{name}")) {
                 Some(sd) => line.push_str(&format!(" {name} {v:.5} +- {sd:.5}")),
                 None => line.push_str(&format!(" {name} {v:.5}")),
             }
@@ -568,7 +559,6 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
     }
     let outcome = if headalign::session::is_point_session(&args.dir) {
-        args.recording.only_for_recordings(&args.dir, "a point session", false)?;
         crate::points::calibrate(args)?
     } else {
         calibrate_views(&load_views(&args.dir, &args.recording)?, args)?
@@ -616,8 +606,8 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     show("left ", &s.left, &s.sigmas[0]);
     show("right", &s.right, &s.sigmas[1]);
     println!("rig: {}", outcome.json["right_from_left"]);
-    print_lenses(&outcome.json["distortion"]);
     if let Some(cal) = &outcome.calibration {
+        print_lenses(&s.distortion, lens_choice(args) != LensChoice::Pinhole, &cal.bundle.covariance);
         let r = &cal.report;
         if let Some(sel) = &r.lens_selection {
             println!("lens model {} (--lens auto): {}", sel.chosen, sel.reason);

@@ -118,7 +118,7 @@ pub fn robot_stages<R: StereoHead + Vehicle>(
 /// front end, so no corner density), the views of one rig ([`select_rig`], the others
 /// named in the report's `skipped`), a known lens (`--distortion`, `--lens-from`) removed
 /// first, self-calibrated as `calibrate` does images. The front end's flags (`--corners`,
-/// `--search-px`, `--patch-refinement`) are an error here: there is no front end.
+/// `--search-px`, `--patch-refinement`) and a recording's are an error here.
 pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibrate::Outcome> {
     let t0 = Instant::now();
     if args.intrinsics.is_some() {
@@ -127,6 +127,7 @@ pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibr
             args.dir.display()
         );
     }
+    args.recording.only_for_recordings(&args.dir, "a point session", false)?;
     crate::flags::refuse(
         &[
             ("--corners", args.corners.is_some()),
