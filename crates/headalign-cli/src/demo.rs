@@ -323,7 +323,9 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
             views,
             total,
         };
-        let out = serde_json::to_value(points_report(args, &run, &before, &robot)?)?;
+        let mut report = points_report(args, &run, &before, &robot)?;
+        report.procedure.session = writer.as_ref().map(|w| w.dir().display().to_string());
+        let out = serde_json::to_value(&report)?;
         if let Some(w) = &writer {
             w.write_report(&out).context("session")?;
         }
