@@ -4,8 +4,9 @@
 //! ([`run_images`], `--images`) renders the views and runs the vision front end
 //! ([`crate::images::run`]). Output: a table of estimate, truth and sigma (the
 //! calibration in pixels, the aligned readings and alignment errors in degrees, the
-//! calibration errors in percent), or one JSON object (`--json`), which a recorded session
-//! also keeps as `report.json`. The stages and their settings are a [`RobotPlan`]
+//! calibration errors in percent), or one JSON object (`--json`,
+//! [`crate::schema::DemoReport`]: the same members on every route), which a recorded
+//! session also keeps as `report.json`. The stages and their settings are a [`RobotPlan`]
 //! ([`crate::stages`]); `verge-tilt` must be among them, since every robot stage uses its
 //! calibration.
 

@@ -12,8 +12,9 @@
 //! images gives the same numbers. It detects a planar or far scene from the tracked views
 //! ([`VergeTiltRun::run_detecting`]) and then takes the planar route: no robot stages,
 //! no `figure6.png` (it draws the general route's calibration), the report's `route`,
-//! `scene`, `planar` and `checks` members ([`crate::planar::outcome_json`]) and a
-//! `report.html` of the planar route's numbers ([`crate::planar::html_sections`]).
+//! `scene`, `planar` and `checks` members (the same members on both routes:
+//! [`crate::schema::Procedure`]) and a `report.html` of the planar route's numbers
+//! ([`crate::planar::html_sections`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
