@@ -34,6 +34,7 @@ use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
 
 use crate::recording::RecordingArgs;
+use crate::schema;
 use serde_json::{Value, json};
 
 /// Arguments of `headalign calibrate`.
@@ -302,14 +303,12 @@ pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
     let rig: Vec<(String, StereoImages)> = choice.used.iter().map(|&i| views[i].clone()).collect();
     let mut outcome = calibrate_rig_views(&rig, args)?;
     if !choice.left_out.is_empty() {
-        let left_out = choice.left_out.into_iter().map(|(_, why)| why);
-        match &mut outcome.calibration {
-            Some(c) => {
-                c.report.skipped.splice(0..0, left_out);
-                outcome.json["report"]["skipped"] = json!(c.report.skipped);
-            }
-            None => outcome.json["skipped"] = json!(left_out.collect::<Vec<_>>()),
+        let left_out: Vec<String> = choice.left_out.into_iter().map(|(_, why)| why).collect();
+        if let Some(c) = &mut outcome.calibration {
+            c.report.skipped.splice(0..0, left_out.iter().cloned());
+            outcome.json["report"]["skipped"] = json!(c.report.skipped);
         }
+        outcome.json["skipped"] = json!(left_out);
     }
     Ok(outcome)
 }
@@ -341,16 +340,28 @@ fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
             args.baseline_m,
         )?;
         let f = rig.fundamental.0;
-        let json = json!({
-            "route": "known intrinsics (no self-calibration)",
-            "views": views.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>(),
-            "left": k_json(&lenses[0].k), "right": k_json(&lenses[1].k),
-            "fundamental_undistorted": [[f[(0,0)], f[(0,1)], f[(0,2)]], [f[(1,0)], f[(1,1)], f[(1,2)]], [f[(2,0)], f[(2,1)], f[(2,2)]]],
-            "right_from_left": rig_json(&rig.right_from_left),
-            "stereo_matches": rig.stereo_matches, "stereo_inliers": rig.stereo_inliers,
-            "stereo_rms_px": rig.stereo_rms_px,
-            "seconds": t0.elapsed().as_secs_f64(),
-        });
+        let distortion = [lenses[0].distortion, lenses[1].distortion];
+        let report = schema::CalibrateReport {
+            schema: schema::CALIBRATE,
+            route: "known intrinsics (no self-calibration)",
+            views: views.iter().map(|(n, _)| n.clone()).collect(),
+            skipped: Vec::new(),
+            left: schema::CalibratedCamera::new(&lenses[0].k, |_| None),
+            right: schema::CalibratedCamera::new(&lenses[1].k, |_| None),
+            right_from_left: rig_json(&rig.right_from_left),
+            distortion: distortion_json(&distortion, false, None),
+            constraints: constraints(args),
+            translation_unit: unit_name(stereo.unit),
+            report: None,
+            density: None,
+            fundamental_undistorted: Some(std::array::from_fn(|r| std::array::from_fn(|c| f[(r, c)]))),
+            stereo_matches: Some(rig.stereo_matches),
+            stereo_inliers: Some(rig.stereo_inliers),
+            stereo_rms_px: Some(rig.stereo_rms_px),
+            files: Vec::new(),
+            seconds: t0.elapsed().as_secs_f64(),
+        };
+        let json = serde_json::to_value(&report)?;
         return Ok(Outcome { stereo, json, calibration: None, density: None });
     }
     let opts = options(args);
@@ -453,23 +464,46 @@ pub fn self_calibration_outcome(
     let mut stereo = StereoCalibration::from_bundle(&cal.bundle, image_size, args.baseline_m)?;
     stereo.distortion = distortion;
     let c = &cal.bundle.covariance;
-    let cam = |side: &str, k: &Intrinsics| {
-        let s = |p: &str| c.sigma(&format!("{side}.{p}"));
-        json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy,
-               "sigma": {"fx": s("fx"), "fy": s("fy"), "skew": s("skew"), "cx": s("cx"), "cy": s("cy")}})
+    let sigma = |side: &'static str| move |p: &str| c.sigma(&format!("{side}.{p}"));
+    let report = schema::CalibrateReport {
+        schema: schema::CALIBRATE,
+        route: "self-calibration",
+        views: cal.report.views.clone(),
+        skipped: Vec::new(),
+        left: schema::CalibratedCamera::new(&st.left, sigma("left")),
+        right: schema::CalibratedCamera::new(&st.right, sigma("right")),
+        right_from_left: rig_json(&st.right_from_left),
+        distortion: distortion_json(&distortion, lens_choice(args) != LensChoice::Pinhole, Some(c)),
+        constraints: constraints(args),
+        translation_unit: unit_name(stereo.unit),
+        report: Some(serde_json::to_value(&cal.report)?),
+        density: density_report.as_ref().map(serde_json::to_value).transpose()?,
+        fundamental_undistorted: None,
+        stereo_matches: None,
+        stereo_inliers: None,
+        stereo_rms_px: None,
+        files: Vec::new(),
+        seconds: t0.elapsed().as_secs_f64(),
     };
-    let json = json!({
-        "route": "self-calibration",
-        "constraints": {"zero_skew": args.zero_skew, "square_pixels": args.square_pixels, "fix_principal_point": args.fix_principal_point},
-        "left": cam("left", &st.left), "right": cam("right", &st.right),
-        "right_from_left": rig_json(&st.right_from_left),
-        "distortion": distortion_json(&distortion, lens_choice(args) != LensChoice::Pinhole, c),
-        "translation_unit": match stereo.unit { TranslationUnit::Metres => "m", TranslationUnit::Baselines => "baselines" },
-        "report": serde_json::to_value(&cal.report)?,
-        "density": serde_json::to_value(&density_report)?,
-        "seconds": t0.elapsed().as_secs_f64(),
-    });
+    let json = serde_json::to_value(&report)?;
     Ok(Outcome { stereo, json, calibration: Some(cal), density: density_report })
+}
+
+/// The constraints of the flags, as the report names them.
+fn constraints(args: &CalibrateArgs) -> schema::Constraints {
+    schema::Constraints {
+        zero_skew: args.zero_skew,
+        square_pixels: args.square_pixels,
+        fix_principal_point: args.fix_principal_point,
+    }
+}
+
+/// The report's name of a translation unit.
+fn unit_name(unit: TranslationUnit) -> &'static str {
+    match unit {
+        TranslationUnit::Metres => "m",
+        TranslationUnit::Baselines => "baselines",
+    }
 }
 
 /// One line per camera of a self-calibration's lenses (`distortion`, left and right): the
@@ -495,13 +529,13 @@ fn print_lenses(distortion: &[Distortion; 2], estimated: bool, covariance: &Cova
 }
 
 /// The `distortion` member: each camera's model and coefficients (in the model's order,
-/// OpenCV's `D`), and the sigma of every estimated coefficient.
-fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: &Covariance) -> Value {
+/// OpenCV's `D`), and the sigma of every estimated coefficient (none without a covariance `c`).
+fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: Option<&Covariance>) -> Value {
     let mut sigma = serde_json::Map::new();
     for (side, d) in ["left", "right"].iter().zip(distortion) {
         for name in d.kind.coefficient_names() {
             let key = format!("{side}.{name}");
-            if let Some(s) = c.sigma(&key) {
+            if let Some(s) = c.and_then(|c| c.sigma(&key)) {
                 sigma.insert(key, json!(s));
             }
         }

@@ -4,8 +4,9 @@
 //! ([`run_images`], `--images`) renders the views and runs the vision front end
 //! ([`crate::images::run`]). Output: a table of estimate, truth and sigma (the
 //! calibration in pixels, the aligned readings and alignment errors in degrees, the
-//! calibration errors in percent), or one JSON object (`--json`), which a recorded session
-//! also keeps as `report.json`. The stages and their settings are a [`RobotPlan`]
+//! calibration errors in percent), or one JSON object (`--json`,
+//! [`crate::schema::DemoReport`]: the same members on every route), which a recorded
+//! session also keeps as `report.json`. The stages and their settings are a [`RobotPlan`]
 //! ([`crate::stages`]); `verge-tilt` must be among them, since every robot stage uses its
 //! calibration.
 
@@ -22,10 +23,10 @@ use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{
     AlignmentErrors, CalibrationErrors, HeadTruth, Scenario, SimulatedRobot, calibration_errors,
 };
-use serde_json::{Value, json};
+use serde_json::json;
 
 use crate::stages::{self, RobotOutcomes, RobotPlan};
-use crate::{ScenarioArgs, bootstrap_line, camera_json, encoders_json, images, k_json, points, sigma};
+use crate::{ScenarioArgs, bootstrap_line, images, points, schema, sigma};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
 /// head`, is not a failure of the command and must not panic).
@@ -304,28 +305,28 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     let mut run = VergeTiltRun::default();
     let session = point_session(args, scenario, &options, rplan, &robot);
     let (route, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session)?;
-    let (outcome, scene) = match route {
-        RouteOutcome::General(outcome, scene) => (*outcome, scene),
-        RouteOutcome::Planar(p) => {
-            let out = crate::planar::report(scenario, robot.head(), &p, args.json || writer.is_some())?;
-            if let (Some(out), Some(w)) = (&out, &writer) {
-                w.write_report(out).context("session")?;
-            }
-            if let (Some(out), true) = (out, args.json) {
-                say!("{}", serde_json::to_string_pretty(&out)?);
-            }
-            return Ok(());
+    // The robot stages need the general route's 3D reconstruction.
+    let (robot_out, writer) = match &route {
+        RouteOutcome::General(outcome, _) => {
+            let (r, w) = points::robot_stages(&mut robot, rplan, outcome, writer)?;
+            (Some(r), w)
         }
+        RouteOutcome::Planar(_) => (None, writer),
     };
-    let (robot_out, writer) = points::robot_stages(&mut robot, rplan, &outcome, writer)?;
     let total = t0.elapsed().as_secs_f64();
-    let after = After::read(&robot, &outcome, &robot_out);
     if args.json || writer.is_some() {
-        let run = PointRun { scenario, stages: &rplan.stages, outcome: &outcome, robot: &robot_out, total };
-        let mut out = points_json(args, &run, &before, &after)?;
-        if let Some(map) = out.as_object_mut() {
-            map.insert("scene".into(), serde_json::to_value(&scene)?);
-        }
+        let views = run.views.iter().map(|v| v.name.clone()).collect();
+        let run = PointRun {
+            scenario,
+            stages: &rplan.stages,
+            route: &route,
+            robot: robot_out.as_ref(),
+            views,
+            total,
+        };
+        let mut report = points_report(args, &run, &before, &robot)?;
+        report.procedure.session = writer.as_ref().map(|w| w.dir().display().to_string());
+        let out = serde_json::to_value(&report)?;
         if let Some(w) = &writer {
             w.write_report(&out).context("session")?;
         }
@@ -334,6 +335,12 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
             return Ok(());
         }
     }
+    let (outcome, scene) = match route {
+        RouteOutcome::General(outcome, scene) => (*outcome, scene),
+        RouteOutcome::Planar(p) => return crate::planar::report(robot.head(), &p),
+    };
+    let robot_out = robot_out.unwrap_or_default();
+    let after = After::read(&robot, &outcome, &robot_out);
     say!("{}", crate::planar::scene_line(&scene));
     print_calibration(scenario, &outcome, &after);
     print_errors(&outcome, &before, &after);
@@ -346,50 +353,52 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
 struct PointRun<'a> {
     scenario: &'a Scenario,
     stages: &'a [String],
-    outcome: &'a VergeTiltOutcome,
-    robot: &'a RobotOutcomes,
+    route: &'a RouteOutcome,
+    /// The robot stages' outcomes (`None` on the planar route, which runs none).
+    robot: Option<&'a RobotOutcomes>,
+    /// The verge/tilt views' names.
+    views: Vec<String>,
     /// Wall time of the whole run, seconds.
     total: f64,
 }
 
-/// The JSON object of a point-mode run (`--json`, and `report.json` of a session).
-fn points_json(args: &DemoArgs, run: &PointRun<'_>, before: &Before, after: &After) -> Result<Value> {
-    let (outcome, st) = (run.outcome, &run.outcome.calibration.bundle.state);
-    let mut errors_j = images::errors_json(&after.errors, after.unavoidable_r, &after.cal, after.recon);
-    errors_j.insert("pan_err_deg".into(), json!(after.pan_deg));
-    errors_j.insert("steer_err_deg".into(), json!(after.steer_deg));
-    let mut before_j = images::before_json(&before.errors);
-    before_j.insert("pan_err_deg".into(), json!(before.pan_deg));
-    before_j.insert("steer_err_deg".into(), json!(before.steer_deg));
-    let truth = &after.truth;
-    Ok(json!({
-        "scenario": serde_json::to_value(run.scenario)?,
-        "errors": errors_j,
-        "before": before_j,
-        "pan": serde_json::to_value(&run.robot.pan)?,
-        "pan_fixate": serde_json::to_value(&run.robot.pan_fixate)?,
-        "one_motion": serde_json::to_value(&run.robot.one_motion)?,
-        "steering": serde_json::to_value(&run.robot.steering)?,
-        "stages": run.stages,
-        "estimate": {
-            "left": camera_json(&outcome.calibration, "left", &st.left),
-            "right": camera_json(&outcome.calibration, "right", &st.right),
-            "aligned_encoders": encoders_json(&outcome.solution.aligned_encoders),
-            "aligned_sigma_deg": serde_json::to_value(outcome.sigmas)?,
-            "predicted_elev_err_r_deg": outcome.solution.predicted_elev_err_r_deg,
-            "roll_left_deg": outcome.solution.roll_left_deg, "roll_right_deg": outcome.solution.roll_right_deg,
-            "checks": serde_json::to_value(&outcome.checks)?,
-        },
-        "truth": {
-            "left": {"K": k_json(&truth.left)}, "right": {"K": k_json(&truth.right)},
-            "aligned_encoders": encoders_json(&after.true_aligned),
-            "steer_zero_deg": after.steer_zero_deg,
-            "wheelbase_m": after.wheelbase_m,
-        },
-        "report": serde_json::to_value(&outcome.calibration.report)?,
-        "timings": {"estimation_s": outcome.estimation_seconds, "total_s": run.total},
-        "rotations": {"auto": args.auto_rotation, "rotation_deg": outcome.rotation_deg, "diagonal_rotation_deg": outcome.diagonal_rotation_deg, "verge_rotation_deg": outcome.verge_rotation_deg},
-    }))
+/// The JSON of a point-mode run on either route (`--json`, and `report.json` of a
+/// session): [`schema::DemoReport`].
+fn points_report(
+    args: &DemoArgs,
+    run: &PointRun<'_>,
+    before: &Before,
+    robot: &SimulatedRobot,
+) -> Result<schema::DemoReport> {
+    let procedure =
+        schema::Procedure::new("points", run.route, run.views.clone(), args.auto_rotation, run.total)?
+            .with_robot(run.stages, run.robot);
+    let truth = schema::Truth::of(robot, run.scenario)?;
+    let errors = match run.route {
+        RouteOutcome::General(outcome, _) => {
+            let a = After::read(robot, outcome, run.robot.unwrap_or(&RobotOutcomes::default()));
+            schema::Errors::new(&a.errors, a.unavoidable_r, &a.cal, a.recon, a.pan_deg, a.steer_deg)
+        }
+        RouteOutcome::Planar(p) => {
+            let head = robot.head();
+            let (t, c) = (head.truth(), &p.calibration);
+            let cal = calibration_errors(&t.left, &t.right, &c.left.intrinsics, &c.right.intrinsics);
+            let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
+            let after = head.alignment_errors(&head.encoders());
+            // No 3D reconstruction on a plane, and no robot stage moved the pan or steering.
+            schema::Errors::new(&after, unavoidable_r, &cal, None, None, None)
+        }
+    };
+    let aligned = procedure.estimate.aligned_encoders;
+    Ok(schema::DemoReport {
+        schema: schema::DEMO,
+        procedure,
+        scenario: serde_json::to_value(run.scenario)?,
+        errors,
+        before: schema::Before::new(&before.errors, before.pan_deg, before.steer_deg),
+        aligned_reading_errors_deg: schema::ReadingErrors::new(&aligned, &truth.aligned_encoders),
+        truth,
+    })
 }
 
 /// The point-mode table's heading, the calibration against the truth and the aligned

@@ -19,7 +19,7 @@ use headalign_platform::StereoHead;
 use serde_json::json;
 
 use crate::stages::RobotPlan;
-use crate::{images, replay, stages};
+use crate::{images, replay, schema, stages};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {
@@ -161,11 +161,8 @@ pub fn run(args: &RunArgs) -> Result<()> {
             seed,
             &plan,
             &mut |_, run, route, robot| {
-                let mut v = images::route_json(run, route, t0.elapsed().as_secs_f64())?;
-                if let (Some(m), Some(robot)) = (v.as_object_mut(), robot) {
-                    m.extend(images::robot_json(&plan, robot)?);
-                }
-                Ok(v)
+                let p = images::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
+                Ok(serde_json::to_value(schema::RunReport::new(images::with_robot(p, &plan, robot)?))?)
             },
         )?
     } else {
@@ -175,7 +172,10 @@ pub fn run(args: &RunArgs) -> Result<()> {
             args.rotation,
             args.auto_rotation,
             seed,
-            &mut |_, run, route| images::route_json(run, route, t0.elapsed().as_secs_f64()),
+            &mut |_, run, route| {
+                let p = images::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
+                Ok(serde_json::to_value(schema::RunReport::new(images::with_robot(p, &plan, None)?))?)
+            },
         )?
     };
     drop(head); // the spinner goes before the results print

@@ -12,8 +12,9 @@
 //! images gives the same numbers. It detects a planar or far scene from the tracked views
 //! ([`VergeTiltRun::run_detecting`]) and then takes the planar route: no robot stages,
 //! no `figure6.png` (it draws the general route's calibration), the report's `route`,
-//! `scene`, `planar` and `checks` members ([`crate::planar::outcome_json`]) and a
-//! `report.html` of the planar route's numbers ([`crate::planar::html_sections`]).
+//! `scene`, `planar` and `checks` members (the same members on both routes:
+//! [`crate::schema::Procedure`]) and a `report.html` of the planar route's numbers
+//! ([`crate::planar::html_sections`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -37,11 +38,12 @@ use headalign::session::{
 use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
 use headalign_geometry::distortion::DistortionTerms;
 use headalign_platform::{Encoders, ImagingHead, StereoImages, Vehicle};
-use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot, calibration_errors};
+use headalign_sim::{Scenario, SimulatedRobot, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
 use serde_json::{Value, json};
 
 use crate::report_html::{AlignmentResults, HtmlReport, REPORT_FILE};
+use crate::schema;
 use crate::stages::{RobotOutcomes, RobotPlan, run_robot_stages};
 
 /// The procedure name in `session.json` for image mode.
@@ -148,6 +150,8 @@ pub struct ImageRun {
     pub images: Vec<StereoImages>,
     /// The front end's report per view.
     pub tracking: Vec<ViewTracking>,
+    /// The rotations were chosen by probing (`--auto-rotation`).
+    pub auto_rotation: bool,
 }
 
 /// Called before each stage with the stage's name, its planned captures `(name, target)`
@@ -169,7 +173,7 @@ pub fn procedure<H: ImagingHead>(
     estimation: Estimation,
     on_stage: &mut OnStage<'_, H>,
 ) -> (ImageRun, Result<RouteOutcome>) {
-    let mut out = ImageRun::default();
+    let mut out = ImageRun { auto_rotation, ..ImageRun::default() };
     on_stage(head, STAGE_VERGING, Vec::new(), STAGE_VERGING);
     let verging = match verge_to_common_view(head, &VergingOptions::default()).context("verging") {
         Ok(v) => v,
@@ -496,28 +500,6 @@ pub fn session_info(
     info
 }
 
-/// The estimate as every image-mode command reports it (`estimate` member).
-pub fn estimate_json(outcome: &VergeTiltOutcome) -> Result<Value> {
-    let st = &outcome.calibration.bundle.state;
-    let cov = &outcome.calibration.bundle.covariance;
-    let s = |side: &str| {
-        let g = |p: &str| cov.sigma(&format!("{side}.{p}"));
-        json!({"fx": g("fx"), "fy": g("fy"), "cx": g("cx"), "cy": g("cy")})
-    };
-    let mut v = json!({
-        "left": {"fx": st.left.fx, "fy": st.left.fy, "cx": st.left.cx, "cy": st.left.cy, "sigma": s("left")},
-        "right": {"fx": st.right.fx, "fy": st.right.fy, "cx": st.right.cx, "cy": st.right.cy, "sigma": s("right")},
-        "aligned_encoders": serde_json::to_value(outcome.solution.aligned_encoders)?,
-        "aligned_sigma_deg": serde_json::to_value(outcome.sigmas)?,
-        "fixation_px": {"left": outcome.solution.fixation_px_left, "right": outcome.solution.fixation_px_right},
-        "final_encoders": serde_json::to_value(outcome.final_encoders)?,
-    });
-    if let (Some(m), Some(lens)) = (v.as_object_mut(), lens_json(&outcome.calibration)) {
-        m.insert("lens".into(), lens);
-    }
-    Ok(v)
-}
-
 /// One line on the estimated lenses of an `estimate` JSON member (`None` without a lens):
 /// each camera's coefficients with their sigmas, and the `auto` choice.
 pub fn lens_line(estimate: &Value) -> Option<String> {
@@ -572,47 +554,32 @@ pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
     }))
 }
 
-/// The JSON of an image-mode run without truth on either route (`run --head-cmd`,
-/// `replay`): [`run_json`] with the scene check on the general route, the planar route's
-/// report ([`crate::planar::outcome_json`]) with the front end's on the planar one.
-pub fn route_json(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> Result<Value> {
-    let mut v = match route {
-        RouteOutcome::General(o, scene) => {
-            let mut v = run_json(run, o, total_s)?;
-            if let Some(m) = v.as_object_mut() {
-                m.insert("scene".into(), serde_json::to_value(scene)?);
-            }
-            v
-        }
-        RouteOutcome::Planar(p) => crate::planar::outcome_json(p)?,
-    };
-    if let (Some(m), RouteOutcome::Planar(p)) = (v.as_object_mut(), route) {
-        m.insert("mode".into(), json!("images"));
-        m.insert("images".into(), images_json(run)?);
-        m.insert("timings".into(), json!({"estimation_s": p.estimation_seconds, "total_s": total_s}));
-    }
-    Ok(v)
-}
-
-/// The JSON of an image-mode run without truth (`run --head-cmd`, `replay`).
-pub fn run_json(run: &ImageRun, outcome: &VergeTiltOutcome, total_s: f64) -> Result<Value> {
-    Ok(json!({
-        "mode": "images",
-        "estimate": estimate_json(outcome)?,
-        "images": images_json(run)?,
-        "report": serde_json::to_value(&outcome.calibration.report)?,
-        "checks": serde_json::to_value(&outcome.checks)?,
-        "timings": {"estimation_s": outcome.estimation_seconds, "total_s": total_s},
-        "rotations": {"rotation_deg": outcome.rotation_deg, "diagonal_rotation_deg": outcome.diagonal_rotation_deg, "verge_rotation_deg": outcome.verge_rotation_deg},
-    }))
-}
-
-fn images_json(run: &ImageRun) -> Result<Value> {
-    Ok(json!({
+/// The members of an image-mode run on either route ([`schema::Procedure`]): the
+/// estimate, checks and timings, and the front end's report (`images`); no robot stages
+/// ([`with_robot`] adds them).
+pub fn procedure_report(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> Result<schema::Procedure> {
+    let views = run.run.views.iter().map(|v| v.name.clone()).collect();
+    let mut p = schema::Procedure::new("images", route, views, run.auto_rotation, total_s)?;
+    p.images = Some(json!({
         "verging": serde_json::to_value(&run.verging)?,
         "tracking": serde_json::to_value(&run.tracking)?,
         "views": run.run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
-    }))
+    }));
+    Ok(p)
+}
+
+/// The stages of `plan` and, when they ran, their outcomes and the front end's report per
+/// robot-stage capture (`robot_tracking`).
+pub fn with_robot(
+    p: schema::Procedure,
+    plan: &RobotPlan,
+    robot: Option<&RobotRun>,
+) -> Result<schema::Procedure> {
+    let mut p = p.with_robot(&plan.stages, robot.map(|r| &r.outcomes));
+    if let Some(r) = robot {
+        p.robot_tracking = Some(serde_json::to_value(&r.tracking)?);
+    }
+    Ok(p)
 }
 
 /// Run verging, the verge/tilt procedure and then the robot stages of `plan` on rendered
@@ -655,109 +622,36 @@ pub fn run(
             let total = t0.elapsed().as_secs_f64();
             let head = robot.head();
             let after = head.alignment_errors(&head.encoders());
-            let truth = head.truth().clone();
+            let truth = schema::Truth::of(robot, scenario)?;
             let (k_left, k_right) = match route {
                 RouteOutcome::General(o, _) => {
                     (o.calibration.bundle.state.left, o.calibration.bundle.state.right)
                 }
                 RouteOutcome::Planar(p) => (p.calibration.left.intrinsics, p.calibration.right.intrinsics),
             };
-            let cal = calibration_errors(&truth.left, &truth.right, &k_left, &k_right);
-            let true_aligned = head.aligned_encoders();
-            let unavoidable_r = head.alignment_errors(&true_aligned).elev_err_r_deg;
-            let mut json = route_json(run, route, total)?;
-            if let Some(m) = json.as_object_mut() {
-                let mut errors = errors_json(&after, unavoidable_r, &cal, None);
-                let mut before_j = before_json(&before);
-                if let (true, Some(robot_run)) = (plan.drives(), robot_run) {
-                    let pan_after = robot_run.outcomes.panned().then(|| robot.pan_err_deg(&head.encoders()));
-                    let steer_after = robot_run
-                        .outcomes
-                        .steering
-                        .as_ref()
-                        .map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
-                    errors.insert("pan_err_deg".into(), json!(pan_after));
-                    errors.insert("steer_err_deg".into(), json!(steer_after));
-                    before_j.insert("pan_err_deg".into(), json!(pan_before));
-                    before_j.insert("steer_err_deg".into(), json!(steer_before));
-                    m.extend(robot_json(plan, robot_run)?);
-                }
-                if let RouteOutcome::Planar(p) = route {
-                    let a = p.solution.aligned_encoders;
-                    m.insert(
-                        "aligned_reading_errors_deg".into(),
-                        json!({"elevation": a.elevation - true_aligned.elevation, "verge_left": a.verge_left - true_aligned.verge_left, "verge_right": a.verge_right - true_aligned.verge_right}),
-                    );
-                }
-                m.insert("errors".into(), Value::Object(errors));
-                m.insert("before".into(), Value::Object(before_j));
-                m.insert(
-                    "truth".into(),
-                    json!({
-                        "left": {"fx": truth.left.fx, "fy": truth.left.fy, "cx": truth.left.cx, "cy": truth.left.cy},
-                        "right": {"fx": truth.right.fx, "fy": truth.right.fy, "cx": truth.right.cx, "cy": truth.right.cy},
-                        "distortion": serde_json::to_value(scenario.render.distortion)?,
-                        "aligned_encoders": serde_json::to_value(true_aligned)?,
-                        "steer_zero_deg": robot.truth().steer_zero_deg,
-                        "wheelbase_m": robot.truth().wheelbase_m,
-                    }),
-                );
-            }
-            Ok(json)
+            let t = head.truth();
+            let cal = calibration_errors(&t.left, &t.right, &k_left, &k_right);
+            let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
+            let stages = robot_run.map(|r| &r.outcomes);
+            let pan_after = stages.filter(|o| o.panned()).map(|_| robot.pan_err_deg(&head.encoders()));
+            let steer_after = stages
+                .and_then(|o| o.steering.as_ref())
+                .map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
+            let procedure = with_robot(procedure_report(run, route, total)?, plan, robot_run)?;
+            let aligned = procedure.estimate.aligned_encoders;
+            let report = schema::DemoReport {
+                schema: schema::DEMO,
+                procedure,
+                scenario: serde_json::to_value(scenario)?,
+                errors: schema::Errors::new(&after, unavoidable_r, &cal, None, pan_after, steer_after),
+                before: schema::Before::new(&before, pan_before, steer_before),
+                aligned_reading_errors_deg: schema::ReadingErrors::new(&aligned, &truth.aligned_encoders),
+                truth,
+            };
+            Ok(serde_json::to_value(&report)?)
         },
     )?;
     Ok(json)
-}
-
-/// The robot stages' members of an image-mode run's JSON (no truth): `stages`, `pan`,
-/// `pan_fixate`, `one_motion`, `steering` (as in point mode) and `robot_tracking` (the
-/// front end's report per robot-stage capture).
-pub fn robot_json(plan: &RobotPlan, robot: &RobotRun) -> Result<serde_json::Map<String, Value>> {
-    let o = &robot.outcomes;
-    let mut m = serde_json::Map::new();
-    m.insert("stages".into(), json!(plan.stages));
-    m.insert("pan".into(), serde_json::to_value(&o.pan)?);
-    m.insert("pan_fixate".into(), serde_json::to_value(&o.pan_fixate)?);
-    m.insert("one_motion".into(), serde_json::to_value(&o.one_motion)?);
-    m.insert("steering".into(), serde_json::to_value(&o.steering)?);
-    m.insert("robot_tracking".into(), serde_json::to_value(&robot.tracking)?);
-    Ok(m)
-}
-
-/// The `errors` member of the demo's JSON: the alignment errors after alignment, the
-/// right camera's unavoidable part and the excess over it, and the calibration errors.
-pub fn errors_json(
-    after: &AlignmentErrors,
-    unavoidable_r: f64,
-    cal: &CalibrationErrors,
-    recon_err_pct: Option<f64>,
-) -> serde_json::Map<String, Value> {
-    let mut m = before_json(after);
-    for (k, v) in [
-        ("elev_err_r_unavoidable_deg", json!(unavoidable_r)),
-        ("elev_err_r_excess_deg", json!(after.elev_err_r_deg - unavoidable_r)),
-        ("f_err_pct", json!(cal.f_err_pct)),
-        ("aspect_err_pct", json!(cal.aspect_err_pct)),
-        ("pp_err_pct", json!(cal.pp_err_pct)),
-        ("recon_err_pct", json!(recon_err_pct)),
-    ] {
-        m.insert(k.to_string(), v);
-    }
-    m
-}
-
-/// The four alignment errors, as the demo's `before` member names them.
-pub fn before_json(e: &AlignmentErrors) -> serde_json::Map<String, Value> {
-    let mut m = serde_json::Map::new();
-    for (k, v) in [
-        ("verge_err_l_deg", e.verge_err_l_deg),
-        ("verge_err_r_deg", e.verge_err_r_deg),
-        ("elev_err_l_deg", e.elev_err_l_deg),
-        ("elev_err_r_deg", e.elev_err_r_deg),
-    ] {
-        m.insert(k.to_string(), json!(v));
-    }
-    m
 }
 
 /// The paper's Figure 6 on the reference view (stereo pair side by side): features used by

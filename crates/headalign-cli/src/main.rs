@@ -23,6 +23,7 @@ mod progress;
 mod recording;
 mod replay;
 mod report_html;
+mod schema;
 mod stages;
 
 use std::path::{Path, PathBuf};
@@ -272,21 +273,8 @@ fn main() -> ExitCode {
     }
 }
 
-fn k_json(k: &Intrinsics) -> Value {
-    json!([[k.fx, k.skew, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]])
-}
-
 fn sigma(calib: &RigCalibration, name: &str) -> Option<f64> {
     calib.bundle.covariance.sigma(name)
-}
-
-fn camera_json(calib: &RigCalibration, side: &str, k: &Intrinsics) -> Value {
-    let s = |p: &str| sigma(calib, &format!("{side}.{p}"));
-    json!({
-        "K": k_json(k),
-        "fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy,
-        "sigma": {"fx": s("fx"), "fy": s("fy"), "cx": s("cx"), "cy": s("cy")},
-    })
 }
 
 fn axis_json(line: &Line, calib: &RigCalibration, index: usize) -> Value {
@@ -309,10 +297,6 @@ fn verge_json(line: &Option<Line>) -> Value {
         }
         None => Value::Null,
     }
-}
-
-fn encoders_json(e: &headalign_platform::Encoders) -> Value {
-    json!({"pan": e.pan, "elevation": e.elevation, "verge_left": e.verge_left, "verge_right": e.verge_right})
 }
 
 fn align(args: &AlignArgs) -> Result<()> {
@@ -341,11 +325,7 @@ fn align(args: &AlignArgs) -> Result<()> {
         written = write_align_files(dir, args, &views, recorded.as_deref(), &a, &axes)?;
     }
     if args.json {
-        let mut v = align_json(&a, axes, &written)?;
-        if let Some(m) = v.as_object_mut() {
-            m.insert("scene".into(), serde_json::to_value(&scene)?);
-        }
-        say!("{}", serde_json::to_string_pretty(&v)?);
+        say!("{}", serde_json::to_string_pretty(&align_report(&a, axes, &scene, &written)?)?);
         return Ok(());
     }
     say!("{}", planar::scene_line(&scene));
@@ -362,44 +342,42 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let path = dir.join("alignment.json");
-        let value = json!({
-            "format": "headalign-alignment/1",
-            "route": "planar",
-            "reference_encoders": encoders_json(&p.reference),
-            "aligned_encoders": encoders_json(&p.solution.aligned_encoders),
-            "aligned_sigma_deg": serde_json::to_value(p.sigmas)?,
-            "verge_axes_measured": p.solution.verge_axes_measured,
-            "predicted_elev_err_r_deg": p.solution.predicted_elev_err_r_deg,
-            "undetermined": cal.undetermined,
-        });
+        let value = alignment_file("planar", p.reference, &p.solution, p.sigmas, &cal.undetermined);
         std::fs::write(&path, serde_json::to_string_pretty(&value)? + "\n")
             .with_context(|| format!("cannot write {}", path.display()))?;
         written.push(path);
     }
     let not_written = "calibration files and head.json: not written (the rig's translation and the axes' positions are undetermined on a plane)";
     if args.json {
-        let camera = |c: &headalign::planar::CameraPlanar| {
-            let k = &c.intrinsics;
-            json!({"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
-                "sigma": {"fx": c.sigma("fx"), "fy": c.sigma("fy"), "cx": c.sigma("cx"), "cy": c.sigma("cy")}})
+        let sol = &p.solution;
+        let mut warnings = vec![not_written.to_string()];
+        if !sol.verge_axes_measured {
+            warnings.push(NOMINAL_VERGE_WARNING.to_string());
+        }
+        let report = schema::AlignReport {
+            schema: schema::ALIGN,
+            route: "planar",
+            scene: serde_json::to_value(&cal.scene)?,
+            planar: Some(serde_json::to_value(cal)?),
+            left: schema::Camera::new(&cal.left.intrinsics, |n| cal.left.sigma(n)),
+            right: schema::Camera::new(&cal.right.intrinsics, |n| cal.right.sigma(n)),
+            fixation_px: schema::PixelPair { left: sol.fixation_px_left, right: sol.fixation_px_right },
+            invariant_lines: sol.invariant_lines,
+            axes: None,
+            aligned_encoders: sol.aligned_encoders,
+            aligned_sigma_deg: p.sigmas,
+            verge_axes_measured: sol.verge_axes_measured,
+            predicted_elev_err_r_deg: sol.predicted_elev_err_r_deg,
+            roll_left_deg: sol.roll_left_deg,
+            roll_right_deg: sol.roll_right_deg,
+            undetermined: cal.undetermined.clone(),
+            report: None,
+            lens: None,
+            warnings,
+            files: written.iter().map(|p| p.display().to_string()).collect(),
+            seconds,
         };
-        let v = json!({
-            "route": "planar",
-            "scene": serde_json::to_value(&cal.scene)?,
-            "planar": serde_json::to_value(cal)?,
-            "left": camera(&cal.left),
-            "right": camera(&cal.right),
-            "fixation_px": {"left": p.solution.fixation_px_left, "right": p.solution.fixation_px_right},
-            "invariant_lines": serde_json::to_value(p.solution.invariant_lines)?,
-            "aligned_encoders": encoders_json(&p.solution.aligned_encoders),
-            "aligned_sigma_deg": serde_json::to_value(p.sigmas)?,
-            "verge_axes_measured": p.solution.verge_axes_measured,
-            "undetermined": cal.undetermined,
-            "warnings": if p.solution.verge_axes_measured { vec![not_written] } else { vec![not_written, NOMINAL_VERGE_WARNING] },
-            "files": written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
-            "seconds": seconds,
-        });
-        say!("{}", serde_json::to_string_pretty(&v)?);
+        say!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
     }
     say!("{}", planar::scene_line(&cal.scene));
@@ -526,18 +504,7 @@ fn write_align_files(
     let mut written = stereo.write_all(dir)?;
     let extra = [
         ("head.json", json!({"format": "headalign-head/1", "axes": axes})),
-        (
-            "alignment.json",
-            json!({
-                "format": "headalign-alignment/1",
-                "reference_encoders": encoders_json(&a.reference),
-                "aligned_encoders": encoders_json(&solution.aligned_encoders),
-                "aligned_sigma_deg": serde_json::to_value(sig)?,
-                "verge_axes_measured": solution.verge_axes_measured,
-                "predicted_elev_err_r_deg": solution.predicted_elev_err_r_deg,
-                "roll_left_deg": solution.roll_left_deg, "roll_right_deg": solution.roll_right_deg,
-            }),
-        ),
+        ("alignment.json", serde_json::to_value(alignment_file("general", a.reference, solution, sig, &[]))?),
     ];
     for (name, value) in extra {
         let path = dir.join(name);
@@ -559,30 +526,62 @@ fn write_align_files(
     Ok(written)
 }
 
-/// The JSON object of `align --json`.
-fn align_json(a: &AlignEstimate, axes: Value, written: &[PathBuf]) -> Result<Value> {
-    let (calib, solution, sig) = (&a.calib, &a.solution, a.sigmas);
-    let state = &calib.bundle.state;
-    let mut v = json!({
-        "left": camera_json(calib, "left", &state.left),
-        "right": camera_json(calib, "right", &state.right),
-        "fixation_px": {"left": solution.fixation_px_left, "right": solution.fixation_px_right},
-        "invariant_lines": serde_json::to_value(solution.invariant_lines)?,
-        "axes": axes,
-        "files": written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
-        "aligned_encoders": encoders_json(&solution.aligned_encoders),
-        "aligned_sigma_deg": serde_json::to_value(sig)?,
-        "verge_axes_measured": solution.verge_axes_measured,
-        "warnings": if solution.verge_axes_measured { vec![] } else { vec![NOMINAL_VERGE_WARNING] },
-        "predicted_elev_err_r_deg": solution.predicted_elev_err_r_deg,
-        "roll_left_deg": solution.roll_left_deg, "roll_right_deg": solution.roll_right_deg,
-        "report": serde_json::to_value(&calib.report)?,
-        "seconds": a.seconds,
-    });
-    if let (Some(m), Some(lens)) = (v.as_object_mut(), images::lens_json(calib)) {
-        m.insert("lens".into(), lens);
+/// The file `alignment.json` of `align --out` on `route`: the reference and aligned
+/// readings with their sigmas, the rolls and what the scene leaves `undetermined`.
+fn alignment_file(
+    route: &'static str,
+    reference: Encoders,
+    solution: &AlignmentSolution,
+    sigmas: AlignmentSigmas,
+    undetermined: &[String],
+) -> schema::AlignmentFile {
+    schema::AlignmentFile {
+        format: schema::ALIGNMENT_FILE,
+        route,
+        reference_encoders: reference,
+        aligned_encoders: solution.aligned_encoders,
+        aligned_sigma_deg: sigmas,
+        verge_axes_measured: solution.verge_axes_measured,
+        predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
+        roll_left_deg: solution.roll_left_deg,
+        roll_right_deg: solution.roll_right_deg,
+        undetermined: undetermined.to_vec(),
     }
-    Ok(v)
+}
+
+/// The JSON object of `align --json` on the general route.
+fn align_report(
+    a: &AlignEstimate,
+    axes: Value,
+    scene: &headalign::planar::SceneCheck,
+    written: &[PathBuf],
+) -> Result<schema::AlignReport> {
+    let (calib, solution) = (&a.calib, &a.solution);
+    let state = &calib.bundle.state;
+    let s = |side: &'static str| move |p: &str| sigma(calib, &format!("{side}.{p}"));
+    Ok(schema::AlignReport {
+        schema: schema::ALIGN,
+        route: "general",
+        scene: serde_json::to_value(scene)?,
+        planar: None,
+        left: schema::Camera::new(&state.left, s("left")),
+        right: schema::Camera::new(&state.right, s("right")),
+        fixation_px: schema::PixelPair { left: solution.fixation_px_left, right: solution.fixation_px_right },
+        invariant_lines: solution.invariant_lines,
+        axes: Some(axes),
+        aligned_encoders: solution.aligned_encoders,
+        aligned_sigma_deg: a.sigmas,
+        verge_axes_measured: solution.verge_axes_measured,
+        predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
+        roll_left_deg: solution.roll_left_deg,
+        roll_right_deg: solution.roll_right_deg,
+        undetermined: Vec::new(),
+        report: Some(serde_json::to_value(&calib.report)?),
+        lens: images::lens_json(calib),
+        warnings: if solution.verge_axes_measured { Vec::new() } else { vec![NOMINAL_VERGE_WARNING.into()] },
+        files: written.iter().map(|p| p.display().to_string()).collect(),
+        seconds: a.seconds,
+    })
 }
 
 /// `align`'s summary: intrinsics, fixation point, axes, aligned readings, files written.

@@ -1,16 +1,14 @@
 //! The planar route's report ([`headalign::planar`]): `demo` on a planar or far scene
-//! (point mode, against the simulator's truth, as a table or one JSON object), and the
-//! JSON and summary lines every command shares (`demo --images`, `replay`, `run`,
-//! `align`): [`outcome_json`], [`summary_lines`]. The robot stages need the 3D
+//! (point mode, against the simulator's truth, as a table), and the summary lines every
+//! command shares (`demo --images`, `replay`, `run`, `align`): [`summary_lines`]. The
+//! JSON of every route is [`crate::schema`]'s. The robot stages need the 3D
 //! reconstruction a plane does not give: they are skipped, and the report says so.
 
 use anyhow::Result;
 use headalign::planar::{CameraPlanar, SceneCheck};
 use headalign::procedure::PlanarOutcome;
-use headalign_sim::{Scenario, SimulatedHead};
+use headalign_sim::SimulatedHead;
 use serde_json::{Value, json};
-
-use crate::encoders_json;
 
 /// Print a line to stdout, ignoring write errors (as `demo`).
 macro_rules! say {
@@ -27,37 +25,6 @@ pub fn scene_line(check: &SceneCheck) -> String {
 
 /// What the robot stages say on the planar route.
 pub const ROBOT_STAGES_SKIPPED: &str = "skipped: they need the 3D reconstruction a plane does not give";
-
-/// The planar route's members of a report (no truth): `route`, `scene`, `planar` (each
-/// camera, what is undetermined), `estimate` (intrinsics with sigmas, aligned readings
-/// and sigmas, fixation points, final readings: the members `replay` prints),
-/// `checks` (the check after the move, what it cannot check), `check_failure`.
-pub fn outcome_json(out: &PlanarOutcome) -> Result<Value> {
-    let cal = &out.calibration;
-    let camera = |c: &CameraPlanar| {
-        let k = &c.intrinsics;
-        json!({"fx": k.fx, "fy": k.fy, "cx": k.cx, "cy": k.cy,
-            "sigma": {"fx": c.sigma("fx"), "fy": c.sigma("fy"), "cx": c.sigma("cx"), "cy": c.sigma("cy")}})
-    };
-    Ok(json!({
-        "route": "planar",
-        "scene": serde_json::to_value(&cal.scene)?,
-        "planar": serde_json::to_value(cal)?,
-        "estimate": {
-            "left": camera(&cal.left),
-            "right": camera(&cal.right),
-            "aligned_encoders": serde_json::to_value(out.solution.aligned_encoders)?,
-            "aligned_sigma_deg": serde_json::to_value(out.sigmas)?,
-            "fixation_px": {"left": out.solution.fixation_px_left, "right": out.solution.fixation_px_right},
-            "final_encoders": serde_json::to_value(out.final_encoders)?,
-        },
-        "checks": serde_json::to_value(&out.checks)?,
-        "check_failure": out.check_failure,
-        "robot_stages": ROBOT_STAGES_SKIPPED,
-        "timings": {"estimation_s": out.estimation_seconds},
-        "rotations": {"rotation_deg": out.rotation_deg, "diagonal_rotation_deg": out.diagonal_rotation_deg, "verge_rotation_deg": out.verge_rotation_deg},
-    }))
-}
 
 /// The lines every command prints about the route from a report's JSON: the scene
 /// (`scene: kind (why)`, when the report has one) and, on the planar route, what is
@@ -204,41 +171,14 @@ fn camera_line(name: &str, c: &CameraPlanar, truth: &headalign_geometry::camera:
     )
 }
 
-/// Print (or return as JSON) the planar outcome of a demo run on `head` (after the
-/// procedure, the head at the aligned readings).
-pub fn report(
-    scenario: &Scenario,
-    head: &SimulatedHead,
-    out: &PlanarOutcome,
-    json: bool,
-) -> Result<Option<Value>> {
+/// Print the planar outcome of a point-mode demo run on `head` (after the procedure, the
+/// head at the aligned readings) against its truth; its JSON is the demo's
+/// ([`crate::schema::DemoReport`]).
+pub fn report(head: &SimulatedHead, out: &PlanarOutcome) -> Result<()> {
     let truth = head.aligned_encoders();
     let a = out.solution.aligned_encoders;
-    let errors =
-        [a.elevation - truth.elevation, a.verge_left - truth.verge_left, a.verge_right - truth.verge_right];
     let after = head.alignment_errors(&head.encoders());
     let cal = &out.calibration;
-    if json {
-        return Ok(Some(json!({
-            "seed": scenario.seed,
-            "route": "planar",
-            "scene": cal.scene,
-            "planar": cal,
-            "aligned_encoders": encoders_json(&a),
-            "sigmas_deg": {
-                "elevation": out.sigmas.elevation_deg,
-                "verge_left": out.sigmas.verge_left_deg,
-                "verge_right": out.sigmas.verge_right_deg,
-            },
-            "truth": { "aligned_encoders": encoders_json(&truth) },
-            "aligned_reading_errors_deg": { "elevation": errors[0], "verge_left": errors[1], "verge_right": errors[2] },
-            "alignment_errors_after": after,
-            "checks": serde_json::to_value(&out.checks)?,
-            "check_failure": out.check_failure,
-            "robot_stages": ROBOT_STAGES_SKIPPED,
-            "estimation_seconds": out.estimation_seconds,
-        })));
-    }
     say!("{}", scene_line(&cal.scene));
     say!("planar route (paper section 3.3): each camera from its own plane homographies");
     let t = head.truth();
@@ -272,5 +212,5 @@ pub fn report(
         say!("{line}");
     }
     say!("time: estimation {:.1} ms", 1e3 * out.estimation_seconds);
-    Ok(None)
+    Ok(())
 }

@@ -155,6 +155,9 @@ pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibr
     };
     let mut cal = calibrate_rig(&rig, &crate::calibrate::options(args))
         .with_context(|| format!("session {}", args.dir.display()))?;
-    cal.report.skipped.splice(0..0, choice.left_out.into_iter().map(|(_, why)| why));
-    crate::calibrate::self_calibration_outcome(cal, None, lenses, image_size, args, t0)
+    let left_out: Vec<String> = choice.left_out.into_iter().map(|(_, why)| why).collect();
+    cal.report.skipped.splice(0..0, left_out.iter().cloned());
+    let mut outcome = crate::calibrate::self_calibration_outcome(cal, None, lenses, image_size, args, t0)?;
+    outcome.json["skipped"] = serde_json::json!(left_out);
+    Ok(outcome)
 }

@@ -14,10 +14,10 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::session::{ReplayHead, SessionInfo, read_session_info};
-use serde_json::{Value, json};
+use serde_json::Value;
 
 use crate::stages::RobotPlan;
-use crate::{calibrate, images, points};
+use crate::{calibrate, images, points, schema};
 use headalign::procedure::{RouteOutcome, VergeTiltRun};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
@@ -90,12 +90,15 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
     let (run, outcome) =
         images::procedure(&mut head, args.rotation, args.auto_rotation, seed, &mut |_, _, _, _| {});
     let outcome = outcome.with_context(|| format!("replay of '{}'", args.dir.display()))?;
-    let mut v = images::route_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
-    if let Some(m) = v.as_object_mut() {
-        m.insert("replayed".into(), json!(args.dir.display().to_string()));
-        m.insert("still_views".into(), json!(head.views().len()));
-        m.insert("still_views_used".into(), json!(head.position() + 1));
-    }
+    let report = schema::ReplayReport {
+        schema: schema::REPLAY,
+        procedure: images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?,
+        replayed: args.dir.display().to_string(),
+        unplayed_events: None,
+        still_views: Some(head.views().len()),
+        still_views_used: Some(head.position() + 1),
+    };
+    let v = serde_json::to_value(&report)?;
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
     } else {
@@ -134,10 +137,10 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let verge_tilt = |head: &mut ReplayHead| {
         images::procedure(head, info.rotation_deg, info.auto_rotation, estimation, &mut |_, _, _, _| {})
     };
-    let (v, views) = if info.procedure == images::PROCEDURE {
+    let (p, views) = if info.procedure == images::PROCEDURE {
         let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
-        (images::route_json(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
+        (images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
     } else if info.procedure == images::PROCEDURE_ROBOT {
         let plan = session_plan(&args.dir, &info)?.with_context(|| {
             format!(
@@ -154,45 +157,22 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             }
             RouteOutcome::Planar(_) => None,
         };
-        let mut v = images::route_json(&run, &outcome, t0.elapsed().as_secs_f64())?;
-        if let (Some(m), Some(robot)) = (v.as_object_mut(), &robot) {
-            m.extend(images::robot_json(&plan, robot)?);
-        }
-        (v, run.run.views.len() + robot.map_or(0, |r| r.tracking.len()))
+        let p = images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?;
+        let views = run.run.views.len() + robot.as_ref().map_or(0, |r| r.tracking.len());
+        (images::with_robot(p, &plan, robot.as_ref())?, views)
     } else if info.procedure == points::PROCEDURE {
         let mut run = VergeTiltRun::default();
         let route = run.run_detecting(&mut head, &points::options(&info)).with_context(context)?;
-        let (outcome, scene) = match route {
-            RouteOutcome::General(o, scene) => (*o, scene),
-            RouteOutcome::Planar(p) => {
-                let mut v = crate::planar::outcome_json(&p)?;
-                if let Some(m) = v.as_object_mut() {
-                    m.insert("mode".into(), json!("points"));
-                    m.insert(
-                        "views".into(),
-                        json!(run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>()),
-                    );
-                }
-                return finish_replay(args, v, &head, run.views.len());
-            }
-        };
-        let mut v = json!({
-            "scene": serde_json::to_value(&scene)?,
-            "mode": "points",
-            "estimate": images::estimate_json(&outcome)?,
-            "report": serde_json::to_value(&outcome.calibration.report)?,
-            "checks": serde_json::to_value(&outcome.checks)?,
-            "views": run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
-        });
+        let names = run.views.iter().map(|v| v.name.clone()).collect();
+        let total = t0.elapsed().as_secs_f64();
+        let mut p = schema::Procedure::new("points", &route, names, info.auto_rotation, total)?;
         // The robot stages recorded after the verge/tilt stage (sessions that have them).
-        if let Some(plan) = session_plan(&args.dir, &info)? {
-            let (robot, _) = points::robot_stages(&mut head, &plan, &outcome, None).with_context(context)?;
-            if let Some(m) = v.as_object_mut() {
-                m.insert("stages".into(), serde_json::to_value(&plan.stages)?);
-                m.insert("robot".into(), serde_json::to_value(&robot)?);
-            }
+        if let (RouteOutcome::General(outcome, _), Some(plan)) = (&route, session_plan(&args.dir, &info)?) {
+            let (robot, _) = points::robot_stages(&mut head, &plan, outcome, None).with_context(context)?;
+            p = p.with_robot(&plan.stages, Some(&robot));
+            p.timings.total_s = t0.elapsed().as_secs_f64();
         }
-        (v, run.views.len())
+        (p, run.views.len())
     } else if info.procedure == calibrate::PROCEDURE {
         // A calibration session (`simulate --images`): no head calls to play back; the
         // result is `calibrate --json` with the recorded constraints.
@@ -222,15 +202,25 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             calibrate::PROCEDURE
         );
     };
-    finish_replay(args, v, &head, views)
+    finish_replay(args, p, &head, views)
 }
 
 /// Print a replay's result (`views` views replayed) with where it came from.
-fn finish_replay(args: &ReplayArgs, mut v: Value, head: &ReplayHead, views: usize) -> Result<()> {
-    if let Some(m) = v.as_object_mut() {
-        m.insert("replayed".into(), json!(args.dir.display().to_string()));
-        m.insert("unplayed_events".into(), json!(head.remaining()));
-    }
+fn finish_replay(
+    args: &ReplayArgs,
+    procedure: schema::Procedure,
+    head: &ReplayHead,
+    views: usize,
+) -> Result<()> {
+    let report = schema::ReplayReport {
+        schema: schema::REPLAY,
+        procedure,
+        replayed: args.dir.display().to_string(),
+        unplayed_events: Some(head.remaining()),
+        still_views: None,
+        still_views_used: None,
+    };
+    let v = serde_json::to_value(&report)?;
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
     } else {

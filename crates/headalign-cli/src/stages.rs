@@ -125,11 +125,13 @@ impl RobotPlan {
 }
 
 /// One line naming what the robot stages found, from a run's JSON (`pan`, `steering`
-/// members, or those of its `robot` member in point mode): each pan stage's final pan
-/// reading and the steering zero.
+/// members): each pan stage's final pan reading and the steering zero; `None` when only
+/// the verge/tilt stage was asked for.
 pub fn summary_line(v: &serde_json::Value) -> Option<String> {
     let stages = v["stages"].as_array()?;
-    let v = if v["robot"].is_object() { &v["robot"] } else { v };
+    if stages.iter().all(|s| s.as_str() == Some(headalign::session::STAGE_VERGE_TILT)) {
+        return None;
+    }
     let mut parts = Vec::new();
     let pans: Vec<String> = v["pan"]
         .as_array()

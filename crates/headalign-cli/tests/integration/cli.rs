@@ -157,16 +157,16 @@ fn view_folders(dir: &Path) -> Vec<String> {
 /// The image demo of seed 4, run once for the two tests that use it: its folder, its
 /// `--json` output, and the view folders it recorded (listed before any test touches the
 /// folder).
-struct ImageDemo {
+pub(super) struct ImageDemo {
     dir: PathBuf,
-    json: Value,
+    pub(super) json: Value,
     folders: Vec<String>,
 }
 
 /// `demo --images --stages verge-tilt --seed 4 --json --save DIR`: the verge/tilt stage
 /// alone (the plain room); the robot stages on images are covered by `sessions.rs`
 /// (recorded and replayed) and `headalign/tests/robot_images.rs`.
-fn image_demo() -> &'static ImageDemo {
+pub(super) fn image_demo() -> &'static ImageDemo {
     static DEMO: OnceLock<ImageDemo> = OnceLock::new();
     DEMO.get_or_init(|| {
         let dir = tmp("images-save");
@@ -396,8 +396,8 @@ fn demo_on_a_wall_takes_the_planar_route() {
     assert!(["planar", "far"].contains(&v["scene"]["kind"].as_str().unwrap()), "{}", v["scene"]);
     assert!(v["planar"]["undetermined"].as_array().unwrap().len() >= 4);
     for j in ["elevation", "verge_left", "verge_right"] {
-        let (e, s) =
-            (v["aligned_reading_errors_deg"][j].as_f64().unwrap(), v["sigmas_deg"][j].as_f64().unwrap());
+        let e = v["aligned_reading_errors_deg"][j].as_f64().unwrap();
+        let s = v["estimate"]["aligned_sigma_deg"][format!("{j}_deg")].as_f64().unwrap();
         assert!(e.abs() < 4.0 * s, "{j}: {e} vs sigma {s}");
     }
     let out = run(&["demo", "--stages", "verge-tilt"]);

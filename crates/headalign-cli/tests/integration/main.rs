@@ -6,6 +6,7 @@ mod bad_input;
 mod cli;
 mod common;
 mod experiment;
+mod json_schemas;
 mod lens;
 mod real_data;
 mod recordings;

@@ -1,0 +1,599 @@
+//! The JSON objects the commands print with `--json`, one typed struct per schema, each
+//! built in one place: `headalign-demo/1` ([`DemoReport`]), `headalign-run/1`
+//! ([`RunReport`]), `headalign-replay/1` ([`ReplayReport`]), `headalign-align/1`
+//! ([`AlignReport`]), `headalign-calibrate/1` ([`CalibrateReport`]), and the file
+//! `alignment.json` (`headalign-alignment/2`, [`AlignmentFile`]). docs/formats.md
+//! ("JSON on stdout") documents every member: its type, unit, meaning and when it is null.
+//!
+//! Every member is a field, so every route of a command prints the same members: what a
+//! route cannot give is an `Option` (`null`) or an empty list, never a missing member.
+//! The members shared by `demo`, `run` and `replay` (the procedure's estimate, checks,
+//! robot stages, timings) are one struct, [`Procedure`], flattened into each report; the
+//! robot stages' members are [`RobotOutcomes`]' fields, flattened into it.
+//!
+//! Adding a member: add a field to the struct of its schema (shared by demo, run and
+//! replay: [`Procedure`]; with the truth: [`DemoReport`]; the robot stages' outcome types
+//! in `crate::stages` flow through as they are), fill it where that struct is built, add
+//! a row to its table in docs/formats.md (the `json_schemas` integration test compares
+//! the two), and bump the schema's version when a member changes meaning or goes.
+//!
+//! Pitfall: a schema's nested members that differ by route (`checks`, `planar`, `scene`,
+//! `report`) are kept as the library's own serialisations ([`Value`]); the test compares
+//! the top-level members and those of `errors` and `before`.
+
+use headalign::alignment::{AlignmentSolution, InvariantLines};
+use headalign::procedure::{AlignmentSigmas, PlanarOutcome, RouteOutcome, VergeTiltOutcome};
+use headalign_geometry::camera::Intrinsics;
+use headalign_platform::Encoders;
+use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot};
+use serde::Serialize;
+use serde_json::Value;
+
+use crate::stages::RobotOutcomes;
+
+/// Schema of `demo --json` (and a demo session's `report.json`).
+pub const DEMO: &str = "headalign-demo/1";
+/// Schema of `run --json` (and a run session's `report.json`).
+pub const RUN: &str = "headalign-run/1";
+/// Schema of `replay --json` on a head's session or recording.
+pub const REPLAY: &str = "headalign-replay/1";
+/// Schema of `align --json`.
+pub const ALIGN: &str = "headalign-align/1";
+/// Schema of `calibrate --json` (and of `replay --json` on a calibration session).
+pub const CALIBRATE: &str = "headalign-calibrate/1";
+/// Format of the file `alignment.json` (`align --out`).
+pub const ALIGNMENT_FILE: &str = "headalign-alignment/2";
+
+/// What a route's robot stages say when they did not run (the planar route).
+pub type SkipNote = Option<&'static str>;
+
+/// A camera's intrinsics with their sigmas (pixels).
+#[derive(Debug, Clone, Serialize)]
+pub struct Camera {
+    /// The camera matrix, row-major.
+    #[serde(rename = "K")]
+    pub k: [[f64; 3]; 3],
+    pub fx: f64,
+    pub fy: f64,
+    pub skew: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// 1-sigma of each estimated parameter; null when not estimated.
+    pub sigma: CameraSigma,
+}
+
+/// The sigmas of a camera's intrinsics, pixels (null: not estimated or no covariance).
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct CameraSigma {
+    pub fx: Option<f64>,
+    pub fy: Option<f64>,
+    pub cx: Option<f64>,
+    pub cy: Option<f64>,
+}
+
+impl Camera {
+    /// A camera from its intrinsics and a sigma per parameter name (`fx`, `fy`, `cx`, `cy`).
+    pub fn new(k: &Intrinsics, sigma: impl Fn(&str) -> Option<f64>) -> Self {
+        Self {
+            k: [[k.fx, k.skew, k.cx], [0.0, k.fy, k.cy], [0.0, 0.0, 1.0]],
+            fx: k.fx,
+            fy: k.fy,
+            skew: k.skew,
+            cx: k.cx,
+            cy: k.cy,
+            sigma: CameraSigma { fx: sigma("fx"), fy: sigma("fy"), cx: sigma("cx"), cy: sigma("cy") },
+        }
+    }
+}
+
+/// A point in each image, pixels.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct PixelPair {
+    pub left: [f64; 2],
+    pub right: [f64; 2],
+}
+
+/// The estimate every procedure reports (`estimate`), on either route.
+#[derive(Debug, Clone, Serialize)]
+pub struct Estimate {
+    pub left: Camera,
+    pub right: Camera,
+    /// The aligned readings, degrees.
+    pub aligned_encoders: Encoders,
+    /// Their sigmas, degrees.
+    pub aligned_sigma_deg: AlignmentSigmas,
+    /// Where each camera's optical axis meets the fixation point, pixels.
+    pub fixation_px: PixelPair,
+    /// The readings the head ended at, degrees.
+    pub final_encoders: Encoders,
+    /// The right camera's elevation error no joint can remove, as calibrated, degrees.
+    pub predicted_elev_err_r_deg: f64,
+    pub roll_left_deg: f64,
+    pub roll_right_deg: f64,
+    /// The estimated lenses (`images::lens_json`); null for pinhole cameras.
+    pub lens: Option<Value>,
+}
+
+/// The procedure's rotations, degrees.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Rotations {
+    /// The rotations were chosen by probing (`--auto-rotation`).
+    pub auto: bool,
+    pub rotation_deg: f64,
+    pub diagonal_rotation_deg: f64,
+    pub verge_rotation_deg: f64,
+}
+
+/// Wall times, seconds.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Timings {
+    /// The verge/tilt estimation.
+    pub estimation_s: f64,
+    /// The whole command.
+    pub total_s: f64,
+}
+
+/// The members `demo`, `run` and `replay` share: what the procedure did and found, with
+/// no truth.
+#[derive(Debug, Clone, Serialize)]
+pub struct Procedure {
+    /// `points` (the simulator's or a session's tracked points) or `images`.
+    pub mode: &'static str,
+    /// `general` or `planar` (a planar or far scene, paper section 3.3).
+    pub route: &'static str,
+    /// The scene check that chose the route (`headalign::planar::SceneCheck`).
+    pub scene: Value,
+    /// The planar route's calibration (`headalign::planar::PlanarCalibration`); null on
+    /// the general route.
+    pub planar: Option<Value>,
+    pub estimate: Estimate,
+    /// The adjustment's report (`headalign::estimate::EstimationReport`); null on the
+    /// planar route.
+    pub report: Option<Value>,
+    /// The checks after the move (the general route's `CheckStep`s or the planar route's
+    /// `PlanarCheck`s).
+    pub checks: Value,
+    /// Why the planar route's check after the move was not made; null otherwise.
+    pub check_failure: Option<String>,
+    pub rotations: Rotations,
+    pub timings: Timings,
+    /// The verge/tilt views, in capture order.
+    pub views: Vec<String>,
+    /// Image mode: verging, the front end's report per view; null in point mode.
+    pub images: Option<Value>,
+    /// The stages asked for (`--stages`, or the session's).
+    pub stages: Vec<String>,
+    /// Why the robot stages did not run (the planar route); null otherwise.
+    pub robot_stages: SkipNote,
+    /// The robot stages' outcomes: `pan`, `pan_fixate`, `one_motion` (lists, empty when
+    /// not run), `steering` (null when not run).
+    #[serde(flatten)]
+    pub robot: RobotOutcomes,
+    /// Image mode: the front end's report per robot-stage capture; null otherwise.
+    pub robot_tracking: Option<Value>,
+    /// The session folder recorded; null when none.
+    pub session: Option<String>,
+    /// Files written besides the session's views (the calibration files of a run with a
+    /// lens model).
+    pub files: Vec<String>,
+}
+
+/// `run --json`: [`Procedure`].
+#[derive(Debug, Clone, Serialize)]
+pub struct RunReport {
+    pub schema: &'static str,
+    #[serde(flatten)]
+    pub procedure: Procedure,
+}
+
+impl RunReport {
+    pub fn new(procedure: Procedure) -> Self {
+        Self { schema: RUN, procedure }
+    }
+}
+
+/// `replay --json` of a head's session or recording: [`Procedure`] and where it came from.
+#[derive(Debug, Clone, Serialize)]
+pub struct ReplayReport {
+    pub schema: &'static str,
+    #[serde(flatten)]
+    pub procedure: Procedure,
+    /// The session or recording replayed.
+    pub replayed: String,
+    /// A session: recorded head calls left over (0 when the replay matched); null for a
+    /// recording.
+    pub unplayed_events: Option<usize>,
+    /// A recording: its still views; null for a session.
+    pub still_views: Option<usize>,
+    /// A recording: the still views the procedure used; null for a session.
+    pub still_views_used: Option<usize>,
+}
+
+/// Alignment errors against the simulator's truth, degrees (`headalign_sim::metrics`).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Errors {
+    pub verge_err_l_deg: f64,
+    pub verge_err_r_deg: f64,
+    pub elev_err_l_deg: f64,
+    pub elev_err_r_deg: f64,
+    /// The right camera's elevation error at the true aligned readings (no joint removes it).
+    pub elev_err_r_unavoidable_deg: f64,
+    /// `elev_err_r_deg - elev_err_r_unavoidable_deg`.
+    pub elev_err_r_excess_deg: f64,
+    /// Null when no stage moved the pan joint.
+    pub pan_err_deg: Option<f64>,
+    /// Null when the steering stage did not run.
+    pub steer_err_deg: Option<f64>,
+    /// Calibration errors, percent.
+    pub f_err_pct: f64,
+    pub aspect_err_pct: f64,
+    pub pp_err_pct: f64,
+    /// Null where not computed (image mode, the planar route).
+    pub recon_err_pct: Option<f64>,
+}
+
+/// The simulated robot's errors at the start, degrees.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Before {
+    pub verge_err_l_deg: f64,
+    pub verge_err_r_deg: f64,
+    pub elev_err_l_deg: f64,
+    pub elev_err_r_deg: f64,
+    pub pan_err_deg: f64,
+    pub steer_err_deg: f64,
+}
+
+/// Estimated minus true aligned readings, degrees.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ReadingErrors {
+    pub elevation: f64,
+    pub verge_left: f64,
+    pub verge_right: f64,
+}
+
+impl ReadingErrors {
+    pub fn new(estimate: &Encoders, truth: &Encoders) -> Self {
+        Self {
+            elevation: estimate.elevation - truth.elevation,
+            verge_left: estimate.verge_left - truth.verge_left,
+            verge_right: estimate.verge_right - truth.verge_right,
+        }
+    }
+}
+
+/// The simulator's truth.
+#[derive(Debug, Clone, Serialize)]
+pub struct Truth {
+    pub left: Camera,
+    pub right: Camera,
+    /// The rendered lens (`headalign_geometry::distortion::Distortion`).
+    pub distortion: Value,
+    pub aligned_encoders: Encoders,
+    pub steer_zero_deg: f64,
+    pub wheelbase_m: f64,
+}
+
+/// `demo --json`: [`Procedure`] and the run against the simulator's truth.
+#[derive(Debug, Clone, Serialize)]
+pub struct DemoReport {
+    pub schema: &'static str,
+    #[serde(flatten)]
+    pub procedure: Procedure,
+    /// The scenario simulated (`headalign_sim::Scenario`).
+    pub scenario: Value,
+    pub truth: Truth,
+    pub errors: Errors,
+    pub before: Before,
+    pub aligned_reading_errors_deg: ReadingErrors,
+}
+
+/// `align --json`, on either route.
+#[derive(Debug, Clone, Serialize)]
+pub struct AlignReport {
+    pub schema: &'static str,
+    /// `general` or `planar`.
+    pub route: &'static str,
+    pub scene: Value,
+    /// The planar route's calibration; null on the general route.
+    pub planar: Option<Value>,
+    pub left: Camera,
+    pub right: Camera,
+    pub fixation_px: PixelPair,
+    pub invariant_lines: InvariantLines,
+    /// The head's axes (`head.json`'s); null on the planar route.
+    pub axes: Option<Value>,
+    pub aligned_encoders: Encoders,
+    pub aligned_sigma_deg: AlignmentSigmas,
+    pub verge_axes_measured: bool,
+    pub predicted_elev_err_r_deg: f64,
+    pub roll_left_deg: f64,
+    pub roll_right_deg: f64,
+    /// What the scene leaves undetermined (empty on the general route).
+    pub undetermined: Vec<String>,
+    /// The adjustment's report; null on the planar route.
+    pub report: Option<Value>,
+    /// The estimated lenses; null for pinhole cameras.
+    pub lens: Option<Value>,
+    pub warnings: Vec<String>,
+    pub files: Vec<String>,
+    pub seconds: f64,
+}
+
+/// The file `alignment.json` of `align --out`, on either route.
+#[derive(Debug, Clone, Serialize)]
+pub struct AlignmentFile {
+    pub format: &'static str,
+    pub route: &'static str,
+    pub reference_encoders: Encoders,
+    pub aligned_encoders: Encoders,
+    pub aligned_sigma_deg: AlignmentSigmas,
+    pub verge_axes_measured: bool,
+    pub predicted_elev_err_r_deg: f64,
+    pub roll_left_deg: f64,
+    pub roll_right_deg: f64,
+    pub undetermined: Vec<String>,
+}
+
+/// A calibrated camera of `calibrate`, pixels.
+#[derive(Debug, Clone, Serialize)]
+pub struct CalibratedCamera {
+    pub fx: f64,
+    pub fy: f64,
+    pub skew: f64,
+    pub cx: f64,
+    pub cy: f64,
+    /// 1-sigma per parameter (`fx fy skew cx cy`); null when not estimated.
+    pub sigma: CalibratedSigma,
+}
+
+/// The sigmas of a calibrated camera, pixels.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct CalibratedSigma {
+    pub fx: Option<f64>,
+    pub fy: Option<f64>,
+    pub skew: Option<f64>,
+    pub cx: Option<f64>,
+    pub cy: Option<f64>,
+}
+
+impl CalibratedCamera {
+    /// A camera from its intrinsics and a sigma per parameter name.
+    pub fn new(k: &Intrinsics, sigma: impl Fn(&str) -> Option<f64>) -> Self {
+        Self {
+            fx: k.fx,
+            fy: k.fy,
+            skew: k.skew,
+            cx: k.cx,
+            cy: k.cy,
+            sigma: CalibratedSigma {
+                fx: sigma("fx"),
+                fy: sigma("fy"),
+                skew: sigma("skew"),
+                cx: sigma("cx"),
+                cy: sigma("cy"),
+            },
+        }
+    }
+}
+
+/// The constraints `calibrate` imposed.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Constraints {
+    pub zero_skew: bool,
+    pub square_pixels: bool,
+    pub fix_principal_point: bool,
+}
+
+/// `calibrate --json` (and `calibrate_report.json`), on either route.
+#[derive(Debug, Clone, Serialize)]
+pub struct CalibrateReport {
+    pub schema: &'static str,
+    /// `self-calibration` or `known intrinsics (no self-calibration)`.
+    pub route: &'static str,
+    /// The views given (of the rig used).
+    pub views: Vec<String>,
+    /// Views of other rigs left out, `"NAME: reason"`.
+    pub skipped: Vec<String>,
+    pub left: CalibratedCamera,
+    pub right: CalibratedCamera,
+    /// The rig (`rotation_deg`, `rotation_axis`, `translation_direction`).
+    pub right_from_left: Value,
+    /// Each camera's lens (`estimated`, `model`, `left`, `right`, `sigma`).
+    pub distortion: Value,
+    pub constraints: Constraints,
+    /// `m` or `baselines`.
+    pub translation_unit: &'static str,
+    /// Self-calibration: the adjustment's report; null on the known-intrinsics route.
+    pub report: Option<Value>,
+    /// Self-calibration: the corner counts tried and the one kept; null otherwise.
+    pub density: Option<Value>,
+    /// Known intrinsics: the fundamental matrix of the undistorted views; null otherwise.
+    pub fundamental_undistorted: Option<[[f64; 3]; 3]>,
+    /// Known intrinsics: stereo matches, inliers and their RMS (px); null otherwise.
+    pub stereo_matches: Option<usize>,
+    pub stereo_inliers: Option<usize>,
+    pub stereo_rms_px: Option<f64>,
+    pub files: Vec<String>,
+    pub seconds: f64,
+}
+
+impl Estimate {
+    /// The general route's estimate.
+    pub fn general(outcome: &VergeTiltOutcome) -> Self {
+        let cal = &outcome.calibration;
+        let (st, cov) = (&cal.bundle.state, &cal.bundle.covariance);
+        let sigma = |side: &'static str| move |p: &str| cov.sigma(&format!("{side}.{p}"));
+        Self::of(
+            Camera::new(&st.left, sigma("left")),
+            Camera::new(&st.right, sigma("right")),
+            &outcome.solution,
+            outcome.sigmas,
+            outcome.final_encoders,
+            crate::images::lens_json(cal),
+        )
+    }
+
+    /// The planar route's estimate (no lens: the planar route estimates pinhole cameras).
+    pub fn planar(out: &PlanarOutcome) -> Self {
+        let cal = &out.calibration;
+        Self::of(
+            Camera::new(&cal.left.intrinsics, |p| cal.left.sigma(p)),
+            Camera::new(&cal.right.intrinsics, |p| cal.right.sigma(p)),
+            &out.solution,
+            out.sigmas,
+            out.final_encoders,
+            None,
+        )
+    }
+
+    fn of(
+        left: Camera,
+        right: Camera,
+        s: &AlignmentSolution,
+        sigmas: AlignmentSigmas,
+        final_encoders: Encoders,
+        lens: Option<Value>,
+    ) -> Self {
+        Self {
+            left,
+            right,
+            aligned_encoders: s.aligned_encoders,
+            aligned_sigma_deg: sigmas,
+            fixation_px: PixelPair { left: s.fixation_px_left, right: s.fixation_px_right },
+            final_encoders,
+            predicted_elev_err_r_deg: s.predicted_elev_err_r_deg,
+            roll_left_deg: s.roll_left_deg,
+            roll_right_deg: s.roll_right_deg,
+            lens,
+        }
+    }
+}
+
+impl Procedure {
+    /// The members of a verge/tilt run on either route, in `mode` (`points` or `images`),
+    /// with its view names, whether it chose its rotations and the command's wall time
+    /// (seconds); no robot stages yet (only `verge-tilt` in `stages`;
+    /// [`Procedure::with_robot`] adds them), no image members, session or files.
+    pub fn new(
+        mode: &'static str,
+        route: &RouteOutcome,
+        views: Vec<String>,
+        auto_rotation: bool,
+        total_s: f64,
+    ) -> Result<Self, serde_json::Error> {
+        let (estimate, scene, planar, report, checks, check_failure, o) = match route {
+            RouteOutcome::General(o, scene) => (
+                Estimate::general(o),
+                serde_json::to_value(scene)?,
+                None,
+                Some(serde_json::to_value(&o.calibration.report)?),
+                serde_json::to_value(&o.checks)?,
+                None,
+                (o.rotation_deg, o.diagonal_rotation_deg, o.verge_rotation_deg, o.estimation_seconds),
+            ),
+            RouteOutcome::Planar(p) => (
+                Estimate::planar(p),
+                serde_json::to_value(&p.calibration.scene)?,
+                Some(serde_json::to_value(&p.calibration)?),
+                None,
+                serde_json::to_value(&p.checks)?,
+                p.check_failure.clone(),
+                (p.rotation_deg, p.diagonal_rotation_deg, p.verge_rotation_deg, p.estimation_seconds),
+            ),
+        };
+        let planar_route = matches!(route, RouteOutcome::Planar(_));
+        Ok(Self {
+            mode,
+            route: if planar_route { "planar" } else { "general" },
+            scene,
+            planar,
+            estimate,
+            report,
+            checks,
+            check_failure,
+            rotations: Rotations {
+                auto: auto_rotation,
+                rotation_deg: o.0,
+                diagonal_rotation_deg: o.1,
+                verge_rotation_deg: o.2,
+            },
+            timings: Timings { estimation_s: o.3, total_s },
+            views,
+            images: None,
+            stages: vec![headalign::session::STAGE_VERGE_TILT.to_string()],
+            robot_stages: planar_route.then_some(crate::planar::ROBOT_STAGES_SKIPPED),
+            robot: RobotOutcomes::default(),
+            robot_tracking: None,
+            session: None,
+            files: Vec::new(),
+        })
+    }
+
+    /// The stages asked for and, when they ran (the general route), their outcomes.
+    pub fn with_robot(mut self, stages: &[String], robot: Option<&RobotOutcomes>) -> Self {
+        self.stages = stages.to_vec();
+        if let Some(r) = robot {
+            self.robot = r.clone();
+        }
+        self
+    }
+}
+
+impl Errors {
+    /// The errors after the run: the alignment errors at the final readings, the right
+    /// camera's unavoidable part (`unavoidable_r`, degrees), the calibration errors, and
+    /// the pan and steering errors where a stage moved them.
+    pub fn new(
+        after: &AlignmentErrors,
+        unavoidable_r: f64,
+        cal: &CalibrationErrors,
+        recon_err_pct: Option<f64>,
+        pan_err_deg: Option<f64>,
+        steer_err_deg: Option<f64>,
+    ) -> Self {
+        Self {
+            verge_err_l_deg: after.verge_err_l_deg,
+            verge_err_r_deg: after.verge_err_r_deg,
+            elev_err_l_deg: after.elev_err_l_deg,
+            elev_err_r_deg: after.elev_err_r_deg,
+            elev_err_r_unavoidable_deg: unavoidable_r,
+            elev_err_r_excess_deg: after.elev_err_r_deg - unavoidable_r,
+            pan_err_deg,
+            steer_err_deg,
+            f_err_pct: cal.f_err_pct,
+            aspect_err_pct: cal.aspect_err_pct,
+            pp_err_pct: cal.pp_err_pct,
+            recon_err_pct,
+        }
+    }
+}
+
+impl Before {
+    /// The alignment, pan and steering errors at the start.
+    pub fn new(e: &AlignmentErrors, pan_err_deg: f64, steer_err_deg: f64) -> Self {
+        Self {
+            verge_err_l_deg: e.verge_err_l_deg,
+            verge_err_r_deg: e.verge_err_r_deg,
+            elev_err_l_deg: e.elev_err_l_deg,
+            elev_err_r_deg: e.elev_err_r_deg,
+            pan_err_deg,
+            steer_err_deg,
+        }
+    }
+}
+
+impl Truth {
+    /// The simulated robot's truth: its cameras, rendered lens and aligned readings.
+    pub fn of(robot: &SimulatedRobot, scenario: &Scenario) -> Result<Self, serde_json::Error> {
+        let head = robot.head();
+        let t = head.truth();
+        Ok(Self {
+            left: Camera::new(&t.left, |_| None),
+            right: Camera::new(&t.right, |_| None),
+            distortion: serde_json::to_value(scenario.render.distortion)?,
+            aligned_encoders: head.aligned_encoders(),
+            steer_zero_deg: robot.truth().steer_zero_deg,
+            wheelbase_m: robot.truth().wheelbase_m,
+        })
+    }
+}
