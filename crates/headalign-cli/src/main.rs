@@ -470,6 +470,8 @@ struct AlignEstimate {
     verge: VergeAxes,
     solution: AlignmentSolution,
     sigmas: AlignmentSigmas,
+    /// The fixation points' sigmas, pixels.
+    fixation_sigmas: headalign::procedure::FixationSigmas,
     /// Wall time of the estimation, seconds.
     seconds: f64,
 }
@@ -505,6 +507,7 @@ fn estimate_alignment(
             verge: a.verge_axes,
             solution: a.solution,
             sigmas: a.sigmas,
+            fixation_sigmas: a.fixation_sigmas,
             seconds,
         }),
         scene,
@@ -567,6 +570,7 @@ fn align_json(a: &AlignEstimate, axes: Value, written: &[PathBuf]) -> Result<Val
         "left": camera_json(calib, "left", &state.left),
         "right": camera_json(calib, "right", &state.right),
         "fixation_px": {"left": solution.fixation_px_left, "right": solution.fixation_px_right},
+        "fixation_sigma_px": {"left": a.fixation_sigmas.left_px, "right": a.fixation_sigmas.right_px},
         "invariant_lines": serde_json::to_value(solution.invariant_lines)?,
         "axes": axes,
         "files": written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),

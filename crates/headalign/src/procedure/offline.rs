@@ -30,7 +30,7 @@
 
 use headalign_platform::{Encoders, Joint};
 
-use super::{AlignmentSigmas, alignment_sigmas, pinhole_capture};
+use super::{AlignmentSigmas, FixationSigmas, alignment_sigmas, fixation_sigmas, pinhole_capture};
 use crate::alignment::{
     AlignmentSolution, VergeAxes, head_motion, measure_cameras, solve_alignment, verge_axes_from_motion,
 };
@@ -54,6 +54,8 @@ pub struct SessionAlignment {
     pub solution: AlignmentSolution,
     /// Their 1-sigma uncertainties (module docs: what they include and hold fixed).
     pub sigmas: AlignmentSigmas,
+    /// The fixation points' 1-sigma uncertainties ([`fixation_sigmas`]; not the readings').
+    pub fixation_sigmas: FixationSigmas,
 }
 
 /// Align a recorded session (module docs): `views[0]` is the reference.
@@ -81,7 +83,8 @@ pub fn align_session(views: &[View], estimation: &EstimationOptions) -> Result<S
     let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
     let sigmas =
         alignment_sigmas(&calibration, &verge_axes, &reference)?.with_reading_noise(reading_sigma_deg);
-    Ok(SessionAlignment { calibration, reference, verge_axes, verge_view, solution, sigmas })
+    let fixation_sigmas = fixation_sigmas(&calibration);
+    Ok(SessionAlignment { calibration, reference, verge_axes, verge_view, solution, sigmas, fixation_sigmas })
 }
 
 /// What [`align_session_detecting`] estimated: the general route with the detection's
