@@ -607,12 +607,17 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     if let Some(line) = images::lens_json(&a.calib).and_then(|l| images::lens_line(&json!({ "lens": l }))) {
         say!("{line}");
     }
+    let (fl, fr) = (a.fixation_sigmas.left_px, a.fixation_sigmas.right_px);
     say!(
-        "fixation point: left ({:.2}, {:.2}) px, right ({:.2}, {:.2}) px",
+        "fixation point: left ({:.2}, {:.2}) +- ({:.2}, {:.2}) px, right ({:.2}, {:.2}) +- ({:.2}, {:.2}) px",
         solution.fixation_px_left[0],
         solution.fixation_px_left[1],
+        fl[0],
+        fl[1],
         solution.fixation_px_right[0],
-        solution.fixation_px_right[1]
+        solution.fixation_px_right[1],
+        fr[0],
+        fr[1]
     );
     let d = |l: &Line| format!("({:+.4}, {:+.4}, {:+.4})", l.direction.x, l.direction.y, l.direction.z);
     say!("pan axis direction {}   elevation axis direction {}", d(pan), d(elev));

@@ -64,16 +64,22 @@ pub fn alignment_sigmas(
 /// invariant lines, through the lens if one is estimated), not on the vergence axes or
 /// the readings, so neither is an input.
 pub fn fixation_sigmas(calib: &RigCalibration) -> FixationSigmas {
+    let jac = fixation_jacobian(calib);
+    let cov = &jac * &calib.bundle.covariance.matrix * jac.transpose();
+    let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
+    FixationSigmas { left_px: [sd(0), sd(1)], right_px: [sd(2), sd(3)] }
+}
+
+/// Jacobian (4 x n: left x, left y, right x, right y, pixels per unit of each bundle
+/// parameter) of the fixation points ([`fixation_sigmas`]).
+pub(super) fn fixation_jacobian(calib: &RigCalibration) -> nalgebra::DMatrix<f64> {
     let at = |delta: &DVector<f64>| -> Option<[f64; 4]> {
         let st = calib.bundle.perturbed(delta).ok()?;
         let s = solve_alignment(&st, &VergeAxes::default(), &Encoders::default()).ok()?;
         let ([lu, lv], [ru, rv]) = (s.fixation_px_left, s.fixation_px_right);
         Some([lu, lv, ru, rv])
     };
-    let jac = calibration_jacobian(&calib.bundle.covariance, &[&at]);
-    let cov = &jac * &calib.bundle.covariance.matrix * jac.transpose();
-    let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
-    FixationSigmas { left_px: [sd(0), sd(1)], right_px: [sd(2), sd(3)] }
+    calibration_jacobian(&calib.bundle.covariance, &[&at])
 }
 
 /// The aligned deltas with the bundle's parameters moved by `delta` (its tangent) and

@@ -1,0 +1,73 @@
+#!/usr/bin/env python3
+"""Score `headalign align` on three-view sessions with truth (the format of
+../shared/data/threeview_sessions: seedNN/session.json and seedNN/truth.json, whose
+README defines the scoring) against three sigmas, per image axis:
+
+  readings   the fixation point's error over the true focal length, in degrees, against
+             `aligned_sigma_deg` (x: the camera's vergence sigma, y: the elevation
+             sigma): the README's scoring
+  fixation   the fixation point's error in pixels against `fixation_sigma_px`
+  pp-rel     the angle of the fixation point from the principal point (what a reading
+             turns: the optical axis onto the target), estimate against truth, against
+             `aligned_sigma_deg`
+
+For each: z RMS, mean z and the share within 1.96 (both cameras pooled).
+A reading's error is the fixation point's less the principal point's, so `readings`
+mixes two quantities (docs/accuracy.md, "Three-view sessions").
+
+usage: bench/threeview_scores.py [DIR] [--bin PATH] [--first N]
+  DIR    default ../shared/data/threeview_sessions (relative to the repository)
+  --bin  default target/release/headalign
+"""
+import glob, json, math, os, subprocess, sys
+
+args = sys.argv[1:]
+if "-h" in args or "--help" in args:
+    sys.exit(__doc__)
+repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+exe = os.path.join(repo, "target/release/headalign")
+first = None
+pos = []
+while args:
+    a = args.pop(0)
+    if a == "--bin":
+        exe = args.pop(0)
+    elif a == "--first":
+        first = int(args.pop(0))
+    else:
+        pos.append(a)
+root = os.path.normpath(pos[0] if pos else os.path.join(repo, "../shared/data/threeview_sessions"))
+dirs = sorted(glob.glob(os.path.join(root, "seed*")))[:first]
+if not dirs:
+    sys.exit(f"no seed*/ folders in {root}")
+
+z = {(m, a): [] for m in ("readings", "fixation", "pp-rel") for a in ("x", "y")}
+for d in dirs:
+    truth = json.load(open(os.path.join(d, "truth.json")))
+    run = subprocess.run([exe, "align", "--observations", os.path.join(d, "session.json"), "--json"],
+                         capture_output=True, text=True)
+    if run.returncode != 0:
+        print(f"{d}: align failed: {run.stderr.strip()[:300]}")
+        continue
+    out = json.loads(run.stdout)
+    s = out["aligned_sigma_deg"]
+    for cam in ("left", "right"):
+        k, e = truth[f"{cam}_K"], out[cam]
+        reading_sigma = {"x": s[f"verge_{cam}_deg"], "y": s["elevation_deg"]}
+        for i, a in enumerate(("x", "y")):
+            f_true, c_true = k[i][i], k[i][2]
+            f_est, c_est = e["fx" if a == "x" else "fy"], e["cx" if a == "x" else "cy"]
+            u_true, u_est = truth["fixation_px"][cam][i], out["fixation_px"][cam][i]
+            z["readings", a].append(math.degrees((u_est - u_true) / f_true) / reading_sigma[a])
+            z["fixation", a].append((u_est - u_true) / out["fixation_sigma_px"][cam][i])
+            turn = math.atan((u_est - c_est) / f_est) - math.atan((u_true - c_true) / f_true)
+            z["pp-rel", a].append(math.degrees(turn) / reading_sigma[a])
+
+print(f"{len(dirs)} sessions in {root}")
+print("| scoring | axis | z RMS | mean z | within 1.96 |")
+print("|---|---|---|---|---|")
+for (m, a), v in z.items():
+    n = len(v)
+    rms = math.sqrt(sum(x * x for x in v) / n)
+    cov = 100.0 * sum(abs(x) < 1.96 for x in v) / n
+    print(f"| {m} | {a} | {rms:.2f} | {sum(v) / n:+.2f} | {cov:.0f} % ({n}) |")
