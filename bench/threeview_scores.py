@@ -11,7 +11,9 @@ README defines the scoring) against three sigmas, per image axis:
              turns: the optical axis onto the target), estimate against truth, against
              `aligned_sigma_deg`
 
-For each: z RMS, mean z and the share within 1.96 (both cameras pooled).
+For each: z RMS, mean z and the share within 1.96 (both cameras pooled); then the x
+sigmas (medians over the cameras) of the fixation point, the principal point and the
+vergence reading (in pixels at the estimated focal length) and their ratio.
 A reading's error is the fixation point's less the principal point's, so `readings`
 mixes two quantities (docs/accuracy.md, "Three-view sessions").
 
@@ -42,6 +44,7 @@ if not dirs:
     sys.exit(f"no seed*/ folders in {root}")
 
 z = {(m, a): [] for m in ("readings", "fixation", "pp-rel") for a in ("x", "y")}
+sx = []  # per camera: x sigmas in pixels of the fixation point, the principal point, the reading
 for d in dirs:
     truth = json.load(open(os.path.join(d, "truth.json")))
     run = subprocess.run([exe, "align", "--observations", os.path.join(d, "session.json"), "--json"],
@@ -53,6 +56,7 @@ for d in dirs:
     s = out["aligned_sigma_deg"]
     for cam in ("left", "right"):
         k, e = truth[f"{cam}_K"], out[cam]
+        sx.append((out["fixation_sigma_px"][cam][0], e["sigma"]["cx"], math.radians(s[f"verge_{cam}_deg"]) * e["fx"]))
         reading_sigma = {"x": s[f"verge_{cam}_deg"], "y": s["elevation_deg"]}
         for i, a in enumerate(("x", "y")):
             f_true, c_true = k[i][i], k[i][2]
@@ -71,3 +75,8 @@ for (m, a), v in z.items():
     rms = math.sqrt(sum(x * x for x in v) / n)
     cov = 100.0 * sum(abs(x) < 1.96 for x in v) / n
     print(f"| {m} | {a} | {rms:.2f} | {sum(v) / n:+.2f} | {cov:.0f} % ({n}) |")
+med = lambda v: sorted(v)[len(v) // 2]
+ratios = [f / r for f, _, r in sx]
+print(f"x sigmas, median over cameras: fixation point {med([f for f, _, _ in sx]):.1f} px, "
+      f"principal point {med([c for _, c, _ in sx]):.1f} px, vergence reading {med([r for _, _, r in sx]):.1f} px; "
+      f"fixation over reading {min(ratios):.2f}-{max(ratios):.2f} (median {med(ratios):.2f})")
