@@ -13,7 +13,8 @@ README defines the scoring) against three sigmas, per image axis:
 
 For each: z RMS, mean z and the share within 1.96 (both cameras pooled); then the x
 sigmas (medians over the cameras) of the fixation point, the principal point and the
-vergence reading (in pixels at the estimated focal length) and their ratio.
+vergence reading (in pixels at the estimated focal length) and their ratio, and the
+elevation reading's sigma over the fixation point's y sigma.
 A reading's error is the fixation point's less the principal point's, so `readings`
 mixes two quantities (docs/accuracy.md, "Three-view sessions").
 
@@ -45,6 +46,7 @@ if not dirs:
 
 z = {(m, a): [] for m in ("readings", "fixation", "pp-rel") for a in ("x", "y")}
 sx = []  # per camera: x sigmas in pixels of the fixation point, the principal point, the reading
+sy = []  # per camera: y sigmas of the fixation point and of the elevation reading, pixels
 for d in dirs:
     truth = json.load(open(os.path.join(d, "truth.json")))
     run = subprocess.run([exe, "align", "--observations", os.path.join(d, "session.json"), "--json"],
@@ -57,6 +59,7 @@ for d in dirs:
     for cam in ("left", "right"):
         k, e = truth[f"{cam}_K"], out[cam]
         sx.append((out["fixation_sigma_px"][cam][0], e["sigma"]["cx"], math.radians(s[f"verge_{cam}_deg"]) * e["fx"]))
+        sy.append((out["fixation_sigma_px"][cam][1], math.radians(s["elevation_deg"]) * e["fy"]))
         reading_sigma = {"x": s[f"verge_{cam}_deg"], "y": s["elevation_deg"]}
         for i, a in enumerate(("x", "y")):
             f_true, c_true = k[i][i], k[i][2]
@@ -80,3 +83,5 @@ ratios = [f / r for f, _, r in sx]
 print(f"x sigmas, median over cameras: fixation point {med([f for f, _, _ in sx]):.1f} px, "
       f"principal point {med([c for _, c, _ in sx]):.1f} px, vergence reading {med([r for _, _, r in sx]):.1f} px; "
       f"fixation over reading {min(ratios):.2f}-{max(ratios):.2f} (median {med(ratios):.2f})")
+ry = [r / f for f, r in sy]
+print(f"y: the elevation reading's sigma over the fixation point's {min(ry):.2f}-{max(ry):.2f} (median {med(ry):.2f})")
