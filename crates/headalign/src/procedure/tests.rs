@@ -833,25 +833,33 @@ fn true_fixation_px(head: &SimulatedHead, reference: &Encoders) -> [[f64; 2]; 2]
 /// with the fixation points' own sigmas ([`fixation_sigmas`]) and, as the independent
 /// sessions' README scores them, with the aligned readings' sigmas (the pixel error over
 /// the true focal length, in degrees, against the vergence sigma for x and the elevation
-/// sigma for y).
-fn three_view_fixation_z(head: &SimulatedHead, s: &SessionAlignment) -> [[f64; 4]; 2] {
+/// sigma for y), and third the angle of the fixation point from the principal point (what
+/// a reading turns) against the aligned readings' sigmas.
+fn three_view_fixation_z(head: &SimulatedHead, s: &SessionAlignment) -> [[f64; 4]; 3] {
     let t = true_fixation_px(head, &s.reference);
     let e = [s.solution.fixation_px_left, s.solution.fixation_px_right];
     let f = [s.fixation_sigmas.left_px, s.fixation_sigmas.right_px];
     let k = [head.truth().left, head.truth().right];
     let g = s.sigmas;
     let reading_sigma = [[g.verge_left_deg, g.elevation_deg], [g.verge_right_deg, g.elevation_deg]];
+    let est = [s.calibration.bundle.state.left, s.calibration.bundle.state.right];
     let mut own = [0.0; 4];
     let mut by_readings = [0.0; 4];
+    let mut from_principal = [0.0; 4];
     for c in 0..2 {
         let focal = [k[c].fx, k[c].fy];
+        let (pp_true, pp_est) = ([k[c].cx, k[c].cy], [est[c].cx, est[c].cy]);
+        let focal_est = [est[c].fx, est[c].fy];
         for a in 0..2 {
             let err = e[c][a] - t[c][a];
             own[2 * c + a] = err / f[c][a];
             by_readings[2 * c + a] = (err / focal[a]).to_degrees() / reading_sigma[c][a];
+            let turn =
+                ((e[c][a] - pp_est[a]) / focal_est[a]).atan() - ((t[c][a] - pp_true[a]) / focal[a]).atan();
+            from_principal[2 * c + a] = turn.to_degrees() / reading_sigma[c][a];
         }
     }
-    [own, by_readings]
+    [own, by_readings, from_principal]
 }
 
 /// The vergence reading turns the optical axis (through the principal point) onto the
@@ -906,24 +914,28 @@ fn rms_and_coverage(z: &[f64]) -> (f64, f64) {
 #[ignore = "experiment: about 0.3 s per seed; run by name"]
 fn three_view_fixation_coverage() {
     let seeds: u64 = std::env::var("SEEDS").ok().and_then(|s| s.parse().ok()).unwrap_or(60);
-    let (mut own, mut by_readings) = (vec![Vec::new(); 2], vec![Vec::new(); 2]);
+    let (mut own, mut by_readings, mut from_principal) =
+        (vec![Vec::new(); 2], vec![Vec::new(); 2], vec![Vec::new(); 2]);
     for seed in 1..=seeds {
         let (head, s) = three_view_session(seed, 1.0);
-        let [o, r] = three_view_fixation_z(&head, &s);
+        let [o, r, p] = three_view_fixation_z(&head, &s);
         for a in 0..2 {
             own[a].extend([o[a], o[2 + a]]);
             by_readings[a].extend([r[a], r[2 + a]]);
+            from_principal[a].extend([p[a], p[2 + a]]);
         }
     }
     for (a, name) in ["horizontal", "vertical"].iter().enumerate() {
         let (ro, co) = rms_and_coverage(&own[a]);
         let (rr, cr) = rms_and_coverage(&by_readings[a]);
+        let (rp, cp) = rms_and_coverage(&from_principal[a]);
         let mean = |z: &[f64]| z.iter().sum::<f64>() / z.len() as f64;
         println!(
-            "{name}: fixation sigmas z RMS {ro:.2}, mean {:+.2}, 95 % coverage {:.0} %; aligned readings' sigmas z RMS {rr:.2}, coverage {:.0} %",
+            "{name}: fixation sigmas z RMS {ro:.2}, mean {:+.2}, 95 % coverage {:.0} %; aligned readings' sigmas z RMS {rr:.2}, coverage {:.0} %; from the principal point z RMS {rp:.2}, coverage {:.0} %",
             mean(&own[a]),
             100.0 * co,
-            100.0 * cr
+            100.0 * cr,
+            100.0 * cp
         );
     }
 }
