@@ -14,7 +14,9 @@ README defines the scoring) against three sigmas, per image axis:
 For each: z RMS, mean z and the share within 1.96 (both cameras pooled); then the x
 sigmas (medians over the cameras) of the fixation point, the principal point and the
 vergence reading (in pixels at the estimated focal length) and their ratio, and the
-elevation reading's sigma over the fixation point's y sigma.
+elevation reading's sigma over the fixation point's y sigma; the correlation of the
+fixation points' x z-scores with the true fx and (where the truth has the axes) with the
+axes' non-orthogonality.
 A reading's error is the fixation point's less the principal point's, so `readings`
 mixes two quantities (docs/accuracy.md, "Three-view sessions").
 
@@ -47,6 +49,7 @@ if not dirs:
 z = {(m, a): [] for m in ("readings", "fixation", "pp-rel") for a in ("x", "y")}
 sx = []  # per camera: x sigmas in pixels of the fixation point, the principal point, the reading
 sy = []  # per camera: y sigmas of the fixation point and of the elevation reading, pixels
+tied = []  # per camera: (fixation x z, axes' non-orthogonality in degrees or None, true fx)
 for d in dirs:
     truth = json.load(open(os.path.join(d, "truth.json")))
     run = subprocess.run([exe, "align", "--observations", os.path.join(d, "session.json"), "--json"],
@@ -69,6 +72,9 @@ for d in dirs:
             z["fixation", a].append((u_est - u_true) / out["fixation_sigma_px"][cam][i])
             turn = math.atan((u_est - c_est) / f_est) - math.atan((u_true - c_true) / f_true)
             z["pp-rel", a].append(math.degrees(turn) / reading_sigma[a])
+        p, e_ax = truth.get("pan_axis"), truth.get("elevation_axis")
+        skew = math.degrees(math.asin(abs(sum(x * y for x, y in zip(p, e_ax))))) if p and e_ax else None
+        tied.append((z["fixation", "x"][-1], skew, k[0][0]))
 
 print(f"{len(dirs)} sessions in {root}")
 print("| scoring | axis | z RMS | mean z | within 1.96 |")
@@ -85,3 +91,17 @@ print(f"x sigmas, median over cameras: fixation point {med([f for f, _, _ in sx]
       f"fixation over reading {min(ratios):.2f}-{max(ratios):.2f} (median {med(ratios):.2f})")
 ry = [r / f for f, r in sy]
 print(f"y: the elevation reading's sigma over the fixation point's {min(ry):.2f}-{max(ry):.2f} (median {med(ry):.2f})")
+
+
+def corr(a, b):
+    ma, mb = sum(a) / len(a), sum(b) / len(b)
+    cov = sum((x - ma) * (y - mb) for x, y in zip(a, b))
+    return cov / math.sqrt(sum((x - ma) ** 2 for x in a) * sum((y - mb) ** 2 for y in b))
+
+
+zx = [t[0] for t in tied]
+line = f"fixation x z: correlation with the true fx {corr(zx, [t[2] for t in tied]):+.2f}"
+if all(t[1] is not None for t in tied):
+    skews = [t[1] for t in tied]
+    line += f", with the axes' non-orthogonality ({min(skews):.2f}-{max(skews):.2f} deg) {corr(zx, skews):+.2f}"
+print(line)
