@@ -1,7 +1,9 @@
 //! The alignment of a recorded session without moving the head (what `headalign align`
 //! computes from an observation or image session): the rig calibration from the views in
 //! which no vergence joint moved, the vergence axes from the first view in which one did
-//! (nominal axes if none), the aligned readings and their sigmas.
+//! (nominal axes if none), the aligned readings and their sigmas, and the fixation
+//! points' sigmas ([`fixation_sigmas`]: not the readings', whose error is the fixation
+//! point's less the principal point's).
 //!
 //! Degrees of freedom: those of [`estimate_rig`] (the rig bundle adjustment), then per
 //! camera one vergence axis (a pose resected from the vergence view, screw axis against

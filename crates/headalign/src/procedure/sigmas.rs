@@ -10,10 +10,11 @@
 //! [`fixation_sigmas`] propagates the same covariance to the fixation points (pixels):
 //! where each camera sees the target direction. An aligned reading's error is the
 //! fixation point's error less the principal point's (the reading turns the optical axis,
-//! through the principal point, onto the target), so the two sigmas differ: on the
-//! three-view sessions of `docs/results.md` the fixation point's horizontal sigma is
-//! about 1.4 times the vergence reading's, because the fixation point and the principal
-//! point are uncertain along x together and the reading depends on their difference.
+//! through the principal point, onto the target), so the two sigmas differ: with three
+//! 3 deg views the fixation point's x sigma is 1.1-1.6 times the vergence reading's
+//! (median 1.4), because the fixation point and the principal point are uncertain along
+//! x together and the reading depends on their difference (`docs/accuracy.md`,
+//! "Three-view sessions").
 //!
 //! Degrees of freedom: 3 outputs (4 for the fixation points); as many inputs as the bundle has parameters (a
 //! parameter without positive variance contributes nothing). Pitfalls: the propagation
