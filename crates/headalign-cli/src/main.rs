@@ -362,6 +362,7 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
             left: schema::Camera::new(&cal.left.intrinsics, |n| cal.left.sigma(n)),
             right: schema::Camera::new(&cal.right.intrinsics, |n| cal.right.sigma(n)),
             fixation_px: schema::PixelPair { left: sol.fixation_px_left, right: sol.fixation_px_right },
+            fixation_sigma_px: None,
             invariant_lines: sol.invariant_lines,
             axes: None,
             aligned_encoders: sol.aligned_encoders,
@@ -448,6 +449,8 @@ struct AlignEstimate {
     verge: VergeAxes,
     solution: AlignmentSolution,
     sigmas: AlignmentSigmas,
+    /// The fixation points' sigmas, pixels.
+    fixation_sigmas: headalign::procedure::FixationSigmas,
     /// Wall time of the estimation, seconds.
     seconds: f64,
 }
@@ -483,6 +486,7 @@ fn estimate_alignment(
             verge: a.verge_axes,
             solution: a.solution,
             sigmas: a.sigmas,
+            fixation_sigmas: a.fixation_sigmas,
             seconds,
         }),
         scene,
@@ -567,6 +571,10 @@ fn align_report(
         left: schema::Camera::new(&state.left, s("left")),
         right: schema::Camera::new(&state.right, s("right")),
         fixation_px: schema::PixelPair { left: solution.fixation_px_left, right: solution.fixation_px_right },
+        fixation_sigma_px: Some(schema::PixelPair {
+            left: a.fixation_sigmas.left_px,
+            right: a.fixation_sigmas.right_px,
+        }),
         invariant_lines: solution.invariant_lines,
         axes: Some(axes),
         aligned_encoders: solution.aligned_encoders,
@@ -602,12 +610,17 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     if let Some(line) = images::lens_json(&a.calib).and_then(|l| images::lens_line(&json!({ "lens": l }))) {
         say!("{line}");
     }
+    let (fl, fr) = (a.fixation_sigmas.left_px, a.fixation_sigmas.right_px);
     say!(
-        "fixation point: left ({:.2}, {:.2}) px, right ({:.2}, {:.2}) px",
+        "fixation point: left ({:.2}, {:.2}) +- ({:.2}, {:.2}) px, right ({:.2}, {:.2}) +- ({:.2}, {:.2}) px",
         solution.fixation_px_left[0],
         solution.fixation_px_left[1],
+        fl[0],
+        fl[1],
         solution.fixation_px_right[0],
-        solution.fixation_px_right[1]
+        solution.fixation_px_right[1],
+        fr[0],
+        fr[1]
     );
     let d = |l: &Line| format!("({:+.4}, {:+.4}, {:+.4})", l.direction.x, l.direction.y, l.direction.z);
     say!("pan axis direction {}   elevation axis direction {}", d(pan), d(elev));

@@ -299,6 +299,10 @@ pub struct AlignReport {
     pub left: Camera,
     pub right: Camera,
     pub fixation_px: PixelPair,
+    /// The fixation points' own sigmas (`[x, y]` per camera; not the readings': a
+    /// reading turns the principal point onto the fixation point); null on the planar
+    /// route.
+    pub fixation_sigma_px: Option<PixelPair>,
     pub invariant_lines: InvariantLines,
     /// The head's axes (`head.json`'s); null on the planar route.
     pub axes: Option<Value>,

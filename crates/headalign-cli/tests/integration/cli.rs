@@ -69,6 +69,13 @@ fn simulated_session_round_trip_through_align() {
     for side in ["left", "right"] {
         let p = &v["fixation_px"][side];
         assert!(p[0].is_number() && p[1].is_number(), "fixation_px.{side}: {p}");
+        // Its sigmas: positive, and at 0.5 px well under the 30 px a wrong propagation
+        // (a unit mix-up, a missing parameter's huge variance) would give.
+        let s = &v["fixation_sigma_px"][side];
+        for a in 0..2 {
+            let x = s[a].as_f64().unwrap_or(f64::NAN);
+            assert!(x > 0.0 && x < 30.0, "fixation_sigma_px.{side}: {s}");
+        }
     }
     assert!(v["axes"]["pan"]["direction"].is_array());
     assert!(v["axes"]["elevation"]["direction"].is_array());
@@ -77,7 +84,9 @@ fn simulated_session_round_trip_through_align() {
     // Human-readable output works too.
     let out = run(&["align", "--observations", path.to_str().unwrap()]);
     assert!(out.status.success());
-    assert!(String::from_utf8_lossy(&out.stdout).contains("left  K"));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("left  K"));
+    assert!(text.contains("fixation point: left (") && text.contains(") +- ("), "{text}");
 }
 
 #[test]

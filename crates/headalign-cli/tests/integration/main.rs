@@ -11,3 +11,4 @@ mod lens;
 mod real_data;
 mod recordings;
 mod sessions;
+mod threeview;

@@ -80,7 +80,7 @@ pub use offline::{
     PlanarSessionAlignment, SessionAlignment, SessionRoute, align_session, align_session_detecting,
 };
 pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
-pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured};
+pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured, fixation_sigmas};
 
 use crate::alignment::{
     AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors,
@@ -261,6 +261,19 @@ impl AlignmentSigmas {
             verge_right_deg: add(self.verge_right_deg),
         }
     }
+}
+
+/// 1-sigma uncertainties of the fixation points (where each camera sees the target
+/// direction, [`AlignmentSolution::fixation_px_left`]), pixels per image axis, propagated
+/// from the bundle adjustment's covariance ([`fixation_sigmas`]). Not the aligned
+/// readings' sigmas: a reading's error is the fixation point's less the principal
+/// point's (`sigmas.rs` module docs).
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct FixationSigmas {
+    /// Left image, `[x, y]`.
+    pub left_px: [f64; 2],
+    /// Right image, `[x, y]`.
+    pub right_px: [f64; 2],
 }
 
 /// Everything the procedure produced.

@@ -1,7 +1,9 @@
 //! The alignment of a recorded session without moving the head (what `headalign align`
 //! computes from an observation or image session): the rig calibration from the views in
 //! which no vergence joint moved, the vergence axes from the first view in which one did
-//! (nominal axes if none), the aligned readings and their sigmas.
+//! (nominal axes if none), the aligned readings and their sigmas, and the fixation
+//! points' sigmas ([`fixation_sigmas`]: not the readings', whose error is the fixation
+//! point's less the principal point's).
 //!
 //! Degrees of freedom: those of [`estimate_rig`] (the rig bundle adjustment), then per
 //! camera one vergence axis (a pose resected from the vergence view, screw axis against
@@ -30,7 +32,7 @@
 
 use headalign_platform::{Encoders, Joint};
 
-use super::{AlignmentSigmas, alignment_sigmas, pinhole_capture};
+use super::{AlignmentSigmas, FixationSigmas, alignment_sigmas, fixation_sigmas, pinhole_capture};
 use crate::alignment::{
     AlignmentSolution, VergeAxes, head_motion, measure_cameras, solve_alignment, verge_axes_from_motion,
 };
@@ -54,6 +56,8 @@ pub struct SessionAlignment {
     pub solution: AlignmentSolution,
     /// Their 1-sigma uncertainties (module docs: what they include and hold fixed).
     pub sigmas: AlignmentSigmas,
+    /// The fixation points' 1-sigma uncertainties ([`fixation_sigmas`]; not the readings').
+    pub fixation_sigmas: FixationSigmas,
 }
 
 /// Align a recorded session (module docs): `views[0]` is the reference.
@@ -81,7 +85,8 @@ pub fn align_session(views: &[View], estimation: &EstimationOptions) -> Result<S
     let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
     let sigmas =
         alignment_sigmas(&calibration, &verge_axes, &reference)?.with_reading_noise(reading_sigma_deg);
-    Ok(SessionAlignment { calibration, reference, verge_axes, verge_view, solution, sigmas })
+    let fixation_sigmas = fixation_sigmas(&calibration);
+    Ok(SessionAlignment { calibration, reference, verge_axes, verge_view, solution, sigmas, fixation_sigmas })
 }
 
 /// What [`align_session_detecting`] estimated: the general route with the detection's

@@ -7,7 +7,16 @@
 //! own noise added ([`alignment_sigmas_measured`]; the linearisation is
 //! [`super::axes`]'s).
 //!
-//! Degrees of freedom: 3 outputs; as many inputs as the bundle has parameters (a
+//! [`fixation_sigmas`] propagates the same covariance to the fixation points (pixels):
+//! where each camera sees the target direction. An aligned reading's error is the
+//! fixation point's error less the principal point's (the reading turns the optical axis,
+//! through the principal point, onto the target), so the two sigmas differ: with three
+//! 3 deg views the fixation point's x sigma is 1.1-1.6 times the vergence reading's
+//! (median 1.4), because the fixation point and the principal point are uncertain along
+//! x together and the reading depends on their difference (`docs/accuracy.md`,
+//! "Three-view sessions").
+//!
+//! Degrees of freedom: 3 outputs (4 for the fixation points); as many inputs as the bundle has parameters (a
 //! parameter without positive variance contributes nothing). Pitfalls: the propagation
 //! is linear; a derivative whose evaluation fails on either side falls back to the next
 //! evaluation (held axes) for the whole central difference, never mixing the two; the
@@ -18,7 +27,7 @@ use headalign_platform::Encoders;
 use nalgebra::DVector;
 
 use super::axes::{AxisFollow, AxisSources, resection_pose_covariance, tangent_step};
-use super::{AlignmentSigmas, AxisPerturbations};
+use super::{AlignmentSigmas, AxisPerturbations, FixationSigmas};
 use crate::alignment::{AlignmentSolution, VergeAxes, solve_alignment};
 use crate::error::AlignError;
 use crate::estimate::RigCalibration;
@@ -50,6 +59,30 @@ pub fn alignment_sigmas(
     Ok(sigmas_of(&(&jac * &calib.bundle.covariance.matrix * jac.transpose())))
 }
 
+/// Propagate the bundle adjustment's covariance to the fixation points (module docs) by
+/// central differences of [`solve_alignment`] along each parameter's standard deviation.
+/// The fixation points depend on the calibration alone (the intersections of the
+/// invariant lines, through the lens if one is estimated), not on the vergence axes or
+/// the readings, so neither is an input.
+pub fn fixation_sigmas(calib: &RigCalibration) -> FixationSigmas {
+    let jac = fixation_jacobian(calib);
+    let cov = &jac * &calib.bundle.covariance.matrix * jac.transpose();
+    let sd = |i: usize| cov[(i, i)].max(0.0).sqrt();
+    FixationSigmas { left_px: [sd(0), sd(1)], right_px: [sd(2), sd(3)] }
+}
+
+/// Jacobian (4 x n: left x, left y, right x, right y, pixels per unit of each bundle
+/// parameter) of the fixation points ([`fixation_sigmas`]).
+pub(super) fn fixation_jacobian(calib: &RigCalibration) -> nalgebra::DMatrix<f64> {
+    let at = |delta: &DVector<f64>| -> Option<[f64; 4]> {
+        let st = calib.bundle.perturbed(delta).ok()?;
+        let s = solve_alignment(&st, &VergeAxes::default(), &Encoders::default()).ok()?;
+        let ([lu, lv], [ru, rv]) = (s.fixation_px_left, s.fixation_px_right);
+        Some([lu, lv, ru, rv])
+    };
+    calibration_jacobian(&calib.bundle.covariance, &[&at])
+}
+
 /// The aligned deltas with the bundle's parameters moved by `delta` (its tangent) and
 /// the vergence axes held as given.
 fn held_axes_deltas(
@@ -67,22 +100,23 @@ pub(super) fn aligned_deltas(s: &AlignmentSolution) -> [f64; 3] {
     [s.delta_elevation_deg, s.delta_verge_left_deg, s.delta_verge_right_deg]
 }
 
-/// The aligned deltas under a perturbation of the bundle's parameters (its tangent, in
-/// its covariance's order); `None` where they cannot be computed.
-type AlignedDeltasAt<'a> = dyn Fn(&DVector<f64>) -> Option<[f64; 3]> + 'a;
+/// `N` quantities (the aligned deltas, the fixation points) under a perturbation of the
+/// bundle's parameters (its tangent, in its covariance's order); `None` where they cannot
+/// be computed.
+type AlignedDeltasAt<'a, const N: usize> = dyn Fn(&DVector<f64>) -> Option<[f64; N]> + 'a;
 
-/// Jacobian (3 x n, per unit of each parameter) of the aligned deltas under a
+/// Jacobian (N x n, per unit of each parameter) of `N` quantities (the aligned deltas) under a
 /// perturbation of the bundle's parameters (in its covariance's order) by central
 /// differences at [`PROPAGATION_STEP_SIGMAS`] of each parameter's standard deviation
 /// ([`AxisPerturbations::calibration_step`]). Each column comes from the first of `fs`
 /// that succeeds on both sides (so a fallback is never mixed into one difference); a
 /// column whose parameter has no positive variance, or where every one fails, is zero.
-pub(super) fn calibration_jacobian(
+pub(super) fn calibration_jacobian<const N: usize>(
     cov: &headalign_geometry::bundle::Covariance,
-    fs: &[&AlignedDeltasAt],
+    fs: &[&AlignedDeltasAt<N>],
 ) -> nalgebra::DMatrix<f64> {
     let n = cov.matrix.nrows();
-    let mut jac = nalgebra::DMatrix::<f64>::zeros(3, n);
+    let mut jac = nalgebra::DMatrix::<f64>::zeros(N, n);
     for i in 0..n {
         let h = AxisPerturbations::calibration_step(cov, i);
         if h.is_nan() || h <= 0.0 {
@@ -92,7 +126,7 @@ pub(super) fn calibration_jacobian(
         plus[i] = h;
         let minus = -&plus;
         if let Some((p, m)) = fs.iter().find_map(|f| Some((f(&plus)?, f(&minus)?))) {
-            for r in 0..3 {
+            for r in 0..N {
                 jac[(r, i)] = (p[r] - m[r]) / (2.0 * h);
             }
         }
