@@ -1,5 +1,5 @@
 //! A well-conditioned (quasi-Euclidean) projective frame for a stereo rig
-//! (DESIGN.md section 4, "Conditioning decides everything here").
+//! ("Conditioning" in `docs/how-it-works.md#projective-structure-from-one-rig`).
 //!
 //! Any pair `P_L = [I | 0]`, `P_R = [[e']x F + e' v^T | lambda e']` is consistent with a
 //! fundamental matrix `F` (Hartley & Zisserman result 9.15). The canonical choice

@@ -3,7 +3,8 @@
 //! What it computes: a 4x4 matrix `H` defined up to scale (15 degrees of freedom) mapping
 //! homogeneous points of one projective reconstruction onto another — for a stereo head,
 //! the reconstruction of the initial view onto that of a moved view, with the same rig
-//! cameras `P_L`, `P_R` in both (`H ~ H_PE^-1 D H_PE`, DESIGN.md section 2 step 3).
+//! cameras `P_L`, `P_R` in both (`H ~ H_PE^-1 D H_PE`,
+//! `docs/how-it-works.md#the-3d-homography-of-a-rotation`).
 //!
 //! Algorithms (Hartley & Zisserman 2nd ed.):
 //! - [`Homography3::dlt`]: the DLT of section 4.1 (Algorithm 4.2, normalised DLT)

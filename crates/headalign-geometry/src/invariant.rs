@@ -1,4 +1,5 @@
-//! Invariant lines of a rotation (paper section 3.1-3.2 steps 5-7, DESIGN.md step 5).
+//! Invariant lines of a rotation (paper section 3.1-3.2 steps 5-7,
+//! `docs/how-it-works.md#invariant-lines-and-the-fixation-point`).
 //!
 //! A rigid motion `D` rotating by `theta` about an axis has eigenvalues `1, 1, e^{+-i theta}`.
 //! The complex-conjugate eigenvectors `V, conj(V)` of `D` (or of any projective

@@ -2,7 +2,7 @@
 //!
 //! The mathematics of headalign, with no knowledge of images, heads or I/O.
 //!
-//! Conventions (DESIGN.md section 1): camera frames are x right, y down, z forward;
+//! Conventions (`docs/conventions.md#frames`): camera frames are x right, y down, z forward;
 //! pixel coordinates have (0, 0) at the centre of the top-left pixel; the projective
 //! frame of a stereo rig is that of the left camera, `P_L = [I | 0]`. Angles inside this
 //! crate are radians; residuals and thresholds are pixels unless a function says

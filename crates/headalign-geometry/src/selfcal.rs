@@ -1,5 +1,5 @@
 //! Linear self-calibration of a stereo rig from rigid motions (paper section 3.1,
-//! DESIGN.md section 2 step 4; Hartley & Zisserman 2nd ed. sections 10.4, 19.5).
+//! `docs/how-it-works.md#linear-self-calibration`; Hartley & Zisserman 2nd ed. sections 10.4, 19.5).
 //!
 //! Input: 4x4 projective homographies `H_i` mapping the projective reconstruction of one
 //! view to that of another (`Y ~ H_i X`), all in the projective frame with the left

@@ -1,6 +1,6 @@
 //! Steering-wheel zero, wheelbase and forward direction of a tricycle robot from the
 //! turning centres of drives at known steering-encoder differences (paper section 7,
-//! DESIGN.md section 2 step 8).
+//! `docs/how-it-works.md#pan-steering-and-the-drives-motion`).
 //!
 //! Model: the robot turns about the vertical line through the intersection of the
 //! rear-axle line and the front wheel's axle line. On the ground plane (seen along the

@@ -7,7 +7,7 @@
 //!
 //! Units: encoder readings in degrees (the joint angle is `encoder - zero_offset`, the
 //! offsets being what alignment finds); pixels with (0, 0) at the centre of the top-left
-//! pixel (DESIGN.md sections 1 and 6).
+//! pixel (`docs/conventions.md#joints-and-encoders`, `docs/conventions.md#pixels-and-intrinsics`).
 
 pub use headalign_vision::GrayImage;
 use nalgebra::Point2;
@@ -221,7 +221,7 @@ impl Odometry {
 
 /// A wheeled robot carrying the head, as the procedures see it: a tricycle AGV (one
 /// steered front wheel, a fixed rear axle) that drives on the ground plane
-/// (DESIGN.md section 1).
+/// (`docs/conventions.md#the-robot-and-steering`).
 ///
 /// Units: metres for distances (positive forward, negative reverses along the same
 /// arc), degrees for the steering encoder (the true steering angle is

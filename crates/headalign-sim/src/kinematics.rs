@@ -4,7 +4,7 @@
 //! y down (gravity +y), z forward. Cameras are x right, y down, z forward; at zero joint
 //! angles and without mounting errors a camera frame is parallel to the world frame.
 //!
-//! The chain (DESIGN.md section 1), every axis stored as a directed [`Line`] in the world
+//! The chain (`docs/conventions.md#head-kinematics`), every axis stored as a directed [`Line`] in the world
 //! frame at zero joint angles:
 //! - **pan**: exactly vertical through the origin, direction **up** (`-y`);
 //! - **elevation**: through `(0, -head_height_m, 0)`, direction nominally **right**

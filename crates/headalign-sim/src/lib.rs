@@ -1,7 +1,8 @@
 //! # headalign-sim
 //!
 //! A simulated stereo pan-tilt-verge head with ground truth, for tests, the demo and the
-//! experiments (DESIGN.md sections 1 and 5). It implements the platform trait
+//! experiments (`docs/conventions.md#frames`,
+//! `docs/conventions.md#the-default-scenario-yorick`). It implements the platform trait
 //! [`headalign_platform::StereoHead`]; the alignment procedures see it only through that
 //! trait. The ground truth ([`HeadTruth`], the scene points, the error metrics) is for the
 //! simulator itself and for experiments that score the procedures.

@@ -1,4 +1,4 @@
-//! Ground-truth error metrics (DESIGN.md section 1), the same names in every report.
+//! Ground-truth error metrics (`docs/conventions.md#error-metrics`), the same names in every report.
 //!
 //! - [`AlignmentErrors`]: `verge_err_{l,r}` = `asin(optical . elevation_dir)`, the signed
 //!   angle of a camera's optical axis out of the plane perpendicular to the current

@@ -3,7 +3,7 @@
 //! or renders of the textured room seen from the robot's current pose) and [`Vehicle`].
 //!
 //! Geometry (robot frame = the frame of [`crate::HeadTruth`]: origin on the pan axis at
-//! the ground, x right, y down, z forward; DESIGN.md section 1):
+//! the ground, x right, y down, z forward; `docs/conventions.md#the-robot-and-steering`):
 //! - the rear axle is the line `z = -rear_axle_behind_pan_m` on the ground, along x;
 //!   its centre `a = (0, 0, -rear_axle_behind_pan_m)`;
 //! - the steered front wheel stands `wheelbase_m` in front of the rear-axle centre; the

@@ -1,6 +1,7 @@
 //! Scenario: every parameter of a simulated head, robot scene and sensor noise.
 //!
-//! The default is the "yorick" scenario of DESIGN.md section 5, modelled on the paper's
+//! The default is the "yorick" scenario (`docs/conventions.md#the-default-scenario-yorick`),
+//! modelled on the paper's
 //! set-up. Every field can be overridden from a TOML file ([`Scenario::from_toml_str`]);
 //! missing fields take the default, unknown fields are an error (a misspelt key must not
 //! silently fall back to a default).

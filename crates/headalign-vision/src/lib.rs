@@ -1,9 +1,10 @@
-//! headalign-vision: the image half of headalign (DESIGN.md section 3). It knows images,
+//! headalign-vision: the image half of headalign (`docs/architecture.md#the-crates`). It knows images,
 //! not heads: grey images and their I/O, Gaussian pyramids, correlation, corners,
 //! descriptors and matching.
 //!
 //! Conventions: pixel `(x, y)` is column `x`, row `y`; `(0, 0)` is the centre of the
-//! top-left pixel (the same convention as the observation files, DESIGN.md section 6).
+//! top-left pixel (the same convention as the observation files,
+//! `docs/conventions.md#pixels-and-intrinsics`).
 //!
 //! Main entry points:
 //! - [`Pyramid`], [`gaussian_blur`]: Gaussian pyramids (8-bit level 0, [`FloatImage`] above);

@@ -3,7 +3,7 @@
 //!
 //! - [`match_descriptors`]: every `a` against every `b`.
 //! - [`match_epipolar`]: guided by a fundamental matrix `F` with `x_r^T F x_l = 0` (left
-//!   image first, the DESIGN.md convention): a right feature is a candidate for a left
+//!   image first, as in `docs/how-it-works.md#2-estimation`): a right feature is a candidate for a left
 //!   feature only if it lies within `band_px` pixels of the epipolar line `F x_l`.
 //! - [`match_predicted`] / [`match_homography`]: guided by a predicting map `x_b ~ G(x_a)`
 //!   (e.g. the infinite homography of a known rotation): candidates lie within `radius_px`

@@ -1,4 +1,4 @@
-//! Verge/tilt alignment from a calibrated head (DESIGN.md section 2 step 5; paper
+//! Verge/tilt alignment from a calibrated head (`docs/how-it-works.md#the-exact-alignment-solve`; paper
 //! section 3.2 steps 5-7, computed exactly instead of by iterative fixation).
 //!
 //! Aligned means: each optical axis perpendicular to the elevation axis and to the pan

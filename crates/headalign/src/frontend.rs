@@ -1,5 +1,5 @@
 //! The image front end: turns the stereo images of successive views into the tracked
-//! point observations that the estimation core consumes (DESIGN.md section 2 steps 1-2,
+//! point observations that the estimation core consumes (`docs/how-it-works.md#2-estimation` items 1-3,
 //! paper section 3.2 steps 1-2), and an adapter that makes any [`ImagingHead`] a
 //! [`StereoHead`] so the point-mode procedures run unchanged on pixels.
 //!

@@ -1,8 +1,8 @@
 //! # headalign
 //!
 //! Self-alignment and self-calibration of an active stereo camera head from images alone
-//! (paper: "Active Visual Alignment of a Mobile Stereo Camera Platform"; design:
-//! `DESIGN.md`). This crate holds the procedures; it sees the head only through the
+//! (paper: "Active Visual Alignment of a Mobile Stereo Camera Platform"; conventions:
+//! `docs/conventions.md`). This crate holds the procedures; it sees the head only through the
 //! [`headalign_platform::StereoHead`] trait and does its mathematics in
 //! `headalign-geometry`.
 //!

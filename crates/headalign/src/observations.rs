@@ -1,4 +1,4 @@
-//! Observation sessions on disk (DESIGN.md section 6): point observations with track
+//! Observation sessions on disk (`docs/formats.md#observation-files`): point observations with track
 //! identities, one JSON file, format `headalign-observations/1`.
 //!
 //! Reading validates everything a user can get wrong and names it: the format tag, the

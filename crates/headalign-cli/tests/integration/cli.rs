@@ -60,7 +60,8 @@ fn simulated_session_round_trip_through_align() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let v: Value = serde_json::from_slice(&out.stdout).unwrap();
     let kl = &v["left"]["K"];
-    // Default truth: left fx 700, fy 720; right fx 705, fy 716 (DESIGN.md section 5).
+    // Default truth: left fx 700, fy 720; right fx 705, fy 716
+    // (`docs/conventions.md#the-default-scenario-yorick`).
     // 2 % covers 0.5 px noise with 3 deg rotations comfortably (expected ~0.3 %).
     assert!((kl[0][0].as_f64().unwrap() / 700.0 - 1.0).abs() < 0.02, "left fx {}", kl[0][0]);
     assert!((kl[1][1].as_f64().unwrap() / 720.0 - 1.0).abs() < 0.02, "left fy {}", kl[1][1]);

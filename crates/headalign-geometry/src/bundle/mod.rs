@@ -1,5 +1,5 @@
 //! Rig bundle adjustment: maximum-likelihood refinement of a calibrated stereo rig, its
-//! motions and the scene points on reprojection error (DESIGN.md section 2, step 4).
+//! motions and the scene points on reprojection error (`docs/how-it-works.md#the-rig-bundle-adjustment`).
 //!
 //! # What it computes
 //!

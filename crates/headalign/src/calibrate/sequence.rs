@@ -1,6 +1,6 @@
 //! Self-calibration from a sequence: hundreds of views of a moving rig in which each view
-//! overlaps only its neighbours, possibly in disconnected segments (DESIGN.md section 7,
-//! "Sequences"; the chain of [`super`] with the reference view replaced by a view graph).
+//! overlaps only its neighbours, possibly in disconnected segments (`docs/formats.md#sequences`;
+//! the chain of [`super`] with the reference view replaced by a view graph).
 //!
 //! Input: views whose track ids are chained through consecutive views (the front end's
 //! [`TrackingMode::Previous`], or any observations whose ids name one scene point across

@@ -1,6 +1,6 @@
 //! Step 6 of the estimation ([`super`]), with the screening of step 5's starts and the
 //! hand-over to step 7: the rig bundle adjustment from the starts, with the selection of
-//! observations and the re-triangulation of points (DESIGN.md section 2 step 4 "Refine";
+//! observations and the re-triangulation of points (`docs/how-it-works.md#the-rig-bundle-adjustment`;
 //! the paper's step 4 refines each `H` on transfer error, section 3.2, where this adjusts
 //! everything jointly on reprojection error).
 //!

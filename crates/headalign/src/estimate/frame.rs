@@ -1,6 +1,6 @@
 //! Step 3 of the estimation ([`super`]): the projective frame and the projective
-//! structure of every rig view (paper section 2 and section 3.2 step 1; DESIGN.md
-//! section 2 step 1).
+//! structure of every rig view (paper section 2 and section 3.2 step 1;
+//! `docs/how-it-works.md#projective-structure-from-one-rig`).
 //!
 //! `F` fixes the cameras up to a projective transformation of space (15 dof); the frame
 //! chosen here is the quasi-Euclidean one of [`headalign_geometry::frame`] (pixels

@@ -1,5 +1,5 @@
 //! Step 4 of the estimation ([`super`]): the 3D homography of each rotated rig view
-//! (paper section 3.2 steps 2-4(c); DESIGN.md section 2 steps 2-3).
+//! (paper section 3.2 steps 2-4(c); `docs/how-it-works.md#the-3d-homography-of-a-rotation`).
 //!
 //! A rotation of the head maps the reference view's projective points `X` to the rotated
 //! view's `Y ~ H X`, `H = H_PE^-1 D H_PE` a 4x4 projective map (15 dof as estimated),

@@ -1,5 +1,6 @@
 //! Step 7 of the estimation ([`super`]): the maximum-likelihood pass, plain least squares
-//! under Gaussian pixel noise with re-classified observations (DESIGN.md section 2 step 4:
+//! under Gaussian pixel noise with re-classified observations
+//! (`docs/how-it-works.md#the-rig-bundle-adjustment`:
 //! "maximum likelihood over K_L, K_R, the rig's relative pose, the motions ... and the 3D
 //! points").
 //!

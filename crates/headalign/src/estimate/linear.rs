@@ -1,5 +1,5 @@
 //! Step 5a of the estimation ([`super`]): the start from the linear self-calibration
-//! chain (paper section 3.1 and section 3.2 step 4(c); DESIGN.md section 2 step 4).
+//! chain (paper section 3.1 and section 3.2 step 4(c); `docs/how-it-works.md#linear-self-calibration`).
 //!
 //! From the 3D homographies `H_i ~ H_PE^-1 D_i H_PE` of two or more rotations about
 //! different axes ([`headalign_geometry::selfcal::linear_self_calibration`]): the plane at

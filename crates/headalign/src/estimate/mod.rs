@@ -1,4 +1,4 @@
-//! The verge/tilt estimation core (DESIGN.md section 2 steps 1-4; paper section 3.2
+//! The verge/tilt estimation core (`docs/how-it-works.md#2-estimation`; paper section 3.2
 //! steps 1-4): from stereo views related by pan and elevation rotations of the head,
 //! recover both cameras' intrinsics, the rig, the pan and elevation axes and the scene,
 //! with covariances.
@@ -29,7 +29,7 @@
 //!    from the rough guess and the stereo-head prior (baseline along x) alone. Each is
 //!    screened by a short adjustment, the best MSAC score over one common set of
 //!    observations wins (not the RMS: each start fits its own subset);
-//! 6. **adjustment** (`adjust.rs`; DESIGN.md section 2 step 4 "Refine"): the rig bundle
+//! 6. **adjustment** (`adjust.rs`; `docs/how-it-works.md#the-rig-bundle-adjustment`): the rig bundle
 //!    adjustment, motions modelled as rotations about two fixed axes with the commanded
 //!    encoder differences as priors, robust loss; re-selection of every observation by its
 //!    residual; a final adjustment; points at implausible depth (wrong tracks) removed and

@@ -1,6 +1,6 @@
 //! Step 8 of the estimation ([`super`]): the least squares restarted from rigs with the
 //! baseline's signs changed, the lower of the likelihood minima kept (an addition to the
-//! paper's procedure: the rig bundle adjustment of DESIGN.md section 2 step 4 has more
+//! paper's procedure: the rig bundle adjustment (`docs/how-it-works.md#the-rig-bundle-adjustment`) has more
 //! than one minimum when the scene is far against the baseline).
 //!
 //! The scene is far against the baseline (median depth about 20 baselines), so the rig

@@ -1,7 +1,7 @@
 //! Steps 9 and 10 of the estimation ([`super`]): the reported covariance widened where
 //! the linearisation at the estimate understates the spread (an addition to the paper,
-//! whose procedure reports no uncertainty; DESIGN.md section 2 step 4: "It reports a
-//! covariance for every calibrated quantity").
+//! whose procedure reports no uncertainty; it reports a covariance for every
+//! calibrated quantity, `docs/how-it-works.md#the-rig-bundle-adjustment`).
 //!
 //! - [`profile_depth_scale`] (step 9): the scene's distance in baselines, the depth scale
 //!   `s` (1 dof, [`headalign_geometry::bundle::log_depth_scale`]), is the badly determined

@@ -1,5 +1,5 @@
 //! Step 5 of the estimation ([`super`]): the starting points of the rig bundle
-//! adjustment (DESIGN.md section 2 step 4; the paper's step 4 starts from the linear
+//! adjustment (`docs/how-it-works.md#2-estimation` item 5; the paper's step 4 starts from the linear
 //! decomposition alone, section 3.2).
 //!
 //! Each start is a complete [`RigState`] in the reference view's left camera frame: both

@@ -1,6 +1,6 @@
 //! Step 2 of the estimation ([`super`]): the stereo geometry, one fundamental matrix `F`
 //! from the stereo matches of every rig view together (paper section 3.2 step 1;
-//! DESIGN.md section 2 step 1).
+//! `docs/how-it-works.md#2-estimation` item 1).
 //!
 //! While only pan and elevation move the rig does not change, so the left-right matches
 //! of all rig views obey one `F` (7 dof) and pooling them conditions it far better than

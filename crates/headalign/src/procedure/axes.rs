@@ -1,5 +1,5 @@
 //! The vergence axes' measurement and its uncertainty ([`super`] module docs; paper
-//! section 3.2 step 7, DESIGN.md section 2 step 5): where each axis came from
+//! section 3.2 step 7, `docs/how-it-works.md#the-exact-alignment-solve`): where each axis came from
 //! ([`AxisSources`]: the capture after a vergence move and the cameras resected from it),
 //! the resected poses' covariance (6x6 in the tangent `ref_from_cam * Exp([w; t])`,
 //! radians and scene units; least squares, [`resection_pose_covariance`], or a parametric

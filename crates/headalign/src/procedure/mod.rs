@@ -1,4 +1,4 @@
-//! The verge/tilt procedure over any [`StereoHead`] (DESIGN.md section 2 steps 1-5, paper
+//! The verge/tilt procedure over any [`StereoHead`] (`docs/how-it-works.md#the-procedure`, paper
 //! section 3.2): capture an initial view; rotate elevation, capture; rotate pan (from the
 //! initial position), capture — by default each both ways (+r and -r), which doubles the
 //! angular span per axis; rotate both vergences, capture; return. Estimate the rig and head

@@ -1,5 +1,6 @@
-//! Uncertainty of the aligned readings ([`super`] module docs; DESIGN.md section 2 step
-//! 5): the bundle adjustment's covariance propagated to the aligned joint changes
+//! Uncertainty of the aligned readings ([`super`] module docs;
+//! `docs/how-it-works.md#3-alignment-move-check`): the bundle adjustment's covariance
+//! propagated to the aligned joint changes
 //! (elevation, left and right vergence; degrees) by central differences of
 //! [`solve_alignment`] along each calibration parameter, at [`PROPAGATION_STEP_SIGMAS`]
 //! of its standard deviation: with the vergence axes held as given

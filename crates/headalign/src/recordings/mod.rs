@@ -1,6 +1,6 @@
 //! Recordings in the formats users record in, read into the same views a session folder
 //! gives ([`crate::session::RecordedView`]), so that every command that reads a session
-//! reads a recording too (DESIGN.md section 7, "Recordings").
+//! reads a recording too (`docs/formats.md#recordings-ros-2-bags-and-euroc-folders`).
 //!
 //! - **EuRoC / ASL folders** ([`euroc`]): `mav0/cam0/data/*.png` listed by
 //!   `mav0/cam0/data.csv` (`#timestamp [ns],filename`), the same for `cam1`; each camera's

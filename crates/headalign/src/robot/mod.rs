@@ -1,5 +1,6 @@
-//! Robot stages: pan alignment from a forward drive (paper section 4, DESIGN.md section 2
-//! step 6) and steering-wheel zeroing (paper section 7, step 8), in point mode, generic
+//! Robot stages: pan alignment from a forward drive (paper section 4,
+//! `docs/how-it-works.md#4-pan`) and steering-wheel zeroing (paper section 7,
+//! `docs/how-it-works.md#5-steering`), in point mode, generic
 //! over the platform traits ([`StereoHead`] + [`Vehicle`]).
 //!
 //! Both use the calibrated rig of the verge/tilt stage ([`RigCalibration`] and the

@@ -1,5 +1,5 @@
 //! The pan stage ([`super`] module docs, "pan", "uncertainty of the pan"; paper section
-//! 4, DESIGN.md section 2 step 6): from the captures before and after a forward drive,
+//! 4, `docs/how-it-works.md#4-pan`): from the captures before and after a forward drive,
 //! two estimates of the pan correction, their covariance and their combination; the
 //! stage itself ([`align_pan`]) drives, corrects and repeats.
 //!

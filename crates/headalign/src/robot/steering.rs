@@ -1,5 +1,5 @@
-//! The steering stage ([`super`] module docs, "steering"; paper section 7, DESIGN.md
-//! section 2 step 8): drives at known steering differences, each a planar turn about the
+//! The steering stage ([`super`] module docs, "steering"; paper section 7,
+//! `docs/how-it-works.md#5-steering`): drives at known steering differences, each a planar turn about the
 //! pan axis whose turning centre (stereo baselines, left camera frame at the stage's
 //! start) lies on the rear-axle line; the centres give the steering zero (degrees), the
 //! wheelbase and the forward direction ([`steering_from_turns`]); the wheel is then set

@@ -1,5 +1,5 @@
 //! Sessions on disk: everything a procedure captured, written as it is captured, and
-//! read back for offline replay (DESIGN.md section 3). This module is the one place the
+//! read back for offline replay (`docs/formats.md#sessions`). This module is the one place the
 //! format is defined.
 //!
 //! ## Layout (format `headalign-session/1`)
