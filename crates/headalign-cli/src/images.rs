@@ -222,11 +222,11 @@ pub fn procedure<H: ImagingHead>(
 /// by track ([`CovarianceModel::PointClustered`], the sandwich estimate from the
 /// residuals themselves). Tracked corners are not i.i.d. Gaussian: their localisation
 /// error differs from track to track (per-track RMS 0.20 / 0.35 / 0.58 px at the 10 / 50
-/// / 90 % quantiles against the true cameras, seed 1, the removed `examples/track_errors.rs`), and
+/// / 90 % quantiles against the true cameras, seed 1, a past measurement), and
 /// the Gaussian model spreads one `sigma_px` evenly. Measured (`bench/seeds.py 1 20
 /// --images`, the same estimates): z-score RMS over the 13 reported quantities 1.39 ->
 /// 1.32, 95 % coverage 85 -> 89 %; right focal lengths and the aligned readings stay
-/// 1.3-1.5. Measured since (the removed `examples/cluster_diag.rs`, README): no mean bias, no error
+/// 1.3-1.5. Measured once more (no command reproduces it): no mean bias, no error
 /// correlation between neighbouring tracks, coarser clusters do not help; tracks at depth
 /// steps carry part of it, but leaving them out ([`headalign::estimate::DepthStepGate`])
 /// did not improve the full pipeline on seeds 1-20 and cost focal accuracy, so it stays

@@ -28,7 +28,7 @@
 //! one; this estimator is robust (Huber at `huber_px`, outliers re-selected at
 //! `outlier_px`), and at noise comparable to those thresholds it is markedly less
 //! efficient: at 3 px its poses spread about 1.4x (standard deviation) beyond that
-//! covariance (the vergence axes' rotation, the removed `examples/axis_mc.rs`; 1.0x at 1 px).
+//! covariance (the vergence axes' rotation, a past measurement; 1.0x at 1 px).
 
 use nalgebra::{
     Isometry3, Matrix2x3, Matrix6, Point2, Point3, SMatrix, Translation3, UnitQuaternion, Vector6,

@@ -232,9 +232,10 @@ impl Scenario {
     ///
     /// Why a preset: the points' depth spread decides how well 3 deg rotations about axes
     /// off the optical centres determine the focal lengths (the parallax of near against
-    /// far points). The removed `examples/crb_scenes.rs` (5 seeds) measured
-    /// the Cramer-Rao bound of `f` at 3 px (200 points) as 2.02 % in the default room,
-    /// 4.17 % in [`Scenario::paper_lab`] and 1.14 % here; the paper's scene is not known,
+    /// far points). Measured once over 5 seeds, the Cramer-Rao bound of `f` at 3 px
+    /// (200 points) is 2.02 % in the default room,
+    /// 4.17 % in [`Scenario::paper_lab`] and 1.14 % here (`experiment all` reports it over
+    /// 250 trials per scene in `docs/results.md`); the paper's scene is not known,
     /// so the focal length bar is reported in all three.
     pub fn robot_room() -> Self {
         Self { near_panels: Self::ROBOT_NEAR_PANELS, ..Self::default() }

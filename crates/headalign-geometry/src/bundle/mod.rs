@@ -150,7 +150,7 @@
 //! error. The estimating equations are then unbiased at the border too
 //! (moment matching: the expectation of each residual is zero at the truth; the exact
 //! truncated likelihood differs only in the weight of the few border residuals).
-//! Measured (the removed `examples/bias_mc.rs`, 2400 adjustments of the experiments' scene at 3 px): the
+//! Measured once (2400 adjustments of the experiments' scene at 3 px; no command reproduces it): the
 //! image border's truncation put the focal lengths +0.08 to +0.14 sigma higher, fy most
 //! (the image is 576 px high); with the window they return to the untruncated values.
 //!

@@ -148,8 +148,9 @@ impl DensityTrial {
 /// calibration (one motion, the points both views share on one wall) they shift the
 /// solution along the calibration's weak direction, in which the focal length and the
 /// principal point move together; twice the corners halve the variance but not that
-/// shift. Measured on rendered one-motion sessions (the removed `examples/onegen_diag.rs`, truth
-/// known): procedural seed 14 gives f +0.63 % (sigma 0.46 %) at 1500 corners and
+/// shift. Measured once on rendered one-motion sessions (as `bench/onegen.py
+/// --procedural` renders them, truth known): procedural seed 14 gives f +0.63 %
+/// (sigma 0.46 %) at 1500 corners and
 /// +2.84 % (sigma 0.31 %, 4.5 combined sigmas apart) at 3000; the same tracks at their
 /// true pixels with independent 0.4 px noise give +0.78 % and +0.95 %, so the denser
 /// result's error is the detector's, not noise or the estimator. Its principal points

@@ -266,7 +266,7 @@ fn screen_starts(
 /// point of the scene; it slides along the edge as the viewpoint moves, and its error is
 /// structured by the motion, alike for all such tracks, so it moves the calibration
 /// coherently where the per-track (clustered) covariance assumes independent tracks.
-/// Measured with the simulator's truth (the removed `examples/cluster_diag.rs`): 2-5 % of the tracks
+/// Measured once with the simulator's truth (no command reproduces it): 2-5 % of the tracks
 /// sit at true depth steps. Neighbours are found by bucketing each image into cells of
 /// the radius (linear time). Pitfall: it also flags good tracks beside an edge (the data
 /// lost is the price of not telling them apart).
@@ -443,7 +443,7 @@ pub(super) fn retriangulate_points(state: &mut RigState, src: &PointSources<'_>,
 /// Why: an outlier can lie within the stereo threshold of its epipolar line, and in the
 /// first view it makes a wrong stereo match that places the point at a wrong depth; every
 /// good observation of the point then misses the re-selection gate and the point is lost
-/// with all of them. Measured (the removed `examples/selection_loss.rs`, fig5 protocol, seed 5 at
+/// with all of them. Measured once (no command reproduces it; fig5 protocol, seed 5 at
 /// 2 px): two points (9 good observations each, the reference view's left one 342 and
 /// 167 px off) were lost that way, in the noise-free run too. Paired over 250 trials at 2
 /// and 3 px nearly every trial changes a little, the bounds fall by 0.2-0.4 % and the

@@ -207,7 +207,7 @@ fn camera_counts(points: usize, obs: &[BundleObservation]) -> Vec<[usize; 2]> {
 ///
 /// Why: the other camera's views, a few degrees apart, fix such a point's direction but
 /// hardly its depth, so the one observation sets the depth; a wrong observation near the
-/// epipolar line is fitted exactly at a wrong depth (the removed `examples/bias_pipeline.rs`: 116 of
+/// epipolar line is fitted exactly at a wrong depth (a past measurement: 116 of
 /// the 117 outliers the final adjustment kept at 3 px). A wrong pixel anywhere along the
 /// line is a wrong disparity, usually far from that of the surface around the point.
 ///

@@ -225,7 +225,7 @@ pub struct EstimationOptions {
     /// ([`near_depth_step`]; default `None`, off, also in image mode: see
     /// [`DepthStepGate::IMAGES`]). A corner where a near edge crosses the background is no
     /// fixed scene point, and its structured error moves the calibration coherently
-    /// (the removed `examples/cluster_diag.rs`).
+    /// (measured: [`near_depth_step`]).
     pub depth_step: Option<DepthStepGate>,
     /// Profile the reported covariance along the scene's depth scale
     /// ([`profile_depth_scale`], module docs step 9; needs `final_least_squares`). Default
@@ -254,7 +254,7 @@ pub struct EstimationOptions {
     /// border the noise of the observations that remain points inward; the least
     /// squares then fits each residual against the expected measurement under that
     /// truncation (`BundleOptions::measurement_window` = the whole image). Default
-    /// true. Measured with the removed `examples/bias_mc.rs` (2400 adjustments at 3 px): the truncation
+    /// true. Measured once (2400 adjustments at 3 px, no command reproduces it): the truncation
     /// put the focal lengths +0.08 to +0.14 sigma high (fy most: the image is 576 px high)
     /// and the window takes them back to the untruncated values; in `experiment
     /// calibration` (`--image-border on` against `off`, seeds 1-250 and 251-500) it halves
@@ -270,7 +270,7 @@ pub struct EstimationOptions {
     /// Default 1 (every point). A point seen once by one camera takes its depth from that
     /// observation alone (the other camera's views, a few degrees apart, fix its
     /// direction only), so a wrong observation near the epipolar line is fitted exactly at
-    /// a wrong depth and no residual test can see it: at 3 px (the removed `examples/bias_pipeline.rs`,
+    /// a wrong depth and no residual test can see it: at 3 px (a past measurement,
     /// seeds 1-200) the final adjustment keeps 0.585 outliers per trial, 116 of 117 of
     /// this kind, and the focal lengths come out up to +0.25 sigma high. 2 removes them
     /// (0.005 per trial) but those points, about 5 % of the observations and often near
@@ -284,7 +284,7 @@ pub struct EstimationOptions {
     /// ([`lone_depth_outliers`]): such a point's depth rests on that one observation, so
     /// a wrong one near the epipolar line puts it at a wrong depth that no residual shows,
     /// but usually far from the surface around it. `None` keeps every such point. Default
-    /// [`LoneDepthGate::DEFAULT`]. Measured (the removed `examples/bias_pipeline.rs`, seeds 1-200 at
+    /// [`LoneDepthGate::DEFAULT`]. Measured once (no command reproduces it; seeds 1-200 at
     /// 3 px): kept outliers 0.585 -> 0.115 per trial, the focal lengths' mean error +0.13 /
     /// +0.26 / +0.06 / +0.16 -> +0.10 / +0.12 / +0.04 / +0.05 sigma; `experiment
     /// calibration` (seeds 1-250, paired, `--lone-depth-gate off` against the default): the
@@ -323,7 +323,7 @@ pub struct LoneDepthGate {
 }
 
 impl LoneDepthGate {
-    /// The default (field docs). Chosen on the removed `examples/bias_pipeline.rs` `DEPTHDIAG` with
+    /// The default (field docs). Chosen on a past measurement (no command reproduces it) with
     /// the gate off (lone observations more than 5 noise sigmas from their exact pixel
     /// count as outliers): beyond 5 deviations lie 97 of 116 lone outliers and 24 of 3843
     /// lone inliers at 3 px (200 seeds), 44 of 56 and 77 of 3963 at 1 px, 20 of 27 and 28 of
@@ -358,7 +358,7 @@ pub struct DepthProfile {
     /// maximum over the two ends; [`EstimationOptions::depth_profile`]).
     pub z: f64,
     /// Profile only when `sigma_s` exceeds this (default 0.01: the intrinsics' sigmas
-    /// widen by about `0.3-0.6 z sigma_s` where `sigma_s < 0.2` (the removed `examples/profile_cost.rs`,
+    /// widen by about `0.3-0.6 z sigma_s` where `sigma_s < 0.2` (a past measurement,
     /// seeds 1001-1040: 0.5 px sigma_s 0.033-0.066, widening 0.9-3.4 %; 1 px 0.065-0.16,
     /// 3.6-8.2 %), so below it by well under 1 %; it skips the noise-free runs, whose
     /// sigma_s is below 1e-6, and keeps every trial at 0.5 px and above).
@@ -414,7 +414,7 @@ pub struct DepthStepGate {
 
 impl DepthStepGate {
     /// The image-mode setting (field docs). Measured with the final observations re-fitted
-    /// without the flagged tracks (the removed `examples/cluster_diag.rs`, seeds 1-40): z-score RMS of
+    /// without the flagged tracks (a past measurement, seeds 1-40): z-score RMS of
     /// the 8 intrinsics 1.29 -> 1.15 (seeds 1-20) and 2.27 -> 1.45 (seeds 21-40, three
     /// seeds at 3-7); radius 25 px and ratio 1.2 flagged fewer tracks and did less (1.17,
     /// 1.90); dropping as many random tracks changed nothing (1.28, 2.18). In the full

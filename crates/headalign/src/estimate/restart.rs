@@ -39,7 +39,7 @@ use crate::error::AlignError;
 /// frame) reversed, plus a small change of relative yaw and principal point, fits the
 /// images almost as well, with the depth order of the points reversed around the
 /// fixation distance. Both are least-squares minima and the solver stays in the one its
-/// start leads to. Measured (the removed `examples/ratio_diag.rs`, seed 39, position 2, at 2 and
+/// start leads to. Measured once (no command reproduces it; seed 39, position 2, at 2 and
 /// 3 px): the estimate had t = (+0.98, -0.11, -0.13) against (-0.98, -0.00, -0.19) at the
 /// truth, right cx 63 px (6 sigma) off, and its cost was 40 (chi-square units) above the
 /// minimum reached from the truth; from the reversed start the least squares reaches that
@@ -111,7 +111,7 @@ pub(super) fn reversed_rig_restart(
 /// The restarts' baseline sign changes (right camera frame, multiplied component-wise):
 /// the x component reversed, the whole baseline reversed, and its y and z components
 /// reversed (the product of the other two: with the estimate, the four form the group of
-/// these sign changes). The third, measured (the removed `examples/ratio_diag.rs`, fig5-verge-tilt seed
+/// these sign changes). The third, measured once (no command reproduces it; fig5-verge-tilt seed
 /// 1211, position 0, 3 px): the estimate had t = (-0.74, +0.19, +0.64), the minimum the
 /// least squares reaches from the truth t = (-0.73, -0.43, -0.53) at 3.2 chi-square units
 /// lower cost; the y-z reversed start reaches it (57 iterations), the other two do not. A
@@ -125,8 +125,8 @@ const RESTART_BASELINE_FLIPS: [Vector3<f64>; 3] =
 /// Cosine of the angle between the estimated baseline and the right camera's x axis below
 /// which [`reversed_rig_restart`] also restarts with the baseline along that axis, both
 /// ways (45 deg). A stereo head's cameras sit side by side: verged by up to 20 deg the
-/// baseline is within about 20 deg of each camera's x axis. Measured (the removed `examples/ratio_diag.rs`,
-/// calibration seed 368 at 3 px): the estimate's baseline was (0.01, -0.36, -0.93), 84 deg
+/// baseline is within about 20 deg of each camera's x axis. Measured once (no command
+/// reproduces it; calibration seed 368 at 3 px): the estimate's baseline was (0.01, -0.36, -0.93), 84 deg
 /// from the truth's (-0.99, 0.00, -0.13), along the optical axis, with left fx 146 px
 /// (3.7 sigma) off, 127 chi-square units above the minimum the least squares reaches from
 /// the truth; no sign change of that baseline is near it.

@@ -51,7 +51,7 @@ pub const PROFILE_END_ITERATIONS: usize = 20;
 /// in baselines is the badly determined direction (at 3 px known to tens of percent) and
 /// the linearised sigmas follow it: a receding maximum-likelihood scene (about 5 % of the
 /// trials at 3 px) reports sigmas 0.5-0.9 of the Cramer-Rao bound while its principal
-/// points move to absorb the disparity (the removed `examples/sigma_diag.rs`). So the covariance is
+/// points move to absorb the disparity (a past measurement). So the covariance is
 /// evaluated along the profile likelihood in `s`: at `s_hat -+ z sigma_s` (everything
 /// else re-optimised, [`bundle_adjust_at_depth_scale`]); each camera parameter's sigma
 /// becomes the largest of the three and the correlations stay those of the estimate
@@ -129,7 +129,7 @@ fn widen_covariance(result: &mut BundleResult, widen: &[f64]) {
 /// `D = diag(max(1, sigma_boot / sigma))`, capped at [`MAX_END_WIDENING`]: the
 /// correlations stay the linearisation's and the point estimate is unchanged. Why: with
 /// small rotations in a near scene at 3 px the least squares spreads 1.1-1.2 times its
-/// linearised sigma for the focal lengths (the removed `examples/bootstrap_mc.rs`). If fewer than 3
+/// linearised sigma for the focal lengths (a past measurement). If fewer than 3
 /// replicates converge, the covariance is left as it was and the report is `None`.
 pub fn bootstrap_covariance(
     result: BundleResult,

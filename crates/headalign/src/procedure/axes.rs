@@ -163,7 +163,9 @@ const AXIS_BOOTSTRAP_SEED: u64 = 0x5eed_a215;
 /// the residuals' estimate as [`resection_pose_covariance`]). Unlike the least-squares
 /// covariance it includes the resection's Huber loss (2 px) and its outlier re-selection
 /// (5 px), which at 3 px noise widen the pose's spread about 1.4x (standard deviation;
-/// 1.0x at 1 px; the removed `examples/axis_mc.rs`). `None` with fewer than 6 points or 20 successful
+/// 1.0x at 1 px; a past measurement; the test
+/// `robot::tests::axis_pose_part_matches_monte_carlo_at_3px` checks this bootstrap).
+/// `None` with fewer than 6 points or 20 successful
 /// draws.
 pub fn resection_pose_covariance_bootstrap(
     k: &headalign_geometry::camera::Intrinsics,

@@ -162,7 +162,7 @@ pub(super) fn sigmas_of(cov: &nalgebra::DMatrix<f64>) -> AlignmentSigmas {
 /// rest; letting them into the linearised resection, or re-applying an outlier threshold
 /// per perturbation, inflated the elevation sigma of runs whose axis was re-measured in a
 /// check view after a large elevation move up to 2.7x, while their actual errors moved by
-/// a few hundredths of a degree (the removed `examples/axis_diag.rs`). Measured there (150 seeds at
+/// a few hundredths of a degree (a past measurement, no command reproduces it; 150 seeds at
 /// 2 px): the term raises the elevation sigma by 2 % where the axes come from the
 /// procedure's vergence view, by 6 % where a check view re-measured them (a third of the
 /// runs), and the vergence sigmas by under 0.1 %.

@@ -234,7 +234,7 @@ fn run_as_experiment(scenario: Scenario, initial: Encoders) -> (SimulatedHead, V
 /// The verge-tilt procedure as the experiments run it, at 2 px from (pan 4, elevation 4,
 /// vergences 2 / -2) deg. Of seeds 1-30, seeds 4, 11, 13, 14, 15, 23 and 30 re-measure
 /// the left axis in a check view 6-14 deg of elevation from the reference, where the
-/// axis is most sensitive to the calibration (the removed `examples/axis_diag.rs`).
+/// axis is most sensitive to the calibration (a past measurement).
 fn check_view_case_at(seed: u64) -> (SimulatedHead, VergeTiltOutcome) {
     let initial = Encoders { pan: 4.0, elevation: 4.0, verge_left: 2.0, verge_right: -2.0 };
     run_as_experiment(Scenario { seed, noise_px: 2.0, ..Scenario::default() }, initial)

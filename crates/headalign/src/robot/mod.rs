@@ -83,7 +83,7 @@
 //! following and the poses re-resected) and adds the resected poses' own noise (modes of a
 //! parametric bootstrap of the robust resection: at 3 px its Huber loss and 5 px outlier
 //! gate spread the poses 1.4x beyond the least-squares covariance). Measured at 3 px
-//! (the removed `examples/planarity_chi2.rs`, `RIGCHI=1`, seeds 1-30): the rotation error of the rig
+//! (a past measurement, seeds 1-30): the rotation error of the rig
 //! at the readings has a chi-square mean (3 expected) of 9.7 with the axes held as exact,
 //! 3.5 with their uncertainty (2.9 at the reference readings). Without
 //! `AxisPerturbations` the axes are held (the former behaviour).

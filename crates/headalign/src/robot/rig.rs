@@ -75,7 +75,7 @@ impl Rig {
 
 /// Largest median misfit of the predicted rig accepted as it is, in the calibration's
 /// noise estimate (module docs, "rig check"). Over 713 drives of 90 robot-scene trials at
-/// 3 px (the removed `examples/planarity_chi2.rs`, readings with 0.01 deg of noise) the median misfit
+/// 3 px (a past measurement, readings with 0.01 deg of noise) the median misfit
 /// was 0.63 sigma, its 99th percentile 1.5 sigma; the one trial whose rig was 1.9 deg off
 /// (a vergence axis 12 deg off) had 4.4 sigma.
 pub const RIG_MISFIT_SIGMAS: f64 = 2.0;

@@ -211,7 +211,7 @@ fn reading_noise_adds_each_joints_variance() {
 /// of the true scene, as a first version drew (they add the calibration's fixed
 /// misfit through the Huber weights), gave 1.10
 /// with the image border not modelled and 1.07-1.30 over seeds 1-8
-/// (the removed `examples/axis_mc.rs`); with `EstimationOptions::min_camera_observations` 2 the
+/// (a past measurement, no command reproduces it); with `EstimationOptions::min_camera_observations` 2 the
 /// calibration differs and it was 1.22 (exact pixels 1.33). The least-squares pose
 /// covariance gave 1.40 (1.29-1.51).
 /// Tolerance [0.8, 1.3]: 100 draws know a standard deviation to 7 %, the bootstrap's
