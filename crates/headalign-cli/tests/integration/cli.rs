@@ -175,7 +175,7 @@ pub(super) struct ImageDemo {
 
 /// `demo --images --stages verge-tilt --seed 4 --json --save DIR`: the verge/tilt stage
 /// alone (the plain room); the robot stages on images are covered by `sessions.rs`
-/// (recorded and replayed) and `headalign/tests/robot_images.rs`.
+/// (recorded and replayed) and `crates/headalign/tests/integration/robot_images.rs`.
 pub(super) fn image_demo() -> &'static ImageDemo {
     static DEMO: OnceLock<ImageDemo> = OnceLock::new();
     DEMO.get_or_init(|| {
