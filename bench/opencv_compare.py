@@ -24,7 +24,12 @@ import cv2
 import numpy as np
 
 cv2.setNumThreads(int(os.environ.get("OPENCV_THREADS", "1")))
-PATH = sys.argv[1] if len(sys.argv) > 1 else "/work/shared/data/opencv_samples/textures/building.jpg"
+# The default image: the shared data folder beside the repository (as the vision bench's default).
+DEFAULT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data",
+                       "opencv_samples", "textures", "building.jpg")
+PATH = sys.argv[1] if len(sys.argv) > 1 else os.path.normpath(DEFAULT)
+if not os.path.isfile(PATH):
+    sys.exit(f"{PATH} is absent: put the shared data folder beside the repository or give the image's path")
 
 
 def timeit(fn, reps=50):

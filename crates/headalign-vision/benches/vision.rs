@@ -6,12 +6,14 @@
 //!   (+20, +12) px, pyramids included.
 //!
 //! Image: OpenCV sample `textures/building.jpg` (868x600, Apache-2.0/BSD-3-Clause, see
-//! `/work/shared/data/opencv_samples/README.md`), cropped to 768x576 at (60, 20) for the
-//! reference and at (40, 8) for the moved image. Override the path with
-//! `HEADALIGN_BENCH_IMAGE`. Thread count: set `RAYON_NUM_THREADS=1` for one thread.
+//! `opencv_samples/README.md` in the shared data folder), cropped to 768x576 at (60, 20) for
+//! the reference and at (40, 8) for the moved image. Default path:
+//! `../shared/data/opencv_samples/textures/building.jpg` beside the repository (the folder
+//! the real-image tests read); override it with `HEADALIGN_BENCH_IMAGE`. Without the
+//! image the benchmarks are skipped with a message. Thread count: set `RAYON_NUM_THREADS=1` for one thread.
 
 use std::hint::black_box;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use headalign_vision::{
@@ -19,22 +21,40 @@ use headalign_vision::{
     register_translation,
 };
 
-const DEFAULT_IMAGE: &str = "/work/shared/data/opencv_samples/textures/building.jpg";
+/// The default image, relative to this crate's directory.
+const DEFAULT_IMAGE: &str = "../../../shared/data/opencv_samples/textures/building.jpg";
 
 fn crop(img: &GrayImage, x0: u32, y0: u32, w: u32, h: u32) -> GrayImage {
     let data = (y0..y0 + h).flat_map(|y| img.row(y)[x0 as usize..(x0 + w) as usize].to_vec()).collect();
     GrayImage::new(w, h, data).expect("crop inside the image")
 }
 
-fn images() -> (GrayImage, GrayImage) {
-    let path = std::env::var("HEADALIGN_BENCH_IMAGE").map(PathBuf::from).unwrap_or(DEFAULT_IMAGE.into());
-    let full = GrayImage::load(&path).expect("bench image (set HEADALIGN_BENCH_IMAGE)");
-    assert!(full.width() >= 828 && full.height() >= 596, "bench image must be at least 828x596");
-    (crop(&full, 60, 20, 768, 576), crop(&full, 40, 8, 768, 576))
+/// The reference and moved crops, or why there are none.
+fn images() -> Result<(GrayImage, GrayImage), String> {
+    let path = std::env::var("HEADALIGN_BENCH_IMAGE")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_IMAGE));
+    if !path.is_file() {
+        return Err(format!(
+            "{} is absent: put the shared data folder beside the repository or set HEADALIGN_BENCH_IMAGE",
+            path.display()
+        ));
+    }
+    let full = GrayImage::load(&path).map_err(|e| format!("{}: {e}", path.display()))?;
+    if full.width() < 828 || full.height() < 596 {
+        return Err(format!("{}: the bench image must be at least 828x596", path.display()));
+    }
+    Ok((crop(&full, 60, 20, 768, 576), crop(&full, 40, 8, 768, 576)))
 }
 
 fn bench(c: &mut Criterion) {
-    let (reference, moved) = images();
+    let (reference, moved) = match images() {
+        Ok(crops) => crops,
+        Err(why) => {
+            eprintln!("vision benchmarks skipped: {why}");
+            return;
+        }
+    };
     let fo = FeatureOptions::default();
     c.bench_function("detect_describe_768x576", |b| {
         b.iter(|| detect_and_describe(black_box(&reference), &fo).expect("features"))
