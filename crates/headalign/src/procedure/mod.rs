@@ -23,8 +23,8 @@
 //! error falls roughly as 1/rotation (the plane at infinity is found from the rotations'
 //! screws), so larger is better while enough of the scene stays in view; each joint still
 //! turns at most 10 deg. Why diagonals: the Cramer-Rao bound of the focal length at 3 px
-//! (`f = fx` pooled over both cameras, default room, 8 seeds, the removed
-//! `examples/crb_plans.rs`) is 1.76 % with 3 deg single-joint views, 0.71 % at
+//! (`f = fx` pooled over both cameras, default room, 8 seeds, a past
+//! measurement) is 1.76 % with 3 deg single-joint views, 0.71 % at
 //! 10 deg, 0.56 % adding 5 deg single-joint views (9 views), 0.47 / 0.39 / 0.31 % adding
 //! diagonals of 5 / 7 / 10 deg (9 views), 0.27-0.28 % with 13 views: a combined rotation
 //! moves the image along both axes at once and decorrelates the focal lengths from the

@@ -2,6 +2,7 @@
 //! (a binary per file costs a link of the whole crate graph each: build time of the suite).
 //! Run one subject with `cargo test --release -p headalign --test integration <module>::`.
 
+mod doc_links;
 mod fixation;
 mod fuzz_regressions;
 mod patch_refinement;
