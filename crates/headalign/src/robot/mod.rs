@@ -145,6 +145,7 @@
 //! steering stage).
 
 mod drive;
+pub mod floor;
 mod pan;
 mod propagation;
 mod rig;
@@ -158,6 +159,7 @@ use headalign_platform::Encoders;
 use serde::Serialize;
 
 pub(crate) use drive::drive_motion;
+pub use floor::{FLOOR_TILT_PRIOR_DEG, FloorNormal, planarity_limit};
 pub use pan::{align_pan, pan_step};
 pub(crate) use pan::{angle_about, head_forward};
 pub use rig::{RIG_MISFIT_FLOOR_PX, RIG_MISFIT_SIGMAS, RigCheck, predicted_rig, stereo_fundamental};
@@ -321,13 +323,19 @@ pub struct PanStep {
     /// (module docs) and the pan reading's noise ([`PanOptions::encoder_sigma_deg`]: the
     /// corrected pan is that reading plus the correction), degrees.
     pub sigma_deg: f64,
-    /// Heading change measured during the drive, degrees.
+    /// Heading change measured during the drive (about the fitted floor normal), degrees.
     pub turn_deg: f64,
-    /// Rotation about axes perpendicular to the pan axis (planarity check), degrees.
+    /// Rotation about axes perpendicular to the fitted floor normal (planarity check),
+    /// degrees.
     pub off_axis_deg: f64,
-    /// Chi-square (3 degrees of freedom) of the drive's out-of-plane rotation and
-    /// translation against their covariance (planarity test).
+    /// Chi-square of the drive's rotation about axes perpendicular to the fitted floor
+    /// normal and its translation along it, against their covariance (planarity test).
     pub planarity_chi2: f64,
+    /// Its degrees of freedom: 3 less the drive's leverage in the floor normal's fit
+    /// ([`floor`] module docs; about 2 for a straight drive).
+    pub planarity_dof: f64,
+    /// The floor normal fitted to this drive and the pan axis' tilt from it.
+    pub floor: FloorNormal,
     /// Angle of the travel direction out of the plane perpendicular to the pan axis
     /// (elevation check), degrees.
     pub elevation_check_deg: f64,
@@ -345,6 +353,9 @@ pub struct PanStep {
 pub struct PanOutcome {
     /// Every drive.
     pub steps: Vec<PanStep>,
+    /// The floor normal of the last drive and the pan axis' tilt from it (each drive
+    /// fits its own: `steps[k].floor`).
+    pub floor: Option<FloorNormal>,
     /// Head readings at the end (aligned pan).
     pub final_encoders: Encoders,
 }
@@ -465,8 +476,12 @@ pub struct TurnStep {
     pub turn_deg: f64,
     /// Angle of the screw axis from the pan axis, degrees.
     pub axis_tilt_deg: f64,
-    /// Chi-square (3 dof) of the planarity test (options).
+    /// Angle of the screw axis from the fitted floor normal, degrees.
+    pub axis_from_floor_deg: f64,
+    /// Chi-square of the planarity test about the fitted floor normal (options).
     pub planarity_chi2: f64,
+    /// Its degrees of freedom: 3 less the drive's leverage in the floor normal's fit.
+    pub planarity_dof: f64,
     /// Registration inliers.
     pub inliers: usize,
     /// Turning centre, left camera frame at the stage's start, stereo baselines.
@@ -485,6 +500,9 @@ pub struct SteeringOutcome {
     pub sigma_steer_zero_deg: f64,
     /// Estimated wheelbase, metres (via the baseline).
     pub wheelbase_m: f64,
+    /// The floor normal fitted to the drives kept (their turns' axes) and the pan axis'
+    /// tilt from it.
+    pub floor: FloorNormal,
     /// Pan correction implied by the forward direction found here (a check on the pan
     /// stage), degrees.
     pub pan_check_deg: f64,
