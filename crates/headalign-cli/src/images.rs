@@ -700,6 +700,7 @@ pub fn run(
                         "aligned_encoders": serde_json::to_value(true_aligned)?,
                         "steer_zero_deg": robot.truth().steer_zero_deg,
                         "wheelbase_m": robot.truth().wheelbase_m,
+                        "pan_tilt_deg": robot.truth().pan_tilt_deg(),
                     }),
                 );
             }

@@ -126,7 +126,8 @@ impl RobotPlan {
 
 /// One line naming what the robot stages found, from a run's JSON (`pan`, `steering`
 /// members, or those of its `robot` member in point mode): each pan stage's final pan
-/// reading and the steering zero.
+/// reading, the steering zero, and the pan axis' tilt from the floor normal (the steering
+/// stage's, else the last pan drive's; [`headalign::robot::FloorNormal`]).
 pub fn summary_line(v: &serde_json::Value) -> Option<String> {
     let stages = v["stages"].as_array()?;
     let v = if v["robot"].is_object() { &v["robot"] } else { v };
@@ -145,6 +146,13 @@ pub fn summary_line(v: &serde_json::Value) -> Option<String> {
         (v["steering"]["steer_zero_deg"].as_f64(), v["steering"]["sigma_steer_zero_deg"].as_f64())
     {
         parts.push(format!("steering zero {zero:.3} +- {sigma:.3} deg"));
+    }
+    let pan_floor = v["pan"].as_array().and_then(|p| p.last()).map(|p| &p["floor"]);
+    let floor = if v["steering"]["floor"].is_object() { Some(&v["steering"]["floor"]) } else { pan_floor };
+    if let Some(f) = floor
+        && let (Some(tilt), Some(sigma)) = (f["pan_tilt_deg"].as_f64(), f["sigma_pan_tilt_deg"].as_f64())
+    {
+        parts.push(format!("pan axis {tilt:.2} +- {sigma:.2} deg from the floor normal"));
     }
     let names: Vec<&str> = stages.iter().filter_map(serde_json::Value::as_str).collect();
     Some(format!("stages {}: {}", names.join(","), parts.join("; ")))

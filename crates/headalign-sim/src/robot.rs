@@ -102,6 +102,11 @@ impl RobotTruth {
         self.head_from_floor * -Vector3::y_axis()
     }
 
+    /// Angle of the pan axis (`-y`) from the floor's normal, degrees.
+    pub fn pan_tilt_deg(&self) -> f64 {
+        self.floor_normal().angle(&-Vector3::y_axis()).to_degrees()
+    }
+
     /// The robot's direction of travel with the wheel straight, robot frame (unit).
     pub fn travel_direction(&self) -> Vector3<f64> {
         self.head_from_floor * Vector3::z()

@@ -4,24 +4,29 @@
 //! stage itself ([`align_pan`]) drives, corrects and repeats.
 //!
 //! Per drive ([`pan_step`], a pipeline of named steps): [`measure_drive`] (the rig checked
-//! against the drive's stereo pairs, the pan axis in its frame, the drive's rigid motion);
+//! against the drive's stereo pairs, the pan axis in its frame, the drive's rigid motion,
+//! the floor normal fitted to it, [`super::floor`]);
 //! [`image_estimate`] (left-left flow derotated by the measured rotation, guided by the
 //! reconstruction's prediction, the epipole by [`translation_from_flow`]); [`pan_geometry`]
-//! (both estimates as travel directions of the pan axis, turned back by half the heading
-//! change, and their angles about the pan axis from the head's forward direction);
+//! (both estimates as travel directions of the pan axis, turned back about the floor
+//! normal by half the heading change, and their angles about the pan axis from the head's
+//! forward direction);
 //! [`image_noise`] (the flow's and the drive motion's noise through both estimates);
 //! [`calibration_part`] (the calibration's and the readings' covariance of both estimates
-//! and of the out-of-plane part, the whole computation re-run under each perturbation);
-//! [`planarity_test`]; [`combine`] (the minimum-variance convex combination and its
+//! and of the out-of-plane part and the pan axis' tilt, the whole computation re-run under
+//! each perturbation); [`planarity_test`] (about the fitted normal, on the degrees of
+//! freedom its fit leaves); [`combine`] (the minimum-variance convex combination and its
 //! stated sigma).
 //!
 //! Units: angles in radians inside, degrees in [`PanStep`]; lengths in stereo baselines;
 //! thresholds in pixels (`guide_px`, `min_flow_px`, the epipole's RANSAC), scaled to the
 //! calibration's noise ([`PanOptions::scaled_to_noise`]). Degrees of freedom: the drive
-//! 6, the epipole 2; the pan correction is 1.
+//! 6, the epipole 2, the floor normal 2 (one fixed by the drive, one by its prior); the
+//! pan correction is 1.
 //!
 //! Pitfalls: the half-turn correction is exact for the rear-axle line, so it assumes the
-//! pan axis stands over it (a no-op with a straight wheel); the flow and the motion share
+//! pan axis stands over it (a no-op with a straight wheel; a pan axis tilted from the
+//! floor normal puts the point `o` at camera height off that line too); the flow and the motion share
 //! the left images, whose correlation is not modelled: the stated sigma takes the bound
 //! valid for any correlation of the two ([`combine`]).
 

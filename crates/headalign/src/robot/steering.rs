@@ -1,19 +1,22 @@
 //! The steering stage ([`super`] module docs, "steering"; paper section 7, DESIGN.md
 //! section 2 step 8): drives at known steering differences, each a planar turn about the
-//! pan axis whose turning centre (stereo baselines, left camera frame at the stage's
+//! floor normal (fitted to the turns, [`super::floor`]) whose turning centre (stereo baselines, left camera frame at the stage's
 //! start) lies on the rear-axle line; the centres give the steering zero (degrees), the
 //! wheelbase and the forward direction ([`steering_from_turns`]); the wheel is then set
 //! straight.
 //!
 //! Degrees of freedom: per drive 6 (its rigid motion), of which the planar turn keeps 3;
-//! the solution 3 (zero, wheelbase, forward direction), or 2 with a known wheelbase. The
+//! the floor normal 2 (shared by the drives); the solution 3 (zero, wheelbase, forward
+//! direction), or 2 with a known wheelbase. The
 //! zero's sigma: each drive's motion covariance through its centre plus the calibration's
 //! (every drive refitted under each perturbed calibration), by central differences.
 //! Thresholds: `min_turn_deg` (degrees), `planarity_chi2_max` (chi-square, 3 dof),
 //! `max_sigma_zero_deg` (degrees).
 //!
 //! Pitfalls: the free 3D screw axis is too noisy in direction (depth noise of the stereo
-//! points) to place a centre well, so each turn is taken as planar about the pan axis; one
+//! points) to place a centre well, so each turn is taken as planar about the floor normal
+//! all the turns share (the pan axis, 1-3 deg off it on a real robot, would move the
+//! centres: 1.4-1.7 deg screw axes failed the planarity test on the independent head); one
 //! drive failing the planarity test while the others pass is left out as an outlier when
 //! three remain and they all pass; a zero with a sigma above `max_sigma_zero_deg` is an
 //! error before the wheel is commanded.
@@ -41,7 +44,7 @@ use crate::estimate::RigCalibration;
 use crate::procedure::AxisPerturbations;
 
 /// The turning centre of a drive `m = cam1_from_cam2` seen as a planar motion about
-/// `up`: rotation about `up` by the measured angle's component along it; centre from the
+/// `up` (the floor normal): rotation about `up` by the measured angle's component along it; centre from the
 /// horizontal translation (`(I - R + u u^T) p = t_perp`). The free 3D screw axis is too
 /// noisy in direction (depth noise of the stereo points) to place the centre well.
 fn turn_centre(m: &Isometry3<f64>, up: &Unit<Vector3<f64>>) -> Option<Point3<f64>> {
