@@ -254,3 +254,29 @@ pub fn run_robot_stages<R: StereoHead + Vehicle>(
     }
     Ok(out)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The summary names each pan stage's reading, the steering zero, and the pan axis'
+    /// tilt from the floor normal: the steering stage's when it ran, else the last pan
+    /// drive's (the members of `headalign::robot::FloorNormal`).
+    #[test]
+    fn summary_line_reports_the_floor_tilt() {
+        let floor = |t: f64, s: f64| serde_json::json!({"pan_tilt_deg": t, "sigma_pan_tilt_deg": s});
+        let pan = serde_json::json!([{"final_encoders": {"pan": 1.5}, "floor": floor(2.5, 3.1)}]);
+        let v = serde_json::json!({
+            "stages": ["verge-tilt", "pan", "steering"],
+            "pan": pan,
+            "steering": {"steer_zero_deg": 0.25, "sigma_steer_zero_deg": 0.04, "floor": floor(3.0, 0.07)},
+        });
+        let line = summary_line(&v).unwrap();
+        assert!(line.contains("steering zero 0.250 +- 0.040 deg"), "{line}");
+        assert!(line.contains("pan axis 3.00 +- 0.07 deg from the floor normal"), "{line}");
+        let v = serde_json::json!({"stages": ["verge-tilt", "pan"], "pan": pan});
+        let line = summary_line(&v).unwrap();
+        assert!(line.contains("pan reading after each pan stage 1.500 deg"), "{line}");
+        assert!(line.contains("pan axis 2.50 +- 3.10 deg from the floor normal"), "{line}");
+    }
+}
