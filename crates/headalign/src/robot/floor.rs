@@ -38,7 +38,7 @@
 //! steering turn (four turns share `n`: `h` about 0.5) at about 2.5.
 //!
 //! **The prior's test.** The prior says `|a|^2 / s^2` is chi-square with 2 dof; a fit
-//! beyond its quantile at the false alarm rate of the planarity limit (24 deg with the
+//! beyond its quantile at the false alarm rate of the planarity limit (23 deg with the
 //! point-mode default) is [`AlignError::NotPlanar`] ([`FloorFit::plausible`]). It is what
 //! catches a pitching robot's straight drive: with exact data its best "floor" is the one
 //! perpendicular to the pitch axis, 90 deg off, where the drive's own chi-square vanishes.

@@ -118,7 +118,7 @@
 //! turns); above the quantile at those degrees of freedom with the tail probability of
 //! `planarity_chi2_max` at 3 dof ([`planarity_limit`]; default the 99.999 % quantile, a
 //! false alarm rate of 1e-5 per drive) is [`AlignError::NotPlanar`]. So is a normal fitted
-//! beyond its prior's quantile at that rate (24 deg from the pan axis in point mode): a
+//! beyond its prior's quantile at that rate (23 deg from the pan axis in point mode): a
 //! pitching robot's straight drive is best fitted by a floor perpendicular to its pitch
 //! axis. The former fixed limits (1 deg off-axis rotation; screw axis 10 deg, pitch 0.2)
 //! both failed planar drives (3 of 260 experiment trials) and missed smaller real tilts;
