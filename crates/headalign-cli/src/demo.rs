@@ -55,6 +55,10 @@ pub struct DemoArgs {
     /// Largest initial pan error (pan zero offset), degrees.
     #[arg(long)]
     pan_zero_max: Option<f64>,
+    /// Tilt of the pan axis from the floor's normal, degrees (default 2; direction drawn
+    /// per seed).
+    #[arg(long)]
+    pan_tilt: Option<f64>,
     /// Largest steering zero offset, degrees.
     #[arg(long)]
     steer_zero_max: Option<f64>,
@@ -165,6 +169,9 @@ fn scenario_and_plan(args: &DemoArgs) -> Result<(Scenario, RobotPlan)> {
     if let Some(v) = args.steer_zero_max {
         scenario.steer_zero_max_deg = v;
     }
+    if let Some(v) = args.pan_tilt {
+        scenario.pan_tilt_deg = v;
+    }
     if let Some(v) = args.drive {
         scenario.drive_m = v;
     }
@@ -263,6 +270,8 @@ struct After {
     steer_zero_deg: f64,
     /// The true wheelbase, metres.
     wheelbase_m: f64,
+    /// The true angle of the pan axis from the floor's normal, degrees.
+    pan_tilt_deg: f64,
 }
 
 impl After {
@@ -290,6 +299,7 @@ impl After {
             unavoidable_r,
             steer_zero_deg: robot.truth().steer_zero_deg,
             wheelbase_m: robot.truth().wheelbase_m,
+            pan_tilt_deg: robot.truth().pan_tilt_deg(),
         }
     }
 }
@@ -551,7 +561,7 @@ fn print_robot_stages(stages: &RobotOutcomes, before: &Before, after: &After) {
     }
     for (i, s) in stages.pan.iter().flat_map(|p| &p.steps).enumerate() {
         say!(
-            "pan drive {}: image {:+.3} (sigma {:.3}), stereo {:+.3} (sigma {:.3}) -> correction {:+.3} deg (sigma {:.3}, {:.3} of it from the calibration); turn {:+.3} deg, median flow {:.1} px, elevation check {:+.3} deg",
+            "pan drive {}: image {:+.3} (sigma {:.3}), stereo {:+.3} (sigma {:.3}) -> correction {:+.3} deg (sigma {:.3}, {:.3} of it from the calibration); turn {:+.3} deg, median flow {:.1} px, elevation check {:+.3} deg; pan axis {:.2} +- {:.2} deg from the floor normal (truth {:.2}), planarity chi-square {:.1} ({:.2} dof)",
             i + 1,
             s.pan_image_deg,
             s.sigma_image_deg,
@@ -562,7 +572,12 @@ fn print_robot_stages(stages: &RobotOutcomes, before: &Before, after: &After) {
             s.sigma_calibration_deg,
             s.turn_deg,
             s.median_flow_px,
-            s.elevation_check_deg
+            s.elevation_check_deg,
+            s.floor.pan_tilt_deg,
+            s.floor.sigma_pan_tilt_deg,
+            after.pan_tilt_deg,
+            s.planarity_chi2,
+            s.planarity_dof
         );
     }
     if let Some(pan_after) = after.pan_deg {
@@ -570,11 +585,14 @@ fn print_robot_stages(stages: &RobotOutcomes, before: &Before, after: &After) {
     }
     if let Some(s) = &stages.steering {
         say!(
-            "steering: zero {:+.3} deg (truth {:+.3}), wheelbase {:.3} m (truth {:.3}), pan check {:+.3} deg; steer error before {:+.3}, after {:+.3} deg",
+            "steering: zero {:+.3} deg (truth {:+.3}), wheelbase {:.3} m (truth {:.3}), pan axis {:.3} +- {:.3} deg from the floor normal (truth {:.3}), pan check {:+.3} deg; steer error before {:+.3}, after {:+.3} deg",
             s.steer_zero_deg,
             after.steer_zero_deg,
             s.wheelbase_m,
             after.wheelbase_m,
+            s.floor.pan_tilt_deg,
+            s.floor.sigma_pan_tilt_deg,
+            after.pan_tilt_deg,
             s.pan_check_deg,
             before.steer_deg,
             after.steer_deg.unwrap_or(f64::NAN)
@@ -621,6 +639,9 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
     }
     say!();
     for line in crate::planar::summary_lines(v) {
+        say!("{line}");
+    }
+    if let Some(line) = stages::summary_line(v) {
         say!("{line}");
     }
     if let Some(e) = v.get("aligned_reading_errors_deg") {

@@ -271,6 +271,8 @@ pub struct Truth {
     pub aligned_encoders: Encoders,
     pub steer_zero_deg: f64,
     pub wheelbase_m: f64,
+    /// The pan axis' tilt from the floor normal.
+    pub pan_tilt_deg: f64,
 }
 
 /// `demo --json`: [`Procedure`] and the run against the simulator's truth.
@@ -598,6 +600,7 @@ impl Truth {
             aligned_encoders: head.aligned_encoders(),
             steer_zero_deg: robot.truth().steer_zero_deg,
             wheelbase_m: robot.truth().wheelbase_m,
+            pan_tilt_deg: robot.truth().pan_tilt_deg(),
         })
     }
 }

@@ -125,8 +125,9 @@ impl RobotPlan {
 }
 
 /// One line naming what the robot stages found, from a run's JSON (`pan`, `steering`
-/// members): each pan stage's final pan reading and the steering zero; `None` when only
-/// the verge/tilt stage was asked for.
+/// members): each pan stage's final pan reading, the steering zero, and the pan axis'
+/// tilt from the floor normal (the steering stage's, else the last pan drive's;
+/// [`headalign::robot::FloorNormal`]); `None` when only the verge/tilt stage was asked for.
 pub fn summary_line(v: &serde_json::Value) -> Option<String> {
     let stages = v["stages"].as_array()?;
     if stages.iter().all(|s| s.as_str() == Some(headalign::session::STAGE_VERGE_TILT)) {
@@ -147,6 +148,13 @@ pub fn summary_line(v: &serde_json::Value) -> Option<String> {
         (v["steering"]["steer_zero_deg"].as_f64(), v["steering"]["sigma_steer_zero_deg"].as_f64())
     {
         parts.push(format!("steering zero {zero:.3} +- {sigma:.3} deg"));
+    }
+    let pan_floor = v["pan"].as_array().and_then(|p| p.last()).map(|p| &p["floor"]);
+    let floor = if v["steering"]["floor"].is_object() { Some(&v["steering"]["floor"]) } else { pan_floor };
+    if let Some(f) = floor
+        && let (Some(tilt), Some(sigma)) = (f["pan_tilt_deg"].as_f64(), f["sigma_pan_tilt_deg"].as_f64())
+    {
+        parts.push(format!("pan axis {tilt:.2} +- {sigma:.2} deg from the floor normal"));
     }
     let names: Vec<&str> = stages.iter().filter_map(serde_json::Value::as_str).collect();
     Some(format!("stages {}: {}", names.join(","), parts.join("; ")))
@@ -247,4 +255,30 @@ pub fn run_robot_stages<R: StereoHead + Vehicle>(
         }
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The summary names each pan stage's reading, the steering zero, and the pan axis'
+    /// tilt from the floor normal: the steering stage's when it ran, else the last pan
+    /// drive's (the members of `headalign::robot::FloorNormal`).
+    #[test]
+    fn summary_line_reports_the_floor_tilt() {
+        let floor = |t: f64, s: f64| serde_json::json!({"pan_tilt_deg": t, "sigma_pan_tilt_deg": s});
+        let pan = serde_json::json!([{"final_encoders": {"pan": 1.5}, "floor": floor(2.5, 3.1)}]);
+        let v = serde_json::json!({
+            "stages": ["verge-tilt", "pan", "steering"],
+            "pan": pan,
+            "steering": {"steer_zero_deg": 0.25, "sigma_steer_zero_deg": 0.04, "floor": floor(3.0, 0.07)},
+        });
+        let line = summary_line(&v).unwrap();
+        assert!(line.contains("steering zero 0.250 +- 0.040 deg"), "{line}");
+        assert!(line.contains("pan axis 3.00 +- 0.07 deg from the floor normal"), "{line}");
+        let v = serde_json::json!({"stages": ["verge-tilt", "pan"], "pan": pan});
+        let line = summary_line(&v).unwrap();
+        assert!(line.contains("pan reading after each pan stage 1.500 deg"), "{line}");
+        assert!(line.contains("pan axis 2.50 +- 3.10 deg from the floor normal"), "{line}");
+    }
 }

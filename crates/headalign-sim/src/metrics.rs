@@ -119,16 +119,24 @@ impl SimulatedHead {
     /// plane perpendicular to the pan axis. Positive when the head looks left (the pan
     /// joint's sign). Zero-length projection (cameras looking straight up) gives NaN.
     pub fn pan_err_deg(&self, enc: &Encoders) -> f64 {
+        self.pan_err_from_deg(enc, &Vector3::z())
+    }
+
+    /// Pan error from a direction of travel `travel` (robot frame; the robot's on a floor
+    /// tilted against the pan axis, [`crate::robot`]): as [`Self::pan_err_deg`], the angle
+    /// about the pan axis from `travel` to the head's forward direction, both projected
+    /// onto the plane perpendicular to the pan axis. NaN when either projection vanishes.
+    pub fn pan_err_from_deg(&self, enc: &Encoders, travel: &Vector3<f64>) -> f64 {
         let (world_from_left, world_from_right) = self.world_from_cameras(enc);
         let forward = world_from_left.rotation * Vector3::z() + world_from_right.rotation * Vector3::z();
         let up = self.truth().pan_axis.direction.into_inner();
         let horizontal = forward - up * up.dot(&forward);
-        if horizontal.norm() < 1e-12 {
+        let t = travel - up * up.dot(travel);
+        if horizontal.norm() < 1e-12 || t.norm() < 1e-12 {
             return f64::NAN;
         }
-        // Right-handed angle about `up` from +z: sin along up x z.
-        let z = Vector3::z();
-        up.cross(&z).dot(&horizontal).atan2(z.dot(&horizontal)).to_degrees()
+        // Right-handed angle about `up` from `t`: sin along up x t.
+        up.cross(&t).dot(&horizontal).atan2(t.dot(&horizontal)).to_degrees()
     }
 
     /// The true aligned readings: zero `verge_err_l`, `verge_err_r` and `elev_err_l`; pan

@@ -15,6 +15,17 @@
 //!   up, `-y`) when the rear-axle centre travels the arc length `d`. `sigma = 0` is a
 //!   straight translation by `d` along `+z`.
 //!
+//! **The floor** is tilted against the head: the floor's normal in the robot frame is
+//! `head_from_floor * up`, the pan axis tilted `pan_tilt_deg` ([`crate::Scenario`]) from
+//! it about a horizontal axis of azimuth drawn uniformly (robot stream, after the steering
+//! zero). Everything above (rear axle, forward direction `+z`, turning centres, `up`) is
+//! stated in the floor frame, which shares the origin (the pan axis' foot) and is carried
+//! into the robot frame by that rotation: a drive is `head_from_floor * M *
+//! head_from_floor^-1` with `M` the planar motion above, a rotation about the floor normal
+//! and a translation perpendicular to it; the direction of travel with the wheel straight
+//! is `head_from_floor * z`. The pan error is measured from that direction
+//! ([`SimulatedRobot::pan_err_deg`]).
+//!
 //! The head rides on the robot: its pose in the scene is `world_from_robot` composed with
 //! the head's kinematics. The robot starts at the identity, so every capture before the
 //! first drive is exactly what a bare [`SimulatedHead`] gives (the verge/tilt stage is
@@ -26,7 +37,7 @@ use headalign_geometry::so3::{Line, rotation_about_line};
 use headalign_platform::{
     Encoders, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages, Vehicle,
 };
-use nalgebra::{Isometry3, Point3, Translation3, Vector3};
+use nalgebra::{Isometry3, Point3, Translation3, Unit, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -50,17 +61,26 @@ pub struct RobotTruth {
     pub wheelbase_m: f64,
     /// Rear-axle centre behind the pan axis, metres.
     pub rear_axle_behind_pan_m: f64,
+    /// The floor frame in the robot (head) frame (module docs): the identity when the pan
+    /// axis is the floor normal.
+    pub head_from_floor: UnitQuaternion<f64>,
 }
 
 impl RobotTruth {
     /// The rigid motion `robot_before_from_robot_after` of a drive of `distance_m` (arc
-    /// length of the rear-axle centre) at true steering angle `sigma_deg`.
+    /// length of the rear-axle centre) at true steering angle `sigma_deg`, robot frame.
     pub fn motion(&self, sigma_deg: f64, distance_m: f64) -> Isometry3<f64> {
+        let q = Isometry3::from_parts(Translation3::identity(), self.head_from_floor);
+        q * self.floor_motion(sigma_deg, distance_m) * q.inverse()
+    }
+
+    /// The drive of [`RobotTruth::motion`] in the floor frame (module docs).
+    fn floor_motion(&self, sigma_deg: f64, distance_m: f64) -> Isometry3<f64> {
         let tan_s = sigma_deg.to_radians().tan();
         if tan_s.abs() < 1e-12 {
             return Isometry3::from_parts(Translation3::new(0.0, 0.0, distance_m), Default::default());
         }
-        let centre = self.turning_centre(sigma_deg).unwrap_or_else(Point3::origin);
+        let centre = self.floor_turning_centre(sigma_deg).unwrap_or_else(Point3::origin);
         let phi = distance_m * tan_s / self.wheelbase_m;
         rotation_about_line(&Line::new(-Vector3::y_axis(), centre), phi)
     }
@@ -68,10 +88,36 @@ impl RobotTruth {
     /// The turning centre (on the ground) of true steering angle `sigma_deg`, robot frame;
     /// `None` when the wheel is straight (centre at infinity).
     pub fn turning_centre(&self, sigma_deg: f64) -> Option<Point3<f64>> {
+        self.floor_turning_centre(sigma_deg).map(|c| self.head_from_floor * c)
+    }
+
+    fn floor_turning_centre(&self, sigma_deg: f64) -> Option<Point3<f64>> {
         let tan_s = sigma_deg.to_radians().tan();
         (tan_s.abs() >= 1e-12)
             .then(|| Point3::new(-self.wheelbase_m / tan_s, 0.0, -self.rear_axle_behind_pan_m))
     }
+
+    /// The floor's normal in the robot frame (up).
+    pub fn floor_normal(&self) -> Unit<Vector3<f64>> {
+        self.head_from_floor * -Vector3::y_axis()
+    }
+
+    /// Angle of the pan axis (`-y`) from the floor's normal, degrees.
+    pub fn pan_tilt_deg(&self) -> f64 {
+        self.floor_normal().angle(&-Vector3::y_axis()).to_degrees()
+    }
+
+    /// The robot's direction of travel with the wheel straight, robot frame (unit).
+    pub fn travel_direction(&self) -> Vector3<f64> {
+        self.head_from_floor * Vector3::z()
+    }
+}
+
+/// The rotation that tilts the floor frame `tilt_deg` against the robot frame about the
+/// horizontal axis at azimuth `azimuth_rad` (from `+x` towards `+z`).
+fn floor_tilt(tilt_deg: f64, azimuth_rad: f64) -> UnitQuaternion<f64> {
+    let axis = Unit::new_normalize(Vector3::new(azimuth_rad.cos(), 0.0, azimuth_rad.sin()));
+    UnitQuaternion::from_axis_angle(&axis, tilt_deg.to_radians())
 }
 
 /// A simulated robot carrying the simulated head.
@@ -91,10 +137,13 @@ impl SimulatedRobot {
         let mut rng = ChaCha8Rng::seed_from_u64(scenario.seed);
         rng.set_stream(STREAM_ROBOT);
         let steer_zero_deg = scenario.steer_zero_max_deg * (2.0 * rng.random::<f64>() - 1.0);
+        // Drawn after the steering zero, so that zero is the same with or without a tilt.
+        let azimuth = std::f64::consts::TAU * rng.random::<f64>();
         let truth = RobotTruth {
             steer_zero_deg,
             wheelbase_m: scenario.wheelbase_m,
             rear_axle_behind_pan_m: scenario.rear_axle_behind_pan_m,
+            head_from_floor: floor_tilt(scenario.pan_tilt_deg, azimuth),
         };
         Ok(Self { head, truth, steering_deg: 0.0, odometer_m: 0.0 })
     }
@@ -129,10 +178,12 @@ impl SimulatedRobot {
         encoder_deg - self.truth.steer_zero_deg
     }
 
-    /// Pan error of the head at the given head readings (robot frame; see
-    /// [`SimulatedHead::pan_err_deg`]).
+    /// Pan error of the head at the given head readings: the angle about the pan axis from
+    /// the robot's direction of travel with the wheel straight
+    /// ([`RobotTruth::travel_direction`], projected onto the plane perpendicular to the
+    /// pan axis) to the head's forward direction ([`SimulatedHead::pan_err_from_deg`]).
     pub fn pan_err_deg(&self, enc: &Encoders) -> f64 {
-        self.head.pan_err_deg(enc)
+        self.head.pan_err_from_deg(enc, &self.truth.travel_direction())
     }
 }
 
@@ -196,7 +247,12 @@ mod tests {
     use proptest::prelude::*;
 
     fn truth(b: f64) -> RobotTruth {
-        RobotTruth { steer_zero_deg: 2.0, wheelbase_m: 0.6, rear_axle_behind_pan_m: b }
+        RobotTruth {
+            steer_zero_deg: 2.0,
+            wheelbase_m: 0.6,
+            rear_axle_behind_pan_m: b,
+            head_from_floor: UnitQuaternion::identity(),
+        }
     }
 
     proptest! {
@@ -224,9 +280,32 @@ mod tests {
         }
     }
 
+    /// On a tilted floor every drive is a rotation about the floor normal (not the pan
+    /// axis, `-y`) and a translation perpendicular to it, the turning centre is fixed by
+    /// it, and the travel direction is perpendicular to the normal: exact to rounding.
+    #[test]
+    fn drives_are_planar_about_the_tilted_floor() {
+        let t = RobotTruth { head_from_floor: floor_tilt(3.0, 1.0), ..truth(0.2) };
+        let n = t.floor_normal();
+        assert!((n.angle(&-Vector3::y_axis()).to_degrees() - 3.0).abs() < 1e-12);
+        assert!(t.travel_direction().dot(&n).abs() < 1e-15);
+        for (sigma, d) in [(10.0, 0.3), (-25.0, 0.2), (0.0, 0.1)] {
+            let m = t.motion(sigma, d);
+            let w = m.rotation.scaled_axis();
+            assert!((w - n.into_inner() * w.dot(&n)).norm() < 1e-12, "{sigma}");
+            let p = Point3::new(0.1, -1.1, 0.2);
+            assert!((m * p - p).dot(&n).abs() < 1e-12, "{sigma}");
+            if let Some(c) = t.turning_centre(sigma) {
+                assert!((m * c - c).norm() < 1e-12);
+            }
+        }
+        let straight = t.motion(0.0, 0.1).translation.vector;
+        assert!((straight - t.travel_direction() * 0.1).norm() < 1e-15);
+    }
+
     #[test]
     fn straight_drive_and_commands() {
-        let mut r = SimulatedRobot::new(Scenario::default()).unwrap();
+        let mut r = SimulatedRobot::new(Scenario { pan_tilt_deg: 0.0, ..Scenario::default() }).unwrap();
         assert!(r.truth().steer_zero_deg.abs() <= 5.0);
         let z = r.truth().steer_zero_deg;
         r.steer_to(z).unwrap();

@@ -81,6 +81,12 @@ pub struct Scenario {
     pub rear_axle_behind_pan_m: f64,
     /// Robot: steering encoder zero offset drawn uniformly in `+-steer_zero_max_deg`.
     pub steer_zero_max_deg: f64,
+    /// Robot: angle of the pan axis from the floor's normal, degrees; the direction of the
+    /// tilt is drawn uniformly per seed ([`crate::robot`]). Default 2 (a real robot's pan
+    /// axis stands 1-3 deg off its floor's normal); 0: the pan axis is the floor normal.
+    /// Only the robot's drives see it (the head alone, and every experiment without the
+    /// robot stages, are unchanged).
+    pub pan_tilt_deg: f64,
     /// Robot: the procedure's straight drive for pan alignment, metres.
     pub drive_m: f64,
     /// Near structure: this many tall textured panels (boxes standing on the floor, about
@@ -146,6 +152,7 @@ impl Default for Scenario {
             wheelbase_m: 0.6,
             rear_axle_behind_pan_m: 0.0,
             steer_zero_max_deg: 5.0,
+            pan_tilt_deg: 2.0,
             drive_m: 0.10,
             near_panels: 0,
             near_distance_m: 1.0,
@@ -350,6 +357,10 @@ impl Scenario {
         check(
             finite_nonneg(self.steer_zero_max_deg) && self.steer_zero_max_deg < 45.0,
             format!("steer_zero_max_deg must be in [0, 45), got {}", self.steer_zero_max_deg),
+        );
+        check(
+            finite_nonneg(self.pan_tilt_deg) && self.pan_tilt_deg < 45.0,
+            format!("pan_tilt_deg must be in [0, 45), got {}", self.pan_tilt_deg),
         );
         check(finite_pos(self.drive_m), format!("drive_m must be positive, got {}", self.drive_m));
         check(self.near_panels <= 64, format!("near_panels must be at most 64, got {}", self.near_panels));

@@ -54,7 +54,11 @@
 //! the stereo triangulation after the tilt uses the rig at the readings before (the
 //! elevation joint carries both cameras, so `left_from_right` does not change). An error
 //! `δo` in the axis point shifts `v` by `(I - R) δo`, about `r δo`: keep the tilt small
-//! (default 5 deg). Units: lengths in stereo baselines, angles in degrees in reports.
+//! (default 5 deg). The robot's turn is split off about the calibrated pan axis, not the
+//! floor's normal (one motion cannot fit the normal, [`crate::robot`]'s "floor normal"):
+//! on a floor tilted `tau` against the pan axis a turn `phi` leaves about `phi tau` of
+//! rotation to the elevation turn and the chord (exact with a straight wheel, as after the
+//! steering stage). Units: lengths in stereo baselines, angles in degrees in reports.
 
 use headalign_geometry::ransac::RansacOptions;
 use headalign_platform::{Encoders, Joint, StereoHead, Vehicle};
@@ -572,10 +576,18 @@ mod tests {
 
     /// Noise-free end to end after the verge/tilt stage: pan, left elevation and both
     /// vergence errors below 1e-3 deg (the verge/tilt calibration's convergence limit, as
-    /// the pan stage's test); a 0.2 deg tilt is the named error.
+    /// the pan stage's test); a 0.2 deg tilt is the named error. The floor is level with
+    /// the pan axis (`pan_tilt_deg` 0): the stage turns the robot back about the pan axis
+    /// (module docs, pitfalls).
     #[test]
     fn noise_free_stage_aligns_pan_elevation_and_vergence() {
-        let s = Scenario { seed: 2, noise_px: 0.0, outlier_fraction: 0.0, ..Scenario::default() };
+        let s = Scenario {
+            seed: 2,
+            noise_px: 0.0,
+            outlier_fraction: 0.0,
+            pan_tilt_deg: 0.0,
+            ..Scenario::default()
+        };
         let mut robot = SimulatedRobot::new(s).unwrap();
         let opts = VergeTiltOptions {
             estimation: EstimationOptions { seed: 2, ..EstimationOptions::default() },

@@ -241,6 +241,7 @@ fn write_truth(sim: &Sim, seed: u64, path: &Path) -> Result<(), String> {
             "aligned_encoders": true_aligned,
             "steer_zero_deg": sim.robot.truth().steer_zero_deg,
             "wheelbase_m": sim.robot.truth().wheelbase_m,
+            "pan_tilt_deg": sim.robot.truth().pan_tilt_deg(),
         },
     });
     let text = serde_json::to_string_pretty(&truth).map_err(|e| e.to_string())? + "\n";

@@ -7,8 +7,10 @@
 //! the second pan drive runs with the wheel straight, where the pan estimate is exact
 //! wherever the pan axis stands). The scenario sets the noise (pixels), the initial pan
 //! error (`pan_zero_max_deg`: the pan zero is drawn in +-this, degrees), the drive
-//! (`drive_m`, metres) and the near panels (the paper's robot faced a scene about 1 m
-//! away; [`Scenario::ROBOT_NEAR_PANELS`] unless the scenario has some).
+//! (`drive_m`, metres), the near panels (the paper's robot faced a scene about 1 m
+//! away; [`Scenario::ROBOT_NEAR_PANELS`] unless the scenario has some) and the floor's
+//! tilt against the pan axis (`pan_tilt_deg`, default 2 deg; the stages fit the floor's
+//! normal, [`headalign::robot::floor`]).
 //!
 //! Recorded: the pan error after the last drive (degrees, signed: the true pan of the
 //! head from the direction of travel at the final readings), the alignment errors of

@@ -43,12 +43,24 @@
 //! - *stereo*: `c` of the maximum-likelihood motion.
 //!
 //! Each is turned into the displacement of the pan axis (`d = (R^T - I) o + c`, `o` a
-//! point of the calibrated pan axis) and rotated back by half the measured heading change
-//! (the chord of an arc makes half the turn angle with the tangent; exact for the
-//! rear-axle line, so this assumes the pan axis stands over it, and is a no-op when the
-//! wheel is straight: hence the demo's pan, steering, pan order). The pan correction is
-//! the signed angle about the pan axis from the head's forward direction (mean of the
-//! optical axes, projected) to that direction.
+//! point of the calibrated pan axis) and rotated back about the floor normal by half the
+//! measured heading change (the heading is the rotation's component along the normal; the
+//! chord of an arc makes half the turn angle with the tangent; exact for the rear-axle
+//! line, so this assumes the pan axis stands over it, and is a no-op when the wheel is
+//! straight: hence the demo's pan, steering, pan order). The pan correction is the signed
+//! angle about the pan axis from the head's forward direction (mean of the optical axes)
+//! to that direction, both projected onto the plane perpendicular to the pan axis (the
+//! simulator's `pan_err` metric).
+//!
+//! **Floor normal** ([`floor`]): the robot moves on a plane whose normal `n` need not be
+//! the pan axis (a real robot's stands 1-3 deg off). Each stage fits `n` (2 dof) to its
+//! drives: a turn's rotation lies along `n`, every drive's translation is perpendicular
+//! to it; a Gaussian prior of [`FLOOR_TILT_PRIOR_DEG`] (5 deg) per component around the
+//! calibrated pan axis keeps what the drives leave free (a straight drive determines only
+//! `n`'s tilt along its travel direction). The pan stage fits it per drive, the steering
+//! stage to all its turns (which fix it to about 0.2 deg). The pan axis' tilt from `n` is
+//! reported with its sigma (the fit's and the calibration's, propagated as below):
+//! [`PanStep::floor`], [`SteeringOutcome::floor`].
 //!
 //! **Uncertainty of the pan**: two parts. (1) The verge/tilt calibration's (both `K`s,
 //! the rig, the pan and elevation axes; [`RigCalibration`]'s bundle covariance): the
@@ -99,14 +111,22 @@
 //! unmoved joints' jitter).
 //!
 //! **Planarity** (both stages): the out-of-plane part of a drive, its rotation about the
-//! two axes perpendicular to the pan axis (radians) and the centre's displacement along
-//! it (baselines), is tested by its chi-square (3 dof) against its covariance (the
-//! motion's, by central differences through the motion's perturbation, plus the
-//! calibration's as above); above `planarity_chi2_max` (default the 99.999 % quantile,
-//! a false alarm rate of 1e-5 per drive) is [`AlignError::NotPlanar`]. The former fixed
-//! limits (1 deg off-axis rotation; screw axis 10 deg, pitch 0.2) both failed planar
-//! drives (3 of 260 experiment trials) and missed smaller real tilts. The angle of `d`
-//! out of the plane perpendicular to the pan axis is reported as an elevation check.
+//! two axes perpendicular to the fitted floor normal (radians) and the centre's
+//! displacement along it (baselines), is tested by its chi-square against its covariance
+//! (the motion's, by central differences through the motion's perturbation, plus the
+//! calibration's as above, the normal held) on `3 - h` degrees of freedom, `h` the drive's
+//! leverage in the normal's fit (about 1 for a straight drive, 0.5 for each of four
+//! turns); above the quantile at those degrees of freedom with the tail probability of
+//! `planarity_chi2_max` at 3 dof ([`planarity_limit`]; default the 99.999 % quantile, a
+//! false alarm rate of 1e-5 per drive) is [`AlignError::NotPlanar`]. So is a normal fitted
+//! beyond its prior's quantile at that rate (23 deg from the pan axis in point mode): a
+//! pitching robot's straight drive is best fitted by a floor perpendicular to its pitch
+//! axis. The former fixed limits (1 deg off-axis rotation; screw axis 10 deg, pitch 0.2)
+//! both failed planar drives (3 of 260 experiment trials) and missed smaller real tilts;
+//! the test about the pan axis itself failed every drive of a robot whose pan axis stands
+//! 1-3 deg off the floor's normal (chi-square 170-6700). The angle of `d` out of the
+//! plane perpendicular to the pan axis is reported as an elevation check (it includes the
+//! pan axis' tilt along the travel direction).
 //!
 //! **Steering**: drives at `settings_deg` relative to the current steering reading; each
 //! gives the motion `cam1_from_cam2` (the robot's motion in a robot-fixed frame): a turn
@@ -118,11 +138,13 @@
 //! [`crate::estimate::EstimationOptions::image_border`] its first drive, far points only,
 //! 42.7 / 42.8; an earlier reading of 30.0 with the uncertainty came from a second run
 //! whose pan stage had left the head elsewhere, so different drives); a robot that really
-//! pitches or rolls fails every drive. The turning centres
-//! (planar motion about the pan axis) give the steering zero, wheelbase and forward
-//! direction ([`steering_from_turns`]); the wheel is then set straight. The zero's sigma: each drive's motion covariance
-//! (independent drives) through its centre, plus the calibration's (every drive refitted
-//! under each perturbed calibration), by central differences (96 % coverage over 100
+//! pitches or rolls fails every drive. The turning centres (planar motion about the
+//! floor normal fitted to the turns kept) give the steering zero, wheelbase and forward
+//! direction ([`steering_from_turns`], in the floor's plane); the wheel is then set
+//! straight. The zero's sigma: each drive's motion covariance
+//! (independent drives) through its centre and the floor normal refitted, plus the
+//! calibration's (every drive and the normal refitted under each perturbed calibration),
+//! by central differences (96 % coverage over 100
 //! trials at 1 px). A zero whose sigma exceeds `max_sigma_zero_deg` (default 10 deg)
 //! is [`AlignError::SteeringUndetermined`], before the wheel is commanded: at 3 px with
 //! exact readings, seed 170's first drive is left out and the other three (24-57 tracks
@@ -141,11 +163,12 @@
 //! [`translation_from_flow`]: headalign_geometry::translation::translation_from_flow
 //!
 //! Code layout: `rig` (the rig at a stage's readings and its check), `drive` (the rigid
-//! motion of a drive), `propagation` (the covariance propagations and the planarity
-//! test), `pan` (the pan stage, [`pan_step`] a pipeline of named steps), `steering` (the
+//! motion of a drive), `floor` (the floor normal's fit and the planarity limit),
+//! `propagation` (the covariance propagations and the planarity test), `pan` (the pan stage, [`pan_step`] a pipeline of named steps), `steering` (the
 //! steering stage).
 
 mod drive;
+pub mod floor;
 mod pan;
 mod propagation;
 mod rig;
@@ -159,6 +182,7 @@ use headalign_platform::Encoders;
 use serde::Serialize;
 
 pub(crate) use drive::drive_motion;
+pub use floor::{FLOOR_TILT_PRIOR_DEG, FloorNormal, planarity_limit};
 pub use pan::{align_pan, pan_step};
 pub(crate) use pan::{angle_about, head_forward};
 pub use rig::{RIG_MISFIT_FLOOR_PX, RIG_MISFIT_SIGMAS, RigCheck, predicted_rig, stereo_fundamental};
@@ -208,12 +232,13 @@ pub struct PanOptions {
     /// the image by 2 px, a third of the flow of a far scene (false assumes a pure
     /// translation, as the paper, which needs a straight wheel).
     pub use_stereo_rotation: bool,
-    /// Planarity test: largest chi-square (3 degrees of freedom) of a drive's rotation
-    /// about the two axes perpendicular to the pan axis and its translation along it,
-    /// against their covariance (the motion's and the calibration's); more is
-    /// [`AlignError::NotPlanar`] (the robot pitched or rolled, or the pan axis is not
-    /// perpendicular to the ground). Default [`PLANARITY_CHI2_MAX`], the 99.999 %
-    /// quantile: a false alarm rate of 1e-5 per drive when the covariance is right.
+    /// Planarity test: largest chi-square at 3 degrees of freedom of a drive's rotation
+    /// about the two axes perpendicular to the fitted floor normal and its translation
+    /// along it, against their covariance (the motion's and the calibration's); the test
+    /// uses the quantile of the same tail probability at the degrees of freedom the
+    /// normal's fit leaves ([`planarity_limit`]); more is [`AlignError::NotPlanar`] (the
+    /// robot pitched or rolled). Default [`PLANARITY_CHI2_MAX`], the 99.999 % quantile: a
+    /// false alarm rate of 1e-5 per drive when the covariance is right.
     pub planarity_chi2_max: f64,
     /// Standard deviation of each joint's encoder reading, degrees (the noise of the
     /// readings the drive's rig is predicted at; 0: exact). It enters the calibration
@@ -322,13 +347,19 @@ pub struct PanStep {
     /// (module docs) and the pan reading's noise ([`PanOptions::encoder_sigma_deg`]: the
     /// corrected pan is that reading plus the correction), degrees.
     pub sigma_deg: f64,
-    /// Heading change measured during the drive, degrees.
+    /// Heading change measured during the drive (about the fitted floor normal), degrees.
     pub turn_deg: f64,
-    /// Rotation about axes perpendicular to the pan axis (planarity check), degrees.
+    /// Rotation about axes perpendicular to the fitted floor normal (planarity check),
+    /// degrees.
     pub off_axis_deg: f64,
-    /// Chi-square (3 degrees of freedom) of the drive's out-of-plane rotation and
-    /// translation against their covariance (planarity test).
+    /// Chi-square of the drive's rotation about axes perpendicular to the fitted floor
+    /// normal and its translation along it, against their covariance (planarity test).
     pub planarity_chi2: f64,
+    /// Its degrees of freedom: 3 less the drive's leverage in the floor normal's fit
+    /// ([`floor`] module docs; about 2 for a straight drive).
+    pub planarity_dof: f64,
+    /// The floor normal fitted to this drive and the pan axis' tilt from it.
+    pub floor: FloorNormal,
     /// Angle of the travel direction out of the plane perpendicular to the pan axis
     /// (elevation check), degrees.
     pub elevation_check_deg: f64,
@@ -346,6 +377,9 @@ pub struct PanStep {
 pub struct PanOutcome {
     /// Every drive.
     pub steps: Vec<PanStep>,
+    /// The floor normal of the last drive and the pan axis' tilt from it (each drive
+    /// fits its own: `steps[k].floor`).
+    pub floor: Option<FloorNormal>,
     /// Head readings at the end (aligned pan).
     pub final_encoders: Encoders,
 }
@@ -362,8 +396,9 @@ pub struct SteeringOptions {
     /// Smallest turn whose axis is trusted, degrees. Default 2.
     pub min_turn_deg: f64,
     /// Planarity test of each drive, as [`PanOptions::planarity_chi2_max`]: chi-square
-    /// (3 dof) of the rotation about axes perpendicular to the pan axis and the
-    /// translation along it, against the motion's and the calibration's covariance.
+    /// limit at 3 dof of the rotation about axes perpendicular to the fitted floor normal
+    /// and the translation along it, against the motion's and the calibration's
+    /// covariance (applied at the drive's degrees of freedom, [`planarity_limit`]).
     /// Default [`PLANARITY_CHI2_MAX`] (false alarm rate 1e-5 per drive).
     pub planarity_chi2_max: f64,
     /// Wheelbase in metres if known (then converted with `baseline_m`). Default none.
@@ -466,8 +501,12 @@ pub struct TurnStep {
     pub turn_deg: f64,
     /// Angle of the screw axis from the pan axis, degrees.
     pub axis_tilt_deg: f64,
-    /// Chi-square (3 dof) of the planarity test (options).
+    /// Angle of the screw axis from the fitted floor normal, degrees.
+    pub axis_from_floor_deg: f64,
+    /// Chi-square of the planarity test about the fitted floor normal (options).
     pub planarity_chi2: f64,
+    /// Its degrees of freedom: 3 less the drive's leverage in the floor normal's fit.
+    pub planarity_dof: f64,
     /// Registration inliers.
     pub inliers: usize,
     /// Turning centre, left camera frame at the stage's start, stereo baselines.
@@ -486,6 +525,9 @@ pub struct SteeringOutcome {
     pub sigma_steer_zero_deg: f64,
     /// Estimated wheelbase, metres (via the baseline).
     pub wheelbase_m: f64,
+    /// The floor normal fitted to the drives kept (their turns' axes) and the pan axis'
+    /// tilt from it.
+    pub floor: FloorNormal,
     /// Pan correction implied by the forward direction found here (a check on the pan
     /// stage), degrees.
     pub pan_check_deg: f64,

@@ -4,24 +4,29 @@
 //! stage itself ([`align_pan`]) drives, corrects and repeats.
 //!
 //! Per drive ([`pan_step`], a pipeline of named steps): [`measure_drive`] (the rig checked
-//! against the drive's stereo pairs, the pan axis in its frame, the drive's rigid motion);
+//! against the drive's stereo pairs, the pan axis in its frame, the drive's rigid motion,
+//! the floor normal fitted to it, [`super::floor`]);
 //! [`image_estimate`] (left-left flow derotated by the measured rotation, guided by the
 //! reconstruction's prediction, the epipole by [`translation_from_flow`]); [`pan_geometry`]
-//! (both estimates as travel directions of the pan axis, turned back by half the heading
-//! change, and their angles about the pan axis from the head's forward direction);
+//! (both estimates as travel directions of the pan axis, turned back about the floor
+//! normal by half the heading change, and their angles about the pan axis from the head's
+//! forward direction);
 //! [`image_noise`] (the flow's and the drive motion's noise through both estimates);
 //! [`calibration_part`] (the calibration's and the readings' covariance of both estimates
-//! and of the out-of-plane part, the whole computation re-run under each perturbation);
-//! [`planarity_test`]; [`combine`] (the minimum-variance convex combination and its
+//! and of the out-of-plane part and the pan axis' tilt, the whole computation re-run under
+//! each perturbation); [`planarity_test`] (about the fitted normal, on the degrees of
+//! freedom its fit leaves); [`combine`] (the minimum-variance convex combination and its
 //! stated sigma).
 //!
 //! Units: angles in radians inside, degrees in [`PanStep`]; lengths in stereo baselines;
 //! thresholds in pixels (`guide_px`, `min_flow_px`, the epipole's RANSAC), scaled to the
 //! calibration's noise ([`PanOptions::scaled_to_noise`]). Degrees of freedom: the drive
-//! 6, the epipole 2; the pan correction is 1.
+//! 6, the epipole 2, the floor normal 2 (one fixed by the drive, one by its prior); the
+//! pan correction is 1.
 //!
 //! Pitfalls: the half-turn correction is exact for the rear-axle line, so it assumes the
-//! pan axis stands over it (a no-op with a straight wheel); the flow and the motion share
+//! pan axis stands over it (a no-op with a straight wheel; a pan axis tilted from the
+//! floor normal puts the point `o` at camera height off that line too); the flow and the motion share
 //! the left images, whose correlation is not modelled: the stated sigma takes the bound
 //! valid for any correlation of the two ([`combine`]).
 
@@ -35,12 +40,13 @@ use nalgebra::{
 };
 
 use super::drive::{DriveMotion, drive_motion};
+use super::floor::{FloorFit, fit_floor_normal, floor_weights, planarity_limit};
 use super::propagation::{
     Readings, calibration_covariance, motion_covariance, out_of_plane, out_of_plane_covariance,
     perpendicular_basis, planarity_chi2, refit_options,
 };
 use super::rig::{Rig, RigCheck, by_track, check_rig, rig_at};
-use super::{PanOptions, PanOutcome, PanStep};
+use super::{FloorNormal, PanOptions, PanOutcome, PanStep};
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
 use crate::estimate::RigCalibration;
@@ -83,7 +89,8 @@ pub fn align_pan<R: StereoHead + Vehicle>(
         robot.move_to(&commanded)?;
         steps.push(step);
     }
-    Ok(PanOutcome { steps, final_encoders: robot.read_encoders()? })
+    let floor = steps.last().map(|s: &PanStep| s.floor);
+    Ok(PanOutcome { steps, floor, final_encoders: robot.read_encoders()? })
 }
 
 /// The pan axis (direction, a point) in the left camera frame of `rig`.
@@ -95,10 +102,13 @@ fn pan_axis_in(calib: &RigCalibration, rig: &Rig) -> Result<(Vector3<f64>, Vecto
 
 /// The two pan estimates of a drive (module docs) from its measured motion and image
 /// direction: `(a_img, a_st, f_img, f_st)`, angles in radians from the head's forward
-/// direction about `up`, and the two travel directions of the pan axis.
+/// direction about the pan axis `up`, and the two travel directions of the pan axis' point
+/// `o` (the chord turned back by half the heading change about the floor normal `n`).
+#[allow(clippy::too_many_arguments)]
 fn pan_geometry(
     rig: &Rig,
     up: &Vector3<f64>,
+    n: &Vector3<f64>,
     o: &Vector3<f64>,
     motion: &Isometry3<f64>,
     c: &Vector3<f64>,
@@ -107,11 +117,11 @@ fn pan_geometry(
 ) -> (f64, f64, Vector3<f64>, Vector3<f64>) {
     let (r, heading) = if use_stereo_rotation {
         let w = motion.rotation.inverse().scaled_axis();
-        (motion.rotation.to_rotation_matrix().into_inner(), w.dot(up))
+        (motion.rotation.to_rotation_matrix().into_inner(), w.dot(n))
     } else {
         (Matrix3::identity(), 0.0)
     };
-    let half_back = UnitQuaternion::from_axis_angle(&Unit::new_normalize(*up), -0.5 * heading);
+    let half_back = UnitQuaternion::from_axis_angle(&Unit::new_normalize(*n), -0.5 * heading);
     let forward_of = |c: &Vector3<f64>| half_back * ((r.transpose() - Matrix3::identity()) * o + c);
     let f_img = forward_of(&(direction * c.norm()));
     let f_st = forward_of(c);
@@ -131,19 +141,18 @@ pub fn pan_step(
 ) -> Result<PanStep, AlignError> {
     let options = &options.scaled_to_noise(calib.report.sigma_px);
     let drive = measure_drive(calib, verge, before, after, options)?;
-    let (up, motion) = (drive.up, &drive.motion);
+    let (up, n, motion) = (drive.up, drive.floor.n, &drive.motion);
     let c = motion.ml.centre_displacement;
     let w = motion.cam2_from_cam1.rotation.inverse().scaled_axis();
-    let heading_stereo = w.dot(&up);
-    let off_axis = (w - up * heading_stereo).norm().to_degrees();
+    let heading_stereo = w.dot(&n);
+    let off_axis = (w - n * heading_stereo).norm().to_degrees();
     let flow = image_estimate(&drive, before, after, options)?;
     let dir = flow.estimate.direction.into_inner();
     let (a_img, a_st, f_img, f_st) =
-        pan_geometry(&drive.rig, &up, &drive.o, &motion.cam2_from_cam1, &c, &dir, drive.use_rot);
+        pan_geometry(&drive.rig, &up, &n, &drive.o, &motion.cam2_from_cam1, &c, &dir, drive.use_rot);
     let noise = image_noise(&drive, &flow, &f_img, &f_st, options);
-    let basis = perpendicular_basis(&up);
-    let cal = calibration_part(calib, verge, axes, &drive, &flow, &basis, options);
-    let chi2 = planarity_test(&drive, &basis, &cal, off_axis, options)?;
+    let cal = calibration_part(calib, verge, axes, &drive, &flow, options);
+    let (chi2, dof) = planarity_test(&drive, &cal, off_axis, options)?;
     let comb = combine(a_img, a_st, &cal, &noise);
     let fc = f_st.normalize();
     Ok(PanStep {
@@ -162,6 +171,15 @@ pub fn pan_step(
         turn_deg: heading_stereo.to_degrees(),
         off_axis_deg: off_axis,
         planarity_chi2: chi2,
+        planarity_dof: dof,
+        floor: FloorNormal {
+            sigma_pan_tilt_deg: drive
+                .floor
+                .report
+                .sigma_pan_tilt_deg
+                .hypot(cal[(5, 5)].max(0.0).sqrt().to_degrees()),
+            ..drive.floor.report
+        },
         elevation_check_deg: fc.dot(&up).clamp(-1.0, 1.0).asin().to_degrees(),
         median_flow_px: flow.estimate.median_flow_px,
         inliers: [flow.estimate.inliers.len(), motion.inliers],
@@ -185,6 +203,10 @@ struct PanDrive {
     o: Vector3<f64>,
     /// The drive's rigid motion.
     motion: DriveMotion,
+    /// The floor normal fitted to the drive ([`fit_floor_normal`]), same frame.
+    floor: FloorFit,
+    /// The weights of that fit ([`floor_weights`]).
+    floor_weights: Vec<Matrix3<f64>>,
     /// [`PanOptions::use_stereo_rotation`].
     use_rot: bool,
 }
@@ -203,7 +225,22 @@ fn measure_drive(
         check_rig(rig_at(calib, verge, &enc)?, &[before, after], calib.report.sigma_px, &enc)?;
     let (up, o) = pan_axis_in(calib, &rig)?;
     let motion = drive_motion(&rig, before, after, &options.registration)?;
-    Ok(PanDrive { enc, rig, correction, rig_check, up, o, motion, use_rot: options.use_stereo_rotation })
+    let (floor, floor_weights) = drive_floor(&up, &motion)?;
+    floor.plausible(options.planarity_chi2_max, "pan drive")?;
+    let use_rot = options.use_stereo_rotation;
+    Ok(PanDrive { enc, rig, correction, rig_check, up, o, motion, floor, floor_weights, use_rot })
+}
+
+/// The floor normal of one drive (module docs, "floor normal"; [`fit_floor_normal`]),
+/// weighted by the drive motion's own out-of-plane covariance about the pan axis `up`,
+/// and those weights.
+fn drive_floor(up: &Vector3<f64>, motion: &DriveMotion) -> Result<(FloorFit, Vec<Matrix3<f64>>), AlignError> {
+    let basis = perpendicular_basis(up);
+    let unfit =
+        || AlignError::NotPlanar("pan drive: the floor normal could not be fitted to the drive".into());
+    let weights = floor_weights(&[out_of_plane_covariance(&motion.ml, up, &basis)]).ok_or_else(unfit)?;
+    let fit = fit_floor_normal(up, &[motion.cam2_from_cam1], &weights).ok_or_else(unfit)?;
+    Ok((fit, weights))
 }
 
 /// The image estimate of a drive ([`image_estimate`]).
@@ -275,7 +312,7 @@ fn image_noise(
     f_st: &Vector3<f64>,
     options: &PanOptions,
 ) -> ImageNoise {
-    let (up, o, rig, use_rot) = (drive.up, drive.o, &drive.rig, drive.use_rot);
+    let (up, n, o, rig, use_rot) = (drive.up, drive.floor.n, drive.o, &drive.rig, drive.use_rot);
     let (motion, k, image, raw) = (&drive.motion, drive.rig.k_left, &flow.estimate, &flow.raw);
     let c = motion.ml.centre_displacement;
     let grad = |f: &Vector3<f64>| {
@@ -297,7 +334,7 @@ fn image_noise(
         let dir_p =
             refit_translation(&k, &flow_p, &image.direction, options.translation.max_iterations).ok()?;
         let c_p = -(m.rotation.inverse() * m.translation.vector);
-        let (ai, as_, _, _) = pan_geometry(rig, &up, &o, m, &c_p, &dir_p, use_rot);
+        let (ai, as_, _, _) = pan_geometry(rig, &up, &n, &o, m, &c_p, &dir_p, use_rot);
         Some(Vector2::new(ai, as_))
     };
     let c_motion = motion_covariance(&motion.ml, angles_at).unwrap_or_else(|| {
@@ -307,20 +344,23 @@ fn image_noise(
     ImageNoise { var_img, c_motion }
 }
 
-/// Calibration covariance (5x5) of both estimates (image, stereo; radians) and of the
-/// out-of-plane part (in `basis`; radians, radians, baselines): the whole computation
-/// after the data selections, re-run under each perturbed calibration, vergence axes and
-/// readings ([`calibration_covariance`]); NaN where it cannot be propagated.
+/// Calibration covariance (6x6) of both estimates (image, stereo; radians), of the
+/// out-of-plane part about the drive's floor normal (radians, radians, baselines) and of
+/// the pan axis' tilt from the normal (radians; the normal refitted): the
+/// whole computation after the data selections, re-run under each perturbed calibration,
+/// vergence axes and readings ([`calibration_covariance`]; the floor normal held: what
+/// its fit absorbs is counted in the test's degrees of freedom); NaN where it cannot be
+/// propagated.
 fn calibration_part(
     calib: &RigCalibration,
     verge: &VergeAxes,
     axes: Option<&AxisPerturbations>,
     drive: &PanDrive,
     flow: &FlowEstimate,
-    basis: &[Vector3<f64>; 2],
     options: &PanOptions,
-) -> SMatrix<f64, 5, 5> {
-    let (up, correction, motion, use_rot) = (drive.up, &drive.correction, &drive.motion, drive.use_rot);
+) -> SMatrix<f64, 6, 6> {
+    let (correction, motion, use_rot) = (&drive.correction, &drive.motion, drive.use_rot);
+    let (n, basis) = (drive.floor.n, drive.floor.basis);
     let (image, raw) = (&flow.estimate, &flow.raw);
     let iterations = options.translation.max_iterations;
     let readings = Readings { enc: drive.enc, sigma_deg: options.encoder_sigma_deg };
@@ -341,37 +381,40 @@ fn calibration_part(
             raw.iter().filter_map(|(x1, x2)| Some((*x1, derotate(&rig_p.k_left, &r_p, x2)?))).collect();
         let dir_p = refit_translation(&rig_p.k_left, &flow_p, &image.direction, iterations).ok()?;
         let c_p = ml_p.centre_displacement;
-        let (ai, as_, _, _) = pan_geometry(&rig_p, &up_p, &o_p, &m_p, &c_p, &dir_p, use_rot);
-        // Out-of-plane part about the perturbed axis, in the nominal basis moved with it.
-        let q = UnitQuaternion::rotation_between(&up, &up_p).unwrap_or_else(UnitQuaternion::identity);
-        let v_p = out_of_plane(&m_p, &up_p, &[q * basis[0], q * basis[1]]);
-        Some(SVector::<f64, 5>::from([ai, as_, v_p.x, v_p.y, v_p.z]))
+        let (ai, as_, _, _) = pan_geometry(&rig_p, &up_p, &n, &o_p, &m_p, &c_p, &dir_p, use_rot);
+        let v_p = out_of_plane(&m_p, &n, &basis);
+        // The pan axis' tilt from the normal refitted to the refitted drive.
+        let tilt_p = fit_floor_normal(&drive.up, &[m_p], &drive.floor_weights)?.n.angle(&up_p);
+        Some(SVector::<f64, 6>::from([ai, as_, v_p.x, v_p.y, v_p.z, tilt_p]))
     });
-    cal.unwrap_or_else(|| SMatrix::<f64, 5, 5>::from_diagonal_element(f64::NAN))
+    cal.unwrap_or_else(|| SMatrix::<f64, 6, 6>::from_diagonal_element(f64::NAN))
 }
 
-/// The planarity test of the drive (module docs): the chi-square (3 dof) of its
-/// out-of-plane part against the motion's covariance plus the calibration's (`cal`'s
-/// lower 3x3 block); above `planarity_chi2_max` is [`AlignError::NotPlanar`]
-/// (`off_axis_deg` names the rotation in the message).
+/// The planarity test of the drive (module docs): the chi-square of its out-of-plane part
+/// about the fitted floor normal against the motion's covariance plus the calibration's
+/// (`cal`'s lower 3x3 block), on `3 - h` degrees of freedom (`h` the drive's leverage in
+/// the normal's fit); above [`planarity_limit`] at those is [`AlignError::NotPlanar`]
+/// (`off_axis_deg` names the rotation in the message). Returns the chi-square and its
+/// degrees of freedom.
 fn planarity_test(
     drive: &PanDrive,
-    basis: &[Vector3<f64>; 2],
-    cal: &SMatrix<f64, 5, 5>,
+    cal: &SMatrix<f64, 6, 6>,
     off_axis_deg: f64,
     options: &PanOptions,
-) -> Result<f64, AlignError> {
-    let up = drive.up;
-    let v = out_of_plane(&drive.motion.cam2_from_cam1, &up, basis);
-    let v_cov = out_of_plane_covariance(&drive.motion.ml, &up, basis) + cal.fixed_view::<3, 3>(2, 2);
+) -> Result<(f64, f64), AlignError> {
+    let (n, basis) = (drive.floor.n, drive.floor.basis);
+    let v = out_of_plane(&drive.motion.cam2_from_cam1, &n, &basis);
+    let v_cov = out_of_plane_covariance(&drive.motion.ml, &n, &basis) + cal.fixed_view::<3, 3>(2, 2);
     let chi2 = planarity_chi2(&v, &v_cov);
-    if chi2 > options.planarity_chi2_max {
+    let dof = (3.0 - drive.floor.leverage.first().copied().unwrap_or(0.0)).clamp(0.5, 3.0);
+    let limit = planarity_limit(options.planarity_chi2_max, dof);
+    if chi2 > limit {
         return Err(AlignError::NotPlanar(format!(
-            "pan drive: the robot rotated {off_axis_deg:.3} deg about an axis perpendicular to the pan axis and moved {:.4} baselines along it; chi-square {chi2:.1} (3 dof) above {}",
-            v.z, options.planarity_chi2_max
+            "pan drive: the robot rotated {off_axis_deg:.3} deg about an axis perpendicular to the floor normal and moved {:.4} baselines along it; chi-square {chi2:.1} ({dof:.2} dof) above {limit:.3} (the pan axis stands {:.2} deg from the fitted floor normal)",
+            v.z, drive.floor.report.pan_tilt_deg
         )));
     }
-    Ok(chi2)
+    Ok((chi2, dof))
 }
 
 /// The combined pan correction ([`combine`]), radians and radians squared.
@@ -397,7 +440,7 @@ struct Combination {
 /// combination). Its stated variance is the calibration part plus a bound on the data
 /// part valid for any correlation of the motion's and the flow's errors (both use the
 /// left images): `(sqrt(w^T C_m w) + w_i s_flow)^2`.
-fn combine(a_img: f64, a_st: f64, cal: &SMatrix<f64, 5, 5>, noise: &ImageNoise) -> Combination {
+fn combine(a_img: f64, a_st: f64, cal: &SMatrix<f64, 6, 6>, noise: &ImageNoise) -> Combination {
     let (var_img, c_motion) = (noise.var_img, noise.c_motion);
     let c_cal = cal.fixed_view::<2, 2>(0, 0).into_owned();
     let c_all = c_cal + c_motion + Matrix2::new(var_img, 0.0, 0.0, 0.0);

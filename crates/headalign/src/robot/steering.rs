@@ -1,19 +1,23 @@
 //! The steering stage ([`super`] module docs, "steering"; paper section 7,
-//! `docs/how-it-works.md#5-steering`): drives at known steering differences, each a planar turn about the
-//! pan axis whose turning centre (stereo baselines, left camera frame at the stage's
+//! `docs/how-it-works.md#5-steering`): drives at known steering differences, each a planar
+//! turn about the floor normal (fitted to the turns, [`super::floor`]) whose turning centre
+//! (stereo baselines, left camera frame at the stage's
 //! start) lies on the rear-axle line; the centres give the steering zero (degrees), the
 //! wheelbase and the forward direction ([`steering_from_turns`]); the wheel is then set
 //! straight.
 //!
 //! Degrees of freedom: per drive 6 (its rigid motion), of which the planar turn keeps 3;
-//! the solution 3 (zero, wheelbase, forward direction), or 2 with a known wheelbase. The
+//! the floor normal 2 (shared by the drives); the solution 3 (zero, wheelbase, forward
+//! direction), or 2 with a known wheelbase. The
 //! zero's sigma: each drive's motion covariance through its centre plus the calibration's
 //! (every drive refitted under each perturbed calibration), by central differences.
 //! Thresholds: `min_turn_deg` (degrees), `planarity_chi2_max` (chi-square, 3 dof),
 //! `max_sigma_zero_deg` (degrees).
 //!
 //! Pitfalls: the free 3D screw axis is too noisy in direction (depth noise of the stereo
-//! points) to place a centre well, so each turn is taken as planar about the pan axis; one
+//! points) to place a centre well, so each turn is taken as planar about the floor normal
+//! all the turns share (the pan axis, 1-3 deg off it on a real robot, would move the
+//! centres: 1.4-1.7 deg screw axes failed the planarity test on the independent head); one
 //! drive failing the planarity test while the others pass is left out as an outlier when
 //! three remain and they all pass; a zero with a sigma above `max_sigma_zero_deg` is an
 //! error before the wheel is commanded.
@@ -27,6 +31,7 @@ use nalgebra::{
 };
 
 use super::drive::{DriveMotion, drive_motion};
+use super::floor::{FloorFit, fit_floor_normal, floor_weights, planarity_limit};
 use super::pan::{angle_about, head_forward};
 use super::propagation::{
     Readings, calibration_covariance_dyn, out_of_plane, out_of_plane_covariance, perpendicular_basis,
@@ -40,7 +45,7 @@ use crate::estimate::RigCalibration;
 use crate::procedure::AxisPerturbations;
 
 /// The turning centre of a drive `m = cam1_from_cam2` seen as a planar motion about
-/// `up`: rotation about `up` by the measured angle's component along it; centre from the
+/// `up` (the floor normal): rotation about `up` by the measured angle's component along it; centre from the
 /// horizontal translation (`(I - R + u u^T) p = t_perp`). The free 3D screw axis is too
 /// noisy in direction (depth noise of the stereo points) to place the centre well.
 fn turn_centre(m: &Isometry3<f64>, up: &Unit<Vector3<f64>>) -> Option<Point3<f64>> {
@@ -79,45 +84,84 @@ struct SteeringContext<'a> {
     verge: &'a VergeAxes,
     axes: Option<&'a AxisPerturbations>,
     readings: Readings,
+    /// The calibrated pan axis in the stage's left camera frame (the floor normal's prior).
     up: &'a Unit<Vector3<f64>>,
     wheelbase: Option<f64>,
     /// The correction of the predicted rig ([`check_rig`]), applied to every perturbed one.
     correction: Option<Isometry3<f64>>,
 }
 
-/// The steering solution of a set of drives, the zero's variance (degrees squared) and
-/// each drive's planarity chi-square.
+/// The steering solution of a set of drives, the zero's variance (degrees squared), the
+/// floor normal fitted to them, each drive's turning centre and planarity chi-square with
+/// its degrees of freedom.
 struct SteeringFit {
     solution: SteeringSolution,
     var_zero: f64,
+    floor: FloorFit,
+    centres: Vec<Point3<f64>>,
     chi2: Vec<f64>,
+    dof: Vec<f64>,
 }
 
-/// Solve the steering from `motions` (drives at `settings`, centres `turns`) and
-/// propagate (module docs).
+/// The floor normal of a set of drives `motions` (`cam2_from_cam1`) with the fixed
+/// weights `weights`, and the steering zero (degrees) from their turning centres about it.
+fn zero_with_floor(
+    up: &Unit<Vector3<f64>>,
+    weights: &[Matrix3<f64>],
+    motions: &[Isometry3<f64>],
+    settings: &[f64],
+    hint: &Vector3<f64>,
+    wheelbase: Option<f64>,
+) -> Option<f64> {
+    let fit = fit_floor_normal(up, motions, weights)?;
+    steer_zero_of(&fit.unit(), motions, settings, hint, wheelbase)
+}
+
+/// Solve the steering from `motions` (drives at `settings`): the floor normal fitted to
+/// their turns, the turning centres about it, the solution, and the propagation (module
+/// docs).
 fn steering_fit(
     ctx: &SteeringContext,
     motions: &[DriveMotion],
     settings: &[f64],
-    turns: &[Turn],
 ) -> Result<SteeringFit, AlignError> {
     let (calib, verge, up, wheelbase) = (ctx.calib, ctx.verge, ctx.up, ctx.wheelbase);
     let hint: Vector3<f64> = motions.iter().map(|m| m.cam2_from_cam1.inverse().translation.vector).sum();
-    let sol = steering_from_turns(up, turns, &hint, wheelbase).step("steering zero")?;
+    let nominal: Vec<Isometry3<f64>> = motions.iter().map(|m| m.cam2_from_cam1).collect();
+    let unfit =
+        || AlignError::NotPlanar("steering: the floor normal could not be fitted to the turns".into());
+    let up_basis = perpendicular_basis(up);
+    let covs: Vec<Matrix3<f64>> =
+        motions.iter().map(|d| out_of_plane_covariance(&d.ml, up, &up_basis)).collect();
+    let weights = floor_weights(&covs).ok_or_else(unfit)?;
+    let floor = fit_floor_normal(up, &nominal, &weights).ok_or_else(unfit)?;
+    let n = floor.unit();
+    let turns: Vec<Turn> = nominal
+        .iter()
+        .zip(settings)
+        .map(|(m, s)| Some(Turn { steer_encoder_deg: *s, centre: turn_centre(&m.inverse(), &n)? }))
+        .collect::<Option<_>>()
+        .ok_or_else(|| {
+            AlignError::NotPlanar("steering: a turn has no centre about the floor normal".into())
+        })?;
+    let sol = steering_from_turns(&n, &turns, &hint, wheelbase).step("steering zero")?;
     // Uncertainty: every drive's motion covariance (independent drives) and the
     // calibration's (each drive refitted under each perturbed calibration), propagated by
-    // central differences to the out-of-plane parts and the steering zero.
-    let basis = perpendicular_basis(up);
-    let nominal: Vec<Isometry3<f64>> = motions.iter().map(|m| m.cam2_from_cam1).collect();
-    let n = motions.len();
-    let cal =
-        calibration_covariance_dyn(calib, verge, ctx.axes, &ctx.readings, 3 * n + 1, |cp, verge_p, enc_p| {
+    // central differences to the out-of-plane parts (about the fitted normal, held), the
+    // steering zero and the pan axis' tilt (the normal refitted to the refitted drives).
+    let basis = floor.basis;
+    let k_n = motions.len();
+    let cal = calibration_covariance_dyn(
+        calib,
+        verge,
+        ctx.axes,
+        &ctx.readings,
+        3 * k_n + 2,
+        |cp, verge_p, enc_p| {
             let rig_p = rig_at(cp, verge_p, enc_p).ok()?.corrected(ctx.correction.as_ref());
             let up_p = cp.pan_axis()?.transformed(&rig_p.ref_from_left.inverse()).direction;
-            let q = UnitQuaternion::rotation_between(up, &up_p).unwrap_or_else(UnitQuaternion::identity);
-            let basis_p = [q * basis[0], q * basis[1]];
-            let mut out = DVector::zeros(3 * n + 1);
-            let mut refits = Vec::with_capacity(n);
+            let mut out = DVector::zeros(3 * k_n + 2);
+            let mut refits = Vec::with_capacity(k_n);
             for (k, d) in motions.iter().enumerate() {
                 let ml = refine_rig_motion(
                     &rig_p.stereo,
@@ -127,20 +171,28 @@ fn steering_fit(
                     &refit_options(),
                 )
                 .ok()?;
-                out.fixed_rows_mut::<3>(3 * k).copy_from(&out_of_plane(&ml.cam2_from_cam1, &up_p, &basis_p));
+                out.fixed_rows_mut::<3>(3 * k).copy_from(&out_of_plane(&ml.cam2_from_cam1, &n, &basis));
                 refits.push(ml.cam2_from_cam1);
             }
-            out[3 * n] = steer_zero_of(&up_p, &refits, settings, &hint, wheelbase)?;
+            let floor_p = fit_floor_normal(up, &refits, &weights)?;
+            out[3 * k_n] = steer_zero_of(&floor_p.unit(), &refits, settings, &hint, wheelbase)?;
+            out[3 * k_n + 1] = floor_p.n.angle(&up_p);
             Some(out)
-        })
-        .unwrap_or_else(|| DMatrix::from_element(3 * n + 1, 3 * n + 1, f64::NAN));
-    let mut var_zero = cal[(3 * n, 3 * n)];
-    let mut chi2s = Vec::with_capacity(n);
+        },
+    )
+    .unwrap_or_else(|| DMatrix::from_element(3 * k_n + 2, 3 * k_n + 2, f64::NAN));
+    let mut floor = floor;
+    let tilt_cal_deg = cal[(3 * k_n + 1, 3 * k_n + 1)].max(0.0).sqrt().to_degrees();
+    floor.report.sigma_pan_tilt_deg = floor.report.sigma_pan_tilt_deg.hypot(tilt_cal_deg);
+    let mut var_zero = cal[(3 * k_n, 3 * k_n)];
+    let mut chi2s = Vec::with_capacity(k_n);
+    let mut dofs = Vec::with_capacity(k_n);
     for (k, d) in motions.iter().enumerate() {
-        let v = out_of_plane(&d.cam2_from_cam1, up, &basis);
-        let v_cov = out_of_plane_covariance(&d.ml, up, &basis) + cal.fixed_view::<3, 3>(3 * k, 3 * k);
+        let v = out_of_plane(&d.cam2_from_cam1, &n, &basis);
+        let v_cov = out_of_plane_covariance(&d.ml, &n, &basis) + cal.fixed_view::<3, 3>(3 * k, 3 * k);
         chi2s.push(planarity_chi2(&v, &v_cov));
-        // The drive's own noise, through its centre to the zero.
+        dofs.push((3.0 - floor.leverage[k]).clamp(0.5, 3.0));
+        // The drive's own noise, through its centre (and the normal) to the zero.
         let h = 1e-6;
         let mut j = SMatrix::<f64, 1, 6>::zeros();
         for p in 0..6 {
@@ -149,7 +201,7 @@ fn steering_fit(
                 delta[p] = sign * h;
                 let mut ms = nominal.clone();
                 ms[k] = perturb(&nominal[k], &delta);
-                steer_zero_of(up, &ms, settings, &hint, wheelbase)
+                zero_with_floor(up, &weights, &ms, settings, &hint, wheelbase)
             };
             match (at(1.0), at(-1.0)) {
                 (Some(a), Some(b)) => j[p] = (a - b) / (2.0 * h),
@@ -158,7 +210,8 @@ fn steering_fit(
         }
         var_zero += (j * d.ml.covariance * j.transpose())[(0, 0)];
     }
-    Ok(SteeringFit { solution: sol, var_zero, chi2: chi2s })
+    let centres = turns.iter().map(|t| t.centre).collect();
+    Ok(SteeringFit { solution: sol, var_zero, floor, centres, chi2: chi2s, dof: dofs })
 }
 
 /// Find the steering zero from drives at known steering differences and straighten the
@@ -181,7 +234,6 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     let up = pan_axis.transformed(&predicted.ref_from_left.inverse()).direction;
     let mut checked: Option<(Rig, Option<Isometry3<f64>>, RigCheck)> = None;
     let s0 = robot.read_steering()?;
-    let mut turns = Vec::new();
     let mut steps = Vec::new();
     let mut motions = Vec::new();
     let mut settings = Vec::new();
@@ -206,17 +258,15 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         let screw = screw_from_isometry(&m, options.min_turn_deg.to_radians())
             .ok_or(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg })?
             .oriented_along(&up);
-        let tilt = screw.axis.direction.angle(&up).to_degrees();
-        let centre = turn_centre(&m, &up)
-            .ok_or(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg })?;
-        turns.push(Turn { steer_encoder_deg: s0 + s, centre });
         steps.push(TurnStep {
             steer_encoder_deg: s0 + s,
             turn_deg: screw.angle.to_degrees(),
-            axis_tilt_deg: tilt,
+            axis_tilt_deg: screw.axis.direction.angle(&up).to_degrees(),
+            axis_from_floor_deg: f64::NAN,
             planarity_chi2: f64::NAN,
+            planarity_dof: f64::NAN,
             inliers: motion.inliers,
-            centre: [centre.x, centre.y, centre.z],
+            centre: [f64::NAN; 3],
         });
         settings.push(s0 + s);
         motions.push(motion);
@@ -227,17 +277,14 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         checked.ok_or_else(|| AlignError::InvalidOption("steering: no steering settings".into()))?;
     let readings = Readings { enc, sigma_deg: options.encoder_sigma_deg };
     let ctx = SteeringContext { calib, verge, axes, readings, up: &up, wheelbase, correction };
-    let mut fit = steering_fit(&ctx, &motions, &settings, &turns)?;
-    for (step, chi2) in steps.iter_mut().zip(&fit.chi2) {
-        step.planarity_chi2 = *chi2;
-    }
+    let mut fit = steering_fit(&ctx, &motions, &settings)?;
+    let limit = |fit: &SteeringFit, k: usize| planarity_limit(options.planarity_chi2_max, fit.dof[k]);
     // A drive that fails the planarity test while the others pass is an outlier (one
     // drive's reconstruction, e.g. a view of far points only, under the rig predicted
     // at the readings); it is left out when enough drives remain and the rest then pass.
-    // A robot that really pitches or rolls, or a pan axis off perpendicular, shows in
-    // every drive.
-    let failing: Vec<usize> =
-        (0..steps.len()).filter(|&k| fit.chi2[k] > options.planarity_chi2_max).collect();
+    // A robot that really pitches or rolls shows in every drive.
+    let failing: Vec<usize> = (0..steps.len()).filter(|&k| fit.chi2[k] > limit(&fit, k)).collect();
+    let mut kept: Vec<usize> = (0..steps.len()).collect();
     let mut dropped = Vec::new();
     if let [k] = failing[..]
         && steps.len() > MIN_STEERING_DRIVES
@@ -245,22 +292,48 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         let m2: Vec<DriveMotion> =
             motions.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, m)| m.clone()).collect();
         let s2: Vec<f64> = settings.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, x)| *x).collect();
-        let t2: Vec<Turn> = turns.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, x)| *x).collect();
-        let refit = steering_fit(&ctx, &m2, &s2, &t2)?;
-        if !refit.chi2.iter().any(|c| *c > options.planarity_chi2_max) {
+        let refit = steering_fit(&ctx, &m2, &s2)?;
+        if !(0..m2.len()).any(|i| refit.chi2[i] > limit(&refit, i)) {
             dropped.push(k);
+            kept.retain(|&i| i != k);
             fit = refit;
         }
     }
+    // Each step's floor-normal quantities from the fit that decided (a dropped drive
+    // keeps those of the fit over every drive, which it failed).
+    let all = if dropped.is_empty() { None } else { steering_fit(&ctx, &motions, &settings).ok() };
+    for (k, step) in steps.iter_mut().enumerate() {
+        let (f, i) = match kept.iter().position(|&j| j == k) {
+            Some(i) => (&fit, i),
+            None => match &all {
+                Some(a) => (a, k),
+                None => continue,
+            },
+        };
+        let m = motions[k].cam2_from_cam1.inverse();
+        let axis = m.rotation.axis().map_or(f64::NAN, |a| {
+            let a = if a.dot(&f.floor.n) < 0.0 { -a.into_inner() } else { a.into_inner() };
+            a.angle(&f.floor.n).to_degrees()
+        });
+        step.axis_from_floor_deg = axis;
+        step.planarity_chi2 = f.chi2[i];
+        step.planarity_dof = f.dof[i];
+        let c = f.centres[i];
+        step.centre = [c.x, c.y, c.z];
+    }
+    fit.floor.plausible(options.planarity_chi2_max, "steering")?;
     if dropped.is_empty()
         && let Some(&k) = failing.first()
     {
         return Err(AlignError::NotPlanar(format!(
-            "steering {:+.1} deg: screw axis {:.2} deg from the pan axis; chi-square {:.1} (3 dof) above {} ({} of {} drives failed the test)",
+            "steering {:+.1} deg: screw axis {:.2} deg from the fitted floor normal ({:.2} deg from the pan axis, which stands {:.2} deg from that normal); chi-square {:.1} ({:.2} dof) above {:.3} ({} of {} drives failed the test)",
             settings[k],
+            steps[k].axis_from_floor_deg,
             steps[k].axis_tilt_deg,
+            fit.floor.report.pan_tilt_deg,
             fit.chi2[k],
-            options.planarity_chi2_max,
+            fit.dof[k],
+            limit(&fit, k),
             failing.len(),
             steps.len()
         )));
@@ -285,6 +358,7 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         steer_zero_deg: sol.steer_zero_deg,
         sigma_steer_zero_deg: sigma_zero,
         wheelbase_m: sol.wheelbase * scale,
+        floor: fit.floor.report,
         pan_check_deg: pan_check.to_degrees(),
         across_rms_m: sol.across_rms * scale,
         rig_check,
