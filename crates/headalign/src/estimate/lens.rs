@@ -41,7 +41,7 @@ use headalign_geometry::distortion::{Distortion, LensKind};
 use serde::Serialize;
 
 use super::{EstimationOptions, HomographyMode, RigCalibration, estimate_rig_once};
-use crate::calibrate::lens_choice::select_lens;
+use crate::calibrate::lens_choice::{BASE_LENS, select_lens};
 use crate::calibrate::{LensChoice, LensModel, LensSelection};
 use crate::error::AlignError;
 use crate::observations::View;
@@ -159,16 +159,15 @@ fn estimate_choosing(
     mode: HomographyMode,
     at_view: &mut Option<usize>,
 ) -> Result<RigCalibration, AlignError> {
-    let rich = estimate_model(views, options, LensKind::RadialTangential, mode, at_view)?;
-    let selection = select_lens(
-        &rich.bundle.state,
-        &rich.observations,
-        rich.bundle.report.sigma_px,
-        &lens_free(options).bundle,
-        options.lens_terms,
-    )?;
-    let mut result = match selection.chosen.as_str() {
-        "pinhole" => estimate_rig_once(views, options, mode, &mut None, None).map(|mut c| {
+    let with = |terms| EstimationOptions { lens_terms: terms, ..options.clone() };
+    let base = with(BASE_LENS.terms);
+    let rich = estimate_model(views, &base, LensKind::RadialTangential, mode, at_view)?;
+    let selection =
+        select_lens(&rich.bundle.state, &rich.observations, &lens_free(&base).bundle, options.lens_terms)?;
+    let spec = selection.spec;
+    let mut result = match spec.kind {
+        _ if spec == BASE_LENS => Ok(rich.clone()),
+        None => estimate_rig_once(views, options, mode, &mut None, None).map(|mut c| {
             c.report.lens = Some(LensReport {
                 model: "pinhole".into(),
                 terms: Vec::new(),
@@ -179,15 +178,14 @@ fn estimate_choosing(
             });
             c
         }),
-        "equidistant" => estimate_model(views, options, LensKind::Equidistant, mode, &mut None),
-        _ => Ok(rich.clone()),
+        Some(kind) => estimate_model(views, &with(spec.terms), kind, mode, &mut None),
     }
     .unwrap_or_else(|e| {
         let mut r = rich;
         if let Some(l) = r.report.lens.as_mut() {
             l.note = Some(format!(
-                "the lens criterion chose the {} model, but its estimate failed ({e}); the radial-tangential result is reported",
-                selection.chosen
+                "the lens criterion chose {}, but its estimate failed ({e}); the radtan k1 k2 result is reported",
+                spec.label()
             ));
         }
         r
