@@ -879,7 +879,7 @@ mod tests {
         assert!(memory.json["left"]["fx"].is_number() && memory.json["right_from_left"].is_object());
         assert_eq!(without_seconds(replayed), without_seconds(memory.json.clone()));
         // And it is a calibration: within 3 % of the truth in focal length (rendered
-        // images, two 5 deg rotations, full K with skew free).
+        // images, two 5 deg rotations, zero skew, the lens chosen by auto).
         let t = head.truth();
         let err = (memory.stereo.left.fx - t.left.fx).abs() / t.left.fx;
         assert!(err < 0.03, "left fx {} vs {}", memory.stereo.left.fx, t.left.fx);
@@ -898,7 +898,8 @@ mod tests {
         let (views, head) = simulate_views(&scenario, "rotations").unwrap();
         let t = head.truth();
         let dir = Path::new("unused");
-        let pinhole = calibrate_views(&views, &CalibrateArgs { corners: Some(1500), ..args(dir) }).unwrap();
+        let pinhole = CalibrateArgs { corners: Some(1500), lens: Some(LensChoice::Pinhole), ..args(dir) };
+        let pinhole = calibrate_views(&views, &pinhole).unwrap();
         let est = calibrate_views(&views, &CalibrateArgs { estimate_distortion: true, ..args(dir) }).unwrap();
         let err = |s: &StereoCalibration| (s.left.fx - t.left.fx).abs() / t.left.fx;
         assert!(err(&pinhole.stereo) > 0.1, "pinhole fx {}", pinhole.stereo.left.fx);
@@ -937,7 +938,7 @@ mod tests {
             (n, warned)
         };
         for (n, warned) in [
-            check(Distortion::default(), None),
+            check(Distortion::default(), Some(LensChoice::Pinhole)),
             check(
                 Distortion::radial(-0.25, 0.0),
                 Some(LensChoice::Model(headalign_geometry::distortion::LensKind::RadialTangential)),
@@ -947,7 +948,7 @@ mod tests {
             let ratio = n.ratio.unwrap();
             assert!((0.5..1.5).contains(&ratio) && !warned, "{n:?}");
         }
-        let (n, warned) = check(Distortion::radial(-0.25, 0.0), None);
+        let (n, warned) = check(Distortion::radial(-0.25, 0.0), Some(LensChoice::Pinhole));
         let limit = headalign::calibrate::image_noise::RESIDUAL_OVER_NOISE_WARN;
         assert!(warned && n.ratio.unwrap() > limit * limit, "{n:?}");
     }
@@ -968,7 +969,11 @@ mod tests {
             ..Scenario::default()
         };
         let (views, head) = simulate_views(&scenario, "general").unwrap();
-        let a = CalibrateArgs { zero_skew: true, square_pixels: true, ..args(Path::new("unused")) };
+        let a = CalibrateArgs {
+            square_pixels: true,
+            lens: Some(LensChoice::Pinhole),
+            ..args(Path::new("unused"))
+        };
         let c = calibrate_views(&views, &a).unwrap();
         let t = head.truth();
         for (est, truth) in [(&c.stereo.left, &t.left), (&c.stereo.right, &t.right)] {

@@ -111,7 +111,11 @@ impl LensArgs {
     /// terms too: `calibrate::lens_terms`).
     pub fn apply(&self, estimation: EstimationOptions) -> EstimationOptions {
         let lens = self.choice();
-        EstimationOptions { lens, lens_terms: crate::calibrate::lens_terms(lens, self.lens_terms), ..estimation }
+        EstimationOptions {
+            lens,
+            lens_terms: crate::calibrate::lens_terms(lens, self.lens_terms),
+            ..estimation
+        }
     }
 }
 

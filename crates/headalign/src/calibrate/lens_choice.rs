@@ -110,18 +110,11 @@ impl LensSpec {
         };
         let radtan = Some(LensKind::RadialTangential);
         let equi = Some(LensKind::Equidistant);
-        [
-            (None, Radial2),
-            (radtan, Radial2),
-            (radtan, Full4),
-            (radtan, Full5),
-            (equi, Radial2),
-            (equi, Full4),
-        ]
-        .into_iter()
-        .filter(|(_, t)| rank(*t) <= rank(max_terms))
-        .map(|(kind, terms)| LensSpec { kind, terms })
-        .collect()
+        [(None, Radial2), (radtan, Radial2), (radtan, Full4), (radtan, Full5), (equi, Radial2), (equi, Full4)]
+            .into_iter()
+            .filter(|(_, t)| rank(*t) <= rank(max_terms))
+            .map(|(kind, terms)| LensSpec { kind, terms })
+            .collect()
     }
 
     /// The lens choice of a calibration with this model.
@@ -139,7 +132,11 @@ impl LensSpec {
     pub fn term_names(self) -> Vec<String> {
         const SLOT_NAMES: [&str; 6] = ["k1", "k2", "p1", "p2", "k3", "k4"];
         self.kind.map_or_else(Vec::new, |kind| {
-            self.terms.slots(kind).iter().filter_map(|&i| SLOT_NAMES.get(i).map(|n| (*n).to_string())).collect()
+            self.terms
+                .slots(kind)
+                .iter()
+                .filter_map(|&i| SLOT_NAMES.get(i).map(|n| (*n).to_string()))
+                .collect()
         })
     }
 
@@ -219,7 +216,8 @@ pub const BASE_LENS: LensSpec =
 
 /// A chain from a start: the chosen model's run with the refitted candidate as a start of
 /// its adjustment.
-pub(super) type ChainFrom<'a> = &'a dyn Fn(&CalibrateOptions, &RigState) -> Result<MotionCalibration, AlignError>;
+pub(super) type ChainFrom<'a> =
+    &'a dyn Fn(&CalibrateOptions, &RigState) -> Result<MotionCalibration, AlignError>;
 
 /// [`LensChoice::Auto`] (module docs) over a chain with a fixed lens model (`chain`: the
 /// reference chain of [`super::calibrate_rig`] or the sequence chain of
@@ -232,7 +230,8 @@ pub(super) fn choose_lens(
     chain: impl Fn(&CalibrateOptions) -> Result<MotionCalibration, AlignError>,
     from_refit: Option<ChainFrom<'_>>,
 ) -> Result<MotionCalibration, AlignError> {
-    let with = |spec: LensSpec| CalibrateOptions { lens: spec.choice(), lens_terms: spec.terms, ..options.clone() };
+    let with =
+        |spec: LensSpec| CalibrateOptions { lens: spec.choice(), lens_terms: spec.terms, ..options.clone() };
     let rich = chain(&with(BASE_LENS))?;
     let selection = select(&rich, options)?;
     let spec = selection.spec;
@@ -335,7 +334,8 @@ pub(crate) fn select_lens(
             }
         })
         .collect();
-    let Some(best) = (0..candidates.len()).min_by(|&a, &b| candidates[a].bic.total_cmp(&candidates[b].bic)) else {
+    let Some(best) = (0..candidates.len()).min_by(|&a, &b| candidates[a].bic.total_cmp(&candidates[b].bic))
+    else {
         let reasons: Vec<String> = failed.iter().map(|f| format!("{}: {}", f.candidate, f.reason)).collect();
         return Err(AlignError::Geometry {
             step: "lens choice".into(),
@@ -369,7 +369,9 @@ fn selection_reason(
     n: usize,
     sigma: f64,
 ) -> String {
-    let label = |c: &LensCandidate| std::iter::once(c.model.clone()).chain(c.terms.clone()).collect::<Vec<_>>().join(" ");
+    let label = |c: &LensCandidate| {
+        std::iter::once(c.model.clone()).chain(c.terms.clone()).collect::<Vec<_>>().join(" ")
+    };
     let runner_up = candidates
         .iter()
         .enumerate()
@@ -395,7 +397,12 @@ fn selection_reason(
 /// model takes from it: none for the pinhole, `state`'s own radial-tangential lens with
 /// the coefficients outside `spec`'s terms zeroed, or the equidistant lens closest to
 /// `state`'s radial profile over the observed field ([`equidistant_like`]).
-fn candidate_start(spec: LensSpec, state: &RigState, fitted: &[Refit], obs: &[BundleObservation]) -> RigState {
+fn candidate_start(
+    spec: LensSpec,
+    state: &RigState,
+    fitted: &[Refit],
+    obs: &[BundleObservation],
+) -> RigState {
     let keep = |d: Distortion, kind: LensKind| {
         let mut out = Distortion::zero(kind);
         for &i in spec.terms.slots(kind) {
@@ -426,7 +433,12 @@ fn candidate_start(spec: LensSpec, state: &RigState, fitted: &[Refit], obs: &[Bu
 
 /// Candidate `spec`'s least-squares refit from `start` on `obs` (module docs); the error
 /// in one line.
-fn refit(spec: LensSpec, start: RigState, obs: &[BundleObservation], bundle: &BundleOptions) -> Result<Refit, String> {
+fn refit(
+    spec: LensSpec,
+    start: RigState,
+    obs: &[BundleObservation],
+    bundle: &BundleOptions,
+) -> Result<Refit, String> {
     let ls = BundleOptions {
         robust: RobustLoss::None,
         noise_sigma_px: None,

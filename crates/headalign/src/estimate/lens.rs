@@ -114,20 +114,50 @@ fn estimate_model(
     let first_start = LensStart { chain: None, distortion: [zero, zero] };
     let first = estimate_rig_once(views, &free, mode, at_view, Some(&first_start))?;
     let state = &first.bundle.state;
+    let start = lens_start(&first, [state.left_distortion, state.right_distortion]);
+    let first_estimate = [state.left_distortion.coefficients(), state.right_distortion.coefficients()];
+    Ok(match second_pass(views, options, kind, mode, &start, first_estimate) {
+        Ok(second) => second,
+        Err((e, mut report)) => {
+            report.undistorted_start = false;
+            report.note = Some(format!(
+                "the start on undistorted pixels failed ({e}); the first estimate (linear steps on the captured pixels) is reported"
+            ));
+            let mut first = first;
+            first.report.lens = Some(report);
+            first
+        }
+    })
+}
+
+/// The start of step 2 after the estimate `first`: its cameras and lenses undistort the
+/// linear steps' pixels, and the starts carry `distortion` (left, right).
+fn lens_start(first: &RigCalibration, distortion: [Distortion; 2]) -> LensStart {
+    let state = &first.bundle.state;
     let lenses = [
         LensModel { k: state.left, distortion: state.left_distortion },
         LensModel { k: state.right, distortion: state.right_distortion },
     ];
-    let second_start =
-        LensStart { chain: Some(lenses), distortion: [state.left_distortion, state.right_distortion] };
-    let first_estimate = [state.left_distortion.coefficients(), state.right_distortion.coefficients()];
+    LensStart { chain: Some(lenses), distortion }
+}
+
+/// Steps 2-3 of the module docs for the model `kind` from `start`, with its report
+/// (`first_estimate`: the lens of step 1); the error and the report when they fail.
+fn second_pass(
+    views: &[View],
+    options: &EstimationOptions,
+    kind: LensKind,
+    mode: HomographyMode,
+    start: &LensStart,
+    first_estimate: [Vec<f64>; 2],
+) -> Result<RigCalibration, (AlignError, LensReport)> {
     let terms: Vec<String> = options
         .lens_terms
         .slots(kind)
         .iter()
         .filter_map(|&i| SLOT_NAMES.get(i).map(|n| (*n).to_string()))
         .collect();
-    let mut report = LensReport {
+    let report = LensReport {
         model: kind.kalibr_name().to_string(),
         terms,
         first_estimate,
@@ -137,19 +167,13 @@ fn estimate_model(
     };
     // The second pass's own view failures are not the caller's to drop: the first pass
     // already used these views.
-    let mut second_at_view = None;
-    let mut result = match estimate_rig_once(views, &free, mode, &mut second_at_view, Some(&second_start)) {
-        Ok(second) => second,
-        Err(e) => {
-            report.undistorted_start = false;
-            report.note = Some(format!(
-                "the start on undistorted pixels failed ({e}); the first estimate (linear steps on the captured pixels) is reported"
-            ));
-            first
+    match estimate_rig_once(views, &lens_free(options), mode, &mut None, Some(start)) {
+        Ok(mut second) => {
+            second.report.lens = Some(report);
+            Ok(second)
         }
-    };
-    result.report.lens = Some(report);
-    Ok(result)
+        Err(e) => Err((e, report)),
+    }
 }
 
 /// [`LensChoice::Auto`] (module docs).
@@ -178,7 +202,15 @@ fn estimate_choosing(
             });
             c
         }),
-        Some(kind) => estimate_model(views, &with(spec.terms), kind, mode, &mut None),
+        // Step 1 is the radtan k1 k2 estimate's: its lens undistorts the linear steps'
+        // pixels, the starts carry the chosen candidate's refitted lens.
+        Some(kind) => {
+            let refit = &selection.state;
+            let start = lens_start(&rich, [refit.left_distortion, refit.right_distortion]);
+            let s = &rich.bundle.state;
+            let first = [s.left_distortion.coefficients(), s.right_distortion.coefficients()];
+            second_pass(views, &with(spec.terms), kind, mode, &start, first).map_err(|(e, _)| e)
+        }
     }
     .unwrap_or_else(|e| {
         let mut r = rich;
