@@ -1,39 +1,51 @@
 //! The lens model of self-calibration ([`LensChoice`]) and its automatic choice
-//! ([`LensChoice::Auto`]): pinhole, radial-tangential or equidistant, decided by the
-//! Bayesian information criterion on one common set of observations.
+//! ([`LensChoice::Auto`]): the model and its terms, among the pinhole, radial-tangential
+//! (`k1 k2`; `k1 k2 p1 p2`; `k1 k2 p1 p2 k3`) and equidistant (`k1 k2`; `k1..k4`)
+//! lenses ([`LensSpec::candidates`]), decided by the Bayesian information criterion on
+//! one common set of observations.
 //!
-//! What it computes: the calibration with the radial-tangential model (the richest model
-//! that any of the three nests closely: it is run through the whole chain, so its robust
-//! re-selection decides which observations are inliers); then, on exactly that
-//! adjustment's observations and points, a least-squares refit of each candidate model
-//! from its state (the pinhole with no lens, the radial-tangential model, the equidistant
-//! model from its zero lens), and per candidate
+//! What it computes: the calibration with the radial-tangential `k1 k2` model
+//! ([`BASE_LENS`]: run through the whole chain, so its robust re-selection decides which
+//! observations are inliers); then, on exactly that adjustment's observations and points,
+//! a least-squares refit of each candidate, each from the best start at hand
+//! (`candidate_start`): a nested candidate from the fit it extends (its added terms
+//! zero), the pinhole from the base state without lens, the equidistant `k1 k2` from the
+//! lens whose radial profile is closest to the base lens's over the observed field; and
+//! per candidate
 //!
 //! ```text
 //! chi2 = RSS / sigma^2,   BIC = chi2 + p ln(n)
 //! ```
 //!
-//! with `RSS` the sum of squared residuals (pixels^2), `sigma` the radial-tangential
-//! adjustment's noise estimate (pixels), `p` the number of lens coefficients estimated
-//! (both cameras) and `n` the number of residual components (twice the observations).
-//! The smallest `BIC` wins (Schwarz 1978; it penalises each added coefficient by `ln n`,
-//! about 9 chi-square units for 2,000 observations, so that a lens term is kept only when
-//! the data need it). Two models with the same `p` are decided by their chi-square alone.
-//! When the winner is not the radial-tangential model, the chain runs again with it, so
-//! that the reported calibration, its inliers and its sigmas are that model's own. The
-//! chain is the reference chain of [`super::calibrate_rig`] or the sequence chain of
-//! [`super::calibrate_sequence`] (`choose_lens`); a sequence's refits hold its segment
-//! gauges as its adjustment does.
+//! with `RSS` the sum of squared residuals (pixels^2), `sigma` the smallest of the
+//! candidates' own noise estimates (the best-fitting model's, pixels: a model that misses
+//! a real lens term inflates its own estimate and would shrink every chi-square
+//! difference), `p` the number of lens coefficients estimated (both cameras) and `n` the
+//! number of residual components (twice the observations). The smallest `BIC` wins
+//! (Schwarz 1978; it penalises each added coefficient by `ln n`, about 9 chi-square units
+//! for 2,000 observations, so that a lens term is kept only when the data need it). A
+//! candidate whose refit fails (a singular system, non-finite residuals) is reported in
+//! [`LensSelection::failed`] with its reason and left out; only when every candidate
+//! fails is the choice an error. When the winner is not the base model, the chain runs
+//! again with it, its refit a further start of the adjustment (`from_refit`: one run of
+//! the chain, not the two-pass lens start), and with the full chain of that model when
+//! this run fails or ends implausibly, so that the reported calibration, its inliers and
+//! its sigmas are that model's own (the bootstrap of the lens sigmas runs for it alone).
+//! The chain is the reference chain of [`super::calibrate_rig`] or the sequence chain of
+//! [`super::calibrate_sequence`] (`choose_lens`, without `from_refit`); a sequence's
+//! refits hold its segment gauges as its adjustment does.
 //!
-//! Degrees of freedom: per camera 0 (pinhole), or the coefficients of
-//! [`CalibrateOptions::lens_terms`] (`k1, k2` by default, in either model).
-//! Units: residuals in pixels, chi-square and BIC dimensionless.
+//! Degrees of freedom: per camera 0 (pinhole), or the candidate's coefficients (at most
+//! those of [`CalibrateOptions::lens_terms`], which caps the candidates' terms under
+//! `Auto`). Units: residuals in pixels, chi-square and BIC dimensionless.
 //!
 //! Pitfalls: the criterion compares fits, not truths: on a narrow lens the two distorted
 //! models fit almost equally (their chi-squares differ by a few units), and either is
 //! then a good description of the image; the choice matters for extrapolation beyond the
-//! observed field. The criterion assumes independent Gaussian pixel errors at the
-//! estimated `sigma`; correlated tracking errors inflate every chi-square alike.
+//! observed field. The tangential terms trade off against the principal point: with few
+//! motions their chi-square gain is small and BIC keeps them only when it exceeds their
+//! penalty. The criterion assumes independent Gaussian pixel errors at the estimated
+//! `sigma`; correlated tracking errors inflate every chi-square alike.
 
 use headalign_geometry::bundle::{
     BundleObservation, BundleOptions, RigState, RobustLoss, Side, bundle_adjust, residual_pixels,

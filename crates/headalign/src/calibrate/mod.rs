@@ -55,7 +55,7 @@
 //! model's coefficients (radial-tangential or equidistant; `k1, k2` by default, see
 //! [`CalibrateOptions::lens_terms`]) of each camera to the final adjustment (step 5;
 //! [`BundleOptions::estimate_distortion`](headalign_geometry::bundle::BundleOptions)), or
-//! chooses the model ([`LensChoice::Auto`], [`lens_choice`]):
+//! chooses the model and its terms ([`LensChoice::Auto`], [`lens_choice`]):
 //! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
 //! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
 //! with sigmas `left.k1` ... in the covariance. The chain also runs on pixels undistorted
@@ -147,8 +147,8 @@ pub struct CalibrateOptions {
     pub fix_principal_point: bool,
     /// The lens model the adjustment estimates for each camera (default
     /// [`LensChoice::Pinhole`]: no distortion, or a known lens removed beforehand with
-    /// [`undistort_views`]); [`LensChoice::Auto`] chooses by the criterion of
-    /// [`lens_choice`] and reports it.
+    /// [`undistort_views`]); [`LensChoice::Auto`] chooses the model and its terms by the
+    /// criterion of [`lens_choice`] and reports it (the CLI's default for images).
     pub lens: LensChoice,
     /// Which coefficients of the model are estimated (default
     /// [`DistortionTerms::Radial2`]: `k1, k2`); with [`LensChoice::Auto`] the richest

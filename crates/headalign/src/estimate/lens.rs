@@ -23,13 +23,16 @@
 //! pixels whose remaining distortion is the first estimate's error, a pinhole problem
 //! again. When the second pass fails, the first estimate is reported with a note.
 //!
-//! [`LensChoice::Auto`]: the radial-tangential estimate above, then the criterion of
-//! [`crate::calibrate::lens_choice`] (BIC on that estimate's observations, the same code);
-//! a winner other than the radial-tangential model is estimated again with its own model
-//! (the pinhole by the plain chain).
+//! [`LensChoice::Auto`]: the radial-tangential `k1 k2` estimate above, then the criterion
+//! of [`crate::calibrate::lens_choice`] (BIC over the models and their terms on that
+//! estimate's observations, the same code; a failed candidate is reported and left out);
+//! a winner other than `radtan k1 k2` is estimated again with its own model and terms,
+//! steps 2-3 only: the `k1 k2` estimate's lens undistorts the linear steps' pixels and
+//! the starts carry the winner's refitted lens (the pinhole by the plain chain).
 //!
 //! Degrees of freedom: per camera the coefficients of [`EstimationOptions::lens_terms`]
-//! (`k1, k2` by default) on top of the pinhole estimate's. Units: coefficients
+//! (`k1, k2` by default; under `Auto` the chosen candidate's) on top of the pinhole
+//! estimate's. Units: coefficients
 //! dimensionless on normalised coordinates, residuals in pixels.
 //!
 //! Pitfalls: the rotations of the procedure are small (3-10 deg), and with small rotations
