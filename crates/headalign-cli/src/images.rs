@@ -556,9 +556,22 @@ pub fn lens_line(estimate: &Value) -> Option<String> {
             .collect();
         format!("{name} {}", parts.join(", "))
     };
-    let mut line = format!("lens {model}: {}; {}", side("left"), side("right"));
-    if let Some(reason) = lens["estimation"]["selection"]["reason"].as_str() {
+    let terms: Vec<&str> = lens["estimation"]["terms"]
+        .as_array()
+        .map_or_else(Vec::new, |t| t.iter().filter_map(Value::as_str).collect());
+    let mut line = format!(
+        "lens {}: {}; {}",
+        [model].iter().chain(&terms).copied().collect::<Vec<_>>().join(" "),
+        side("left"),
+        side("right")
+    );
+    let selection = &lens["estimation"]["selection"];
+    if let Some(reason) = selection["reason"].as_str() {
         line += &format!(" (auto: {reason})");
+    }
+    for f in selection["failed"].as_array().into_iter().flatten() {
+        let (name, why) = (f["candidate"].as_str().unwrap_or("?"), f["reason"].as_str().unwrap_or(""));
+        line += &format!("; lens candidate {name} left out: {why}");
     }
     Some(line)
 }
