@@ -498,9 +498,9 @@ fn observed_field(state: &RigState, obs: &[BundleObservation]) -> [f64; 2] {
 
 /// The equidistant lens with the coefficients of `terms` whose radial profile
 /// `theta (1 + k1 theta^2 + k2 theta^4 + ...)` is closest, in least squares over 50
-/// radii up to `field`, to the radial-tangential lens `radtan`'s `r (1 + k1 r^2 + k2 r^4
-/// + k3 r^6)` (its tangential terms ignored); the ideal equidistant lens (all zero) when
-/// the field is empty or the fit singular.
+/// radii up to `field`, to the radial-tangential lens `radtan`'s profile
+/// `r (1 + k1 r^2 + k2 r^4 + k3 r^6)` (its tangential terms ignored); the ideal
+/// equidistant lens (all zero) when the field is empty or the fit singular.
 fn equidistant_like(radtan: &Distortion, field: f64, terms: DistortionTerms) -> Distortion {
     let mut out = Distortion::zero(LensKind::Equidistant);
     let slots = terms.slots(LensKind::Equidistant);
@@ -529,10 +529,10 @@ fn equidistant_like(radtan: &Distortion, field: f64, terms: DistortionTerms) -> 
     }
     if let Ok(x) = a.svd(true, true).solve(&b, 1e-12) {
         for (j, &slot) in slots.iter().enumerate() {
-            if let (Some(o), Some(v)) = (out.slot_mut(slot), x.get(j)) {
-                if v.is_finite() {
-                    *o = *v;
-                }
+            if let (Some(o), Some(v)) = (out.slot_mut(slot), x.get(j))
+                && v.is_finite()
+            {
+                *o = *v;
             }
         }
     }

@@ -121,7 +121,8 @@ fn estimate_model(
     let first_estimate = [state.left_distortion.coefficients(), state.right_distortion.coefficients()];
     Ok(match second_pass(views, options, kind, mode, &start, first_estimate) {
         Ok(second) => second,
-        Err((e, mut report)) => {
+        Err(failed) => {
+            let (e, mut report) = *failed;
             report.undistorted_start = false;
             report.note = Some(format!(
                 "the start on undistorted pixels failed ({e}); the first estimate (linear steps on the captured pixels) is reported"
@@ -145,7 +146,8 @@ fn lens_start(first: &RigCalibration, distortion: [Distortion; 2]) -> LensStart 
 }
 
 /// Steps 2-3 of the module docs for the model `kind` from `start`, with its report
-/// (`first_estimate`: the lens of step 1); the error and the report when they fail.
+/// (`first_estimate`: the lens of step 1); the error and the report when they fail
+/// (boxed: the report is large).
 fn second_pass(
     views: &[View],
     options: &EstimationOptions,
@@ -153,7 +155,7 @@ fn second_pass(
     mode: HomographyMode,
     start: &LensStart,
     first_estimate: [Vec<f64>; 2],
-) -> Result<RigCalibration, (AlignError, LensReport)> {
+) -> Result<RigCalibration, Box<(AlignError, LensReport)>> {
     let terms: Vec<String> = options
         .lens_terms
         .slots(kind)
@@ -175,7 +177,7 @@ fn second_pass(
             second.report.lens = Some(report);
             Ok(second)
         }
-        Err(e) => Err((e, report)),
+        Err(e) => Err(Box::new((e, report))),
     }
 }
 
@@ -212,7 +214,7 @@ fn estimate_choosing(
             let start = lens_start(&rich, [refit.left_distortion, refit.right_distortion]);
             let s = &rich.bundle.state;
             let first = [s.left_distortion.coefficients(), s.right_distortion.coefficients()];
-            second_pass(views, &with(spec.terms), kind, mode, &start, first).map_err(|(e, _)| e)
+            second_pass(views, &with(spec.terms), kind, mode, &start, first).map_err(|f| f.0)
         }
     }
     .unwrap_or_else(|e| {
