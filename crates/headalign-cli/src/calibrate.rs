@@ -43,8 +43,11 @@ pub struct CalibrateArgs {
     /// Folder of stereo views: an image session, stereo pairs (leftNN.png with
     /// rightNN.png), a ROS 2 bag (MCAP) or an EuRoC folder.
     pub dir: PathBuf,
-    /// Hold both cameras' skew at zero.
+    /// Estimate both cameras' skew (default: held at zero, as real cameras have none).
     #[arg(long)]
+    pub free_skew: bool,
+    /// Hold both cameras' skew at zero: the default, accepted for older scripts.
+    #[arg(long, hide = true, conflicts_with = "free_skew")]
     pub zero_skew: bool,
     /// fx = fy in both cameras.
     #[arg(long)]
@@ -58,14 +61,15 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub distortion: Option<PathBuf>,
     /// Lens model estimated for each camera: `pinhole`, `radtan`, `equidistant` or `auto`
-    /// (chosen by BIC, reported). Default pinhole.
+    /// (model and terms chosen by BIC, reported; the default for images).
     // `headalign::calibrate::LensChoice`; the criterion is in `calibrate::lens_choice`.
+    // Point sessions, --distortion and --lens-from default to the pinhole.
     #[arg(long, value_parser = parse_lens, conflicts_with = "distortion")]
     pub lens: Option<LensChoice>,
-    /// Lens coefficients estimated: `radial` (k1 k2, default), `4` (radtan k1 k2 p1 p2;
-    /// equidistant k1..k4) or `5` (radtan with k3).
-    #[arg(long, value_parser = parse_terms, default_value = "radial")]
-    pub lens_terms: DistortionTerms,
+    /// Lens coefficients estimated: `radial` (k1 k2), `4` (radtan k1 k2 p1 p2;
+    /// equidistant k1..k4) or `5` (radtan with k3). Default: radial; with auto, chosen.
+    #[arg(long, value_parser = parse_terms)]
+    pub lens_terms: Option<DistortionTerms>,
     /// Same as `--lens radtan`.
     #[arg(long, conflicts_with_all = ["distortion", "lens"])]
     pub estimate_distortion: bool,
@@ -122,35 +126,51 @@ fn density(args: &CalibrateArgs) -> Density {
 /// The options of the library from the flags.
 pub fn options(args: &CalibrateArgs) -> CalibrateOptions {
     let mut o = CalibrateOptions {
-        zero_skew: args.zero_skew,
+        zero_skew: !args.free_skew,
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
         lens: lens_choice(args),
-        lens_terms: args.lens_terms,
+        lens_terms: lens_terms(lens_choice(args), args.lens_terms),
         ..CalibrateOptions::default()
     };
     o.estimation.seed = args.seed;
     o
 }
 
-/// The lens model of `--lens` / `--estimate-distortion`.
+/// The lens model of `--lens` / `--estimate-distortion`; without either, `auto` for
+/// images and the pinhole where the lens is known (`--distortion`, `--lens-from`,
+/// `--intrinsics`) or the input is a point session (tracked points, no images).
 pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
     match args.lens {
         Some(l) => l,
         None if args.estimate_distortion => LensChoice::Model(LensKind::RadialTangential),
-        None => LensChoice::Pinhole,
+        None if args.distortion.is_some() || args.lens_from.is_some() || args.intrinsics.is_some() => {
+            LensChoice::Pinhole
+        }
+        None if headalign::session::is_point_session(&args.dir) => LensChoice::Pinhole,
+        None => LensChoice::Auto,
     }
 }
 
-/// An error when `--lens-terms` other than the default come without a lens model to
-/// estimate (the pinhole estimates none: the flag would be ignored), or ask the
-/// equidistant model for the radial-tangential `k3` (`5`: it has four coefficients, and
-/// would silently estimate those of `4`).
-pub(crate) fn check_lens_terms(lens: LensChoice, terms: DistortionTerms) -> Result<()> {
-    if lens == LensChoice::Pinhole && terms != DistortionTerms::Radial2 {
+/// The coefficients estimated: `--lens-terms` when given; otherwise every candidate's
+/// terms for `auto` (it chooses them) and `k1 k2` for a given model.
+pub fn lens_terms(lens: LensChoice, given: Option<DistortionTerms>) -> DistortionTerms {
+    match (lens, given) {
+        (_, Some(t)) => t,
+        (LensChoice::Auto, None) => DistortionTerms::Full5,
+        (_, None) => DistortionTerms::Radial2,
+    }
+}
+
+/// An error when `--lens-terms` come without a lens model to estimate (the pinhole
+/// estimates none: the flag would be ignored), or ask the equidistant model for the
+/// radial-tangential `k3` (`5`: it has four coefficients, and would silently estimate
+/// those of `4`).
+pub(crate) fn check_lens_terms(lens: LensChoice, terms: Option<DistortionTerms>) -> Result<()> {
+    if lens == LensChoice::Pinhole && terms.is_some() {
         bail!("--lens-terms needs a lens model to estimate (--lens radtan, equidistant or auto)");
     }
-    if lens == LensChoice::Model(LensKind::Equidistant) && terms == DistortionTerms::Full5 {
+    if lens == LensChoice::Model(LensKind::Equidistant) && terms == Some(DistortionTerms::Full5) {
         bail!(
             "--lens-terms 5 adds the radial-tangential k3; the equidistant model has four coefficients (--lens-terms 4)"
         );
@@ -473,7 +493,7 @@ pub fn self_calibration_outcome(
         left: schema::CalibratedCamera::new(&st.left, sigma("left")),
         right: schema::CalibratedCamera::new(&st.right, sigma("right")),
         right_from_left: rig_json(&st.right_from_left),
-        distortion: distortion_json(&distortion, lens_choice(args) != LensChoice::Pinhole, Some(c)),
+        distortion: distortion_json(&distortion, lens_estimated(args, &cal), Some(c)),
         constraints: constraints(args),
         translation_unit: unit_name(stereo.unit),
         report: Some(serde_json::to_value(&cal.report)?),
@@ -492,7 +512,7 @@ pub fn self_calibration_outcome(
 /// The constraints of the flags, as the report names them.
 fn constraints(args: &CalibrateArgs) -> schema::Constraints {
     schema::Constraints {
-        zero_skew: args.zero_skew,
+        zero_skew: !args.free_skew,
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
     }
@@ -503,6 +523,15 @@ fn unit_name(unit: TranslationUnit) -> &'static str {
     match unit {
         TranslationUnit::Metres => "m",
         TranslationUnit::Baselines => "baselines",
+    }
+}
+
+/// Whether the calibration `cal` estimated a lens: the model of `--lens`, or the one
+/// `auto` chose (not the pinhole).
+fn lens_estimated(args: &CalibrateArgs, cal: &MotionCalibration) -> bool {
+    match (lens_choice(args), &cal.report.lens_selection) {
+        (LensChoice::Auto, Some(sel)) => sel.spec.kind.is_some(),
+        (lens, _) => lens != LensChoice::Pinhole,
     }
 }
 
@@ -589,6 +618,9 @@ fn stereo_calibration(
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
     check_lens_terms(lens_choice(args), args.lens_terms)?;
+    if args.zero_skew {
+        eprintln!("note: --zero-skew is the default (--free-skew estimates the skew)");
+    }
     if let Some(spec) = &args.lens_from {
         crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
     }
@@ -641,10 +673,13 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     show("right", &s.right, &s.sigmas[1]);
     println!("rig: {}", outcome.json["right_from_left"]);
     if let Some(cal) = &outcome.calibration {
-        print_lenses(&s.distortion, lens_choice(args) != LensChoice::Pinhole, &cal.bundle.covariance);
+        print_lenses(&s.distortion, lens_estimated(args, cal), &cal.bundle.covariance);
         let r = &cal.report;
         if let Some(sel) = &r.lens_selection {
-            println!("lens model {} (--lens auto): {}", sel.chosen, sel.reason);
+            println!("lens model {} (--lens auto): {}", sel.spec.label(), sel.reason);
+            for f in &sel.failed {
+                println!("lens candidate {} left out: {}", f.candidate, f.reason);
+            }
         }
         println!(
             "{} views ({} skipped), {} stereo inliers, final RMS {:.3} px over {} observations",
@@ -732,8 +767,8 @@ pub const PROCEDURE: &str = "calibrate-images";
 pub const STAGE: &str = "calibrate";
 
 /// The session description of a simulated calibration session: the scenario, the motion,
-/// and the `calibrate` constraints it is meant for (`general`: zero skew and square pixels,
-/// which one motion needs; `rotations`: none).
+/// and the `calibrate` constraints it is meant for (zero skew, `calibrate`'s default;
+/// `general` also square pixels, which one motion needs).
 pub fn session_info(scenario: &Scenario, motion: &str) -> Result<SessionInfo> {
     let general = motion == "general";
     let mut info = SessionInfo::new(
@@ -745,7 +780,7 @@ pub fn session_info(scenario: &Scenario, motion: &str) -> Result<SessionInfo> {
     info.head = json!({
         "simulator": serde_json::to_value(scenario)?,
         "motion": motion,
-        "calibrate": {"zero_skew": general, "square_pixels": general},
+        "calibrate": {"zero_skew": true, "square_pixels": general},
     });
     Ok(info)
 }
@@ -785,12 +820,13 @@ pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
     let flag = |name: &str| info.head["calibrate"][name].as_bool().unwrap_or(false);
     let args = CalibrateArgs {
         dir: dir.to_path_buf(),
-        zero_skew: flag("zero_skew"),
+        free_skew: info.head["calibrate"]["zero_skew"].as_bool() == Some(false),
+        zero_skew: false,
         square_pixels: flag("square_pixels"),
         fix_principal_point: flag("fix_principal_point"),
         distortion: None,
         lens: info.head["calibrate"]["lens"].as_str().and_then(LensChoice::parse),
-        lens_terms: DistortionTerms::Radial2,
+        lens_terms: None,
         estimate_distortion: flag("estimate_distortion"),
         intrinsics: None,
         out: None,
@@ -813,12 +849,13 @@ mod tests {
     fn args(dir: &Path) -> CalibrateArgs {
         CalibrateArgs {
             dir: dir.to_path_buf(),
+            free_skew: false,
             zero_skew: false,
             square_pixels: false,
             fix_principal_point: false,
             distortion: None,
             lens: None,
-            lens_terms: DistortionTerms::Radial2,
+            lens_terms: None,
             estimate_distortion: false,
             intrinsics: None,
             out: None,
@@ -876,7 +913,7 @@ mod tests {
         assert!(memory.json["left"]["fx"].is_number() && memory.json["right_from_left"].is_object());
         assert_eq!(without_seconds(replayed), without_seconds(memory.json.clone()));
         // And it is a calibration: within 3 % of the truth in focal length (rendered
-        // images, two 5 deg rotations, full K with skew free).
+        // images, two 5 deg rotations, zero skew, the lens chosen by auto).
         let t = head.truth();
         let err = (memory.stereo.left.fx - t.left.fx).abs() / t.left.fx;
         assert!(err < 0.03, "left fx {} vs {}", memory.stereo.left.fx, t.left.fx);
@@ -895,7 +932,8 @@ mod tests {
         let (views, head) = simulate_views(&scenario, "rotations").unwrap();
         let t = head.truth();
         let dir = Path::new("unused");
-        let pinhole = calibrate_views(&views, &CalibrateArgs { corners: Some(1500), ..args(dir) }).unwrap();
+        let pinhole = CalibrateArgs { corners: Some(1500), lens: Some(LensChoice::Pinhole), ..args(dir) };
+        let pinhole = calibrate_views(&views, &pinhole).unwrap();
         let est = calibrate_views(&views, &CalibrateArgs { estimate_distortion: true, ..args(dir) }).unwrap();
         let err = |s: &StereoCalibration| (s.left.fx - t.left.fx).abs() / t.left.fx;
         assert!(err(&pinhole.stereo) > 0.1, "pinhole fx {}", pinhole.stereo.left.fx);
@@ -934,7 +972,7 @@ mod tests {
             (n, warned)
         };
         for (n, warned) in [
-            check(Distortion::default(), None),
+            check(Distortion::default(), Some(LensChoice::Pinhole)),
             check(
                 Distortion::radial(-0.25, 0.0),
                 Some(LensChoice::Model(headalign_geometry::distortion::LensKind::RadialTangential)),
@@ -944,7 +982,7 @@ mod tests {
             let ratio = n.ratio.unwrap();
             assert!((0.5..1.5).contains(&ratio) && !warned, "{n:?}");
         }
-        let (n, warned) = check(Distortion::radial(-0.25, 0.0), None);
+        let (n, warned) = check(Distortion::radial(-0.25, 0.0), Some(LensChoice::Pinhole));
         let limit = headalign::calibrate::image_noise::RESIDUAL_OVER_NOISE_WARN;
         assert!(warned && n.ratio.unwrap() > limit * limit, "{n:?}");
     }
@@ -965,7 +1003,11 @@ mod tests {
             ..Scenario::default()
         };
         let (views, head) = simulate_views(&scenario, "general").unwrap();
-        let a = CalibrateArgs { zero_skew: true, square_pixels: true, ..args(Path::new("unused")) };
+        let a = CalibrateArgs {
+            square_pixels: true,
+            lens: Some(LensChoice::Pinhole),
+            ..args(Path::new("unused"))
+        };
         let c = calibrate_views(&views, &a).unwrap();
         let t = head.truth();
         for (est, truth) in [(&c.stereo.left, &t.left), (&c.stereo.right, &t.right)] {

@@ -105,7 +105,8 @@ pub struct DemoArgs {
     // `EstimationOptions::bootstrap`; each replicate costs about one more adjustment.
     #[arg(long, value_parser = crate::parse_replicates, conflicts_with = "images")]
     bootstrap: Option<BootstrapOptions>,
-    /// With --images: the lens model estimated (recorded in the session).
+    /// With --images: the lens model estimated (recorded in the session; default auto when
+    /// the scenario draws a lens, else pinhole).
     #[command(flatten)]
     lens: images::LensArgs,
 }
@@ -144,17 +145,16 @@ fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan>
 /// Run `headalign demo`: the scenario and the stage plan from the flags, then point mode
 /// ([`run_points`]) or image mode ([`run_images`]).
 pub fn run(args: &DemoArgs) -> Result<()> {
-    args.lens.validate()?;
     let (scenario, rplan) = scenario_and_plan(args)?;
     if args.images {
         args.scenario.refuse_point_mode_flags()?;
         return run_images(args, &scenario, &rplan);
     }
-    if args.lens.lens != headalign::calibrate::LensChoice::Pinhole {
-        anyhow::bail!(
-            "--lens {} needs --images (point mode: align --observations --lens)",
-            args.lens.lens.name()
-        );
+    if let Some(lens) = args.lens.lens.filter(|l| *l != headalign::calibrate::LensChoice::Pinhole) {
+        anyhow::bail!("--lens {} needs --images (point mode: align --observations --lens)", lens.name());
+    }
+    if args.lens.lens_terms.is_some() {
+        anyhow::bail!("--lens-terms needs --images (point mode: align --observations --lens)");
     }
     run_points(args, &scenario, &rplan)
 }
@@ -608,7 +608,15 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
         (None, true) => images::SessionTarget::None,
         (None, false) => images::SessionTarget::Default,
     };
-    let v = images::run(scenario, args.auto_rotation, &target, plan, &args.lens)?;
+    // The lens: the flags, else auto when the renderer draws a lens, else the pinhole.
+    let drawn = if scenario.render.distortion.is_zero() {
+        headalign::calibrate::LensChoice::Pinhole
+    } else {
+        headalign::calibrate::LensChoice::Auto
+    };
+    let lens = args.lens.over(images::LensArgs { lens: Some(drawn), lens_terms: None });
+    lens.validate()?;
+    let v = images::run(scenario, args.auto_rotation, &target, plan, &lens)?;
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
         return Ok(());

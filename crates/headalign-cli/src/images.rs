@@ -54,29 +54,40 @@ pub const PROCEDURE: &str = "verge-tilt-images";
 pub const PROCEDURE_ROBOT: &str = "robot-images";
 
 /// `--lens` and `--lens-terms` of the image procedures (`demo --images`, `run`, `align`):
-/// the lens model the estimation frees in both cameras (`EstimationOptions::lens`).
-#[derive(clap::Args, Debug, Clone, Copy)]
+/// the lens model the estimation frees in both cameras (`EstimationOptions::lens`); `None`
+/// where not given.
+#[derive(clap::Args, Debug, Clone, Copy, Default)]
 pub struct LensArgs {
     /// Lens model estimated for both cameras: `pinhole`, `radtan`, `equidistant` or `auto`
-    /// (chosen by BIC, reported).
-    #[arg(long, value_parser = crate::calibrate::parse_lens, default_value = "pinhole")]
-    pub lens: LensChoice,
+    /// (model and terms chosen by BIC, reported; the default).
+    // `demo --images` defaults to auto only when the scenario's renderer has a lens.
+    #[arg(long, value_parser = crate::calibrate::parse_lens)]
+    pub lens: Option<LensChoice>,
     /// Lens coefficients estimated: `radial` (k1 k2), `4` or `5` (as `calibrate --lens-terms`).
-    #[arg(long, value_parser = crate::calibrate::parse_terms, default_value = "radial")]
-    pub lens_terms: DistortionTerms,
-}
-
-impl Default for LensArgs {
-    fn default() -> Self {
-        Self { lens: LensChoice::Pinhole, lens_terms: DistortionTerms::Radial2 }
-    }
+    #[arg(long, value_parser = crate::calibrate::parse_terms)]
+    pub lens_terms: Option<DistortionTerms>,
 }
 
 impl LensArgs {
-    /// An error when lens terms other than the default are asked of the pinhole (nothing
-    /// would be estimated: the flag would be ignored).
+    /// The pinhole, given (observation files and point sessions).
+    pub fn pinhole() -> Self {
+        Self { lens: Some(LensChoice::Pinhole), lens_terms: None }
+    }
+
+    /// The model estimated: `--lens`, or `auto`.
+    pub fn choice(&self) -> LensChoice {
+        self.lens.unwrap_or(LensChoice::Auto)
+    }
+
+    /// These flags over `under` (each flag not given takes `under`'s).
+    pub fn over(self, under: Self) -> Self {
+        Self { lens: self.lens.or(under.lens), lens_terms: self.lens_terms.or(under.lens_terms) }
+    }
+
+    /// An error when lens terms are asked of the pinhole (nothing would be estimated: the
+    /// flag would be ignored).
     pub fn validate(&self) -> Result<()> {
-        crate::calibrate::check_lens_terms(self.lens, self.lens_terms)
+        crate::calibrate::check_lens_terms(self.choice(), self.lens_terms)
     }
 
     /// The lens a session recorded (`session.json`'s `lens`, `lens_terms`; the pinhole when
@@ -87,20 +98,26 @@ impl LensArgs {
             Some(name) => LensChoice::parse(name)
                 .with_context(|| format!("session.json: unknown lens model '{name}'"))?,
         };
-        Ok(Self { lens, lens_terms: info.lens_terms.unwrap_or(DistortionTerms::Radial2) })
+        Ok(Self { lens: Some(lens), lens_terms: info.lens_terms })
     }
 
     /// Record this lens in a session description (nothing for the pinhole).
     pub fn record(&self, info: &mut SessionInfo) {
-        if self.lens != LensChoice::Pinhole {
-            info.lens = Some(self.lens.name().to_string());
-            info.lens_terms = Some(self.lens_terms);
+        if self.choice() != LensChoice::Pinhole {
+            info.lens = Some(self.choice().name().to_string());
+            info.lens_terms = self.lens_terms;
         }
     }
 
-    /// The estimation options with this lens.
+    /// The estimation options with this lens (`auto` without `--lens-terms` chooses the
+    /// terms too: `calibrate::lens_terms`).
     pub fn apply(&self, estimation: EstimationOptions) -> EstimationOptions {
-        EstimationOptions { lens: self.lens, lens_terms: self.lens_terms, ..estimation }
+        let lens = self.choice();
+        EstimationOptions {
+            lens,
+            lens_terms: crate::calibrate::lens_terms(lens, self.lens_terms),
+            ..estimation
+        }
     }
 }
 
@@ -521,9 +538,22 @@ pub fn lens_line(estimate: &Value) -> Option<String> {
             .collect();
         format!("{name} {}", parts.join(", "))
     };
-    let mut line = format!("lens {model}: {}; {}", side("left"), side("right"));
-    if let Some(reason) = lens["estimation"]["selection"]["reason"].as_str() {
+    let terms: Vec<&str> = lens["estimation"]["terms"]
+        .as_array()
+        .map_or_else(Vec::new, |t| t.iter().filter_map(Value::as_str).collect());
+    let mut line = format!(
+        "lens {}: {}; {}",
+        [model].iter().chain(&terms).copied().collect::<Vec<_>>().join(" "),
+        side("left"),
+        side("right")
+    );
+    let selection = &lens["estimation"]["selection"];
+    if let Some(reason) = selection["reason"].as_str() {
         line += &format!(" (auto: {reason})");
+    }
+    for f in selection["failed"].as_array().into_iter().flatten() {
+        let (name, why) = (f["candidate"].as_str().unwrap_or("?"), f["reason"].as_str().unwrap_or(""));
+        line += &format!("; lens candidate {name} left out: {why}");
     }
     Some(line)
 }

@@ -203,7 +203,8 @@ struct AlignArgs {
     /// by default).
     #[arg(long, value_parser = parse_replicates)]
     bootstrap: Option<BootstrapOptions>,
-    /// The lens model estimated (a recorded session's own when not given).
+    /// The lens model estimated (default: a recorded session's own; auto for images,
+    /// pinhole for observations).
     #[arg(long, value_parser = calibrate::parse_lens)]
     lens: Option<headalign::calibrate::LensChoice>,
     /// Lens coefficients estimated: `radial` (k1 k2), `4` or `5` (as `calibrate --lens-terms`).
@@ -213,18 +214,17 @@ struct AlignArgs {
 
 impl AlignArgs {
     /// The lens of the estimate: the flags over a recorded session's (`session.json`'s
-    /// `lens`; the pinhole for observation files and sessions without one).
+    /// `lens`; the pinhole for sessions without one and for observation files; `auto` for
+    /// a recording's images).
     fn lens(&self) -> Result<images::LensArgs> {
         let recorded = match &self.images {
             Some(dir) if dir.join("session.json").is_file() => {
                 images::LensArgs::of_session(&headalign::session::read_session_info(dir)?)?
             }
-            _ => images::LensArgs::default(),
+            Some(_) => images::LensArgs::default(),
+            None => images::LensArgs::pinhole(),
         };
-        let lens = images::LensArgs {
-            lens: self.lens.unwrap_or(recorded.lens),
-            lens_terms: self.lens_terms.unwrap_or(recorded.lens_terms),
-        };
+        let lens = images::LensArgs { lens: self.lens, lens_terms: self.lens_terms }.over(recorded);
         lens.validate()?;
         Ok(lens)
     }

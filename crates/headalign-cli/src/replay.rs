@@ -56,7 +56,7 @@ pub struct ReplayArgs {
     #[command(flatten)]
     pub recording: crate::recording::RecordingArgs,
     /// Lens model estimated: `pinhole`, `radtan`, `equidistant` or `auto` (default: the
-    /// session's own, pinhole for a recording).
+    /// session's own, auto for a recording).
     #[arg(long, value_parser = crate::calibrate::parse_lens)]
     pub lens: Option<headalign::calibrate::LensChoice>,
     /// Lens coefficients estimated: `radial`, `4` or `5` (default: the session's own).
@@ -67,10 +67,7 @@ pub struct ReplayArgs {
 impl ReplayArgs {
     /// The lens of the replay: the flags over the recorded one (`recorded`).
     fn lens(&self, recorded: images::LensArgs) -> Result<images::LensArgs> {
-        let lens = images::LensArgs {
-            lens: self.lens.unwrap_or(recorded.lens),
-            lens_terms: self.lens_terms.unwrap_or(recorded.lens_terms),
-        };
+        let lens = images::LensArgs { lens: self.lens, lens_terms: self.lens_terms }.over(recorded);
         lens.validate()?;
         Ok(lens)
     }

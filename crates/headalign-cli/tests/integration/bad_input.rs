@@ -630,7 +630,7 @@ fn lens_terms_without_a_lens() {
     let root = base("lens-terms");
     let r = root.to_str().unwrap();
     let cases: [(&str, Vec<&str>); 4] = [
-        ("calibrate", vec!["calibrate", r, "--lens-terms", "4"]),
+        ("calibrate, a known lens", vec!["calibrate", r, "--lens-from", "recording", "--lens-terms", "4"]),
         ("calibrate, --lens pinhole", vec!["calibrate", r, "--lens", "pinhole", "--lens-terms", "5"]),
         ("demo", vec!["demo", "--images", "--lens-terms", "4"]),
         ("align", vec!["align", "--observations", r, "--lens-terms", "4"]),

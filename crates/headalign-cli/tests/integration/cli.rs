@@ -341,6 +341,9 @@ fn a_driver_process_runs_the_procedure_like_the_simulator() {
     let out = bin()
         .args([
             "run",
+            // The example driver's cameras have no lens: the pinhole, as the demo's default.
+            "--lens",
+            "pinhole",
             "--head-cmd",
             &format!("'{}' --seed 4 --near-panels 0", driver()),
             "--json",

@@ -266,7 +266,16 @@ pub(super) fn robot_run() -> &'static RobotRun {
         let dir = tmp("robot-run");
         let truth = tmp("robot-run-truth.json");
         let out = bin()
-            .args(["run", "--stages", "verge-tilt,pan,steering,pan", "--json", "--session"])
+            // The example driver's cameras have no lens: the pinhole, as the demo's default.
+            .args([
+                "run",
+                "--lens",
+                "pinhole",
+                "--stages",
+                "verge-tilt,pan,steering,pan",
+                "--json",
+                "--session",
+            ])
             .arg(&dir)
             .args(["--head-cmd", &format!("'{}' --seed 1 --truth '{}'", driver(), truth.display())])
             .output()

@@ -55,7 +55,7 @@
 //! model's coefficients (radial-tangential or equidistant; `k1, k2` by default, see
 //! [`CalibrateOptions::lens_terms`]) of each camera to the final adjustment (step 5;
 //! [`BundleOptions::estimate_distortion`](headalign_geometry::bundle::BundleOptions)), or
-//! chooses the model ([`LensChoice::Auto`], [`lens_choice`]):
+//! chooses the model and its terms ([`LensChoice::Auto`], [`lens_choice`]):
 //! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
 //! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
 //! with sigmas `left.k1` ... in the covariance. The chain also runs on pixels undistorted
@@ -118,7 +118,7 @@ pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_ri
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
 pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
 pub use lens::{LensModel, read_opencv_lenses, undistort_views};
-pub use lens_choice::{LensCandidate, LensChoice, LensSelection};
+pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec};
 pub use report::weak_data;
 pub use route::{
     REFERENCE_ROUTE_MAX_VIEWS, Route, SEQUENCE_RANSAC_MIN_ITERATIONS, TrackedViews, TrackingProgress,
@@ -138,7 +138,8 @@ pub struct CalibrateOptions {
     /// (defaults of [`EstimationOptions`]; the bundle's intrinsic constraints are set from
     /// the three flags below, and its angle prior is unused: the poses are free).
     pub estimation: EstimationOptions,
-    /// Hold both skews at zero (default false).
+    /// Hold both skews at zero (default true: real cameras have none, and OpenCV, Kalibr
+    /// and COLMAP fix it; false estimates it).
     pub zero_skew: bool,
     /// `fx = fy` in both cameras (default false).
     pub square_pixels: bool,
@@ -146,11 +147,13 @@ pub struct CalibrateOptions {
     pub fix_principal_point: bool,
     /// The lens model the adjustment estimates for each camera (default
     /// [`LensChoice::Pinhole`]: no distortion, or a known lens removed beforehand with
-    /// [`undistort_views`]); [`LensChoice::Auto`] chooses by the criterion of
-    /// [`lens_choice`] and reports it.
+    /// [`undistort_views`]); [`LensChoice::Auto`] chooses the model and its terms by the
+    /// criterion of [`lens_choice`] and reports it (the CLI's default for images).
     pub lens: LensChoice,
     /// Which coefficients of the model are estimated (default
-    /// [`DistortionTerms::Radial2`]: `k1, k2`).
+    /// [`DistortionTerms::Radial2`]: `k1, k2`); with [`LensChoice::Auto`] the richest
+    /// terms its candidates may have ([`lens_choice::LensSpec::candidates`]:
+    /// [`DistortionTerms::Full5`] lets it choose among all of them).
     pub lens_terms: DistortionTerms,
     /// Motions rotating less than this (degrees) do not enter the linear
     /// self-calibration (default 0.5: below it `H - I` is mostly noise); they still enter
@@ -191,7 +194,7 @@ impl Default for CalibrateOptions {
     fn default() -> Self {
         Self {
             estimation: EstimationOptions::default(),
-            zero_skew: false,
+            zero_skew: true,
             square_pixels: false,
             fix_principal_point: false,
             lens: LensChoice::Pinhole,
@@ -373,11 +376,11 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
 /// result of `options`, for the model estimated: the options' own, or the one
 /// [`LensChoice::Auto`] chose (none for the pinhole).
 fn widen_lens_sigmas(result: &mut MotionCalibration, options: &CalibrateOptions) {
-    let chosen = match (&options.lens, &result.report.lens_selection) {
-        (LensChoice::Auto, Some(s)) => LensChoice::parse(&s.chosen).unwrap_or(LensChoice::Pinhole),
-        (lens, _) => *lens,
+    let (lens, lens_terms) = match (&options.lens, &result.report.lens_selection) {
+        (LensChoice::Auto, Some(s)) => (s.spec.choice(), s.spec.terms),
+        (lens, _) => (*lens, options.lens_terms),
     };
-    let estimated = CalibrateOptions { lens: chosen, ..options.clone() };
+    let estimated = CalibrateOptions { lens, lens_terms, ..options.clone() };
     result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(result, &estimated);
 }
 

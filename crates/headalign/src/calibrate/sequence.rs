@@ -95,7 +95,7 @@ pub fn calibrate_sequence(
     let with_restarts =
         |o: &CalibrateOptions| super::with_restarts(o, |o, seeded| sequence_once(views, o, seeded));
     let mut result = if options.lens == super::LensChoice::Auto {
-        super::lens_choice::choose_lens(options, with_restarts)?
+        super::lens_choice::choose_lens(options, with_restarts, None)?
     } else {
         with_restarts(options)?
     };

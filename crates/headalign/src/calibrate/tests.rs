@@ -252,9 +252,10 @@ fn one_general_motion_noise_free_is_exact() {
     );
     assert!((st.left.cx - l.cx).abs() < 1e-3 && (st.right.cy - r.cy).abs() < 1e-3);
     assert!(cal.report.linear.is_some(), "{:?}", cal.report.linear_error);
-    // Without a constraint one motion leaves the calibration undetermined: the error
-    // names the missing constraint.
-    let e = calibrate_rig(&views, &CalibrateOptions::default()).unwrap_err().to_string();
+    // Without a constraint (the skew free too) one motion leaves the calibration
+    // undetermined: the error names the missing constraint.
+    let free = CalibrateOptions { zero_skew: false, ..CalibrateOptions::default() };
+    let e = calibrate_rig(&views, &free).unwrap_err().to_string();
     assert!(e.contains("missing motion") && e.contains("constraint"), "{e}");
 }
 
@@ -467,7 +468,9 @@ fn two_rotations_calibrate_without_constraints() {
             ("verge", Encoders { verge_left: e0.verge_left + 3.0, ..e0 }),
         ],
     );
-    let cal = calibrate_rig(&views, &CalibrateOptions::default()).unwrap();
+    // The skew free too (the default holds it at zero).
+    let free = CalibrateOptions { zero_skew: false, ..CalibrateOptions::default() };
+    let cal = calibrate_rig(&views, &free).unwrap();
     let (st, t) = (&cal.bundle.state, head.truth());
     // 1e-4 % and 1e-3 px: noise-free, the adjustment converges to rounding.
     assert!(f_err_pct(&st.left, &t.left) < 1e-4, "{:?} vs {:?}", st.left, t.left);

@@ -23,13 +23,16 @@
 //! pixels whose remaining distortion is the first estimate's error, a pinhole problem
 //! again. When the second pass fails, the first estimate is reported with a note.
 //!
-//! [`LensChoice::Auto`]: the radial-tangential estimate above, then the criterion of
-//! [`crate::calibrate::lens_choice`] (BIC on that estimate's observations, the same code);
-//! a winner other than the radial-tangential model is estimated again with its own model
-//! (the pinhole by the plain chain).
+//! [`LensChoice::Auto`]: the radial-tangential `k1 k2` estimate above, then the criterion
+//! of [`crate::calibrate::lens_choice`] (BIC over the models and their terms on that
+//! estimate's observations, the same code; a failed candidate is reported and left out);
+//! a winner other than `radtan k1 k2` is estimated again with its own model and terms,
+//! steps 2-3 only: the `k1 k2` estimate's lens undistorts the linear steps' pixels and
+//! the starts carry the winner's refitted lens (the pinhole by the plain chain).
 //!
 //! Degrees of freedom: per camera the coefficients of [`EstimationOptions::lens_terms`]
-//! (`k1, k2` by default) on top of the pinhole estimate's. Units: coefficients
+//! (`k1, k2` by default; under `Auto` the chosen candidate's) on top of the pinhole
+//! estimate's. Units: coefficients
 //! dimensionless on normalised coordinates, residuals in pixels.
 //!
 //! Pitfalls: the rotations of the procedure are small (3-10 deg), and with small rotations
@@ -41,7 +44,7 @@ use headalign_geometry::distortion::{Distortion, LensKind};
 use serde::Serialize;
 
 use super::{EstimationOptions, HomographyMode, RigCalibration, estimate_rig_once};
-use crate::calibrate::lens_choice::select_lens;
+use crate::calibrate::lens_choice::{BASE_LENS, select_lens};
 use crate::calibrate::{LensChoice, LensModel, LensSelection};
 use crate::error::AlignError;
 use crate::observations::View;
@@ -114,20 +117,52 @@ fn estimate_model(
     let first_start = LensStart { chain: None, distortion: [zero, zero] };
     let first = estimate_rig_once(views, &free, mode, at_view, Some(&first_start))?;
     let state = &first.bundle.state;
+    let start = lens_start(&first, [state.left_distortion, state.right_distortion]);
+    let first_estimate = [state.left_distortion.coefficients(), state.right_distortion.coefficients()];
+    Ok(match second_pass(views, options, kind, mode, &start, first_estimate) {
+        Ok(second) => second,
+        Err(failed) => {
+            let (e, mut report) = *failed;
+            report.undistorted_start = false;
+            report.note = Some(format!(
+                "the start on undistorted pixels failed ({e}); the first estimate (linear steps on the captured pixels) is reported"
+            ));
+            let mut first = first;
+            first.report.lens = Some(report);
+            first
+        }
+    })
+}
+
+/// The start of step 2 after the estimate `first`: its cameras and lenses undistort the
+/// linear steps' pixels, and the starts carry `distortion` (left, right).
+fn lens_start(first: &RigCalibration, distortion: [Distortion; 2]) -> LensStart {
+    let state = &first.bundle.state;
     let lenses = [
         LensModel { k: state.left, distortion: state.left_distortion },
         LensModel { k: state.right, distortion: state.right_distortion },
     ];
-    let second_start =
-        LensStart { chain: Some(lenses), distortion: [state.left_distortion, state.right_distortion] };
-    let first_estimate = [state.left_distortion.coefficients(), state.right_distortion.coefficients()];
+    LensStart { chain: Some(lenses), distortion }
+}
+
+/// Steps 2-3 of the module docs for the model `kind` from `start`, with its report
+/// (`first_estimate`: the lens of step 1); the error and the report when they fail
+/// (boxed: the report is large).
+fn second_pass(
+    views: &[View],
+    options: &EstimationOptions,
+    kind: LensKind,
+    mode: HomographyMode,
+    start: &LensStart,
+    first_estimate: [Vec<f64>; 2],
+) -> Result<RigCalibration, Box<(AlignError, LensReport)>> {
     let terms: Vec<String> = options
         .lens_terms
         .slots(kind)
         .iter()
         .filter_map(|&i| SLOT_NAMES.get(i).map(|n| (*n).to_string()))
         .collect();
-    let mut report = LensReport {
+    let report = LensReport {
         model: kind.kalibr_name().to_string(),
         terms,
         first_estimate,
@@ -137,19 +172,13 @@ fn estimate_model(
     };
     // The second pass's own view failures are not the caller's to drop: the first pass
     // already used these views.
-    let mut second_at_view = None;
-    let mut result = match estimate_rig_once(views, &free, mode, &mut second_at_view, Some(&second_start)) {
-        Ok(second) => second,
-        Err(e) => {
-            report.undistorted_start = false;
-            report.note = Some(format!(
-                "the start on undistorted pixels failed ({e}); the first estimate (linear steps on the captured pixels) is reported"
-            ));
-            first
+    match estimate_rig_once(views, &lens_free(options), mode, &mut None, Some(start)) {
+        Ok(mut second) => {
+            second.report.lens = Some(report);
+            Ok(second)
         }
-    };
-    result.report.lens = Some(report);
-    Ok(result)
+        Err(e) => Err(Box::new((e, report))),
+    }
 }
 
 /// [`LensChoice::Auto`] (module docs).
@@ -159,16 +188,15 @@ fn estimate_choosing(
     mode: HomographyMode,
     at_view: &mut Option<usize>,
 ) -> Result<RigCalibration, AlignError> {
-    let rich = estimate_model(views, options, LensKind::RadialTangential, mode, at_view)?;
-    let selection = select_lens(
-        &rich.bundle.state,
-        &rich.observations,
-        rich.bundle.report.sigma_px,
-        &lens_free(options).bundle,
-        options.lens_terms,
-    )?;
-    let mut result = match selection.chosen.as_str() {
-        "pinhole" => estimate_rig_once(views, options, mode, &mut None, None).map(|mut c| {
+    let with = |terms| EstimationOptions { lens_terms: terms, ..options.clone() };
+    let base = with(BASE_LENS.terms);
+    let rich = estimate_model(views, &base, LensKind::RadialTangential, mode, at_view)?;
+    let selection =
+        select_lens(&rich.bundle.state, &rich.observations, &lens_free(&base).bundle, options.lens_terms)?;
+    let spec = selection.spec;
+    let mut result = match spec.kind {
+        _ if spec == BASE_LENS => Ok(rich.clone()),
+        None => estimate_rig_once(views, options, mode, &mut None, None).map(|mut c| {
             c.report.lens = Some(LensReport {
                 model: "pinhole".into(),
                 terms: Vec::new(),
@@ -179,15 +207,22 @@ fn estimate_choosing(
             });
             c
         }),
-        "equidistant" => estimate_model(views, options, LensKind::Equidistant, mode, &mut None),
-        _ => Ok(rich.clone()),
+        // Step 1 is the radtan k1 k2 estimate's: its lens undistorts the linear steps'
+        // pixels, the starts carry the chosen candidate's refitted lens.
+        Some(kind) => {
+            let refit = &selection.state;
+            let start = lens_start(&rich, [refit.left_distortion, refit.right_distortion]);
+            let s = &rich.bundle.state;
+            let first = [s.left_distortion.coefficients(), s.right_distortion.coefficients()];
+            second_pass(views, &with(spec.terms), kind, mode, &start, first).map_err(|f| f.0)
+        }
     }
     .unwrap_or_else(|e| {
         let mut r = rich;
         if let Some(l) = r.report.lens.as_mut() {
             l.note = Some(format!(
-                "the lens criterion chose the {} model, but its estimate failed ({e}); the radial-tangential result is reported",
-                selection.chosen
+                "the lens criterion chose {}, but its estimate failed ({e}); the radtan k1 k2 result is reported",
+                spec.label()
             ));
         }
         r

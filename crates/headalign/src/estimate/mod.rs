@@ -297,12 +297,14 @@ pub struct EstimationOptions {
     /// [`LensChoice::Pinhole`]: none, the pipeline exactly as without lenses). A model
     /// frees its coefficients `lens_terms` of each camera in the adjustments, from a start
     /// whose linear chain ran on pixels undistorted by a first estimate (`lens.rs`, module
-    /// docs "Lens models"); [`LensChoice::Auto`] chooses among the three by the criterion
-    /// of [`crate::calibrate::lens_choice`] and reports it. [`crate::calibrate`] takes its
-    /// own [`crate::calibrate::CalibrateOptions::lens`] and ignores this one.
+    /// docs "Lens models"); [`LensChoice::Auto`] chooses the model and its terms by the
+    /// criterion of [`crate::calibrate::lens_choice`] and reports it (the CLI's image
+    /// commands default to it). [`crate::calibrate`] takes its own
+    /// [`crate::calibrate::CalibrateOptions::lens`] and ignores this one.
     pub lens: LensChoice,
     /// Which coefficients of the model are estimated (default [`DistortionTerms::Radial2`]:
-    /// `k1, k2`).
+    /// `k1, k2`); with [`LensChoice::Auto`] the richest terms its candidates may have
+    /// ([`DistortionTerms::Full5`]: all of them).
     pub lens_terms: DistortionTerms,
 }
 
