@@ -135,6 +135,21 @@ pub enum AlignError {
         /// Indices of drives left out (`SteeringOutcome::dropped_turns`).
         dropped_turns: Vec<usize>,
     },
+    /// A move to the aligned readings far outside the range the procedure plans
+    /// ([`crate::procedure::check_move`]), refused before it is sent.
+    #[error(
+        "refused to move the {joint} to {target_deg:.1} deg: a turn of {turn_deg:+.1} deg from the reference view, beyond the {max_deg} deg the procedure plans; the estimate does not hold (lens model? try --lens auto), or start the head nearer its aligned pose"
+    )]
+    ImplausibleMove {
+        /// The joint.
+        joint: String,
+        /// The aligned reading, degrees.
+        target_deg: f64,
+        /// Its turn from the reference view's reading, degrees.
+        turn_deg: f64,
+        /// The largest turn accepted, degrees.
+        max_deg: f64,
+    },
     /// Invalid options.
     #[error("invalid option: {0}")]
     InvalidOption(String),

@@ -65,6 +65,7 @@ mod rotation;
 mod sigmas;
 #[cfg(test)]
 mod tests;
+mod verdict;
 
 use std::time::Instant;
 
@@ -81,6 +82,9 @@ pub use offline::{
 };
 pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
 pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured};
+pub use verdict::{
+    CHECK_SIGMAS, CheckComponent, CheckVerdict, MAX_ALIGNING_MOVE_DEG, check_move, check_sigmas, check_verdict,
+};
 
 use crate::alignment::{
     AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors,
@@ -234,6 +238,9 @@ pub struct CheckStep {
     pub encoders: Encoders,
     /// Errors measured by resection after the move.
     pub measured: MeasuredErrors,
+    /// The check's own 1-sigma of each measured error, degrees ([`check_sigmas`]; `None`
+    /// when the resections' covariance could not be formed).
+    pub sigma: Option<MeasuredErrors>,
 }
 
 /// 1-sigma uncertainties of the aligned readings, degrees, propagated from the bundle
@@ -278,6 +285,8 @@ pub struct VergeTiltOutcome {
     pub sigmas: AlignmentSigmas,
     /// Each move and its check.
     pub checks: Vec<CheckStep>,
+    /// The last check against the reported sigmas ([`check_verdict`]).
+    pub verdict: CheckVerdict,
     /// Final encoder readings (aligned).
     pub final_encoders: Encoders,
     /// Elevation/pan rotation used for calibration, degrees (chosen if auto).
@@ -333,6 +342,9 @@ pub struct PlanarOutcome {
     pub checks: Vec<crate::planar::PlanarCheck>,
     /// Why the check could not be made, if it could not (the alignment stands).
     pub check_failure: Option<String>,
+    /// The check against the reported sigmas ([`check_verdict`]; `unchecked` when the
+    /// check could not be made).
+    pub verdict: CheckVerdict,
     /// Final encoder readings (aligned).
     pub final_encoders: Encoders,
     /// Elevation/pan rotation used, degrees.
@@ -391,15 +403,20 @@ impl VergeTiltRun {
         let t0 = Instant::now();
         let (calibration, solution, sigmas) = planar_alignment(&self.views, scene, &options.estimation)?;
         let mut estimation_seconds = t0.elapsed().as_secs_f64();
+        check_move(&calibration.reference_encoders, &solution.aligned_encoders)?;
         head.move_to(&solution.aligned_encoders)?;
         let idx = self.capture(head, "check-1")?;
         let t1 = Instant::now();
         let check =
             crate::planar::check_alignment(&calibration, &self.views[0].capture, &self.views[idx].capture);
         estimation_seconds += t1.elapsed().as_secs_f64();
-        let (checks, check_failure) = match check {
-            Ok(c) => (vec![c], None),
-            Err(e) => (Vec::new(), Some(e.to_string())),
+        let move_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
+        let (checks, check_failure, verdict) = match check {
+            Ok(c) => {
+                let v = check_verdict("check-1", &c.measured, &sigmas, Some(&c.sigma), move_sigma_deg);
+                (vec![c], None, v)
+            }
+            Err(e) => (Vec::new(), Some(e.to_string()), CheckVerdict::unchecked("check-1")),
         };
         let final_encoders = head.read_encoders()?;
         Ok(RouteOutcome::Planar(Box::new(PlanarOutcome {
@@ -408,6 +425,7 @@ impl VergeTiltRun {
             sigmas,
             checks,
             check_failure,
+            verdict,
             final_encoders,
             rotation_deg: options.rotation_deg,
             diagonal_rotation_deg: options.diagonal_rotation_deg,
@@ -467,6 +485,7 @@ impl VergeTiltRun {
         let mut checks = Vec::new();
         for round in 0..=options.max_corrections {
             let target = solution.aligned_encoders;
+            check_move(&reference, &target)?;
             head.move_to(&target)?;
             let idx = self.capture(head, &format!("check-{}", round + 1))?;
             let t1 = Instant::now();
@@ -477,7 +496,8 @@ impl VergeTiltRun {
             let measured = measure_cameras(&calibration, &check_capture, &pl, &pr)?;
             let errors = measured_errors(state, &measured, d(Joint::Pan))
                 .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
-            checks.push(CheckStep { encoders: enc, measured: errors });
+            let sigma = check_sigmas(&calibration, &check_capture, &measured, d(Joint::Pan));
+            checks.push(CheckStep { encoders: enc, measured: errors, sigma });
             // The right camera's elevation error is not correctable; the other three are.
             let worst = errors
                 .verge_err_l_deg
@@ -516,6 +536,13 @@ impl VergeTiltRun {
         let reading_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
         let sigmas = alignment_sigmas_measured(&calibration, &verge_axes, &axis_sources, &reference, None)?
             .with_reading_noise(reading_sigma_deg);
+        let verdict = checks.last().map_or_else(
+            || CheckVerdict::unchecked("none"),
+            |c| {
+                let name = format!("check-{}", checks.len());
+                check_verdict(&name, &c.measured, &sigmas, c.sigma.as_ref(), reading_sigma_deg)
+            },
+        );
         let final_encoders = head.read_encoders()?;
         Ok(VergeTiltOutcome {
             calibration,
@@ -524,6 +551,7 @@ impl VergeTiltRun {
             solution,
             sigmas,
             checks,
+            verdict,
             final_encoders,
             rotation_deg,
             diagonal_rotation_deg,
