@@ -247,8 +247,49 @@ struct SimulateArgs {
     motion: String,
 }
 
+/// Longest error message printed, characters: 300 with the `error: ` before it (the
+/// rest goes to a report file).
+const MAX_ERROR_LINE: usize = 293;
+
+/// The folder a command writes its results to, when the user named one (`--out`,
+/// `--session`): where a long error's full text goes.
+fn report_dir(command: &Command) -> Option<PathBuf> {
+    match command {
+        Command::Calibrate(a) => a.out.clone(),
+        Command::Align(a) => a.out.clone(),
+        Command::Run(a) => a.session.clone(),
+        Command::Demo(a) => a.session.clone(),
+        _ => None,
+    }
+}
+
+/// An error's line, at most [`MAX_ERROR_LINE`] characters: a longer one is cut at a word
+/// and ends with the file its full text was written to (`error.txt` in `dir` when that
+/// folder exists, otherwise a file in the temporary folder); the cut keeps the start,
+/// where the failed step and its most likely cause stand.
+fn error_line(msg: &str, dir: Option<&Path>) -> String {
+    if msg.chars().count() <= MAX_ERROR_LINE {
+        return msg.to_string();
+    }
+    let path = match dir.filter(|d| d.is_dir()) {
+        Some(d) => d.join("error.txt"),
+        None => std::env::temp_dir().join(format!("headalign-error-{}.txt", std::process::id())),
+    };
+    let tail = match std::fs::write(&path, format!("{msg}\n")) {
+        Ok(()) => format!(" ... (full message: {})", path.display()),
+        Err(_) => " ...".to_string(),
+    };
+    let room = MAX_ERROR_LINE.saturating_sub(tail.chars().count()).max(80);
+    let mut cut: String = msg.chars().take(room).collect();
+    if let Some(i) = cut.rfind(' ').filter(|&i| i > room / 2) {
+        cut.truncate(i);
+    }
+    format!("{}{tail}", cut.trim_end_matches([' ', ':', ',', ';']))
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    let dir = report_dir(&cli.command);
     let result = match cli.command {
         Command::Demo(a) => demo::run(&a),
         Command::Align(a) => align(&a),
@@ -266,7 +307,8 @@ fn main() -> ExitCode {
             // onto one).
             let msg = images::one_line(&e);
             let one_line: Vec<&str> = msg.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
-            eprintln!("error: {}", one_line.join(" "));
+            let line = error_line(&one_line.join(" "), dir.as_deref());
+            eprintln!("error: {line}");
             ExitCode::FAILURE
         }
     }

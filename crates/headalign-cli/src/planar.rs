@@ -53,6 +53,7 @@ pub fn outcome_json(out: &PlanarOutcome) -> Result<Value> {
         },
         "checks": serde_json::to_value(&out.checks)?,
         "check_failure": out.check_failure,
+        "verdict": crate::images::verdict_json(&out.verdict)?,
         "robot_stages": ROBOT_STAGES_SKIPPED,
         "timings": {"estimation_s": out.estimation_seconds},
         "rotations": {"rotation_deg": out.rotation_deg, "diagonal_rotation_deg": out.diagonal_rotation_deg, "verge_rotation_deg": out.verge_rotation_deg},
@@ -235,6 +236,8 @@ pub fn report(
             "alignment_errors_after": after,
             "checks": serde_json::to_value(&out.checks)?,
             "check_failure": out.check_failure,
+            "verdict": crate::images::verdict_json(&out.verdict)?,
+            "warnings": [],
             "robot_stages": ROBOT_STAGES_SKIPPED,
             "estimation_seconds": out.estimation_seconds,
         })));

@@ -102,7 +102,7 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
         say!("replayed {} ({} views)", args.dir.display(), run.run.views.len());
         print_summary(&v);
     }
-    Ok(())
+    images::fail_on_verdict(&v)
 }
 
 /// Run `headalign replay`.
@@ -182,6 +182,8 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             "estimate": images::estimate_json(&outcome)?,
             "report": serde_json::to_value(&outcome.calibration.report)?,
             "checks": serde_json::to_value(&outcome.checks)?,
+            "verdict": images::verdict_json(&outcome.verdict)?,
+            "warnings": [],
             "views": run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
         });
         // The robot stages recorded after the verge/tilt stage (sessions that have them).
@@ -240,7 +242,7 @@ fn finish_replay(args: &ReplayArgs, mut v: Value, head: &ReplayHead, views: usiz
             say!("{line}");
         }
     }
-    Ok(())
+    images::fail_on_verdict(&v)
 }
 
 /// The human-readable summary of an image-mode run without truth (`replay`, `run`).
@@ -274,6 +276,9 @@ pub fn print_summary(v: &Value) {
         f(&s["verge_right_deg"])
     );
     say!("checks after moving: {}", v["checks"].as_array().map_or(0, Vec::len));
+    for line in images::judgement_lines(v) {
+        say!("{line}");
+    }
     if let Some(dir) = v["session"].as_str() {
         say!("session ({}): {dir}", crate::planar::session_files(v));
     }

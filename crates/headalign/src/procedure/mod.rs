@@ -83,7 +83,8 @@ pub use offline::{
 pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
 pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured};
 pub use verdict::{
-    CHECK_SIGMAS, CheckComponent, CheckVerdict, MAX_ALIGNING_MOVE_DEG, check_move, check_sigmas, check_verdict,
+    CHECK_SIGMAS, CheckComponent, CheckVerdict, FitJudgement, MAX_ALIGNING_MOVE_DEG, check_move,
+    check_sigmas, check_verdict,
 };
 
 use crate::alignment::{

@@ -84,6 +84,22 @@ pub struct CheckVerdict {
     pub components: Vec<CheckComponent>,
     /// Reported sigmas allowed ([`CHECK_SIGMAS`]).
     pub sigmas_allowed: f64,
+    /// The estimate's residuals against the image noise, when judged
+    /// ([`CheckVerdict::judge_fit`]).
+    pub model_fit: Option<FitJudgement>,
+}
+
+/// The model-fit part of a verdict ([`crate::estimate::model_fit`]).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct FitJudgement {
+    /// The residuals' noise over the image noise.
+    pub residual_over_noise: f64,
+    /// The largest accepted ([`crate::estimate::MISFIT_FAIL_RATIO`]).
+    pub bound: f64,
+    /// The likely cause, when the check fired.
+    pub cause: Option<String>,
+    /// `false` when the misfit fails the run.
+    pub passed: bool,
 }
 
 impl CheckVerdict {
@@ -94,7 +110,29 @@ impl CheckVerdict {
 
     /// A verdict without a check (the check view could not be measured).
     pub fn unchecked(check: &str) -> Self {
-        Self { status: "unchecked".into(), check: check.into(), components: Vec::new(), sigmas_allowed: CHECK_SIGMAS }
+        Self {
+            status: "unchecked".into(),
+            check: check.into(),
+            components: Vec::new(),
+            sigmas_allowed: CHECK_SIGMAS,
+            model_fit: None,
+        }
+    }
+
+    /// Judge the estimate's fit to the images too (module docs of
+    /// [`crate::estimate::model_fit`]): a misfit beyond its bound fails the verdict.
+    pub fn judge_fit(&mut self, fit: &crate::estimate::ModelFit) {
+        let Some(ratio) = fit.residual_over_noise else { return };
+        let passed = !fit.failed;
+        self.model_fit = Some(FitJudgement {
+            residual_over_noise: ratio,
+            bound: crate::estimate::MISFIT_FAIL_RATIO,
+            cause: fit.cause.clone(),
+            passed,
+        });
+        if !passed {
+            self.status = "failed".into();
+        }
     }
 
     /// One line naming the failed components, their measured errors and bounds; `None` when
@@ -102,6 +140,14 @@ impl CheckVerdict {
     pub fn failure_line(&self) -> Option<String> {
         if !self.failed() {
             return None;
+        }
+        if let Some(fit) = self.model_fit.as_ref().filter(|f| !f.passed) {
+            return Some(format!(
+                "the model does not fit the images: {} (residuals {:.1} x the image noise, bound {}); the aligned readings cannot be trusted",
+                fit.cause.as_deref().unwrap_or("unknown cause"),
+                fit.residual_over_noise,
+                fit.bound
+            ));
         }
         let parts: Vec<String> = self
             .components
@@ -129,7 +175,12 @@ pub fn check_verdict(
     check_sigma: Option<&MeasuredErrors>,
     move_sigma_deg: f64,
 ) -> CheckVerdict {
-    let zero = MeasuredErrors { verge_err_l_deg: 0.0, verge_err_r_deg: 0.0, elev_err_l_deg: 0.0, elev_err_r_deg: 0.0 };
+    let zero = MeasuredErrors {
+        verge_err_l_deg: 0.0,
+        verge_err_r_deg: 0.0,
+        elev_err_l_deg: 0.0,
+        elev_err_r_deg: 0.0,
+    };
     let cs = check_sigma.unwrap_or(&zero);
     let components: Vec<CheckComponent> = [
         ("verge_err_l_deg", measured.verge_err_l_deg, aligned.verge_left_deg, cs.verge_err_l_deg),
@@ -146,7 +197,13 @@ pub fn check_verdict(
     })
     .collect();
     let status = if components.iter().all(|c| c.passed) { "passed" } else { "failed" };
-    CheckVerdict { status: status.into(), check: check.into(), components, sigmas_allowed: CHECK_SIGMAS }
+    CheckVerdict {
+        status: status.into(),
+        check: check.into(),
+        components,
+        sigmas_allowed: CHECK_SIGMAS,
+        model_fit: None,
+    }
 }
 
 /// The check's own 1-sigma per component (module docs: `sigma_check`, general route):
@@ -163,7 +220,8 @@ pub fn check_sigmas(
     let state = &calib.bundle.state;
     let (pan, elev) = crate::estimate::axes_of(state)?;
     let a_p = pan.direction.into_inner();
-    let a_e = headalign_geometry::so3::rotation_about_line(&pan, d_pan).rotation * elev.direction.into_inner();
+    let a_e =
+        headalign_geometry::so3::rotation_about_line(&pan, d_pan).rotation * elev.direction.into_inner();
     let points: std::collections::HashMap<u64, nalgebra::Point3<f64>> = calib.points().into_iter().collect();
     let noise = Some(calib.report.sigma_px);
     let side = |k, obs: &[headalign_platform::TrackObservation], pose: &nalgebra::Isometry3<f64>| {
@@ -218,7 +276,8 @@ mod tests {
         MeasuredErrors { verge_err_l_deg: l, verge_err_r_deg: r, elev_err_l_deg: e, elev_err_r_deg: 9.0 }
     }
 
-    const SIGMAS: AlignmentSigmas = AlignmentSigmas { elevation_deg: 0.03, verge_left_deg: 0.04, verge_right_deg: 0.05 };
+    const SIGMAS: AlignmentSigmas =
+        AlignmentSigmas { elevation_deg: 0.03, verge_left_deg: 0.04, verge_right_deg: 0.05 };
 
     /// Errors within the bound pass, one beyond it fails and is named; the right camera's
     /// elevation (9 deg here) is not judged. The bound is 5 sqrt(0.05^2 + 0.02^2 + 0.01^2).
@@ -234,7 +293,10 @@ mod tests {
         let bad = check_verdict("check-3", &errors(0.1, bound + 0.01, 0.1), &SIGMAS, Some(&cs), 0.01);
         assert!(bad.failed());
         let line = bad.failure_line().unwrap_or_default();
-        assert!(line.contains("check-3") && line.contains("verge_err_r_deg") && !line.contains("verge_err_l_deg"), "{line}");
+        assert!(
+            line.contains("check-3") && line.contains("verge_err_r_deg") && !line.contains("verge_err_l_deg"),
+            "{line}"
+        );
         assert!(line.len() <= 300, "{line}");
         let nan = check_verdict("check-1", &errors(f64::NAN, 0.0, 0.0), &SIGMAS, Some(&check), 0.01);
         assert!(nan.failed());
