@@ -461,11 +461,16 @@ fn write_calibration_files(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcom
 }
 
 /// A failure of a recorded run: `report.json` says so (best effort: the error itself is
-/// what the user must see) and the error ends with where the captured views are kept.
+/// what the user must see) and the error, its cause first, ends with where the captured
+/// views are kept.
 pub fn failed_in_session(writer: &SessionWriter, e: anyhow::Error) -> anyhow::Error {
-    let _ = writer.write_report(&json!({"status": "failed", "error": one_line(&e)}));
-    let kept = format!("session with {} captured view(s) kept in {}", writer.views(), writer.dir().display());
-    e.context(kept)
+    let cause = one_line(&e);
+    let _ = writer.write_report(&json!({"status": "failed", "error": cause}));
+    anyhow::anyhow!(
+        "{cause} (session with {} captured view(s) kept in {}; its report.json has the whole error)",
+        writer.views(),
+        writer.dir().display()
+    )
 }
 
 /// An error and its causes on one line, joined by ": ", leaving out a cause whose text
@@ -615,7 +620,13 @@ pub fn judgement(run: &ImageRun, route: &RouteOutcome) -> (CheckVerdict, Option<
         RouteOutcome::General(o, _) => {
             let names: Vec<String> = run.run.views.iter().map(|v| v.name.clone()).collect();
             let rig_views = names.iter().position(|n| n == "verge").unwrap_or(names.len());
-            let keys = observation_view_names(&o.calibration, &names, rig_views);
+            let rig: Vec<(String, String)> = names
+                .iter()
+                .take(rig_views)
+                .enumerate()
+                .map(|(i, n)| (n.clone(), tracked_view_name(i)))
+                .collect();
+            let keys = observation_view_names(&o.calibration, &rig);
             let measured: MeasuredVariances = run
                 .tracking
                 .iter()

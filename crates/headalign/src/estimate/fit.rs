@@ -136,20 +136,13 @@ fn likely_cause(structure: &ResidualStructure, pinhole: bool) -> String {
     }
 }
 
-/// The measured-noise keys of `calib`'s observation views: the front end's names
-/// ([`crate::frontend::tracked_view_name`]) of the first `rig_views` captures, in order,
-/// without those the estimate dropped (`view_names` are the procedure's names of the
-/// captures, as in [`super::EstimationReport::dropped_views`]).
-pub fn observation_view_names(
-    calib: &RigCalibration,
-    view_names: &[String],
-    rig_views: usize,
-) -> Vec<String> {
-    view_names
-        .iter()
-        .take(rig_views)
-        .enumerate()
-        .filter(|(_, n)| !calib.report.dropped_views.iter().any(|d| &d.view == *n))
-        .map(|(i, _)| crate::frontend::tracked_view_name(i))
+/// The measured-noise keys of `calib`'s observation views (index = the observation's
+/// `view`): `rig` lists the rig views given to the estimate, in order, each as its name
+/// (as in [`super::EstimationReport::dropped_views`]) and its key in the measured noise;
+/// those the estimate dropped are left out.
+pub fn observation_view_names(calib: &RigCalibration, rig: &[(String, String)]) -> Vec<String> {
+    rig.iter()
+        .filter(|(n, _)| !calib.report.dropped_views.iter().any(|d| &d.view == n))
+        .map(|(_, key)| key.clone())
         .collect()
 }
