@@ -102,7 +102,7 @@ pub enum AlignError {
     /// axes) does not fit that stage's stereo captures, even with its relative pose
     /// re-fitted to them.
     #[error(
-        "the stereo rig predicted at readings (pan {:.3}, elevation {:.3}, verge {:.3} / {:.3} deg) does not fit the captured stereo pairs: median misfit {misfit_px:.2} px, at most {bound_px:.2} px expected from the calibration's noise, {refit_px:.2} px with its relative pose re-fitted; the calibration or the vergence axes do not hold at these readings: run the verge/tilt stage again",
+        "the calibration or the vergence axes do not hold at pan {:.2}, elevation {:.2}, verge {:.2} / {:.2} deg: the predicted rig misfits the stereo pairs by {misfit_px:.2} px (median; at most {bound_px:.2} expected, {refit_px:.2} re-fitted); run the verge/tilt stage again",
         readings.pan, readings.elevation, readings.verge_left, readings.verge_right
     )]
     RigMisfit {

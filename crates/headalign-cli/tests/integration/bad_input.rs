@@ -134,7 +134,7 @@ fn long_errors_are_cut_and_written_in_full() {
     let out_dir = dir.join("out");
     std::fs::create_dir_all(&out_dir).unwrap();
     let out = run(&["align", "--observations", m, "--out", out_dir.to_str().unwrap()]);
-    assert_clean_failure("long missing path", &out, &["cannot read", "full message"]);
+    assert_clean_failure("long missing path", &out, &["a-very-long-file-name", "full message"]);
     let stderr = String::from_utf8_lossy(&out.stderr);
     let full = std::fs::read_to_string(out_dir.join("error.txt")).unwrap_or_default();
     assert!(

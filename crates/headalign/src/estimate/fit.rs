@@ -146,3 +146,37 @@ pub fn observation_view_names(calib: &RigCalibration, rig: &[(String, String)]) 
         .map(|(_, key)| key.clone())
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::calibrate::residuals::CameraResiduals;
+
+    fn camera(radial_chi2: f64, region_chi2: f64) -> CameraResiduals {
+        CameraResiduals {
+            camera: "left".into(),
+            rings: Vec::new(),
+            radial_chi2,
+            radial_dof: 5,
+            region_chi2,
+            region_dof: 18,
+            rms_growth: 1.0,
+        }
+    }
+
+    fn structure(c: CameraResiduals) -> ResidualStructure {
+        ResidualStructure { sigma_px: 0.5, cameras: vec![c], sigma_widening: 1.0, warnings: Vec::new() }
+    }
+
+    /// The cause names the lens for a radial pattern (`--lens auto` for the pinhole), the
+    /// scene for one region, and neither when nothing stands out. The 99.9 % limits are
+    /// 20.5 (5 dof) and 42.3 (18 dof): 100 is beyond them, 1 within.
+    #[test]
+    fn the_cause_follows_the_pattern() {
+        assert!(likely_cause(&structure(camera(100.0, 1.0)), true).contains("try --lens auto"));
+        assert!(likely_cause(&structure(camera(100.0, 1.0)), false).contains("--lens-terms 4"));
+        assert!(likely_cause(&structure(camera(1.0, 100.0)), false).contains("scene moved"));
+        let none = likely_cause(&structure(camera(1.0, 1.0)), false);
+        assert!(none.starts_with("no pattern") && !none.contains("--lens"), "{none}");
+    }
+}

@@ -302,6 +302,38 @@ mod tests {
         assert!(nan.failed());
     }
 
+    /// A misfit beyond [`crate::estimate::MISFIT_FAIL_RATIO`] fails a verdict whose check
+    /// passed, and the line names the cause first; a fit within it leaves it passed.
+    #[test]
+    fn a_model_that_does_not_fit_fails_the_verdict() {
+        use crate::calibrate::image_noise::ImageNoiseCheck;
+        use crate::calibrate::residuals::ResidualStructure;
+        let fit = |ratio: f64, failed: bool| crate::estimate::ModelFit {
+            residual_over_noise: Some(ratio),
+            cause: failed.then(|| "radial pattern: try --lens auto".to_string()),
+            failed,
+            image_noise: ImageNoiseCheck::skipped("test"),
+            residual_structure: ResidualStructure {
+                sigma_px: 1.0,
+                cameras: Vec::new(),
+                sigma_widening: 1.0,
+                warnings: Vec::new(),
+            },
+            warnings: Vec::new(),
+        };
+        let mut ok = check_verdict("check-1", &errors(0.0, 0.0, 0.0), &SIGMAS, None, 0.01);
+        ok.judge_fit(&fit(1.1, false));
+        assert_eq!(ok.status, "passed");
+        let mut bad = ok.clone();
+        bad.judge_fit(&fit(4.1, true));
+        let line = bad.failure_line().unwrap_or_default();
+        assert!(
+            bad.failed() && line.starts_with("the model does not fit the images: radial pattern"),
+            "{line}"
+        );
+        assert!(line.len() <= 300, "{line}");
+    }
+
     /// A turn beyond the bound on any joint is refused and named; one within passes.
     #[test]
     fn far_moves_are_refused() {
