@@ -467,7 +467,7 @@ pub fn failed_in_session(writer: &SessionWriter, e: anyhow::Error) -> anyhow::Er
     let cause = one_line(&e);
     let _ = writer.write_report(&json!({"status": "failed", "error": cause}));
     anyhow::anyhow!(
-        "{cause} (session with {} captured view(s) kept in {}; its report.json has the whole error)",
+        "{cause} (session with {} view(s) kept in {}; report.json has the whole error)",
         writer.views(),
         writer.dir().display()
     )

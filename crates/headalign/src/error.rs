@@ -138,7 +138,7 @@ pub enum AlignError {
     /// A move to the aligned readings far outside the range the procedure plans
     /// ([`crate::procedure::check_move`]), refused before it is sent.
     #[error(
-        "refused to move the {joint} to {target_deg:.1} deg: a turn of {turn_deg:+.1} deg from the reference view, beyond the {max_deg} deg the procedure plans; the estimate does not hold (lens model? try --lens auto), or start the head nearer its aligned pose"
+        "refused to move the {joint} to {target_deg:.1} deg (a turn of {turn_deg:+.1}, beyond the {max_deg} deg planned): the estimate does not hold (lens model? try --lens auto) or the head starts far from aligned"
     )]
     ImplausibleMove {
         /// The joint.
