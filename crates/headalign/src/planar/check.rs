@@ -20,6 +20,10 @@
 //! `asin(z . a_e)` (the elevation axis turned by the pan difference) and the elevation
 //! error `asin(z . a_p)`, degrees.
 //!
+//! Its own precision ([`PlanarCheck::sigma`], for the verdict of
+//! [`crate::procedure::check_verdict`]): `rms_px / (f sqrt(n))` radians per camera, the
+//! rotation about the centre fitted to `n` tracks of residual `rms_px`.
+//!
 //! What it measures: whatever moved the camera other than the model says (a joint that
 //! did not reach its reading, a wrong vergence axis, a camera loose on its mount) shows
 //! in `delta` and in the errors. What it cannot check ([`UNCHECKED`]): errors of the

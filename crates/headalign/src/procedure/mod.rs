@@ -51,6 +51,14 @@
 //! perturbation of the lens terms moves the calibration's points, not the resected
 //! pixels).
 //!
+//! The run judges itself (the `verdict` module docs): each move to aligned readings more
+//! than [`MAX_ALIGNING_MOVE_DEG`] (30 deg) from the reference view's on any joint is
+//! refused before it is sent ([`check_move`]), and the last check's three correctable
+//! errors are held against [`CHECK_SIGMAS`] (5) times `sqrt(sigma_aligned^2 + sigma_check^2
+//! + sigma_move^2)` ([`check_verdict`], the outcome's `verdict`; each check's own sigma in
+//! [`CheckStep::sigma`]). The caller adds the estimate's fit to the images
+//! ([`CheckVerdict::judge_fit`]) where it has the front end's noise.
+//!
 //! Every captured view is kept in the outcome (and in the error path the caller still has
 //! them through [`VergeTiltRun::views`]). Angles in degrees.
 //!
