@@ -52,8 +52,8 @@
 //! pixels).
 //!
 //! The run judges itself (the `verdict` module docs): each move to aligned readings more
-//! than [`MAX_ALIGNING_MOVE_DEG`] (30 deg) from the reference view's on any joint is
-//! refused before it is sent ([`check_move`]), and the last check's three correctable
+//! than [`MAX_ALIGNING_MOVE_DEG`] (30 deg, or the plan's largest turn if larger) from the
+//! reference view's on any joint is refused before it is sent ([`check_move`]), and the last check's three correctable
 //! errors are held against [`CHECK_SIGMAS`] (5) times `sqrt(sigma_aligned^2 + sigma_check^2
 //! + sigma_move^2)` ([`check_verdict`], the outcome's `verdict`; each check's own sigma in
 //! [`CheckStep::sigma`]). The caller adds the estimate's fit to the images
@@ -412,7 +412,7 @@ impl VergeTiltRun {
         let t0 = Instant::now();
         let (calibration, solution, sigmas) = planar_alignment(&self.views, scene, &options.estimation)?;
         let mut estimation_seconds = t0.elapsed().as_secs_f64();
-        check_move(&calibration.reference_encoders, &solution.aligned_encoders)?;
+        check_move(&calibration.reference_encoders, &solution.aligned_encoders, planned_turn_deg(&options))?;
         head.move_to(&solution.aligned_encoders)?;
         let idx = self.capture(head, "check-1")?;
         let t1 = Instant::now();
@@ -494,7 +494,7 @@ impl VergeTiltRun {
         let mut checks = Vec::new();
         for round in 0..=options.max_corrections {
             let target = solution.aligned_encoders;
-            check_move(&reference, &target)?;
+            check_move(&reference, &target, planned_turn_deg(options))?;
             head.move_to(&target)?;
             let idx = self.capture(head, &format!("check-{}", round + 1))?;
             let t1 = Instant::now();
@@ -604,6 +604,12 @@ pub(crate) fn planar_alignment(
     let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
     let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
     Ok((calibration, solution, sigmas))
+}
+
+/// The largest turn of any joint in the procedure's own plan, degrees (the move rule of
+/// [`check_move`]).
+fn planned_turn_deg(options: &VergeTiltOptions) -> f64 {
+    options.rotation_deg.abs().max(options.diagonal_rotation_deg.abs()).max(options.verge_rotation_deg.abs())
 }
 
 /// The views the procedure captures, in order, from the initial readings `e0`: the

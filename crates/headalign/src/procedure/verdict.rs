@@ -38,7 +38,8 @@
 //! with the automatic rotations) and the head starts verged on a common view: a vergence
 //! turned onto a near view (0.3 m at a 0.25 m baseline: 23 deg) plus a mount's zero
 //! offset of a few degrees. A turn of more than [`MAX_ALIGNING_MOVE_DEG`] (30 deg) on any
-//! joint is outside that range: the estimate extrapolates the model far beyond the views
+//! joint, or more than the plan's own largest turn if that is larger, is outside that
+//! range: the estimate extrapolates the model far beyond the views
 //! it was made from, and the check after the move would see little of the calibrated
 //! scene. Such a move is refused before it is sent ([`AlignError::ImplausibleMove`]); a
 //! head that truly starts that far from aligned is turned nearer by hand first.
@@ -242,16 +243,18 @@ pub fn check_sigmas(
 }
 
 /// Refuse a move to `target` whose turn of any joint from `reference` exceeds
-/// [`MAX_ALIGNING_MOVE_DEG`] (module docs: the move rule), before it is sent.
-pub fn check_move(reference: &Encoders, target: &Encoders) -> Result<(), AlignError> {
+/// [`MAX_ALIGNING_MOVE_DEG`], or the plan's own largest turn `planned_deg` if larger
+/// (module docs: the move rule), before it is sent.
+pub fn check_move(reference: &Encoders, target: &Encoders, planned_deg: f64) -> Result<(), AlignError> {
+    let max_deg = MAX_ALIGNING_MOVE_DEG.max(planned_deg.abs());
     for joint in [Joint::Elevation, Joint::VergeLeft, Joint::VergeRight, Joint::Pan] {
         let turn = target.get(joint) - reference.get(joint);
-        if !(turn.is_finite() && turn.abs() <= MAX_ALIGNING_MOVE_DEG) {
+        if !(turn.is_finite() && turn.abs() <= max_deg) {
             return Err(AlignError::ImplausibleMove {
                 joint: joint_name(joint).into(),
                 target_deg: target.get(joint),
                 turn_deg: turn,
-                max_deg: MAX_ALIGNING_MOVE_DEG,
+                max_deg,
             });
         }
     }
@@ -339,12 +342,14 @@ mod tests {
     fn far_moves_are_refused() {
         let reference = Encoders { pan: 0.0, elevation: -5.0, verge_left: 2.0, verge_right: -2.0 };
         let near = Encoders { elevation: 20.0, verge_left: -25.0, ..reference };
-        assert!(check_move(&reference, &near).is_ok());
+        assert!(check_move(&reference, &near, 10.0).is_ok());
         let far = Encoders { elevation: -61.0, ..reference };
-        let e = check_move(&reference, &far).err().map(|e| e.to_string()).unwrap_or_default();
+        let e = check_move(&reference, &far, 10.0).err().map(|e| e.to_string()).unwrap_or_default();
         assert!(e.contains("elevation") && e.contains("-61.0") && e.contains("30"), "{e}");
         assert!(e.len() <= 300, "{e}");
+        // A plan that itself turns 60 deg accepts a turn of 56.
+        assert!(check_move(&reference, &far, 60.0).is_ok());
         let nan = Encoders { verge_right: f64::NAN, ..reference };
-        assert!(check_move(&reference, &nan).is_err());
+        assert!(check_move(&reference, &nan, 10.0).is_err());
     }
 }
