@@ -144,10 +144,10 @@ impl CheckVerdict {
         }
         if let Some(fit) = self.model_fit.as_ref().filter(|f| !f.passed) {
             return Some(format!(
-                "the model does not fit the images: {} (residuals {:.1} x the image noise, bound {}); the aligned readings cannot be trusted",
-                fit.cause.as_deref().unwrap_or("unknown cause"),
+                "the model does not fit the images (residuals {:.1} x the image noise, above {}): {}",
                 fit.residual_over_noise,
-                fit.bound
+                fit.bound,
+                fit.cause.as_deref().unwrap_or("unknown cause"),
             ));
         }
         let parts: Vec<String> = self
@@ -331,9 +331,10 @@ mod tests {
         bad.judge_fit(&fit(4.1, true));
         let line = bad.failure_line().unwrap_or_default();
         assert!(
-            bad.failed() && line.starts_with("the model does not fit the images: radial pattern"),
+            bad.failed() && line.starts_with("the model does not fit the images (residuals 4.1 x"),
             "{line}"
         );
+        assert!(line.ends_with("radial pattern: try --lens auto"), "{line}");
         assert!(line.len() <= 300, "{line}");
     }
 
