@@ -91,7 +91,7 @@ pub struct DemoArgs {
     // Format: `headalign::session`. `--save` is a hidden alias. Point mode records the
     // verge/tilt stage and observations.json; --images adds figure6.png and aligned.png.
     #[arg(long, alias = "save", conflicts_with = "no_session")]
-    session: Option<PathBuf>,
+    pub session: Option<PathBuf>,
     /// With --images: record nothing.
     #[arg(long, requires = "images")]
     no_session: bool,
@@ -342,12 +342,17 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
         }
         if args.json {
             say!("{}", serde_json::to_string_pretty(&out)?);
-            return Ok(());
+            return images::fail_on_verdict(&out);
         }
     }
     let (outcome, scene) = match route {
         RouteOutcome::General(outcome, scene) => (*outcome, scene),
-        RouteOutcome::Planar(p) => return crate::planar::report(robot.head(), &p),
+        RouteOutcome::Planar(p) => {
+            crate::planar::report(robot.head(), &p)?;
+            let verdict = json!({"verdict": images::verdict_json(&p.verdict)?});
+            images::judgement_lines(&verdict).iter().for_each(|l| say!("{l}"));
+            return images::fail_on_verdict(&verdict);
+        }
     };
     let robot_out = robot_out.unwrap_or_default();
     let after = After::read(&robot, &outcome, &robot_out);
@@ -356,7 +361,11 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     print_errors(&outcome, &before, &after);
     print_robot_stages(&robot_out, &before, &after);
     say!("time: estimation {:.1} ms, total {:.1} ms", 1e3 * outcome.estimation_seconds, 1e3 * total);
-    Ok(())
+    let verdict = json!({"verdict": images::verdict_json(&outcome.verdict)?});
+    for line in images::judgement_lines(&verdict) {
+        say!("{line}");
+    }
+    images::fail_on_verdict(&verdict)
 }
 
 /// What a point-mode run produced, for its JSON.
@@ -619,7 +628,7 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
     let v = images::run(scenario, args.auto_rotation, &target, plan, &lens)?;
     if args.json {
         say!("{}", serde_json::to_string_pretty(&v)?);
-        return Ok(());
+        return images::fail_on_verdict(&v);
     }
     let v = &v;
     say!(
@@ -689,8 +698,11 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
         v["errors"]["pp_err_pct"].as_f64().unwrap_or(f64::NAN)
     );
     say!("time: total {:.2} s", v["timings"]["total_s"].as_f64().unwrap_or(f64::NAN));
+    for line in images::judgement_lines(v) {
+        say!("{line}");
+    }
     if let Some(dir) = v["session"].as_str() {
         say!("session ({}): {dir}", crate::planar::session_files(v));
     }
-    Ok(())
+    images::fail_on_verdict(v)
 }

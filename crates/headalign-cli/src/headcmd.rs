@@ -188,5 +188,5 @@ pub fn run(args: &RunArgs) -> Result<()> {
             say!("{line}");
         }
     }
-    Ok(())
+    images::fail_on_verdict(&v)
 }

@@ -19,15 +19,16 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use headalign::alignment::AlignmentSolution;
 use headalign::calibrate::LensChoice;
-use headalign::estimate::{EstimationOptions, RigCalibration};
-use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking};
+use headalign::calibrate::image_noise::MeasuredVariances;
+use headalign::estimate::{EstimationOptions, ModelFit, RigCalibration, model_fit, observation_view_names};
+use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking, tracked_view_name};
 use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
 use headalign::observations::View;
 use headalign::procedure::{
-    AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
+    AutoRotation, CheckVerdict, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
     resolve_rotation,
 };
 use headalign::robot::stereo_fundamental;
@@ -481,11 +482,16 @@ fn write_calibration_files(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcom
 }
 
 /// A failure of a recorded run: `report.json` says so (best effort: the error itself is
-/// what the user must see) and the error ends with where the captured views are kept.
+/// what the user must see) and the error, its cause first, ends with where the captured
+/// views are kept.
 pub fn failed_in_session(writer: &SessionWriter, e: anyhow::Error) -> anyhow::Error {
-    let _ = writer.write_report(&json!({"status": "failed", "error": one_line(&e)}));
-    let kept = format!("session with {} captured view(s) kept in {}", writer.views(), writer.dir().display());
-    e.context(kept)
+    let cause = one_line(&e);
+    let _ = writer.write_report(&json!({"status": "failed", "error": cause}));
+    anyhow::anyhow!(
+        "{cause} (session with {} view(s) kept in {}; report.json has the whole error)",
+        writer.views(),
+        writer.dir().display()
+    )
 }
 
 /// An error and its causes on one line, joined by ": ", leaving out a cause whose text
@@ -584,12 +590,106 @@ pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
     }))
 }
 
+/// The verdict of a route's check after the move ([`headalign::procedure::check_verdict`])
+/// and, on the general route, the estimate's model-fit checks against the noise the front
+/// end measured in the rig views ([`headalign::estimate::model_fit`]).
+pub fn judgement(run: &ImageRun, route: &RouteOutcome) -> (CheckVerdict, Option<ModelFit>) {
+    match route {
+        RouteOutcome::Planar(p) => (p.verdict.clone(), None),
+        RouteOutcome::General(o, _) => {
+            let names: Vec<String> = run.run.views.iter().map(|v| v.name.clone()).collect();
+            let rig_views = names.iter().position(|n| n == "verge").unwrap_or(names.len());
+            let rig: Vec<(String, String)> = names
+                .iter()
+                .take(rig_views)
+                .enumerate()
+                .map(|(i, n)| (n.clone(), tracked_view_name(i)))
+                .collect();
+            let keys = observation_view_names(&o.calibration, &rig);
+            let measured: MeasuredVariances = run
+                .tracking
+                .iter()
+                .enumerate()
+                .map(|(i, t)| (tracked_view_name(i), t.localisation.clone()))
+                .collect();
+            let size = run.images.first().map_or([0, 0], StereoImages::image_size);
+            let fit = model_fit(&o.calibration, &keys, &measured, size);
+            let mut verdict = o.verdict.clone();
+            verdict.judge_fit(&fit);
+            (verdict, Some(fit))
+        }
+    }
+}
+
+/// The `verdict` member: the verdict and, when it failed, its one-line `failure`.
+pub fn verdict_json(verdict: &CheckVerdict) -> Result<Value, serde_json::Error> {
+    let mut v = serde_json::to_value(verdict)?;
+    if let Some(m) = v.as_object_mut() {
+        m.insert("failure".into(), json!(verdict.failure_line()));
+    }
+    Ok(v)
+}
+
+/// The run's JSON `v` judged: `Ok` when its `verdict` did not fail, otherwise an error of
+/// one line (the failure, where the report is). Called after the results are printed, so
+/// that a failed check still shows them and exits non-zero.
+pub fn fail_on_verdict(v: &Value) -> Result<()> {
+    let Some(failure) = v["verdict"]["failure"].as_str() else { return Ok(()) };
+    match v["session"].as_str() {
+        Some(dir) => bail!("{failure} (report: {dir}/report.json)"),
+        None => bail!("{failure}"),
+    }
+}
+
+/// The lines every command prints about a report's judgement: each of its `warnings`
+/// (`warning: ...`) and the verdict of the check after the move.
+pub fn judgement_lines(v: &Value) -> Vec<String> {
+    let mut lines: Vec<String> = v["warnings"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(Value::as_str)
+        .map(|w| format!("warning: {w}"))
+        .collect();
+    let verdict = &v["verdict"];
+    let f = |x: &Value| x.as_f64().unwrap_or(f64::NAN);
+    match verdict["status"].as_str() {
+        Some("passed") => {
+            let worst = verdict["components"].as_array().into_iter().flatten().max_by(|a, b| {
+                (f(&a["measured_deg"]).abs() / f(&a["bound_deg"]))
+                    .total_cmp(&(f(&b["measured_deg"]).abs() / f(&b["bound_deg"])))
+            });
+            lines.push(format!(
+                "check after the move ({}): passed, every error within {} reported sigmas{}",
+                verdict["check"].as_str().unwrap_or("?"),
+                f(&verdict["sigmas_allowed"]),
+                worst.map_or(String::new(), |c| format!(
+                    " (largest: {} {:+.3} deg, bound {:.3})",
+                    c["name"].as_str().unwrap_or("?"),
+                    f(&c["measured_deg"]),
+                    f(&c["bound_deg"])
+                ))
+            ));
+        }
+        Some("failed") => lines.push(format!("FAILED: {}", verdict["failure"].as_str().unwrap_or("?"))),
+        Some(other) => lines.push(format!("check after the move: {other}")),
+        None => {}
+    }
+    lines
+}
+
 /// The members of an image-mode run on either route ([`schema::Procedure`]): the
 /// estimate, checks and timings, and the front end's report (`images`); no robot stages
 /// ([`with_robot`] adds them).
 pub fn procedure_report(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> Result<schema::Procedure> {
     let views = run.run.views.iter().map(|v| v.name.clone()).collect();
     let mut p = schema::Procedure::new("images", route, views, run.auto_rotation, total_s)?;
+    let (verdict, fit) = judgement(run, route);
+    p.verdict = verdict_json(&verdict)?;
+    if let Some(fit) = &fit {
+        p.warnings.extend(fit.warnings.iter().cloned());
+        p.model_fit = Some(serde_json::to_value(fit)?);
+    }
     p.images = Some(json!({
         "verging": serde_json::to_value(&run.verging)?,
         "tracking": serde_json::to_value(&run.tracking)?,

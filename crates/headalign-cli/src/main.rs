@@ -33,7 +33,8 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use headalign::alignment::{AlignmentSolution, VergeAxes};
-use headalign::estimate::{EstimationOptions, RigCalibration};
+use headalign::calibrate::image_noise::MeasuredVariances;
+use headalign::estimate::{EstimationOptions, ModelFit, RigCalibration};
 use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
 use headalign::procedure::{
@@ -248,8 +249,57 @@ struct SimulateArgs {
     motion: String,
 }
 
+/// Longest error message printed, characters: 300 with the `error: ` before it (the
+/// rest goes to a report file).
+const MAX_ERROR_LINE: usize = 293;
+
+/// The folder a command writes its results to, when the user named one (`--out`,
+/// `--session`): where a long error's full text goes.
+fn report_dir(command: &Command) -> Option<PathBuf> {
+    match command {
+        Command::Calibrate(a) => a.out.clone(),
+        Command::Align(a) => a.out.clone(),
+        Command::Run(a) => a.session.clone(),
+        Command::Demo(a) => a.session.clone(),
+        _ => None,
+    }
+}
+
+/// An error's line, at most [`MAX_ERROR_LINE`] characters: a longer one is cut at a word
+/// and ends with the file its full text was written to (`error.txt` in `dir` when that
+/// folder exists, otherwise a file in the temporary folder), or with where a recorded
+/// run's session is (its `report.json` has the whole error); the cut keeps the start,
+/// where the failed step and its most likely cause stand.
+fn error_line(msg: &str, dir: Option<&Path>) -> String {
+    if msg.chars().count() <= MAX_ERROR_LINE {
+        return msg.to_string();
+    }
+    // A recorded run's failure ends with where its session is, whose report.json holds
+    // the whole error (`images::failed_in_session`): that end is kept.
+    let session = msg.rfind(" (session with ").filter(|&i| msg.len() - i <= MAX_ERROR_LINE / 2);
+    let tail = if let Some(i) = session {
+        format!(" ...{}", &msg[i..])
+    } else {
+        let path = match dir.filter(|d| d.is_dir()) {
+            Some(d) => d.join("error.txt"),
+            None => std::env::temp_dir().join(format!("headalign-error-{}.txt", std::process::id())),
+        };
+        match std::fs::write(&path, format!("{msg}\n")) {
+            Ok(()) => format!(" ... (full message: {})", path.display()),
+            Err(_) => " ...".to_string(),
+        }
+    };
+    let room = MAX_ERROR_LINE.saturating_sub(tail.chars().count()).max(80);
+    let mut cut: String = msg.chars().take(room).collect();
+    if let Some(i) = cut.rfind(' ').filter(|&i| i > room / 2) {
+        cut.truncate(i);
+    }
+    format!("{}{tail}", cut.trim_end_matches([' ', ':', ',', ';']))
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    let dir = report_dir(&cli.command);
     let result = match cli.command {
         Command::Demo(a) => demo::run(&a),
         Command::Align(a) => align(&a),
@@ -267,7 +317,8 @@ fn main() -> ExitCode {
             // onto one).
             let msg = images::one_line(&e);
             let one_line: Vec<&str> = msg.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
-            eprintln!("error: {}", one_line.join(" "));
+            let line = error_line(&one_line.join(" "), dir.as_deref());
+            eprintln!("error: {line}");
             ExitCode::FAILURE
         }
     }
@@ -301,17 +352,18 @@ fn verge_json(line: &Option<Line>) -> Value {
 
 fn align(args: &AlignArgs) -> Result<()> {
     let lens = args.lens()?;
-    let (views, recorded) = read_align_views(args)?;
+    let (views, recorded, measured) = read_align_views(args)?;
     // Errors past reading name the session too.
     let session = args
         .observations
         .as_ref()
         .or(args.images.as_ref())
         .map_or(String::new(), |p| p.display().to_string());
-    let (a, scene) = match estimate_alignment(&views, args.bootstrap, lens, &session)? {
+    let (mut a, scene) = match estimate_alignment(&views, args.bootstrap, lens, &session)? {
         AlignRoute::General(a, scene) => (a, scene),
         AlignRoute::Planar(p, seconds) => return align_planar(args, &p, seconds),
     };
+    a.fit = measured.map(|m| align_model_fit(&a.calib, &views, &m));
     let (pan, elev) = headalign::estimate::axes_of(&a.calib.bundle.state).context("axes")?;
     let axes = json!({
         "frame": "left camera of the first view; points in baselines",
@@ -374,6 +426,7 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
             undetermined: cal.undetermined.clone(),
             report: None,
             lens: None,
+            model_fit: None,
             warnings,
             files: written.iter().map(|p| p.display().to_string()).collect(),
             seconds,
@@ -410,9 +463,13 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
 
 /// The views of `align`'s session: an observation session, or the verge/tilt views of a
 /// recorded image session tracked by the front end (then also the recorded views).
-fn read_align_views(args: &AlignArgs) -> Result<(Vec<View>, Option<Vec<RecordedView>>)> {
+/// The views `align` estimates from, the recorded views they came from (image input) and
+/// the front end's localisation noise of each view by name (image sessions).
+type AlignViews = (Vec<View>, Option<Vec<RecordedView>>, Option<MeasuredVariances>);
+
+fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
     match (&args.observations, &args.images) {
-        (Some(file), _) => Ok((read_session(file)?, None)),
+        (Some(file), _) => Ok((read_session(file)?, None, None)),
         (None, Some(dir)) => {
             use headalign::session::{estimation_views, read_image_session, read_point_session};
             // The verge/tilt views (verging captures and robot stages are recorded too, but
@@ -423,16 +480,20 @@ fn read_align_views(args: &AlignArgs) -> Result<(Vec<View>, Option<Vec<RecordedV
             }
             if headalign::session::is_point_session(dir) {
                 let r = estimation_views(read_point_session(dir)?, |v| v.stage.as_deref());
-                return Ok((r.into_iter().map(|v| v.view).collect(), None));
+                return Ok((r.into_iter().map(|v| v.view).collect(), None, None));
             }
             let r = if recorded {
                 recording::align_views(dir, &args.recording)?
             } else {
                 estimation_views(read_image_session(dir)?, |v| v.stage.as_deref())
             };
-            let views =
-                headalign::session::track_session(&r, &headalign::frontend::FrontEndOptions::default())?;
-            Ok((views, Some(r)))
+            let (views, tracking) = headalign::session::track_session_reporting(
+                &r,
+                &headalign::frontend::FrontEndOptions::default(),
+            )?;
+            let measured =
+                views.iter().zip(tracking).map(|(v, t)| (v.name.clone(), t.localisation)).collect();
+            Ok((views, Some(r), Some(measured)))
         }
         (None, None) => bail!("give --observations FILE or --images DIR"),
     }
@@ -441,8 +502,26 @@ fn read_align_views(args: &AlignArgs) -> Result<(Vec<View>, Option<Vec<RecordedV
 /// What `align` says when no view moved a vergence joint.
 const NOMINAL_VERGE_WARNING: &str = "no view moved the vergence joints: the vergence readings assume axes perpendicular to the elevation axis with a positive vergence turning each camera right, and their sigmas exclude the cameras' mounting on those axes; add a view with both vergences moved";
 
+/// The model-fit checks of `align`'s estimate on an image session
+/// ([`headalign::estimate::model_fit`]): the rig views (the reference and the views where
+/// no vergence joint moved), each keyed by its name in the front end's noise `measured`.
+fn align_model_fit(calib: &RigCalibration, views: &[View], measured: &MeasuredVariances) -> ModelFit {
+    let roles = headalign::estimate::classify_views(views).unwrap_or_default();
+    let rig: Vec<(String, String)> = views
+        .iter()
+        .zip(&roles)
+        .filter(|(_, r)| !matches!(r, headalign::estimate::ViewRole::Verge))
+        .map(|(v, _)| (v.name.clone(), v.name.clone()))
+        .collect();
+    let keys = headalign::estimate::observation_view_names(calib, &rig);
+    let size = views.first().map_or([0, 0], |v| v.capture.image_size);
+    headalign::estimate::model_fit(calib, &keys, measured, size)
+}
+
 /// What `align` estimated from a session.
 struct AlignEstimate {
+    /// The model-fit checks (image sessions only).
+    fit: Option<ModelFit>,
     calib: RigCalibration,
     /// Readings of the first view, the reference of the alignment.
     reference: Encoders,
@@ -481,6 +560,7 @@ fn estimate_alignment(
     };
     Ok(AlignRoute::General(
         Box::new(AlignEstimate {
+            fit: None,
             calib: a.calibration,
             reference: a.reference,
             verge: a.verge_axes,
@@ -528,6 +608,15 @@ fn write_align_files(
     let source = args.observations.as_ref().or(args.images.as_ref());
     written.extend(report_html::write_align_report(dir, source, views, recorded, &results)?);
     Ok(written)
+}
+
+/// `align`'s warnings: the model's misfit to the images, nominal vergence axes.
+fn align_warnings(a: &AlignEstimate) -> Vec<String> {
+    let mut w: Vec<String> = a.fit.iter().flat_map(|f| f.warnings.clone()).collect();
+    if !a.solution.verge_axes_measured {
+        w.push(NOMINAL_VERGE_WARNING.to_string());
+    }
+    w
 }
 
 /// The file `alignment.json` of `align --out` on `route`: the reference and aligned
@@ -586,7 +675,8 @@ fn align_report(
         undetermined: Vec::new(),
         report: Some(serde_json::to_value(&calib.report)?),
         lens: images::lens_json(calib),
-        warnings: if solution.verge_axes_measured { Vec::new() } else { vec![NOMINAL_VERGE_WARNING.into()] },
+        model_fit: a.fit.as_ref().map(serde_json::to_value).transpose()?,
+        warnings: align_warnings(a),
         files: written.iter().map(|p| p.display().to_string()).collect(),
         seconds: a.seconds,
     })
@@ -629,8 +719,8 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     if let Some(b) = &a.calib.report.bootstrap {
         say!("{}", bootstrap_line(b));
     }
-    if !solution.verge_axes_measured {
-        say!("warning: {NOMINAL_VERGE_WARNING}");
+    for w in align_warnings(a) {
+        say!("warning: {w}");
     }
     for p in written {
         say!("wrote {}", p.display());
@@ -678,4 +768,25 @@ fn aligned_readings_line(e: &Encoders, sig: &AlignmentSigmas) -> String {
         "aligned readings: elevation {:.3} +- {:.3} deg, verge_left {:.3} +- {:.3} deg, verge_right {:.3} +- {:.3} deg",
         e.elevation, sig.elevation_deg, e.verge_left, sig.verge_left_deg, e.verge_right, sig.verge_right_deg
     )
+}
+
+#[cfg(test)]
+mod error_line_tests {
+    use super::*;
+
+    /// A short message stays as it is; a long one is cut at a word to at most
+    /// [`MAX_ERROR_LINE`] characters, names the file, and the file holds the whole text.
+    #[test]
+    fn long_messages_are_cut_and_kept() {
+        assert_eq!(error_line("short: cause", None), "short: cause");
+        let dir = std::env::temp_dir().join(format!("headalign-error-line-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let long = format!("step: the likely cause first; {}", "detail ".repeat(100));
+        let line = error_line(&long, Some(&dir));
+        assert!(line.chars().count() <= MAX_ERROR_LINE, "{line}");
+        assert!(line.starts_with("step: the likely cause first") && line.contains("error.txt"), "{line}");
+        let full = std::fs::read_to_string(dir.join("error.txt")).unwrap_or_default();
+        assert_eq!(full.trim_end(), long.trim_end());
+        std::fs::remove_dir_all(&dir).ok();
+    }
 }

@@ -102,7 +102,7 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
         say!("replayed {} ({} views)", args.dir.display(), run.run.views.len());
         print_summary(&v);
     }
-    Ok(())
+    images::fail_on_verdict(&v)
 }
 
 /// Run `headalign replay`.
@@ -227,7 +227,7 @@ fn finish_replay(
             say!("{line}");
         }
     }
-    Ok(())
+    images::fail_on_verdict(&v)
 }
 
 /// The human-readable summary of an image-mode run without truth (`replay`, `run`).
@@ -261,6 +261,9 @@ pub fn print_summary(v: &Value) {
         f(&s["verge_right_deg"])
     );
     say!("checks after moving: {}", v["checks"].as_array().map_or(0, Vec::len));
+    for line in images::judgement_lines(v) {
+        say!("{line}");
+    }
     if let Some(dir) = v["session"].as_str() {
         say!("session ({}): {dir}", crate::planar::session_files(v));
     }

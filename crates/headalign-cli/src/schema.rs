@@ -155,6 +155,16 @@ pub struct Procedure {
     pub checks: Value,
     /// Why the planar route's check after the move was not made; null otherwise.
     pub check_failure: Option<String>,
+    /// The check after the move judged against the reported sigmas (and, on the general
+    /// image route, the estimate's fit to the measured image noise):
+    /// `headalign::procedure::CheckVerdict` and its one-line `failure` (null when it
+    /// passed).
+    pub verdict: Value,
+    /// The estimate's residuals against the image noise the front end measured
+    /// (`headalign::estimate::ModelFit`); null in point mode and on the planar route.
+    pub model_fit: Option<Value>,
+    /// Warnings about the data or the model, each one line.
+    pub warnings: Vec<String>,
     pub rotations: Rotations,
     pub timings: Timings,
     /// The verge/tilt views, in capture order.
@@ -319,6 +329,9 @@ pub struct AlignReport {
     /// The adjustment's report; null on the planar route.
     pub report: Option<Value>,
     /// The estimated lenses; null for pinhole cameras.
+    /// The estimate's residuals against the image noise the front end measured
+    /// (`headalign::estimate::ModelFit`); null for observation files and the planar route.
+    pub model_fit: Option<Value>,
     pub lens: Option<Value>,
     pub warnings: Vec<String>,
     pub files: Vec<String>,
@@ -487,7 +500,7 @@ impl Procedure {
         auto_rotation: bool,
         total_s: f64,
     ) -> Result<Self, serde_json::Error> {
-        let (estimate, scene, planar, report, checks, check_failure, o) = match route {
+        let (estimate, scene, planar, report, checks, check_failure, verdict, o) = match route {
             RouteOutcome::General(o, scene) => (
                 Estimate::general(o),
                 serde_json::to_value(scene)?,
@@ -495,6 +508,7 @@ impl Procedure {
                 Some(serde_json::to_value(&o.calibration.report)?),
                 serde_json::to_value(&o.checks)?,
                 None,
+                &o.verdict,
                 (o.rotation_deg, o.diagonal_rotation_deg, o.verge_rotation_deg, o.estimation_seconds),
             ),
             RouteOutcome::Planar(p) => (
@@ -504,6 +518,7 @@ impl Procedure {
                 None,
                 serde_json::to_value(&p.checks)?,
                 p.check_failure.clone(),
+                &p.verdict,
                 (p.rotation_deg, p.diagonal_rotation_deg, p.verge_rotation_deg, p.estimation_seconds),
             ),
         };
@@ -517,6 +532,9 @@ impl Procedure {
             report,
             checks,
             check_failure,
+            verdict: crate::images::verdict_json(verdict)?,
+            model_fit: None,
+            warnings: Vec::new(),
             rotations: Rotations {
                 auto: auto_rotation,
                 rotation_deg: o.0,

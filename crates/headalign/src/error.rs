@@ -102,7 +102,7 @@ pub enum AlignError {
     /// axes) does not fit that stage's stereo captures, even with its relative pose
     /// re-fitted to them.
     #[error(
-        "the stereo rig predicted at readings (pan {:.3}, elevation {:.3}, verge {:.3} / {:.3} deg) does not fit the captured stereo pairs: median misfit {misfit_px:.2} px, at most {bound_px:.2} px expected from the calibration's noise, {refit_px:.2} px with its relative pose re-fitted; the calibration or the vergence axes do not hold at these readings: run the verge/tilt stage again",
+        "the calibration or the vergence axes do not hold at pan {:.2}, elevation {:.2}, verge {:.2} / {:.2} deg: the predicted rig misfits the stereo pairs by {misfit_px:.2} px (median; at most {bound_px:.2} expected, {refit_px:.2} re-fitted); run the verge/tilt stage again",
         readings.pan, readings.elevation, readings.verge_left, readings.verge_right
     )]
     RigMisfit {
@@ -134,6 +134,21 @@ pub enum AlignError {
         drives: usize,
         /// Indices of drives left out (`SteeringOutcome::dropped_turns`).
         dropped_turns: Vec<usize>,
+    },
+    /// A move to the aligned readings far outside the range the procedure plans
+    /// ([`crate::procedure::check_move`]), refused before it is sent.
+    #[error(
+        "refused to move the {joint} to {target_deg:.1} deg (a turn of {turn_deg:+.1}, beyond the {max_deg} deg planned): the estimate does not hold (lens model? try --lens auto) or the head starts far from aligned"
+    )]
+    ImplausibleMove {
+        /// The joint.
+        joint: String,
+        /// The aligned reading, degrees.
+        target_deg: f64,
+        /// Its turn from the reference view's reading, degrees.
+        turn_deg: f64,
+        /// The largest turn accepted, degrees.
+        max_deg: f64,
     },
     /// Invalid options.
     #[error("invalid option: {0}")]

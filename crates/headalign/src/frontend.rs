@@ -1053,7 +1053,7 @@ impl<H: ImagingHead> StereoHead for TrackingHead<'_, H> {
         let Some(images) = self.images.last() else {
             return Err(PlatformError::Device("no image captured".into()));
         };
-        let name = format!("view {}", self.images.len());
+        let name = tracked_view_name(self.images.len() - 1);
         let prior = self.stereo_prior.as_ref().and_then(|p| p(&images.encoders));
         let (capture, report) = self
             .tracker
@@ -1062,4 +1062,10 @@ impl<H: ImagingHead> StereoHead for TrackingHead<'_, H> {
         self.tracking.push(report);
         Ok(capture)
     }
+}
+
+/// The name a [`TrackingHead`] gives its `index`-th capture (0-based) in the front end's
+/// reports ([`ViewTracking::localisation`]'s parents): `view N`, `N = index + 1`.
+pub fn tracked_view_name(index: usize) -> String {
+    format!("view {}", index + 1)
 }

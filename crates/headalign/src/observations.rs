@@ -126,8 +126,12 @@ fn convert_side(
         }
         let m = OUTSIDE_MARGIN_PX;
         if x < -0.5 - m || y < -0.5 - m || x > wf - 0.5 + m || y > hf - 0.5 + m {
+            // Short even for absurd values (one line of at most about 300 characters).
+            let px = |v: f64| if v.abs() < 1e6 { format!("{v}") } else { format!("{v:.3e}") };
             return Err(AlignError::Observations(format!(
-                "{origin}: view '{view}' {side} track {track}: pixel ({x}, {y}) more than {m} px outside the {w} x {h} image"
+                "{origin}: view '{view}' {side} track {track}: pixel ({}, {}) more than {m} px outside the {w} x {h} image",
+                px(x),
+                px(y)
             )));
         }
         if !seen.insert(track) {

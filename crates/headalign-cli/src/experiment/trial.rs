@@ -269,6 +269,7 @@ fn three_view_on(
         solution: a.solution,
         sigmas: a.sigmas,
         checks: Vec::new(),
+        verdict: headalign::procedure::CheckVerdict::unchecked("none"),
         final_encoders: head.encoders(),
         rotation_deg: r,
         diagonal_rotation_deg: 0.0,

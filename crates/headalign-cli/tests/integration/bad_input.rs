@@ -30,6 +30,9 @@ fn assert_clean_failure(case: &str, out: &Output, expected: &[&str]) {
     assert_eq!(out.status.code(), Some(1), "{case}: exit code (a signal or abort is not clean): {stderr}");
     assert!(!stderr.contains("panicked") && !stderr.contains("stack backtrace"), "{case}: panic: {stderr}");
     assert_eq!(stderr.trim_end().lines().count(), 1, "{case}: one line expected: {stderr}");
+    // Issue 44: at most about 300 characters (the full text of a longer one goes to a file).
+    let chars = stderr.trim_end().chars().count();
+    assert!(chars <= 300, "{case}: {chars} characters, at most 300 expected: {stderr}");
     for part in expected {
         assert!(
             stderr.to_lowercase().contains(&part.to_lowercase()),
@@ -117,6 +120,27 @@ fn align_observations_malformed_json() {
     let missing = dir.join("missing.json");
     let m = missing.to_str().unwrap();
     assert_clean_failure("missing file", &run(&["align", "--observations", m]), &[m, "cannot read"]);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// An error longer than 300 characters (here a long missing path) is cut to one line of
+/// at most 300 that names the file holding its full text; with `--out` that file is
+/// `error.txt` there.
+#[test]
+fn long_errors_are_cut_and_written_in_full() {
+    let dir = base("long-error");
+    let missing = dir.join(format!("{}.json", "a-very-long-file-name".repeat(16)));
+    let m = missing.to_str().unwrap();
+    let out_dir = dir.join("out");
+    std::fs::create_dir_all(&out_dir).unwrap();
+    let out = run(&["align", "--observations", m, "--out", out_dir.to_str().unwrap()]);
+    assert_clean_failure("long missing path", &out, &["a-very-long-file-name", "full message"]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    let full = std::fs::read_to_string(out_dir.join("error.txt")).unwrap_or_default();
+    assert!(
+        stderr.contains("error.txt") && full.contains(m) && full.contains("cannot read"),
+        "{stderr}\n{full}"
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 

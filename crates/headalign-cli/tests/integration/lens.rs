@@ -2,11 +2,11 @@
 //! radtan` on a simulated head whose cameras have a barrel lens aligns the head and
 //! recovers the focal lengths and `k1`, writes the lens to the session (`session.json`,
 //! the calibration files) and `replay` reproduces the run with it; `--lens pinhole` on the
-//! same images is far off.
+//! same images is far off, and its verdict fails (exit code 1).
 
 use std::path::{Path, PathBuf};
 
-use super::common::{bin, ok_json, scratch};
+use super::common::{assert_clean_failure, bin, ok_json, scratch};
 use serde_json::Value;
 
 fn tmp(name: &str) -> PathBuf {
@@ -41,7 +41,8 @@ fn demo(scenario: &Path, lens: &str, session: Option<&Path>) -> Value {
 ///   session's `calibration/opencv_stereo.yaml` carries it, and `replay` gives the same
 ///   estimate bit for bit.
 /// - `--lens pinhole` on the same images: the focal length error exceeds 20 % (measured
-///   168 %: the lens is absorbed by a wrong projective solution).
+///   168 %: the lens is absorbed by a wrong projective solution), and the run fails its
+///   verdict with one line that says to try `--lens auto`.
 #[test]
 fn a_lensed_head_aligns_with_its_lens_estimated() {
     let scenario = tmp("lens.toml");
@@ -73,8 +74,23 @@ fn a_lensed_head_aligns_with_its_lens_estimated() {
     assert_eq!(replayed["estimate"]["left"], est["left"]);
     assert_eq!(replayed["estimate"]["lens"], est["lens"]);
 
-    let pinhole = demo(&scenario, "pinhole", None);
+    assert_eq!(live["verdict"]["status"], "passed", "{}", live["verdict"]);
+
+    // The pinhole on the same images: far off, and the run says so (issue 44: never a
+    // confident wrong answer): the results are printed, then one error line naming the
+    // failed verdict, exit code 1.
+    let out = bin()
+        .args(["demo", "--images", "--stages", "verge-tilt", "--json", "--lens", "pinhole", "--no-session"])
+        .arg("--scenario")
+        .arg(&scenario)
+        .output()
+        .unwrap();
+    let stderr = assert_clean_failure(&out, &["try --lens auto"]);
+    assert!(stderr.trim_end().chars().count() <= 300, "{stderr}");
+    let pinhole: Value = serde_json::from_slice(&out.stdout).unwrap();
     let f_err = pinhole["errors"]["f_err_pct"].as_f64().unwrap();
     assert!(f_err.abs() > 20.0, "pinhole f error {f_err} %");
     assert!(pinhole["estimate"]["lens"].is_null(), "{}", pinhole["estimate"]["lens"]);
+    assert_eq!(pinhole["verdict"]["status"], "failed", "{}", pinhole["verdict"]);
+    assert!(!pinhole["warnings"].as_array().unwrap().is_empty(), "{}", pinhole["warnings"]);
 }

@@ -229,9 +229,27 @@ fn expected_rss(
 /// The statistics of the module docs for `calibration` with the measured noise
 /// `measured` (a check without warning or widening yet).
 pub fn image_noise_check(calibration: &MotionCalibration, measured: &MeasuredVariances) -> ImageNoiseCheck {
-    let obs = &calibration.observations;
-    let state = &calibration.bundle.state;
-    let names = &calibration.report.views;
+    noise_check_of(
+        &calibration.bundle,
+        &calibration.observations,
+        &calibration.report.views,
+        &calibration.point_tracks,
+        measured,
+    )
+}
+
+/// [`image_noise_check`] of any adjustment: `bundle` fitted to `obs`, whose `view` index
+/// `names` (the views' names, as keys of `measured`) and whose `point` index
+/// `point_tracks` (track ids); the verge/tilt estimate's check
+/// ([`crate::estimate::model_fit`]).
+pub fn noise_check_of(
+    bundle: &headalign_geometry::bundle::BundleResult,
+    obs: &[BundleObservation],
+    names: &[String],
+    point_tracks: &[u64],
+    measured: &MeasuredVariances,
+) -> ImageNoiseCheck {
+    let state = &bundle.state;
     let points = state.points.len();
     let mut by_point: Vec<Vec<&BundleObservation>> = vec![Vec::new(); points];
     for o in obs {
@@ -242,7 +260,7 @@ pub fn image_noise_check(calibration: &MotionCalibration, measured: &MeasuredVar
     let used_points = by_point.iter().filter(|l| !l.is_empty()).count();
     let (mut n, mut checked_points, mut rss, mut expected, mut sum_var) = (0usize, 0usize, 0.0, 0.0, 0.0);
     for (p, list) in by_point.iter().enumerate() {
-        let Some(&track) = calibration.point_tracks.get(p) else { continue };
+        let Some(&track) = point_tracks.get(p) else { continue };
         let nodes: Option<Vec<Node<'_>>> = list
             .iter()
             .map(|o| names.get(o.view).map(|v| (v.as_str(), usize::from(o.side == Side::Right))))
@@ -274,7 +292,7 @@ pub fn image_noise_check(calibration: &MotionCalibration, measured: &MeasuredVar
         ));
     }
     // The camera and motion parameters, charged to the checked observations in proportion.
-    let p_cam = calibration.bundle.report.parameters.saturating_sub(3 * used_points) as f64;
+    let p_cam = bundle.report.parameters.saturating_sub(3 * used_points) as f64;
     let share = n as f64 / obs.len().max(1) as f64;
     let dof = 2.0 * n as f64 - 3.0 * checked_points as f64 - p_cam * share;
     let expected = expected * dof / (dof + p_cam * share);

@@ -412,29 +412,40 @@ fn with_restarts(
                     c.report.warnings.push(format!(
                         "the run with estimation seed {} failed ({}); estimation seed {} gave this result: the robust stages are close to their limits (few tracks common to the views?)",
                         options.estimation.seed,
-                        failures.first().map_or("", String::as_str),
+                        failures.first().map_or(String::new(), |(_, e, _): &(u64, AlignError, Seeded)| e.to_string()),
                         o.estimation.seed
                     ));
                 }
                 return Ok(c);
             }
             Err(error) => match seeded {
-                Some(Seeded { common_tracks, fitting }) => failures.push(format!(
-                    "seed {}: {error} ({common_tracks} tracks seen in the reference and a moved view, {fitting} fitting its 3D homography)",
-                    o.estimation.seed
-                )),
+                Some(s) => failures.push((o.estimation.seed, error, s)),
                 None => return Err(error),
             },
         }
     }
-    Err(AlignError::Geometry {
+    Err(restarts_failed(&failures))
+}
+
+/// The error of [`with_restarts`] when every estimation seed failed: one line,
+/// the likely causes first, then the first seed's failure in short (its last clause) and
+/// the tracks it had.
+fn restarts_failed(failures: &[(u64, AlignError, Seeded)]) -> AlignError {
+    let first = failures.first().map_or(String::new(), |(seed, e, s)| {
+        let text = e.to_string();
+        let last = text.rsplit(": ").next().unwrap_or(&text).to_string();
+        format!(
+            "; seed {seed}: {last}, {} tracks in the reference and a moved view, {} fitting its 3D homography",
+            s.common_tracks, s.fitting
+        )
+    });
+    AlignError::Geometry {
         step: "self-calibration".into(),
         cause: GeometryError::Degenerate(format!(
-            "self-calibration failed in its robust stages with {} estimation seeds: {}. Too few points are seen in both views, or they lie close to one plane: record views that overlap more (turn the rig less, 15-25 deg), in a textured scene with depth, or add a motion",
+            "failed with {} estimation seeds: too few points seen in both views, points near one plane, or a lens model that does not fit (try --lens auto){first}",
             failures.len(),
-            failures.join("; ")
         )),
-    })
+    }
 }
 
 /// Set by [`calibrate_once`] when it failed in a seeded stage (the 3D homography RANSAC,

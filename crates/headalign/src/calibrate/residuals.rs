@@ -87,7 +87,7 @@ pub struct ResidualStructure {
 }
 
 /// The 99.9 % quantile of chi-square with `dof` degrees of freedom (Wilson-Hilferty).
-fn chi2_quantile_999(dof: usize) -> f64 {
+pub(crate) fn chi2_quantile_999(dof: usize) -> f64 {
     let k = dof.max(1) as f64;
     let z = 3.090_232;
     let a = 2.0 / (9.0 * k);

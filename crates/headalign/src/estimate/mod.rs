@@ -109,6 +109,7 @@
 //! camera frame ("ref").
 
 mod adjust;
+mod fit;
 mod frame;
 mod homographies;
 mod lens;
@@ -156,6 +157,7 @@ use stereo::stereo_geometry;
 use crate::calibrate::{LensChoice, undistort_views};
 use crate::error::AlignError;
 use crate::observations::View;
+pub use fit::{MISFIT_FAIL_RATIO, ModelFit, model_fit, observation_view_names};
 pub use lens::LensReport;
 use lens::LensStart;
 

@@ -20,6 +20,10 @@
 //! `asin(z . a_e)` (the elevation axis turned by the pan difference) and the elevation
 //! error `asin(z . a_p)`, degrees.
 //!
+//! Its own precision ([`PlanarCheck::sigma`], for the verdict of
+//! [`crate::procedure::check_verdict`]): `rms_px / (f sqrt(n))` radians per camera, the
+//! rotation about the centre fitted to `n` tracks of residual `rms_px`.
+//!
 //! What it measures: whatever moved the camera other than the model says (a joint that
 //! did not reach its reading, a wrong vergence axis, a camera loose on its mount) shows
 //! in `delta` and in the errors. What it cannot check ([`UNCHECKED`]): errors of the
@@ -78,12 +82,25 @@ pub struct PlanarCheck {
     pub encoders: Encoders,
     /// The alignment errors measured (each camera against its own axes).
     pub measured: MeasuredErrors,
+    /// The check's own 1-sigma of each measured error, degrees: `rms_px / (f sqrt(n))`
+    /// radians per camera (a rotation about the centre fitted to `n` tracks of residual
+    /// `rms_px`, `f` the mean focal length), the same for both of its components
+    /// ([`crate::procedure::check_verdict`]).
+    pub sigma: MeasuredErrors,
     /// Left camera's fit.
     pub left: CameraCheck,
     /// Right camera's fit.
     pub right: CameraCheck,
     /// What this check cannot check, by name.
     pub unchecked: Vec<String>,
+}
+
+/// The 1-sigma of a camera's fitted rotation about its centre, degrees: `rms_px / (f
+/// sqrt(n))` radians (each of `n` tracks fixes the rotation about an axis across the view
+/// to one coordinate's noise over the focal length).
+fn fit_sigma(fit: &CameraCheck, camera: &CameraPlanar) -> f64 {
+    let f = 0.5 * (camera.intrinsics.fx + camera.intrinsics.fy);
+    (fit.rms_px / (f.max(1e-9) * (fit.tracks.max(1) as f64).sqrt())).to_degrees()
 }
 
 /// Check the capture `check` (after the move) against the reference view's capture
@@ -111,6 +128,12 @@ pub fn check_alignment(
             verge_err_r_deg: ang(&zr, &er),
             elev_err_l_deg: ang(&zl, &pl),
             elev_err_r_deg: ang(&zr, &pr),
+        },
+        sigma: MeasuredErrors {
+            verge_err_l_deg: fit_sigma(&left, &calibration.left),
+            verge_err_r_deg: fit_sigma(&right, &calibration.right),
+            elev_err_l_deg: fit_sigma(&left, &calibration.left),
+            elev_err_r_deg: fit_sigma(&right, &calibration.right),
         },
         left,
         right,

@@ -51,6 +51,14 @@
 //! perturbation of the lens terms moves the calibration's points, not the resected
 //! pixels).
 //!
+//! The run judges itself (the `verdict` module docs): each move to aligned readings more
+//! than [`MAX_ALIGNING_MOVE_DEG`] (30 deg, or the plan's largest turn if larger) from the
+//! reference view's on any joint is refused before it is sent ([`check_move`]), and the last check's three correctable
+//! errors are held against [`CHECK_SIGMAS`] (5) times `sqrt(sigma_aligned^2 + sigma_check^2
+//! + sigma_move^2)` ([`check_verdict`], the outcome's `verdict`; each check's own sigma in
+//! [`CheckStep::sigma`]). The caller adds the estimate's fit to the images
+//! ([`CheckVerdict::judge_fit`]) where it has the front end's noise.
+//!
 //! Every captured view is kept in the outcome (and in the error path the caller still has
 //! them through [`VergeTiltRun::views`]). Angles in degrees.
 //!
@@ -65,6 +73,7 @@ mod rotation;
 mod sigmas;
 #[cfg(test)]
 mod tests;
+mod verdict;
 
 use std::time::Instant;
 
@@ -81,6 +90,10 @@ pub use offline::{
 };
 pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
 pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured, fixation_sigmas};
+pub use verdict::{
+    CHECK_SIGMAS, CheckComponent, CheckVerdict, FitJudgement, MAX_ALIGNING_MOVE_DEG, check_move,
+    check_sigmas, check_verdict,
+};
 
 use crate::alignment::{
     AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors,
@@ -234,6 +247,9 @@ pub struct CheckStep {
     pub encoders: Encoders,
     /// Errors measured by resection after the move.
     pub measured: MeasuredErrors,
+    /// The check's own 1-sigma of each measured error, degrees ([`check_sigmas`]; `None`
+    /// when the resections' covariance could not be formed).
+    pub sigma: Option<MeasuredErrors>,
 }
 
 /// 1-sigma uncertainties of the aligned readings, degrees, propagated from the bundle
@@ -291,6 +307,8 @@ pub struct VergeTiltOutcome {
     pub sigmas: AlignmentSigmas,
     /// Each move and its check.
     pub checks: Vec<CheckStep>,
+    /// The last check against the reported sigmas ([`check_verdict`]).
+    pub verdict: CheckVerdict,
     /// Final encoder readings (aligned).
     pub final_encoders: Encoders,
     /// Elevation/pan rotation used for calibration, degrees (chosen if auto).
@@ -346,6 +364,9 @@ pub struct PlanarOutcome {
     pub checks: Vec<crate::planar::PlanarCheck>,
     /// Why the check could not be made, if it could not (the alignment stands).
     pub check_failure: Option<String>,
+    /// The check against the reported sigmas ([`check_verdict`]; `unchecked` when the
+    /// check could not be made).
+    pub verdict: CheckVerdict,
     /// Final encoder readings (aligned).
     pub final_encoders: Encoders,
     /// Elevation/pan rotation used, degrees.
@@ -404,15 +425,20 @@ impl VergeTiltRun {
         let t0 = Instant::now();
         let (calibration, solution, sigmas) = planar_alignment(&self.views, scene, &options.estimation)?;
         let mut estimation_seconds = t0.elapsed().as_secs_f64();
+        check_move(&calibration.reference_encoders, &solution.aligned_encoders, planned_turn_deg(&options))?;
         head.move_to(&solution.aligned_encoders)?;
         let idx = self.capture(head, "check-1")?;
         let t1 = Instant::now();
         let check =
             crate::planar::check_alignment(&calibration, &self.views[0].capture, &self.views[idx].capture);
         estimation_seconds += t1.elapsed().as_secs_f64();
-        let (checks, check_failure) = match check {
-            Ok(c) => (vec![c], None),
-            Err(e) => (Vec::new(), Some(e.to_string())),
+        let move_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
+        let (checks, check_failure, verdict) = match check {
+            Ok(c) => {
+                let v = check_verdict("check-1", &c.measured, &sigmas, Some(&c.sigma), move_sigma_deg);
+                (vec![c], None, v)
+            }
+            Err(e) => (Vec::new(), Some(e.to_string()), CheckVerdict::unchecked("check-1")),
         };
         let final_encoders = head.read_encoders()?;
         Ok(RouteOutcome::Planar(Box::new(PlanarOutcome {
@@ -421,6 +447,7 @@ impl VergeTiltRun {
             sigmas,
             checks,
             check_failure,
+            verdict,
             final_encoders,
             rotation_deg: options.rotation_deg,
             diagonal_rotation_deg: options.diagonal_rotation_deg,
@@ -480,6 +507,7 @@ impl VergeTiltRun {
         let mut checks = Vec::new();
         for round in 0..=options.max_corrections {
             let target = solution.aligned_encoders;
+            check_move(&reference, &target, planned_turn_deg(options))?;
             head.move_to(&target)?;
             let idx = self.capture(head, &format!("check-{}", round + 1))?;
             let t1 = Instant::now();
@@ -490,7 +518,8 @@ impl VergeTiltRun {
             let measured = measure_cameras(&calibration, &check_capture, &pl, &pr)?;
             let errors = measured_errors(state, &measured, d(Joint::Pan))
                 .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
-            checks.push(CheckStep { encoders: enc, measured: errors });
+            let sigma = check_sigmas(&calibration, &check_capture, &measured, d(Joint::Pan));
+            checks.push(CheckStep { encoders: enc, measured: errors, sigma });
             // The right camera's elevation error is not correctable; the other three are.
             let worst = errors
                 .verge_err_l_deg
@@ -529,6 +558,13 @@ impl VergeTiltRun {
         let reading_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
         let sigmas = alignment_sigmas_measured(&calibration, &verge_axes, &axis_sources, &reference, None)?
             .with_reading_noise(reading_sigma_deg);
+        let verdict = checks.last().map_or_else(
+            || CheckVerdict::unchecked("none"),
+            |c| {
+                let name = format!("check-{}", checks.len());
+                check_verdict(&name, &c.measured, &sigmas, c.sigma.as_ref(), reading_sigma_deg)
+            },
+        );
         let final_encoders = head.read_encoders()?;
         Ok(VergeTiltOutcome {
             calibration,
@@ -537,6 +573,7 @@ impl VergeTiltRun {
             solution,
             sigmas,
             checks,
+            verdict,
             final_encoders,
             rotation_deg,
             diagonal_rotation_deg,
@@ -580,6 +617,12 @@ pub(crate) fn planar_alignment(
     let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
     let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
     Ok((calibration, solution, sigmas))
+}
+
+/// The largest turn of any joint in the procedure's own plan, degrees (the move rule of
+/// [`check_move`]).
+fn planned_turn_deg(options: &VergeTiltOptions) -> f64 {
+    options.rotation_deg.abs().max(options.diagonal_rotation_deg.abs()).max(options.verge_rotation_deg.abs())
 }
 
 /// The views the procedure captures, in order, from the initial readings `e0`: the

@@ -1070,16 +1070,26 @@ pub fn estimation_views<T>(views: Vec<T>, stage_of: impl Fn(&T) -> Option<&str>)
 
 /// Run the image front end over recorded views (the first is the tracking reference).
 pub fn track_session(views: &[RecordedView], options: &FrontEndOptions) -> Result<Vec<View>, AlignError> {
+    track_session_reporting(views, options).map(|(v, _)| v)
+}
+
+/// [`track_session`] with the front end's report of each view (its localisation noise is
+/// keyed by the views' names: [`crate::estimate::model_fit`]).
+pub fn track_session_reporting(
+    views: &[RecordedView],
+    options: &FrontEndOptions,
+) -> Result<(Vec<View>, Vec<crate::frontend::ViewTracking>), AlignError> {
     let mut tracker = Tracker::new(options.clone())?;
     views
         .iter()
         .map(|v| {
-            let (capture, _) = tracker.track(&v.images, &v.name).map_err(|e| {
+            let (capture, report) = tracker.track(&v.images, &v.name).map_err(|e| {
                 AlignError::Images(format!("view '{}' ({}): {e}", v.name, v.folder.display()))
             })?;
-            Ok(View { name: v.name.clone(), capture })
+            Ok((View { name: v.name.clone(), capture }, report))
         })
-        .collect()
+        .collect::<Result<Vec<_>, AlignError>>()
+        .map(|pairs| pairs.into_iter().unzip())
 }
 
 #[cfg(test)]
