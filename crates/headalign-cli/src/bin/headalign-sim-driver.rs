@@ -7,7 +7,8 @@
 //! `headalign run --head-cmd "headalign-sim-driver --seed 1" --stages ...` then runs the
 //! same procedure on the same images as `headalign demo --images --seed 1 --stages ...`.
 //! `--no-base` answers as a version-1 driver of a head alone; `--near-panels 0` gives the
-//! plain room of `demo --images --stages verge-tilt`.
+//! plain room of `demo --images --stages verge-tilt`. `--scenario FILE` simulates the
+//! scenario of a file (as `demo --scenario`: a lens, the pan axis' tilt from the floor).
 //!
 //! The simulator's truth stays on this side of the protocol: `--truth FILE` writes, at
 //! `bye` (or when headalign closes the pipe), the robot's true alignment errors at its
@@ -38,6 +39,9 @@ struct Args {
     // `Scenario::ROBOT_NEAR_PANELS`.
     #[arg(long)]
     near_panels: Option<usize>,
+    /// A scenario file (TOML, as `headalign demo --scenario`); `--seed` and `--near-panels` apply over it.
+    #[arg(long)]
+    scenario: Option<PathBuf>,
     /// Answer as a version-1 driver of a head alone (no base: no drive, no steer).
     #[arg(long)]
     no_base: bool,
@@ -84,11 +88,20 @@ struct Sim {
 }
 
 fn serve(args: &Args) -> Result<(), String> {
-    let scenario = Scenario {
-        seed: args.seed,
-        near_panels: args.near_panels.unwrap_or(Scenario::ROBOT_NEAR_PANELS),
-        ..Scenario::default()
+    let from_file = match &args.scenario {
+        Some(path) => {
+            let text =
+                std::fs::read_to_string(path).map_err(|e| format!("cannot read {}: {e}", path.display()))?;
+            Scenario::from_toml_str(&text).map_err(|e| format!("{}: {e}", path.display()))?
+        }
+        None => Scenario::default(),
     };
+    // The robot stages need near panels: the file's, else the robot demo's.
+    let panels = match from_file.near_panels {
+        0 => Scenario::ROBOT_NEAR_PANELS,
+        n => n,
+    };
+    let scenario = Scenario { seed: args.seed, near_panels: args.near_panels.unwrap_or(panels), ..from_file };
     scenario.validate().map_err(|e| e.to_string())?;
     let robot = SimulatedRobot::new(scenario).map_err(|e| e.to_string())?;
     let (out, temporary) = match &args.out {

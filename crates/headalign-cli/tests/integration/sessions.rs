@@ -492,3 +492,71 @@ fn rendered_wall_sessions_take_the_planar_route() {
     assert_eq!(a["scene"]["kind"], live["scene"]["kind"]);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A robot as a real one is: its pan axis 3.5 deg from the floor's normal and a wide-angle
+/// lens with tangential terms (EuRoC's size of `p1`, `p2`), behind the protocol, run with
+/// default flags through every stage. The lens is chosen by the data (`auto`, the
+/// default), every stage runs (exit 0, the check after the move passed), the floor's tilt
+/// is found, and the driver's truth holds each final error within 4 of the sigmas the run
+/// reported for it (a 4-sigma bound fails a calibrated Gaussian error 1 time in 16,000;
+/// the encoders' 0.01 deg quantisation is added to each).
+#[test]
+fn a_tilted_robot_with_a_tangential_lens_runs_every_stage_with_default_flags() {
+    let dir = scratch("sessions", "tilted-lens-robot");
+    std::fs::create_dir_all(&dir).unwrap();
+    let scenario = dir.join("scenario.toml");
+    std::fs::write(
+        &scenario,
+        "pan_tilt_deg = 3.5\n[render.distortion]\nk1 = -0.27\nk2 = 0.07\np1 = 0.0004\np2 = -0.0003\n",
+    )
+    .unwrap();
+    let truth = dir.join("truth.json");
+    let out = bin()
+        .args(["run", "--stages", "verge-tilt,pan,steering,pan", "--json", "--session"])
+        .arg(dir.join("session"))
+        .args([
+            "--head-cmd",
+            &format!(
+                "'{}' --seed 2 --scenario '{}' --truth '{}'",
+                driver(),
+                scenario.display(),
+                truth.display()
+            ),
+        ])
+        .output()
+        .unwrap();
+    let run = ok_json(&out);
+    let truth: Value = serde_json::from_str(&std::fs::read_to_string(&truth).unwrap()).unwrap();
+    let errors = &truth["errors"];
+    assert_eq!(run["verdict"]["status"], "passed", "{}", run["verdict"]);
+    let terms = &run["estimate"]["lens"]["estimation"]["selection"]["terms"];
+    assert!(terms.as_array().is_some_and(|t| t.iter().any(|x| x == "p1")), "terms {terms}");
+    let f = |v: &Value| v.as_f64().unwrap_or(f64::NAN);
+    let sigmas = &run["estimate"]["aligned_sigma_deg"];
+    for (err, sigma) in [
+        ("verge_err_l_deg", "verge_left_deg"),
+        ("verge_err_r_deg", "verge_right_deg"),
+        ("elev_err_l_deg", "elevation_deg"),
+    ] {
+        let bound = 4.0 * f(&sigmas[sigma]) + 0.01;
+        assert!(f(&errors[err]).abs() < bound, "{err} {} above {bound}: {run}", errors[err]);
+    }
+    let last_pan = run["pan"].as_array().and_then(|p| p.last()).unwrap();
+    let pan_sigma = last_pan["steps"].as_array().and_then(|s| s.last()).map(|s| f(&s["sigma_deg"])).unwrap();
+    assert!(
+        f(&errors["pan_err_deg"]).abs() < 4.0 * pan_sigma + 0.01,
+        "pan {} sigma {pan_sigma}",
+        errors["pan_err_deg"]
+    );
+    let steering = &run["steering"];
+    let steer_sigma = f(&steering["sigma_steer_zero_deg"]);
+    assert!(
+        f(&errors["steer_err_deg"]).abs() < 4.0 * steer_sigma + 0.01,
+        "steering {} sigma {steer_sigma}",
+        errors["steer_err_deg"]
+    );
+    let floor = &steering["floor"];
+    let tilt_err = f(&floor["pan_tilt_deg"]) - 3.5;
+    assert!(tilt_err.abs() < 4.0 * f(&floor["sigma_pan_tilt_deg"]), "floor {floor}");
+    std::fs::remove_dir_all(&dir).ok();
+}
