@@ -498,14 +498,8 @@ fn locate_warped(
     Ok(found.position)
 }
 
-/// Bring `target_px` (a pixel of `camera`'s current image; it may lie outside) to the
-/// image centre without calibration (paper section 5). See the module documentation.
-pub fn fixate<H: ImagingHead>(
-    head: &mut H,
-    camera: Camera,
-    target_px: [f64; 2],
-    options: &FixationOptions,
-) -> Result<FixationReport, AlignError> {
+/// The fixation's options and target checked ([`fixate`]).
+fn check_fixation_inputs(target_px: [f64; 2], options: &FixationOptions) -> Result<(), AlignError> {
     options.patch.validate().map_err(vision("fixation options"))?;
     if !(options.tolerance_px > 0.0 && options.edge_margin_px > options.patch.half_size as f64) {
         return Err(AlignError::InvalidOption(
@@ -515,6 +509,58 @@ pub fn fixate<H: ImagingHead>(
     if !target_px.iter().all(|v| v.is_finite()) {
         return Err(AlignError::InvalidOption("fixation target is not a finite pixel".into()));
     }
+    Ok(())
+}
+
+/// The aim of the next move and its turn (radians, horizontal and elevation) from the
+/// current `alpha`: a target in view is brought to the centre `c`. One outside is first
+/// brought just inside the border (small moves, so little parallax while it is carried by
+/// the image motion); a visible point near the edge in its direction (the aim) measures
+/// each move for the update of alpha.
+fn aim_and_turn(
+    target: [f64; 2],
+    c: [f64; 2],
+    alpha: [f64; 2],
+    patch_target: bool,
+    edge_margin_px: f64,
+) -> ([f64; 2], [f64; 2]) {
+    if patch_target {
+        return (target, [((target[0] - c[0]) / alpha[0]).atan(), ((target[1] - c[1]) / alpha[1]).atan()]);
+    }
+    let d = [target[0] - c[0], target[1] - c[1]];
+    let along = |inset: f64| {
+        let half = [c[0] - inset, c[1] - inset];
+        let s = (half[0] / d[0].abs().max(1e-9)).min(half[1] / d[1].abs().max(1e-9)).min(1.0);
+        [c[0] + s * d[0], c[1] + s * d[1]]
+    };
+    let (proxy, entry) = (along(edge_margin_px + 2.0), along(edge_margin_px + 12.0));
+    let angle = |k: usize, p: [f64; 2]| ((p[k] - c[k]) / alpha[k]).atan();
+    (proxy, [angle(0, target) - angle(0, entry), angle(1, target) - angle(1, entry)])
+}
+
+/// Update each axis' `alpha` from the aim's measured image motion (`aim` to `aim_after`)
+/// under the turn `delta`. A move of a few pixels tells little about alpha (a 0.05 px
+/// correlation error is 1 % of 5 px): only larger ones update it.
+fn update_alpha(alpha: &mut [f64; 2], aim: [f64; 2], aim_after: [f64; 2], c: [f64; 2], delta: [f64; 2]) {
+    for k in 0..2 {
+        let moved = (aim_after[k] - aim[k]).abs();
+        if moved >= MIN_ALPHA_MOVE_PX
+            && let Some(a) = solve_alpha(aim[k] - c[k], aim_after[k] - c[k], delta[k])
+        {
+            alpha[k] = a;
+        }
+    }
+}
+
+/// Bring `target_px` (a pixel of `camera`'s current image; it may lie outside) to the
+/// image centre without calibration (paper section 5). See the module documentation.
+pub fn fixate<H: ImagingHead>(
+    head: &mut H,
+    camera: Camera,
+    target_px: [f64; 2],
+    options: &FixationOptions,
+) -> Result<FixationReport, AlignError> {
+    check_fixation_inputs(target_px, options)?;
     let size = head.image_size();
     let c = centre_of(size);
     let f = options.focal_guess_px.unwrap_or(2.0 * f64::from(size[0]));
@@ -552,24 +598,7 @@ pub fn fixate<H: ImagingHead>(
                 encoders,
             });
         }
-        // The aim: the target, or the point near the edge in its direction.
-        // A target in view is brought to the centre. One outside is first brought just
-        // inside the border (small moves, so little parallax while it is carried by the
-        // image motion); a visible point near the edge in its direction measures each
-        // move for the update of alpha.
-        let (aim, delta) = if patch_target {
-            (target, [((target[0] - c[0]) / alpha[0]).atan(), ((target[1] - c[1]) / alpha[1]).atan()])
-        } else {
-            let d = [target[0] - c[0], target[1] - c[1]];
-            let along = |inset: f64| {
-                let half = [c[0] - inset, c[1] - inset];
-                let s = (half[0] / d[0].abs().max(1e-9)).min(half[1] / d[1].abs().max(1e-9)).min(1.0);
-                [c[0] + s * d[0], c[1] + s * d[1]]
-            };
-            let (proxy, entry) = (along(options.edge_margin_px + 2.0), along(options.edge_margin_px + 12.0));
-            let angle = |k: usize, p: [f64; 2]| ((p[k] - c[k]) / alpha[k]).atan();
-            (proxy, [angle(0, target) - angle(0, entry), angle(1, target) - angle(1, entry)])
-        };
+        let (aim, delta) = aim_and_turn(target, c, alpha, patch_target, options.edge_margin_px);
         let move_deg = [delta[0].to_degrees(), delta[1].to_degrees()];
         let e = head.read_encoders()?;
         steps.push(FixationStep { encoders: e, target_px: target, aim_px: aim, move_deg, alpha_px: alpha });
@@ -588,16 +617,7 @@ pub fn fixate<H: ImagingHead>(
         let motion = image_motion(&pyr_before, &pyr_after, shift, options)?;
         let aim_after =
             locate_warped(before, aim, &pyr_after, &motion.g, options.patch.search_radius, options)?;
-        for k in 0..2 {
-            // A move of a few pixels tells little about alpha (a 0.05 px correlation error
-            // is 1 % of 5 px): only larger ones update it.
-            let moved = (aim_after[k] - aim[k]).abs();
-            if moved >= MIN_ALPHA_MOVE_PX
-                && let Some(a) = solve_alpha(aim[k] - c[k], aim_after[k] - c[k], delta[k])
-            {
-                alpha[k] = a;
-            }
-        }
+        update_alpha(&mut alpha, aim, aim_after, c, delta);
         target = if let Some((anchor_image, anchor_px, anchor_motion)) = &mut anchor {
             // The motion from the anchor image to this one, chained: it only shapes the
             // template and centres the search; the target's position is its correlation
