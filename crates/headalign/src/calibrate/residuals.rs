@@ -73,6 +73,18 @@ pub struct CameraResiduals {
     pub rms_growth: f64,
 }
 
+impl CameraResiduals {
+    /// Whether the mean radial residuals by ring exceed their 99.9 % chi-square limit.
+    pub fn radial_pattern(&self) -> bool {
+        self.radial_dof > 0 && self.radial_chi2 > chi2_quantile_999(self.radial_dof)
+    }
+
+    /// Whether the mean residuals by image region exceed their 99.9 % chi-square limit.
+    pub fn region_pattern(&self) -> bool {
+        self.region_dof > 0 && self.region_chi2 > chi2_quantile_999(self.region_dof)
+    }
+}
+
 /// Both cameras' statistics, the warnings and the widening applied.
 #[derive(Debug, Clone, Serialize)]
 pub struct ResidualStructure {
@@ -110,7 +122,7 @@ pub fn residual_structure(
     let mut warnings = Vec::new();
     let mut worst_ratio: f64 = 1.0;
     for c in &cameras {
-        if c.radial_dof > 0 && c.radial_chi2 > chi2_quantile_999(c.radial_dof) {
+        if c.radial_pattern() {
             let (ring, m) = c
                 .rings
                 .iter()
@@ -129,7 +141,7 @@ pub fn residual_structure(
             ));
             worst_ratio = worst_ratio.max(c.radial_chi2 / c.radial_dof as f64);
         }
-        if c.region_dof > 0 && c.region_chi2 > chi2_quantile_999(c.region_dof) {
+        if c.region_pattern() {
             warnings.push(format!(
                 "{} camera: the residuals differ by image region (chi-square {:.0} for {} degrees of freedom, 99.9 % limit {:.0}): part of the image does not fit the model",
                 c.camera,

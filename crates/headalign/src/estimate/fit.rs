@@ -38,7 +38,7 @@ use super::RigCalibration;
 use crate::calibrate::image_noise::{
     ImageNoiseCheck, MeasuredVariances, NO_IMAGES, RESIDUAL_OVER_NOISE_WARN, noise_check_of,
 };
-use crate::calibrate::residuals::{ResidualStructure, chi2_quantile_999, residual_structure};
+use crate::calibrate::residuals::{ResidualStructure, residual_structure};
 
 /// Residuals' noise over the image noise above which the run fails rather than warns
 /// (module docs: [`MISFIT_FAIL_RATIO`] = 2). Why 2: the residual variance is then four
@@ -114,12 +114,11 @@ pub fn model_fit(
 
 /// The likely cause of a misfit from the residuals' pattern (module docs).
 fn likely_cause(structure: &ResidualStructure, pinhole: bool) -> String {
-    let radial = structure.cameras.iter().any(|c| {
-        (c.radial_dof > 0 && c.radial_chi2 > chi2_quantile_999(c.radial_dof))
-            || c.rms_growth > crate::calibrate::residuals::RMS_GROWTH_WARN
-    });
-    let region =
-        structure.cameras.iter().any(|c| c.region_dof > 0 && c.region_chi2 > chi2_quantile_999(c.region_dof));
+    let radial = structure
+        .cameras
+        .iter()
+        .any(|c| c.radial_pattern() || c.rms_growth > crate::calibrate::residuals::RMS_GROWTH_WARN);
+    let region = structure.cameras.iter().any(|c| c.region_pattern());
     if radial && pinhole {
         "radial pattern: the pinhole lens model does not fit this lens; try --lens auto".into()
     } else if radial {
