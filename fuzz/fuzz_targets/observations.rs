@@ -12,5 +12,5 @@ fuzz_target!(|data: &[u8]| {
     let json = headalign::observations::session_to_json(&views).expect("a parsed session serialises");
     let again = headalign::observations::parse_session(&json, "fuzz").expect("round trip parses");
     assert_eq!(again, views, "round trip changed the session");
-    let _ = headalign::estimate::classify_views(&views);
+    let _ = headalign::verge_tilt::classify_views(&views);
 });

@@ -5,7 +5,7 @@
 //! typed error on any pixels and sizes, never a panic.
 #![no_main]
 
-use headalign::frontend::{FrontEndOptions, Tracker};
+use headalign::tracking::{FrontEndOptions, Tracker};
 use headalign_platform::{Encoders, StereoImages};
 use headalign_vision::GrayImage;
 use libfuzzer_sys::fuzz_target;

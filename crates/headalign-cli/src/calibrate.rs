@@ -23,9 +23,9 @@ use headalign::calibrate::{
 };
 use headalign::error::AlignError;
 use headalign::export::{StereoCalibration, TranslationUnit};
-use headalign::frontend::{FrontEndOptions, Tracker};
 use headalign::observations::View;
 use headalign::session::{SessionInfo, SessionWriter, ViewLabel, read_image_session};
+use headalign::tracking::{FrontEndOptions, Tracker};
 use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};

@@ -15,9 +15,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use headalign::estimate::EstimationOptions;
 use headalign::procedure::{AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
 use headalign::session::SessionInfo;
+use headalign::verge_tilt::EstimationOptions;
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{
@@ -348,7 +348,7 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     let (outcome, scene) = match route {
         RouteOutcome::General(outcome, scene) => (*outcome, scene),
         RouteOutcome::Planar(p) => {
-            crate::planar::report(robot.head(), &p)?;
+            crate::facing_plane::report(robot.head(), &p)?;
             let verdict = json!({"verdict": images::verdict_json(&p.verdict)?});
             images::judgement_lines(&verdict).iter().for_each(|l| say!("{l}"));
             return images::fail_on_verdict(&verdict);
@@ -356,7 +356,7 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     };
     let robot_out = robot_out.unwrap_or_default();
     let after = After::read(&robot, &outcome, &robot_out);
-    say!("{}", crate::planar::scene_line(&scene));
+    say!("{}", crate::facing_plane::scene_line(&scene));
     print_calibration(scenario, &outcome, &after);
     print_errors(&outcome, &before, &after);
     print_robot_stages(&robot_out, &before, &after);
@@ -655,7 +655,7 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
         }
     }
     say!();
-    for line in crate::planar::summary_lines(v) {
+    for line in crate::facing_plane::summary_lines(v) {
         say!("{line}");
     }
     if let Some(line) = stages::summary_line(v) {
@@ -702,7 +702,7 @@ fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) ->
         say!("{line}");
     }
     if let Some(dir) = v["session"].as_str() {
-        say!("session ({}): {dir}", crate::planar::session_files(v));
+        say!("session ({}): {dir}", crate::facing_plane::session_files(v));
     }
     images::fail_on_verdict(v)
 }

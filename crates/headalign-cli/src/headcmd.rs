@@ -149,8 +149,10 @@ pub fn run(args: &RunArgs) -> Result<()> {
         }
         (d, info)
     });
-    let seed =
-        images::Estimation { seed: headalign::estimate::EstimationOptions::default().seed, lens: args.lens };
+    let seed = images::Estimation {
+        seed: headalign::verge_tilt::EstimationOptions::default().seed,
+        lens: args.lens,
+    };
     let mut head = crate::progress::Narrated::new(&mut head, "run");
     let (run, _, v) = if plan.drives() {
         images::recorded_robot(

@@ -14,7 +14,7 @@
 //! no `figure6.png` (it draws the general route's calibration), the report's `route`,
 //! `scene`, `planar` and `checks` members (the same members on both routes:
 //! [`crate::schema::Procedure`]) and a `report.html` of the planar route's numbers
-//! ([`crate::planar::html_sections`]).
+//! ([`crate::facing_plane::html_sections`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -23,9 +23,7 @@ use anyhow::{Context, Result, bail};
 use headalign::alignment::AlignmentSolution;
 use headalign::calibrate::LensChoice;
 use headalign::calibrate::image_noise::MeasuredVariances;
-use headalign::estimate::{EstimationOptions, ModelFit, RigCalibration, model_fit, observation_view_names};
-use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking, tracked_view_name};
-use headalign::imaging::{VergingOptions, VergingReport, verge_to_common_view};
+use headalign::fixation::{VergingOptions, VergingReport, verge_to_common_view};
 use headalign::observations::View;
 use headalign::procedure::{
     AutoRotation, CheckVerdict, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
@@ -36,6 +34,8 @@ use headalign::session::{
     RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter,
     default_session_dir,
 };
+use headalign::tracking::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking, tracked_view_name};
+use headalign::verge_tilt::{EstimationOptions, ModelFit, RigCalibration, model_fit, observation_view_names};
 use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
 use headalign_geometry::distortion::DistortionTerms;
 use headalign_platform::{Encoders, ImagingHead, StereoImages, Vehicle};
@@ -246,7 +246,7 @@ pub fn procedure<H: ImagingHead>(
 /// 1.32, 95 % coverage 85 -> 89 %; right focal lengths and the aligned readings stay
 /// 1.3-1.5. Measured once more (no command reproduces it): no mean bias, no error
 /// correlation between neighbouring tracks, coarser clusters do not help; tracks at depth
-/// steps carry part of it, but leaving them out ([`headalign::estimate::DepthStepGate`])
+/// steps carry part of it, but leaving them out ([`headalign::verge_tilt::DepthStepGate`])
 /// did not improve the full pipeline on seeds 1-20 and cost focal accuracy, so it stays
 /// off here.
 pub fn tracked_estimation(seed: u64) -> EstimationOptions {
@@ -592,7 +592,7 @@ pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
 
 /// The verdict of a route's check after the move ([`headalign::procedure::check_verdict`])
 /// and, on the general route, the estimate's model-fit checks against the noise the front
-/// end measured in the rig views ([`headalign::estimate::model_fit`]).
+/// end measured in the rig views ([`headalign::verge_tilt::model_fit`]).
 pub fn judgement(run: &ImageRun, route: &RouteOutcome) -> (CheckVerdict, Option<ModelFit>) {
     match route {
         RouteOutcome::Planar(p) => (p.verdict.clone(), None),
@@ -933,7 +933,7 @@ fn report_with_intro(dir: &Path, title: &str, run: &ImageRun) -> ([u32; 2], Html
     (image_size, rep)
 }
 
-/// `DIR/report.html` of a planar-route run: its numbers ([`crate::planar::html_sections`]),
+/// `DIR/report.html` of a planar-route run: its numbers ([`crate::facing_plane::html_sections`]),
 /// the errors against the truth when simulated, `aligned.png` and the captured views.
 fn write_planar_report(
     dir: &Path,
@@ -943,7 +943,7 @@ fn write_planar_report(
     json: &Value,
 ) -> Result<()> {
     let (_, mut rep) = report_with_intro(dir, title, run);
-    crate::planar::html_sections(&mut rep, outcome);
+    crate::facing_plane::html_sections(&mut rep, outcome);
     if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
         (json.get("before"), json.get("errors"))
     {

@@ -14,10 +14,10 @@
 mod calibrate;
 mod demo;
 mod experiment;
+mod facing_plane;
 mod flags;
 mod headcmd;
 mod images;
-mod planar;
 mod points;
 mod progress;
 mod recording;
@@ -34,7 +34,6 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use headalign::alignment::{AlignmentSolution, VergeAxes};
 use headalign::calibrate::image_noise::MeasuredVariances;
-use headalign::estimate::{EstimationOptions, ModelFit, RigCalibration};
 use headalign::export::StereoCalibration;
 use headalign::observations::{View, read_session, session_to_json};
 use headalign::procedure::{
@@ -42,6 +41,7 @@ use headalign::procedure::{
     capture_plan,
 };
 use headalign::session::RecordedView;
+use headalign::verge_tilt::{EstimationOptions, ModelFit, RigCalibration};
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::so3::Line;
@@ -364,7 +364,7 @@ fn align(args: &AlignArgs) -> Result<()> {
         AlignRoute::Planar(p, seconds) => return align_planar(args, &p, seconds),
     };
     a.fit = measured.map(|m| align_model_fit(&a.calib, &views, &m));
-    let (pan, elev) = headalign::estimate::axes_of(&a.calib.bundle.state).context("axes")?;
+    let (pan, elev) = headalign::verge_tilt::axes_of(&a.calib.bundle.state).context("axes")?;
     let axes = json!({
         "frame": "left camera of the first view; points in baselines",
         "pan": axis_json(&pan, &a.calib, 0),
@@ -380,7 +380,7 @@ fn align(args: &AlignArgs) -> Result<()> {
         say!("{}", serde_json::to_string_pretty(&align_report(&a, axes, &scene, &written)?)?);
         return Ok(());
     }
-    say!("{}", planar::scene_line(&scene));
+    say!("{}", facing_plane::scene_line(&scene));
     print_alignment(&a, &pan, &elev, &written);
     Ok(())
 }
@@ -434,7 +434,7 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
         say!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
     }
-    say!("{}", planar::scene_line(&cal.scene));
+    say!("{}", facing_plane::scene_line(&cal.scene));
     say!("planar route (paper section 3.3): each camera from its own plane homographies");
     for (name, c) in [("left ", &cal.left), ("right", &cal.right)] {
         let k = &c.intrinsics;
@@ -489,7 +489,7 @@ fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
             };
             let (views, tracking) = headalign::session::track_session_reporting(
                 &r,
-                &headalign::frontend::FrontEndOptions::default(),
+                &headalign::tracking::FrontEndOptions::default(),
             )?;
             let measured =
                 views.iter().zip(tracking).map(|(v, t)| (v.name.clone(), t.localisation)).collect();
@@ -503,19 +503,19 @@ fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
 const NOMINAL_VERGE_WARNING: &str = "no view moved the vergence joints: the vergence readings assume axes perpendicular to the elevation axis with a positive vergence turning each camera right, and their sigmas exclude the cameras' mounting on those axes; add a view with both vergences moved";
 
 /// The model-fit checks of `align`'s estimate on an image session
-/// ([`headalign::estimate::model_fit`]): the rig views (the reference and the views where
+/// ([`headalign::verge_tilt::model_fit`]): the rig views (the reference and the views where
 /// no vergence joint moved), each keyed by its name in the front end's noise `measured`.
 fn align_model_fit(calib: &RigCalibration, views: &[View], measured: &MeasuredVariances) -> ModelFit {
-    let roles = headalign::estimate::classify_views(views).unwrap_or_default();
+    let roles = headalign::verge_tilt::classify_views(views).unwrap_or_default();
     let rig: Vec<(String, String)> = views
         .iter()
         .zip(&roles)
-        .filter(|(_, r)| !matches!(r, headalign::estimate::ViewRole::Verge))
+        .filter(|(_, r)| !matches!(r, headalign::verge_tilt::ViewRole::Verge))
         .map(|(v, _)| (v.name.clone(), v.name.clone()))
         .collect();
-    let keys = headalign::estimate::observation_view_names(calib, &rig);
+    let keys = headalign::verge_tilt::observation_view_names(calib, &rig);
     let size = views.first().map_or([0, 0], |v| v.capture.image_size);
-    headalign::estimate::model_fit(calib, &keys, measured, size)
+    headalign::verge_tilt::model_fit(calib, &keys, measured, size)
 }
 
 /// What `align` estimated from a session.
@@ -537,7 +537,7 @@ struct AlignEstimate {
 /// What `align` estimated, by route.
 enum AlignRoute {
     /// The general route and the scene check that chose it.
-    General(Box<AlignEstimate>, headalign::planar::SceneCheck),
+    General(Box<AlignEstimate>, headalign::facing_plane::SceneCheck),
     /// The planar route (a planar or far scene) and its wall time, seconds.
     Planar(Box<PlanarSessionAlignment>, f64),
 }
@@ -646,7 +646,7 @@ fn alignment_file(
 fn align_report(
     a: &AlignEstimate,
     axes: Value,
-    scene: &headalign::planar::SceneCheck,
+    scene: &headalign::facing_plane::SceneCheck,
     written: &[PathBuf],
 ) -> Result<schema::AlignReport> {
     let (calib, solution) = (&a.calib, &a.solution);
@@ -728,7 +728,7 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
 }
 
 /// One line on what the bootstrap of the covariance did.
-fn bootstrap_line(b: &headalign::estimate::BootstrapReport) -> String {
+fn bootstrap_line(b: &headalign::verge_tilt::BootstrapReport) -> String {
     format!(
         "bootstrap: {} replicates ({} failed), sigmas widened by up to x{:.3} (median bootstrap / linearised {:.3})",
         b.replicates, b.failed, b.max_widening, b.median_ratio

@@ -80,9 +80,9 @@ pub fn options(info: &SessionInfo) -> VergeTiltOptions {
         rotation_deg: info.rotation_deg,
         verge_rotation_deg: info.rotation_deg,
         auto_rotation: info.auto_rotation.then(AutoRotation::default),
-        estimation: headalign::estimate::EstimationOptions {
+        estimation: headalign::verge_tilt::EstimationOptions {
             seed: info.estimation_seed,
-            ..headalign::estimate::EstimationOptions::default()
+            ..headalign::verge_tilt::EstimationOptions::default()
         },
         ..VergeTiltOptions::default()
     }

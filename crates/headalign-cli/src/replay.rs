@@ -81,7 +81,7 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
     }
     let mut head = crate::recording::playback_head(&args.dir, &args.recording, args.move_tolerance)?;
     let seed = images::Estimation {
-        seed: headalign::estimate::EstimationOptions::default().seed,
+        seed: headalign::verge_tilt::EstimationOptions::default().seed,
         lens: args.lens(images::LensArgs::default())?,
     };
     let (run, outcome) =
@@ -232,7 +232,7 @@ fn finish_replay(
 
 /// The human-readable summary of an image-mode run without truth (`replay`, `run`).
 pub fn print_summary(v: &Value) {
-    for line in crate::planar::summary_lines(v) {
+    for line in crate::facing_plane::summary_lines(v) {
         say!("{line}");
     }
     let e = &v["estimate"];
@@ -265,7 +265,7 @@ pub fn print_summary(v: &Value) {
         say!("{line}");
     }
     if let Some(dir) = v["session"].as_str() {
-        say!("session ({}): {dir}", crate::planar::session_files(v));
+        say!("session ({}): {dir}", crate::facing_plane::session_files(v));
     }
 }
 

@@ -141,13 +141,13 @@ pub struct Procedure {
     pub mode: &'static str,
     /// `general` or `planar` (a planar or far scene, paper section 3.3).
     pub route: &'static str,
-    /// The scene check that chose the route (`headalign::planar::SceneCheck`).
+    /// The scene check that chose the route (`headalign::facing_plane::SceneCheck`).
     pub scene: Value,
-    /// The planar route's calibration (`headalign::planar::PlanarCalibration`); null on
+    /// The planar route's calibration (`headalign::facing_plane::PlanarCalibration`); null on
     /// the general route.
     pub planar: Option<Value>,
     pub estimate: Estimate,
-    /// The adjustment's report (`headalign::estimate::EstimationReport`); null on the
+    /// The adjustment's report (`headalign::verge_tilt::EstimationReport`); null on the
     /// planar route.
     pub report: Option<Value>,
     /// The checks after the move (the general route's `CheckStep`s or the planar route's
@@ -161,7 +161,7 @@ pub struct Procedure {
     /// passed).
     pub verdict: Value,
     /// The estimate's residuals against the image noise the front end measured
-    /// (`headalign::estimate::ModelFit`); null in point mode and on the planar route.
+    /// (`headalign::verge_tilt::ModelFit`); null in point mode and on the planar route.
     pub model_fit: Option<Value>,
     /// Warnings about the data or the model, each one line.
     pub warnings: Vec<String>,
@@ -330,7 +330,7 @@ pub struct AlignReport {
     pub report: Option<Value>,
     /// The estimated lenses; null for pinhole cameras.
     /// The estimate's residuals against the image noise the front end measured
-    /// (`headalign::estimate::ModelFit`); null for observation files and the planar route.
+    /// (`headalign::verge_tilt::ModelFit`); null for observation files and the planar route.
     pub model_fit: Option<Value>,
     pub lens: Option<Value>,
     pub warnings: Vec<String>,
@@ -545,7 +545,7 @@ impl Procedure {
             views,
             images: None,
             stages: vec![headalign::session::STAGE_VERGE_TILT.to_string()],
-            robot_stages: planar_route.then_some(crate::planar::ROBOT_STAGES_SKIPPED),
+            robot_stages: planar_route.then_some(crate::facing_plane::ROBOT_STAGES_SKIPPED),
             robot: RobotOutcomes::default(),
             robot_tracking: None,
             session: None,

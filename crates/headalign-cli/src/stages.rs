@@ -1,7 +1,7 @@
 //! The robot stages after the verge/tilt calibration (`demo --stages ...`), run in order
 //! over the platform traits: the same code in point mode (the simulated robot's tracked
 //! points) and in image mode (the robot's renders through the image front end,
-//! [`headalign::frontend::TrackingHead`] in [`headalign::frontend::TrackingMode::Previous`]).
+//! [`headalign::tracking::TrackingHead`] in [`headalign::tracking::TrackingMode::Previous`]).
 //!
 //! Stage names: `verge-tilt` (run before, by the caller), `pan` ([`align_pan`]),
 //! `steering` ([`zero_steering`]), `pan-fixate` ([`align_pan_by_fixation`]), `one-motion`
@@ -9,13 +9,13 @@
 
 use anyhow::{Context, Result, bail};
 use headalign::alignment::VergeAxes;
-use headalign::estimate::RigCalibration;
-use headalign::onemotion::{Horizon, OneMotionOptions, OneMotionOutcome, align_one_motion};
-use headalign::panfix::{PanFixationOptions, PanFixationOutcome, align_pan_by_fixation};
 use headalign::procedure::AxisPerturbations;
+use headalign::robot::one_motion::{Horizon, OneMotionOptions, OneMotionOutcome, align_one_motion};
+use headalign::robot::pan_fixation::{PanFixationOptions, PanFixationOutcome, align_pan_by_fixation};
 use headalign::robot::{
     PanOptions, PanOutcome, RigCheck, SteeringOptions, SteeringOutcome, align_pan, zero_steering,
 };
+use headalign::verge_tilt::RigCalibration;
 use headalign_platform::{StereoHead, Vehicle};
 use serde::{Deserialize, Serialize};
 

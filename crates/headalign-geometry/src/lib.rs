@@ -28,7 +28,7 @@
 //! - [`rigmotion`]: maximum-likelihood rigid motion of a calibrated stereo rig between
 //!   two stereo views (robot drives).
 //! - [`invariant`]: invariant lines at infinity of a motion from its complex eigenvectors.
-//! - [`planar`]: the plane-induced homography, the invariant line of a homography, the
+//! - [`plane`]: the plane-induced homography, the invariant line of a homography, the
 //!   projection of a plane point through a chain of rotations about lines (the planar
 //!   route, paper section 3.3) with its Jacobians.
 //! - [`lm`]: a small dense Levenberg-Marquardt shared by the refinements.
@@ -50,7 +50,7 @@ pub mod homography2d;
 pub mod homography3d;
 pub mod invariant;
 pub mod lm;
-pub mod planar;
+pub mod plane;
 pub mod ransac;
 pub mod rectify;
 pub mod registration;

@@ -3,9 +3,9 @@
 //! (1 px noise, 200 points, 10 % outliers, 3 deg rotations both ways: five rig views).
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use headalign::estimate::{EstimationOptions, estimate_rig};
 use headalign::observations::View;
 use headalign::procedure::{VergeTiltOptions, capture_plan};
+use headalign::verge_tilt::{EstimationOptions, estimate_rig};
 use headalign_platform::StereoHead;
 use headalign_sim::{Scenario, SimulatedHead};
 

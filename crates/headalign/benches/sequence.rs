@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use headalign::calibrate::{CalibrateOptions, calibrate_tracked, track_views, weak_data};
-use headalign::frontend::FrontEndOptions;
+use headalign::tracking::FrontEndOptions;
 use headalign_geometry::camera::Intrinsics;
 use headalign_platform::{GrayImage, ImagingHead, StereoImages};
 use headalign_sim::rigmotion::screw_motion;

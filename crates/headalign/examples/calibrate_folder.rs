@@ -23,8 +23,8 @@
 use std::path::{Path, PathBuf};
 
 use headalign::calibrate::{CalibrateOptions, calibrate_rig};
-use headalign::frontend::{FrontEndOptions, Tracker};
 use headalign::observations::View;
+use headalign::tracking::{FrontEndOptions, Tracker};
 use headalign_geometry::camera::Intrinsics;
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};

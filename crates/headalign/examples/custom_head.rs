@@ -9,7 +9,7 @@
 //!
 //! A head whose cameras deliver only images implements
 //! [`headalign_platform::ImagingHead`] (`capture_images`) and is wrapped in
-//! [`headalign::frontend::TrackingHead`], which finds and tracks the features and provides
+//! [`headalign::tracking::TrackingHead`], which finds and tracks the features and provides
 //! `capture`. A head behind another process speaks the JSON-lines protocol of
 //! `docs/head-protocol.md` ([`headalign::process_head`]).
 //!

@@ -35,7 +35,7 @@ use nalgebra::{Isometry3, Point2, Point3, Unit, Vector3};
 use serde::Serialize;
 
 use crate::error::{AlignError, StepContext};
-use crate::estimate::{MOVED_DEG, RigCalibration, axes_of};
+use crate::verge_tilt::{MOVED_DEG, RigCalibration, axes_of};
 
 /// Vergence axes in the reference left camera frame at the reference configuration,
 /// directed like their encoders.
@@ -246,7 +246,7 @@ pub fn solve_alignment(
 
 /// One camera's intrinsics and the head's axes in that camera's frame at the reference
 /// view, directed like their encoders: what alignment needs, without a baseline or the
-/// rig's pose (the planar route estimates each camera on its own, [`crate::planar`]).
+/// rig's pose (the planar route estimates each camera on its own, [`crate::facing_plane`]).
 #[derive(Debug, Clone, Copy)]
 pub struct CameraAxes {
     /// Intrinsics.

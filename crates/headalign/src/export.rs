@@ -33,7 +33,7 @@ use nalgebra::{DMatrix, Isometry3, Matrix3};
 use serde_json::{Value, json};
 
 use crate::AlignError;
-use crate::estimate::RigCalibration;
+use crate::verge_tilt::RigCalibration;
 
 /// The unit of the rig translation in the written files.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -90,7 +90,7 @@ pub struct StereoCalibration {
 
 impl StereoCalibration {
     /// From an estimated rig, with its estimated lenses (zero for a pinhole estimate:
-    /// [`crate::estimate::EstimationOptions::lens`]). With `baseline_m` the translation is
+    /// [`crate::verge_tilt::EstimationOptions::lens`]). With `baseline_m` the translation is
     /// scaled to metres; without, it stays in baselines.
     pub fn from_rig(
         calib: &RigCalibration,

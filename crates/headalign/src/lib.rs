@@ -7,7 +7,7 @@
 //! `headalign-geometry`.
 //!
 //! - [`observations`]: observation sessions on disk (bring your own correspondences).
-//! - [`estimate`]: the verge/tilt estimation core (F, frame, 3D homographies, linear
+//! - [`verge_tilt`]: the verge/tilt estimation core (F, frame, 3D homographies, linear
 //!   self-calibration, rig bundle adjustment).
 //! - [`alignment`]: exact aligned encoder readings from the calibrated head, measurement of
 //!   cameras by resection.
@@ -17,7 +17,11 @@
 //! - [`session`]: sessions on disk (recording head, replay head, the format).
 //! - [`recordings`]: ROS 2 bags (MCAP) and EuRoC folders read as sessions.
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
-//! - [`panfix`]: pan alignment without calibration, by fixating a drive's epipole.
+//! - [`robot`]: the robot stages (pan, steering, floor), pan alignment without calibration
+//!   by fixating a drive's epipole ([`robot::pan_fixation`]) and one-motion alignment
+//!   ([`robot::one_motion`]).
+//! - [`fixation`]: verging and fixating with no calibration; [`tracking`]: the tracker.
+//! - [`facing_plane`]: the route facing a plane or a scene too far for stereo depth.
 //!
 //! Aligning a simulated head (`headalign-sim`; any [`StereoHead`] will do): the verge/tilt
 //! procedure captures views at small elevation, pan and vergence turns, self-calibrates the
@@ -50,19 +54,17 @@
 pub mod alignment;
 pub mod calibrate;
 pub mod error;
-pub mod estimate;
 pub mod export;
-pub mod frontend;
-pub mod imaging;
+pub mod facing_plane;
+pub mod fixation;
 pub mod observations;
-pub mod onemotion;
-pub mod panfix;
-pub mod planar;
 pub mod procedure;
 pub mod process_head;
 pub mod recordings;
 pub mod robot;
 pub mod session;
+pub mod tracking;
+pub mod verge_tilt;
 
 pub use error::AlignError;
 pub use headalign_platform::{Encoders, Joint, StereoCapture, StereoHead, Vehicle};

@@ -67,8 +67,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow, bail};
 use headalign::calibrate::{CalibrateOptions, LensChoice, calibrate_rig};
-use headalign::estimate::{ENCODER_SIGMA_DEG, EstimationOptions};
 use headalign::observations::View;
+use headalign::verge_tilt::{ENCODER_SIGMA_DEG, EstimationOptions};
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, DistortionTerms};
 use headalign_platform::{Joint, StereoHead};

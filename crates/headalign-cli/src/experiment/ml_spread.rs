@@ -43,8 +43,8 @@ use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow, bail};
-use headalign::estimate::{ENCODER_SIGMA_DEG, EstimationOptions};
 use headalign::procedure::{VergeTiltOptions, VergeTiltRun};
+use headalign::verge_tilt::{ENCODER_SIGMA_DEG, EstimationOptions};
 use headalign_geometry::bundle::{BundleObservation, BundleOptions, RigState, RobustLoss, bundle_adjust};
 use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead};

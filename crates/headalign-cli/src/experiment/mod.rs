@@ -50,7 +50,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::estimate::{DepthProfile, ENCODER_SIGMA_DEG, EstimationOptions, LoneDepthGate};
+use headalign::verge_tilt::{DepthProfile, ENCODER_SIGMA_DEG, EstimationOptions, LoneDepthGate};
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::bundle::AnglePrior;
 use headalign_platform::Encoders;

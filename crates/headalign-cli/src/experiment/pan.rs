@@ -111,7 +111,7 @@ pub fn run_pan_trial(spec: &TrialSpec) -> Result<TrialRecord> {
 mod tests {
     use super::super::trial::RotationMode;
     use super::*;
-    use headalign::estimate::ENCODER_SIGMA_DEG;
+    use headalign::verge_tilt::ENCODER_SIGMA_DEG;
     use headalign_platform::Encoders;
 
     fn spec(noise: f64) -> TrialSpec {
@@ -119,9 +119,9 @@ mod tests {
             scenario: Scenario { seed: 2, noise_px: noise, ..Scenario::default() },
             initial: Encoders::default(),
             rotation: RotationMode::Fixed,
-            depth_profile: headalign::estimate::EstimationOptions::default().depth_profile,
-            image_border: headalign::estimate::EstimationOptions::default().image_border,
-            lone_depth_gate: headalign::estimate::EstimationOptions::default().lone_depth_gate,
+            depth_profile: headalign::verge_tilt::EstimationOptions::default().depth_profile,
+            image_border: headalign::verge_tilt::EstimationOptions::default().image_border,
+            lone_depth_gate: headalign::verge_tilt::EstimationOptions::default().lone_depth_gate,
             angle_prior: headalign_geometry::bundle::AnglePrior::default(),
             bootstrap: None,
         }

@@ -1,4 +1,4 @@
-//! `headalign experiment planar`: the planar route ([`headalign::planar`], paper section
+//! `headalign experiment planar`: the planar route ([`headalign::facing_plane`], paper section
 //! 3.3) in the `wall` and `far` scenes against image noise, beside the general route in
 //! the default room.
 //!
@@ -7,7 +7,7 @@
 //! elevation and pan +-r, both vergences +r; `--rotation` r degrees, default the
 //! procedure's 3 deg: [`procedure_options`]) captured in point mode, the scene
 //! detection, the planar estimate, the aligned readings ([`solve_alignment_axes`]) and
-//! their sigmas ([`headalign::planar::alignment_sigmas`] plus the reading noise). The
+//! their sigmas ([`headalign::facing_plane::alignment_sigmas`] plus the reading noise). The
 //! general scene runs [`VergeTiltRun::run`] (the general route, no detection), at 1 px
 //! only (it costs some ten times a planar trial). Errors: aligned readings (elevation,
 //! left and right vergence) minus the simulator's `aligned_encoders`, degrees.
@@ -32,10 +32,10 @@ use std::fmt::Write as _;
 
 use anyhow::{Context, Result};
 use headalign::alignment::solve_alignment_axes;
-use headalign::estimate::EstimationOptions;
+use headalign::facing_plane::{PlanarOptions, SceneKind, alignment_sigmas, detect_scene, estimate_planar};
 use headalign::observations::View;
-use headalign::planar::{PlanarOptions, SceneKind, alignment_sigmas, detect_scene, estimate_planar};
 use headalign::procedure::{VergeTiltOptions, VergeTiltRun, capture_plan};
+use headalign::verge_tilt::EstimationOptions;
 use headalign_platform::{Encoders, StereoCapture, StereoHead, TrackObservation};
 use headalign_sim::{Scenario, SimulatedHead};
 use rayon::prelude::*;

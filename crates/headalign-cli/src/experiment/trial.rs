@@ -52,12 +52,12 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow};
-use headalign::estimate::{DepthProfile, EstimationOptions, LoneDepthGate, RigCalibration, axes_of};
 use headalign::observations::View;
 use headalign::procedure::{
     AutoRotation, AxisSources, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, align_session,
     alignment_sigmas,
 };
+use headalign::verge_tilt::{DepthProfile, EstimationOptions, LoneDepthGate, RigCalibration, axes_of};
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::bundle::{AnglePrior, BundleOptions, Covariance, RobustLoss, bundle_adjust};
 use headalign_platform::{Encoders, Joint, StereoHead};

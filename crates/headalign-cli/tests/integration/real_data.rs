@@ -463,7 +463,7 @@ fn euroc_dataset_calibration_held() {
     use headalign::calibrate::{
         CalibrateOptions, LensChoice, calibrate_tracked, read_opencv_lenses, track_views,
     };
-    use headalign::frontend::FrontEndOptions;
+    use headalign::tracking::FrontEndOptions;
     use headalign_geometry::bundle::{
         BundleObservation, BundleOptions, RigState, RobustLoss, bundle_adjust, bundle_adjust_holding,
         residual_pixels,

@@ -157,7 +157,7 @@ impl DensityTrial {
 /// are 10.6 px from the centre on average against 7.5 px (truth 5.9 px). On the sessions
 /// where the denser run is right and disagrees (photographs, seeds 14 and 20) the first
 /// run's were 11.1 and 38.9 px against 6.5 and 5.7 px. Those numbers are without the
-/// front end's patch refinement ([`crate::frontend::FrontEndOptions::refine`], on by
+/// front end's patch refinement ([`crate::tracking::FrontEndOptions::refine`], on by
 /// default since), which removes that localisation error: with it no measured session
 /// reaches the disagreeing branch (the re-detected one-motion sessions, seeds 1-20 with
 /// photographs and procedural textures, differ by 0.1-0.6 combined sigmas, 0.2-1.0 with

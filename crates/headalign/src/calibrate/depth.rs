@@ -24,8 +24,8 @@ use serde::Serialize;
 
 use super::CalibrateOptions;
 use crate::error::AlignError;
-use crate::estimate::{MOVED_DEG, stereo_matches};
 use crate::observations::View;
+use crate::verge_tilt::{MOVED_DEG, stereo_matches};
 
 /// The scene-depth check of one view.
 #[derive(Debug, Clone, Serialize)]

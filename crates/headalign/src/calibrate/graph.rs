@@ -26,7 +26,7 @@
 //!   best-linked neighbours.
 //!
 //! Units: pixels for the flow, fractions for the overlap, counts for links. Pitfalls:
-//! with the front end's chained tracking ([`crate::frontend::TrackingMode::Previous`]) a
+//! with the front end's chained tracking ([`crate::tracking::TrackingMode::Previous`]) a
 //! track id never returns once lost, so runs are the segments unless ids are global (an
 //! observation file, a loop closure); the flow of a pure translation grows with the
 //! nearness of the scene, that of a rotation with the focal length: the threshold mixes

@@ -5,7 +5,7 @@
 //! What it computes, on the final adjustment's observations:
 //! - the measured noise of each observation: the front end's localisation variance of
 //!   that observation relative to its track's defining corner, and the observation it
-//!   was aligned against ([`crate::frontend::ViewTracking::localisation`]: the patch
+//!   was aligned against ([`crate::tracking::ViewTracking::localisation`]: the patch
 //!   alignments' own least-squares precision, from their grey-level residuals; no
 //!   geometric model). Two observations of a track share the error of their deepest
 //!   common ancestor in that alignment tree: its variance is their covariance (per
@@ -56,7 +56,7 @@ use nalgebra::{Matrix2x3, Matrix3};
 use serde::Serialize;
 
 use super::{MotionCalibration, report};
-use crate::frontend::Localisation;
+use crate::tracking::Localisation;
 
 /// The residuals' noise over the predicted noise above which (with a significant
 /// chi-square) the check warns and widens: 1.25. Why: with the images' own model the
@@ -241,7 +241,7 @@ pub fn image_noise_check(calibration: &MotionCalibration, measured: &MeasuredVar
 /// [`image_noise_check`] of any adjustment: `bundle` fitted to `obs`, whose `view` index
 /// `names` (the views' names, as keys of `measured`) and whose `point` index
 /// `point_tracks` (track ids); the verge/tilt estimate's check
-/// ([`crate::estimate::model_fit`]).
+/// ([`crate::verge_tilt::model_fit`]).
 pub fn noise_check_of(
     bundle: &headalign_geometry::bundle::BundleResult,
     obs: &[BundleObservation],

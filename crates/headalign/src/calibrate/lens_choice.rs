@@ -56,8 +56,8 @@ use serde::Serialize;
 use super::two_pass::calibrate_two_pass;
 use super::{CalibrateOptions, MotionCalibration, calibrate_once_from, with_restarts};
 use crate::error::AlignError;
-use crate::estimate::FINAL_ITERATIONS;
 use crate::observations::View;
+use crate::verge_tilt::FINAL_ITERATIONS;
 
 /// The lens model of [`CalibrateOptions::lens`].
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -313,7 +313,7 @@ struct Refit {
 /// `bundle` carries the intrinsic constraints and the rest of the adjustment's options;
 /// its loss, noise, lens flags and iteration floor are set here. Shared by
 /// [`super::calibrate_rig`] and the verge/tilt estimator
-/// ([`crate::estimate::EstimationOptions::lens`]).
+/// ([`crate::verge_tilt::EstimationOptions::lens`]).
 pub(crate) fn select_lens(
     state: &RigState,
     obs: &[BundleObservation],

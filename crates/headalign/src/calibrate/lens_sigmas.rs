@@ -10,7 +10,7 @@
 //! coefficient's sigma becomes the larger of the linearised one and the replicates'
 //! spread (the ratio capped at [`MAX_WIDENING`]); the covariance is widened by
 //! `C' = W C W`, `W` diagonal, so the correlations stay the linearisation's and the point
-//! estimate is unchanged (as `estimate::bootstrap_covariance` for the procedure).
+//! estimate is unchanged (as `verge_tilt::bootstrap_covariance` for the procedure).
 //!
 //! Rule: always when a lens model is estimated (no threshold); never when it is not (the
 //! pinhole calibration keeps its sigmas exactly). Why: with the procedure's small
@@ -86,7 +86,7 @@ pub fn bootstrap_lens_sigmas(
         robust: RobustLoss::None,
         noise_sigma_px: Some(noise),
         gauge_views: super::lens_choice::held_gauges(cal),
-        ..super::adjust::adjustment_options(options).bundle
+        ..super::rig_bundle::adjustment_options(options).bundle
     };
     let boot = BootstrapOptions {
         replicates: BOOTSTRAP_REPLICATES,

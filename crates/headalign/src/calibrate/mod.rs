@@ -16,7 +16,7 @@
 //!    no moved view remains (a chessboard) the error names the degeneracy;
 //! 2. one fundamental matrix from the stereo matches of all views (DEGENSAC, Sampson
 //!    refinement), the quasi-Euclidean projective frame and optimal triangulation
-//!    (as [`crate::estimate`]);
+//!    (as [`crate::verge_tilt`]);
 //! 3. per moved view, the 3D homography from the reference: 3-point rigid RANSAC in the
 //!    quasi-Euclidean frame (robust to the large motions of a hand-held rig; the 5-point
 //!    DLT RANSAC as fallback), polished on symmetric transfer error, guided re-selection
@@ -30,10 +30,10 @@
 //! 5. the maximum-likelihood rig bundle adjustment with free 6-dof view poses (the
 //!    constraints held exactly), robust loss, re-selection, covariance, from each of two
 //!    starts (the linear chain, and `K = K0` with the rigid motions of step 3), as in
-//!    [`crate::estimate`] (shared code);
+//!    [`crate::verge_tilt`] (shared code);
 //! 6. per start, an adjustment over every point seen at least twice (also the points
 //!    seen by one stereo view only), robust first, then least squares on the re-selected
-//!    observations (`adjust::every_point_pass`); the start with the lower truncated cost over
+//!    observations (`rig_bundle::every_point_pass`); the start with the lower truncated cost over
 //!    all observations is kept;
 //! 7. the report: each motion's screw after the adjustment (if none turned by
 //!    `min_rotation_deg` there the run fails: a noisy 3D homography can pass step 4's
@@ -85,21 +85,21 @@
 //! gets), `graph` (keyframes, view graph, segments, spanning trees), `sequence` (the
 //! sequence chain, reusing the steps above).
 
-mod adjust;
+mod bundle_starts;
 mod density;
 mod depth;
 mod graph;
 pub mod image_noise;
-mod lens;
+mod known_lens;
 pub mod lens_choice;
 pub mod lens_sigmas;
 mod motion;
 mod report;
 pub mod residuals;
+mod rig_bundle;
+mod rig_stereo;
 mod route;
 mod sequence;
-mod starts;
-mod stereo;
 #[cfg(test)]
 mod tests;
 mod two_pass;
@@ -117,19 +117,19 @@ pub use density::{
 pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_rig};
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
 pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
-pub use lens::{LensModel, read_opencv_lenses, undistort_views};
+pub use known_lens::{LensModel, read_opencv_lenses, undistort_views};
 pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec};
 pub use report::weak_data;
+pub use rig_stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
 pub use route::{
     REFERENCE_ROUTE_MAX_VIEWS, Route, SEQUENCE_RANSAC_MIN_ITERATIONS, TrackedViews, TrackingProgress,
     calibrate_tracked, track_views, track_views_reporting,
 };
 pub use sequence::{RANSAC_PAIRS, SequenceReport, calibrate_sequence};
-pub use stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
 
 use crate::error::AlignError;
-use crate::estimate::EstimationOptions;
 use crate::observations::View;
+use crate::verge_tilt::EstimationOptions;
 
 /// Options of [`calibrate_rig`].
 #[derive(Debug, Clone)]
@@ -487,21 +487,21 @@ fn calibrate_once_from(
     let chain_rig = lens_start.map(|l| undistort_views(&rig, &l.chain));
     let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
     // 2. F from all views, frame, triangulation.
-    let stereo = stereo::stereo_geometry(chain, &k0, est)?;
+    let stereo = rig_stereo::stereo_geometry(chain, &k0, est)?;
     // 3. 3D homographies from the reference.
     let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
     // The point set and the observations (as in estimate).
-    let points = starts::point_set(&rig, &stereo.recon, &motions);
-    let problem = starts::Problem {
+    let points = bundle_starts::point_set(&rig, &stereo.recon, &motions);
+    let problem = bundle_starts::Problem {
         recon: &stereo.recon,
         point_tracks: &points.point_tracks,
         origin_slot: &points.origin_slot,
         min_tracks: est.min_tracks,
     };
     // 4. The linear self-calibration, and the rigid start.
-    let linear = starts::linear_start(&motions, &stereo.frame, &k0, &problem, options);
-    let rigid = starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
-    let (linear_k, linear_error) = match starts::linear_summary(&linear.state) {
+    let linear = bundle_starts::linear_start(&motions, &stereo.frame, &k0, &problem, options);
+    let rigid = bundle_starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
+    let (linear_k, linear_error) = match bundle_starts::linear_summary(&linear.state) {
         // With a lens estimated and no lens start, the 3D homographies of distorted pixels
         // are not conjugate to rigid motions and their angle readings (from the trace)
         // can clamp to 0 deg: the rigid start carries the run, and the adjusted motions
@@ -518,8 +518,9 @@ fn calibrate_once_from(
         None => (None, None),
     };
     let recon = raw_recon.as_deref().unwrap_or(&stereo.recon);
-    let adjusted = adjust::adjust_starts([linear.state, rigid], &points, recon, options, start_lens, other)
-        .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
+    let adjusted =
+        rig_bundle::adjust_starts([linear.state, rigid], &points, recon, options, start_lens, other)
+            .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
     // 7. The report: final motions, the rotation test, sigmas, warnings.
     let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
     report::require_rotation(&motions, &motion_reports, options)?;

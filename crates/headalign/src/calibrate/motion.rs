@@ -27,8 +27,8 @@ use nalgebra::{Isometry3, UnitQuaternion};
 
 use super::{CalibrateOptions, MotionReport, Seeded};
 use crate::error::AlignError;
-use crate::estimate::{PolishedHomography, Reconstruction, polish, rms};
 use crate::observations::View;
+use crate::verge_tilt::{PolishedHomography, Reconstruction, polish, rms};
 
 /// Rotation angle (radians) of a 3D homography conjugate to a rigid motion, from its
 /// trace at determinant 1 (`tr D = 2 + 2 cos theta`).

@@ -21,11 +21,11 @@ use headalign_geometry::camera::Intrinsics;
 
 use super::depth::PlaneCheck;
 use super::motion::{ViewMotion, no_rotation};
+use super::rig_stereo::StereoGeometry;
 use super::sequence::SequenceReport;
-use super::stereo::StereoGeometry;
 use super::{CalibrateOptions, CalibrateReport, MotionReport};
 use crate::error::AlignError;
-use crate::estimate::Adjustment;
+use crate::verge_tilt::Adjustment;
 
 /// What one run of a chain (the reference route's or a sequence's) hands its report
 /// ([`chain_report`]).

@@ -22,8 +22,8 @@
 //! threshold is the reference chain's minimum, so such a view either calibrates on that
 //! route as it always did or goes to the sequence route.
 //!
-//! [`TrackingMode::Reference`]: crate::frontend::TrackingMode::Reference
-//! [`TrackingMode::Previous`]: crate::frontend::TrackingMode::Previous
+//! [`TrackingMode::Reference`]: crate::tracking::TrackingMode::Reference
+//! [`TrackingMode::Previous`]: crate::tracking::TrackingMode::Previous
 
 use headalign_platform::StereoImages;
 use serde::Serialize;
@@ -34,8 +34,8 @@ use super::{
     image_noise, undistort_views,
 };
 use crate::error::AlignError;
-use crate::frontend::{FrontEndOptions, Tracker, TrackingMode, ViewTracking};
 use crate::observations::View;
+use crate::tracking::{FrontEndOptions, Tracker, TrackingMode, ViewTracking};
 
 /// Folders of more views than this are tracked as sequences whatever their overlap
 /// (module docs): the reference chain adjusts every view, and matching every view to the

@@ -48,7 +48,7 @@
 //! ids shared by two segments (fewer than `min_link_tracks`: wrong links) are kept in the
 //! segment of the keyframe that first reconstructed them only.
 //!
-//! [`TrackingMode::Previous`]: crate::frontend::TrackingMode::Previous
+//! [`TrackingMode::Previous`]: crate::tracking::TrackingMode::Previous
 //! [`SequenceOptions::linear_motions`]: super::SequenceOptions::linear_motions
 
 use headalign_geometry::camera::Intrinsics;
@@ -57,14 +57,16 @@ use headalign_platform::Joint;
 use nalgebra::{Isometry3, Matrix4};
 use serde::Serialize;
 
+use super::bundle_starts::{self, Links};
 use super::graph::{self, SegmentReport, ViewTracks};
 use super::motion::{ViewMotion, fit_motion};
-use super::starts::{self, Links};
-use super::stereo::StereoGeometry;
-use super::{CalibrateOptions, MotionCalibration, MotionReport, Seeded, adjust, depth, report, stereo};
+use super::rig_stereo::StereoGeometry;
+use super::{
+    CalibrateOptions, MotionCalibration, MotionReport, Seeded, depth, report, rig_bundle, rig_stereo,
+};
 use crate::error::AlignError;
-use crate::estimate::MOVED_DEG;
 use crate::observations::View;
+use crate::verge_tilt::MOVED_DEG;
 
 /// Stereo matches F's RANSAC scores at most (step 4; every `n`-th of the keyframes'):
 /// thousands of matches of one rig determine F to far below a pixel, and the RANSAC's
@@ -396,19 +398,19 @@ fn sequence_once(
     let image_size = kf.rig[0].capture.image_size;
     let k0 = Intrinsics::rough_guess(image_size[0], image_size[1]);
     let est = &options.estimation;
-    let stereo = stereo::stereo_geometry_sampled(&kf.rig, &k0, est, Some(RANSAC_PAIRS))?;
+    let stereo = rig_stereo::stereo_geometry_sampled(&kf.rig, &k0, est, Some(RANSAC_PAIRS))?;
     let motions = chain_motions(&kf, &stereo, options, seeded)?;
-    let points = starts::point_set_linked(&kf.rig, &stereo.recon, &motions, &kf.links);
-    let problem = starts::Problem {
+    let points = bundle_starts::point_set_linked(&kf.rig, &stereo.recon, &motions, &kf.links);
+    let problem = bundle_starts::Problem {
         recon: &stereo.recon,
         point_tracks: &points.point_tracks,
         origin_slot: &points.origin_slot,
         min_tracks: est.min_tracks,
     };
     let used = linear_choice(&motions, &kf.links, options);
-    let linear = starts::linear_start_from(&motions, used, &stereo.frame, &k0, &problem, options);
-    let (linear_k, linear_error) = starts::linear_summary(&linear.state)?;
-    let rigid = starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
+    let linear = bundle_starts::linear_start_from(&motions, used, &stereo.frame, &k0, &problem, options);
+    let (linear_k, linear_error) = bundle_starts::linear_summary(&linear.state)?;
+    let rigid = bundle_starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
     let mut held = options.clone();
     held.estimation.bundle.gauge_views = kf.gauges.clone();
     // One or two motions: both starts to convergence (shallow valleys, as the reference
@@ -416,9 +418,9 @@ fn sequence_once(
     let moving = kf.links.parent.iter().filter(|p| p.is_some()).count();
     let starts = [linear.state, rigid];
     let adjusted = if moving <= 2 {
-        adjust::adjust_starts(starts, &points, &stereo.recon, &held, None, None)
+        rig_bundle::adjust_starts(starts, &points, &stereo.recon, &held, None, None)
     } else {
-        adjust::adjust_best_start(starts, &points, &stereo.recon, &held)
+        rig_bundle::adjust_best_start(starts, &points, &stereo.recon, &held)
     };
     let adjusted = adjusted.inspect_err(|_| {
         *seeded = motions

@@ -15,7 +15,7 @@
 //!    terms free from three starts: the linear and the rigid one from the model's zero
 //!    lens, and the lens-grid run's result (its cameras, lenses and motions, this run's
 //!    points triangulated under them) when that is plausible. The start with the lowest
-//!    truncated cost over this run's observations wins (`adjust::adjust_starts`): the
+//!    truncated cost over this run's observations wins (`rig_bundle::adjust_starts`): the
 //!    maximum-likelihood estimate is the lowest minimum found, whichever start reached it.
 //!    Reported if it succeeds with every focal length in the plausible range
 //!    ([`plausible`], [`MAX_FOCAL_WIDTHS`]); otherwise the lens-grid run's result if
@@ -64,8 +64,8 @@ use super::{
     undistort_views, with_restarts,
 };
 use crate::error::AlignError;
-use crate::estimate::Reconstruction;
 use crate::observations::View;
+use crate::verge_tilt::Reconstruction;
 
 /// A focal length (`fx`, `fy` of either camera) more than this many image widths, or less
 /// than its inverse, is not a plausible estimate ([`plausible`]): 20 widths is a field of
@@ -167,7 +167,9 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
         };
         let lens = LensModel { k: k0, distortion: d };
         let chain = undistort_views(&rig.rig, &[lens, lens]);
-        let Ok(stereo) = super::stereo::stereo_geometry(&chain, &k0, &options.estimation) else { continue };
+        let Ok(stereo) = super::rig_stereo::stereo_geometry(&chain, &k0, &options.estimation) else {
+            continue;
+        };
         let Ok(motions) =
             super::motion::fit_motions(&chain, &stereo.recon, &stereo.frame, options, &mut None)
         else {

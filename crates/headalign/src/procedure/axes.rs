@@ -28,7 +28,7 @@ use nalgebra::DVector;
 use super::PROPAGATION_STEP_SIGMAS;
 use super::sigmas::aligned_deltas;
 use crate::alignment::{MeasuredCameras, VergeAxes, solve_alignment, verge_axes_from_motion};
-use crate::estimate::RigCalibration;
+use crate::verge_tilt::RigCalibration;
 
 /// One measurement of the vergence axes: the capture after a vergence move and the
 /// cameras resected from it.

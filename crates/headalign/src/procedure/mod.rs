@@ -2,7 +2,7 @@
 //! section 3.2): capture an initial view; rotate elevation, capture; rotate pan (from the
 //! initial position), capture — by default each both ways (+r and -r), which doubles the
 //! angular span per axis; rotate both vergences, capture; return. Estimate the rig and head
-//! ([`crate::estimate`]), measure the vergence axes by resection, compute the aligned
+//! ([`crate::verge_tilt`]), measure the vergence axes by resection, compute the aligned
 //! readings exactly ([`crate::alignment`]), move there, capture again and check the result
 //! by vision; if the measured error exceeds the tolerance, re-measure the vergence axes from
 //! that larger move and correct (at most `max_corrections` times). A vergence axis is
@@ -100,8 +100,8 @@ use crate::alignment::{
     solve_alignment, verge_axes_from_motion,
 };
 use crate::error::AlignError;
-use crate::estimate::{EstimationOptions, RigCalibration, estimate_rig};
 use crate::observations::View;
+use crate::verge_tilt::{EstimationOptions, RigCalibration, estimate_rig};
 
 /// Options of the verge/tilt procedure.
 #[derive(Debug, Clone)]
@@ -343,25 +343,25 @@ impl VergeTiltOutcome {
 #[derive(Debug, Clone)]
 pub enum RouteOutcome {
     /// The scene had depth: the general route's outcome, and the detection's numbers.
-    General(Box<VergeTiltOutcome>, crate::planar::SceneCheck),
+    General(Box<VergeTiltOutcome>, crate::facing_plane::SceneCheck),
     /// The scene was planar or far: the planar route's outcome.
     Planar(Box<PlanarOutcome>),
 }
 
-/// The planar route's outcome ([`crate::planar`]): the head is moved to the aligned
+/// The planar route's outcome ([`crate::facing_plane`]): the head is moved to the aligned
 /// readings and one check view is captured there and measured against each camera's
-/// planar model ([`crate::planar::check_alignment`]: what it cannot check, it names). No
+/// planar model ([`crate::facing_plane::check_alignment`]: what it cannot check, it names). No
 /// corrective move follows: the planar model already holds the vergence axes.
 #[derive(Debug, Clone)]
 pub struct PlanarOutcome {
     /// The planar calibration (scene verdict, each camera, what is undetermined).
-    pub calibration: crate::planar::PlanarCalibration,
+    pub calibration: crate::facing_plane::PlanarCalibration,
     /// The alignment solution.
     pub solution: AlignmentSolution,
     /// Uncertainty of the aligned readings.
     pub sigmas: AlignmentSigmas,
     /// The check after the move (empty when it failed: [`PlanarOutcome::check_failure`]).
-    pub checks: Vec<crate::planar::PlanarCheck>,
+    pub checks: Vec<crate::facing_plane::PlanarCheck>,
     /// Why the check could not be made, if it could not (the alignment stands).
     pub check_failure: Option<String>,
     /// The check against the reported sigmas ([`check_verdict`]; `unchecked` when the
@@ -395,7 +395,7 @@ impl VergeTiltRun {
 
     /// Run the procedure on `head` (the general route only: a planar or depth-less scene
     /// fails at the estimation; [`VergeTiltRun::run_detecting`] switches to
-    /// [`crate::planar`] instead).
+    /// [`crate::facing_plane`] instead).
     pub fn run<H: StereoHead>(
         &mut self,
         head: &mut H,
@@ -406,7 +406,7 @@ impl VergeTiltRun {
     }
 
     /// Run the procedure on `head`, and after the captures detect a planar or depth-less
-    /// scene from the reference view's stereo matches ([`crate::planar::detect_scene`]):
+    /// scene from the reference view's stereo matches ([`crate::facing_plane::detect_scene`]):
     /// then the planar route aligns instead ([`PlanarOutcome`]); otherwise exactly
     /// [`VergeTiltRun::run`] (the detection only reads the captured views).
     pub fn run_detecting<H: StereoHead>(
@@ -416,8 +416,9 @@ impl VergeTiltRun {
     ) -> Result<RouteOutcome, AlignError> {
         let (options, plan) = self.capture_views(head, options)?;
         let rig_views = plan.len() - 1;
-        let scene = crate::planar::detect_scene(&self.views[..rig_views], &options.estimation.fundamental);
-        if scene.kind == crate::planar::SceneKind::General {
+        let scene =
+            crate::facing_plane::detect_scene(&self.views[..rig_views], &options.estimation.fundamental);
+        if scene.kind == crate::facing_plane::SceneKind::General {
             return self
                 .finish_general(head, &options, &plan)
                 .map(|o| RouteOutcome::General(Box::new(o), scene));
@@ -429,8 +430,11 @@ impl VergeTiltRun {
         head.move_to(&solution.aligned_encoders)?;
         let idx = self.capture(head, "check-1")?;
         let t1 = Instant::now();
-        let check =
-            crate::planar::check_alignment(&calibration, &self.views[0].capture, &self.views[idx].capture);
+        let check = crate::facing_plane::check_alignment(
+            &calibration,
+            &self.views[0].capture,
+            &self.views[idx].capture,
+        );
         estimation_seconds += t1.elapsed().as_secs_f64();
         let move_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
         let (checks, check_failure, verdict) = match check {
@@ -584,19 +588,19 @@ impl VergeTiltRun {
 }
 
 /// The planar route's options from the estimation's: its RANSAC seed, and its angle prior
-/// (the encoder prior of the bundle adjustment, [`crate::estimate::ENCODER_SIGMA_DEG`]
+/// (the encoder prior of the bundle adjustment, [`crate::verge_tilt::ENCODER_SIGMA_DEG`]
 /// without one).
-pub fn planar_options(estimation: &EstimationOptions) -> crate::planar::PlanarOptions {
-    crate::planar::PlanarOptions {
+pub fn planar_options(estimation: &EstimationOptions) -> crate::facing_plane::PlanarOptions {
+    crate::facing_plane::PlanarOptions {
         homography: headalign_geometry::ransac::RansacOptions {
             seed: estimation.seed,
-            ..crate::planar::PlanarOptions::default().homography
+            ..crate::facing_plane::PlanarOptions::default().homography
         },
         angle_prior_sigma_deg: estimation
             .bundle
             .angle_prior_sigma
-            .map_or(crate::estimate::ENCODER_SIGMA_DEG, f64::to_degrees),
-        ..crate::planar::PlanarOptions::default()
+            .map_or(crate::verge_tilt::ENCODER_SIGMA_DEG, f64::to_degrees),
+        ..crate::facing_plane::PlanarOptions::default()
     }
 }
 
@@ -605,17 +609,17 @@ pub fn planar_options(estimation: &EstimationOptions) -> crate::planar::PlanarOp
 /// readings' own noise (the estimation's angle prior).
 pub(crate) fn planar_alignment(
     views: &[View],
-    scene: crate::planar::SceneCheck,
+    scene: crate::facing_plane::SceneCheck,
     estimation: &EstimationOptions,
-) -> Result<(crate::planar::PlanarCalibration, AlignmentSolution, AlignmentSigmas), AlignError> {
-    let calibration = crate::planar::estimate_planar(views, scene, &planar_options(estimation))?;
+) -> Result<(crate::facing_plane::PlanarCalibration, AlignmentSolution, AlignmentSigmas), AlignError> {
+    let calibration = crate::facing_plane::estimate_planar(views, scene, &planar_options(estimation))?;
     let solution = crate::alignment::solve_alignment_axes(
         &calibration.left.axes(),
         &calibration.right.axes(),
         &calibration.reference_encoders,
     )?;
     let reading_sigma_deg = estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
-    let sigmas = crate::planar::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
+    let sigmas = crate::facing_plane::alignment_sigmas(&calibration)?.with_reading_noise(reading_sigma_deg);
     Ok((calibration, solution, sigmas))
 }
 
@@ -643,7 +647,7 @@ pub fn capture_plan(e0: &Encoders, options: &VergeTiltOptions) -> Vec<(String, E
 }
 
 /// The capture with every pixel undistorted by the calibration's estimated lenses
-/// ([`crate::estimate::EstimationOptions::lens`]), so that the pinhole resections of the
+/// ([`crate::verge_tilt::EstimationOptions::lens`]), so that the pinhole resections of the
 /// vergence axes and the checks see the cameras the calibration describes; the capture
 /// itself for pinhole cameras. A pixel outside the lens model's valid range is dropped.
 pub fn pinhole_capture(

@@ -24,11 +24,11 @@
 //! the aligned readings are that view's readings plus the solved turns).
 //!
 //! [`align_session_detecting`] first asks whether the scene is planar or far
-//! ([`crate::planar::detect_scene`] on the reference and rig views, as
+//! ([`crate::facing_plane::detect_scene`] on the reference and rig views, as
 //! [`super::VergeTiltRun::run_detecting`] does) and then runs the planar route
-//! ([`crate::planar::estimate_planar`] on the reference, rig and first vergence views: the
+//! ([`crate::facing_plane::estimate_planar`] on the reference, rig and first vergence views: the
 //! views the procedure estimates from) instead; what a plane leaves undetermined is named
-//! in its [`crate::planar::PlanarCalibration::undetermined`].
+//! in its [`crate::facing_plane::PlanarCalibration::undetermined`].
 
 use headalign_platform::{Encoders, Joint};
 
@@ -37,9 +37,9 @@ use crate::alignment::{
     AlignmentSolution, VergeAxes, head_motion, measure_cameras, solve_alignment, verge_axes_from_motion,
 };
 use crate::error::AlignError;
-use crate::estimate::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
+use crate::facing_plane::{PlanarCalibration, SceneCheck, SceneKind, detect_scene};
 use crate::observations::View;
-use crate::planar::{PlanarCalibration, SceneCheck, SceneKind, detect_scene};
+use crate::verge_tilt::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
 
 /// What [`align_session`] estimated.
 #[derive(Debug, Clone)]
@@ -120,7 +120,7 @@ fn rig_views(views: &[View], roles: &[ViewRole]) -> Vec<View> {
 /// Align a recorded session, detecting a planar or far scene first (module docs).
 ///
 /// Errors: those of [`classify_views`], then of [`align_session`] or of the planar route
-/// ([`crate::planar::estimate_planar`], [`crate::alignment::solve_alignment_axes`]).
+/// ([`crate::facing_plane::estimate_planar`], [`crate::alignment::solve_alignment_axes`]).
 pub fn align_session_detecting(
     views: &[View],
     estimation: &EstimationOptions,

@@ -31,7 +31,7 @@ use super::axes::{AxisFollow, AxisSources, resection_pose_covariance, tangent_st
 use super::{AlignmentSigmas, AxisPerturbations, FixationSigmas};
 use crate::alignment::{AlignmentSolution, VergeAxes, solve_alignment};
 use crate::error::AlignError;
-use crate::estimate::RigCalibration;
+use crate::verge_tilt::RigCalibration;
 
 /// Central-difference step of the uncertainty propagations ([`alignment_sigmas`],
 /// [`alignment_sigmas_measured`], [`AxisPerturbations`] and [`crate::robot`]'s), in

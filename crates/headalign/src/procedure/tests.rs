@@ -12,7 +12,7 @@ use super::rotation::{choose_rotation, diagonal_offsets, single_joint_offsets};
 use super::sigmas::{aligned_deltas, calibration_jacobian, fixation_jacobian, sigmas_of};
 use super::*;
 use crate::alignment::{VergeAxes, measure_cameras, solve_alignment, verge_axes_from_motion};
-use crate::estimate::{EstimationOptions, RigCalibration};
+use crate::verge_tilt::{EstimationOptions, RigCalibration};
 
 fn run(scenario: Scenario) -> (SimulatedHead, VergeTiltOutcome) {
     let mut head = SimulatedHead::new(scenario.clone()).unwrap();
@@ -68,7 +68,7 @@ fn noisy_encoder_readings_still_align() {
             seed,
             noise_px: 0.0,
             outlier_fraction: 0.0,
-            encoder_noise_deg: crate::estimate::ENCODER_SIGMA_DEG,
+            encoder_noise_deg: crate::verge_tilt::ENCODER_SIGMA_DEG,
             ..Scenario::default()
         };
         let (head, outcome) = run(scenario);

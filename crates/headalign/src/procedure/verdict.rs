@@ -5,7 +5,7 @@
 //!
 //! **The check rule.** After the last move to the aligned readings the check view is
 //! resected against the calibration's points ([`crate::alignment::measure_cameras`]; the
-//! planar route: [`crate::planar::check_alignment`]) and gives the three correctable errors
+//! planar route: [`crate::facing_plane::check_alignment`]) and gives the three correctable errors
 //! `m` (left vergence, right vergence, left elevation; degrees, `asin` of the optical axis
 //! on the estimated elevation and pan axes). Were the run's model and sigmas right, each
 //! would be zero up to the aligned reading's own error, the check's measurement noise and
@@ -21,7 +21,7 @@
 //! the axis; planar route: `rms_px / (f sqrt(n))` radians, the rotation of a camera about
 //! its centre fitted to `n` tracks of residual `rms_px`), and `sigma_move` the move's
 //! repeatability, taken as the readings' noise (the estimation's angle prior, default
-//! [`crate::estimate::ENCODER_SIGMA_DEG`]). The right camera's elevation error is not
+//! [`crate::verge_tilt::ENCODER_SIGMA_DEG`]). The right camera's elevation error is not
 //! in the rule: no joint removes it and its prediction has no sigma of its own.
 //!
 //! Why [`CHECK_SIGMAS`] = 5: `sigma_aligned` over-states the spread of `m` (the check
@@ -90,12 +90,12 @@ pub struct CheckVerdict {
     pub model_fit: Option<FitJudgement>,
 }
 
-/// The model-fit part of a verdict ([`crate::estimate::model_fit`]).
+/// The model-fit part of a verdict ([`crate::verge_tilt::model_fit`]).
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct FitJudgement {
     /// The residuals' noise over the image noise.
     pub residual_over_noise: f64,
-    /// The largest accepted ([`crate::estimate::MISFIT_FAIL_RATIO`]).
+    /// The largest accepted ([`crate::verge_tilt::MISFIT_FAIL_RATIO`]).
     pub bound: f64,
     /// The likely cause, when the check fired.
     pub cause: Option<String>,
@@ -121,13 +121,13 @@ impl CheckVerdict {
     }
 
     /// Judge the estimate's fit to the images too (module docs of
-    /// [`crate::estimate::model_fit`]): a misfit beyond its bound fails the verdict.
-    pub fn judge_fit(&mut self, fit: &crate::estimate::ModelFit) {
+    /// [`crate::verge_tilt::model_fit`]): a misfit beyond its bound fails the verdict.
+    pub fn judge_fit(&mut self, fit: &crate::verge_tilt::ModelFit) {
         let Some(ratio) = fit.residual_over_noise else { return };
         let passed = !fit.failed;
         self.model_fit = Some(FitJudgement {
             residual_over_noise: ratio,
-            bound: crate::estimate::MISFIT_FAIL_RATIO,
+            bound: crate::verge_tilt::MISFIT_FAIL_RATIO,
             cause: fit.cause.clone(),
             passed,
         });
@@ -212,14 +212,14 @@ pub fn check_verdict(
 /// the bundle's pixel noise) projected on the component's axis, degrees; `None` when a
 /// pose's covariance cannot be formed.
 pub fn check_sigmas(
-    calib: &crate::estimate::RigCalibration,
+    calib: &crate::verge_tilt::RigCalibration,
     capture: &headalign_platform::StereoCapture,
     measured: &crate::alignment::MeasuredCameras,
     d_pan: f64,
 ) -> Option<MeasuredErrors> {
     use nalgebra::{Matrix3, Vector3};
     let state = &calib.bundle.state;
-    let (pan, elev) = crate::estimate::axes_of(state)?;
+    let (pan, elev) = crate::verge_tilt::axes_of(state)?;
     let a_p = pan.direction.into_inner();
     let a_e =
         headalign_geometry::so3::rotation_about_line(&pan, d_pan).rotation * elev.direction.into_inner();
@@ -305,13 +305,13 @@ mod tests {
         assert!(nan.failed());
     }
 
-    /// A misfit beyond [`crate::estimate::MISFIT_FAIL_RATIO`] fails a verdict whose check
+    /// A misfit beyond [`crate::verge_tilt::MISFIT_FAIL_RATIO`] fails a verdict whose check
     /// passed, and the line names the cause first; a fit within it leaves it passed.
     #[test]
     fn a_model_that_does_not_fit_fails_the_verdict() {
         use crate::calibrate::image_noise::ImageNoiseCheck;
         use crate::calibrate::residuals::ResidualStructure;
-        let fit = |ratio: f64, failed: bool| crate::estimate::ModelFit {
+        let fit = |ratio: f64, failed: bool| crate::verge_tilt::ModelFit {
             residual_over_noise: Some(ratio),
             cause: failed.then(|| "radial pattern: try --lens auto".to_string()),
             failed,

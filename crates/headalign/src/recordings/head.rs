@@ -15,8 +15,8 @@ use headalign_platform::{
 };
 
 use crate::AlignError;
-use crate::estimate::MOVED_DEG;
 use crate::session::RecordedView;
+use crate::verge_tilt::MOVED_DEG;
 
 /// Pairs whose readings stay within this of a run's first pair, per joint, belong to one
 /// still view, degrees: half the estimation's [`MOVED_DEG`], so that two still views

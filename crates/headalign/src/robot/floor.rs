@@ -39,7 +39,7 @@
 //!
 //! **The prior's test.** The prior says `|a|^2 / s^2` is chi-square with 2 dof; a fit
 //! beyond its quantile at the false alarm rate of the planarity limit (23 deg with the
-//! point-mode default) is [`AlignError::NotPlanar`] ([`FloorFit::plausible`]). It is what
+//! point-mode default) is [`AlignError::NotPlanar`] (`FloorFit::plausible`). It is what
 //! catches a pitching robot's straight drive: with exact data its best "floor" is the one
 //! perpendicular to the pitch axis, 90 deg off, where the drive's own chi-square vanishes.
 //! The Gauss-Newton steps are limited to 3 deg each, so the fit walks there and stops

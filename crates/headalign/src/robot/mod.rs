@@ -135,7 +135,7 @@
 //! as an outlier when three remain and they all pass (`SteeringOutcome::dropped_turns`):
 //! at 3 px, seed 170's fourth drive has chi-square 43.5 with the axes held as exact and
 //! 42.8 with their uncertainty propagated, on the same drives (against 25.9; without
-//! [`crate::estimate::EstimationOptions::image_border`] its first drive, far points only,
+//! [`crate::verge_tilt::EstimationOptions::image_border`] its first drive, far points only,
 //! 42.7 / 42.8; an earlier reading of 30.0 with the uncertainty came from a second run
 //! whose pan stage had left the head elsewhere, so different drives); a robot that really
 //! pitches or rolls fails every drive. The turning centres (planar motion about the
@@ -155,7 +155,7 @@
 //!
 //! [`StereoHead`]: headalign_platform::StereoHead
 //! [`Vehicle`]: headalign_platform::Vehicle
-//! [`RigCalibration`]: crate::estimate::RigCalibration
+//! [`RigCalibration`]: crate::verge_tilt::RigCalibration
 //! [`AxisPerturbations`]: crate::procedure::AxisPerturbations
 //! [`PROPAGATION_STEP_SIGMAS`]: crate::procedure::PROPAGATION_STEP_SIGMAS
 //! [`refine_rig_motion`]: headalign_geometry::rigmotion::refine_rig_motion
@@ -169,7 +169,9 @@
 
 mod drive;
 pub mod floor;
+pub mod one_motion;
 mod pan;
+pub mod pan_fixation;
 mod propagation;
 mod rig;
 mod steering;
@@ -190,7 +192,7 @@ pub(crate) use rig::{check_rig, rig_at};
 pub use steering::zero_steering;
 
 use crate::error::{AlignError, StepContext};
-use crate::estimate::ENCODER_SIGMA_DEG;
+use crate::verge_tilt::ENCODER_SIGMA_DEG;
 
 /// The 99.999 % quantile of a chi-square with 3 degrees of freedom: the default
 /// planarity limit, a false alarm rate of 1e-5 per drive (a demo run tests 8 drives; at
@@ -279,7 +281,7 @@ impl Default for PanOptions {
 /// Factor of a robot stage's pixel thresholds for the calibration's noise estimate
 /// `sigma_px` (pixels): `max(1, sigma_px)` when `scale` (the defaults are for about 1 px
 /// of noise, as the verge/tilt estimator's, which
-/// [`crate::estimate::EstimationOptions::scaled_for_noise`] scales alike), else 1. A
+/// [`crate::verge_tilt::EstimationOptions::scaled_for_noise`] scales alike), else 1. A
 /// non-finite estimate counts as 1 px.
 pub fn threshold_scale(scale: bool, sigma_px: f64) -> f64 {
     if scale && sigma_px.is_finite() { sigma_px.max(1.0) } else { 1.0 }

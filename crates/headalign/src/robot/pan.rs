@@ -49,8 +49,8 @@ use super::rig::{Rig, RigCheck, by_track, check_rig, rig_at};
 use super::{FloorNormal, PanOptions, PanOutcome, PanStep};
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
-use crate::estimate::RigCalibration;
 use crate::procedure::AxisPerturbations;
+use crate::verge_tilt::RigCalibration;
 
 /// Signed angle about `up` from `a` to `b` (both projected onto the plane perpendicular
 /// to `up`), radians.

@@ -26,8 +26,8 @@ use nalgebra::{DMatrix, DVector, Isometry3, Matrix2, Matrix3, SMatrix, SVector, 
 
 use super::drive::LEAST_SQUARES_HUBER_PX;
 use crate::alignment::VergeAxes;
-use crate::estimate::RigCalibration;
 use crate::procedure::{AxisPerturbations, PROPAGATION_STEP_SIGMAS};
+use crate::verge_tilt::RigCalibration;
 
 /// An orthonormal pair perpendicular to `up`.
 pub(super) fn perpendicular_basis(up: &Vector3<f64>) -> [Vector3<f64>; 2] {

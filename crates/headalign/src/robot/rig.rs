@@ -29,8 +29,8 @@ use serde::Serialize;
 use super::propagation::{Readings, calibration_covariance};
 use crate::alignment::VergeAxes;
 use crate::error::AlignError;
-use crate::estimate::RigCalibration;
 use crate::procedure::{AxisPerturbations, predicted_poses};
+use crate::verge_tilt::RigCalibration;
 
 /// The calibrated stereo cameras at readings `enc`, in the current left camera frame,
 /// plus `ref_from_left` (to move calibrated axes into that frame).
@@ -225,7 +225,7 @@ pub fn predicted_rig(
 /// rig at readings `enc`: `K_r^-T [t]x R K_l^-1` with `(R, t)` = `right_from_left`
 /// predicted by the calibrated kinematics (vergence axes included). The image front end
 /// uses it to guide stereo matching where free matching fails (near, wide-disparity
-/// scenes: [`crate::frontend::TrackingHead::with_stereo_prior`]).
+/// scenes: [`crate::tracking::TrackingHead::with_stereo_prior`]).
 pub fn stereo_fundamental(
     calib: &RigCalibration,
     verge: &VergeAxes,

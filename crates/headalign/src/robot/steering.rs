@@ -41,8 +41,8 @@ use super::rig::{Rig, RigCheck, check_rig, rig_at};
 use super::{SteeringOptions, SteeringOutcome, TurnStep};
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
-use crate::estimate::RigCalibration;
 use crate::procedure::AxisPerturbations;
+use crate::verge_tilt::RigCalibration;
 
 /// The turning centre of a drive `m = cam1_from_cam2` seen as a planar motion about
 /// `up` (the floor normal): rotation about `up` by the measured angle's component along it; centre from the

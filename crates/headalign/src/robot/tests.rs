@@ -13,8 +13,8 @@ use super::propagation::{Readings, calibration_covariance, motion_covariance};
 use super::*;
 use crate::alignment::VergeAxes;
 use crate::error::AlignError;
-use crate::estimate::{ENCODER_SIGMA_DEG, EstimationOptions};
 use crate::procedure::{AxisPerturbations, VergeTiltOptions, VergeTiltRun};
+use crate::verge_tilt::{ENCODER_SIGMA_DEG, EstimationOptions};
 
 /// A simulated robot for `s` and its verge/tilt calibration (estimation seed = the
 /// scenario's seed), as every test here starts.
@@ -35,7 +35,7 @@ fn calibrated_robot(s: Scenario) -> (SimulatedRobot, crate::procedure::VergeTilt
 fn experiment_robot(
     seed: u64,
     noise: f64,
-    depth_profile: Option<crate::estimate::DepthProfile>,
+    depth_profile: Option<crate::verge_tilt::DepthProfile>,
     image_border: bool,
 ) -> (SimulatedRobot, crate::procedure::VergeTiltOutcome, Scenario) {
     let s =

@@ -83,8 +83,8 @@ use headalign_platform::{
 use serde::{Deserialize, Serialize};
 
 use crate::AlignError;
-use crate::frontend::{FrontEndOptions, Tracker};
 use crate::observations::View;
+use crate::tracking::{FrontEndOptions, Tracker};
 
 /// The format tag of `session.json`.
 pub const SESSION_FORMAT: &str = "headalign-session/1";
@@ -136,11 +136,11 @@ pub struct SessionInfo {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub stages: Option<serde_json::Value>,
     /// The lens model the estimation used (`radtan`, `equidistant` or `auto`:
-    /// [`crate::estimate::EstimationOptions::lens`]); absent for the pinhole, and in older
+    /// [`crate::verge_tilt::EstimationOptions::lens`]); absent for the pinhole, and in older
     /// sessions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lens: Option<String>,
-    /// The lens coefficients estimated with `lens` ([`crate::estimate::EstimationOptions::lens_terms`]);
+    /// The lens coefficients estimated with `lens` ([`crate::verge_tilt::EstimationOptions::lens_terms`]);
     /// absent with `lens`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lens_terms: Option<headalign_geometry::distortion::DistortionTerms>,
@@ -1074,11 +1074,11 @@ pub fn track_session(views: &[RecordedView], options: &FrontEndOptions) -> Resul
 }
 
 /// [`track_session`] with the front end's report of each view (its localisation noise is
-/// keyed by the views' names: [`crate::estimate::model_fit`]).
+/// keyed by the views' names: [`crate::verge_tilt::model_fit`]).
 pub fn track_session_reporting(
     views: &[RecordedView],
     options: &FrontEndOptions,
-) -> Result<(Vec<View>, Vec<crate::frontend::ViewTracking>), AlignError> {
+) -> Result<(Vec<View>, Vec<crate::tracking::ViewTracking>), AlignError> {
     let mut tracker = Tracker::new(options.clone())?;
     views
         .iter()

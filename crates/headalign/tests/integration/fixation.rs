@@ -6,7 +6,7 @@
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock};
 
-use headalign::imaging::{Camera, FixationOptions, FixationReport, fixate};
+use headalign::fixation::{Camera, FixationOptions, FixationReport, fixate};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::{Point3, Vector3};
 

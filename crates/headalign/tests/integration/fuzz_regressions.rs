@@ -26,7 +26,7 @@ fn observations_regressions() {
         let json = headalign::observations::session_to_json(&views).unwrap();
         let again = headalign::observations::parse_session(&json, "fuzz").unwrap();
         assert_eq!(again, views, "{}: round trip changed the session", path.display());
-        let _ = headalign::estimate::classify_views(&views);
+        let _ = headalign::verge_tilt::classify_views(&views);
     }
 }
 

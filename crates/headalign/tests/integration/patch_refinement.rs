@@ -4,7 +4,7 @@
 //! track's reference-left pixel (a ray cast through the true camera onto the true room):
 //! the point the track stands for. Refinement must bring the observations closer to it.
 
-use headalign::frontend::{FrontEndOptions, Tracker};
+use headalign::tracking::{FrontEndOptions, Tracker};
 use headalign_platform::{Encoders, ImagingHead, Joint, StereoCapture, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::{Point2, Point3, Vector3};
@@ -124,7 +124,7 @@ fn refined_observations_are_closer_to_the_truth() {
 }
 
 /// The front end's localisation noise against the truth (module docs of
-/// `headalign::frontend`, "Localisation noise"): on the rendered pair (2 grey levels of
+/// `headalign::tracking`, "Localisation noise"): on the rendered pair (2 grey levels of
 /// noise, 0.5 px blur), every observation with a known variance except the tracks'
 /// defining ones, per class (the reference right corners, aligned to their left partners;
 /// the later left ones, aligned to the reference left; the later right ones, aligned to

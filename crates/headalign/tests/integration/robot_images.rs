@@ -7,10 +7,10 @@
 //! case on images: a drive too short for the scene depth.
 
 use headalign::AlignError;
-use headalign::estimate::EstimationOptions;
-use headalign::frontend::{FrontEndOptions, TrackingHead, TrackingMode};
 use headalign::procedure::{VergeTiltOptions, VergeTiltRun};
 use headalign::robot::{PanOptions, align_pan, stereo_fundamental};
+use headalign::tracking::{FrontEndOptions, TrackingHead, TrackingMode};
+use headalign::verge_tilt::EstimationOptions;
 use headalign_platform::Encoders;
 use headalign_sim::{Scenario, SimulatedRobot};
 

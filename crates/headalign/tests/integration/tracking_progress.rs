@@ -3,7 +3,7 @@
 //! `track_views` (the callback observes, it does not steer).
 
 use headalign::calibrate::{CalibrateOptions, Route, TrackingProgress, track_views, track_views_reporting};
-use headalign::frontend::FrontEndOptions;
+use headalign::tracking::FrontEndOptions;
 use headalign_platform::{ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 

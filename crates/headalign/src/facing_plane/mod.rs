@@ -3,7 +3,7 @@
 //!
 //! When every stereo match lies on one plane (a wall, a door) or the scene is so far away
 //! that the baseline sees no depth, stereo gives no projective structure and the general
-//! route ([`crate::estimate`]) has nothing to build 3D homographies from. Each camera's
+//! route ([`crate::verge_tilt`]) has nothing to build 3D homographies from. Each camera's
 //! own views are then related by 3x3 homographies, and those still hold the head's axes
 //! (paper section 3.3): a rotation's homography leaves the image of the line at infinity
 //! perpendicular to its axis fixed. The route, each camera on its own:
@@ -21,7 +21,7 @@
 //!    centre), every rotation angle (the commanded encoder difference as a prior of
 //!    [`PlanarOptions::angle_prior_sigma_deg`]), the plane `m = n / d` (3) and each
 //!    point's 2 dof on it; residuals in pixels, model and analytic Jacobians in
-//!    [`headalign_geometry::planar`]; Levenberg-Marquardt with a Schur complement over
+//!    [`headalign_geometry::plane`]; Levenberg-Marquardt with a Schur complement over
 //!    the points; covariance from the normal equations;
 //! 5. **profile** (`profile.rs`, [`PlanarOptions::normal_profile_z`]): the covariance
 //!    widened to the largest of its linearisations at the estimate and at the camera
@@ -74,8 +74,8 @@ pub use sigmas::alignment_sigmas;
 
 use crate::alignment::CameraAxes;
 use crate::error::AlignError;
-use crate::estimate::ENCODER_SIGMA_DEG;
 use crate::observations::View;
+use crate::verge_tilt::ENCODER_SIGMA_DEG;
 
 /// Plane normal sigma beyond which the plane counts as undetermined (the scene acts as
 /// the plane at infinity), degrees.
@@ -189,7 +189,7 @@ pub struct CameraPlanar {
     pub covariance: DMatrix<f64>,
     /// Names of the covariance's rows: `fx, fy, cx, cy`, then per axis its two tangent
     /// components (`pan.dir0`, `pan.dir1`, ...) in the basis of
-    /// [`headalign_geometry::planar::tangent_basis`].
+    /// [`headalign_geometry::plane::tangent_basis`].
     pub parameter_names: Vec<String>,
     /// Estimated pixel noise (per coordinate), pixels.
     pub sigma_px: f64,

@@ -28,9 +28,9 @@ use super::PlanarOptions;
 use super::camera_joints;
 use super::refine::{JointState, Observation, Problem};
 use crate::error::AlignError;
-use crate::estimate::MOVED_DEG;
-use crate::estimate::starts::k_from_rotations;
 use crate::observations::View;
+use crate::verge_tilt::MOVED_DEG;
+use crate::verge_tilt::starts::k_from_rotations;
 
 /// One view of one camera.
 pub(super) struct ViewData {

@@ -67,11 +67,11 @@ use serde::Serialize;
 
 use crate::alignment::VergeAxes;
 use crate::error::{AlignError, StepContext};
-use crate::estimate::RigCalibration;
 use crate::robot::{
     DRIVE_MIN_ITERATIONS, RigCheck, angle_about, check_rig, drive_motion, head_forward, rig_at,
     threshold_scale,
 };
+use crate::verge_tilt::RigCalibration;
 
 /// Known geometry of the head for [`one_motion_from_motion`], in the left camera frame
 /// before the motion, stereo baselines.
@@ -460,8 +460,8 @@ pub fn align_one_motion<R: StereoHead + Vehicle>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::estimate::EstimationOptions;
     use crate::procedure::{VergeTiltOptions, VergeTiltRun};
+    use crate::verge_tilt::EstimationOptions;
     use headalign_sim::{Scenario, SimulatedRobot};
     use proptest::prelude::*;
 

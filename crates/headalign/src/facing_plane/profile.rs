@@ -8,7 +8,7 @@
 //! axes (step 4) depends on where in that range the estimate fell: propagated to the
 //! readings it is 0.6-2.3 times the Cramér-Rao bound at the truth, trial by trial
 //! (`experiment planar --scene wall --only 1 --trials 20`). As the general route's
-//! depth-scale profile ([`crate::estimate::profile_depth_scale`]) does for its
+//! depth-scale profile ([`crate::verge_tilt::profile_depth_scale`]) does for its
 //! ill-determined direction, the camera is re-adjusted with the normal held at `z` sigmas
 //! either side along each principal direction of its 2x2 tangent covariance (4 ends; `|m|`,
 //! the axes, angles, intrinsics and points free), the covariance taken at each end, and
@@ -52,18 +52,18 @@
 //!
 //! Units: `m` per metre, the normal's tangent sigma in radians, the test's rise in squared
 //! pixel-noise units (chi-square). Pitfalls: an end whose ratio exceeds
-//! [`crate::estimate::MAX_END_WIDENING`] (a parameter nearly unobservable there) or whose
+//! [`crate::verge_tilt::MAX_END_WIDENING`] (a parameter nearly unobservable there) or whose
 //! adjustment fails is skipped; the ends hold the direction by a linear penalty on `m`
 //! across it whose own sigma is 1e-3 of the normal's; the test's rise includes the gauge
 //! prior's `|m|^2 + sum |p_j|^2`, which the held fit drops (under 0.3 at 1 px, against a
 //! threshold of 28.9); a held fit that stops short of its minimum overstates the rise (the
 //! plane is then taken as determined and profiled).
 
-use headalign_geometry::planar::tangent_basis;
+use headalign_geometry::plane::tangent_basis;
 use nalgebra::{DMatrix, Matrix2, Unit, Vector3};
 
 use super::refine::{PlaneHold, Problem, adjust, covariance_at};
-use crate::estimate::MAX_END_WIDENING;
+use crate::verge_tilt::MAX_END_WIDENING;
 
 /// Iterations of each end's re-adjustment (warm-started at the estimate with the normal
 /// moved by `z` sigmas; the general route's ends use 20 for the same reason: a few

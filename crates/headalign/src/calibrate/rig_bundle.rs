@@ -2,7 +2,7 @@
 //! adjustment from each start, the pass over every point seen at least twice, and the
 //! choice between the starts' results.
 //!
-//! The adjustment (shared with [`crate::estimate`]: [`adjust_from_starts`]) minimises the
+//! The adjustment (shared with [`crate::verge_tilt`]: [`adjust_from_starts`]) minimises the
 //! reprojection error (pixels) over both cameras' intrinsics (5 dof each less the
 //! options' constraints, plus the estimated lens coefficients of `options.lens`), the rig's
 //! relative pose (5 dof: the baseline is the scale gauge), a free 6-dof pose per moved
@@ -33,9 +33,9 @@ use headalign_geometry::triangulation::triangulate_linear;
 use nalgebra::{Isometry3, Point3};
 
 use super::CalibrateOptions;
-use super::starts::PointSet;
+use super::bundle_starts::PointSet;
 use crate::error::AlignError;
-use crate::estimate::{
+use crate::verge_tilt::{
     Adjustment, DEPTH_RATIO, EstimationOptions, FINAL_ITERATIONS, Reconstruction, adjust_from_starts,
 };
 

@@ -617,7 +617,7 @@ fn image_border_moves_only_noisy_estimates_and_only_a_little() {
 }
 
 /// A receding scene (the rig re-adjusted with its depth scale held 2 sigma_s beyond the
-/// estimate, the far solution of a past measurement (`estimate::sigmas`) in miniature: 80 points at
+/// estimate, the far solution of a past measurement (`verge_tilt::sigmas`) in miniature: 80 points at
 /// 1 px) reports smaller sigmas than the estimate; profiling it widens them back (the
 /// near end lies near the estimate), never narrows any, and keeps the state.
 #[test]

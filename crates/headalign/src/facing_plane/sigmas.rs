@@ -8,7 +8,7 @@
 //! cameras are estimated separately, so their contributions add. Pitfalls: linear; a
 //! difference that fails on either side contributes nothing.
 
-use headalign_geometry::planar::tangent_basis;
+use headalign_geometry::plane::tangent_basis;
 use headalign_platform::Encoders;
 use nalgebra::{DMatrix, Unit};
 

@@ -28,7 +28,7 @@
 //! Units: pixels; chi-squares dimensionless. Degrees of freedom: none estimated.
 //!
 //! Pitfalls: the view names of the adjustment's observations are the front end's
-//! ([`crate::frontend::tracked_view_name`]) of the rig views in capture order, without
+//! ([`crate::tracking::tracked_view_name`]) of the rig views in capture order, without
 //! those the estimate dropped; a run without images (point mode) has no measured noise and
 //! the check is skipped ([`crate::calibrate::image_noise::NO_IMAGES`]).
 

@@ -21,8 +21,8 @@ use headalign_geometry::triangulation::triangulate_optimal;
 use nalgebra::{Isometry3, Point2};
 
 use crate::error::{AlignError, StepContext};
-use crate::estimate::{EstimationOptions, Reconstruction, StereoMatch, rms, stereo_matches};
 use crate::observations::View;
+use crate::verge_tilt::{EstimationOptions, Reconstruction, StereoMatch, rms, stereo_matches};
 
 /// The stereo geometry of the rig's views (step 2).
 pub(super) struct StereoGeometry {

@@ -5,7 +5,7 @@ use headalign_sim::{Scenario, SimulatedHead};
 
 use super::*;
 use crate::alignment::solve_alignment_axes;
-use crate::estimate::EstimationOptions;
+use crate::verge_tilt::EstimationOptions;
 
 /// The procedure's default plan: reference, elevation and pan both ways, both vergences.
 pub(crate) fn capture_plan(head: &mut SimulatedHead, r: f64) -> Vec<View> {

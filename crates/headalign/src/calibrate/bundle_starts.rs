@@ -40,8 +40,8 @@ use nalgebra::{Isometry3, Point3, UnitQuaternion};
 use super::CalibrateOptions;
 use super::motion::{ViewMotion, no_rotation};
 use crate::error::{AlignError, StepContext};
-use crate::estimate::{Reconstruction, points_in_ref};
 use crate::observations::View;
+use crate::verge_tilt::{Reconstruction, points_in_ref};
 
 /// The bundle's points and observations (module docs).
 pub(super) struct PointSet {
@@ -71,7 +71,7 @@ impl Links {
 }
 
 /// The point set and the observations of the rig views (module docs; as in
-/// [`crate::estimate`]), every view's motion fitted from the first.
+/// [`crate::verge_tilt`]), every view's motion fitted from the first.
 pub(super) fn point_set(rig: &[View], recon: &[Reconstruction], motions: &[ViewMotion]) -> PointSet {
     point_set_linked(rig, recon, motions, &Links::reference(rig.len()))
 }

@@ -27,7 +27,7 @@
 
 use headalign_geometry::bundle::Side;
 use headalign_geometry::camera::Intrinsics;
-use headalign_geometry::planar::{JointFactor, project_plane_point, tangent_basis};
+use headalign_geometry::plane::{JointFactor, project_plane_point, tangent_basis};
 use headalign_geometry::so3::{Line, rotation_about_line};
 use nalgebra::{DMatrix, DVector, Matrix2, Point2, Point3, Unit, Vector2, Vector3};
 

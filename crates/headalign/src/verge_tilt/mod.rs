@@ -4,7 +4,7 @@
 //! with covariances.
 //!
 //! [`estimate_rig`] runs the pipeline below, each step a function of the results of the
-//! steps before it, one file per step group (`estimate/<file>.rs`, each with its own
+//! steps before it, one file per step group (`verge_tilt/<file>.rs`, each with its own
 //! docs: what it computes, degrees of freedom, units, pitfalls):
 //! 1. **view roles** (`roles.rs`, [`classify_views`]): classify views by which joints
 //!    moved relative to the first ("reference") view; one rotation about pan alone and one

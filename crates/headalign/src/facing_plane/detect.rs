@@ -34,8 +34,8 @@ use headalign_geometry::ransac::{RansacOptions, ransac};
 use nalgebra::Point2;
 use serde::Serialize;
 
-use crate::estimate::stereo_matches;
 use crate::observations::View;
+use crate::verge_tilt::stereo_matches;
 
 /// Most tracks off the best homography in two or more views for a planar scene.
 pub const MAX_PERSISTENT_OFF_PLANE: usize = 1;
