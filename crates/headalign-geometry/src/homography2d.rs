@@ -10,7 +10,7 @@
 
 use nalgebra::{DMatrix, Matrix3, Point2, Vector3};
 
-use crate::fundamental::{normalising_transform_2d, smallest_right_singular_vectors};
+use crate::linear::{normalising_transform_2d, smallest_right_singular_vectors};
 use crate::ransac::Estimator;
 use crate::{GeometryError, Result};
 

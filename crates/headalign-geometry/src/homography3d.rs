@@ -34,7 +34,7 @@
 use nalgebra::{DMatrix, Matrix4, Point2, SMatrix, SVector, Vector3, Vector4};
 
 use crate::camera::ProjectiveCamera;
-use crate::fundamental::smallest_right_singular_vectors;
+use crate::linear::smallest_right_singular_vectors;
 use crate::ransac::Estimator;
 use crate::{GeometryError, Result};
 
@@ -115,7 +115,7 @@ impl Homography3 {
         let n = h.norm();
         let h = h / n;
         let sv_h = h
-            .try_svd(false, false, f64::EPSILON, crate::fundamental::SVD_MAX_ITER)
+            .try_svd(false, false, f64::EPSILON, crate::linear::SVD_MAX_ITER)
             .ok_or_else(|| GeometryError::Numerical("SVD of H did not converge".into()))?
             .singular_values;
         if sv_h[3].is_nan() || sv_h[3] <= 1e-12 * sv_h[0] {

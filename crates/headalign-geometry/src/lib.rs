@@ -13,6 +13,7 @@
 //! - [`distortion`]: the radial-tangential (`plumb_bob`) and equidistant (`fisheye`) lens models, undistortion of pixels.
 //! - [`so3`]: rotation exponential/logarithm safe at zero angle, screw axes.
 //! - [`ransac`]: the `Estimator` trait and one generic, seeded, adaptive RANSAC.
+//! - `linear` (inside the crate): the null space of a homogeneous system by SVD, Hartley normalisation.
 //! - [`fundamental`]: normalised 8-point and 7-point F, Sampson refinement.
 //! - [`triangulation`]: optimal correction of a match, then linear triangulation.
 //! - [`frame`]: a well-conditioned (quasi-Euclidean) projective frame from F.
@@ -36,7 +37,8 @@
 //! - [`bundle`]: the rig bundle adjustment (maximum likelihood, Schur complement,
 //!   robust loss, covariance).
 //! - [`bootstrap`]: the bundle adjustment's spread over resampled point tracks.
-//! - [`synthetic`]: seeded rig problems with known truth for tests, benches, experiments.
+//! - [`synthetic`] (`bundle::synthetic`): seeded rig problems with known truth for tests,
+//!   benches, experiments.
 
 pub mod bootstrap;
 pub mod bundle;
@@ -49,6 +51,7 @@ pub mod fundamental;
 pub mod homography2d;
 pub mod homography3d;
 pub mod invariant;
+mod linear;
 pub mod lm;
 pub mod plane;
 pub mod ransac;
@@ -59,10 +62,10 @@ pub mod rigmotion;
 pub mod selfcal;
 pub mod so3;
 pub mod steering;
-pub mod synthetic;
 pub mod translation;
 pub mod triangulation;
 
+pub use bundle::synthetic;
 pub use error::GeometryError;
 
 /// Result alias of this crate.

@@ -61,20 +61,8 @@ fn cot(x: f64) -> f64 {
     x.cos() / x.sin()
 }
 
-/// Solve for the steering zero, wheelbase and forward direction (module docs).
-///
-/// `forward_hint`: any vector with a positive component along the true forward
-/// direction (e.g. the displacement of a drive). `wheelbase`: `Some(L)` when known.
-///
-/// Errors: [`GeometryError::NotEnoughData`] with fewer than 3 turns (2 with a known
-/// wheelbase); [`GeometryError::Degenerate`] when the centres coincide, the hint is
-/// along the axle line, or two turns share an encoder reading.
-pub fn steering_from_turns(
-    up: &Unit<Vector3<f64>>,
-    turns: &[Turn],
-    forward_hint: &Vector3<f64>,
-    wheelbase: Option<f64>,
-) -> Result<SteeringSolution> {
+/// The inputs' checks of [`steering_from_turns`] (its errors).
+fn check_turns(turns: &[Turn], wheelbase: Option<f64>) -> Result<()> {
     let needed = if wheelbase.is_some() { 2 } else { 3 };
     if turns.len() < needed {
         return Err(GeometryError::NotEnoughData { what: "turns", needed, got: turns.len() });
@@ -91,6 +79,18 @@ pub fn steering_from_turns(
             }
         }
     }
+    Ok(())
+}
+
+/// The rear-axle line's frame on the floor: the mean of the turning centres projected
+/// onto the floor (perpendicular to `up`) and the forward direction, perpendicular to
+/// the centres' principal direction (the axle line) and to `up`, its sign that of
+/// `forward_hint` (module docs).
+fn axle_frame(
+    up: &Unit<Vector3<f64>>,
+    turns: &[Turn],
+    forward_hint: &Vector3<f64>,
+) -> Result<(Vector3<f64>, Vector3<f64>)> {
     let up_v = up.into_inner();
     let flat = |p: &Point3<f64>| p.coords - up_v * up_v.dot(&p.coords);
     let n = turns.len() as f64;
@@ -120,6 +120,28 @@ pub fn steering_from_turns(
     if hint < 0.0 {
         forward = -forward;
     }
+    Ok((mean, forward))
+}
+
+/// Solve for the steering zero, wheelbase and forward direction (module docs).
+///
+/// `forward_hint`: any vector with a positive component along the true forward
+/// direction (e.g. the displacement of a drive). `wheelbase`: `Some(L)` when known.
+///
+/// Errors: [`GeometryError::NotEnoughData`] with fewer than 3 turns (2 with a known
+/// wheelbase); [`GeometryError::Degenerate`] when the centres coincide, the hint is
+/// along the axle line, or two turns share an encoder reading.
+pub fn steering_from_turns(
+    up: &Unit<Vector3<f64>>,
+    turns: &[Turn],
+    forward_hint: &Vector3<f64>,
+    wheelbase: Option<f64>,
+) -> Result<SteeringSolution> {
+    check_turns(turns, wheelbase)?;
+    let up_v = up.into_inner();
+    let flat = |p: &Point3<f64>| p.coords - up_v * up_v.dot(&p.coords);
+    let n = turns.len() as f64;
+    let (mean, forward) = axle_frame(up, turns, forward_hint)?;
     let left = up_v.cross(&forward);
     let u: Vec<f64> = turns.iter().map(|t| (flat(&t.centre) - mean).dot(&left)).collect();
     let across_rms =

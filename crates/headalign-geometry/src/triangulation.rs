@@ -31,7 +31,8 @@
 use nalgebra::{DMatrix, Matrix2, Point2, Vector2, Vector3, Vector4};
 
 use crate::camera::ProjectiveCamera;
-use crate::fundamental::{FundamentalMatrix, SVD_MAX_ITER};
+use crate::fundamental::FundamentalMatrix;
+use crate::linear::SVD_MAX_ITER;
 use crate::{GeometryError, Result};
 
 /// Maximum rounds of Lindstrom's iteration.

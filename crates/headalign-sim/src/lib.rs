@@ -13,6 +13,7 @@
 //! - [`kinematics`]: the true head geometry (axes as lines in the robot frame, zero
 //!   offsets, camera mounting) drawn from the seed, and the product-of-exponentials
 //!   forward kinematics.
+//! - [`quad`]: the planar rectangle the room's surfaces are made of.
 //! - [`scene`]: a seeded room of 3D points (walls, floor, ceiling, boxes) with track ids.
 //! - [`head`]: [`SimulatedHead`], noisy point captures with outliers, rendered stereo
 //!   images.
@@ -33,6 +34,7 @@
 pub mod head;
 pub mod kinematics;
 pub mod metrics;
+pub mod quad;
 pub mod render;
 pub mod rigmotion;
 pub mod robot;

@@ -1,6 +1,6 @@
 //! Textures for the rendered room: one baked, mip-mapped grey texture per surface.
 //!
-//! Each surface ([`crate::scene::PlanarQuad`]) gets its own texture covering it at
+//! Each surface ([`crate::quad::PlanarQuad`]) gets its own texture covering it at
 //! `metres_per_texel` (default 5 mm), so nothing repeats across surfaces and the scene
 //! has texture at every scale. A texel value is
 //! `128 + 36 * (gain * (photo + noise + patches) + offset)`, clamped to `[0, 255]`:
@@ -36,7 +36,7 @@ use rand::{Rng, RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-use crate::scene::PlanarQuad;
+use crate::quad::PlanarQuad;
 
 /// The photograph files looked for under the data directory (relative paths).
 pub const PHOTO_FILES: [&str; 12] = [

@@ -11,9 +11,12 @@
 //!   self-calibration, rig bundle adjustment).
 //! - [`alignment`]: exact aligned encoder readings from the calibrated head, measurement of
 //!   cameras by resection.
+//! - [`rig`]: the kernel both calibration routes share (lens models and their choice,
+//!   known lenses, checks of the fit against the data).
 //! - [`calibrate`]: self-calibration of a stereo rig from general rig motions (one
 //!   general motion with constraints, or two rotations about different axes).
-//! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
+//! - [`procedure`]: the verge/tilt procedure over any `StereoHead`; [`plan`]: the views it
+//!   captures.
 //! - [`session`]: sessions on disk (recording head, replay head, the format).
 //! - [`recordings`]: ROS 2 bags (MCAP) and EuRoC folders read as sessions.
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
@@ -58,9 +61,11 @@ pub mod export;
 pub mod facing_plane;
 pub mod fixation;
 pub mod observations;
+pub mod plan;
 pub mod procedure;
 pub mod process_head;
 pub mod recordings;
+pub mod rig;
 pub mod robot;
 pub mod session;
 pub mod tracking;

@@ -48,7 +48,7 @@
 //! [`TrackingMode::Previous`] a track's variance grows with its length). A corner that was
 //! not aligned (refinement off, a later view's fresh right corner in
 //! [`TrackingMode::Reference`]) has none. Self-calibration compares its reprojection
-//! residuals with these ([`crate::calibrate::image_noise`]).
+//! residuals with these ([`crate::rig::image_noise`]).
 //!
 //! Two tracking modes ([`TrackingMode`]):
 //! - [`TrackingMode::Reference`] (the verge/tilt procedure): every view is matched to the

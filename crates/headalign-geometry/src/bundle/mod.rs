@@ -233,6 +233,8 @@
 //!   [`bundle_adjust_at_depth_scale`], [`bundle_adjust_holding`].
 //! - `covariance.rs` (the covariance): [`Covariance`], [`CovarianceModel`], the covariance
 //!   at the solution, [`clustered_covariance`], the depth scale [`log_depth_scale`].
+//! - `synthetic.rs` ([`synthetic`], also at the crate root): seeded rig problems with known
+//!   truth for tests, benchmarks and experiments.
 //! - `test_support.rs`: fixtures shared by the tests (test builds only).
 //!
 //! [`Distortion`]: crate::distortion::Distortion
@@ -249,6 +251,7 @@ mod robust;
 mod solver;
 mod sparse;
 mod state;
+pub mod synthetic;
 #[cfg(test)]
 mod test_support;
 

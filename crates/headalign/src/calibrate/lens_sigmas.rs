@@ -85,7 +85,7 @@ pub fn bootstrap_lens_sigmas(
     let ls = BundleOptions {
         robust: RobustLoss::None,
         noise_sigma_px: Some(noise),
-        gauge_views: super::lens_choice::held_gauges(cal),
+        gauge_views: super::lens_auto::held_gauges(cal),
         ..super::rig_bundle::adjustment_options(options).bundle
     };
     let boot = BootstrapOptions {

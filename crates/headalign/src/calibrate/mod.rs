@@ -55,7 +55,7 @@
 //! model's coefficients (radial-tangential or equidistant; `k1, k2` by default, see
 //! [`CalibrateOptions::lens_terms`]) of each camera to the final adjustment (step 5;
 //! [`BundleOptions::estimate_distortion`](headalign_geometry::bundle::BundleOptions)), or
-//! chooses the model and its terms ([`LensChoice::Auto`], [`lens_choice`]):
+//! chooses the model and its terms ([`LensChoice::Auto`], [`crate::rig::lens_choice`]):
 //! steps 1-4 then see distorted pixels (a pinhole approximation, fine for the moderate
 //! distortion of the start), and the result is in `bundle.state.{left,right}_distortion`
 //! with sigmas `left.k1` ... in the covariance. The chain also runs on pixels undistorted
@@ -88,14 +88,12 @@
 mod bundle_starts;
 mod density;
 mod depth;
+mod fit_checks;
 mod graph;
-pub mod image_noise;
-mod known_lens;
-pub mod lens_choice;
+mod lens_auto;
 pub mod lens_sigmas;
 mod motion;
 mod report;
-pub mod residuals;
 mod rig_bundle;
 mod rig_stereo;
 mod route;
@@ -116,9 +114,6 @@ pub use density::{
 };
 pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_rig};
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
-pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
-pub use known_lens::{LensModel, read_opencv_lenses, undistort_views};
-pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec};
 pub use report::weak_data;
 pub use rig_stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
 pub use route::{
@@ -129,6 +124,10 @@ pub use sequence::{RANSAC_PAIRS, SequenceReport, calibrate_sequence};
 
 use crate::error::AlignError;
 use crate::observations::View;
+pub use crate::rig::{
+    FailedCandidate, ImageNoiseCheck, LensCandidate, LensChoice, LensModel, LensSelection, LensSpec,
+    MeasuredVariances, image_noise, read_opencv_lenses, residuals, undistort_views,
+};
 use crate::verge_tilt::EstimationOptions;
 
 /// Options of [`calibrate_rig`].
@@ -362,12 +361,12 @@ pub struct MotionCalibration {
 pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<MotionCalibration, AlignError> {
     options.validate()?;
     let mut result = if options.lens == LensChoice::Auto {
-        lens_choice::calibrate_choosing_lens(views, options)?
+        lens_auto::calibrate_choosing_lens(views, options)?
     } else {
         two_pass::calibrate_two_pass(views, options)?
     };
     widen_lens_sigmas(&mut result, options);
-    residuals::check_and_widen(&mut result);
+    fit_checks::check_and_widen(&mut result);
     result.report.image_noise = Some(ImageNoiseCheck::skipped(image_noise::NO_IMAGES));
     Ok(result)
 }

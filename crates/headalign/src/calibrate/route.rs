@@ -31,7 +31,7 @@ use serde::Serialize;
 use super::graph::ViewTracks;
 use super::{
     CalibrateOptions, LensModel, MeasuredVariances, MotionCalibration, calibrate_rig, calibrate_sequence,
-    image_noise, undistort_views,
+    undistort_views,
 };
 use crate::error::AlignError;
 use crate::observations::View;
@@ -103,7 +103,7 @@ pub fn calibrate_tracked(
             c
         }
     };
-    image_noise::check_against_images(&mut c, &measured);
+    super::fit_checks::check_against_images(&mut c, &measured);
     Ok(c)
 }
 

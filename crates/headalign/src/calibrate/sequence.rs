@@ -97,12 +97,12 @@ pub fn calibrate_sequence(
     let with_restarts =
         |o: &CalibrateOptions| super::with_restarts(o, |o, seeded| sequence_once(views, o, seeded));
     let mut result = if options.lens == super::LensChoice::Auto {
-        super::lens_choice::choose_lens(options, with_restarts, None)?
+        super::lens_auto::choose_lens(options, with_restarts, None)?
     } else {
         with_restarts(options)?
     };
     super::widen_lens_sigmas(&mut result, options);
-    super::residuals::check_and_widen(&mut result);
+    super::fit_checks::check_and_widen(&mut result);
     result.report.image_noise = Some(super::ImageNoiseCheck::skipped(super::image_noise::NO_IMAGES));
     Ok(result)
 }

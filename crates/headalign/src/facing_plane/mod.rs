@@ -67,7 +67,7 @@ use headalign_platform::{Encoders, Joint};
 use nalgebra::{DMatrix, Unit, Vector3};
 use serde::Serialize;
 
-pub use check::{CameraCheck, PlanarCheck, UNCHECKED, check_alignment};
+pub use check::{CameraCheck, MIN_CHECK_TRACKS, PlanarCheck, UNCHECKED, check_alignment};
 pub use detect::{SceneCheck, SceneKind, detect_scene};
 pub use profile::{PLANE_TEST_Z, PlaneTest, chi_square_quantile};
 pub use sigmas::alignment_sigmas;

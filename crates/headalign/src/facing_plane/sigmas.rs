@@ -13,9 +13,8 @@ use headalign_platform::Encoders;
 use nalgebra::{DMatrix, Unit};
 
 use super::{CameraPlanar, PlanarCalibration};
-use crate::alignment::{CameraAxes, solve_alignment_axes};
+use crate::alignment::{AlignmentSigmas, CameraAxes, PROPAGATION_STEP_SIGMAS, solve_alignment_axes};
 use crate::error::AlignError;
-use crate::procedure::{AlignmentSigmas, PROPAGATION_STEP_SIGMAS};
 
 /// Camera `c`'s axes with parameter `i` ([`CameraPlanar::parameter_names`]) moved by `h`.
 fn moved(c: &CameraPlanar, i: usize, h: f64) -> CameraAxes {

@@ -5,6 +5,7 @@ use headalign_sim::{Scenario, SimulatedHead};
 
 use super::*;
 use crate::alignment::solve_alignment_axes;
+use crate::plan::CapturePlan;
 use crate::verge_tilt::EstimationOptions;
 
 /// The procedure's default plan: reference, elevation and pan both ways, both vergences.
@@ -77,26 +78,6 @@ fn the_default_room_is_general() {
     }
 }
 
-/// The procedure switches: on the wall it runs the planar route and ends aligned within
-/// 0.01 deg (noise-free); on the default room it runs the general route.
-#[test]
-fn the_procedure_switches_on_a_wall_only() {
-    use crate::procedure::{RouteOutcome, VergeTiltOptions, VergeTiltRun};
-    let scenario = Scenario { noise_px: 0.0, ..Scenario::wall().with_seed(3) };
-    let mut head = SimulatedHead::new(scenario).unwrap();
-    let out = VergeTiltRun::default().run_detecting(&mut head, &VergeTiltOptions::default()).unwrap();
-    let RouteOutcome::Planar(p) = out else { panic!("the wall went the general way") };
-    assert_eq!(p.calibration.scene.kind, SceneKind::Planar);
-    let err = head.alignment_errors(&head.encoders());
-    let truth = head.alignment_errors(&head.aligned_encoders());
-    for (e, t) in [(err.verge_err_l_deg, truth.verge_err_l_deg), (err.elev_err_l_deg, truth.elev_err_l_deg)] {
-        assert!((e - t).abs() < 0.01, "{e} vs {t}");
-    }
-    let mut head = SimulatedHead::new(Scenario::default().with_seed(3)).unwrap();
-    let out = VergeTiltRun::default().run_detecting(&mut head, &VergeTiltOptions::default()).unwrap();
-    assert!(matches!(out, RouteOutcome::General(..)));
-}
-
 /// At 1 px the wall's large errors are the least squares' own minimum, not a local one:
 /// restarted from the fit of the exact pixels (the truth, within 0.07 deg), seeds 9 and 7
 /// (verge errors 2.2-2.4 deg, 5-6 times the Cramér-Rao bound, `experiment planar --scene
@@ -108,13 +89,12 @@ fn the_noisy_wall_fit_is_its_least_squares_minimum() {
     use headalign_geometry::bundle::Side;
     use headalign_platform::{StereoCapture, TrackObservation};
 
-    use crate::procedure::{VergeTiltOptions, capture_plan as plan};
     for seed in [9, 7] {
         let s = Scenario { noise_px: 1.0, encoder_noise_deg: 0.01, ..Scenario::wall().with_seed(seed) };
         let mut head = SimulatedHead::new(s).unwrap();
         let e0 = head.read_encoders().unwrap();
         let (mut views, mut exact) = (Vec::new(), Vec::new());
-        for (name, e) in plan(&e0, &VergeTiltOptions::default()) {
+        for (name, e) in CapturePlan::default().views(&e0) {
             head.move_to(&e).unwrap();
             let c = head.capture().unwrap();
             let x = head.exact_capture(&e);
@@ -161,12 +141,11 @@ fn the_noisy_wall_fit_is_its_least_squares_minimum() {
 /// The views of `experiment planar` at 1 px (encoder noise 0.01 deg) for `preset` and
 /// `seed`, the scene check on the views before the rig view, and the planar estimate.
 fn noisy_estimate(preset: &str, seed: u64) -> PlanarCalibration {
-    use crate::procedure::{VergeTiltOptions, capture_plan as plan};
     let base = Scenario::preset(preset).unwrap().with_seed(seed);
     let mut head = SimulatedHead::new(Scenario { noise_px: 1.0, encoder_noise_deg: 0.01, ..base }).unwrap();
     let e0 = head.read_encoders().unwrap();
     let mut views = Vec::new();
-    for (name, e) in plan(&e0, &VergeTiltOptions::default()) {
+    for (name, e) in CapturePlan::default().views(&e0) {
         head.move_to(&e).unwrap();
         views.push(View { name, capture: head.capture().unwrap() });
     }

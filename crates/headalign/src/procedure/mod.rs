@@ -89,18 +89,20 @@ pub use offline::{
     PlanarSessionAlignment, SessionAlignment, SessionRoute, align_session, align_session_detecting,
 };
 pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
-pub use sigmas::{PROPAGATION_STEP_SIGMAS, alignment_sigmas, alignment_sigmas_measured, fixation_sigmas};
+pub use sigmas::{alignment_sigmas, alignment_sigmas_measured, fixation_sigmas};
 pub use verdict::{
     CHECK_SIGMAS, CheckComponent, CheckVerdict, FitJudgement, MAX_ALIGNING_MOVE_DEG, check_move,
     check_sigmas, check_verdict,
 };
 
+pub use crate::alignment::{AlignmentSigmas, PROPAGATION_STEP_SIGMAS};
 use crate::alignment::{
     AlignmentSolution, MeasuredErrors, VergeAxes, head_motion, measure_cameras, measured_errors,
     solve_alignment, verge_axes_from_motion,
 };
 use crate::error::AlignError;
 use crate::observations::View;
+use crate::plan::CapturePlan;
 use crate::verge_tilt::{EstimationOptions, RigCalibration, estimate_rig};
 
 /// Options of the verge/tilt procedure.
@@ -199,14 +201,15 @@ impl AutoRotation {
 
 impl Default for VergeTiltOptions {
     fn default() -> Self {
+        let plan = CapturePlan::default();
         Self {
-            rotation_deg: 3.0,
-            verge_rotation_deg: 3.0,
-            both_directions: true,
+            rotation_deg: plan.rotation_deg,
+            verge_rotation_deg: plan.verge_rotation_deg,
+            both_directions: plan.both_directions,
             estimation: EstimationOptions::default(),
             check_tolerance_deg: 0.2,
             max_corrections: 2,
-            diagonal_rotation_deg: 0.0,
+            diagonal_rotation_deg: plan.diagonal_rotation_deg,
             auto_rotation: None,
         }
     }
@@ -250,33 +253,6 @@ pub struct CheckStep {
     /// The check's own 1-sigma of each measured error, degrees ([`check_sigmas`]; `None`
     /// when the resections' covariance could not be formed).
     pub sigma: Option<MeasuredErrors>,
-}
-
-/// 1-sigma uncertainties of the aligned readings, degrees, propagated from the bundle
-/// adjustment's covariance and, in the procedure ([`alignment_sigmas_measured`]), from the
-/// resections that measured the vergence axes.
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct AlignmentSigmas {
-    /// Elevation reading.
-    pub elevation_deg: f64,
-    /// Left vergence reading.
-    pub verge_left_deg: f64,
-    /// Right vergence reading.
-    pub verge_right_deg: f64,
-}
-
-impl AlignmentSigmas {
-    /// The sigmas with a reading noise of `sigma_deg` per joint added in quadrature: the
-    /// aligned readings are the reference view's readings plus the solved turns, so that
-    /// read's error is in each of them.
-    pub fn with_reading_noise(self, sigma_deg: f64) -> Self {
-        let add = |s: f64| s.hypot(sigma_deg);
-        Self {
-            elevation_deg: add(self.elevation_deg),
-            verge_left_deg: add(self.verge_left_deg),
-            verge_right_deg: add(self.verge_right_deg),
-        }
-    }
 }
 
 /// 1-sigma uncertainties of the fixation points (where each camera sees the target
@@ -493,72 +469,14 @@ impl VergeTiltRun {
 
         let t0 = Instant::now();
         let calibration = estimate_rig(&self.views[..rig_views], &options.estimation)?;
-        let state = &calibration.bundle.state;
         let reference = self.views[0].capture.encoders;
-        let left0 = nalgebra::Isometry3::identity();
-        let right0 = state.right_from_left.inverse();
-        let verge_capture = pinhole_capture(&calibration, &self.views[verge_view].capture);
-        let measured = measure_cameras(&calibration, &verge_capture, &left0, &right0)?;
-        let mut verge_axes = verge_axes_from_motion(state, &reference, &verge_capture.encoders, &measured)?;
-        let source = AxisMeasurement { capture: verge_capture, measured };
-        let mut axis_sources = AxisSources {
-            left: verge_axes.left.map(|_| source.clone()),
-            right: verge_axes.right.map(|_| source.clone()),
-        };
-        let mut solution = solve_alignment(state, &verge_axes, &reference)?;
+        let mut axes = self.measure_verge_axes(&calibration, verge_view, &reference)?;
         let mut estimation_seconds = t0.elapsed().as_secs_f64();
 
-        let mut checks = Vec::new();
-        for round in 0..=options.max_corrections {
-            let target = solution.aligned_encoders;
-            check_move(&reference, &target, planned_turn_deg(options))?;
-            head.move_to(&target)?;
-            let idx = self.capture(head, &format!("check-{}", round + 1))?;
-            let t1 = Instant::now();
-            let enc = self.views[idx].capture.encoders;
-            let d = |j: Joint| (enc.get(j) - reference.get(j)).to_radians();
-            let (pl, pr) = predicted_poses(&calibration, &verge_axes, &reference, &enc)?;
-            let check_capture = pinhole_capture(&calibration, &self.views[idx].capture);
-            let measured = measure_cameras(&calibration, &check_capture, &pl, &pr)?;
-            let errors = measured_errors(state, &measured, d(Joint::Pan))
-                .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
-            let sigma = check_sigmas(&calibration, &check_capture, &measured, d(Joint::Pan));
-            checks.push(CheckStep { encoders: enc, measured: errors, sigma });
-            // The right camera's elevation error is not correctable; the other three are.
-            let worst = errors
-                .verge_err_l_deg
-                .abs()
-                .max(errors.verge_err_r_deg.abs())
-                .max(errors.elev_err_l_deg.abs());
-            if worst <= options.check_tolerance_deg || round == options.max_corrections {
-                estimation_seconds += t1.elapsed().as_secs_f64();
-                break;
-            }
-            // Re-measure a vergence axis from this move only if its vergence turned at
-            // least as far as the procedure's own vergence move: the axis is the screw of
-            // the measured pose against the modelled pan/elevation chain, so a small
-            // vergence turn on top of a large elevation turn measures mostly the chain's
-            // error (at 3 px, a 0.9 deg turn after 8 deg of elevation gave an axis 80 deg
-            // off and an 8 deg alignment error). No axis re-measured: nothing to correct.
-            let big = |j: Joint| (enc.get(j) - reference.get(j)).abs() >= options.verge_rotation_deg.abs();
-            let better = verge_axes_from_motion(state, &reference, &enc, &measured)?;
-            let left = better.left.filter(|_| big(Joint::VergeLeft));
-            let right = better.right.filter(|_| big(Joint::VergeRight));
-            if left.is_none() && right.is_none() {
-                estimation_seconds += t1.elapsed().as_secs_f64();
-                break;
-            }
-            let source = AxisMeasurement { capture: check_capture, measured };
-            if left.is_some() {
-                axis_sources.left = Some(source.clone());
-            }
-            if right.is_some() {
-                axis_sources.right = Some(source);
-            }
-            verge_axes = VergeAxes { left: left.or(verge_axes.left), right: right.or(verge_axes.right) };
-            solution = solve_alignment(state, &verge_axes, &reference)?;
-            estimation_seconds += t1.elapsed().as_secs_f64();
-        }
+        let (checks, check_seconds) =
+            self.move_and_check(head, options, &calibration, &reference, &mut axes)?;
+        estimation_seconds += check_seconds;
+        let AlignedAxes { verge_axes, axis_sources, solution } = axes;
         let reading_sigma_deg = options.estimation.bundle.angle_prior_sigma.map_or(0.0, f64::to_degrees);
         let sigmas = alignment_sigmas_measured(&calibration, &verge_axes, &axis_sources, &reference, None)?
             .with_reading_noise(reading_sigma_deg);
@@ -585,6 +503,106 @@ impl VergeTiltRun {
             estimation_seconds,
         })
     }
+
+    /// The vergence axes measured by resection in the vergence view (`verge_view`, the
+    /// plan's last) against the calibration's reference poses, and the alignment they give.
+    fn measure_verge_axes(
+        &self,
+        calibration: &RigCalibration,
+        verge_view: usize,
+        reference: &Encoders,
+    ) -> Result<AlignedAxes, AlignError> {
+        let state = &calibration.bundle.state;
+        let left0 = nalgebra::Isometry3::identity();
+        let right0 = state.right_from_left.inverse();
+        let verge_capture = pinhole_capture(calibration, &self.views[verge_view].capture);
+        let measured = measure_cameras(calibration, &verge_capture, &left0, &right0)?;
+        let verge_axes = verge_axes_from_motion(state, reference, &verge_capture.encoders, &measured)?;
+        let source = AxisMeasurement { capture: verge_capture, measured };
+        let axis_sources = AxisSources {
+            left: verge_axes.left.map(|_| source.clone()),
+            right: verge_axes.right.map(|_| source.clone()),
+        };
+        let solution = solve_alignment(state, &verge_axes, reference)?;
+        Ok(AlignedAxes { verge_axes, axis_sources, solution })
+    }
+
+    /// Move to the aligned readings and check by vision; while a correctable error exceeds
+    /// the tolerance, re-measure the vergence axes from that move and correct (at most
+    /// `max_corrections` times; module docs). `axes` ends at the last correction. Returns
+    /// the checks and the seconds spent computing (captures and moves aside).
+    fn move_and_check<H: StereoHead>(
+        &mut self,
+        head: &mut H,
+        options: &VergeTiltOptions,
+        calibration: &RigCalibration,
+        reference: &Encoders,
+        axes: &mut AlignedAxes,
+    ) -> Result<(Vec<CheckStep>, f64), AlignError> {
+        let state = &calibration.bundle.state;
+        let reference = *reference;
+        let (mut checks, mut seconds) = (Vec::new(), 0.0);
+        for round in 0..=options.max_corrections {
+            let target = axes.solution.aligned_encoders;
+            check_move(&reference, &target, planned_turn_deg(options))?;
+            head.move_to(&target)?;
+            let idx = self.capture(head, &format!("check-{}", round + 1))?;
+            let t1 = Instant::now();
+            let enc = self.views[idx].capture.encoders;
+            let d = |j: Joint| (enc.get(j) - reference.get(j)).to_radians();
+            let (pl, pr) = predicted_poses(calibration, &axes.verge_axes, &reference, &enc)?;
+            let check_capture = pinhole_capture(calibration, &self.views[idx].capture);
+            let measured = measure_cameras(calibration, &check_capture, &pl, &pr)?;
+            let errors = measured_errors(state, &measured, d(Joint::Pan))
+                .ok_or_else(|| AlignError::MissingMotion("pan and elevation axes".into()))?;
+            let sigma = check_sigmas(calibration, &check_capture, &measured, d(Joint::Pan));
+            checks.push(CheckStep { encoders: enc, measured: errors, sigma });
+            // The right camera's elevation error is not correctable; the other three are.
+            let worst = errors
+                .verge_err_l_deg
+                .abs()
+                .max(errors.verge_err_r_deg.abs())
+                .max(errors.elev_err_l_deg.abs());
+            if worst <= options.check_tolerance_deg || round == options.max_corrections {
+                seconds += t1.elapsed().as_secs_f64();
+                break;
+            }
+            // Re-measure a vergence axis from this move only if its vergence turned at
+            // least as far as the procedure's own vergence move: the axis is the screw of
+            // the measured pose against the modelled pan/elevation chain, so a small
+            // vergence turn on top of a large elevation turn measures mostly the chain's
+            // error (at 3 px, a 0.9 deg turn after 8 deg of elevation gave an axis 80 deg
+            // off and an 8 deg alignment error). No axis re-measured: nothing to correct.
+            let big = |j: Joint| (enc.get(j) - reference.get(j)).abs() >= options.verge_rotation_deg.abs();
+            let better = verge_axes_from_motion(state, &reference, &enc, &measured)?;
+            let left = better.left.filter(|_| big(Joint::VergeLeft));
+            let right = better.right.filter(|_| big(Joint::VergeRight));
+            if left.is_none() && right.is_none() {
+                seconds += t1.elapsed().as_secs_f64();
+                break;
+            }
+            let source = AxisMeasurement { capture: check_capture, measured };
+            if left.is_some() {
+                axes.axis_sources.left = Some(source.clone());
+            }
+            if right.is_some() {
+                axes.axis_sources.right = Some(source);
+            }
+            axes.verge_axes =
+                VergeAxes { left: left.or(axes.verge_axes.left), right: right.or(axes.verge_axes.right) };
+            axes.solution = solve_alignment(state, &axes.verge_axes, &reference)?;
+            seconds += t1.elapsed().as_secs_f64();
+        }
+        Ok((checks, seconds))
+    }
+}
+
+/// The vergence axes the general route uses, the captures that measured them, and the
+/// alignment they give.
+struct AlignedAxes {
+    verge_axes: VergeAxes,
+    axis_sources: AxisSources,
+    solution: AlignmentSolution,
 }
 
 /// The planar route's options from the estimation's: its RANSAC seed, and its angle prior
@@ -629,21 +647,16 @@ fn planned_turn_deg(options: &VergeTiltOptions) -> f64 {
     options.rotation_deg.abs().max(options.diagonal_rotation_deg.abs()).max(options.verge_rotation_deg.abs())
 }
 
-/// The views the procedure captures, in order, from the initial readings `e0`: the
-/// initial view; elevation and pan rotations (each both ways if `both_directions`); the
-/// diagonal views if `diagonal_rotation_deg` is not 0; and last, both vergences rotated
-/// (to measure the vergence axes).
+/// The views the procedure captures, in order, from the initial readings `e0`
+/// ([`CapturePlan::views`] with the options' rotations).
 pub fn capture_plan(e0: &Encoders, options: &VergeTiltOptions) -> Vec<(String, Encoders)> {
-    let mut plan = vec![("initial".to_string(), *e0)];
-    let moves = rotation::single_joint_offsets(options.rotation_deg, options.both_directions)
-        .into_iter()
-        .chain(rotation::diagonal_offsets(options.diagonal_rotation_deg, options.both_directions));
-    for (name, pan, elevation) in moves {
-        plan.push((name.to_string(), e0.moved(Joint::Pan, pan).moved(Joint::Elevation, elevation)));
+    CapturePlan {
+        rotation_deg: options.rotation_deg,
+        verge_rotation_deg: options.verge_rotation_deg,
+        both_directions: options.both_directions,
+        diagonal_rotation_deg: options.diagonal_rotation_deg,
     }
-    let v = options.verge_rotation_deg;
-    plan.push(("verge".to_string(), e0.moved(Joint::VergeLeft, v).moved(Joint::VergeRight, v)));
-    plan
+    .views(e0)
 }
 
 /// The capture with every pixel undistorted by the calibration's estimated lenses
@@ -659,11 +672,11 @@ pub fn pinhole_capture(
         return capture.clone();
     }
     let lenses = [
-        crate::calibrate::LensModel { k: state.left, distortion: state.left_distortion },
-        crate::calibrate::LensModel { k: state.right, distortion: state.right_distortion },
+        crate::rig::LensModel { k: state.left, distortion: state.left_distortion },
+        crate::rig::LensModel { k: state.right, distortion: state.right_distortion },
     ];
     let view = View { name: String::new(), capture: capture.clone() };
-    crate::calibrate::undistort_views(std::slice::from_ref(&view), &lenses)
+    crate::rig::undistort_views(std::slice::from_ref(&view), &lenses)
         .pop()
         .map_or_else(|| capture.clone(), |v| v.capture)
 }

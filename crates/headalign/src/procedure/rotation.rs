@@ -18,6 +18,7 @@ use headalign_platform::{Encoders, Joint, StereoHead};
 
 use super::{AutoRotation, VergeTiltOptions};
 use crate::error::AlignError;
+pub(super) use crate::plan::{diagonal_offsets, single_joint_offsets};
 
 /// Track ids seen by both cameras of a capture.
 fn stereo_tracks(capture: &headalign_platform::StereoCapture) -> std::collections::HashSet<u64> {
@@ -44,32 +45,6 @@ pub struct RotationChoice {
     pub diagonal_rotation_deg: f64,
     /// Vergence move (both vergences together), if chosen.
     pub verge_rotation_deg: Option<f64>,
-}
-
-/// The (pan, elevation) offsets of the single-joint views at rotation `r` (elevation
-/// first), each both ways if `both_directions`.
-pub(super) fn single_joint_offsets(r: f64, both_directions: bool) -> Vec<(&'static str, f64, f64)> {
-    if both_directions {
-        vec![("elevation+", 0.0, r), ("elevation-", 0.0, -r), ("pan+", r, 0.0), ("pan-", -r, 0.0)]
-    } else {
-        vec![("elevation", 0.0, r), ("pan", r, 0.0)]
-    }
-}
-
-/// The (pan, elevation) offsets of the diagonal views at rotation `d` (none if `d` is 0).
-pub(super) fn diagonal_offsets(d: f64, both_directions: bool) -> Vec<(&'static str, f64, f64)> {
-    if d == 0.0 {
-        Vec::new()
-    } else if both_directions {
-        vec![
-            ("pan+elevation+", d, d),
-            ("pan+elevation-", d, -d),
-            ("pan-elevation+", -d, d),
-            ("pan-elevation-", -d, -d),
-        ]
-    } else {
-        vec![("pan+elevation+", d, d)]
-    }
 }
 
 /// The choice logic of the auto mode, pure (module docs): `keeps_overlap(pan, elevation,

@@ -28,22 +28,10 @@ use headalign_platform::Encoders;
 use nalgebra::DVector;
 
 use super::axes::{AxisFollow, AxisSources, resection_pose_covariance, tangent_step};
-use super::{AlignmentSigmas, AxisPerturbations, FixationSigmas};
+use super::{AlignmentSigmas, AxisPerturbations, FixationSigmas, PROPAGATION_STEP_SIGMAS};
 use crate::alignment::{AlignmentSolution, VergeAxes, solve_alignment};
 use crate::error::AlignError;
 use crate::verge_tilt::RigCalibration;
-
-/// Central-difference step of the uncertainty propagations ([`alignment_sigmas`],
-/// [`alignment_sigmas_measured`], [`AxisPerturbations`] and [`crate::robot`]'s), in
-/// standard deviations of the parameter moved (or units of a unit-variance mode). The
-/// propagation is linear, so the step must be small against the curvature of what is
-/// differentiated, yet large against the solvers' tolerances. The re-derived vergence
-/// axes bend within half a sigma of some calibrations: with 0.5 (the earlier step)
-/// `experiment calibration --only 3 --trials 1 --seed 273` reported an elevation sigma
-/// of 2.17 deg against a bound of 0.73; with 0.25, 0.1, 0.02 and 0.005 it is 0.868,
-/// 0.752, 0.751 and 0.752 deg. Over seeds 1-150 at 2 and 3 px 0.1 moved 7 of 900
-/// aligned sigmas by more than 5 % and none of the RMS or coverage figures.
-pub const PROPAGATION_STEP_SIGMAS: f64 = 0.1;
 
 /// Propagate the bundle adjustment's covariance to the aligned readings by central
 /// differences of [`solve_alignment`] along each parameter's standard deviation, the

@@ -939,3 +939,62 @@ fn three_view_fixation_coverage() {
         );
     }
 }
+
+/// The procedure switches: on the wall it runs the planar route and ends aligned within
+/// 0.01 deg (noise-free); on the default room it runs the general route.
+#[test]
+fn the_procedure_switches_on_a_wall_only() {
+    let scenario = Scenario { noise_px: 0.0, ..Scenario::wall().with_seed(3) };
+    let mut head = SimulatedHead::new(scenario).unwrap();
+    let out = VergeTiltRun::default().run_detecting(&mut head, &VergeTiltOptions::default()).unwrap();
+    let RouteOutcome::Planar(p) = out else { panic!("the wall went the general way") };
+    assert_eq!(p.calibration.scene.kind, crate::facing_plane::SceneKind::Planar);
+    let err = head.alignment_errors(&head.encoders());
+    let truth = head.alignment_errors(&head.aligned_encoders());
+    for (e, t) in [(err.verge_err_l_deg, truth.verge_err_l_deg), (err.elev_err_l_deg, truth.elev_err_l_deg)] {
+        assert!((e - t).abs() < 0.01, "{e} vs {t}");
+    }
+    let mut head = SimulatedHead::new(Scenario::default().with_seed(3)).unwrap();
+    let out = VergeTiltRun::default().run_detecting(&mut head, &VergeTiltOptions::default()).unwrap();
+    assert!(matches!(out, RouteOutcome::General(..)));
+}
+
+/// Noise-free `wall` and `far`: the check after the move, and a check 0.3 deg of
+/// vergence and 0.2 deg of elevation away from it, measure the alignment errors the
+/// simulator's truth has within 0.01 deg (the estimated axes are that close to the
+/// true ones, `facing_plane` module docs), and no unmodelled rotation beyond it.
+#[test]
+fn the_check_measures_the_simulators_errors() {
+    for (preset, seed) in [("wall", 3), ("far", 1)] {
+        let scenario = Scenario { noise_px: 0.0, ..Scenario::preset(preset).unwrap().with_seed(seed) };
+        let mut head = SimulatedHead::new(scenario).unwrap();
+        let mut run = VergeTiltRun::default();
+        let out = run.run_detecting(&mut head, &VergeTiltOptions::default()).unwrap();
+        let RouteOutcome::Planar(p) = out else { panic!("{preset}: the general route ran") };
+        let at_aligned = p.checks.first().cloned().unwrap_or_else(|| panic!("{:?}", p.check_failure));
+        let truth_aligned = head.alignment_errors(&head.encoders());
+        let moved = head.encoders().moved(Joint::VergeLeft, 0.3).moved(Joint::Elevation, 0.2);
+        head.move_to(&moved).unwrap();
+        let capture = head.capture().unwrap();
+        let off =
+            crate::facing_plane::check_alignment(&p.calibration, &run.views[0].capture, &capture).unwrap();
+        let truth_off = head.alignment_errors(&head.encoders());
+        for (c, truth) in [(&at_aligned, truth_aligned), (&off, truth_off)] {
+            let m = c.measured;
+            for (e, t) in [
+                (m.verge_err_l_deg, truth.verge_err_l_deg),
+                (m.verge_err_r_deg, truth.verge_err_r_deg),
+                (m.elev_err_l_deg, truth.elev_err_l_deg),
+                (m.elev_err_r_deg, truth.elev_err_r_deg),
+            ] {
+                assert!((e - t).abs() < 0.01, "{preset}: measured {m:?}, truth {truth:?}");
+            }
+            assert!(c.left.unmodelled_rotation_deg < 0.01 && c.right.unmodelled_rotation_deg < 0.01);
+            assert!(
+                c.left.tracks >= crate::facing_plane::MIN_CHECK_TRACKS
+                    && c.unchecked.len() == crate::facing_plane::UNCHECKED.len()
+            );
+        }
+        assert!(truth_off.verge_err_l_deg.abs() > 0.2, "the moved check is off: {truth_off:?}");
+    }
+}

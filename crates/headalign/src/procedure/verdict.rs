@@ -309,8 +309,8 @@ mod tests {
     /// passed, and the line names the cause first; a fit within it leaves it passed.
     #[test]
     fn a_model_that_does_not_fit_fails_the_verdict() {
-        use crate::calibrate::image_noise::ImageNoiseCheck;
-        use crate::calibrate::residuals::ResidualStructure;
+        use crate::rig::image_noise::ImageNoiseCheck;
+        use crate::rig::residuals::ResidualStructure;
         let fit = |ratio: f64, failed: bool| crate::verge_tilt::ModelFit {
             residual_over_noise: Some(ratio),
             cause: failed.then(|| "radial pattern: try --lens auto".to_string()),

@@ -25,7 +25,7 @@
 use headalign_geometry::rigmotion::{perturb, refine_rig_motion};
 use headalign_geometry::so3::screw_from_isometry;
 use headalign_geometry::steering::{SteeringSolution, Turn, steering_from_turns};
-use headalign_platform::{StereoHead, Vehicle};
+use headalign_platform::{Encoders, StereoHead, Vehicle};
 use nalgebra::{
     DMatrix, DVector, Isometry3, Matrix3, Point3, SMatrix, Unit, UnitQuaternion, Vector3, Vector6,
 };
@@ -232,95 +232,18 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
     // is checked on the first drive's captures ([`check_rig`]; its correction, if any,
     // leaves `ref_from_left` and so `up` as predicted).
     let up = pan_axis.transformed(&predicted.ref_from_left.inverse()).direction;
-    let mut checked: Option<(Rig, Option<Isometry3<f64>>, RigCheck)> = None;
-    let s0 = robot.read_steering()?;
-    let mut steps = Vec::new();
-    let mut motions = Vec::new();
-    let mut settings = Vec::new();
-    for s in &options.settings_deg {
-        robot.steer_to(s0 + s)?;
-        let before = robot.capture()?;
-        robot.drive(options.drive_m)?;
-        let after = robot.capture()?;
-        robot.drive(-options.drive_m)?;
-        let (rig, _, _) = match &checked {
-            Some(c) => c,
-            None => {
-                checked.insert(check_rig(predicted.clone(), &[&before, &after], calib.report.sigma_px, &enc)?)
-            }
-        };
-        let motion = drive_motion(rig, &before, &after, &options.registration)?;
-        let m = motion.cam2_from_cam1.inverse();
-        let angle = m.rotation.angle().to_degrees();
-        if angle < options.min_turn_deg {
-            return Err(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg });
-        }
-        let screw = screw_from_isometry(&m, options.min_turn_deg.to_radians())
-            .ok_or(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg })?
-            .oriented_along(&up);
-        steps.push(TurnStep {
-            steer_encoder_deg: s0 + s,
-            turn_deg: screw.angle.to_degrees(),
-            axis_tilt_deg: screw.axis.direction.angle(&up).to_degrees(),
-            axis_from_floor_deg: f64::NAN,
-            planarity_chi2: f64::NAN,
-            planarity_dof: f64::NAN,
-            inliers: motion.inliers,
-            centre: [f64::NAN; 3],
-        });
-        settings.push(s0 + s);
-        motions.push(motion);
-    }
+    let Drives { mut steps, motions, settings, checked } =
+        drive_turns(robot, calib, options, &predicted, &enc, &up)?;
     let scale = options.baseline_m;
     let wheelbase = options.wheelbase_m.map(|l| l / scale);
     let (rig, correction, rig_check) =
         checked.ok_or_else(|| AlignError::InvalidOption("steering: no steering settings".into()))?;
     let readings = Readings { enc, sigma_deg: options.encoder_sigma_deg };
     let ctx = SteeringContext { calib, verge, axes, readings, up: &up, wheelbase, correction };
-    let mut fit = steering_fit(&ctx, &motions, &settings)?;
+    let (fit, failing, dropped) =
+        fit_leaving_out_an_outlier(&ctx, &motions, &settings, options.planarity_chi2_max)?;
+    set_floor_quantities(&mut steps, &ctx, &motions, &settings, &fit, &dropped);
     let limit = |fit: &SteeringFit, k: usize| planarity_limit(options.planarity_chi2_max, fit.dof[k]);
-    // A drive that fails the planarity test while the others pass is an outlier (one
-    // drive's reconstruction, e.g. a view of far points only, under the rig predicted
-    // at the readings); it is left out when enough drives remain and the rest then pass.
-    // A robot that really pitches or rolls shows in every drive.
-    let failing: Vec<usize> = (0..steps.len()).filter(|&k| fit.chi2[k] > limit(&fit, k)).collect();
-    let mut kept: Vec<usize> = (0..steps.len()).collect();
-    let mut dropped = Vec::new();
-    if let [k] = failing[..]
-        && steps.len() > MIN_STEERING_DRIVES
-    {
-        let m2: Vec<DriveMotion> =
-            motions.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, m)| m.clone()).collect();
-        let s2: Vec<f64> = settings.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, x)| *x).collect();
-        let refit = steering_fit(&ctx, &m2, &s2)?;
-        if !(0..m2.len()).any(|i| refit.chi2[i] > limit(&refit, i)) {
-            dropped.push(k);
-            kept.retain(|&i| i != k);
-            fit = refit;
-        }
-    }
-    // Each step's floor-normal quantities from the fit that decided (a dropped drive
-    // keeps those of the fit over every drive, which it failed).
-    let all = if dropped.is_empty() { None } else { steering_fit(&ctx, &motions, &settings).ok() };
-    for (k, step) in steps.iter_mut().enumerate() {
-        let (f, i) = match kept.iter().position(|&j| j == k) {
-            Some(i) => (&fit, i),
-            None => match &all {
-                Some(a) => (a, k),
-                None => continue,
-            },
-        };
-        let m = motions[k].cam2_from_cam1.inverse();
-        let axis = m.rotation.axis().map_or(f64::NAN, |a| {
-            let a = if a.dot(&f.floor.n) < 0.0 { -a.into_inner() } else { a.into_inner() };
-            a.angle(&f.floor.n).to_degrees()
-        });
-        step.axis_from_floor_deg = axis;
-        step.planarity_chi2 = f.chi2[i];
-        step.planarity_dof = f.dof[i];
-        let c = f.centres[i];
-        step.centre = [c.x, c.y, c.z];
-    }
     fit.floor.plausible(options.planarity_chi2_max, "steering")?;
     if dropped.is_empty()
         && let Some(&k) = failing.first()
@@ -363,4 +286,137 @@ pub fn zero_steering<R: StereoHead + Vehicle>(
         across_rms_m: sol.across_rms * scale,
         rig_check,
     })
+}
+
+/// The drives of [`zero_steering`], one per steering setting, and the rig checked on the
+/// first drive's captures.
+struct Drives {
+    /// Per drive, its report (the floor-normal quantities not yet filled).
+    steps: Vec<TurnStep>,
+    /// Per drive, the rig's measured motion.
+    motions: Vec<DriveMotion>,
+    /// Per drive, the steering reading, degrees.
+    settings: Vec<f64>,
+    /// The rig checked on the first drive ([`check_rig`]); `None` without settings.
+    checked: Option<(Rig, Option<Isometry3<f64>>, RigCheck)>,
+}
+
+/// Steer to each setting of `options` (from the present reading), drive forward and back
+/// capturing before and after, and measure each drive's motion and screw about `up`
+/// (module docs). A turn below `min_turn_deg` is an error.
+fn drive_turns<R: StereoHead + Vehicle>(
+    robot: &mut R,
+    calib: &RigCalibration,
+    options: &SteeringOptions,
+    predicted: &Rig,
+    enc: &Encoders,
+    up: &Unit<Vector3<f64>>,
+) -> Result<Drives, AlignError> {
+    let mut checked: Option<(Rig, Option<Isometry3<f64>>, RigCheck)> = None;
+    let s0 = robot.read_steering()?;
+    let mut steps = Vec::new();
+    let mut motions = Vec::new();
+    let mut settings = Vec::new();
+    for s in &options.settings_deg {
+        robot.steer_to(s0 + s)?;
+        let before = robot.capture()?;
+        robot.drive(options.drive_m)?;
+        let after = robot.capture()?;
+        robot.drive(-options.drive_m)?;
+        let (rig, _, _) = match &checked {
+            Some(c) => c,
+            None => {
+                checked.insert(check_rig(predicted.clone(), &[&before, &after], calib.report.sigma_px, enc)?)
+            }
+        };
+        let motion = drive_motion(rig, &before, &after, &options.registration)?;
+        let m = motion.cam2_from_cam1.inverse();
+        let angle = m.rotation.angle().to_degrees();
+        if angle < options.min_turn_deg {
+            return Err(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg });
+        }
+        let screw = screw_from_isometry(&m, options.min_turn_deg.to_radians())
+            .ok_or(AlignError::TurnTooSmall { angle_deg: angle, min_deg: options.min_turn_deg })?
+            .oriented_along(up);
+        steps.push(TurnStep {
+            steer_encoder_deg: s0 + s,
+            turn_deg: screw.angle.to_degrees(),
+            axis_tilt_deg: screw.axis.direction.angle(up).to_degrees(),
+            axis_from_floor_deg: f64::NAN,
+            planarity_chi2: f64::NAN,
+            planarity_dof: f64::NAN,
+            inliers: motion.inliers,
+            centre: [f64::NAN; 3],
+        });
+        settings.push(s0 + s);
+        motions.push(motion);
+    }
+    Ok(Drives { steps, motions, settings, checked })
+}
+
+/// The steering fit over every drive; a drive that alone fails the planarity test (while
+/// more than [`MIN_STEERING_DRIVES`] drives were made) is left out when the rest then pass
+/// (module docs). Returns the fit that decided, the drives failing over all of them and
+/// the drive left out, if any.
+fn fit_leaving_out_an_outlier(
+    ctx: &SteeringContext,
+    motions: &[DriveMotion],
+    settings: &[f64],
+    planarity_chi2_max: f64,
+) -> Result<(SteeringFit, Vec<usize>, Vec<usize>), AlignError> {
+    let mut fit = steering_fit(ctx, motions, settings)?;
+    let limit = |fit: &SteeringFit, k: usize| planarity_limit(planarity_chi2_max, fit.dof[k]);
+    // A drive that fails the planarity test while the others pass is an outlier (one
+    // drive's reconstruction, e.g. a view of far points only, under the rig predicted
+    // at the readings); it is left out when enough drives remain and the rest then pass.
+    // A robot that really pitches or rolls shows in every drive.
+    let failing: Vec<usize> = (0..motions.len()).filter(|&k| fit.chi2[k] > limit(&fit, k)).collect();
+    let mut dropped = Vec::new();
+    if let [k] = failing[..]
+        && motions.len() > MIN_STEERING_DRIVES
+    {
+        let m2: Vec<DriveMotion> =
+            motions.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, m)| m.clone()).collect();
+        let s2: Vec<f64> = settings.iter().enumerate().filter(|(i, _)| *i != k).map(|(_, x)| *x).collect();
+        let refit = steering_fit(ctx, &m2, &s2)?;
+        if !(0..m2.len()).any(|i| refit.chi2[i] > limit(&refit, i)) {
+            dropped.push(k);
+            fit = refit;
+        }
+    }
+    Ok((fit, failing, dropped))
+}
+
+/// Each step's floor-normal quantities from the fit that decided (`fit`, over the drives
+/// but `dropped`); a dropped drive keeps those of the fit over every drive, which it
+/// failed.
+fn set_floor_quantities(
+    steps: &mut [TurnStep],
+    ctx: &SteeringContext,
+    motions: &[DriveMotion],
+    settings: &[f64],
+    fit: &SteeringFit,
+    dropped: &[usize],
+) {
+    let kept: Vec<usize> = (0..steps.len()).filter(|k| !dropped.contains(k)).collect();
+    let all = if dropped.is_empty() { None } else { steering_fit(ctx, motions, settings).ok() };
+    for (k, step) in steps.iter_mut().enumerate() {
+        let (f, i) = match kept.iter().position(|&j| j == k) {
+            Some(i) => (fit, i),
+            None => match &all {
+                Some(a) => (a, k),
+                None => continue,
+            },
+        };
+        let m = motions[k].cam2_from_cam1.inverse();
+        let axis = m.rotation.axis().map_or(f64::NAN, |a| {
+            let a = if a.dot(&f.floor.n) < 0.0 { -a.into_inner() } else { a.into_inner() };
+            a.angle(&f.floor.n).to_degrees()
+        });
+        step.axis_from_floor_deg = axis;
+        step.planarity_chi2 = f.chi2[i];
+        step.planarity_dof = f.dof[i];
+        let c = f.centres[i];
+        step.centre = [c.x, c.y, c.z];
+    }
 }

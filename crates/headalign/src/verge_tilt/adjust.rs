@@ -60,8 +60,7 @@ pub const MIN_POINT_OBSERVATIONS: usize = 4;
 
 /// Iterations of the short adjustment that screens each initialisation.
 pub const SCREEN_ITERATIONS: usize = 40;
-/// Minimum iterations of the final adjustment (robust IRLS converges linearly).
-pub const FINAL_ITERATIONS: usize = 300;
+pub use crate::rig::FINAL_ITERATIONS;
 
 /// Every raw observation, in the rig views `rig` (indices into `views`; `view` of an
 /// observation is its rig slot), of the tracks of the point set `point_tracks`: per view,

@@ -1,12 +1,12 @@
 //! Does the verge/tilt estimate's model fit the images? The final adjustment's
 //! reprojection residuals against the localisation noise the front end measured in each
 //! observation, and their pattern over the image: the checks `calibrate` makes
-//! ([`crate::calibrate::image_noise`], [`crate::calibrate::residuals`]) on
+//! ([`crate::rig::image_noise`], [`crate::rig::residuals`]) on
 //! [`super::estimate_rig`]'s result ([`model_fit`]).
 //!
 //! What it computes: the image-noise chi-square (`chi2 / dof`, the squared ratio of the
 //! residuals' noise to the noise the images predict, its 99.9 % limit; the definitions and
-//! the measured-noise model are [`crate::calibrate::image_noise`]'s) and the residual
+//! the measured-noise model are [`crate::rig::image_noise`]'s) and the residual
 //! structure per camera (rings about the principal point, a 3x3 grid; chi-squares of their
 //! mean residuals against the adjustment's own noise `sigma_px`).
 //!
@@ -30,22 +30,22 @@
 //! Pitfalls: the view names of the adjustment's observations are the front end's
 //! ([`crate::tracking::tracked_view_name`]) of the rig views in capture order, without
 //! those the estimate dropped; a run without images (point mode) has no measured noise and
-//! the check is skipped ([`crate::calibrate::image_noise::NO_IMAGES`]).
+//! the check is skipped ([`crate::rig::image_noise::NO_IMAGES`]).
 
 use serde::Serialize;
 
 use super::RigCalibration;
-use crate::calibrate::image_noise::{
+use crate::rig::image_noise::{
     ImageNoiseCheck, MeasuredVariances, NO_IMAGES, RESIDUAL_OVER_NOISE_WARN, noise_check_of,
 };
-use crate::calibrate::residuals::{ResidualStructure, residual_structure};
+use crate::rig::residuals::{ResidualStructure, residual_structure};
 
 /// Residuals' noise over the image noise above which the run fails rather than warns
 /// (module docs: [`MISFIT_FAIL_RATIO`] = 2). Why 2: the residual variance is then four
 /// times what the images explain, three quarters of it a misfit the sigmas know nothing
 /// of; a model that fits leaves 0.83-0.85 times on rendered sessions and an estimated lens
 /// 1.4-1.6 times on the real EuRoC pairs, a barrel lens fitted as a pinhole 3.1 times
-/// ([`crate::calibrate::image_noise::RESIDUAL_OVER_NOISE_WARN`]'s measurements).
+/// ([`crate::rig::image_noise::RESIDUAL_OVER_NOISE_WARN`]'s measurements).
 pub const MISFIT_FAIL_RATIO: f64 = 2.0;
 
 /// The model-fit checks of an estimate (module docs) and the warnings they raise.
@@ -117,7 +117,7 @@ fn likely_cause(structure: &ResidualStructure, pinhole: bool) -> String {
     let radial = structure
         .cameras
         .iter()
-        .any(|c| c.radial_pattern() || c.rms_growth > crate::calibrate::residuals::RMS_GROWTH_WARN);
+        .any(|c| c.radial_pattern() || c.rms_growth > crate::rig::residuals::RMS_GROWTH_WARN);
     let region = structure.cameras.iter().any(|c| c.region_pattern());
     if radial && pinhole {
         "radial pattern: the pinhole lens model does not fit this lens; try --lens auto".into()
@@ -149,7 +149,7 @@ pub fn observation_view_names(calib: &RigCalibration, rig: &[(String, String)]) 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::calibrate::residuals::CameraResiduals;
+    use crate::rig::residuals::CameraResiduals;
 
     fn camera(radial_chi2: f64, region_chi2: f64) -> CameraResiduals {
         CameraResiduals {

@@ -24,7 +24,7 @@
 //! again. When the second pass fails, the first estimate is reported with a note.
 //!
 //! [`LensChoice::Auto`]: the radial-tangential `k1 k2` estimate above, then the criterion
-//! of [`crate::calibrate::lens_choice`] (BIC over the models and their terms on that
+//! of [`crate::rig::lens_choice`] (BIC over the models and their terms on that
 //! estimate's observations, the same code; a failed candidate is reported and left out);
 //! a winner other than `radtan k1 k2` is estimated again with its own model and terms,
 //! steps 2-3 only: the `k1 k2` estimate's lens undistorts the linear steps' pixels and
@@ -44,10 +44,10 @@ use headalign_geometry::distortion::{Distortion, LensKind};
 use serde::Serialize;
 
 use super::{EstimationOptions, HomographyMode, RigCalibration, estimate_rig_once};
-use crate::calibrate::lens_choice::{BASE_LENS, select_lens};
-use crate::calibrate::{LensChoice, LensModel, LensSelection};
 use crate::error::AlignError;
 use crate::observations::View;
+use crate::rig::lens_choice::{BASE_LENS, select_lens};
+use crate::rig::{LensChoice, LensModel, LensSelection};
 
 /// The names of [`Distortion::slots`].
 const SLOT_NAMES: [&str; 6] = ["k1", "k2", "p1", "p2", "k3", "k4"];

@@ -154,9 +154,9 @@ use restart::reversed_rig_restart;
 use starts::{InitContext, commanded_angles, initial_states, point_set};
 use stereo::stereo_geometry;
 
-use crate::calibrate::{LensChoice, undistort_views};
 use crate::error::AlignError;
 use crate::observations::View;
+use crate::rig::{LensChoice, undistort_views};
 pub use fit::{MISFIT_FAIL_RATIO, ModelFit, model_fit, observation_view_names};
 pub use lens::LensReport;
 use lens::LensStart;
@@ -300,7 +300,7 @@ pub struct EstimationOptions {
     /// frees its coefficients `lens_terms` of each camera in the adjustments, from a start
     /// whose linear chain ran on pixels undistorted by a first estimate (`lens.rs`, module
     /// docs "Lens models"); [`LensChoice::Auto`] chooses the model and its terms by the
-    /// criterion of [`crate::calibrate::lens_choice`] and reports it (the CLI's image
+    /// criterion of [`crate::rig::lens_choice`] and reports it (the CLI's image
     /// commands default to it). [`crate::calibrate`] takes its own
     /// [`crate::calibrate::CalibrateOptions::lens`] and ignores this one.
     pub lens: LensChoice,
@@ -762,28 +762,10 @@ fn estimate_rig_once(
     let adjusted =
         adjust_from_starts(starts, &first_obs, &all_obs, &point_tracks, &origin_slot, recon, options)?;
     let Adjustment { first, last: final_result, observations: second_obs, linear_focal, .. } = adjusted;
-    // 8. The restarts from the depth-reversed rigs.
-    let (final_result, second_obs) = if options.final_least_squares && options.reversed_rig_restart {
-        let sources = PointSources { point_tracks: &point_tracks, origin_slot: &origin_slot, recon };
-        reversed_rig_restart(final_result, second_obs, &all_obs, &sources, options)?
-    } else {
-        (final_result, second_obs)
-    };
-    // 9. The depth-scale profile of the covariance.
-    let (final_result, depth_profile) = match options.depth_profile {
-        Some(p) if options.final_least_squares => {
-            let (r, rep) = profile_depth_scale(final_result, &second_obs, &p, options);
-            (r, rep)
-        }
-        _ => (final_result, None),
-    };
-    // 10. The bootstrap of the covariance.
-    let (final_result, bootstrap) = match options.bootstrap {
-        Some(b) if options.final_least_squares => {
-            bootstrap_covariance(final_result, &second_obs, &b, options)
-        }
-        _ => (final_result, None),
-    };
+    // 8-10. Restarts, depth-scale profile, bootstrap.
+    let sources = PointSources { point_tracks: &point_tracks, origin_slot: &origin_slot, recon };
+    let (final_result, second_obs, depth_profile, bootstrap) =
+        after_adjustment(final_result, second_obs, &all_obs, &sources, options)?;
     let report = EstimationReport {
         stereo_matches: stereo.pairs.len(),
         stereo_inliers: stereo.inliers,
@@ -813,6 +795,44 @@ fn estimate_rig_once(
         reference_encoders: views[0].capture.encoders,
         report,
     })
+}
+
+/// Steps 8-10 of [`estimate_rig`] (module docs) after the maximum-likelihood pass, each
+/// only with [`EstimationOptions::final_least_squares`] and its own option: the restarts
+/// from the depth-reversed rigs, the depth-scale profile and the bootstrap of the
+/// covariance. `all_obs` are every raw observation (the restarts re-select from them).
+fn after_adjustment(
+    final_result: BundleResult,
+    second_obs: Vec<BundleObservation>,
+    all_obs: &[BundleObservation],
+    sources: &PointSources<'_>,
+    options: &EstimationOptions,
+) -> Result<
+    (BundleResult, Vec<BundleObservation>, Option<DepthProfileReport>, Option<BootstrapReport>),
+    AlignError,
+> {
+    // 8. The restarts from the depth-reversed rigs.
+    let (final_result, second_obs) = if options.final_least_squares && options.reversed_rig_restart {
+        reversed_rig_restart(final_result, second_obs, all_obs, sources, options)?
+    } else {
+        (final_result, second_obs)
+    };
+    // 9. The depth-scale profile of the covariance.
+    let (final_result, depth_profile) = match options.depth_profile {
+        Some(p) if options.final_least_squares => {
+            let (r, rep) = profile_depth_scale(final_result, &second_obs, &p, options);
+            (r, rep)
+        }
+        _ => (final_result, None),
+    };
+    // 10. The bootstrap of the covariance.
+    let (final_result, bootstrap) = match options.bootstrap {
+        Some(b) if options.final_least_squares => {
+            bootstrap_covariance(final_result, &second_obs, &b, options)
+        }
+        _ => (final_result, None),
+    };
+    Ok((final_result, second_obs, depth_profile, bootstrap))
 }
 
 /// The options with the image border as the adjustment's measurement window

@@ -352,7 +352,7 @@ fn sim_views(scenario: headalign_sim::Scenario) -> Vec<View> {
     use headalign_platform::StereoHead;
     let mut head = headalign_sim::SimulatedHead::new(scenario).unwrap();
     let e0 = head.read_encoders().unwrap();
-    let plan = crate::procedure::capture_plan(&e0, &crate::procedure::VergeTiltOptions::default());
+    let plan = crate::plan::CapturePlan::default().views(&e0);
     let mut out = Vec::new();
     for (name, enc) in plan {
         head.move_to(&enc).unwrap();

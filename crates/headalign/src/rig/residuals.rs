@@ -235,28 +235,9 @@ fn camera_residuals(
     }
 }
 
-/// Check a calibration's residuals ([`residual_structure`]), add its warnings to the
-/// report and widen the intrinsics' and lens sigmas by its factor (`C' = D C D`, `D` the
-/// factor on those parameters and 1 elsewhere); the focal sigmas of the report follow.
-pub(super) fn check_and_widen(calibration: &mut super::MotionCalibration) {
-    let structure = residual_structure(
-        &calibration.bundle.state,
-        &calibration.observations,
-        calibration.image_size,
-        calibration.bundle.report.sigma_px,
-    );
-    let f = structure.sigma_widening;
-    if f > 1.0 {
-        widen_intrinsics(&mut calibration.bundle.covariance, f);
-        calibration.report.focal_sigma_pct = super::report::focal_sigma_pct(&calibration.bundle);
-    }
-    calibration.report.warnings.extend(structure.warnings.iter().cloned());
-    calibration.report.residual_structure = Some(structure);
-}
-
 /// Multiply the sigmas of the intrinsics and lens coefficients (`left.*`, `right.*`) by
 /// `f`: `C' = D C D`, `D` the factor on those parameters and 1 elsewhere.
-pub(super) fn widen_intrinsics(cov: &mut headalign_geometry::bundle::Covariance, f: f64) {
+pub(crate) fn widen_intrinsics(cov: &mut headalign_geometry::bundle::Covariance, f: f64) {
     let scale: Vec<f64> = cov
         .names
         .iter()

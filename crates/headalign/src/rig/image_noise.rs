@@ -55,7 +55,6 @@ use headalign_geometry::bundle::{BundleObservation, Side, residual_pixels, resid
 use nalgebra::{Matrix2x3, Matrix3};
 use serde::Serialize;
 
-use super::{MotionCalibration, report};
 use crate::tracking::Localisation;
 
 /// The residuals' noise over the predicted noise above which (with a significant
@@ -68,7 +67,7 @@ use crate::tracking::Localisation;
 pub const RESIDUAL_OVER_NOISE_WARN: f64 = 1.25;
 
 /// Why the check is skipped when the observations came without their images'
-/// localisation noise ([`super::calibrate_rig`] on point observations).
+/// localisation noise ([`crate::calibrate::calibrate_rig`] on point observations).
 pub const NO_IMAGES: &str = "the observations came without images (a points or observations session): no localisation noise was measured";
 
 /// Points with all observations measured below which the check is skipped.
@@ -226,18 +225,6 @@ fn expected_rss(
     e.is_finite().then_some(e.max(0.0))
 }
 
-/// The statistics of the module docs for `calibration` with the measured noise
-/// `measured` (a check without warning or widening yet).
-pub fn image_noise_check(calibration: &MotionCalibration, measured: &MeasuredVariances) -> ImageNoiseCheck {
-    noise_check_of(
-        &calibration.bundle,
-        &calibration.observations,
-        &calibration.report.views,
-        &calibration.point_tracks,
-        measured,
-    )
-}
-
 /// [`image_noise_check`] of any adjustment: `bundle` fitted to `obs`, whose `view` index
 /// `names` (the views' names, as keys of `measured`) and whose `point` index
 /// `point_tracks` (track ids); the verge/tilt estimate's check
@@ -315,36 +302,6 @@ pub fn noise_check_of(
         ratio_limit: Some(ratio_quantile_999(dof)),
         sigma_widening: 1.0,
     }
-}
-
-/// Check a calibration's residuals against the measured noise ([`image_noise_check`]):
-/// when the check fires (module docs), warn and widen the intrinsics' and lens sigmas to
-/// `sqrt(chi2 / dof)` times the adjustment's (what exceeds the residual structure's
-/// widening); the report's focal sigmas follow.
-pub fn check_against_images(calibration: &mut MotionCalibration, measured: &MeasuredVariances) {
-    let mut check = image_noise_check(calibration, measured);
-    if let (Some(ratio), Some(limit), Some(residual), Some(noise)) =
-        (check.ratio, check.ratio_limit, check.residual_sigma_px, check.expected_residual_sigma_px)
-        && ratio > limit
-        && ratio.sqrt() > RESIDUAL_OVER_NOISE_WARN
-    {
-        let already = calibration.report.residual_structure.as_ref().map_or(1.0, |s| s.sigma_widening);
-        let extra = (ratio.sqrt() / already).max(1.0);
-        if extra > 1.0 {
-            super::residuals::widen_intrinsics(&mut calibration.bundle.covariance, extra);
-            calibration.report.focal_sigma_pct = report::focal_sigma_pct(&calibration.bundle);
-        }
-        check.sigma_widening = extra;
-        calibration.report.warnings.push(format!(
-            "the reprojection residuals are {:.1} x the localisation noise measured from the images ({residual:.3} px against {noise:.3} px; chi-square {:.0} for {:.0} degrees of freedom, 99.9 % limit {:.0}): the model does not fit these images (lens model? rolling shutter? moving scene?); the intrinsics' and lens sigmas are widened {:.1} times",
-            ratio.sqrt(),
-            check.chi2.unwrap_or(f64::NAN),
-            check.dof.unwrap_or(f64::NAN),
-            limit * check.dof.unwrap_or(f64::NAN),
-            ratio.sqrt().max(already)
-        ));
-    }
-    calibration.report.image_noise = Some(check);
 }
 
 #[cfg(test)]

@@ -31,12 +31,12 @@
 //! the chain, not the two-pass lens start), and with the full chain of that model when
 //! this run fails or ends implausibly, so that the reported calibration, its inliers and
 //! its sigmas are that model's own (the bootstrap of the lens sigmas runs for it alone).
-//! The chain is the reference chain of [`super::calibrate_rig`] or the sequence chain of
-//! [`super::calibrate_sequence`] (`choose_lens`, without `from_refit`); a sequence's
+//! The chain is the reference chain of [`crate::calibrate::calibrate_rig`] or the sequence chain of
+//! [`crate::calibrate::calibrate_sequence`] (`calibrate`'s `choose_lens`, without `from_refit`); a sequence's
 //! refits hold its segment gauges as its adjustment does.
 //!
 //! Degrees of freedom: per camera 0 (pinhole), or the candidate's coefficients (at most
-//! those of [`CalibrateOptions::lens_terms`], which caps the candidates' terms under
+//! those of [`crate::calibrate::CalibrateOptions::lens_terms`], which caps the candidates' terms under
 //! `Auto`). Units: residuals in pixels, chi-square and BIC dimensionless.
 //!
 //! Pitfalls: the criterion compares fits, not truths: on a narrow lens the two distorted
@@ -53,13 +53,11 @@ use headalign_geometry::bundle::{
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use serde::Serialize;
 
-use super::two_pass::calibrate_two_pass;
-use super::{CalibrateOptions, MotionCalibration, calibrate_once_from, with_restarts};
+use super::FINAL_ITERATIONS;
 use crate::error::AlignError;
-use crate::observations::View;
-use crate::verge_tilt::FINAL_ITERATIONS;
 
-/// The lens model of [`CalibrateOptions::lens`].
+/// The lens model of [`crate::calibrate::CalibrateOptions::lens`] and
+/// [`crate::verge_tilt::EstimationOptions::lens`].
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub enum LensChoice {
     /// No distortion estimated (the pinhole, or a known lens already removed).
@@ -211,89 +209,9 @@ pub struct LensSelection {
     pub state: RigState,
 }
 
-/// [`super::calibrate_rig`] with [`LensChoice::Auto`] (module docs).
-pub(super) fn calibrate_choosing_lens(
-    views: &[View],
-    options: &CalibrateOptions,
-) -> Result<MotionCalibration, AlignError> {
-    let from_refit = |o: &CalibrateOptions, state: &RigState| {
-        with_restarts(o, |o, seeded| calibrate_once_from(views, o, seeded, None, Some(state)))
-    };
-    choose_lens(options, |o| calibrate_two_pass(views, o), Some(&from_refit))
-}
-
 /// The model every candidate is compared on: the radial-tangential `k1 k2` (module docs).
 pub const BASE_LENS: LensSpec =
     LensSpec { kind: Some(LensKind::RadialTangential), terms: DistortionTerms::Radial2 };
-
-/// A chain from a start: the chosen model's run with the refitted candidate as a start of
-/// its adjustment.
-pub(super) type ChainFrom<'a> =
-    &'a dyn Fn(&CalibrateOptions, &RigState) -> Result<MotionCalibration, AlignError>;
-
-/// [`LensChoice::Auto`] (module docs) over a chain with a fixed lens model (`chain`: the
-/// reference chain of [`super::calibrate_rig`] or the sequence chain of
-/// [`super::calibrate_sequence`], with its restarts): the radial-tangential `k1 k2` run,
-/// the criterion on its observations, and the chosen model's own run: `from_refit` (one
-/// run of the chain with the chosen candidate's refit as a further start) when given and
-/// it ends plausibly, otherwise `chain`.
-pub(super) fn choose_lens(
-    options: &CalibrateOptions,
-    chain: impl Fn(&CalibrateOptions) -> Result<MotionCalibration, AlignError>,
-    from_refit: Option<ChainFrom<'_>>,
-) -> Result<MotionCalibration, AlignError> {
-    let with =
-        |spec: LensSpec| CalibrateOptions { lens: spec.choice(), lens_terms: spec.terms, ..options.clone() };
-    let rich = chain(&with(BASE_LENS))?;
-    let selection = select(&rich, options)?;
-    let spec = selection.spec;
-    let mut result = if spec == BASE_LENS {
-        rich
-    } else {
-        let quick = from_refit.map(|f| f(&with(spec), &selection.state));
-        let own = match quick {
-            Some(Ok(c)) if super::two_pass::plausible(&c) => Ok(c),
-            _ => chain(&with(spec)),
-        };
-        match own {
-            Ok(c) => c,
-            Err(e) => {
-                let mut r = rich;
-                r.report.warnings.push(format!(
-                    "the lens criterion chose {}, but its calibration failed ({e}); the radtan k1 k2 result is reported",
-                    spec.label()
-                ));
-                r
-            }
-        }
-    };
-    result.report.lens_selection = Some(selection);
-    Ok(result)
-}
-
-/// The views (indices of [`super::CalibrateReport::views`]) whose poses a refit of `cal`
-/// holds: a sequence's segment gauges after the first (none on the reference route).
-pub(super) fn held_gauges(cal: &MotionCalibration) -> Vec<usize> {
-    let views = &cal.report.views;
-    cal.report.sequence.as_ref().map_or_else(Vec::new, |s| {
-        s.segments.iter().skip(1).filter_map(|g| views.iter().position(|v| *v == g.gauge)).collect()
-    })
-}
-
-/// The criterion of the module docs on the observations of `rich` (a radial-tangential
-/// calibration); a sequence's segment gauges after the first stay held in the refits, as
-/// in its adjustment.
-fn select(rich: &MotionCalibration, options: &CalibrateOptions) -> Result<LensSelection, AlignError> {
-    let gauge_views = held_gauges(rich);
-    let bundle = BundleOptions {
-        zero_skew: options.zero_skew,
-        square_pixels: options.square_pixels,
-        fix_principal_point: options.fix_principal_point,
-        gauge_views,
-        ..options.estimation.bundle.clone()
-    };
-    select_lens(&rich.bundle.state, &rich.observations, &bundle, options.lens_terms)
-}
 
 /// A candidate refitted: its state, sum of squared residuals (pixels^2) and its own
 /// noise estimate (pixels).
@@ -312,7 +230,7 @@ struct Refit {
 /// [`LensSelection::failed`] and left out; only when every one fails is it an error.
 /// `bundle` carries the intrinsic constraints and the rest of the adjustment's options;
 /// its loss, noise, lens flags and iteration floor are set here. Shared by
-/// [`super::calibrate_rig`] and the verge/tilt estimator
+/// [`crate::calibrate::calibrate_rig`] and the verge/tilt estimator
 /// ([`crate::verge_tilt::EstimationOptions::lens`]).
 pub(crate) fn select_lens(
     state: &RigState,

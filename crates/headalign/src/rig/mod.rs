@@ -1,0 +1,21 @@
+//! The kernel both self-calibration routes share, the verge/tilt route
+//! ([`crate::verge_tilt`]) and the free-motion calibration ([`crate::calibrate`]): the
+//! lens model and its automatic choice ([`lens_choice`]), known lenses removed from the
+//! observations ([`known_lens`]), and the checks of a rig bundle adjustment's fit against
+//! the data: structure in its residuals ([`residuals`]) and its residuals against the
+//! localisation noise measured from the images ([`image_noise`]).
+//!
+//! Each file's docs state what it computes, its degrees of freedom, units and pitfalls.
+//! Nothing here depends on either route: both build on it (`docs/architecture.md`).
+
+pub mod image_noise;
+mod known_lens;
+pub mod lens_choice;
+pub mod residuals;
+
+/// Minimum iterations of the final adjustment (robust IRLS converges linearly).
+pub const FINAL_ITERATIONS: usize = 300;
+
+pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
+pub use known_lens::{LensModel, read_opencv_lenses, undistort_views};
+pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec};
