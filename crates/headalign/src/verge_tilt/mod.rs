@@ -797,6 +797,11 @@ fn estimate_rig_once(
     })
 }
 
+/// What steps 8-10 leave: the adjustment, its observations, the depth-scale profile's
+/// and the bootstrap's reports.
+type AfterAdjustment =
+    (BundleResult, Vec<BundleObservation>, Option<DepthProfileReport>, Option<BootstrapReport>);
+
 /// Steps 8-10 of [`estimate_rig`] (module docs) after the maximum-likelihood pass, each
 /// only with [`EstimationOptions::final_least_squares`] and its own option: the restarts
 /// from the depth-reversed rigs, the depth-scale profile and the bootstrap of the
@@ -807,10 +812,7 @@ fn after_adjustment(
     all_obs: &[BundleObservation],
     sources: &PointSources<'_>,
     options: &EstimationOptions,
-) -> Result<
-    (BundleResult, Vec<BundleObservation>, Option<DepthProfileReport>, Option<BootstrapReport>),
-    AlignError,
-> {
+) -> Result<AfterAdjustment, AlignError> {
     // 8. The restarts from the depth-reversed rigs.
     let (final_result, second_obs) = if options.final_least_squares && options.reversed_rig_restart {
         reversed_rig_restart(final_result, second_obs, all_obs, sources, options)?
