@@ -113,6 +113,7 @@ pub use density::{
     DISAGREEMENT_SIGMAS, Density, DensityReport, DensityTrial, disagreement_sigmas, prefer_denser,
 };
 pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_rig};
+pub use fit_checks::{check_against_images, image_noise_check};
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
 pub use report::weak_data;
 pub use rig_stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
@@ -147,11 +148,11 @@ pub struct CalibrateOptions {
     /// The lens model the adjustment estimates for each camera (default
     /// [`LensChoice::Pinhole`]: no distortion, or a known lens removed beforehand with
     /// [`undistort_views`]); [`LensChoice::Auto`] chooses the model and its terms by the
-    /// criterion of [`lens_choice`] and reports it (the CLI's default for images).
+    /// criterion of [`crate::rig::lens_choice`] and reports it (the CLI's default for images).
     pub lens: LensChoice,
     /// Which coefficients of the model are estimated (default
     /// [`DistortionTerms::Radial2`]: `k1, k2`); with [`LensChoice::Auto`] the richest
-    /// terms its candidates may have ([`lens_choice::LensSpec::candidates`]:
+    /// terms its candidates may have ([`crate::rig::LensSpec::candidates`]:
     /// [`DistortionTerms::Full5`] lets it choose among all of them).
     pub lens_terms: DistortionTerms,
     /// Motions rotating less than this (degrees) do not enter the linear

@@ -80,7 +80,7 @@ pub struct TrackedViews {
 /// known lens (`lenses`, left and right) removed from the observations first; a
 /// sequence's report carries the tracking notes, and the views whose tracking failed
 /// among those `skipped`. The residuals are checked against the localisation noise the
-/// front end measured ([`image_noise`]).
+/// front end measured ([`crate::rig::image_noise`]).
 pub fn calibrate_tracked(
     tracked: TrackedViews,
     lenses: Option<&[LensModel; 2]>,

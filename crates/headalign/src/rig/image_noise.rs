@@ -225,7 +225,7 @@ fn expected_rss(
     e.is_finite().then_some(e.max(0.0))
 }
 
-/// [`image_noise_check`] of any adjustment: `bundle` fitted to `obs`, whose `view` index
+/// [`crate::calibrate::image_noise_check`] of any adjustment: `bundle` fitted to `obs`, whose `view` index
 /// `names` (the views' names, as keys of `measured`) and whose `point` index
 /// `point_tracks` (track ids); the verge/tilt estimate's check
 /// ([`crate::verge_tilt::model_fit`]).

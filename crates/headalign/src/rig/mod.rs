@@ -1,7 +1,7 @@
 //! The kernel both self-calibration routes share, the verge/tilt route
 //! ([`crate::verge_tilt`]) and the free-motion calibration ([`crate::calibrate`]): the
 //! lens model and its automatic choice ([`lens_choice`]), known lenses removed from the
-//! observations ([`known_lens`]), and the checks of a rig bundle adjustment's fit against
+//! observations (`known_lens`: [`undistort_views`], [`read_opencv_lenses`]), and the checks of a rig bundle adjustment's fit against
 //! the data: structure in its residuals ([`residuals`]) and its residuals against the
 //! localisation noise measured from the images ([`image_noise`]).
 //!
