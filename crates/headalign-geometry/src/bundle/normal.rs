@@ -23,9 +23,10 @@
 //! - `solve_rhs` / `solve`: Cholesky of `S` for the camera step, back-substitution for the
 //!   points; the depth-scale pseudo-residual's dense rank-one term by Sherman-Morrison.
 //!   Marquardt's scaling: the damping adds `lambda` times the diagonal clamped to
-//!   `[1e-6, 1e32]` (`damping_diagonal`).
+//!   `[1e-6, 1e32]` (`lm::damping_diagonal`).
 //! - `predicted_decrease`: the decrease of the local quadratic model for a damped step, the
-//!   denominator of Nielsen's gain ratio (`solver.rs`).
+//!   denominator of Nielsen's gain ratio (`crate::lm`). `Normal` is the point-Schur back
+//!   end of `crate::lm` (`lm::Linearisation`).
 //!
 //! # Pitfalls
 //!
@@ -46,6 +47,7 @@ use super::residual::{RigGeom, ViewGeom, rig_geom, view_geoms};
 use super::robust::robust;
 use super::sparse::{ProfileCholesky, SparseStructure, schur, view_first_order};
 use super::state::RigState;
+use crate::lm::damping_diagonal;
 use std::rc::Rc;
 
 pub(super) struct Normal {
@@ -352,10 +354,17 @@ pub(super) fn predicted_decrease(n: &Normal, lambda: f64, dc: &DVector<f64>, dp:
     0.5 * (lambda * h_d_h - g_h)
 }
 
-/// A diagonal entry of the normal matrix as the damping scales it: clamped to
-/// `[1e-6, 1e32]` (Marquardt scaling, module docs).
-fn damping_diagonal(d: f64) -> f64 {
-    d.clamp(1e-6, 1e32)
+/// The point-Schur back end of [`crate::lm`]: [`solve`] and [`predicted_decrease`].
+impl crate::lm::Linearisation for Normal {
+    type Step = (DVector<f64>, Vec<Vector3<f64>>);
+
+    fn solve(&self, lambda: f64) -> Option<Self::Step> {
+        solve(self, lambda)
+    }
+
+    fn predicted_decrease(&self, lambda: f64, step: &Self::Step) -> f64 {
+        predicted_decrease(self, lambda, &step.0, &step.1)
+    }
 }
 
 /// Solve the damped normal equations `N_lambda (dc, dp) = (rc, rp)` (data and priors
