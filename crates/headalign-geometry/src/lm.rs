@@ -15,7 +15,7 @@
 //! Two back ends: [`Dense`] / [`DenseDyn`] (the whole normal matrix by Cholesky, fixed
 //! or dynamic size) and the point-Schur complement of the bundle adjustment
 //! (`bundle/normal.rs`: the points eliminated 3x3 block by block, the reduced camera
-//! system by Cholesky), which the rig motion shares ([`crate::rigmotion`]).
+//! system by Cholesky), which the rig motion shares (`rigmotion.rs`).
 //!
 //! # Damping policy
 //!
@@ -285,8 +285,11 @@ fn accept<S, E: Evaluation>(
     // Lower the damping by up to 3x where the quadratic model predicted the decrease well
     // (gain ratio near 1), raise it where it did not (ratio near 0).
     let gain = decrease / predicted;
-    let factor =
-        if gain.is_finite() && predicted > 0.0 { (1.0 - (2.0 * gain - 1.0).powi(3)).max(1.0 / 3.0) } else { 1.0 };
+    let factor = if gain.is_finite() && predicted > 0.0 {
+        (1.0 - (2.0 * gain - 1.0).powi(3)).max(1.0 / 3.0)
+    } else {
+        1.0
+    };
     it.lambda = (it.lambda * factor).max(LAMBDA_FLOOR);
     it.nu = 2.0;
     if decrease <= options.function_tolerance * old_cost {
@@ -350,7 +353,8 @@ impl Linearisation for DenseDyn {
     }
 
     fn predicted_decrease(&self, lambda: f64, step: &Self::Step) -> f64 {
-        let h_d_h: f64 = (0..step.len()).map(|i| damping_diagonal(self.jtj[(i, i)]) * step[i] * step[i]).sum();
+        let h_d_h: f64 =
+            (0..step.len()).map(|i| damping_diagonal(self.jtj[(i, i)]) * step[i] * step[i]).sum();
         0.5 * (lambda * h_d_h - self.jtr.dot(step))
     }
 }

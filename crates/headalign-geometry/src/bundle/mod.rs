@@ -253,6 +253,7 @@ mod state;
 mod test_support;
 
 pub use covariance::{Covariance, CovarianceModel, clustered_covariance, log_depth_scale};
+pub(crate) use normal::Normal;
 pub use prior::{AnglePrior, angle_prior_chi2, angle_prior_residuals};
 pub use residual::{residual_pixels, residual_pixels_at};
 pub use robust::{RobustLoss, truncated_mean_shift};

@@ -50,7 +50,8 @@ use super::state::RigState;
 use crate::lm::damping_diagonal;
 use std::rc::Rc;
 
-pub(super) struct Normal {
+/// The normal equations of a point-Schur problem at one state (module docs).
+pub(crate) struct Normal {
     pub(super) u: DMatrix<f64>,
     pub(super) gc: DVector<f64>,
     pub(super) v: Vec<Matrix3<f64>>,
@@ -352,6 +353,28 @@ pub(super) fn predicted_decrease(n: &Normal, lambda: f64, dc: &DVector<f64>, dp:
         h_d_h += (0..3).map(|i| damping_diagonal(v[(i, i)]) * d[i] * d[i]).sum::<f64>();
     }
     0.5 * (lambda * h_d_h - g_h)
+}
+
+impl Normal {
+    /// The point-Schur normal equations of a problem outside the bundle adjustment (the
+    /// rig motion, `rigmotion.rs`): the dense camera block `u` and its gradient `gc`, per
+    /// point its block `v` and gradient `gp`, and `W` dense (`c x 3n`, point `p` in columns
+    /// `3p..3p+3`); no depth-scale row.
+    pub(crate) fn from_blocks(
+        u: DMatrix<f64>,
+        gc: DVector<f64>,
+        v: Vec<Matrix3<f64>>,
+        gp: Vec<Vector3<f64>>,
+        w: DMatrix<f64>,
+    ) -> Normal {
+        Normal { u, gc, v, gp, w: PointBlocks::Dense(w), sum_wsq: 0.0, depth: None, order: None }
+    }
+
+    /// The undamped reduced camera system `S = U - W V^-1 W^T`; `None` if a point block
+    /// is not positive definite.
+    pub(crate) fn reduced_undamped(&self) -> Option<DMatrix<f64>> {
+        reduced_camera_system(self, |_| 0.0, false).map(|(s, _)| s)
+    }
 }
 
 /// The point-Schur back end of [`crate::lm`]: [`solve`] and [`predicted_decrease`].
