@@ -412,9 +412,12 @@ mod tests {
         let pixels: Vec<Point2<f64>> = pts
             .iter()
             .enumerate()
-            .map(|(i, x)| k.project_unchecked(&(pose * x)) + nalgebra::Vector2::new((i % 5) as f64 - 2.0, 1.0))
+            .map(|(i, x)| {
+                k.project_unchecked(&(pose * x)) + nalgebra::Vector2::new((i % 5) as f64 - 2.0, 1.0)
+            })
             .collect();
-        let (jtj, jtr) = normal_equations(&k, &pose, pts.iter().copied().zip(pixels.iter().copied())).unwrap();
+        let (jtj, jtr) =
+            normal_equations(&k, &pose, pts.iter().copied().zip(pixels.iter().copied())).unwrap();
         let h = 1e-6;
         let moved = |d: &Vector6<f64>| {
             let upd = Isometry3::from_parts(

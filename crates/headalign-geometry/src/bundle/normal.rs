@@ -425,6 +425,50 @@ mod tests {
     use crate::bundle::{BundleOptions, Motions, RobustLoss};
     use crate::synthetic::{perturb, sequence};
 
+    /// The two back ends of [`crate::lm`] give the same step: on a small bundle (2 views,
+    /// 25 points, 0.5 px noise, from a perturbed start) the point-Schur back end's damped
+    /// step and predicted decrease equal the dense back end's ([`crate::lm::DenseDyn`] on
+    /// the whole normal matrix `[[U, W], [W^T, V]]`, 6 + 75 + camera unknowns) to 1e-9
+    /// relative (rounding, amplified by the conditioning of the reduced system), at a small
+    /// and a large damping.
+    #[test]
+    fn schur_and_dense_back_ends_give_the_same_step() {
+        use crate::lm::{DenseDyn, Linearisation};
+        let s = crate::synthetic::synth(3, 25, 0.5, 0.0, false);
+        let start = perturb(&s.truth, 7);
+        let options = BundleOptions { robust: RobustLoss::None, ..BundleOptions::default() };
+        let (state, problem) = problem(&start, &s.obs, &options).unwrap();
+        let n = problem.normal_equations(&state, problem.prior_weight).unwrap();
+        let PointBlocks::Dense(w) = &n.w else { panic!("a 2-view problem keeps W dense") };
+        let (nc, np) = (n.u.nrows(), n.v.len());
+        let mut jtj = DMatrix::zeros(nc + 3 * np, nc + 3 * np);
+        let mut jtr = DVector::zeros(nc + 3 * np);
+        jtj.view_mut((0, 0), (nc, nc)).copy_from(&n.u);
+        jtj.view_mut((0, nc), (nc, 3 * np)).copy_from(w);
+        jtj.view_mut((nc, 0), (3 * np, nc)).copy_from(&w.transpose());
+        jtr.rows_mut(0, nc).copy_from(&n.gc);
+        for p in 0..np {
+            jtj.view_mut((nc + 3 * p, nc + 3 * p), (3, 3)).copy_from(&n.v[p]);
+            jtr.rows_mut(nc + 3 * p, 3).copy_from(&n.gp[p]);
+        }
+        let dense = DenseDyn { jtj, jtr };
+        for lambda in [1e-6, 1e-1] {
+            let (dc, dp) = Linearisation::solve(&n, lambda).unwrap();
+            let mut schur = dc.clone().resize_vertically(nc + 3 * np, 0.0);
+            for (p, d) in dp.iter().enumerate() {
+                schur.rows_mut(nc + 3 * p, 3).copy_from(d);
+            }
+            let step = dense.solve(lambda).unwrap();
+            assert!(
+                (&step - &schur).norm() < 1e-9 * step.norm(),
+                "lambda {lambda}: {:e}",
+                (&step - &schur).norm()
+            );
+            let (a, b) = (n.predicted_decrease(lambda, &(dc, dp)), dense.predicted_decrease(lambda, &step));
+            assert!((a - b).abs() < 1e-9 * b.abs(), "lambda {lambda}: {a} {b}");
+        }
+    }
+
     /// The sparse Schur complement is the dense one with other summation orders: on a
     /// 24-view sequence in two segments (noisy, from a perturbed start) the damped steps
     /// and the covariance agree to 1e-9 relative (rounding, amplified by the conditioning
