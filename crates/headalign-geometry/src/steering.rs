@@ -127,6 +127,31 @@ pub fn steering_from_turns(
         (turns.iter().map(|t| (flat(&t.centre) - mean).dot(&forward).powi(2)).sum::<f64>() / n).sqrt();
     let e: Vec<f64> = turns.iter().map(|t| t.steer_encoder_deg.to_radians()).collect();
 
+    let (z, p, l) = scan_zero(&u, &e, wheelbase)
+        .ok_or_else(|| GeometryError::Degenerate("no positive wheelbase fits the turns".into()))?;
+    let (z, p, l) = refine(&u, &e, (z, p, l), wheelbase.is_some());
+    let along_rms =
+        (u.iter().zip(&e).map(|(uk, ek)| (uk - p - l * cot(ek - z)).powi(2)).sum::<f64>() / n).sqrt();
+    if !(z.is_finite() && l.is_finite() && p.is_finite()) {
+        return Err(GeometryError::Numerical("steering fit diverged".into()));
+    }
+    let mean_height = turns.iter().map(|t| up_v * up_v.dot(&t.centre.coords)).sum::<Vector3<f64>>() / n;
+    Ok(SteeringSolution {
+        steer_zero_deg: z.to_degrees(),
+        wheelbase: l,
+        forward: Unit::new_normalize(forward),
+        axle_point: Point3::from(mean + left * p + mean_height),
+        across_rms,
+        along_rms,
+    })
+}
+
+/// The start of [`refine`]: for each zero offset `z` of a scan over `(-45, 45)` degrees
+/// (0.05 deg apart), `(p, L)` by linear least squares (`p` alone when the `wheelbase` is
+/// known) of the positions `u` at readings `e` (radians); the `(z, p, L)` of least squares
+/// with a positive `L`, `None` if there is none.
+fn scan_zero(u: &[f64], e: &[f64], wheelbase: Option<f64>) -> Option<(f64, f64, f64)> {
+    let n = u.len() as f64;
     // For fixed z: (p, L) by linear least squares (or p alone with L known).
     let solve_linear = |z: f64| -> Option<(f64, f64, f64)> {
         let c: Vec<f64> = e.iter().map(|ek| cot(ek - z)).collect();
@@ -138,7 +163,7 @@ pub fn steering_from_turns(
             None => {
                 let (sc, su) = (c.iter().sum::<f64>(), u.iter().sum::<f64>());
                 let scc = c.iter().map(|v| v * v).sum::<f64>();
-                let scu = c.iter().zip(&u).map(|(a, b)| a * b).sum::<f64>();
+                let scu = c.iter().zip(u).map(|(a, b)| a * b).sum::<f64>();
                 let det = n * scc - sc * sc;
                 if det.abs() < 1e-300 {
                     return None;
@@ -161,23 +186,7 @@ pub fn steering_from_turns(
             best = Some((z, p, l, ss));
         }
     }
-    let (z, p, l, _) =
-        best.ok_or_else(|| GeometryError::Degenerate("no positive wheelbase fits the turns".into()))?;
-    let (z, p, l) = refine(&u, &e, (z, p, l), wheelbase.is_some());
-    let along_rms =
-        (u.iter().zip(&e).map(|(uk, ek)| (uk - p - l * cot(ek - z)).powi(2)).sum::<f64>() / n).sqrt();
-    if !(z.is_finite() && l.is_finite() && p.is_finite()) {
-        return Err(GeometryError::Numerical("steering fit diverged".into()));
-    }
-    let mean_height = turns.iter().map(|t| up_v * up_v.dot(&t.centre.coords)).sum::<Vector3<f64>>() / n;
-    Ok(SteeringSolution {
-        steer_zero_deg: z.to_degrees(),
-        wheelbase: l,
-        forward: Unit::new_normalize(forward),
-        axle_point: Point3::from(mean + left * p + mean_height),
-        across_rms,
-        along_rms,
-    })
+    best.map(|(z, p, l, _)| (z, p, l))
 }
 
 /// Most iterations of [`refine`] (it stops at the cost's rounding level long before).
