@@ -24,6 +24,11 @@
 //!    confidence, `w` the best inlier ratio and `s` the sample size; stop after
 //!    `max(min_iterations, min(N, max_iterations))` samples.
 //!
+//! After RANSAC, [`guided_reselection`] (Hartley & Zisserman 2nd ed., section 4.7.1,
+//! guided matching): the data within the threshold of the model, the model refitted on
+//! them, repeated until the set is stable or would shrink (at most a given number of
+//! rounds; the set never shrinks, so the refit is never worse supported than its start).
+//!
 //! Units: residuals and the threshold are in the same units, pixels for every estimator
 //! of this crate.
 //!
@@ -295,6 +300,36 @@ pub fn ransac<E: Estimator>(
         inliers: sc.inliers,
         iterations,
     })
+}
+
+/// Guided re-selection (module docs): `select` gives the indices of the data a model
+/// explains (within the threshold), `refit` the model fitted on such indices starting
+/// from a model (`None`: no fit, stop). From `model`, refit on its selection and select
+/// again; keep the refit unless its selection is smaller; stop when the selection is
+/// unchanged or after `max_rounds` refits. Returns the model, its selection and the refits
+/// tried.
+pub fn guided_reselection<M>(
+    mut model: M,
+    max_rounds: usize,
+    select: impl Fn(&M) -> Vec<usize>,
+    refit: impl Fn(&M, &[usize]) -> Option<M>,
+) -> (M, Vec<usize>, usize) {
+    let mut inliers = select(&model);
+    let mut rounds = 0;
+    for _ in 0..max_rounds {
+        rounds += 1;
+        let Some(next_model) = refit(&model, &inliers) else { break };
+        let next = select(&next_model);
+        if next.len() < inliers.len() {
+            break;
+        }
+        model = next_model;
+        if next == inliers {
+            break;
+        }
+        inliers = next;
+    }
+    (model, inliers, rounds)
 }
 
 #[cfg(test)]

@@ -73,6 +73,41 @@ fn projection_jacobian(k: &Intrinsics, p: &Point3<f64>) -> Matrix2x3<f64> {
     Matrix2x3::new(k.fx / z, k.skew / z, -(k.fx * p.x + k.skew * p.y) / z2, 0.0, k.fy / z, -k.fy * p.y / z2)
 }
 
+/// The Jacobian of the pixel of the camera-frame point `p` under the left-multiplicative
+/// update of the module docs (rotation first, then translation).
+fn pose_jacobian(k: &Intrinsics, p: &Point3<f64>) -> SMatrix<f64, 2, 6> {
+    let jp = projection_jacobian(k, p);
+    let mut j = SMatrix::<f64, 2, 6>::zeros();
+    j.fixed_view_mut::<2, 3>(0, 0).copy_from(&(jp * (-skew(&p.coords))));
+    j.fixed_view_mut::<2, 3>(0, 3).copy_from(&jp);
+    j
+}
+
+/// The Gauss-Newton normal equations `(J^T J, J^T r)` of the resection at
+/// `cam_from_world` over `correspondences` (world point, observed pixel) at unit weights
+/// (plain least squares: the covariance `sigma^2 (J^T J)^-1` of the module docs): residual
+/// projected minus observed, pixels; `J` analytic in the module's left-multiplicative
+/// update (rotation first). `None` if a point is not in front of the camera.
+pub fn normal_equations(
+    k: &Intrinsics,
+    cam_from_world: &Isometry3<f64>,
+    correspondences: impl IntoIterator<Item = (Point3<f64>, Point2<f64>)>,
+) -> Option<(Matrix6<f64>, Vector6<f64>)> {
+    let mut jtj = Matrix6::<f64>::zeros();
+    let mut jtr = Vector6::<f64>::zeros();
+    for (x, pixel) in correspondences {
+        let p = cam_from_world * x;
+        if p.z <= 0.0 {
+            return None;
+        }
+        let r = k.project_unchecked(&p) - pixel;
+        let j = pose_jacobian(k, &p);
+        jtj += j.transpose() * j;
+        jtr += j.transpose() * r;
+    }
+    Some((jtj, jtr))
+}
+
 fn refine(
     k: &Intrinsics,
     points: &[Point3<f64>],
@@ -105,10 +140,7 @@ fn refine(
             }
             let r = k.project_unchecked(&p) - pixels[i];
             let w = huber_weight(r.norm(), options.huber_px);
-            let jp = projection_jacobian(k, &p);
-            let mut j = SMatrix::<f64, 2, 6>::zeros();
-            j.fixed_view_mut::<2, 3>(0, 0).copy_from(&(jp * (-skew(&p.coords))));
-            j.fixed_view_mut::<2, 3>(0, 3).copy_from(&jp);
+            let j = pose_jacobian(k, &p);
             jtj += j.transpose() * j * w;
             jtr += j.transpose() * r * w;
         }
@@ -368,6 +400,52 @@ mod tests {
             prop_assert!((r.cam_from_world.to_homogeneous() - truth.to_homogeneous()).norm() < 1e-9);
             prop_assert_eq!(r.inliers.len(), 54);
         }
+    }
+
+    /// [`normal_equations`]' analytic `J` against central differences (step 1e-6 along the
+    /// module's left update `Exp(w) X + v`): `J^T J` and `J^T r` agree to 1e-6 relative
+    /// (the differences' truncation, `h^2` times the third derivative, and rounding,
+    /// `eps / h` of the pixel values, are both below 1e-8 of the entries here).
+    #[test]
+    fn normal_equations_match_central_differences() {
+        let (k, pose, pts) = bootstrap_scene();
+        let pixels: Vec<Point2<f64>> = pts
+            .iter()
+            .enumerate()
+            .map(|(i, x)| {
+                k.project_unchecked(&(pose * x)) + nalgebra::Vector2::new((i % 5) as f64 - 2.0, 1.0)
+            })
+            .collect();
+        let (jtj, jtr) =
+            normal_equations(&k, &pose, pts.iter().copied().zip(pixels.iter().copied())).unwrap();
+        let h = 1e-6;
+        let moved = |d: &Vector6<f64>| {
+            let upd = Isometry3::from_parts(
+                Translation3::from(d.fixed_rows::<3>(3).into_owned()),
+                UnitQuaternion::from_rotation_matrix(&exp(&d.fixed_rows::<3>(0).into_owned())),
+            );
+            upd * pose
+        };
+        let mut num_jtj = Matrix6::<f64>::zeros();
+        let mut num_jtr = Vector6::<f64>::zeros();
+        for (x, px) in pts.iter().zip(&pixels) {
+            let mut j = SMatrix::<f64, 2, 6>::zeros();
+            for c in 0..6 {
+                let mut d = Vector6::zeros();
+                d[c] = h;
+                let plus = k.project_unchecked(&(moved(&d) * x));
+                let minus = k.project_unchecked(&(moved(&-d) * x));
+                j.set_column(c, &((plus - minus) / (2.0 * h)));
+            }
+            let r = k.project_unchecked(&(pose * x)) - px;
+            num_jtj += j.transpose() * j;
+            num_jtr += j.transpose() * r;
+        }
+        assert!((jtj - num_jtj).norm() < 1e-6 * jtj.norm(), "{jtj} {num_jtj}");
+        assert!((jtr - num_jtr).norm() < 1e-6 * jtr.norm(), "{jtr} {num_jtr}");
+        // A point behind the camera has no normal equations.
+        let behind = pose.inverse() * Point3::new(0.0, 0.0, -1.0);
+        assert!(normal_equations(&k, &pose, [(behind, Point2::origin())]).is_none());
     }
 
     /// 150 points 2-6 m in front of a camera at a pose, in the world frame.

@@ -13,9 +13,10 @@
 //!
 //! Parametrisation: a left-multiplied perturbation, `exp(dw, dt) (R, t) = (R_dw R,
 //! R_dw t + dt)`, rotation part first; analytic Jacobians (checked against central
-//! differences in the tests). Levenberg-Marquardt with the points eliminated by the
-//! Schur complement: a 6x6 reduced system per iteration, then each point's 3x3 back
-//! substitution.
+//! differences in the tests). The project's Levenberg-Marquardt ([`crate::lm`]: its
+//! damping policy, a relative function tolerance of 1e-12, at most `max_iterations`) with
+//! the bundle adjustment's point-Schur back end: a 6x6 reduced system per iteration, then
+//! each point's 3x3 back substitution.
 //!
 //! Covariance: `sigma^2 S^-1` of `(dw, dt)` at the optimum (`S` the undamped reduced
 //! normal matrix, `sigma^2` the weighted residual variance with `n_obs - 6 - 3 n_pts`
@@ -37,12 +38,14 @@
 //! outlier and re-fits the rest (a 3 px robot drive failed this way on one tree).
 
 use nalgebra::{
-    Isometry3, Matrix3, Matrix6, Point2, Point3, SMatrix, Translation3, UnitQuaternion, Vector3, Vector6,
+    DMatrix, DVector, Isometry3, Matrix3, Matrix6, Point2, Point3, SMatrix, Translation3, UnitQuaternion,
+    Vector3, Vector6,
 };
 
+use crate::bundle::Normal;
 use crate::camera::{Intrinsics, ProjectiveCamera, dehomogenise3};
 use crate::triangulation::triangulate_views;
-use crate::{GeometryError, Result};
+use crate::{GeometryError, Result, lm};
 
 /// A calibrated stereo rig: both intrinsics and the right camera's pose.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -302,34 +305,32 @@ fn track_normal(
     Some(t)
 }
 
-/// The Schur-reduced normal equations at `(m, pts)` with damping `lambda` (added to
-/// every diagonal element, scaled by it): returns `(S, b, per-point (A_i^-1, B_i, g_i))`.
-type PointBlock = (Matrix3<f64>, SMatrix<f64, 6, 3>, Vector3<f64>);
-fn reduced_system(
+/// The normal equations at `(m, pts)` for the point-Schur back end of [`crate::lm`] (the
+/// bundle adjustment's, `bundle/normal.rs`): the motion block and gradient, per point its
+/// 3x3 block, gradient and its 6x3 block of `W`. `None` when a point is behind a camera.
+fn normal_equations(
     rig: &StereoRig,
     m: &Isometry3<f64>,
     pts: &[Point3<f64>],
     obs: &[RigTrack],
     k: f64,
-    lambda: f64,
-) -> Option<(Matrix6<f64>, Vector6<f64>, Vec<PointBlock>)> {
-    let mut s = Matrix6::zeros();
-    let mut b = Vector6::zeros();
-    let mut blocks = Vec::with_capacity(pts.len());
-    for (x, o) in pts.iter().zip(obs) {
-        let TrackNormal { u, mut a, bb, gm, gx } = track_normal(rig, m, x, o, k)?;
-        for i in 0..3 {
-            a[(i, i)] *= 1.0 + lambda;
-        }
-        let ai = a.try_inverse()?;
-        s += u - bb * ai * bb.transpose();
-        b += gm - bb * ai * gx;
-        blocks.push((ai, bb, gx));
+) -> Option<Normal> {
+    let mut u = Matrix6::zeros();
+    let mut gc = Vector6::zeros();
+    let mut v = Vec::with_capacity(pts.len());
+    let mut gp = Vec::with_capacity(pts.len());
+    let mut w = DMatrix::zeros(6, 3 * pts.len());
+    for (i, (x, o)) in pts.iter().zip(obs).enumerate() {
+        let t = track_normal(rig, m, x, o, k)?;
+        u += t.u;
+        gc += t.gm;
+        v.push(t.a);
+        gp.push(t.gx);
+        w.fixed_view_mut::<6, 3>(0, 3 * i).copy_from(&t.bb);
     }
-    for i in 0..6 {
-        s[(i, i)] *= 1.0 + lambda;
-    }
-    Some((s, b, blocks))
+    let u = DMatrix::from_column_slice(6, 6, u.as_slice());
+    let gc = DVector::from_column_slice(gc.as_slice());
+    Some(Normal::from_blocks(u, gc, v, gp, w))
 }
 
 /// Refine the motion and the points (module docs) from a start.
@@ -444,7 +445,53 @@ fn unusable_tracks(
         .collect()
 }
 
-/// Levenberg-Marquardt from a start: the motion, the points and the iterations run.
+/// The rig motion as a [`lm::LeastSquares`] problem: state the motion and the points,
+/// the point-Schur back end, the cost half the Huber loss of [`robust_cost`].
+struct Motion<'a> {
+    rig: &'a StereoRig,
+    obs: &'a [RigTrack],
+    k: f64,
+}
+
+type MotionState = (Isometry3<f64>, Vec<Point3<f64>>);
+
+impl lm::LeastSquares for Motion<'_> {
+    type State = MotionState;
+    type Normal = Normal;
+    type Eval = f64;
+    type Error = GeometryError;
+
+    fn linearise(&mut self, (m, pts): &MotionState) -> Result<Option<Normal>> {
+        Ok(normal_equations(self.rig, m, pts, self.obs, self.k))
+    }
+
+    fn retract(
+        &self,
+        (m, pts): &MotionState,
+        (dm, dp): &(DVector<f64>, Vec<Vector3<f64>>),
+    ) -> Result<Option<(MotionState, f64)>> {
+        let dm = Vector6::from_column_slice(dm.as_slice());
+        let pts_new: Vec<Point3<f64>> = pts.iter().zip(dp).map(|(x, d)| x + d).collect();
+        let step_sq = dm.norm_squared() + dp.iter().map(|d| d.norm_squared()).sum::<f64>();
+        Ok(Some(((perturb(m, &dm), pts_new), step_sq)))
+    }
+
+    fn evaluate(&self, (m, pts): &MotionState) -> Option<f64> {
+        let c = 0.5 * robust_cost(self.rig, m, pts, self.obs, self.k);
+        c.is_finite().then_some(c)
+    }
+
+    fn state_norm(&self, _state: &MotionState) -> f64 {
+        0.0
+    }
+}
+
+/// The function tolerance of the rig motion's Levenberg-Marquardt: a relative decrease of
+/// 1e-12 (the cost to rounding at thousands of residuals).
+const FUNCTION_TOLERANCE: f64 = 1e-12;
+
+/// Levenberg-Marquardt ([`crate::lm`], point-Schur back end) from a start: the motion, the
+/// points and the iterations run.
 fn optimise(
     rig: &StereoRig,
     obs: &[RigTrack],
@@ -453,46 +500,18 @@ fn optimise(
     options: &RigMotionOptions,
 ) -> Result<(Isometry3<f64>, Vec<Point3<f64>>, usize)> {
     let k = options.huber_px;
-    let mut m = *start;
-    let mut pts = points.to_vec();
-    let mut cost = robust_cost(rig, &m, &pts, obs, k);
+    let cost = 0.5 * robust_cost(rig, start, points, obs, k);
     if !cost.is_finite() {
         return Err(GeometryError::Degenerate("a start point is behind a camera".into()));
     }
-    let mut lambda = 1e-4;
-    let mut iterations = 0;
-    while iterations < options.max_iterations {
-        iterations += 1;
-        let mut improved = false;
-        for _ in 0..10 {
-            let Some((s, b, blocks)) = reduced_system(rig, &m, &pts, obs, k, lambda) else { break };
-            let Some(dm) = s.try_inverse().map(|inv| -(inv * b)) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let m_new = perturb(&m, &dm);
-            let pts_new: Vec<Point3<f64>> = pts
-                .iter()
-                .zip(&blocks)
-                .map(|(x, (ai, bb, gx))| x - ai * (gx + bb.transpose() * dm))
-                .collect();
-            let c_new = robust_cost(rig, &m_new, &pts_new, obs, k);
-            if c_new.is_finite() && c_new < cost {
-                let rel = (cost - c_new) / cost.max(1e-300);
-                m = m_new;
-                pts = pts_new;
-                cost = c_new;
-                lambda = (lambda * 0.3).max(1e-12);
-                improved = rel > 1e-12;
-                break;
-            }
-            lambda *= 10.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    Ok((m, pts, iterations))
+    let lm_options = lm::LmOptions {
+        max_iterations: options.max_iterations,
+        function_tolerance: FUNCTION_TOLERANCE,
+        parameter_tolerance: 0.0,
+    };
+    let out = lm::run(&mut Motion { rig, obs, k }, (*start, points.to_vec()), cost, &lm_options)?;
+    let (m, pts) = out.state;
+    Ok((m, pts, out.iterations))
 }
 
 /// The estimate at an optimum `(m, pts)`: covariance, centre, noise.
@@ -504,12 +523,12 @@ fn finish(
     k: f64,
     iterations: usize,
 ) -> Result<RigMotionEstimate> {
-    let (s, _, _) = reduced_system(rig, &m, &pts, obs, k, 0.0).ok_or_else(|| {
+    let s = normal_equations(rig, &m, &pts, obs, k).and_then(|n| n.reduced_undamped()).ok_or_else(|| {
         GeometryError::Degenerate(
             "a point behind a camera or at infinity (singular normal block) at the optimum".into(),
         )
     })?;
-    let s_inv = s
+    let s_inv = Matrix6::from_column_slice(s.as_slice())
         .try_inverse()
         .ok_or_else(|| GeometryError::Degenerate("rig motion not determined (no parallax)".into()))?;
     let n_obs = 8 * obs.len();

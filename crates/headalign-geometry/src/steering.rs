@@ -15,7 +15,8 @@
 //! their principal direction; the forward direction is perpendicular to it, its sign
 //! given by a hint (the direction the robot drove). Then `(p, L)` are linear for fixed `z`:
 //! a scan of `z` over `(-45, 45)` degrees between the singularities of `cot`, then
-//! Gauss-Newton on `(p, L, z)` (analytic Jacobian) to machine precision.
+//! least squares on `(p, L, z)` (analytic Jacobian) by the project's Levenberg-Marquardt
+//! ([`crate::lm`]) to the cost's rounding level.
 //!
 //! Units: the centres' length unit (e.g. stereo baselines) for `L` and `p`; degrees for
 //! encoders and `z`. Residual: distance along the axle line, centre units.
@@ -148,6 +149,31 @@ pub fn steering_from_turns(
         (turns.iter().map(|t| (flat(&t.centre) - mean).dot(&forward).powi(2)).sum::<f64>() / n).sqrt();
     let e: Vec<f64> = turns.iter().map(|t| t.steer_encoder_deg.to_radians()).collect();
 
+    let (z, p, l) = scan_zero(&u, &e, wheelbase)
+        .ok_or_else(|| GeometryError::Degenerate("no positive wheelbase fits the turns".into()))?;
+    let (z, p, l) = refine(&u, &e, (z, p, l), wheelbase.is_some());
+    let along_rms =
+        (u.iter().zip(&e).map(|(uk, ek)| (uk - p - l * cot(ek - z)).powi(2)).sum::<f64>() / n).sqrt();
+    if !(z.is_finite() && l.is_finite() && p.is_finite()) {
+        return Err(GeometryError::Numerical("steering fit diverged".into()));
+    }
+    let mean_height = turns.iter().map(|t| up_v * up_v.dot(&t.centre.coords)).sum::<Vector3<f64>>() / n;
+    Ok(SteeringSolution {
+        steer_zero_deg: z.to_degrees(),
+        wheelbase: l,
+        forward: Unit::new_normalize(forward),
+        axle_point: Point3::from(mean + left * p + mean_height),
+        across_rms,
+        along_rms,
+    })
+}
+
+/// The start of [`refine`]: for each zero offset `z` of a scan over `(-45, 45)` degrees
+/// (0.05 deg apart), `(p, L)` by linear least squares (`p` alone when the `wheelbase` is
+/// known) of the positions `u` at readings `e` (radians); the `(z, p, L)` of least squares
+/// with a positive `L`, `None` if there is none.
+fn scan_zero(u: &[f64], e: &[f64], wheelbase: Option<f64>) -> Option<(f64, f64, f64)> {
+    let n = u.len() as f64;
     // For fixed z: (p, L) by linear least squares (or p alone with L known).
     let solve_linear = |z: f64| -> Option<(f64, f64, f64)> {
         let c: Vec<f64> = e.iter().map(|ek| cot(ek - z)).collect();
@@ -159,7 +185,7 @@ pub fn steering_from_turns(
             None => {
                 let (sc, su) = (c.iter().sum::<f64>(), u.iter().sum::<f64>());
                 let scc = c.iter().map(|v| v * v).sum::<f64>();
-                let scu = c.iter().zip(&u).map(|(a, b)| a * b).sum::<f64>();
+                let scu = c.iter().zip(u).map(|(a, b)| a * b).sum::<f64>();
                 let det = n * scc - sc * sc;
                 if det.abs() < 1e-300 {
                     return None;
@@ -182,45 +208,41 @@ pub fn steering_from_turns(
             best = Some((z, p, l, ss));
         }
     }
-    let (mut z, mut p, mut l, _) =
-        best.ok_or_else(|| GeometryError::Degenerate("no positive wheelbase fits the turns".into()))?;
-    // Gauss-Newton on (p, L, z) (L fixed when known).
-    for _ in 0..50 {
+    best.map(|(z, p, l, _)| (z, p, l))
+}
+
+/// Most iterations of [`refine`] (it stops at the cost's rounding level long before).
+const REFINE_ITERATIONS: usize = 50;
+
+/// The least-squares `(z, p, L)` of the positions `u` along the axle line at encoder
+/// readings `e` (radians) from `start` (the scan's best), by [`crate::lm::minimise`]
+/// (analytic Jacobian; `L` held when `hold_l`, the wheelbase known). Residuals in centre
+/// units.
+fn refine(u: &[f64], e: &[f64], start: (f64, f64, f64), hold_l: bool) -> (f64, f64, f64) {
+    // State (p, L, z).
+    let cost = |x: &Vector3<f64>| {
+        u.iter().zip(e).map(|(uk, ek)| (uk - x.x - x.y * cot(ek - x.z)).powi(2)).sum::<f64>()
+    };
+    let normal = |x: &Vector3<f64>| {
+        let (p, l, z) = (x.x, x.y, x.z);
         let mut jtj = Matrix3::zeros();
         let mut jtr = Vector3::zeros();
-        for k in 0..u.len() {
-            let x = e[k] - z;
-            let r = u[k] - p - l * cot(x);
-            let s2 = x.sin().powi(2);
-            let j = Vector3::new(-1.0, if wheelbase.is_some() { 0.0 } else { -cot(x) }, -l / s2);
+        for (uk, ek) in u.iter().zip(e) {
+            let a = ek - z;
+            let r = uk - p - l * cot(a);
+            let s2 = a.sin().powi(2);
+            let j = Vector3::new(-1.0, if hold_l { 0.0 } else { -cot(a) }, -l / s2);
             jtj += j * j.transpose();
             jtr += j * r;
         }
-        if wheelbase.is_some() {
+        if hold_l {
             jtj[(1, 1)] = 1.0;
         }
-        let Some(delta) = jtj.try_inverse().map(|m| -(m * jtr)) else { break };
-        p += delta.x;
-        l += delta.y;
-        z += delta.z;
-        if delta.norm() < 1e-15 * (1.0 + p.abs() + l.abs()) {
-            break;
-        }
-    }
-    let along_rms =
-        (u.iter().zip(&e).map(|(uk, ek)| (uk - p - l * cot(ek - z)).powi(2)).sum::<f64>() / n).sqrt();
-    if !(z.is_finite() && l.is_finite() && p.is_finite()) {
-        return Err(GeometryError::Numerical("steering fit diverged".into()));
-    }
-    let mean_height = turns.iter().map(|t| up_v * up_v.dot(&t.centre.coords)).sum::<Vector3<f64>>() / n;
-    Ok(SteeringSolution {
-        steer_zero_deg: z.to_degrees(),
-        wheelbase: l,
-        forward: Unit::new_normalize(forward),
-        axle_point: Point3::from(mean + left * p + mean_height),
-        across_rms,
-        along_rms,
-    })
+        Some((jtj, jtr))
+    };
+    let x0 = Vector3::new(start.1, start.2, start.0);
+    let (x, _) = crate::lm::minimise(x0, cost(&x0), REFINE_ITERATIONS, normal, |x, d| Some(x + d), cost);
+    (x.z, x.x, x.y)
 }
 
 #[cfg(test)]

@@ -86,7 +86,8 @@
 //!
 //! # Algorithm
 //!
-//! Levenberg-Marquardt with Marquardt's diagonal scaling (diagonal clamped to
+//! The project's one Levenberg-Marquardt ([`crate::lm`], whose damping policy follows),
+//! with the point-Schur back end of `normal.rs`. Marquardt's diagonal scaling (diagonal clamped to
 //! `[1e-6, 1e32]`), steps accepted only if the robust cost decreases, so the returned
 //! state is never worse than the initial one. The damping `lambda` (start 1e-3) follows
 //! Nielsen's rule (H. B. Nielsen, "Damping parameter in Marquardt's method", IMM-REP
@@ -225,10 +226,11 @@
 //! - `robust.rs` (the robust loss): [`RobustLoss`], the IRLS weights, the measurement
 //!   window's [`truncated_mean_shift`].
 //! - `normal.rs` (the solver's linear algebra): normal equations, reduced camera system
-//!   (Schur complement over the points), Marquardt damping, the damped solve.
+//!   (Schur complement over the points), Marquardt damping, the damped solve: the
+//!   point-Schur back end of [`crate::lm`].
 //! - `sparse.rs` (the linear algebra of many views): the per-point structure of `W`, the
 //!   point-by-point Schur complement, the profile Cholesky of the reduced system.
-//! - `solver.rs` (the solver): Levenberg-Marquardt with Nielsen's damping and the entry
+//! - `solver.rs` (the solver): the adjustment as a [`crate::lm`] problem and the entry
 //!   points [`bundle_adjust`], [`bundle_adjust_with_checkpoint`] ([`BundleCheckpoint`]),
 //!   [`bundle_adjust_at_depth_scale`], [`bundle_adjust_holding`].
 //! - `covariance.rs` (the covariance): [`Covariance`], [`CovarianceModel`], the covariance
@@ -256,6 +258,7 @@ pub mod synthetic;
 mod test_support;
 
 pub use covariance::{Covariance, CovarianceModel, clustered_covariance, log_depth_scale};
+pub(crate) use normal::Normal;
 pub use prior::{AnglePrior, angle_prior_chi2, angle_prior_residuals};
 pub use residual::{residual_pixels, residual_pixels_at};
 pub use robust::{RobustLoss, truncated_mean_shift};

@@ -9,22 +9,17 @@
 //! profile-likelihood point), hold named camera parameters
 //! ([`bundle_adjust_holding`]), or ask a callback after some iterations whether to go on
 //! ([`bundle_adjust_with_checkpoint`]). All run `adjust`, in named steps: `setup` (the
-//! problem, the depth constraint, the held parameters), the iteration (`keep_going` at the
-//! checkpoint, one linearisation and `lm_step`, which solves and retries until a step is
-//! accepted or the damping limit is reached; `candidate` and `accept`), `noise_sigma` and
-//! the covariance (`covariance.rs`).
+//! problem, the depth constraint, the held parameters), the iteration ([`crate::lm::run`]
+//! on `Adjustment`: `keep_going` at the checkpoint, the linearisation of `normal.rs`, the
+//! step by `candidate`), `noise_sigma` and the covariance (`covariance.rs`).
 //!
-//! Levenberg-Marquardt with Marquardt's diagonal scaling (`normal.rs`); a step is accepted
-//! only if the robust cost decreases, so the result is never worse than the start. The
-//! damping `lambda` (start 1e-3) follows Nielsen's rule (H. B. Nielsen, "Damping parameter
-//! in Marquardt's method", IMM-REP 1999-05; Madsen, Nielsen, Tingleff, "Methods for
-//! non-linear least squares problems", 2004, section 3.2): after an accepted step with gain
-//! ratio `rho` (actual over predicted decrease) `lambda *= max(1/3, 1 - (2 rho - 1)^3)`
-//! (floor 1e-12), after a rejected one `lambda *= nu, nu *= 2` (`nu = 2` after each
-//! acceptance). Stopping: relative cost decrease below `function_tolerance`, step norm
-//! below `parameter_tolerance * (|x| + parameter_tolerance)` (`x_norm`: intrinsics,
-//! baseline and used points), zero cost, the damping limit `lambda > 1e16` (no decrease
-//! possible: a minimum to rounding), or `max_iterations`. The noise for the covariance is
+//! The iteration is the project's one Levenberg-Marquardt ([`crate::lm`]: its damping
+//! policy, Nielsen's rule from `lambda = 1e-3`, and its stopping rules) with the
+//! point-Schur back end (`normal.rs`); a step is accepted only if the robust cost
+//! decreases, so the result is never worse than the start. The stopping tolerances are
+//! [`BundleOptions`]'s `function_tolerance` and `parameter_tolerance`, the state norm of
+//! the parameter tolerance `x_norm` (intrinsics, baseline and used points); the damping
+//! limit counts as converged, `max_iterations` does not. The noise for the covariance is
 //! `noise_sigma_px`, or estimated from the residuals (`noise_sigma`, module docs,
 //! Covariance). Costs are half squared pixels, tolerances relative.
 //!
@@ -43,12 +38,12 @@ use nalgebra::{DVector, Vector3};
 
 use super::covariance::covariance;
 use super::layout::{Layout, Param, retract, retract_point};
-use super::normal::{Normal, predicted_decrease, solve};
+use super::normal::Normal;
 use super::prior::angle_prior_chi2;
 use super::problem::{Eval, Problem, problem};
 use super::robust::RobustLoss;
 use super::state::{BundleObservation, BundleOptions, BundleReport, BundleResult, Motions, RigState};
-use crate::{GeometryError, Result};
+use crate::{GeometryError, Result, lm};
 
 /// Refine a rig state on the observations. See the module documentation.
 pub fn bundle_adjust(
@@ -156,13 +151,6 @@ pub fn bundle_adjust_holding(
     adjust(initial, observations, options, None, None, &held)?.ok_or_else(never_abandoned)
 }
 
-/// Nielsen's damping after a rejected step (or one that could not be solved): raise
-/// `lambda` by `nu`, and double `nu` for the next rejection in a row.
-fn reject(lambda: &mut f64, nu: &mut f64) {
-    *lambda *= *nu;
-    *nu *= 2.0;
-}
-
 /// The callback of [`bundle_adjust_with_checkpoint`] and the iteration count at which it
 /// is asked.
 type Checkpoint<'c> = (usize, &'c mut dyn FnMut(&BundleCheckpoint<'_>) -> bool);
@@ -193,69 +181,74 @@ fn setup<'a>(
     Ok((state, problem))
 }
 
-/// Where the Levenberg-Marquardt iteration of [`adjust`] stands: the accepted state and its
-/// cost, the damping `lambda` and Nielsen's factor `nu` by which the next rejected step
-/// raises it.
-struct Iterate {
-    state: RigState,
-    current: Eval,
-    lambda: f64,
-    nu: f64,
+/// The bundle adjustment as a [`lm::LeastSquares`] problem: the linearisation is the
+/// point-Schur back end (`normal.rs`), the retraction [`candidate`], the evaluation the
+/// robust cost, the state norm [`x_norm`]; the checkpoint's callback decides
+/// [`lm::LeastSquares::keep_going`].
+struct Adjustment<'p, 'a, 'c> {
+    problem: &'p Problem<'a>,
+    checkpoint: Option<Checkpoint<'c>>,
+    n_obs: usize,
+}
+
+impl lm::Evaluation for Eval {
+    fn cost(&self) -> f64 {
+        self.cost
+    }
+}
+
+impl lm::LeastSquares for Adjustment<'_, '_, '_> {
+    type State = RigState;
+    type Normal = Normal;
+    type Eval = Eval;
+    type Error = GeometryError;
+
+    fn linearise(&mut self, state: &RigState) -> Result<Option<Normal>> {
+        match self.problem.normal_equations(state, self.problem.prior_weight) {
+            Some(n) => Ok(Some(n)),
+            None => Err(GeometryError::Numerical("linearisation failed at an accepted state".into())),
+        }
+    }
+
+    fn retract(
+        &self,
+        state: &RigState,
+        step: &(DVector<f64>, Vec<Vector3<f64>>),
+    ) -> Result<Option<(RigState, f64)>> {
+        candidate(self.problem, state, &step.0, &step.1).map(Some)
+    }
+
+    fn evaluate(&self, state: &RigState) -> Option<Eval> {
+        self.problem.evaluate(state)
+    }
+
+    fn state_norm(&self, state: &RigState) -> f64 {
+        x_norm(state, &self.problem.points)
+    }
+
+    fn keep_going(&mut self, iterations: usize, state: &RigState, current: &Eval) -> bool {
+        keep_going(&mut self.checkpoint, iterations, state, current, self.n_obs)
+    }
 }
 
 /// Whether the iteration goes on at `iterations` done: asks the checkpoint's callback if
-/// this is its iteration (showing it the accepted state and its RMS over the `n_obs`
+/// this is its iteration (showing it the accepted `state` and its RMS over the `n_obs`
 /// used observations), true otherwise. False abandons the run.
 fn keep_going(
     checkpoint: &mut Option<Checkpoint<'_>>,
     iterations: usize,
-    it: &Iterate,
+    state: &RigState,
+    current: &Eval,
     n_obs: usize,
 ) -> bool {
     if let Some((at, ask)) = checkpoint.as_mut()
         && iterations == *at
     {
-        let seen = BundleCheckpoint {
-            state: &it.state,
-            iterations,
-            rms_px: rms(it.current.sum_sq, n_obs),
-            observations: n_obs,
-        };
+        let seen =
+            BundleCheckpoint { state, iterations, rms_px: rms(current.sum_sq, n_obs), observations: n_obs };
         return ask(&seen);
     }
     true
-}
-
-/// One linearisation's worth of Levenberg-Marquardt on `normal` (the normal equations at
-/// `it.state`): solve the damped system, try the step, and on failure (no solution, or no
-/// decrease of the robust cost, or a point brought behind a camera) raise the damping
-/// ([`reject`]) and solve again, until a step is accepted ([`accept`]) or the damping
-/// passes `1e16`. Returns why the iteration stops (a tolerance, zero cost or the damping
-/// limit: all count as converged), `None` to linearise again.
-fn lm_step(
-    problem: &Problem<'_>,
-    options: &BundleOptions,
-    normal: &Normal,
-    it: &mut Iterate,
-) -> Result<Option<&'static str>> {
-    loop {
-        if it.lambda > 1e16 {
-            return Ok(Some("no further decrease possible (damping limit): minimum to rounding"));
-        }
-        let Some((dc, dp)) = solve(normal, it.lambda) else {
-            reject(&mut it.lambda, &mut it.nu);
-            continue;
-        };
-        let predicted = predicted_decrease(normal, it.lambda, &dc, &dp);
-        let (cand, step_sq) = candidate(problem, &it.state, &dc, &dp)?;
-        let eval = problem.evaluate(&cand);
-        match eval {
-            Some(e) if e.cost < it.current.cost => {
-                return Ok(accept(problem, options, it, cand, e, predicted, step_sq));
-            }
-            _ => reject(&mut it.lambda, &mut it.nu),
-        }
-    }
 }
 
 /// The state moved by the step `(dc, dp)` (camera parameters by [`retract`], each used
@@ -281,48 +274,6 @@ fn candidate(
         }
     }
     Ok((cand, step_sq))
-}
-
-/// Take the step to `cand` (cost `e`, lower than the current one): update the damping by
-/// Nielsen's rule from the gain ratio of the actual to the `predicted` decrease, then test
-/// the stopping rules in order (function tolerance, parameter tolerance on the step's norm
-/// `sqrt(step_sq)` against the norm of the state before the step, zero cost). Returns the
-/// rule that stops the iteration, if any.
-fn accept(
-    problem: &Problem<'_>,
-    options: &BundleOptions,
-    it: &mut Iterate,
-    cand: RigState,
-    e: Eval,
-    predicted: f64,
-    step_sq: f64,
-) -> Option<&'static str> {
-    let decrease = it.current.cost - e.cost;
-    let x_norm = x_norm(&it.state, &problem.points);
-    it.state = cand;
-    let old_cost = it.current.cost;
-    it.current = e;
-    // Nielsen: lower the damping by up to 3x where the quadratic model
-    // predicted the decrease well (gain ratio near 1), raise it where it
-    // did not (ratio near 0).
-    let gain = decrease / predicted;
-    let factor = if gain.is_finite() && predicted > 0.0 {
-        (1.0 - (2.0 * gain - 1.0).powi(3)).max(1.0 / 3.0)
-    } else {
-        1.0
-    };
-    it.lambda = (it.lambda * factor).max(1e-12);
-    it.nu = 2.0;
-    if decrease <= options.function_tolerance * old_cost {
-        return Some("function tolerance");
-    }
-    if step_sq.sqrt() <= options.parameter_tolerance * (x_norm + options.parameter_tolerance) {
-        return Some("parameter tolerance");
-    }
-    if it.current.cost == 0.0 {
-        return Some("zero cost");
-    }
-    None
 }
 
 /// The pixel noise for the covariance at the solution `state` (module docs, Covariance):
@@ -384,7 +335,7 @@ fn adjust(
     observations: &[BundleObservation],
     options: &BundleOptions,
     depth: Option<(f64, f64)>,
-    mut checkpoint: Option<Checkpoint<'_>>,
+    checkpoint: Option<Checkpoint<'_>>,
     held: &[Param],
 ) -> Result<Option<BundleResult>> {
     let (state, problem) = setup(initial, observations, options, depth, held)?;
@@ -396,27 +347,18 @@ fn adjust(
         return Err(GeometryError::Numerical("the initial cost is not finite".into()));
     };
     let initial_rms_px = rms(first.sum_sq, n_obs);
-    // Nielsen's update (module docs, Algorithm): `nu` is the factor a rejected step raises
-    // the damping by, doubled at each rejection in a row.
-    let mut it = Iterate { state, current: first, lambda: 1e-3, nu: 2.0 };
-    let mut iterations = 0;
-    let mut converged = false;
-    let mut termination = String::from("maximum iterations reached");
-    while iterations < options.max_iterations {
-        if !keep_going(&mut checkpoint, iterations, &it, n_obs) {
-            return Ok(None);
-        }
-        iterations += 1;
-        let Some(normal) = problem.normal_equations(&it.state, problem.prior_weight) else {
-            return Err(GeometryError::Numerical("linearisation failed at an accepted state".into()));
-        };
-        if let Some(reason) = lm_step(&problem, options, &normal, &mut it)? {
-            converged = true;
-            termination = reason.into();
-            break;
-        }
+    let lm_options = lm::LmOptions {
+        max_iterations: options.max_iterations,
+        function_tolerance: options.function_tolerance,
+        parameter_tolerance: options.parameter_tolerance,
+    };
+    let mut adjustment = Adjustment { problem: &problem, checkpoint, n_obs };
+    let out = lm::run(&mut adjustment, state, first, &lm_options)?;
+    if out.termination == lm::Termination::Abandoned {
+        return Ok(None);
     }
-    let Iterate { state, current, .. } = it;
+    let lm::Outcome { state, value: current, iterations, termination } = out;
+    let (converged, termination) = (termination.converged(), termination.reason().to_string());
 
     // Covariance at the solution.
     let sigma = noise_sigma(&problem, &state, options, n_obs, n_params)?;

@@ -28,7 +28,7 @@ use nalgebra::{Isometry3, UnitQuaternion};
 use super::{CalibrateOptions, MotionReport, Seeded};
 use crate::error::AlignError;
 use crate::observations::View;
-use crate::verge_tilt::{PolishedHomography, Reconstruction, polish, rms};
+use crate::verge_tilt::{PolishedHomography, Reconstruction, guided_reselection, polish, rms};
 
 /// Rotation angle (radians) of a 3D homography conjugate to a rigid motion, from its
 /// trace at determinant 1 (`tr D = 2 + 2 cos theta`).
@@ -84,25 +84,13 @@ pub(super) fn fit_motion(
             }
         }
     }
-    let Some((mut model, _)) = best else {
+    let Some((model, _)) = best else {
         return Err(AlignError::NotARotation {
             view: view.to_string(),
             why: "no 3D homography fits its matches with the reference view".into(),
         });
     };
-    let mut inliers = select(&model);
-    for _ in 0..10 {
-        let Some(refit) = polish(&model, quads, &inliers, &p_l, &p_r) else { break };
-        let next = select(&refit);
-        if next.len() < inliers.len() {
-            break;
-        }
-        model = refit;
-        if next == inliers {
-            break;
-        }
-        inliers = next;
-    }
+    let (model, inliers, _) = guided_reselection(model, quads, &p_l, &p_r, threshold);
     if inliers.len() < options.estimation.min_tracks {
         return Err(AlignError::TooFewTracks {
             what: format!("fitting the 3D homography of view '{view}'"),

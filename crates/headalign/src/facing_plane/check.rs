@@ -13,7 +13,8 @@
 //! model's scale gauge: only `t m^T` enters, and that is gauge-free) and measures a
 //! rotation `delta` about the camera centre on top of it: `ref_from_cam = G(readings)
 //! Rot(delta)`, 3 dof, fitted to the tracks the check view shares with the reference view
-//! (Gauss-Newton on pixel residuals, numeric Jacobian; matches beyond
+//! (least squares on pixel residuals by the project's Levenberg-Marquardt,
+//! `headalign_geometry::lm`, numeric Jacobian; matches beyond
 //! [`CHECK_SIGMAS`] robust sigmas of the prediction, then of each fit, dropped:
 //! [`REFITS`] rounds). The measured optical axis
 //! `z = R e3` then gives, as [`crate::alignment::measured_errors`] does: the vergence error
@@ -33,6 +34,7 @@
 //! stand for the points (no refined positions), so their noise enters once more; with
 //! hundreds of tracks that costs a few thousandths of a degree.
 
+use headalign_geometry::lm;
 use headalign_geometry::so3::{exp, rotation_about_line};
 use headalign_platform::{Encoders, StereoCapture};
 use nalgebra::{Isometry3, Matrix3, Point2, Rotation3, Vector3};
@@ -220,19 +222,26 @@ fn residual(
     nalgebra::Vector2::new(w.x / w.z - px.x, w.y / w.z - px.y)
 }
 
-/// Gauss-Newton on `delta` (3 dof) from `start`: 10 iterations or a step under 1e-12 rad,
-/// numeric Jacobian (central differences at 1e-7 rad).
+/// Most iterations of [`fit_rotation`] (it stops at the cost's rounding level long
+/// before: a 3-dof fit from a start within a degree).
+const FIT_ITERATIONS: usize = 50;
+
+/// The least-squares `delta` (3 dof) from `start` by [`lm::minimise`] (the project's
+/// Levenberg-Marquardt with the dense back end), numeric Jacobian (central differences at
+/// 1e-7 rad).
 fn fit_rotation(
     data: &[(Vector3<f64>, Point2<f64>)],
     km: &Matrix3<f64>,
     start: Vector3<f64>,
 ) -> Vector3<f64> {
-    let mut delta = start;
-    for _ in 0..10 {
+    let cost = |delta: &Vector3<f64>| {
+        data.iter().map(|(q, px)| residual(km, delta, q, px).norm_squared()).sum::<f64>()
+    };
+    let normal = |delta: &Vector3<f64>| {
         let mut jtj = Matrix3::zeros();
         let mut jtr = Vector3::zeros();
         for (q, px) in data {
-            let r = residual(km, &delta, q, px);
+            let r = residual(km, delta, q, px);
             let mut j = nalgebra::Matrix2x3::zeros();
             for c in 0..3 {
                 let mut e = Vector3::zeros();
@@ -243,11 +252,7 @@ fn fit_rotation(
             jtj += j.transpose() * j;
             jtr += j.transpose() * r;
         }
-        let Some(step) = jtj.try_inverse().map(|inv| -(inv * jtr)) else { break };
-        delta += step;
-        if step.norm() < 1e-12 {
-            break;
-        }
-    }
-    delta
+        Some((jtj, jtr))
+    };
+    lm::minimise(start, cost(&start), FIT_ITERATIONS, normal, |d, step| Some(d + step), cost).0
 }

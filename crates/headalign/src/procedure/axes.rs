@@ -12,8 +12,9 @@
 //! eliminated) and each axis pose is re-resected (one Gauss-Newton step over the
 //! resection's inliers, chosen once at the estimate: a threshold re-applied per
 //! perturbation would move observations in and out between the two sides of a central
-//! difference). Steps: [`PROPAGATION_STEP_SIGMAS`] of each sigma; derivatives of
-//! projections by central differences at 1e-6. Residuals in pixels; the resection's
+//! difference). Steps: [`PROPAGATION_STEP_SIGMAS`] of each sigma; the re-triangulation's
+//! derivatives by central differences at 1e-6; the resection's normal equations are the
+//! resection's own ([`headalign_geometry::resection::normal_equations`], analytic). Residuals in pixels; the resection's
 //! outlier threshold is `ResectionOptions::outlier_px` (5 px), its Huber loss 2 px.
 //!
 //! Pitfalls: a point near infinity has a nearly singular `J^T J`, and its Gauss-Newton
@@ -99,39 +100,25 @@ pub(super) fn project_into(
 }
 
 /// Gauss-Newton normal equations `(J^T J, J^T r)` of a pose resected against `points` from
-/// `inliers` (residual projected - observed, pixels; `J` by central differences along the
-/// tangent `ref_from_cam * Exp([w; t])`, step 1e-6). `None` if a point leaves the image
-/// plane under the step.
+/// `inliers` (residual projected - observed, pixels), in the tangent `ref_from_cam *
+/// Exp([w; t])`: the resection's own ([`headalign_geometry::resection::normal_equations`]
+/// at `cam_from_ref`), whose left update `Exp(s) cam_from_ref` is `Exp([w; t])^-1`, `s =
+/// -[w; t]` to first order, so `J` changes sign. `None` if a point is behind the camera.
 fn resection_normal_equations(
     k: &headalign_geometry::camera::Intrinsics,
     points: &std::collections::HashMap<u64, nalgebra::Point3<f64>>,
     inliers: &[(u64, nalgebra::Vector2<f64>)],
     ref_from_cam: &nalgebra::Isometry3<f64>,
 ) -> Option<(nalgebra::Matrix6<f64>, nalgebra::Vector6<f64>)> {
-    let h = 1e-6;
-    let mut jtj = nalgebra::Matrix6::<f64>::zeros();
-    let mut jtr = nalgebra::Vector6::<f64>::zeros();
-    for (track, pixel) in inliers {
-        let Some(x) = points.get(track) else { continue };
-        let r = project_into(k, ref_from_cam, x)? - pixel;
-        let mut j = nalgebra::Matrix2x6::<f64>::zeros();
-        for c in 0..6 {
-            let mut d = nalgebra::Vector6::<f64>::zeros();
-            d[c] = h;
-            let plus = project_into(k, &(ref_from_cam * tangent_step(&d)), x)?;
-            let minus = project_into(k, &(ref_from_cam * tangent_step(&-d)), x)?;
-            j.set_column(c, &((plus - minus) / (2.0 * h)));
-        }
-        jtj += j.transpose() * j;
-        jtr += j.transpose() * r;
-    }
-    Some((jtj, jtr))
+    let pairs = inliers.iter().filter_map(|(t, px)| points.get(t).map(|x| (*x, nalgebra::Point2::from(*px))));
+    let (jtj, jtr) = headalign_geometry::resection::normal_equations(k, &ref_from_cam.inverse(), pairs)?;
+    Some((jtj, -jtr))
 }
 
 /// Covariance (6x6, tangent `ref_from_cam * Exp([w; t])`, radians and scene units) of a
 /// camera pose resected from `obs` against `points` by [`crate::alignment::measure_cameras`]:
-/// `sigma^2 (J^T J)^-1` over the observations it keeps (`resection_inliers`), `J` by
-/// central differences. `sigma` is `noise_px` or, if `None`, the residuals' own estimate
+/// `sigma^2 (J^T J)^-1` over the observations it keeps (`resection_inliers`), `J` the
+/// resection's analytic one. `sigma` is `noise_px` or, if `None`, the residuals' own estimate
 /// `sqrt(sum r^2 / (2n - 6))`. `None` if fewer than 4 points or `J^T J` is singular.
 pub fn resection_pose_covariance(
     k: &headalign_geometry::camera::Intrinsics,

@@ -305,12 +305,16 @@ fn start_model(
     Ok((best, ransac_iterations))
 }
 
-/// Guided re-selection (paper section 3.2 step 4(b)-(c)): the quadruplets within
+/// Rounds of guided re-selection at most (module docs).
+pub(crate) const GUIDED_ROUNDS: usize = 10;
+
+/// Guided re-selection (paper section 3.2 step 4(b)-(c);
+/// [`headalign_geometry::ransac::guided_reselection`]): the quadruplets within
 /// `threshold_px` of transfer error under `model`, the model polished on them, repeated
-/// (at most 10 rounds) until the set is stable or would shrink. Returns the model, its
-/// inlier indices and the rounds run.
-fn guided_reselection(
-    mut model: TransferModel,
+/// (at most [`GUIDED_ROUNDS`] rounds) until the set is stable or would shrink. Returns the
+/// model, its inlier indices and the rounds run.
+pub(crate) fn guided_reselection(
+    model: TransferModel,
     quads: &[Quadruplet],
     p_l: &ProjectiveCamera,
     p_r: &ProjectiveCamera,
@@ -321,22 +325,8 @@ fn guided_reselection(
             .filter(|&i| symmetric_transfer_error(m, p_l, p_r, &quads[i]) <= threshold_px)
             .collect()
     };
-    let mut inliers = select(&model);
-    let mut rounds = 0;
-    for _ in 0..10 {
-        rounds += 1;
-        let Some(refit) = polish(&model, quads, &inliers, p_l, p_r) else { break };
-        let next = select(&refit);
-        if next.len() < inliers.len() {
-            break;
-        }
-        model = refit;
-        if next == inliers {
-            break;
-        }
-        inliers = next;
-    }
-    (model, inliers, rounds)
+    let refit = |m: &TransferModel, inliers: &[usize]| polish(m, quads, inliers, p_l, p_r);
+    headalign_geometry::ransac::guided_reselection(model, GUIDED_ROUNDS, select, refit)
 }
 
 /// RANSAC adapter for 3D homographies whose least-squares fit (used by local

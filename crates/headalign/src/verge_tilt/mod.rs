@@ -138,7 +138,7 @@ use serde::Serialize;
 pub(crate) use adjust::{Adjustment, adjust_from_starts};
 pub use adjust::{DEPTH_RATIO, FINAL_ITERATIONS, MIN_POINT_OBSERVATIONS, SCREEN_ITERATIONS, near_depth_step};
 pub(crate) use frame::Reconstruction;
-pub(crate) use homographies::{PolishedHomography, polish};
+pub(crate) use homographies::{PolishedHomography, guided_reselection, polish};
 pub use likelihood::{
     ML_ROUNDS, lone_depth_outliers, residual_scale, truncated_noise_estimate, truncated_variance_factor,
 };
