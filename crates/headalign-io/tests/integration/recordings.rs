@@ -4,16 +4,13 @@
 
 use std::path::{Path, PathBuf};
 
-use headalign::recordings::cdr::{encode_compressed_image, encode_image, encode_joint_state};
-use headalign::recordings::rosbag::{BagWriter, MessageKind};
-use headalign::recordings::{RecordingOptions, read_recording};
+use headalign_io::recordings::cdr::{encode_compressed_image, encode_image, encode_joint_state};
+use headalign_io::recordings::rosbag::{BagWriter, MessageKind};
+use headalign_io::recordings::{RecordingOptions, read_recording};
 use headalign_platform::{GrayImage, Joint};
 
 fn temp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("headalign-bag-{}-{name}", std::process::id()));
-    std::fs::remove_dir_all(&d).ok();
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    crate::common::temp_dir("bag", name)
 }
 
 /// A textured 64x48 image, different for each `k` (no blank image).
@@ -307,12 +304,12 @@ fn a_users_mistakes_are_one_line_errors() {
 
 /// A bag written by an independent ROS 2 MCAP writer: Foxglove's Python
 /// `mcap-ros2-support` (its own CDR serialiser, zstd chunks from the zstandard C library),
-/// made by `python3 bench/ros2_bag.py fixture crates/headalign/tests/data/python_mcap_ros2.mcap`.
+/// made by `python3 bench/ros2_bag.py fixture crates/headalign-io/tests/data/python_mcap_ros2.mcap`.
 /// Every pixel and every interpolated reading is what the script wrote (its docstring
 /// gives the formulas).
 #[test]
 fn a_bag_from_an_independent_writer_reads_exactly() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/python_mcap_ros2.mcap");
+    let path = crate::common::test_path("data/python_mcap_ros2.mcap");
     let o = RecordingOptions {
         joints: vec![(Joint::Pan, "pan_joint".into()), (Joint::Elevation, "tilt_joint".into())],
         ..RecordingOptions::default()

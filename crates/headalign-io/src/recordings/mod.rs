@@ -54,7 +54,7 @@ use headalign_platform::{Encoders, GrayImage, Joint, StereoImages};
 
 pub use head::{MIN_STILL_PAIRS, PlaybackHead, STILL_DEG, still_views, verge_tilt_views};
 
-use crate::AlignError;
+use headalign::AlignError;
 use crate::session::RecordedView;
 
 /// The recording formats read here.
