@@ -27,8 +27,8 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-pub use headalign::calibration::{IntrinsicSigmas, StereoCalibration, TranslationUnit};
 use headalign::AlignError;
+pub use headalign::calibration::{IntrinsicSigmas, StereoCalibration, TranslationUnit};
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
 use nalgebra::{DMatrix, Matrix3};
@@ -451,7 +451,8 @@ mod tests {
             unit: TranslationUnit::Metres,
             distortion: d,
         };
-        let [l, r] = headalign::calibrate::read_opencv_lenses(&stereo.opencv_yaml().unwrap(), "ours").unwrap();
+        let [l, r] =
+            headalign::calibrate::read_opencv_lenses(&stereo.opencv_yaml().unwrap(), "ours").unwrap();
         assert_eq!((l.k, l.distortion, r.k, r.distortion), (stereo.left, d[0], stereo.right, d[1]));
     }
 }

@@ -122,9 +122,8 @@ pub fn read_stereo_pairs(
         }
         let load = |p: &Path| GrayImage::load(p).map_err(|e| AlignError::Images(e.to_string()));
         let (left, right) = (load(&lp)?, load(&rp)?);
-        let pair = StereoImages::new(Encoders::default(), left, right).map_err(|e| {
-            AlignError::Images(format!("'{}' and '{}': {e}", lp.display(), rp.display()))
-        })?;
+        let pair = StereoImages::new(Encoders::default(), left, right)
+            .map_err(|e| AlignError::Images(format!("'{}' and '{}': {e}", lp.display(), rp.display())))?;
         if let Some((_, first)) = out.first()
             && first.image_size() != pair.image_size()
         {
@@ -186,7 +185,8 @@ mod tests {
     #[test]
     fn bad_folders_are_named() {
         let d = temp("bad");
-        let err = |dir: &Path| read_folder(dir, &FolderOptions::default(), &mut |_, _| ()).unwrap_err().to_string();
+        let err =
+            |dir: &Path| read_folder(dir, &FolderOptions::default(), &mut |_, _| ()).unwrap_err().to_string();
         assert!(err(&d).contains("holds neither an image session"));
         assert!(err(&d.join("missing")).contains("is not a folder"));
         image(32, 24, 1).save(&d.join("left0.png")).unwrap();

@@ -14,8 +14,8 @@ use headalign_platform::{
     Encoders, ImagingHead, Joint, PlatformError, StereoCapture, StereoHead, StereoImages,
 };
 
-use headalign::AlignError;
 use crate::session::RecordedView;
+use headalign::AlignError;
 use headalign::verge_tilt::MOVED_DEG;
 
 /// Pairs whose readings stay within this of a run's first pair, per joint, belong to one

@@ -3,7 +3,9 @@
 use std::path::Path;
 use std::time::UNIX_EPOCH;
 
-use headalign_platform::{Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages};
+use headalign_platform::{
+    Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages,
+};
 
 use super::*;
 
