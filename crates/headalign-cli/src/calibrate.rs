@@ -21,14 +21,15 @@ use headalign::calibrate::{
     REFERENCE_ROUTE_MAX_VIEWS, Route, calibrate_tracked, read_opencv_lenses, require_depth,
     rig_from_known_intrinsics, select_rig, track_views_reporting, undistort_views,
 };
+use headalign::calibration::{StereoCalibration, TranslationUnit};
 use headalign::error::AlignError;
-use headalign::export::{StereoCalibration, TranslationUnit};
 use headalign::observations::View;
-use headalign::session::{SessionInfo, SessionWriter, ViewLabel, read_image_session};
 use headalign::tracking::{FrontEndOptions, Tracker};
 use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
+use headalign_io::export::CalibrationFiles as _;
+use headalign_io::session::{SessionInfo, SessionWriter, ViewLabel, read_image_session};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
@@ -147,7 +148,7 @@ pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
         None if args.distortion.is_some() || args.lens_from.is_some() || args.intrinsics.is_some() => {
             LensChoice::Pinhole
         }
-        None if headalign::session::is_point_session(&args.dir) => LensChoice::Pinhole,
+        None if headalign_io::session::is_point_session(&args.dir) => LensChoice::Pinhole,
         None => LensChoice::Auto,
     }
 }
@@ -215,7 +216,7 @@ fn front_end(args: &CalibrateArgs, corners: usize) -> FrontEndOptions {
 
 /// Named stereo views of a folder or recording (module docs), in order.
 pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, StereoImages)>> {
-    if headalign::recordings::detect(dir).is_some() {
+    if headalign_io::recordings::detect(dir).is_some() {
         let views = crate::recording::read(dir, recording)?.views;
         return Ok(views.into_iter().map(|v| (v.name, v.images)).collect());
     }
@@ -624,7 +625,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     if let Some(spec) = &args.lens_from {
         crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
     }
-    let outcome = if headalign::session::is_point_session(&args.dir) {
+    let outcome = if headalign_io::session::is_point_session(&args.dir) {
         crate::points::calibrate(args)?
     } else {
         calibrate_views(&load_views(&args.dir, &args.recording)?, args)?
@@ -653,7 +654,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         return Ok(());
     }
     let s = &outcome.stereo;
-    let show = |name: &str, k: &Intrinsics, sig: &headalign::export::IntrinsicSigmas| {
+    let show = |name: &str, k: &Intrinsics, sig: &headalign::calibration::IntrinsicSigmas| {
         let f = |v: Option<f64>| v.map_or(String::new(), |v| format!(" +- {v:.2}"));
         println!(
             "{name} fx {:.2}{} fy {:.2}{} skew {:.3} cx {:.2}{} cy {:.2}{}",
@@ -786,7 +787,7 @@ pub fn session_info(scenario: &Scenario, motion: &str) -> Result<SessionInfo> {
 }
 
 /// Write views as an image session with the one session writer
-/// ([`headalign::session::SessionWriter`]: `session.json`, `NN-name/left.png`,
+/// ([`headalign_io::session::SessionWriter`]: `session.json`, `NN-name/left.png`,
 /// `right.png`, `view.json`, `events.jsonl`); refuses a folder that already holds a session.
 pub fn write_session(
     dir: &Path,
@@ -904,7 +905,7 @@ mod tests {
         write_session(&dir, &views, &info).unwrap();
         let memory = calibrate_views(&views, &args(&dir)).unwrap();
         // The one session writer made it: a session.json that replay reads.
-        let read = headalign::session::read_session_info(&dir).unwrap();
+        let read = headalign_io::session::read_session_info(&dir).unwrap();
         assert_eq!(read.procedure, PROCEDURE);
         let replayed = replay(&dir, &read).unwrap();
         // A second session into the same folder is refused (never mixed or overwritten).

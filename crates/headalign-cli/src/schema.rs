@@ -544,7 +544,7 @@ impl Procedure {
             timings: Timings { estimation_s: o.3, total_s },
             views,
             images: None,
-            stages: vec![headalign::session::STAGE_VERGE_TILT.to_string()],
+            stages: vec![headalign_io::session::STAGE_VERGE_TILT.to_string()],
             robot_stages: planar_route.then_some(crate::facing_plane::ROBOT_STAGES_SKIPPED),
             robot: RobotOutcomes::default(),
             robot_tracking: None,
