@@ -29,8 +29,9 @@ use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use headalign_io::export::CalibrationFiles as _;
-use headalign_io::session::{SessionInfo, SessionWriter, ViewLabel, read_image_session};
-use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
+use headalign_io::folder::{FolderKind, FolderOptions};
+use headalign_io::session::{SessionInfo, SessionWriter, ViewLabel};
+use headalign_platform::{Encoders, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
 
@@ -220,64 +221,26 @@ pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, 
         let views = crate::recording::read(dir, recording)?.views;
         return Ok(views.into_iter().map(|v| (v.name, v.images)).collect());
     }
-    if !dir.is_dir() {
-        bail!("'{}' is not a folder", dir.display());
-    }
-    let has_session = std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read '{}'", dir.display()))?
-        .filter_map(Result::ok)
-        .any(|e| e.path().join("view.json").exists());
-    if has_session {
-        recording.only_for_recordings(dir, "an image session", false)?;
-        let views = read_image_session(dir)?;
-        return Ok(views.into_iter().map(|v| (v.name, v.images)).collect());
-    }
-    let mut names: Vec<String> = std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read '{}'", dir.display()))?
-        .filter_map(Result::ok)
-        .filter_map(|e| e.file_name().into_string().ok())
-        .filter(|n| {
-            let l = n.to_ascii_lowercase();
-            l.contains("left") && (l.ends_with(".png") || l.ends_with(".jpg") || l.ends_with(".jpeg"))
-        })
-        .collect();
-    recording.only_for_recordings(dir, "a folder of stereo pairs", true)?;
+    // The folder's rules are headalign_io::folder's (shared with the examples); the flags
+    // that only apply to recordings are refused first.
+    let kind = headalign_io::folder::folder_kind(dir)?;
+    let what = match kind {
+        FolderKind::ImageSession => "an image session",
+        FolderKind::StereoPairs => "a folder of stereo pairs",
+    };
+    recording.only_for_recordings(dir, what, kind == FolderKind::StereoPairs)?;
     if recording.every == 0 {
         bail!("--every must be at least 1");
     }
-    names.sort();
-    let names: Vec<String> = names.into_iter().step_by(recording.every).collect();
-    let mut out = Vec::new();
-    let bar = crate::progress::views("reading", names.len());
-    for name in names {
-        bar.inc(1);
-        let partner =
-            name.replacen("left", "right", 1).replacen("Left", "Right", 1).replacen("LEFT", "RIGHT", 1);
-        let (lp, rp) = (dir.join(&name), dir.join(&partner));
-        if !rp.exists() {
-            continue;
-        }
-        let left = GrayImage::load(&lp).map_err(|e| anyhow::anyhow!("{e}"))?;
-        let right = GrayImage::load(&rp).map_err(|e| anyhow::anyhow!("{e}"))?;
-        let pair = StereoImages::new(Encoders::default(), left, right)
-            .map_err(|e| anyhow::anyhow!("'{}' and '{}': {e}", lp.display(), rp.display()))?;
-        if let Some((_, first)) = out.first() {
-            let first: &StereoImages = first;
-            if first.image_size() != pair.image_size() {
-                bail!("'{}' has a different size from the first pair", lp.display());
-            }
-        }
-        let stem = name.rsplit_once('.').map_or(name.as_str(), |(s, _)| s).to_string();
-        out.push((stem, pair));
+    let mut bar = None;
+    let views =
+        headalign_io::folder::read_folder(dir, &FolderOptions { every: recording.every }, &mut |_, n| {
+            bar.get_or_insert_with(|| crate::progress::views("reading", n)).inc(1)
+        })?;
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
     }
-    bar.finish_and_clear();
-    if out.is_empty() {
-        bail!(
-            "'{}' holds neither an image session (NN-name/ with left.png, right.png, view.json) nor stereo pairs (files named left*/right*)",
-            dir.display()
-        );
-    }
-    Ok(out)
+    Ok(views)
 }
 
 /// Each view's own stereo matches (a fresh tracker per view: no matching across views),
