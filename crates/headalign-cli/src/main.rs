@@ -630,18 +630,7 @@ fn alignment_file(
     sigmas: AlignmentSigmas,
     undetermined: &[String],
 ) -> schema::AlignmentFile {
-    schema::AlignmentFile {
-        format: schema::ALIGNMENT_FILE,
-        route,
-        reference_encoders: reference,
-        aligned_encoders: solution.aligned_encoders,
-        aligned_sigma_deg: sigmas,
-        verge_axes_measured: solution.verge_axes_measured,
-        predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
-        roll_left_deg: solution.roll_left_deg,
-        roll_right_deg: solution.roll_right_deg,
-        undetermined: undetermined.to_vec(),
-    }
+    schema::AlignmentFile::new(route, reference, solution, sigmas, undetermined)
 }
 
 /// The JSON object of `align --json` on the general route.

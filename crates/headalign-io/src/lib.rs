@@ -13,6 +13,7 @@
 //! - [`export`]: calibration files (JSON, OpenCV YAML, ROS `camera_info`, Kalibr
 //!   `camchain.yaml`) of the library's [`headalign::calibration::StereoCalibration`].
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
+//! - [`alignment_file`]: the file `alignment.json` (`headalign-alignment/2`).
 //! - [`folder`]: a folder of stereo views (an image session or `left*`/`right*` pairs),
 //!   read by one set of rules for the command line and the examples.
 //!
@@ -20,6 +21,7 @@
 //! self-calibrates a rig from a folder of stereo images
 //! (`cargo run --release -p headalign-io --example calibrate_folder [-- DIR]`).
 
+pub mod alignment_file;
 pub mod export;
 pub mod folder;
 pub mod observations;
