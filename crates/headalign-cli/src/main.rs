@@ -397,8 +397,7 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let path = dir.join("alignment.json");
         let value = alignment_file("planar", p.reference, &p.solution, p.sigmas, &cal.undetermined);
-        std::fs::write(&path, serde_json::to_string_pretty(&value)? + "\n")
-            .with_context(|| format!("cannot write {}", path.display()))?;
+        value.write(&path)?;
         written.push(path);
     }
     let not_written = "calibration files and head.json: not written (the rig's translation and the axes' positions are undetermined on a plane)";

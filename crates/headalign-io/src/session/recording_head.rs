@@ -11,7 +11,7 @@ use headalign_platform::{
 use super::format::*;
 use super::writer::{SessionWriter, ViewLabel};
 /// A head that records: every capture is written to the session before it is returned,
-/// and every read and move is logged, so the run can be replayed ([`ReplayHead`]) and
+/// and every read and move is logged, so the run can be replayed ([`ReplayHead`](super::ReplayHead)) and
 /// nothing captured is lost when a later step fails. A failure to write is an error of
 /// the capture (a run that cannot be recorded stops).
 pub struct RecordingHead<'a, H> {
