@@ -185,6 +185,7 @@ fn compressed_png_images_read() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Mistakes in the options: a missing topic, a topic of another type, a missing joint.
 #[test]
 fn a_users_mistakes_are_one_line_errors() {
     let dir = temp("errors");
@@ -224,6 +225,18 @@ fn a_users_mistakes_are_one_line_errors() {
             assert!(e.contains(p), "'{e}' lacks '{p}'");
         }
     }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Mistakes in the data rather than the options: joint states that end early, an
+/// unsupported encoding, unpaired images, a sqlite3 bag, a file that is not MCAP, a
+/// truncated bag.
+#[test]
+fn bad_recordings_are_one_line_errors() {
+    let dir = temp("bad-data");
+    let good = dir.join("good.mcap");
+    write_bag(&good, 0, "mono8");
+    let err = |path: &Path, o: RecordingOptions| read_recording(path, &o).unwrap_err().to_string();
     // Images outside the joint states: a joint stream that ends early.
     let short = dir.join("short.mcap");
     let mut w = BagWriter::create(&short).unwrap();
