@@ -14,7 +14,7 @@ usage:
       states `pan`, `tilt`, `vl`, `vr` (radians) at each frame (then: headalign replay
       OUT.mcap --joint pan=pan,elevation=tilt,verge_left=vl,verge_right=vr)
   bench/ros2_bag.py fixture OUT.mcap
-      the small bag crates/headalign/tests/data/python_mcap_ros2.mcap: three 32x24 mono8
+      the small bag crates/headalign-io/tests/data/python_mcap_ros2.mcap: three 32x24 mono8
       pairs (pixel = (3 x + 5 y + 17 k + 40 side) mod 256) at t = 10 + 0.1 k s, the right
       0.2 ms later, and joint states at 100 Hz from 9.95 s to 10.35 s, `pan_joint` =
       0.5 (t - 10) rad, `tilt_joint` = -0.1 rad, zstd chunks of 4 KB

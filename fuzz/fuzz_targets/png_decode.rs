@@ -17,6 +17,6 @@ fuzz_target!(|data: &[u8]| {
         assert!(img.width() <= limits.max_side && img.height() <= limits.max_side);
         assert!(u64::from(img.width()) * u64::from(img.height()) <= limits.max_pixels);
         assert_eq!(img.pixels().len(), img.width() as usize * img.height() as usize);
-        let _ = headalign::session::check_image(&img, "left.png");
+        let _ = headalign_io::session::check_image(&img, "left.png");
     }
 });

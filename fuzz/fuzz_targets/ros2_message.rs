@@ -1,10 +1,10 @@
-//! Fuzz the ROS 2 message decoders of recordings (`headalign::recordings::cdr` and the
-//! image conversion of `headalign::recordings::rosbag`): any bytes give a message (an
+//! Fuzz the ROS 2 message decoders of recordings (`headalign_io::recordings::cdr` and the
+//! image conversion of `headalign_io::recordings::rosbag`): any bytes give a message (an
 //! image converts to grey or is refused) or a typed error, never a panic or a huge
 //! allocation.
 #![no_main]
 
-use headalign::recordings::{cdr, rosbag};
+use headalign_io::recordings::{cdr, rosbag};
 use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {

@@ -1,4 +1,4 @@
-//! Fuzz the image-session `view.json` reader (`headalign::session::parse_view_json`):
+//! Fuzz the image-session `view.json` reader (`headalign_io::session::parse_view_json`):
 //! any bytes give a validated view (non-empty name, finite readings within +-3600 deg) or
 //! a typed error naming the file.
 #![no_main]
@@ -7,7 +7,7 @@ use libfuzzer_sys::fuzz_target;
 
 fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else { return };
-    match headalign::session::parse_view_json(text, "view.json") {
+    match headalign_io::session::parse_view_json(text, "view.json") {
         Ok(meta) => {
             assert!(!meta.name.trim().is_empty());
             assert!(meta.encoders.is_finite());

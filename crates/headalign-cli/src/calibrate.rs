@@ -21,15 +21,17 @@ use headalign::calibrate::{
     REFERENCE_ROUTE_MAX_VIEWS, Route, calibrate_tracked, read_opencv_lenses, require_depth,
     rig_from_known_intrinsics, select_rig, track_views_reporting, undistort_views,
 };
+use headalign::calibration::{StereoCalibration, TranslationUnit};
 use headalign::error::AlignError;
-use headalign::export::{StereoCalibration, TranslationUnit};
 use headalign::observations::View;
-use headalign::session::{SessionInfo, SessionWriter, ViewLabel, read_image_session};
 use headalign::tracking::{FrontEndOptions, Tracker};
 use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
-use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
+use headalign_io::export::CalibrationFiles as _;
+use headalign_io::folder::{FolderKind, FolderOptions};
+use headalign_io::session::{SessionInfo, SessionWriter, ViewLabel};
+use headalign_platform::{Encoders, ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
 
@@ -147,7 +149,7 @@ pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
         None if args.distortion.is_some() || args.lens_from.is_some() || args.intrinsics.is_some() => {
             LensChoice::Pinhole
         }
-        None if headalign::session::is_point_session(&args.dir) => LensChoice::Pinhole,
+        None if headalign_io::session::is_point_session(&args.dir) => LensChoice::Pinhole,
         None => LensChoice::Auto,
     }
 }
@@ -215,68 +217,30 @@ fn front_end(args: &CalibrateArgs, corners: usize) -> FrontEndOptions {
 
 /// Named stereo views of a folder or recording (module docs), in order.
 pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, StereoImages)>> {
-    if headalign::recordings::detect(dir).is_some() {
+    if headalign_io::recordings::detect(dir).is_some() {
         let views = crate::recording::read(dir, recording)?.views;
         return Ok(views.into_iter().map(|v| (v.name, v.images)).collect());
     }
-    if !dir.is_dir() {
-        bail!("'{}' is not a folder", dir.display());
-    }
-    let has_session = std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read '{}'", dir.display()))?
-        .filter_map(Result::ok)
-        .any(|e| e.path().join("view.json").exists());
-    if has_session {
-        recording.only_for_recordings(dir, "an image session", false)?;
-        let views = read_image_session(dir)?;
-        return Ok(views.into_iter().map(|v| (v.name, v.images)).collect());
-    }
-    let mut names: Vec<String> = std::fs::read_dir(dir)
-        .with_context(|| format!("cannot read '{}'", dir.display()))?
-        .filter_map(Result::ok)
-        .filter_map(|e| e.file_name().into_string().ok())
-        .filter(|n| {
-            let l = n.to_ascii_lowercase();
-            l.contains("left") && (l.ends_with(".png") || l.ends_with(".jpg") || l.ends_with(".jpeg"))
-        })
-        .collect();
-    recording.only_for_recordings(dir, "a folder of stereo pairs", true)?;
+    // The folder's rules are headalign_io::folder's (shared with the examples); the flags
+    // that only apply to recordings are refused first.
+    let kind = headalign_io::folder::folder_kind(dir)?;
+    let what = match kind {
+        FolderKind::ImageSession => "an image session",
+        FolderKind::StereoPairs => "a folder of stereo pairs",
+    };
+    recording.only_for_recordings(dir, what, kind == FolderKind::StereoPairs)?;
     if recording.every == 0 {
         bail!("--every must be at least 1");
     }
-    names.sort();
-    let names: Vec<String> = names.into_iter().step_by(recording.every).collect();
-    let mut out = Vec::new();
-    let bar = crate::progress::views("reading", names.len());
-    for name in names {
-        bar.inc(1);
-        let partner =
-            name.replacen("left", "right", 1).replacen("Left", "Right", 1).replacen("LEFT", "RIGHT", 1);
-        let (lp, rp) = (dir.join(&name), dir.join(&partner));
-        if !rp.exists() {
-            continue;
-        }
-        let left = GrayImage::load(&lp).map_err(|e| anyhow::anyhow!("{e}"))?;
-        let right = GrayImage::load(&rp).map_err(|e| anyhow::anyhow!("{e}"))?;
-        let pair = StereoImages::new(Encoders::default(), left, right)
-            .map_err(|e| anyhow::anyhow!("'{}' and '{}': {e}", lp.display(), rp.display()))?;
-        if let Some((_, first)) = out.first() {
-            let first: &StereoImages = first;
-            if first.image_size() != pair.image_size() {
-                bail!("'{}' has a different size from the first pair", lp.display());
-            }
-        }
-        let stem = name.rsplit_once('.').map_or(name.as_str(), |(s, _)| s).to_string();
-        out.push((stem, pair));
+    let mut bar = None;
+    let views =
+        headalign_io::folder::read_folder(dir, &FolderOptions { every: recording.every }, &mut |_, n| {
+            bar.get_or_insert_with(|| crate::progress::views("reading", n)).inc(1)
+        })?;
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
     }
-    bar.finish_and_clear();
-    if out.is_empty() {
-        bail!(
-            "'{}' holds neither an image session (NN-name/ with left.png, right.png, view.json) nor stereo pairs (files named left*/right*)",
-            dir.display()
-        );
-    }
-    Ok(out)
+    Ok(views)
 }
 
 /// Each view's own stereo matches (a fresh tracker per view: no matching across views),
@@ -624,7 +588,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     if let Some(spec) = &args.lens_from {
         crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
     }
-    let outcome = if headalign::session::is_point_session(&args.dir) {
+    let outcome = if headalign_io::session::is_point_session(&args.dir) {
         crate::points::calibrate(args)?
     } else {
         calibrate_views(&load_views(&args.dir, &args.recording)?, args)?
@@ -653,7 +617,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         return Ok(());
     }
     let s = &outcome.stereo;
-    let show = |name: &str, k: &Intrinsics, sig: &headalign::export::IntrinsicSigmas| {
+    let show = |name: &str, k: &Intrinsics, sig: &headalign::calibration::IntrinsicSigmas| {
         let f = |v: Option<f64>| v.map_or(String::new(), |v| format!(" +- {v:.2}"));
         println!(
             "{name} fx {:.2}{} fy {:.2}{} skew {:.3} cx {:.2}{} cy {:.2}{}",
@@ -786,7 +750,7 @@ pub fn session_info(scenario: &Scenario, motion: &str) -> Result<SessionInfo> {
 }
 
 /// Write views as an image session with the one session writer
-/// ([`headalign::session::SessionWriter`]: `session.json`, `NN-name/left.png`,
+/// ([`headalign_io::session::SessionWriter`]: `session.json`, `NN-name/left.png`,
 /// `right.png`, `view.json`, `events.jsonl`); refuses a folder that already holds a session.
 pub fn write_session(
     dir: &Path,
@@ -904,7 +868,7 @@ mod tests {
         write_session(&dir, &views, &info).unwrap();
         let memory = calibrate_views(&views, &args(&dir)).unwrap();
         // The one session writer made it: a session.json that replay reads.
-        let read = headalign::session::read_session_info(&dir).unwrap();
+        let read = headalign_io::session::read_session_info(&dir).unwrap();
         assert_eq!(read.procedure, PROCEDURE);
         let replayed = replay(&dir, &read).unwrap();
         // A second session into the same folder is refused (never mixed or overwritten).

@@ -16,9 +16,9 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use clap::Args;
 use headalign::procedure::{AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
-use headalign::session::SessionInfo;
 use headalign::verge_tilt::EstimationOptions;
 use headalign_geometry::bootstrap::BootstrapOptions;
+use headalign_io::session::SessionInfo;
 use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{
     AlignmentErrors, CalibrationErrors, HeadTruth, Scenario, SimulatedRobot, calibration_errors,
@@ -88,7 +88,7 @@ pub struct DemoArgs {
     images: bool,
     /// Record the session here. With --images the default is
     /// `./headalign-sessions/<UTC time>`; in point mode only this flag records.
-    // Format: `headalign::session`. `--save` is a hidden alias. Point mode records the
+    // Format: `headalign_io::session`. `--save` is a hidden alias. Point mode records the
     // verge/tilt stage and observations.json; --images adds figure6.png and aligned.png.
     #[arg(long, alias = "save", conflicts_with = "no_session")]
     pub session: Option<PathBuf>,

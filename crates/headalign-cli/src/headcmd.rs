@@ -1,6 +1,6 @@
 //! `headalign run --head-cmd CMD`: verging, then the verge/tilt procedure on images, on a
 //! head behind a driver process that speaks the JSON-lines head protocol
-//! (`docs/head-protocol.md`; [`headalign::process_head::ProcessHead`]), then the robot
+//! (`docs/head-protocol.md`; [`headalign_io::process_head::ProcessHead`]), then the robot
 //! stages of `--stages` (pan, steering, ...: [`crate::stages`]) when the driver has a base.
 //! Every capture is recorded to the session folder before it is processed (always: a real
 //! head's captures cannot be made again); `report.json` gets the results. A timeout, a
@@ -13,8 +13,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::process_head::{ProcessHead, ProcessHeadOptions};
 use headalign::robot::PanOptions;
+use headalign_io::process_head::{ProcessHead, ProcessHeadOptions};
 use headalign_platform::StereoHead;
 use serde_json::json;
 

@@ -4,7 +4,7 @@
 //! the robot stages (`--stages`, [`robot_stages`]) on the simulated robot's renders,
 //! through the front end in its drive mode with the calibrated rig guiding stereo. Every
 //! captured view is recorded to a session folder as it is captured (format: the
-//! `headalign::session` module documentation), with the results in `report.json` and the
+//! `headalign_io::session` module documentation), with the results in `report.json` and the
 //! annotated images of the paper's Figure 6 and a `report.html` with the numbers.
 //!
 //! [`procedure`] is the one image-mode procedure: the demo runs it on the simulator, `run
@@ -30,14 +30,15 @@ use headalign::procedure::{
     resolve_rotation,
 };
 use headalign::robot::stereo_fundamental;
-use headalign::session::{
-    RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter,
-    default_session_dir,
-};
 use headalign::tracking::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking, tracked_view_name};
 use headalign::verge_tilt::{EstimationOptions, ModelFit, RigCalibration, model_fit, observation_view_names};
 use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
 use headalign_geometry::distortion::DistortionTerms;
+use headalign_io::export::CalibrationFiles as _;
+use headalign_io::session::{
+    RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter,
+    default_session_dir,
+};
 use headalign_platform::{Encoders, ImagingHead, StereoImages, Vehicle};
 use headalign_sim::{Scenario, SimulatedRobot, calibration_errors};
 use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
@@ -476,7 +477,7 @@ fn finish(
 /// pinhole runs' sessions hold what they always held. The paths written.
 fn write_calibration_files(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<Vec<PathBuf>> {
     let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
-    let stereo = headalign::export::StereoCalibration::from_rig(&outcome.calibration, image_size, None)
+    let stereo = headalign::calibration::StereoCalibration::from_rig(&outcome.calibration, image_size, None)
         .context("calibration files")?;
     Ok(stereo.write_all(&dir.join("calibration"))?)
 }

@@ -34,17 +34,19 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
 use headalign::alignment::{AlignmentSolution, VergeAxes};
 use headalign::calibrate::image_noise::MeasuredVariances;
-use headalign::export::StereoCalibration;
-use headalign::observations::{View, read_session, session_to_json};
+use headalign::calibration::StereoCalibration;
+use headalign::observations::View;
 use headalign::procedure::{
     AlignmentSigmas, PlanarSessionAlignment, SessionRoute, VergeTiltOptions, align_session_detecting,
     capture_plan,
 };
-use headalign::session::RecordedView;
 use headalign::verge_tilt::{EstimationOptions, ModelFit, RigCalibration};
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::so3::Line;
+use headalign_io::export::CalibrationFiles as _;
+use headalign_io::observations::{read_session, session_to_json};
+use headalign_io::session::RecordedView;
 use headalign_platform::{Encoders, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead};
 use serde_json::{Value, json};
@@ -220,7 +222,7 @@ impl AlignArgs {
     fn lens(&self) -> Result<images::LensArgs> {
         let recorded = match &self.images {
             Some(dir) if dir.join("session.json").is_file() => {
-                images::LensArgs::of_session(&headalign::session::read_session_info(dir)?)?
+                images::LensArgs::of_session(&headalign_io::session::read_session_info(dir)?)?
             }
             Some(_) => images::LensArgs::default(),
             None => images::LensArgs::pinhole(),
@@ -395,8 +397,7 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let path = dir.join("alignment.json");
         let value = alignment_file("planar", p.reference, &p.solution, p.sigmas, &cal.undetermined);
-        std::fs::write(&path, serde_json::to_string_pretty(&value)? + "\n")
-            .with_context(|| format!("cannot write {}", path.display()))?;
+        value.write(&path)?;
         written.push(path);
     }
     let not_written = "calibration files and head.json: not written (the rig's translation and the axes' positions are undetermined on a plane)";
@@ -471,14 +472,14 @@ fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
     match (&args.observations, &args.images) {
         (Some(file), _) => Ok((read_session(file)?, None, None)),
         (None, Some(dir)) => {
-            use headalign::session::{estimation_views, read_image_session, read_point_session};
+            use headalign_io::session::{estimation_views, read_image_session, read_point_session};
             // The verge/tilt views (verging captures and robot stages are recorded too, but
             // the rig is not the same there).
-            let recorded = headalign::recordings::detect(dir).is_some();
+            let recorded = headalign_io::recordings::detect(dir).is_some();
             if !recorded {
                 args.recording.only_for_recordings(dir, "an image or point session", false)?;
             }
-            if headalign::session::is_point_session(dir) {
+            if headalign_io::session::is_point_session(dir) {
                 let r = estimation_views(read_point_session(dir)?, |v| v.stage.as_deref());
                 return Ok((r.into_iter().map(|v| v.view).collect(), None, None));
             }
@@ -487,7 +488,7 @@ fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
             } else {
                 estimation_views(read_image_session(dir)?, |v| v.stage.as_deref())
             };
-            let (views, tracking) = headalign::session::track_session_reporting(
+            let (views, tracking) = headalign_io::session::track_session_reporting(
                 &r,
                 &headalign::tracking::FrontEndOptions::default(),
             )?;
@@ -628,18 +629,7 @@ fn alignment_file(
     sigmas: AlignmentSigmas,
     undetermined: &[String],
 ) -> schema::AlignmentFile {
-    schema::AlignmentFile {
-        format: schema::ALIGNMENT_FILE,
-        route,
-        reference_encoders: reference,
-        aligned_encoders: solution.aligned_encoders,
-        aligned_sigma_deg: sigmas,
-        verge_axes_measured: solution.verge_axes_measured,
-        predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
-        roll_left_deg: solution.roll_left_deg,
-        roll_right_deg: solution.roll_right_deg,
-        undetermined: undetermined.to_vec(),
-    }
+    schema::AlignmentFile::new(route, reference, solution, sigmas, undetermined)
 }
 
 /// The JSON object of `align --json` on the general route.

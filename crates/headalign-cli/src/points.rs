@@ -14,12 +14,14 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use headalign::calibrate::{calibrate_rig, select_rig, undistort_views};
 use headalign::observations::View;
-use headalign::observations::session_to_json;
 use headalign::procedure::{
     AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
     resolve_rotation,
 };
-use headalign::session::{RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
+use headalign_io::observations::session_to_json;
+use headalign_io::session::{
+    RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, SessionInfo, SessionWriter,
+};
 use headalign_platform::{StereoHead, Vehicle};
 
 use crate::stages::{RobotOutcomes, RobotPlan, run_robot_stages};
@@ -137,7 +139,7 @@ pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibr
         &format!("images; '{}' is a point-mode session (tracked points, no images)", args.dir.display()),
     )?;
     let views: Vec<View> =
-        headalign::session::read_point_session(&args.dir)?.into_iter().map(|r| r.view).collect();
+        headalign_io::session::read_point_session(&args.dir)?.into_iter().map(|r| r.view).collect();
     let pairs: Vec<(&str, _)> = views.iter().map(|v| (v.name.as_str(), v.capture.encoders)).collect();
     let choice = select_rig(&pairs);
     let rig: Vec<View> = choice.used.iter().map(|&i| views[i].clone()).collect();

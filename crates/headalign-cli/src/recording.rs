@@ -1,16 +1,16 @@
 //! Recordings on the command line: the flags that say how a ROS 2 bag or an EuRoC folder
 //! is read (shared by `calibrate`, `align --images` and `replay`), `--lens-from`, and the
-//! views each command takes from a recording ([`headalign::recordings`] does the reading).
+//! views each command takes from a recording ([`headalign_io::recordings`] does the reading).
 
 use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::LensModel;
-use headalign::recordings::{
+use headalign_io::recordings::{
     self, PlaybackHead, Recording, RecordingFormat, RecordingOptions, euroc, still_views, verge_tilt_views,
 };
-use headalign::session::RecordedView;
+use headalign_io::session::RecordedView;
 use headalign_platform::Joint;
 
 /// How a recording (ROS 2 bag, EuRoC folder) is read.

@@ -1,11 +1,11 @@
 //! `headalign replay DIR`: re-run a recorded session offline. The session's head is played
-//! back ([`headalign::session::ReplayHead`]: recorded readings, recorded images, moves
+//! back ([`headalign_io::session::ReplayHead`]: recorded readings, recorded images, moves
 //! checked against the recorded ones) under the same procedure that recorded it, so the
 //! result is the recorded run's, bit for bit. A recording that stopped early (its run
 //! failed) replays up to where it stopped and fails there, naming the event.
 //!
 //! A recording of a head run (a ROS 2 bag with joint states) has no events: its still
-//! views are played back as a head ([`headalign::recordings::PlaybackHead`]) under the
+//! views are played back as a head ([`headalign_io::recordings::PlaybackHead`]) under the
 //! image procedure with the rotation given on the command line, which `run` used too.
 
 use std::path::PathBuf;
@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::session::{ReplayHead, SessionInfo, read_session_info};
+use headalign_io::session::{ReplayHead, SessionInfo, read_session_info};
 use serde_json::Value;
 
 use crate::stages::RobotPlan;
@@ -107,7 +107,7 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
 
 /// Run `headalign replay`.
 pub fn run(args: &ReplayArgs) -> Result<()> {
-    if headalign::recordings::detect(&args.dir).is_some() {
+    if headalign_io::recordings::detect(&args.dir).is_some() {
         return replay_recording(args);
     }
     args.recording.only_for_recordings(&args.dir, "a recorded session", false)?;

@@ -26,12 +26,12 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use headalign::alignment::{AlignmentSolution, VergeAxes};
-use headalign::export::{IntrinsicSigmas, StereoCalibration, TranslationUnit};
+use headalign::calibration::{IntrinsicSigmas, StereoCalibration, TranslationUnit};
 use headalign::observations::View;
 use headalign::procedure::AlignmentSigmas;
-use headalign::session::RecordedView;
 use headalign::verge_tilt::{RigCalibration, axes_of};
 use headalign_geometry::so3::Line;
+use headalign_io::session::RecordedView;
 use headalign_platform::{Encoders, Joint};
 use serde_json::{Map, Value};
 

@@ -41,8 +41,6 @@ pub const REPLAY: &str = "headalign-replay/1";
 pub const ALIGN: &str = "headalign-align/1";
 /// Schema of `calibrate --json` (and of `replay --json` on a calibration session).
 pub const CALIBRATE: &str = "headalign-calibrate/1";
-/// Format of the file `alignment.json` (`align --out`).
-pub const ALIGNMENT_FILE: &str = "headalign-alignment/2";
 
 /// What a route's robot stages say when they did not run (the planar route).
 pub type SkipNote = Option<&'static str>;
@@ -338,20 +336,9 @@ pub struct AlignReport {
     pub seconds: f64,
 }
 
-/// The file `alignment.json` of `align --out`, on either route.
-#[derive(Debug, Clone, Serialize)]
-pub struct AlignmentFile {
-    pub format: &'static str,
-    pub route: &'static str,
-    pub reference_encoders: Encoders,
-    pub aligned_encoders: Encoders,
-    pub aligned_sigma_deg: AlignmentSigmas,
-    pub verge_axes_measured: bool,
-    pub predicted_elev_err_r_deg: f64,
-    pub roll_left_deg: f64,
-    pub roll_right_deg: f64,
-    pub undetermined: Vec<String>,
-}
+/// The file `alignment.json` of `align --out`, on either route (its format lives in
+/// `headalign-io`).
+pub use headalign_io::alignment_file::AlignmentFile;
 
 /// A calibrated camera of `calibrate`, pixels.
 #[derive(Debug, Clone, Serialize)]
@@ -544,7 +531,7 @@ impl Procedure {
             timings: Timings { estimation_s: o.3, total_s },
             views,
             images: None,
-            stages: vec![headalign::session::STAGE_VERGE_TILT.to_string()],
+            stages: vec![headalign_io::session::STAGE_VERGE_TILT.to_string()],
             robot_stages: planar_route.then_some(crate::facing_plane::ROBOT_STAGES_SKIPPED),
             robot: RobotOutcomes::default(),
             robot_tracking: None,

@@ -130,7 +130,7 @@ impl RobotPlan {
 /// [`headalign::robot::FloorNormal`]); `None` when only the verge/tilt stage was asked for.
 pub fn summary_line(v: &serde_json::Value) -> Option<String> {
     let stages = v["stages"].as_array()?;
-    if stages.iter().all(|s| s.as_str() == Some(headalign::session::STAGE_VERGE_TILT)) {
+    if stages.iter().all(|s| s.as_str() == Some(headalign_io::session::STAGE_VERGE_TILT)) {
         return None;
     }
     let mut parts = Vec::new();

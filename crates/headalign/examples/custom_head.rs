@@ -11,7 +11,7 @@
 //! [`headalign_platform::ImagingHead`] (`capture_images`) and is wrapped in
 //! [`headalign::tracking::TrackingHead`], which finds and tracks the features and provides
 //! `capture`. A head behind another process speaks the JSON-lines protocol of
-//! `docs/head-protocol.md` ([`headalign::process_head`]).
+//! `docs/head-protocol.md` (`headalign_io::process_head` in the `headalign-io` crate).
 //!
 //! `cargo run --release -p headalign --example custom_head` (about a second).
 

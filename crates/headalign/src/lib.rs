@@ -6,7 +6,7 @@
 //! [`headalign_platform::StereoHead`] trait and does its mathematics in
 //! `headalign-geometry`.
 //!
-//! - [`observations`]: observation sessions on disk (bring your own correspondences).
+//! - [`observations`]: the stereo [`observations::View`] every procedure consumes.
 //! - [`verge_tilt`]: the verge/tilt estimation core (F, frame, 3D homographies, linear
 //!   self-calibration, rig bundle adjustment).
 //! - [`alignment`]: exact aligned encoder readings from the calibrated head, measurement of
@@ -17,9 +17,8 @@
 //!   general motion with constraints, or two rotations about different axes).
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`; [`plan`]: the views it
 //!   captures.
-//! - [`session`]: sessions on disk (recording head, replay head, the format).
-//! - [`recordings`]: ROS 2 bags (MCAP) and EuRoC folders read as sessions.
-//! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
+//! - [`calibration`]: a calibrated stereo pair ([`calibration::StereoCalibration`]) with
+//!   its rectification.
 //! - [`robot`]: the robot stages (pan, steering, floor), pan alignment without calibration
 //!   by fixating a drive's epipole ([`robot::pan_fixation`]) and one-motion alignment
 //!   ([`robot::one_motion`]).
@@ -49,25 +48,26 @@
 //! # }
 //! ```
 //!
+//! Files and devices (sessions, recordings, observation files, calibration files, a head
+//! behind a driver process, folders of stereo images) are the `headalign-io` crate's; this
+//! crate reads and writes no file format.
+//!
 //! The crate's examples teach the rest: `align_simulated` (the above with the errors
-//! printed), `custom_head` (implementing [`StereoHead`] for your own head) and
-//! `calibrate_folder` (self-calibration from a folder of stereo images with
-//! [`calibrate`]); `cargo run --release -p headalign --example NAME`.
+//! printed) and `custom_head` (implementing [`StereoHead`] for your own head);
+//! `cargo run --release -p headalign --example NAME`. Self-calibration from a folder of
+//! stereo images with [`calibrate`] is `headalign-io`'s example `calibrate_folder`.
 
 pub mod alignment;
 pub mod calibrate;
+pub mod calibration;
 pub mod error;
-pub mod export;
 pub mod facing_plane;
 pub mod fixation;
 pub mod observations;
 pub mod plan;
 pub mod procedure;
-pub mod process_head;
-pub mod recordings;
 pub mod rig;
 pub mod robot;
-pub mod session;
 pub mod tracking;
 pub mod verge_tilt;
 

@@ -6,9 +6,9 @@
 use std::path::{Path, PathBuf};
 
 use super::common::{assert_clean_failure, bin, ok_json, scratch};
-use headalign::recordings::cdr::{encode_image, encode_joint_state};
-use headalign::recordings::rosbag::{BagWriter, MessageKind};
-use headalign::session::{STAGE_VERGE_TILT, SessionInfo, SessionWriter, ViewLabel};
+use headalign_io::recordings::cdr::{encode_image, encode_joint_state};
+use headalign_io::recordings::rosbag::{BagWriter, MessageKind};
+use headalign_io::session::{STAGE_VERGE_TILT, SessionInfo, SessionWriter, ViewLabel};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use serde_json::Value;
 
@@ -286,7 +286,7 @@ fn replay_plays_back_a_bag_of_a_recorded_run() {
             .output()
             .unwrap(),
     );
-    let views = headalign::session::read_image_session(&session).unwrap();
+    let views = headalign_io::session::read_image_session(&session).unwrap();
     let bag = dir.join("run.mcap");
     let mut w = BagWriter::create(&bag).unwrap();
     let names = ["pan", "tilt", "vl", "vr"];

@@ -145,27 +145,6 @@ fn reads_opencv_lenses() {
     }
 }
 
-/// The OpenCV YAML our export writes is a lens file `--distortion` reads back exactly
-/// (shortest round-trip number formatting).
-#[test]
-fn reads_back_our_own_export() {
-    let d = [
-        Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.01, ..Distortion::default() },
-        Distortion::radial(0.1, 0.0),
-    ];
-    let stereo = crate::export::StereoCalibration {
-        image_size: [768, 576],
-        left: Intrinsics { fx: 700.25, fy: 720.5, skew: 0.0, cx: 390.125, cy: 284.0 },
-        right: Intrinsics::new(705.0, 716.0, 380.0, 290.0),
-        sigmas: Default::default(),
-        right_from_left: Isometry3::translation(-0.25, 0.0, 0.0),
-        unit: crate::export::TranslationUnit::Metres,
-        distortion: d,
-    };
-    let [l, r] = read_opencv_lenses(&stereo.opencv_yaml().unwrap(), "ours").unwrap();
-    assert_eq!((l.k, l.distortion, r.k, r.distortion), (stereo.left, d[0], stereo.right, d[1]));
-}
-
 #[test]
 fn options_validate() {
     assert!(CalibrateOptions::default().validate().is_ok());

@@ -4,9 +4,7 @@
 
 mod doc_links;
 mod fixation;
-mod fuzz_regressions;
 mod patch_refinement;
-mod recordings;
 mod robot_images;
 mod rotating_camera;
 mod tracking_progress;

@@ -25,7 +25,7 @@
 //!
 //! Degrees of freedom: none. Units: stamps in nanoseconds, intrinsics in pixels.
 //! Pitfalls: the coefficients belong to the intrinsics in the same file (see
-//! [`crate::calibrate::LensModel`]); other models (Kalibr's `fov`) are refused, not
+//! [`headalign::calibrate::LensModel`]); other models (Kalibr's `fov`) are refused, not
 //! approximated.
 
 use std::path::{Path, PathBuf};
@@ -35,8 +35,8 @@ use headalign_geometry::distortion::{Distortion, LensKind};
 use headalign_platform::{Encoders, GrayImage};
 
 use super::{Recording, RecordingFormat, RecordingOptions, Stamped, build_views, pair_streams, select_pairs};
-use crate::AlignError;
-use crate::calibrate::LensModel;
+use headalign::AlignError;
+use headalign::calibrate::LensModel;
 
 /// The folder holding the camera folders: `path/mav0` if it exists, else `path`.
 pub fn camera_root(path: &Path) -> PathBuf {

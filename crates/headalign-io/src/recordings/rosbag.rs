@@ -49,7 +49,7 @@ use super::{
     JointSeries, Pair, Recording, RecordingFormat, RecordingOptions, Stamped, build_views, encoders_at,
     pair_streams, secs, select_pairs,
 };
-use crate::AlignError;
+use headalign::AlignError;
 
 /// A decompressed chunk may hold at most this many bytes (corrupt sizes are refused before
 /// allocating); rosbag2 writes chunks of about 1 MB.

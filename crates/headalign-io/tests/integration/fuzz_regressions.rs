@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 fn inputs(target: &str) -> Vec<(PathBuf, Vec<u8>)> {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz_regressions").join(target);
+    let dir = crate::common::test_path("fuzz_regressions").join(target);
     let Ok(entries) = std::fs::read_dir(&dir) else { return Vec::new() };
     let mut files: Vec<PathBuf> = entries.filter_map(Result::ok).map(|e| e.path()).collect();
     files.sort();
@@ -22,9 +22,9 @@ fn observations_regressions() {
     assert!(!cases.is_empty());
     for (path, bytes) in cases {
         let Ok(text) = std::str::from_utf8(&bytes) else { continue };
-        let Ok(views) = headalign::observations::parse_session(text, "fuzz") else { continue };
-        let json = headalign::observations::session_to_json(&views).unwrap();
-        let again = headalign::observations::parse_session(&json, "fuzz").unwrap();
+        let Ok(views) = headalign_io::observations::parse_session(text, "fuzz") else { continue };
+        let json = headalign_io::observations::session_to_json(&views).unwrap();
+        let again = headalign_io::observations::parse_session(&json, "fuzz").unwrap();
         assert_eq!(again, views, "{}: round trip changed the session", path.display());
         let _ = headalign::verge_tilt::classify_views(&views);
     }
@@ -35,7 +35,7 @@ fn observations_regressions() {
 fn view_json_regressions() {
     for (path, bytes) in inputs("view_json") {
         let Ok(text) = std::str::from_utf8(&bytes) else { continue };
-        match headalign::session::parse_view_json(text, "view.json") {
+        match headalign_io::session::parse_view_json(text, "view.json") {
             Ok(meta) => assert!(!meta.name.is_empty() && meta.encoders.is_finite(), "{}", path.display()),
             Err(e) => assert!(e.to_string().contains("view.json"), "{}", path.display()),
         }
@@ -52,7 +52,7 @@ fn png_decode_regressions() {
         if let Ok(img) = headalign_vision::GrayImage::decode(&bytes) {
             let max = headalign_vision::image::MAX_SIDE;
             assert!(img.width() <= max && img.height() <= max, "{}", path.display());
-            let _ = headalign::session::check_image(&img, "left.png");
+            let _ = headalign_io::session::check_image(&img, "left.png");
         }
     }
     // Generous: each input is refused from its header in microseconds.

@@ -1,5 +1,12 @@
 //! Tests of the session format: bad input named, recording and replay, timestamps.
 
+use std::path::Path;
+use std::time::UNIX_EPOCH;
+
+use headalign_platform::{
+    Encoders, GrayImage, ImagingHead, PlatformError, StereoCapture, StereoHead, StereoImages,
+};
+
 use super::*;
 
 fn write_view(dir: &Path, name: &str, left: &GrayImage, right: &GrayImage, json: &str) {

@@ -14,9 +14,9 @@ use headalign_platform::{
     Encoders, ImagingHead, Joint, PlatformError, StereoCapture, StereoHead, StereoImages,
 };
 
-use crate::AlignError;
 use crate::session::RecordedView;
-use crate::verge_tilt::MOVED_DEG;
+use headalign::AlignError;
+use headalign::verge_tilt::MOVED_DEG;
 
 /// Pairs whose readings stay within this of a run's first pair, per joint, belong to one
 /// still view, degrees: half the estimation's [`MOVED_DEG`], so that two still views

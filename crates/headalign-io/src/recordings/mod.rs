@@ -54,8 +54,8 @@ use headalign_platform::{Encoders, GrayImage, Joint, StereoImages};
 
 pub use head::{MIN_STILL_PAIRS, PlaybackHead, STILL_DEG, still_views, verge_tilt_views};
 
-use crate::AlignError;
 use crate::session::RecordedView;
+use headalign::AlignError;
 
 /// The recording formats read here.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

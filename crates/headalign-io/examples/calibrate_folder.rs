@@ -1,4 +1,5 @@
-//! Self-calibrate a stereo rig from a folder of stereo views with `headalign::calibrate`.
+//! Self-calibrate a stereo rig from a folder of stereo views with `headalign::calibrate`
+//! (the folder read by `headalign_io::folder`).
 //!
 //! Teaches the image route of the library: load stereo pairs, track features through them
 //! with [`Tracker`] (the first view is the reference; a track id then names the same scene
@@ -9,24 +10,26 @@
 //! rig moved around) in a scene with depth: a flat target is a degenerate case, reported
 //! as such.
 //!
-//! The folder holds stereo pairs `left*.png` / `right*.png` (or `.jpg`), the right file
-//! named as the left one with `left` replaced by `right`, taken in name order. Without an
-//! argument the example first records such a folder from the simulator (three views: an
+//! The folder is read by [`read_folder`], by the rules `headalign calibrate DIR` reads it
+//! with: stereo pairs `left*.png` / `right*.png` (or `.jpg`, `.jpeg`; any case), the right
+//! file named as the left one with `left` replaced by `right`, taken in name order, or an
+//! image session (`headalign_io::folder` documents the rules). Without an argument the example first records such a folder from the simulator (three views: an
 //! initial one, then 5 deg of elevation and 5 deg of pan) into a temporary folder, so it
 //! runs out of the box and can print the true intrinsics beside the estimate. The
 //! `headalign calibrate DIR` command does the same with more options (known lenses,
 //! distortion, constraints, output files).
 //!
-//! `cargo run --release -p headalign --example calibrate_folder [-- DIR]` (about 10 s,
+//! `cargo run --release -p headalign-io --example calibrate_folder [-- DIR]` (about 10 s,
 //! most of it rendering the simulated images).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use headalign::calibrate::{CalibrateOptions, calibrate_rig};
 use headalign::observations::View;
 use headalign::tracking::{FrontEndOptions, Tracker};
 use headalign_geometry::camera::Intrinsics;
-use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
+use headalign_io::folder::{FolderOptions, read_folder};
+use headalign_platform::{ImagingHead, Joint, StereoHead};
 use headalign_sim::{Scenario, SimulatedHead};
 
 type Error = Box<dyn std::error::Error>;
@@ -39,7 +42,7 @@ fn main() -> Result<(), Error> {
             (dir, Some(truth))
         }
     };
-    let pairs = read_pairs(&dir)?;
+    let pairs = read_folder(&dir, &FolderOptions::default(), &mut |_, _| ())?;
 
     // Track features through the views, in order.
     let mut tracker = Tracker::new(FrontEndOptions::default())?;
@@ -96,34 +99,6 @@ fn main() -> Result<(), Error> {
         println!("warning: {w}");
     }
     Ok(())
-}
-
-/// The stereo pairs of `dir` (module docs), named by the left file's stem.
-fn read_pairs(dir: &Path) -> Result<Vec<(String, StereoImages)>, Error> {
-    let entries =
-        std::fs::read_dir(dir).map_err(|e| format!("cannot read folder '{}': {e}", dir.display()))?;
-    let mut names: Vec<String> = entries
-        .filter_map(Result::ok)
-        .filter_map(|e| e.file_name().into_string().ok())
-        .filter(|n| n.contains("left") && (n.ends_with(".png") || n.ends_with(".jpg")))
-        .collect();
-    names.sort();
-    let load = |name: &str| {
-        let path = dir.join(name);
-        GrayImage::load(&path).map_err(|e| format!("'{}': {e}", path.display()))
-    };
-    let mut pairs = Vec::new();
-    for name in names {
-        let right = name.replacen("left", "right", 1);
-        let images = StereoImages::new(Encoders::default(), load(&name)?, load(&right)?)?;
-        let stem = name.rsplit_once('.').map_or(name.as_str(), |(stem, _)| stem);
-        pairs.push((stem.to_string(), images));
-    }
-    if pairs.len() < 2 {
-        let n = pairs.len();
-        return Err(format!("'{}' holds {n} stereo pair(s) (left*.png + right*.png); calibration needs 2 or more views related by rig motions", dir.display()).into());
-    }
-    Ok(pairs)
 }
 
 /// Record three simulated views into a new temporary folder (module docs): the folder and

@@ -3,9 +3,11 @@
 //! R2 P1 P2 Q`), ROS `camera_info` YAML for each camera (`camera_calibration_parsers`
 //! layout), and a Kalibr `camchain.yaml`.
 //!
-//! What it computes: nothing is estimated here. The stereo rectification that OpenCV's
-//! `R1 R2 P1 P2 Q` and ROS's `rectification_matrix` / `projection_matrix` need comes from
-//! [`headalign_geometry::rectify::rectify_stereo`].
+//! What it computes: nothing is estimated here. The pair is the library's
+//! [`StereoCalibration`] (`headalign::calibration`); its files are the
+//! [`CalibrationFiles`] methods. The stereo rectification that OpenCV's `R1 R2 P1 P2 Q` and
+//! ROS's `rectification_matrix` / `projection_matrix` need comes from
+//! [`headalign_geometry::rectify::rectify_stereo`] ([`StereoCalibration::rectification`]).
 //!
 //! Units: pixels for intrinsics; the rig translation is in metres when the user gives the
 //! baseline length, otherwise in baselines (the self-calibration is only up to scale;
@@ -25,138 +27,35 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use headalign_geometry::bundle::BundleResult;
+use headalign::AlignError;
+pub use headalign::calibration::{IntrinsicSigmas, StereoCalibration, TranslationUnit};
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
-use headalign_geometry::rectify::{Rectification, rectify_stereo};
-use nalgebra::{DMatrix, Isometry3, Matrix3};
+use nalgebra::{DMatrix, Matrix3};
 use serde_json::{Value, json};
 
-use crate::AlignError;
-use crate::verge_tilt::RigCalibration;
-
-/// The unit of the rig translation in the written files.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum TranslationUnit {
-    /// Metres (the user gave the baseline length).
-    Metres,
-    /// Baselines: the translation has unit length (self-calibration fixes no scale).
-    Baselines,
-}
-
-impl TranslationUnit {
-    fn name(self) -> &'static str {
-        match self {
-            Self::Metres => "m",
-            Self::Baselines => "baselines",
-        }
-    }
-}
-
-/// Standard deviations of one camera's intrinsics, pixels (`None` where not estimated).
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct IntrinsicSigmas {
-    /// Of `fx`.
-    pub fx: Option<f64>,
-    /// Of `fy`.
-    pub fy: Option<f64>,
-    /// Of `cx`.
-    pub cx: Option<f64>,
-    /// Of `cy`.
-    pub cy: Option<f64>,
-    /// Of the skew.
-    pub skew: Option<f64>,
-}
-
-/// A calibrated stereo pair, ready to be written.
-#[derive(Debug, Clone, PartialEq)]
-pub struct StereoCalibration {
-    /// Image size `[width, height]`, pixels.
-    pub image_size: [u32; 2],
-    /// Left camera intrinsics.
-    pub left: Intrinsics,
-    /// Right camera intrinsics.
-    pub right: Intrinsics,
-    /// Their standard deviations.
-    pub sigmas: [IntrinsicSigmas; 2],
-    /// Rig pose: maps points in the left camera frame to the right one.
-    pub right_from_left: Isometry3<f64>,
-    /// Unit of `right_from_left`'s translation.
-    pub unit: TranslationUnit,
-    /// Lens distortion of each camera (OpenCV `plumb_bob` `k1 k2 p1 p2 k3`; zero when no
-    /// lens model was given).
-    pub distortion: [Distortion; 2],
-}
-
-impl StereoCalibration {
-    /// From an estimated rig, with its estimated lenses (zero for a pinhole estimate:
-    /// [`crate::verge_tilt::EstimationOptions::lens`]). With `baseline_m` the translation is
-    /// scaled to metres; without, it stays in baselines.
-    pub fn from_rig(
-        calib: &RigCalibration,
-        image_size: [u32; 2],
-        baseline_m: Option<f64>,
-    ) -> Result<Self, AlignError> {
-        let mut c = Self::from_bundle(&calib.bundle, image_size, baseline_m)?;
-        c.distortion = [calib.bundle.state.left_distortion, calib.bundle.state.right_distortion];
-        Ok(c)
-    }
-
-    /// From any rig bundle adjustment (its state's cameras and rig, its covariance's
-    /// sigmas); distortion zero. With `baseline_m` the translation is scaled to metres.
-    pub fn from_bundle(
-        bundle: &BundleResult,
-        image_size: [u32; 2],
-        baseline_m: Option<f64>,
-    ) -> Result<Self, AlignError> {
-        let state = &bundle.state;
-        let mut right_from_left = state.right_from_left;
-        let norm = right_from_left.translation.vector.norm();
-        if !norm.is_finite() || norm <= 0.0 {
-            return Err(AlignError::Output("the rig has no baseline".into()));
-        }
-        let unit = match baseline_m {
-            Some(b) if b.is_finite() && b > 0.0 => {
-                right_from_left.translation.vector *= b / norm;
-                TranslationUnit::Metres
-            }
-            Some(b) => return Err(AlignError::InvalidOption(format!("baseline must be positive, got {b}"))),
-            None => {
-                right_from_left.translation.vector /= norm;
-                TranslationUnit::Baselines
-            }
-        };
-        let c = &bundle.covariance;
-        let sig = |side: &str| IntrinsicSigmas {
-            fx: c.sigma(&format!("{side}.fx")),
-            fy: c.sigma(&format!("{side}.fy")),
-            cx: c.sigma(&format!("{side}.cx")),
-            cy: c.sigma(&format!("{side}.cy")),
-            skew: c.sigma(&format!("{side}.skew")),
-        };
-        Ok(Self {
-            image_size,
-            left: state.left,
-            right: state.right,
-            sigmas: [sig("left"), sig("right")],
-            right_from_left,
-            unit,
-            distortion: [Distortion::default(); 2],
-        })
-    }
-
-    /// The rectification of the pair.
-    pub fn rectification(&self) -> Result<Rectification, AlignError> {
-        rectify_stereo(&self.left, &self.right, &self.right_from_left, self.image_size)
-            .map_err(|e| AlignError::Output(format!("stereo rectification: {e}")))
-    }
-
-    fn rotation(&self) -> Matrix3<f64> {
-        self.right_from_left.rotation.to_rotation_matrix().into_inner()
-    }
-
+/// The calibration files of a [`StereoCalibration`] (the type is the library's,
+/// `headalign::calibration`; its files are written here).
+pub trait CalibrationFiles {
     /// JSON: both cameras (K, sigmas, distortion), the rig, the rectification.
-    pub fn json(&self) -> Result<Value, AlignError> {
+    fn json(&self) -> Result<Value, AlignError>;
+    /// OpenCV FileStorage YAML (readable by `cv::FileStorage` / `cv2.FileStorage`).
+    fn opencv_yaml(&self) -> Result<String, AlignError>;
+    /// ROS `camera_info` YAML of one camera (`0` left, `1` right), with the rectification
+    /// of the pair (`rectification_matrix`, `projection_matrix`).
+    fn ros_camera_info(&self, index: usize, camera_name: &str) -> Result<String, AlignError>;
+    /// Kalibr `camchain.yaml`: `cam0` (left), `cam1` (right) with `T_cn_cnm1` =
+    /// `right_from_left` as a 4x4 matrix.
+    fn kalibr_camchain(&self) -> Result<String, AlignError>;
+    /// Write every format into `dir` (created if missing): `calibration.json`,
+    /// `opencv_stereo.yaml`, `left.yaml`, `right.yaml` (ROS), `camchain.yaml` (Kalibr).
+    /// Returns the paths written.
+    fn write_all(&self, dir: &Path) -> Result<Vec<PathBuf>, AlignError>;
+}
+
+impl CalibrationFiles for StereoCalibration {
+    /// JSON: both cameras (K, sigmas, distortion), the rig, the rectification.
+    fn json(&self) -> Result<Value, AlignError> {
         let r = self.rectification()?;
         let cam = |k: &Intrinsics, s: &IntrinsicSigmas, d: &Distortion| {
             json!({
@@ -189,7 +88,7 @@ impl StereoCalibration {
     }
 
     /// OpenCV FileStorage YAML (readable by `cv::FileStorage` / `cv2.FileStorage`).
-    pub fn opencv_yaml(&self) -> Result<String, AlignError> {
+    fn opencv_yaml(&self) -> Result<String, AlignError> {
         let r = self.rectification()?;
         let mut s = String::from("%YAML:1.0\n---\n");
         let _ = writeln!(s, "# headalign stereo calibration; translation unit: {}", self.unit.name());
@@ -235,7 +134,7 @@ impl StereoCalibration {
 
     /// ROS `camera_info` YAML of one camera (`0` left, `1` right), with the rectification
     /// of the pair (`rectification_matrix`, `projection_matrix`).
-    pub fn ros_camera_info(&self, index: usize, camera_name: &str) -> Result<String, AlignError> {
+    fn ros_camera_info(&self, index: usize, camera_name: &str) -> Result<String, AlignError> {
         let r = self.rectification()?;
         let (k, rect, p, dist) = match index {
             0 => (&self.left, r.rect_from_left, r.p_left, self.distortion[0]),
@@ -271,7 +170,7 @@ impl StereoCalibration {
 
     /// Kalibr `camchain.yaml`: `cam0` (left), `cam1` (right) with `T_cn_cnm1` =
     /// `right_from_left` as a 4x4 matrix.
-    pub fn kalibr_camchain(&self) -> Result<String, AlignError> {
+    fn kalibr_camchain(&self) -> Result<String, AlignError> {
         let cam = |k: &Intrinsics, d: &Distortion, topic: &str| -> Result<String, AlignError> {
             let four = match d.kind {
                 LensKind::RadialTangential => [d.k1, d.k2, d.p1, d.p2],
@@ -315,7 +214,7 @@ impl StereoCalibration {
     /// Write every format into `dir` (created if missing): `calibration.json`,
     /// `opencv_stereo.yaml`, `left.yaml`, `right.yaml` (ROS), `camchain.yaml` (Kalibr).
     /// Returns the paths written.
-    pub fn write_all(&self, dir: &Path) -> Result<Vec<PathBuf>, AlignError> {
+    fn write_all(&self, dir: &Path) -> Result<Vec<PathBuf>, AlignError> {
         std::fs::create_dir_all(dir)
             .map_err(|e| AlignError::Output(format!("cannot create {}: {e}", dir.display())))?;
         let json = serde_json::to_string_pretty(&self.json()?)
@@ -407,7 +306,7 @@ fn opencv_model_name(kind: LensKind) -> &'static str {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::{Translation3, UnitQuaternion};
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 
     fn sample() -> StereoCalibration {
         StereoCalibration {
@@ -458,7 +357,7 @@ mod tests {
     /// equidistant ROS `camera_info`.
     #[test]
     fn lens_models_are_written_and_read_back() {
-        use crate::calibrate::read_opencv_lenses;
+        use headalign::calibrate::read_opencv_lenses;
         let mut c = sample();
         c.distortion[0] = Distortion::equidistant([0.01, -0.002, 0.0003, -0.00004]);
         let y = c.opencv_yaml().unwrap();
@@ -533,5 +432,27 @@ mod tests {
         assert_eq!(v["translation_unit"], "m");
         assert_eq!(v["left"]["sigma"]["fx"], 2.0);
         std::fs::remove_dir_all(&dir).ok();
+    }
+
+    /// The OpenCV YAML our export writes is a lens file `--distortion` reads back exactly
+    /// (shortest round-trip number formatting).
+    #[test]
+    fn reads_back_our_own_export() {
+        let d = [
+            Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.01, ..Distortion::default() },
+            Distortion::radial(0.1, 0.0),
+        ];
+        let stereo = StereoCalibration {
+            image_size: [768, 576],
+            left: Intrinsics { fx: 700.25, fy: 720.5, skew: 0.0, cx: 390.125, cy: 284.0 },
+            right: Intrinsics::new(705.0, 716.0, 380.0, 290.0),
+            sigmas: Default::default(),
+            right_from_left: Isometry3::translation(-0.25, 0.0, 0.0),
+            unit: TranslationUnit::Metres,
+            distortion: d,
+        };
+        let [l, r] =
+            headalign::calibrate::read_opencv_lenses(&stereo.opencv_yaml().unwrap(), "ours").unwrap();
+        assert_eq!((l.k, l.distortion, r.k, r.distortion), (stereo.left, d[0], stereo.right, d[1]));
     }
 }

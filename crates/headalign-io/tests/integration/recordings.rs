@@ -4,16 +4,13 @@
 
 use std::path::{Path, PathBuf};
 
-use headalign::recordings::cdr::{encode_compressed_image, encode_image, encode_joint_state};
-use headalign::recordings::rosbag::{BagWriter, MessageKind};
-use headalign::recordings::{RecordingOptions, read_recording};
+use headalign_io::recordings::cdr::{encode_compressed_image, encode_image, encode_joint_state};
+use headalign_io::recordings::rosbag::{BagWriter, MessageKind};
+use headalign_io::recordings::{RecordingOptions, read_recording};
 use headalign_platform::{GrayImage, Joint};
 
 fn temp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("headalign-bag-{}-{name}", std::process::id()));
-    std::fs::remove_dir_all(&d).ok();
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    crate::common::temp_dir("bag", name)
 }
 
 /// A textured 64x48 image, different for each `k` (no blank image).
@@ -188,6 +185,7 @@ fn compressed_png_images_read() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Mistakes in the options: a missing topic, a topic of another type, a missing joint.
 #[test]
 fn a_users_mistakes_are_one_line_errors() {
     let dir = temp("errors");
@@ -227,6 +225,18 @@ fn a_users_mistakes_are_one_line_errors() {
             assert!(e.contains(p), "'{e}' lacks '{p}'");
         }
     }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Mistakes in the data rather than the options: joint states that end early, an
+/// unsupported encoding, unpaired images, a sqlite3 bag, a file that is not MCAP, a
+/// truncated bag.
+#[test]
+fn bad_recordings_are_one_line_errors() {
+    let dir = temp("bad-data");
+    let good = dir.join("good.mcap");
+    write_bag(&good, 0, "mono8");
+    let err = |path: &Path, o: RecordingOptions| read_recording(path, &o).unwrap_err().to_string();
     // Images outside the joint states: a joint stream that ends early.
     let short = dir.join("short.mcap");
     let mut w = BagWriter::create(&short).unwrap();
@@ -307,12 +317,12 @@ fn a_users_mistakes_are_one_line_errors() {
 
 /// A bag written by an independent ROS 2 MCAP writer: Foxglove's Python
 /// `mcap-ros2-support` (its own CDR serialiser, zstd chunks from the zstandard C library),
-/// made by `python3 bench/ros2_bag.py fixture crates/headalign/tests/data/python_mcap_ros2.mcap`.
+/// made by `python3 bench/ros2_bag.py fixture crates/headalign-io/tests/data/python_mcap_ros2.mcap`.
 /// Every pixel and every interpolated reading is what the script wrote (its docstring
 /// gives the formulas).
 #[test]
 fn a_bag_from_an_independent_writer_reads_exactly() {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/python_mcap_ros2.mcap");
+    let path = crate::common::test_path("data/python_mcap_ros2.mcap");
     let o = RecordingOptions {
         joints: vec![(Joint::Pan, "pan_joint".into()), (Joint::Elevation, "tilt_joint".into())],
         ..RecordingOptions::default()
