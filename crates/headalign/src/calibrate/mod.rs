@@ -75,12 +75,15 @@
 //! conditioning of one general motion depends on its translation along the axis: report
 //! `plane_conditioning` and trust the sigmas.
 //!
-//! Code layout, one file per step: `depth` (step 1), `stereo` (step 2, and the rig from
-//! known intrinsics), `motion` (step 3), `starts` (the point set and the two starts: step
-//! 4 and the rigid start), `adjust` (steps 5-6), `report` (step 7), `lens` (known lens
-//! models), `two_pass` (the start of a lens estimate when the chain fails),
-//! `lens_sigmas` (the bootstrap of the lens and focal sigmas), `density` (the corner
-//! density of self-calibration from images);
+//! Code layout, one file per step: `depth` (step 1), `rig_stereo` (step 2, and the rig
+//! from known intrinsics), `motion` (step 3), `bundle_starts` (the point set and the two
+//! starts: step 4 and the rigid start), `rig_bundle` (steps 5-6), `report` (step 7),
+//! `two_pass` (the start of a lens estimate when the chain fails), `lens_auto`
+//! ([`LensChoice::Auto`] over either chain), `fit_checks` (the residual structure and
+//! image-noise checks applied to a calibration), `lens_sigmas` (the bootstrap of the lens
+//! and focal sigmas), `density` (the corner density of self-calibration from images); the
+//! lens models, their choice and the checks themselves are [`crate::rig`]'s, shared with
+//! the verge/tilt route;
 //! `calibrate_once` chains them. Sequences: `route` (which tracking and chain a folder
 //! gets), `graph` (keyframes, view graph, segments, spanning trees), `sequence` (the
 //! sequence chain, reusing the steps above).
