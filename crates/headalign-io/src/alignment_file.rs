@@ -14,11 +14,12 @@
 
 use std::path::Path;
 
-use headalign::AlignError;
 use headalign::alignment::AlignmentSolution;
 use headalign::procedure::AlignmentSigmas;
 use headalign_platform::Encoders;
 use serde::Serialize;
+
+use crate::error::FileError;
 
 /// The format tag of `alignment.json`.
 pub const FORMAT: &str = "headalign-alignment/2";
@@ -73,10 +74,10 @@ impl AlignmentFile {
     }
 
     /// Write the file to `path` (pretty JSON and a final newline).
-    pub fn write(&self, path: &Path) -> Result<(), AlignError> {
+    pub fn write(&self, path: &Path) -> Result<(), FileError> {
         let text = serde_json::to_string_pretty(self)
-            .map_err(|e| AlignError::Output(format!("cannot encode JSON: {e}")))?;
+            .map_err(|e| FileError::File(format!("cannot encode JSON: {e}")))?;
         std::fs::write(path, text + "\n")
-            .map_err(|e| AlignError::Output(format!("cannot write {}: {e}", path.display())))
+            .map_err(|e| FileError::File(format!("cannot write {}: {e}", path.display())))
     }
 }

@@ -20,6 +20,7 @@ use std::path::Path;
 use headalign::AlignError;
 use headalign_platform::{Encoders, GrayImage, StereoImages};
 
+use crate::error::FileError;
 use crate::session::read_image_session;
 
 /// How a folder of stereo pairs is read.
@@ -55,14 +56,14 @@ pub enum FolderKind {
     StereoPairs,
 }
 
-fn cannot_read(dir: &Path, e: std::io::Error) -> AlignError {
-    AlignError::Images(format!("cannot read '{}': {e}", dir.display()))
+fn cannot_read(dir: &Path, e: std::io::Error) -> FileError {
+    FileError::File(format!("cannot read '{}': {e}", dir.display()))
 }
 
 /// What `dir` holds; an error if it is not a readable folder.
-pub fn folder_kind(dir: &Path) -> Result<FolderKind, AlignError> {
+pub fn folder_kind(dir: &Path) -> Result<FolderKind, FileError> {
     if !dir.is_dir() {
-        return Err(AlignError::Images(format!("'{}' is not a folder", dir.display())));
+        return Err(FileError::File(format!("'{}' is not a folder", dir.display())));
     }
     let has_session = std::fs::read_dir(dir)
         .map_err(|e| cannot_read(dir, e))?
@@ -77,7 +78,7 @@ pub fn read_folder(
     dir: &Path,
     options: &FolderOptions,
     progress: &mut dyn FnMut(usize, usize),
-) -> Result<Vec<(String, StereoImages)>, AlignError> {
+) -> Result<Vec<(String, StereoImages)>, FileError> {
     options.validate()?;
     match folder_kind(dir)? {
         FolderKind::ImageSession => {
@@ -89,7 +90,7 @@ pub fn read_folder(
 }
 
 /// The left images of a folder of stereo pairs (module docs), sorted, every N-th.
-fn left_names(dir: &Path, every: usize) -> Result<Vec<String>, AlignError> {
+fn left_names(dir: &Path, every: usize) -> Result<Vec<String>, FileError> {
     let mut names: Vec<String> = std::fs::read_dir(dir)
         .map_err(|e| cannot_read(dir, e))?
         .filter_map(Result::ok)
@@ -108,7 +109,7 @@ pub fn read_stereo_pairs(
     dir: &Path,
     options: &FolderOptions,
     progress: &mut dyn FnMut(usize, usize),
-) -> Result<Vec<(String, StereoImages)>, AlignError> {
+) -> Result<Vec<(String, StereoImages)>, FileError> {
     options.validate()?;
     let names = left_names(dir, options.every)?;
     let mut out: Vec<(String, StereoImages)> = Vec::new();
@@ -120,14 +121,14 @@ pub fn read_stereo_pairs(
         if !rp.exists() {
             continue;
         }
-        let load = |p: &Path| GrayImage::load(p).map_err(|e| AlignError::Images(e.to_string()));
+        let load = |p: &Path| GrayImage::load(p).map_err(|e| FileError::File(e.to_string()));
         let (left, right) = (load(&lp)?, load(&rp)?);
         let pair = StereoImages::new(Encoders::default(), left, right)
-            .map_err(|e| AlignError::Images(format!("'{}' and '{}': {e}", lp.display(), rp.display())))?;
+            .map_err(|e| FileError::File(format!("'{}' and '{}': {e}", lp.display(), rp.display())))?;
         if let Some((_, first)) = out.first()
             && first.image_size() != pair.image_size()
         {
-            return Err(AlignError::Images(format!(
+            return Err(FileError::File(format!(
                 "'{}' has a different size from the first pair",
                 lp.display()
             )));
@@ -136,7 +137,7 @@ pub fn read_stereo_pairs(
         out.push((stem, pair));
     }
     if out.is_empty() {
-        return Err(AlignError::Images(format!(
+        return Err(FileError::File(format!(
             "'{}' holds neither an image session (NN-name/ with left.png, right.png, view.json) nor stereo pairs (files named left*/right*)",
             dir.display()
         )));

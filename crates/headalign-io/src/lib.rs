@@ -2,8 +2,9 @@
 //!
 //! The formats and devices of headalign: everything that reads or writes a file, or talks
 //! to a device, around the procedures of the `headalign` crate (which reads and writes no
-//! file format and depends on no container or compression crate). Errors are the library's
-//! [`headalign::AlignError`], one line naming the file and the problem.
+//! file format and depends on no container or compression crate). Errors are one line
+//! naming the file and the problem: the library's [`headalign::AlignError`] for the formats
+//! its procedures reach, [`FileError`] for the folder reader and `alignment.json`.
 //!
 //! - [`session`]: sessions on disk (`headalign-session/1`): the format, the writer, the
 //!   recording head and the replay head.
@@ -22,9 +23,12 @@
 //! (`cargo run --release -p headalign-io --example calibrate_folder [-- DIR]`).
 
 pub mod alignment_file;
+pub mod error;
 pub mod export;
 pub mod folder;
 pub mod observations;
 pub mod process_head;
 pub mod recordings;
 pub mod session;
+
+pub use error::FileError;

@@ -70,6 +70,11 @@
 //! differs from the first, a blank (textureless) image, a malformed event line.
 //! [`parse_view_json`] and [`check_image`] are the pure parts of the reader (fuzzed
 //! without files: `fuzz/`, targets `view_json` and `png_decode`).
+//!
+//! Files: `format` (the types, `view.json` parsing, the blank-image check, the choice of
+//! views), `reader` (reading sessions back), `writer` ([`SessionWriter`]),
+//! `recording_head` ([`RecordingHead`]), `replay_head` ([`ReplayHead`]); everything is
+//! re-exported here.
 
 mod format;
 mod reader;
