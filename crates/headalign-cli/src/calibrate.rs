@@ -64,11 +64,11 @@ pub struct CalibrateArgs {
     /// (model and terms chosen by BIC, reported; the default for images).
     // `headalign::calibrate::LensChoice`; the criterion is in `calibrate::lens_choice`.
     // Point sessions, --distortion and --lens-from default to the pinhole.
-    #[arg(long, value_parser = parse_lens, conflicts_with = "distortion")]
+    #[arg(long, value_parser = crate::flags::parse_lens, conflicts_with = "distortion")]
     pub lens: Option<LensChoice>,
     /// Lens coefficients estimated: `radial` (k1 k2), `4` (radtan k1 k2 p1 p2;
     /// equidistant k1..k4) or `5` (radtan with k3). Default: radial; with auto, chosen.
-    #[arg(long, value_parser = parse_terms)]
+    #[arg(long, value_parser = crate::flags::parse_terms)]
     pub lens_terms: Option<DistortionTerms>,
     /// Same as `--lens radtan`.
     #[arg(long, conflicts_with_all = ["distortion", "lens"])]
@@ -130,7 +130,7 @@ pub fn options(args: &CalibrateArgs) -> CalibrateOptions {
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
         lens: lens_choice(args),
-        lens_terms: lens_terms(lens_choice(args), args.lens_terms),
+        lens_terms: headalign::calibrate::lens_terms(lens_choice(args), args.lens_terms),
         ..CalibrateOptions::default()
     };
     o.estimation.seed = args.seed;
@@ -150,41 +150,6 @@ pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
         None if headalign::session::is_point_session(&args.dir) => LensChoice::Pinhole,
         None => LensChoice::Auto,
     }
-}
-
-/// The coefficients estimated: `--lens-terms` when given; otherwise every candidate's
-/// terms for `auto` (it chooses them) and `k1 k2` for a given model.
-pub fn lens_terms(lens: LensChoice, given: Option<DistortionTerms>) -> DistortionTerms {
-    match (lens, given) {
-        (_, Some(t)) => t,
-        (LensChoice::Auto, None) => DistortionTerms::Full5,
-        (_, None) => DistortionTerms::Radial2,
-    }
-}
-
-/// An error when `--lens-terms` come without a lens model to estimate (the pinhole
-/// estimates none: the flag would be ignored), or ask the equidistant model for the
-/// radial-tangential `k3` (`5`: it has four coefficients, and would silently estimate
-/// those of `4`).
-pub(crate) fn check_lens_terms(lens: LensChoice, terms: Option<DistortionTerms>) -> Result<()> {
-    if lens == LensChoice::Pinhole && terms.is_some() {
-        bail!("--lens-terms needs a lens model to estimate (--lens radtan, equidistant or auto)");
-    }
-    if lens == LensChoice::Model(LensKind::Equidistant) && terms == Some(DistortionTerms::Full5) {
-        bail!(
-            "--lens-terms 5 adds the radial-tangential k3; the equidistant model has four coefficients (--lens-terms 4)"
-        );
-    }
-    Ok(())
-}
-
-pub(crate) fn parse_lens(s: &str) -> Result<LensChoice, String> {
-    LensChoice::parse(s)
-        .ok_or_else(|| format!("unknown lens model '{s}': pinhole, radtan, equidistant or auto"))
-}
-
-pub(crate) fn parse_terms(s: &str) -> Result<DistortionTerms, String> {
-    DistortionTerms::parse(s).ok_or_else(|| format!("unknown lens terms '{s}': radial, 4 or 5"))
 }
 
 /// `--patch-refinement`.
@@ -617,7 +582,7 @@ fn stereo_calibration(
 
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
-    check_lens_terms(lens_choice(args), args.lens_terms)?;
+    crate::flags::check_lens_terms(lens_choice(args), args.lens_terms)?;
     if args.zero_skew {
         eprintln!("note: --zero-skew is the default (--free-skew estimates the skew)");
     }

@@ -23,9 +23,6 @@ pub fn scene_line(check: &SceneCheck) -> String {
     format!("scene: {} ({})", check.kind.name(), check.why)
 }
 
-/// What the robot stages say on the planar route.
-pub const ROBOT_STAGES_SKIPPED: &str = "skipped: they need the 3D reconstruction a plane does not give";
-
 /// The lines every command prints about the route from a report's JSON: the scene
 /// (`scene: kind (why)`, when the report has one) and, on the planar route, what is
 /// undetermined, the check after the move and what it cannot check.
@@ -62,7 +59,7 @@ pub fn summary_lines(v: &Value) -> Vec<String> {
     if let Some(why) = v["check_failure"].as_str() {
         lines.push(format!("check after the move: not made ({why})"));
     }
-    lines.push(format!("robot stages: {ROBOT_STAGES_SKIPPED}"));
+    lines.push(format!("robot stages: {}", crate::schema::ROBOT_STAGES_SKIPPED));
     lines
 }
 

@@ -5,7 +5,7 @@
 //!   ([`demo`]).
 //! - `headalign align --observations FILE`: the estimation on an observation session.
 //! - `headalign simulate --out FILE`: record an observation session from the simulator.
-//! - `headalign experiment <name>`: Monte-Carlo experiments ([`experiment`]).
+//! - `headalign experiment <name>`: Monte-Carlo experiments (the `headalign-eval` crate).
 //! - `headalign replay DIR`: re-run a recorded session offline ([`replay`]).
 //! - `headalign run --head-cmd CMD`: the image procedure and the robot stages on a driver
 //!   process ([`headcmd`]).
@@ -13,7 +13,6 @@
 
 mod calibrate;
 mod demo;
-mod experiment;
 mod facing_plane;
 mod flags;
 mod headcmd;
@@ -79,7 +78,7 @@ enum Command {
     /// Record an observation session (initial, elevation, pan, verge views) from the simulator.
     Simulate(SimulateArgs),
     /// Run a Monte-Carlo experiment (CSV, PNG/SVG plots, Markdown summary).
-    Experiment(experiment::ExperimentArgs),
+    Experiment(headalign_eval::ExperimentArgs),
     /// Re-run a recorded session offline (same procedure, recorded images: same result).
     Replay(replay::ReplayArgs),
     /// Verge, calibrate and align a head driven through the JSON-lines head protocol, then
@@ -161,17 +160,6 @@ impl ScenarioArgs {
     }
 }
 
-/// Parse a bootstrap replicate count (`--bootstrap`), validated as
-/// [`EstimationOptions::validate`] does.
-fn parse_replicates(v: &str) -> Result<BootstrapOptions, String> {
-    let replicates = v.trim().parse::<usize>().map_err(|e| format!("'{v}': {e}"))?;
-    let b = BootstrapOptions { replicates, ..BootstrapOptions::default() };
-    EstimationOptions { bootstrap: Some(b), ..EstimationOptions::default() }
-        .validate()
-        .map_err(|e| e.to_string())?;
-    Ok(b)
-}
-
 #[derive(Args)]
 struct AlignArgs {
     /// Observation session (JSON, format headalign-observations/1).
@@ -202,14 +190,14 @@ struct AlignArgs {
     baseline_m: Option<f64>,
     /// Widen the sigmas to a bootstrap over point tracks with this many replicates (off
     /// by default).
-    #[arg(long, value_parser = parse_replicates)]
+    #[arg(long, value_parser = headalign_eval::parse_replicates)]
     bootstrap: Option<BootstrapOptions>,
     /// The lens model estimated (default: a recorded session's own; auto for images,
     /// pinhole for observations).
-    #[arg(long, value_parser = calibrate::parse_lens)]
+    #[arg(long, value_parser = flags::parse_lens)]
     lens: Option<headalign::calibrate::LensChoice>,
     /// Lens coefficients estimated: `radial` (k1 k2), `4` or `5` (as `calibrate --lens-terms`).
-    #[arg(long, value_parser = calibrate::parse_terms)]
+    #[arg(long, value_parser = flags::parse_terms)]
     lens_terms: Option<headalign_geometry::distortion::DistortionTerms>,
 }
 
@@ -304,7 +292,7 @@ fn main() -> ExitCode {
         Command::Demo(a) => demo::run(&a),
         Command::Align(a) => align(&a),
         Command::Simulate(a) => simulate(&a),
-        Command::Experiment(a) => experiment::run(&a),
+        Command::Experiment(a) => headalign_eval::run(&a),
         Command::Replay(a) => replay::run(&a),
         Command::Run(a) => headcmd::run(&a),
         Command::Calibrate(a) => calibrate::run(&a),
@@ -674,7 +662,7 @@ fn align_report(
         roll_right_deg: solution.roll_right_deg,
         undetermined: Vec::new(),
         report: Some(serde_json::to_value(&calib.report)?),
-        lens: images::lens_json(calib),
+        lens: schema::lens_json(calib),
         model_fit: a.fit.as_ref().map(serde_json::to_value).transpose()?,
         warnings: align_warnings(a),
         files: written.iter().map(|p| p.display().to_string()).collect(),
@@ -697,7 +685,7 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     };
     show_k("left ", &state.left);
     show_k("right", &state.right);
-    if let Some(line) = images::lens_json(&a.calib).and_then(|l| images::lens_line(&json!({ "lens": l }))) {
+    if let Some(line) = schema::lens_json(&a.calib).and_then(|l| images::lens_line(&json!({ "lens": l }))) {
         say!("{line}");
     }
     let (fl, fr) = (a.fixation_sigmas.left_px, a.fixation_sigmas.right_px);

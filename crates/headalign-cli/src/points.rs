@@ -22,7 +22,7 @@ use headalign::procedure::{
 use headalign::session::{RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, SessionInfo, SessionWriter};
 use headalign_platform::{StereoHead, Vehicle};
 
-use crate::stages::{RobotOutcomes, RobotPlan, run_robot_stages};
+use headalign::robot::stages::{RobotOutcomes, RobotPlan, StageHooks, run_robot_stages};
 
 /// The procedure name in `session.json` for point mode.
 pub const PROCEDURE: &str = "verge-tilt-points";
@@ -100,13 +100,17 @@ pub fn robot_stages<R: StereoHead + Vehicle>(
     let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
     let perturbations = outcome.axis_perturbations();
     let axes = Some(&perturbations);
+    let mut warn = crate::progress::warn;
     let Some(writer) = writer else {
-        return Ok((run_robot_stages(robot, plan, calib, verge, axes, &mut |_, _| {})?, None));
+        let hooks = StageHooks { stage: &mut |_, _| {}, warn: &mut warn };
+        return Ok((run_robot_stages(robot, plan, calib, verge, axes, hooks)?, None));
     };
     let mut rec = RecordingHead::new(robot, writer);
-    let result = run_robot_stages(&mut rec, plan, calib, verge, axes, &mut |h, stage| {
-        h.set_stage(stage, Vec::new(), stage)
-    });
+    let hooks = StageHooks {
+        stage: &mut |h: &mut RecordingHead<'_, R>, stage| h.set_stage(stage, Vec::new(), stage),
+        warn: &mut warn,
+    };
+    let result = run_robot_stages(&mut rec, plan, calib, verge, axes, hooks).map_err(anyhow::Error::from);
     let writer = rec.into_writer();
     match result {
         Ok(r) => Ok((r, Some(writer))),

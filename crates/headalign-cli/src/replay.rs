@@ -16,9 +16,9 @@ use clap::Args;
 use headalign::session::{ReplayHead, SessionInfo, read_session_info};
 use serde_json::Value;
 
-use crate::stages::RobotPlan;
 use crate::{calibrate, images, points, schema};
 use headalign::procedure::{RouteOutcome, VergeTiltRun};
+use headalign::robot::stages::RobotPlan;
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {
@@ -57,10 +57,10 @@ pub struct ReplayArgs {
     pub recording: crate::recording::RecordingArgs,
     /// Lens model estimated: `pinhole`, `radtan`, `equidistant` or `auto` (default: the
     /// session's own, auto for a recording).
-    #[arg(long, value_parser = crate::calibrate::parse_lens)]
+    #[arg(long, value_parser = crate::flags::parse_lens)]
     pub lens: Option<headalign::calibrate::LensChoice>,
     /// Lens coefficients estimated: `radial`, `4` or `5` (default: the session's own).
-    #[arg(long, value_parser = crate::calibrate::parse_terms)]
+    #[arg(long, value_parser = crate::flags::parse_terms)]
     pub lens_terms: Option<headalign_geometry::distortion::DistortionTerms>,
 }
 

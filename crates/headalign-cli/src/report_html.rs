@@ -456,9 +456,13 @@ pub fn write_align_report(
     rep.alignment_results(results)?;
     if let (Some(rec), Some(view0)) = (recorded.and_then(|r| r.first()), views.first()) {
         let path = dir.join("figure6.png");
-        crate::images::figure6(&rec.images, view0, results.calibration, results.solution).save(&path)?;
+        headalign::image_mode::figure6(&rec.images, view0, results.calibration, results.solution)
+            .save(&path)?;
         written.push(path);
-        rep.figures("Annotated images", &[("figure6.png".into(), crate::images::FIGURE6_CAPTION.into())]);
+        rep.figures(
+            "Annotated images",
+            &[("figure6.png".into(), headalign::image_mode::FIGURE6_CAPTION.into())],
+        );
     }
     let path = dir.join(REPORT_FILE);
     rep.write(&path)?;

@@ -13,7 +13,7 @@
 //!
 //! Adding a member: add a field to the struct of its schema (shared by demo, run and
 //! replay: [`Procedure`]; with the truth: [`DemoReport`]; the robot stages' outcome types
-//! in `crate::stages` flow through as they are), fill it where that struct is built, add
+//! in `headalign::robot::stages` flow through as they are), fill it where that struct is built, add
 //! a row to its table in docs/formats.md (the `json_schemas` integration test compares
 //! the two), and bump the schema's version when a member changes meaning or goes.
 //!
@@ -22,14 +22,16 @@
 //! the top-level members and those of `errors` and `before`.
 
 use headalign::alignment::{AlignmentSolution, InvariantLines};
+use headalign::procedure::CheckVerdict;
 use headalign::procedure::{AlignmentSigmas, PlanarOutcome, RouteOutcome, VergeTiltOutcome};
+use headalign::verge_tilt::RigCalibration;
 use headalign_geometry::camera::Intrinsics;
 use headalign_platform::Encoders;
 use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot};
 use serde::Serialize;
-use serde_json::Value;
+use serde_json::{Value, json};
 
-use crate::stages::RobotOutcomes;
+use headalign::robot::stages::RobotOutcomes;
 
 /// Schema of `demo --json` (and a demo session's `report.json`).
 pub const DEMO: &str = "headalign-demo/1";
@@ -110,7 +112,7 @@ pub struct Estimate {
     pub predicted_elev_err_r_deg: f64,
     pub roll_left_deg: f64,
     pub roll_right_deg: f64,
-    /// The estimated lenses (`images::lens_json`); null for pinhole cameras.
+    /// The estimated lenses ([`lens_json`]); null for pinhole cameras.
     pub lens: Option<Value>,
 }
 
@@ -448,7 +450,7 @@ impl Estimate {
             &outcome.solution,
             outcome.sigmas,
             outcome.final_encoders,
-            crate::images::lens_json(cal),
+            lens_json(cal),
         )
     }
 
@@ -532,7 +534,7 @@ impl Procedure {
             report,
             checks,
             check_failure,
-            verdict: crate::images::verdict_json(verdict)?,
+            verdict: verdict_json(verdict)?,
             model_fit: None,
             warnings: Vec::new(),
             rotations: Rotations {
@@ -545,7 +547,7 @@ impl Procedure {
             views,
             images: None,
             stages: vec![headalign::session::STAGE_VERGE_TILT.to_string()],
-            robot_stages: planar_route.then_some(crate::facing_plane::ROBOT_STAGES_SKIPPED),
+            robot_stages: planar_route.then_some(ROBOT_STAGES_SKIPPED),
             robot: RobotOutcomes::default(),
             robot_tracking: None,
             session: None,
@@ -622,3 +624,41 @@ impl Truth {
         })
     }
 }
+
+/// The `verdict` member: the verdict and, when it failed, its one-line `failure`.
+pub fn verdict_json(verdict: &CheckVerdict) -> Result<Value, serde_json::Error> {
+    let mut v = serde_json::to_value(verdict)?;
+    if let Some(m) = v.as_object_mut() {
+        m.insert("failure".into(), json!(verdict.failure_line()));
+    }
+    Ok(v)
+}
+
+/// The estimated lenses of a calibration with their sigmas (`None` for a pinhole
+/// estimate): `model` (ROS names, left and right), the coefficients in each model's
+/// order (`k1 k2 p1 p2 k3` or `k1..k4`), `sigma` per estimated coefficient (`left.k1`
+/// ...), and how they were estimated (`estimation`: first estimate, the auto choice).
+pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
+    let lens = calib.report.lens.as_ref()?;
+    let st = &calib.bundle.state;
+    let cov = &calib.bundle.covariance;
+    let mut sigma = serde_json::Map::new();
+    for (side, d) in [("left", &st.left_distortion), ("right", &st.right_distortion)] {
+        for name in d.kind.coefficient_names() {
+            let key = format!("{side}.{name}");
+            if let Some(s) = cov.sigma(&key) {
+                sigma.insert(key, json!(s));
+            }
+        }
+    }
+    Some(json!({
+        "model": [st.left_distortion.kind.ros_name(), st.right_distortion.kind.ros_name()],
+        "left": st.left_distortion.coefficients(),
+        "right": st.right_distortion.coefficients(),
+        "sigma": sigma,
+        "estimation": serde_json::to_value(lens).ok(),
+    }))
+}
+
+/// The robot stages' entry of a planar-route report: why they did not run.
+pub const ROBOT_STAGES_SKIPPED: &str = "skipped: they need the 3D reconstruction a plane does not give";

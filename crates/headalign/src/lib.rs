@@ -57,6 +57,7 @@ pub mod error;
 pub mod export;
 pub mod facing_plane;
 pub mod fixation;
+pub mod image_mode;
 pub mod observations;
 pub mod procedure;
 pub mod process_head;

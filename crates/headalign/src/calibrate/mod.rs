@@ -118,7 +118,7 @@ pub use depth::{PlaneCheck, RigChoice, check_planarity, require_depth, select_ri
 pub use graph::{END_FLOW_FRACTION, SegmentReport, SequenceOptions};
 pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
 pub use known_lens::{LensModel, read_opencv_lenses, undistort_views};
-pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec};
+pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec, lens_terms};
 pub use report::weak_data;
 pub use rig_stereo::{KnownIntrinsicsRig, rig_from_known_intrinsics};
 pub use route::{
