@@ -81,7 +81,8 @@
 //! models), `two_pass` (the start of a lens estimate when the chain fails),
 //! `lens_sigmas` (the bootstrap of the lens and focal sigmas), `density` (the corner
 //! density of self-calibration from images);
-//! `calibrate_once` chains them. Sequences: `route` (which tracking and chain a folder
+//! `calibrate_once` chains them; `views` is the one entry point for a list of stereo
+//! views ([`calibrate_views`]: rig selection, known lenses, corner density). Sequences: `route` (which tracking and chain a folder
 //! gets), `graph` (keyframes, view graph, segments, spanning trees), `sequence` (the
 //! sequence chain, reusing the steps above).
 
@@ -103,6 +104,7 @@ mod sequence;
 #[cfg(test)]
 mod tests;
 mod two_pass;
+pub mod views;
 
 use headalign_geometry::GeometryError;
 use headalign_geometry::bundle::{BundleObservation, BundleResult};
@@ -126,6 +128,7 @@ pub use route::{
     calibrate_tracked, track_views, track_views_reporting,
 };
 pub use sequence::{RANSAC_PAIRS, SequenceReport, calibrate_sequence};
+pub use views::{CalibrateViewsOptions, StereoViews, ViewsCalibration, ViewsProgress, calibrate_views};
 
 use crate::error::AlignError;
 use crate::observations::View;
