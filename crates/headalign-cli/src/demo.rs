@@ -25,8 +25,10 @@ use headalign_sim::{
 };
 use serde_json::json;
 
+use crate::align::{bootstrap_line, sigma};
+use crate::flags::ScenarioArgs;
 use crate::stages;
-use crate::{ScenarioArgs, bootstrap_line, images, points, schema, sigma};
+use crate::{images, points, schema};
 use headalign::robot::stages::{RobotOutcomes, RobotPlan};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
