@@ -639,63 +639,70 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     show("right", &s.right, &s.sigmas[1]);
     println!("rig: {}", outcome.json["right_from_left"]);
     if let Some(cal) = &outcome.calibration {
-        print_lenses(&s.distortion, lens_estimated(args, cal), &cal.bundle.covariance);
-        let r = &cal.report;
-        if let Some(sel) = &r.lens_selection {
-            println!("lens model {} (--lens auto): {}", sel.spec.label(), sel.reason);
-            for f in &sel.failed {
-                println!("lens candidate {} left out: {}", f.candidate, f.reason);
-            }
-        }
-        println!(
-            "{} views ({} skipped), {} stereo inliers, final RMS {:.3} px over {} observations",
-            r.views.len(),
-            r.skipped.len(),
-            r.stereo_inliers,
-            r.final_rms_px,
-            r.bundle_observations
-        );
-        match &r.image_noise {
-            Some(n) if n.status == "checked" => println!(
-                "residuals {:.3} px against {:.3} px expected from the localisation noise measured in the images ({:.3} px): chi-square {:.0} for {:.0} degrees of freedom",
-                n.residual_sigma_px.unwrap_or(f64::NAN),
-                n.expected_residual_sigma_px.unwrap_or(f64::NAN),
-                n.measured_sigma_px.unwrap_or(f64::NAN),
-                n.chi2.unwrap_or(f64::NAN),
-                n.dof.unwrap_or(f64::NAN)
-            ),
-            Some(n) => println!("no check against the images' noise: {}", n.reason.as_deref().unwrap_or("")),
-            None => {}
-        }
-        if !r.skipped.is_empty() {
-            let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
-            println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
-        }
-        if let Some(seq) = &r.sequence {
-            println!(
-                "a sequence of {} views, {} keyframes, {} segments",
-                seq.views,
-                seq.keyframes,
-                seq.segments.len()
-            );
-        }
-        for m in &r.motions {
-            let from = m.relative_to.as_ref().map_or(String::new(), |g| format!(" from {g}"));
-            println!(
-                "  {}{from}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers{}",
-                m.view,
-                m.rotation_deg,
-                m.translation_baselines,
-                m.along_axis_baselines,
-                m.inliers,
-                if m.linear { ", in the linear start" } else { "" }
-            );
-        }
+        print_self_calibration(cal, &s.distortion, lens_estimated(args, cal));
     }
     for p in &written {
         println!("wrote {}", p.display());
     }
     Ok(())
+}
+
+/// The summary of a self-calibration: its lenses (`distortion`, `estimated` or given),
+/// the lens choice, views, residuals against the images' noise, left-out views and each
+/// motion.
+fn print_self_calibration(cal: &MotionCalibration, distortion: &[Distortion; 2], estimated: bool) {
+    print_lenses(distortion, estimated, &cal.bundle.covariance);
+    let r = &cal.report;
+    if let Some(sel) = &r.lens_selection {
+        println!("lens model {} (--lens auto): {}", sel.spec.label(), sel.reason);
+        for f in &sel.failed {
+            println!("lens candidate {} left out: {}", f.candidate, f.reason);
+        }
+    }
+    println!(
+        "{} views ({} skipped), {} stereo inliers, final RMS {:.3} px over {} observations",
+        r.views.len(),
+        r.skipped.len(),
+        r.stereo_inliers,
+        r.final_rms_px,
+        r.bundle_observations
+    );
+    match &r.image_noise {
+        Some(n) if n.status == "checked" => println!(
+            "residuals {:.3} px against {:.3} px expected from the localisation noise measured in the images ({:.3} px): chi-square {:.0} for {:.0} degrees of freedom",
+            n.residual_sigma_px.unwrap_or(f64::NAN),
+            n.expected_residual_sigma_px.unwrap_or(f64::NAN),
+            n.measured_sigma_px.unwrap_or(f64::NAN),
+            n.chi2.unwrap_or(f64::NAN),
+            n.dof.unwrap_or(f64::NAN)
+        ),
+        Some(n) => println!("no check against the images' noise: {}", n.reason.as_deref().unwrap_or("")),
+        None => {}
+    }
+    if !r.skipped.is_empty() {
+        let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
+        println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
+    }
+    if let Some(seq) = &r.sequence {
+        println!(
+            "a sequence of {} views, {} keyframes, {} segments",
+            seq.views,
+            seq.keyframes,
+            seq.segments.len()
+        );
+    }
+    for m in &r.motions {
+        let from = m.relative_to.as_ref().map_or(String::new(), |g| format!(" from {g}"));
+        println!(
+            "  {}{from}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers{}",
+            m.view,
+            m.rotation_deg,
+            m.translation_baselines,
+            m.along_axis_baselines,
+            m.inliers,
+            if m.linear { ", in the linear start" } else { "" }
+        );
+    }
 }
 
 /// Render the views of a calibration session in memory: `rotations` (initial, elevation

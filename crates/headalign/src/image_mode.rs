@@ -375,3 +375,33 @@ pub fn figure6(
 
 /// Caption of [`figure6`] (`figure6.png`) in the reports.
 pub const FIGURE6_CAPTION: &str = "figure6.png: the first view (left | right) as the paper's Figure 6: features the bundle adjustment used (green) and not (red), the invariant lines of the pan (blue) and elevation (yellow) rotations, and the fixation point (magenta).";
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The defaults validate, with the track-clustered covariance and 3000 robot-stage
+    /// corners; a non-positive rotation or no corners is an error.
+    #[test]
+    fn options_have_documented_defaults_and_validate() {
+        let o = ImageModeOptions::default();
+        assert!(o.validate().is_ok());
+        assert_eq!(o.estimation.bundle.covariance_model, CovarianceModel::PointClustered);
+        assert_eq!(o.verge_tilt().verge_rotation_deg, o.rotation_deg);
+        for bad in [0.0, -3.0, f64::NAN] {
+            assert!(
+                ImageModeOptions { rotation_deg: bad, ..ImageModeOptions::default() }.validate().is_err()
+            );
+        }
+        assert_eq!(ImageStagesOptions::default().max_features, ROBOT_FEATURES);
+        assert!(ImageStagesOptions { max_features: 0 }.validate().is_err());
+    }
+
+    /// A step's failure prints as `step: cause` through the error chain.
+    #[test]
+    fn a_failed_step_names_itself_first() {
+        let e = AlignError::Images("no corners".into()).in_step("verging");
+        let source = std::error::Error::source(&e).map(ToString::to_string);
+        assert_eq!((e.to_string(), source.as_deref()), ("verging".into(), Some("images: no corners")));
+    }
+}

@@ -14,10 +14,12 @@
 //! - [`calibrate`]: self-calibration of a stereo rig from general rig motions (one
 //!   general motion with constraints, or two rotations about different axes).
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`.
+//! - [`image_mode`]: the procedure on images through the front end (verging first) and the
+//!   robot stages on images, over any `ImagingHead`.
 //! - [`session`]: sessions on disk (recording head, replay head, the format).
 //! - [`recordings`]: ROS 2 bags (MCAP) and EuRoC folders read as sessions.
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
-//! - [`robot`]: the robot stages (pan, steering, floor), pan alignment without calibration
+//! - [`robot`]: the robot stages (pan, steering, floor) and their driver ([`robot::stages`]), pan alignment without calibration
 //!   by fixating a drive's epipole ([`robot::pan_fixation`]) and one-motion alignment
 //!   ([`robot::one_motion`]).
 //! - [`fixation`]: verging and fixating with no calibration; [`tracking`]: the tracker.

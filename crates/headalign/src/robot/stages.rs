@@ -228,3 +228,23 @@ fn steering_stage<R: StereoHead + Vehicle>(
     }
     zero_steering(robot, calib, verge, axes, &o).map_err(|e| e.in_step("steering stage"))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A plan of known stages validates; an unknown name is an error naming it. The image
+    /// plan carries image mode's steering drive and planarity limit unless given.
+    #[test]
+    fn plans_validate_and_image_plans_carry_the_image_limits() {
+        let plan = RobotPlan::images(vec!["verge-tilt".into(), "pan".into()], 0.1, None, None, 0.12);
+        assert!(plan.validate().is_ok() && plan.drives());
+        assert_eq!(plan.steer_drive_m, Some(IMAGE_STEER_DRIVE_M));
+        assert_eq!(plan.planarity_chi2_max, Some(IMAGE_PLANARITY_CHI2_MAX));
+        let bad = RobotPlan { stages: vec!["verge-tilt".into(), "spin".into()], ..plan };
+        let e = bad.validate().err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(e.contains("unknown stage 'spin'"), "{e}");
+        let still = RobotPlan { stages: vec!["verge-tilt".into()], ..bad };
+        assert!(!still.drives());
+    }
+}
