@@ -22,7 +22,7 @@ use headalign_geometry::so3::Line;
 use headalign_platform::Encoders;
 use serde_json::{Value, json};
 
-use crate::{facing_plane, flags, images, recording, report_html, schema};
+use crate::{flags, images, recording, report_html, schema};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
 /// head`, is not a failure of the command and must not panic).
@@ -148,7 +148,7 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         say!("{}", serde_json::to_string_pretty(&align_report(&a, axes, &scene, &written)?)?);
         return Ok(());
     }
-    say!("{}", facing_plane::scene_line(&scene));
+    say!("{}", report_html::scene_line(&scene));
     print_alignment(&a, &pan, &elev, &written);
     Ok(())
 }
@@ -162,7 +162,7 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
     if let Some(dir) = &args.out {
         std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         let path = dir.join("alignment.json");
-        let value = alignment_file("planar", p.reference, &p.solution, p.sigmas, &cal.undetermined);
+        let value = schema::alignment_file("planar", p.reference, &p.solution, p.sigmas, &cal.undetermined);
         std::fs::write(&path, serde_json::to_string_pretty(&value)? + "\n")
             .with_context(|| format!("cannot write {}", path.display()))?;
         written.push(path);
@@ -202,7 +202,7 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
         say!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
     }
-    say!("{}", facing_plane::scene_line(&cal.scene));
+    say!("{}", report_html::scene_line(&cal.scene));
     say!("planar route (paper section 3.3): each camera from its own plane homographies");
     for (name, c) in [("left ", &cal.left), ("right", &cal.right)] {
         let k = &c.intrinsics;
@@ -356,7 +356,10 @@ fn write_align_files(
     let mut written = stereo.write_all(dir)?;
     let extra = [
         ("head.json", json!({"format": "headalign-head/1", "axes": axes})),
-        ("alignment.json", serde_json::to_value(alignment_file("general", a.reference, solution, sig, &[]))?),
+        (
+            "alignment.json",
+            serde_json::to_value(schema::alignment_file("general", a.reference, solution, sig, &[]))?,
+        ),
     ];
     for (name, value) in extra {
         let path = dir.join(name);
@@ -385,29 +388,6 @@ fn align_warnings(a: &AlignEstimate) -> Vec<String> {
         w.push(NOMINAL_VERGE_WARNING.to_string());
     }
     w
-}
-
-/// The file `alignment.json` of `align --out` on `route`: the reference and aligned
-/// readings with their sigmas, the rolls and what the scene leaves `undetermined`.
-fn alignment_file(
-    route: &'static str,
-    reference: Encoders,
-    solution: &AlignmentSolution,
-    sigmas: AlignmentSigmas,
-    undetermined: &[String],
-) -> schema::AlignmentFile {
-    schema::AlignmentFile {
-        format: schema::ALIGNMENT_FILE,
-        route,
-        reference_encoders: reference,
-        aligned_encoders: solution.aligned_encoders,
-        aligned_sigma_deg: sigmas,
-        verge_axes_measured: solution.verge_axes_measured,
-        predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
-        roll_left_deg: solution.roll_left_deg,
-        roll_right_deg: solution.roll_right_deg,
-        undetermined: undetermined.to_vec(),
-    }
 }
 
 /// The JSON object of `align --json` on the general route.

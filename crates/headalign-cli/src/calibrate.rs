@@ -261,10 +261,6 @@ pub fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
     Ok(read_opencv_lenses(&text, &path.display().to_string())?)
 }
 
-fn k_json(k: &Intrinsics) -> Value {
-    json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy})
-}
-
 /// The library's options from the flags, with the known lenses of `--distortion` or
 /// `--lens-from` read (`image_size`: the views', for a recording's lenses).
 fn views_options(args: &CalibrateArgs, image_size: [u32; 2]) -> Result<CalibrateViewsOptions> {
@@ -415,10 +411,10 @@ fn known_intrinsics(
         skipped: Vec::new(),
         left: schema::CalibratedCamera::new(&lenses[0].k, |_| None),
         right: schema::CalibratedCamera::new(&lenses[1].k, |_| None),
-        right_from_left: rig_json(&rig.right_from_left),
-        distortion: distortion_json(&distortion, false, None),
+        right_from_left: schema::rig_json(&rig.right_from_left),
+        distortion: schema::distortion_json(&distortion, false, None),
         constraints: constraints(args),
-        translation_unit: unit_name(stereo.unit),
+        translation_unit: schema::unit_name(stereo.unit),
         report: None,
         density: None,
         fundamental_undistorted: Some(std::array::from_fn(|r| std::array::from_fn(|c| f[(r, c)]))),
@@ -458,10 +454,10 @@ pub fn self_calibration_outcome(
         skipped: Vec::new(),
         left: schema::CalibratedCamera::new(&st.left, sigma("left")),
         right: schema::CalibratedCamera::new(&st.right, sigma("right")),
-        right_from_left: rig_json(&st.right_from_left),
-        distortion: distortion_json(&distortion, lens_estimated(args, &cal), Some(c)),
+        right_from_left: schema::rig_json(&st.right_from_left),
+        distortion: schema::distortion_json(&distortion, lens_estimated(args, &cal), Some(c)),
         constraints: constraints(args),
-        translation_unit: unit_name(stereo.unit),
+        translation_unit: schema::unit_name(stereo.unit),
         report: Some(serde_json::to_value(&cal.report)?),
         density: density_report.as_ref().map(serde_json::to_value).transpose()?,
         fundamental_undistorted: None,
@@ -481,14 +477,6 @@ fn constraints(args: &CalibrateArgs) -> schema::Constraints {
         zero_skew: !args.free_skew,
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
-    }
-}
-
-/// The report's name of a translation unit.
-fn unit_name(unit: TranslationUnit) -> &'static str {
-    match unit {
-        TranslationUnit::Metres => "m",
-        TranslationUnit::Baselines => "baselines",
     }
 }
 
@@ -521,32 +509,6 @@ fn print_lenses(distortion: &[Distortion; 2], estimated: bool, covariance: &Cova
         line.push_str(if estimated { " (estimated)" } else { " (given)" });
         println!("{line}");
     }
-}
-
-/// The `distortion` member: each camera's model and coefficients (in the model's order,
-/// OpenCV's `D`), and the sigma of every estimated coefficient (none without a covariance `c`).
-fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: Option<&Covariance>) -> Value {
-    let mut sigma = serde_json::Map::new();
-    for (side, d) in ["left", "right"].iter().zip(distortion) {
-        for name in d.kind.coefficient_names() {
-            let key = format!("{side}.{name}");
-            if let Some(s) = c.and_then(|c| c.sigma(&key)) {
-                sigma.insert(key, json!(s));
-            }
-        }
-    }
-    json!({
-        "estimated": estimated,
-        "model": [distortion[0].kind.ros_name(), distortion[1].kind.ros_name()],
-        "left": distortion[0].coefficients(), "right": distortion[1].coefficients(),
-        "sigma": sigma,
-    })
-}
-
-fn rig_json(m: &Isometry3<f64>) -> Value {
-    let (axis, angle) = m.rotation.axis_angle().map_or(([0.0; 3], 0.0), |(a, t)| ([a.x, a.y, a.z], t));
-    let t = m.translation.vector;
-    json!({"rotation_deg": angle.to_degrees(), "rotation_axis": axis, "translation_direction": [t.x / t.norm(), t.y / t.norm(), t.z / t.norm()]})
 }
 
 fn stereo_calibration(
@@ -780,7 +742,7 @@ pub fn simulate_to_disk(scenario: &Scenario, motion: &str, out: &Path) -> Result
     let (views, head) = simulate_views(scenario, motion)?;
     let writer = write_session(out, &views, &session_info(scenario, motion)?)?;
     let t = head.truth();
-    let truth = json!({"left": k_json(&t.left), "right": k_json(&t.right), "motion": motion, "baseline_m": scenario.baseline_m});
+    let truth = json!({"left": schema::k_json(&t.left), "right": schema::k_json(&t.right), "motion": motion, "baseline_m": scenario.baseline_m});
     std::fs::write(out.join("truth.json"), serde_json::to_string_pretty(&truth)? + "\n")?;
     writer.write_report(&json!({"recorded": views.len(), "motion": motion}))?;
     eprintln!("wrote {} views to {}", views.len(), out.display());

@@ -359,7 +359,7 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     };
     let robot_out = robot_out.unwrap_or_default();
     let after = After::read(&robot, &outcome, &robot_out);
-    say!("{}", crate::facing_plane::scene_line(&scene));
+    say!("{}", crate::report_html::scene_line(&scene));
     print_calibration(scenario, &outcome, &after);
     print_errors(&outcome, &before, &after);
     print_robot_stages(&robot_out, &before, &after);

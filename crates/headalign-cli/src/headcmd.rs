@@ -163,8 +163,8 @@ pub fn run(args: &RunArgs) -> Result<()> {
             seed,
             &plan,
             &mut |_, run, route, robot| {
-                let p = images::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
-                Ok(serde_json::to_value(schema::RunReport::new(images::with_robot(p, &plan, robot)?))?)
+                let p = schema::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
+                Ok(serde_json::to_value(schema::RunReport::new(schema::with_robot(p, &plan, robot)?))?)
             },
         )?
     } else {
@@ -175,8 +175,8 @@ pub fn run(args: &RunArgs) -> Result<()> {
             args.auto_rotation,
             seed,
             &mut |_, run, route| {
-                let p = images::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
-                Ok(serde_json::to_value(schema::RunReport::new(images::with_robot(p, &plan, None)?))?)
+                let p = schema::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
+                Ok(serde_json::to_value(schema::RunReport::new(schema::with_robot(p, &plan, None)?))?)
             },
         )?
     };

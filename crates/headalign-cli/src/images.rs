@@ -30,13 +30,11 @@ use headalign::session::{
 };
 use headalign::verge_tilt::EstimationOptions;
 use headalign_geometry::distortion::DistortionTerms;
-use headalign_platform::{Encoders, ImagingHead, StereoImages, Vehicle};
+use headalign_platform::{Encoders, ImagingHead, Vehicle};
 use headalign_sim::{Scenario, SimulatedRobot, calibration_errors};
-use headalign_vision::draw::{Canvas, MAGENTA};
 use serde_json::{Value, json};
 
-use crate::report_html::{AlignmentResults, HtmlReport, REPORT_FILE};
-use crate::schema;
+use crate::{report_html, schema};
 
 /// The procedure name in `session.json` for image mode.
 pub const PROCEDURE: &str = "verge-tilt-images";
@@ -283,20 +281,9 @@ fn finish(
         if let Some(m) = json.as_object_mut() {
             m.insert("session".into(), json!(writer.dir().display().to_string()));
         }
-        let o = match &route {
-            RouteOutcome::General(o, _) => o,
-            RouteOutcome::Planar(p) => {
-                aligned_image(writer.dir(), &run)?;
-                write_planar_report(writer.dir(), &info_title(&json), &run, p, &json)?;
-                return Ok((route, json));
-            }
-        };
-        annotate(writer.dir(), &run, o)?;
-        write_report(writer.dir(), &info_title(&json), &run, o, &json)?;
-        if let Some(m) = json.as_object_mut()
-            && o.calibration.report.lens.is_some()
+        if let Some(files) = report_html::write_session_report(writer.dir(), &run, &route, &json)?
+            && let Some(m) = json.as_object_mut()
         {
-            let files = write_calibration_files(writer.dir(), &run, o)?;
             m.insert(
                 "files".into(),
                 json!(files.iter().map(|p| p.display().to_string()).collect::<Vec<_>>()),
@@ -311,17 +298,6 @@ fn finish(
         }
         Err(e) => Err(failed_in_session(writer, e)),
     }
-}
-
-/// `DIR/calibration/`: the calibration files `calibrate --out` and `align --out` write
-/// (OpenCV YAML, ROS `camera_info`, Kalibr camchain, JSON; `StereoCalibration::write_all`)
-/// with the estimated lenses; written by a run with a lens model (`--lens`), so that the
-/// pinhole runs' sessions hold what they always held. The paths written.
-fn write_calibration_files(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<Vec<PathBuf>> {
-    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
-    let stereo = headalign::export::StereoCalibration::from_rig(&outcome.calibration, image_size, None)
-        .context("calibration files")?;
-    Ok(stereo.write_all(&dir.join("calibration"))?)
 }
 
 /// A failure of a recorded run: `report.json` says so (best effort: the error itself is
@@ -455,40 +431,6 @@ pub fn judgement_lines(v: &Value) -> Vec<String> {
     lines
 }
 
-/// The members of an image-mode run on either route ([`schema::Procedure`]): the
-/// estimate, checks and timings, and the front end's report (`images`); no robot stages
-/// ([`with_robot`] adds them).
-pub fn procedure_report(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> Result<schema::Procedure> {
-    let views = run.run.views.iter().map(|v| v.name.clone()).collect();
-    let mut p = schema::Procedure::new("images", route, views, run.auto_rotation, total_s)?;
-    let (verdict, fit) = image_mode::judgement(run, route);
-    p.verdict = schema::verdict_json(&verdict)?;
-    if let Some(fit) = &fit {
-        p.warnings.extend(fit.warnings.iter().cloned());
-        p.model_fit = Some(serde_json::to_value(fit)?);
-    }
-    p.images = Some(json!({
-        "verging": serde_json::to_value(&run.verging)?,
-        "tracking": serde_json::to_value(&run.tracking)?,
-        "views": run.run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
-    }));
-    Ok(p)
-}
-
-/// The stages of `plan` and, when they ran, their outcomes and the front end's report per
-/// robot-stage capture (`robot_tracking`).
-pub fn with_robot(
-    p: schema::Procedure,
-    plan: &RobotPlan,
-    robot: Option<&RobotRun>,
-) -> Result<schema::Procedure> {
-    let mut p = p.with_robot(&plan.stages, robot.map(|r| &r.outcomes));
-    if let Some(r) = robot {
-        p.robot_tracking = Some(serde_json::to_value(&r.tracking)?);
-    }
-    Ok(p)
-}
-
 /// Run verging, the verge/tilt procedure and then the robot stages of `plan` on rendered
 /// images of the simulated robot (the demo), recording to `session`; the JSON has the
 /// estimate against the simulator's truth, and with robot stages their results, the
@@ -544,7 +486,8 @@ pub fn run(
             let steer_after = stages
                 .and_then(|o| o.steering.as_ref())
                 .map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
-            let procedure = with_robot(procedure_report(run, route, total)?, plan, robot_run)?;
+            let procedure =
+                schema::with_robot(schema::procedure_report(run, route, total)?, plan, robot_run)?;
             let aligned = procedure.estimate.aligned_encoders;
             let report = schema::DemoReport {
                 schema: schema::DEMO,
@@ -559,141 +502,4 @@ pub fn run(
         },
     )?;
     Ok(json)
-}
-
-/// `figure6.png` (see [`figure6`]) and `aligned.png` ([`aligned_image`]).
-fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()> {
-    let images = &run.images;
-    let (Some(first), Some(view0)) = (images.first(), run.run.views.first()) else { return Ok(()) };
-    image_mode::figure6(first, view0, &outcome.calibration, &outcome.solution)
-        .save(&dir.join("figure6.png"))?;
-    aligned_image(dir, run)
-}
-
-/// `aligned.png`: the last check view with the image centres marked.
-fn aligned_image(dir: &Path, run: &ImageRun) -> Result<()> {
-    if let Some(last) = run.images.last() {
-        let mut c = Canvas::side_by_side(&last.left, &last.right);
-        let [w, h] = last.image_size();
-        let centre = [(f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0];
-        let dx = f64::from(w);
-        for p in [centre, [centre[0] + dx, centre[1]]] {
-            c.cross(p, 20.0, MAGENTA, 2);
-        }
-        c.save(&dir.join("aligned.png"))?;
-    }
-    Ok(())
-}
-
-/// The report's title line from the run's JSON (simulated or not).
-fn info_title(json: &Value) -> String {
-    if json.get("truth").is_some() {
-        "headalign demo --images (simulated head)".into()
-    } else {
-        "headalign: verge/tilt alignment on images".into()
-    }
-}
-
-/// `DIR/report.html`: the numbers, the errors against the truth when the run was
-/// simulated (the JSON's `before` and `errors` members), the annotated images and links
-/// to every captured view of the session.
-fn write_report(
-    dir: &Path,
-    title: &str,
-    run: &ImageRun,
-    outcome: &VergeTiltOutcome,
-    json: &Value,
-) -> Result<()> {
-    let (image_size, mut rep) = report_with_intro(dir, title, run);
-    rep.alignment_results(&AlignmentResults {
-        calibration: &outcome.calibration,
-        image_size,
-        baseline_m: None,
-        verge_axes: &outcome.verge_axes,
-        reference: outcome.calibration.reference_encoders,
-        solution: &outcome.solution,
-        sigmas: &outcome.sigmas,
-    })?;
-    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
-        (json.get("before"), json.get("errors"))
-    {
-        rep.errors_vs_truth(before, errors);
-    }
-    rep.figures(
-        "Annotated images",
-        &[
-            ("figure6.png".into(), image_mode::FIGURE6_CAPTION.into()),
-            (
-                "aligned.png".into(),
-                "aligned.png: the last view, after alignment, with the image centres marked (magenta)."
-                    .into(),
-            ),
-        ],
-    );
-    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
-    rep.write(&dir.join(REPORT_FILE))
-}
-
-/// The note above the captured views' links in `report.html`.
-const VIEW_LINKS_NOTE: &str =
-    "Every captured view (PNG and view.json in each folder): headalign replay DIR re-runs them.";
-
-/// Links to both images of every view folder of the session `dir`, in order.
-fn view_links(dir: &Path) -> Vec<(String, String)> {
-    let mut folders: Vec<String> = std::fs::read_dir(dir)
-        .map(|entries| {
-            entries
-                .filter_map(Result::ok)
-                .filter(|e| e.path().join("view.json").is_file())
-                .filter_map(|e| e.file_name().to_str().map(str::to_string))
-                .collect()
-        })
-        .unwrap_or_default();
-    folders.sort();
-    folders
-        .iter()
-        .flat_map(|f| ["left", "right"].map(|side| (format!("{f}/{side}.png"), format!("{f} {side}"))))
-        .collect()
-}
-
-/// The session report's page with its introduction (image size, views, folder), and the
-/// image size.
-fn report_with_intro(dir: &Path, title: &str, run: &ImageRun) -> ([u32; 2], HtmlReport) {
-    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
-    let mut rep = HtmlReport::new(title);
-    rep.intro(&format!(
-        "{} x {} images, vision front end (verging, FAST+BRIEF features, matching); {} verge/tilt views captured; session folder {}.",
-        image_size[0],
-        image_size[1],
-        run.run.views.len(),
-        dir.display()
-    ));
-    (image_size, rep)
-}
-
-/// `DIR/report.html` of a planar-route run: its numbers ([`crate::facing_plane::html_sections`]),
-/// the errors against the truth when simulated, `aligned.png` and the captured views.
-fn write_planar_report(
-    dir: &Path,
-    title: &str,
-    run: &ImageRun,
-    outcome: &headalign::procedure::PlanarOutcome,
-    json: &Value,
-) -> Result<()> {
-    let (_, mut rep) = report_with_intro(dir, title, run);
-    crate::facing_plane::html_sections(&mut rep, outcome);
-    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
-        (json.get("before"), json.get("errors"))
-    {
-        rep.errors_vs_truth(before, errors);
-    }
-    rep.figures(
-        "Annotated images",
-        &[(
-            "aligned.png".into(),
-            "aligned.png: the check view after alignment, with the image centres marked (magenta).".into(),
-        )],
-    );
-    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
-    rep.write(&dir.join(REPORT_FILE))
 }

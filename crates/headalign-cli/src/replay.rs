@@ -89,7 +89,7 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
     let outcome = outcome.with_context(|| format!("replay of '{}'", args.dir.display()))?;
     let report = schema::ReplayReport {
         schema: schema::REPLAY,
-        procedure: images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?,
+        procedure: schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?,
         replayed: args.dir.display().to_string(),
         unplayed_events: None,
         still_views: Some(head.views().len()),
@@ -137,7 +137,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let (p, views) = if info.procedure == images::PROCEDURE {
         let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
-        (images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
+        (schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
     } else if info.procedure == images::PROCEDURE_ROBOT {
         let plan = session_plan(&args.dir, &info)?.with_context(|| {
             format!(
@@ -154,9 +154,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             }
             RouteOutcome::Planar(_) => None,
         };
-        let p = images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?;
+        let p = schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?;
         let views = run.run.views.len() + robot.as_ref().map_or(0, |r| r.tracking.len());
-        (images::with_robot(p, &plan, robot.as_ref())?, views)
+        (schema::with_robot(p, &plan, robot.as_ref())?, views)
     } else if info.procedure == points::PROCEDURE {
         let mut run = VergeTiltRun::default();
         let route = run.run_detecting(&mut head, &points::options(&info)).with_context(context)?;

@@ -22,12 +22,18 @@
 //! the top-level members and those of `errors` and `before`.
 
 use headalign::alignment::{AlignmentSolution, InvariantLines};
+use headalign::export::TranslationUnit;
+use headalign::image_mode::{self as image_mode, ImageRun, RobotRun};
 use headalign::procedure::CheckVerdict;
 use headalign::procedure::{AlignmentSigmas, PlanarOutcome, RouteOutcome, VergeTiltOutcome};
+use headalign::robot::stages::RobotPlan;
 use headalign::verge_tilt::RigCalibration;
+use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::distortion::Distortion;
 use headalign_platform::Encoders;
 use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot};
+use nalgebra::Isometry3;
 use serde::Serialize;
 use serde_json::{Value, json};
 
@@ -662,3 +668,97 @@ pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
 
 /// The robot stages' entry of a planar-route report: why they did not run.
 pub const ROBOT_STAGES_SKIPPED: &str = "skipped: they need the 3D reconstruction a plane does not give";
+/// The report's name of a translation unit.
+pub fn unit_name(unit: TranslationUnit) -> &'static str {
+    match unit {
+        TranslationUnit::Metres => "m",
+        TranslationUnit::Baselines => "baselines",
+    }
+}
+
+/// The `distortion` member: each camera's model and coefficients (in the model's order,
+/// OpenCV's `D`), and the sigma of every estimated coefficient (none without a covariance `c`).
+pub fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: Option<&Covariance>) -> Value {
+    let mut sigma = serde_json::Map::new();
+    for (side, d) in ["left", "right"].iter().zip(distortion) {
+        for name in d.kind.coefficient_names() {
+            let key = format!("{side}.{name}");
+            if let Some(s) = c.and_then(|c| c.sigma(&key)) {
+                sigma.insert(key, json!(s));
+            }
+        }
+    }
+    json!({
+        "estimated": estimated,
+        "model": [distortion[0].kind.ros_name(), distortion[1].kind.ros_name()],
+        "left": distortion[0].coefficients(), "right": distortion[1].coefficients(),
+        "sigma": sigma,
+    })
+}
+
+pub fn rig_json(m: &Isometry3<f64>) -> Value {
+    let (axis, angle) = m.rotation.axis_angle().map_or(([0.0; 3], 0.0), |(a, t)| ([a.x, a.y, a.z], t));
+    let t = m.translation.vector;
+    json!({"rotation_deg": angle.to_degrees(), "rotation_axis": axis, "translation_direction": [t.x / t.norm(), t.y / t.norm(), t.z / t.norm()]})
+}
+
+pub fn k_json(k: &Intrinsics) -> Value {
+    json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy})
+}
+
+/// The file `alignment.json` of `align --out` on `route`: the reference and aligned
+/// readings with their sigmas, the rolls and what the scene leaves `undetermined`.
+pub fn alignment_file(
+    route: &'static str,
+    reference: Encoders,
+    solution: &AlignmentSolution,
+    sigmas: AlignmentSigmas,
+    undetermined: &[String],
+) -> AlignmentFile {
+    AlignmentFile {
+        format: ALIGNMENT_FILE,
+        route,
+        reference_encoders: reference,
+        aligned_encoders: solution.aligned_encoders,
+        aligned_sigma_deg: sigmas,
+        verge_axes_measured: solution.verge_axes_measured,
+        predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
+        roll_left_deg: solution.roll_left_deg,
+        roll_right_deg: solution.roll_right_deg,
+        undetermined: undetermined.to_vec(),
+    }
+}
+
+/// The members of an image-mode run on either route ([`Procedure`]): the
+/// estimate, checks and timings, and the front end's report (`images`); no robot stages
+/// ([`with_robot`] adds them).
+pub fn procedure_report(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> anyhow::Result<Procedure> {
+    let views = run.run.views.iter().map(|v| v.name.clone()).collect();
+    let mut p = Procedure::new("images", route, views, run.auto_rotation, total_s)?;
+    let (verdict, fit) = image_mode::judgement(run, route);
+    p.verdict = verdict_json(&verdict)?;
+    if let Some(fit) = &fit {
+        p.warnings.extend(fit.warnings.iter().cloned());
+        p.model_fit = Some(serde_json::to_value(fit)?);
+    }
+    p.images = Some(json!({
+        "verging": serde_json::to_value(&run.verging)?,
+        "tracking": serde_json::to_value(&run.tracking)?,
+        "views": run.run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
+    }));
+    Ok(p)
+}
+
+/// The stages of `plan` and, when they ran, their outcomes and the front end's report per
+/// robot-stage capture (`robot_tracking`).
+pub fn with_robot(
+    p: Procedure,
+    plan: &RobotPlan,
+    robot: Option<&RobotRun>,
+) -> Result<Procedure, serde_json::Error> {
+    let mut p = p.with_robot(&plan.stages, robot.map(|r| &r.outcomes));
+    if let Some(r) = robot {
+        p.robot_tracking = Some(serde_json::to_value(&r.tracking)?);
+    }
+    Ok(p)
+}

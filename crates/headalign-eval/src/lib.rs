@@ -37,6 +37,10 @@
 //! `lens` ([`lens`] module) runs the `calibrate` route with a lens model instead of the
 //! verge/tilt procedure (its own runner, tables and plot); `all` runs it last.
 
+// The experiments' docs link their private helpers (read with `cargo doc
+// --document-private-items`).
+#![allow(rustdoc::private_intra_doc_links)]
+
 mod catalog;
 pub mod lens;
 pub mod ml_spread;
