@@ -7,12 +7,12 @@
 //!
 //! [`procedure`] maps the flags to the library's options and its stages to the session's
 //! stage names: the demo runs it on the simulator, `run --head-cmd` on a driver, `replay`
-//! on a recorded session; the same code on the same images gives the same numbers. It detects a planar or far scene from the tracked views
-//! ([`VergeTiltRun::run_detecting`]) and then takes the planar route: no robot stages,
-//! no `figure6.png` (it draws the general route's calibration), the report's `route`,
-//! `scene`, `planar` and `checks` members (the same members on both routes:
-//! [`crate::schema::Procedure`]) and a `report.html` of the planar route's numbers
-//! ([`crate::facing_plane::html_sections`]).
+//! on a recorded session; the same code on the same images gives the same numbers. A
+//! planar or far scene takes the planar route: no robot stages, no `figure6.png` (it
+//! draws the general route's calibration), the report's `route`, `scene`, `planar` and
+//! `checks` members (the same members on both routes: [`crate::schema::Procedure`]) and
+//! a `report.html` of the planar route's numbers
+//! ([`crate::report_html::write_session_report`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -31,7 +31,7 @@ use headalign::session::{
 use headalign::verge_tilt::EstimationOptions;
 use headalign_geometry::distortion::DistortionTerms;
 use headalign_platform::{Encoders, ImagingHead, Vehicle};
-use headalign_sim::{Scenario, SimulatedRobot, calibration_errors};
+use headalign_sim::{Scenario, SimulatedRobot};
 use serde_json::{Value, json};
 
 use crate::{report_html, schema};
@@ -469,35 +469,11 @@ pub fn run(
         plan,
         &mut |robot, run, route, robot_run| {
             let total = t0.elapsed().as_secs_f64();
-            let head = robot.head();
-            let after = head.alignment_errors(&head.encoders());
-            let truth = schema::Truth::of(robot, scenario)?;
-            let (k_left, k_right) = match route {
-                RouteOutcome::General(o, _) => {
-                    (o.calibration.bundle.state.left, o.calibration.bundle.state.right)
-                }
-                RouteOutcome::Planar(p) => (p.calibration.left.intrinsics, p.calibration.right.intrinsics),
-            };
-            let t = head.truth();
-            let cal = calibration_errors(&t.left, &t.right, &k_left, &k_right);
-            let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
-            let stages = robot_run.map(|r| &r.outcomes);
-            let pan_after = stages.filter(|o| o.panned()).map(|_| robot.pan_err_deg(&head.encoders()));
-            let steer_after = stages
-                .and_then(|o| o.steering.as_ref())
-                .map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
             let procedure =
                 schema::with_robot(schema::procedure_report(run, route, total)?, plan, robot_run)?;
-            let aligned = procedure.estimate.aligned_encoders;
-            let report = schema::DemoReport {
-                schema: schema::DEMO,
-                procedure,
-                scenario: serde_json::to_value(scenario)?,
-                errors: schema::Errors::new(&after, unavoidable_r, &cal, None, pan_after, steer_after),
-                before: schema::Before::new(&before, pan_before, steer_before),
-                aligned_reading_errors_deg: schema::ReadingErrors::new(&aligned, &truth.aligned_encoders),
-                truth,
-            };
+            let before = schema::Before::new(&before, pan_before, steer_before);
+            let stages = robot_run.map(|r| &r.outcomes);
+            let report = schema::demo_images_report(robot, scenario, route, procedure, stages, before)?;
             Ok(serde_json::to_value(&report)?)
         },
     )?;

@@ -14,7 +14,8 @@
 //! Use: build an [`HtmlReport`], add [`AlignmentResults`] (any procedure that produced a
 //! [`RigCalibration`] and an [`AlignmentSolution`] can: `align`, `demo --images`, a
 //! replay), optionally [`HtmlReport::errors_vs_truth`], figures and free sections, then
-//! [`HtmlReport::write`].
+//! [`HtmlReport::write`]. [`write_session_report`] writes the report files of a recorded
+//! image-mode run (`report.html`, `figure6.png`, `aligned.png`, the calibration files).
 //!
 //! Pitfalls: every piece of text (view names, file names, numbers) is HTML-escaped;
 //! images are referenced by a path relative to the report (the report and its images are

@@ -32,7 +32,7 @@ use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::Distortion;
 use headalign_platform::Encoders;
-use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot};
+use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot, calibration_errors};
 use nalgebra::Isometry3;
 use serde::Serialize;
 use serde_json::{Value, json};
@@ -761,4 +761,39 @@ pub fn with_robot(
         p.robot_tracking = Some(serde_json::to_value(&r.tracking)?);
     }
     Ok(p)
+}
+/// The JSON of `demo --images` ([`DemoReport`]): the run's `procedure` (on `route`, with
+/// the robot stages' outcomes `stages`) against the simulated robot's truth after the
+/// run, and its errors `before` any stage.
+pub fn demo_images_report(
+    robot: &SimulatedRobot,
+    scenario: &Scenario,
+    route: &RouteOutcome,
+    procedure: Procedure,
+    stages: Option<&RobotOutcomes>,
+    before: Before,
+) -> anyhow::Result<DemoReport> {
+    let head = robot.head();
+    let after = head.alignment_errors(&head.encoders());
+    let truth = Truth::of(robot, scenario)?;
+    let (k_left, k_right) = match route {
+        RouteOutcome::General(o, _) => (o.calibration.bundle.state.left, o.calibration.bundle.state.right),
+        RouteOutcome::Planar(p) => (p.calibration.left.intrinsics, p.calibration.right.intrinsics),
+    };
+    let t = head.truth();
+    let cal = calibration_errors(&t.left, &t.right, &k_left, &k_right);
+    let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
+    let pan_after = stages.filter(|o| o.panned()).map(|_| robot.pan_err_deg(&head.encoders()));
+    let steer_after =
+        stages.and_then(|o| o.steering.as_ref()).map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
+    let aligned = procedure.estimate.aligned_encoders;
+    Ok(DemoReport {
+        schema: DEMO,
+        procedure,
+        scenario: serde_json::to_value(scenario)?,
+        errors: Errors::new(&after, unavoidable_r, &cal, None, pan_after, steer_after),
+        before,
+        aligned_reading_errors_deg: ReadingErrors::new(&aligned, &truth.aligned_encoders),
+        truth,
+    })
 }
