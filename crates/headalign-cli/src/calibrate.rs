@@ -16,22 +16,22 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use headalign::calibrate::views::{one_rig, stereo_only};
 use headalign::calibrate::{
-    CalibrateOptions, Density, DensityReport, DensityTrial, LensChoice, LensModel, MotionCalibration,
-    REFERENCE_ROUTE_MAX_VIEWS, Route, calibrate_tracked, read_opencv_lenses, require_depth,
-    rig_from_known_intrinsics, select_rig, track_views_reporting, undistort_views,
+    CalibrateOptions, CalibrateViewsOptions, Density, DensityReport, LensChoice, LensModel,
+    MotionCalibration, Route, StereoViews, ViewsProgress, read_opencv_lenses, rig_from_known_intrinsics,
+    undistort_views,
 };
 use headalign::calibration::{StereoCalibration, TranslationUnit};
-use headalign::error::AlignError;
 use headalign::observations::View;
-use headalign::tracking::{FrontEndOptions, Tracker};
+use headalign::tracking::FrontEndOptions;
 use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use headalign_io::export::CalibrationFiles as _;
 use headalign_io::folder::{FolderKind, FolderOptions};
 use headalign_io::session::{SessionInfo, SessionWriter, ViewLabel};
-use headalign_platform::{Encoders, ImagingHead, Joint, StereoHead, StereoImages};
+use headalign_platform::{ImagingHead, Joint, StereoHead, StereoImages};
 use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
 
@@ -66,11 +66,11 @@ pub struct CalibrateArgs {
     /// (model and terms chosen by BIC, reported; the default for images).
     // `headalign::calibrate::LensChoice`; the criterion is in `calibrate::lens_choice`.
     // Point sessions, --distortion and --lens-from default to the pinhole.
-    #[arg(long, value_parser = parse_lens, conflicts_with = "distortion")]
+    #[arg(long, value_parser = crate::flags::parse_lens, conflicts_with = "distortion")]
     pub lens: Option<LensChoice>,
     /// Lens coefficients estimated: `radial` (k1 k2), `4` (radtan k1 k2 p1 p2;
     /// equidistant k1..k4) or `5` (radtan with k3). Default: radial; with auto, chosen.
-    #[arg(long, value_parser = parse_terms)]
+    #[arg(long, value_parser = crate::flags::parse_terms)]
     pub lens_terms: Option<DistortionTerms>,
     /// Same as `--lens radtan`.
     #[arg(long, conflicts_with_all = ["distortion", "lens"])]
@@ -132,7 +132,7 @@ pub fn options(args: &CalibrateArgs) -> CalibrateOptions {
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
         lens: lens_choice(args),
-        lens_terms: lens_terms(lens_choice(args), args.lens_terms),
+        lens_terms: headalign::calibrate::lens_terms(lens_choice(args), args.lens_terms),
         ..CalibrateOptions::default()
     };
     o.estimation.seed = args.seed;
@@ -152,41 +152,6 @@ pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
         None if headalign_io::session::is_point_session(&args.dir) => LensChoice::Pinhole,
         None => LensChoice::Auto,
     }
-}
-
-/// The coefficients estimated: `--lens-terms` when given; otherwise every candidate's
-/// terms for `auto` (it chooses them) and `k1 k2` for a given model.
-pub fn lens_terms(lens: LensChoice, given: Option<DistortionTerms>) -> DistortionTerms {
-    match (lens, given) {
-        (_, Some(t)) => t,
-        (LensChoice::Auto, None) => DistortionTerms::Full5,
-        (_, None) => DistortionTerms::Radial2,
-    }
-}
-
-/// An error when `--lens-terms` come without a lens model to estimate (the pinhole
-/// estimates none: the flag would be ignored), or ask the equidistant model for the
-/// radial-tangential `k3` (`5`: it has four coefficients, and would silently estimate
-/// those of `4`).
-pub(crate) fn check_lens_terms(lens: LensChoice, terms: Option<DistortionTerms>) -> Result<()> {
-    if lens == LensChoice::Pinhole && terms.is_some() {
-        bail!("--lens-terms needs a lens model to estimate (--lens radtan, equidistant or auto)");
-    }
-    if lens == LensChoice::Model(LensKind::Equidistant) && terms == Some(DistortionTerms::Full5) {
-        bail!(
-            "--lens-terms 5 adds the radial-tangential k3; the equidistant model has four coefficients (--lens-terms 4)"
-        );
-    }
-    Ok(())
-}
-
-pub(crate) fn parse_lens(s: &str) -> Result<LensChoice, String> {
-    LensChoice::parse(s)
-        .ok_or_else(|| format!("unknown lens model '{s}': pinhole, radtan, equidistant or auto"))
-}
-
-pub(crate) fn parse_terms(s: &str) -> Result<DistortionTerms, String> {
-    DistortionTerms::parse(s).ok_or_else(|| format!("unknown lens terms '{s}': radial, 4 or 5"))
 }
 
 /// `--patch-refinement`.
@@ -243,20 +208,6 @@ pub fn load_views(dir: &Path, recording: &RecordingArgs) -> Result<Vec<(String, 
     Ok(views)
 }
 
-/// Each view's own stereo matches (a fresh tracker per view: no matching across views),
-/// for the scene-depth check and the known-intrinsics route.
-fn stereo_only(views: &[(String, StereoImages)], front: &FrontEndOptions) -> Result<Vec<View>> {
-    views
-        .iter()
-        .map(|(name, images)| {
-            let mut t = Tracker::new(front.clone())?;
-            let (capture, _) =
-                t.track(images, name).with_context(|| format!("stereo matching of '{name}'"))?;
-            Ok(View { name: name.clone(), capture })
-        })
-        .collect()
-}
-
 /// Everything a calibration run produced.
 pub struct Outcome {
     /// The files' content.
@@ -274,81 +225,9 @@ pub fn read_lenses(path: &Path) -> Result<[LensModel; 2]> {
     Ok(read_opencv_lenses(&text, &path.display().to_string())?)
 }
 
-fn k_json(k: &Intrinsics) -> Value {
-    json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy})
-}
-
-/// Run `calibrate` on named views (from disk or memory alike): on the views of one rig
-/// ([`select_rig`]: a recorded session changes its rig with every vergence reading),
-/// the others named in the report's `skipped`.
-pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
-    let pairs: Vec<(&str, Encoders)> = views.iter().map(|(n, v)| (n.as_str(), v.encoders)).collect();
-    let choice = select_rig(&pairs);
-    let rig: Vec<(String, StereoImages)> = choice.used.iter().map(|&i| views[i].clone()).collect();
-    let mut outcome = calibrate_rig_views(&rig, args)?;
-    if !choice.left_out.is_empty() {
-        let left_out: Vec<String> = choice.left_out.into_iter().map(|(_, why)| why).collect();
-        if let Some(c) = &mut outcome.calibration {
-            c.report.skipped.splice(0..0, left_out.iter().cloned());
-            outcome.json["report"]["skipped"] = json!(c.report.skipped);
-        }
-        outcome.json["skipped"] = json!(left_out);
-    }
-    Ok(outcome)
-}
-
-/// [`calibrate_views`] on views of one rig.
-fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
-    let t0 = Instant::now();
-    if let Some(r) = args.search_px
-        && !(r.is_finite() && r > 0.0)
-    {
-        bail!("--search-px must be a positive number of pixels, got {r}");
-    }
-    let density = density(args);
-    density.validate()?;
-    let front = front_end(args, density.corners);
-    let Some((_, first)) = views.first() else { bail!("no views") };
-    let image_size = first.image_size();
-    if let Some(path) = &args.intrinsics {
-        let lenses = read_lenses(path)?;
-        let stereo_views = undistort_views(&stereo_only(views, &front)?, &lenses);
-        let opts = options(args);
-        let rig = rig_from_known_intrinsics(&stereo_views, &lenses[0].k, &lenses[1].k, &opts.estimation)?;
-        let stereo = stereo_calibration(
-            image_size,
-            lenses[0].k,
-            lenses[1].k,
-            rig.right_from_left,
-            [lenses[0].distortion, lenses[1].distortion],
-            args.baseline_m,
-        )?;
-        let f = rig.fundamental.0;
-        let distortion = [lenses[0].distortion, lenses[1].distortion];
-        let report = schema::CalibrateReport {
-            schema: schema::CALIBRATE,
-            route: "known intrinsics (no self-calibration)",
-            views: views.iter().map(|(n, _)| n.clone()).collect(),
-            skipped: Vec::new(),
-            left: schema::CalibratedCamera::new(&lenses[0].k, |_| None),
-            right: schema::CalibratedCamera::new(&lenses[1].k, |_| None),
-            right_from_left: rig_json(&rig.right_from_left),
-            distortion: distortion_json(&distortion, false, None),
-            constraints: constraints(args),
-            translation_unit: unit_name(stereo.unit),
-            report: None,
-            density: None,
-            fundamental_undistorted: Some(std::array::from_fn(|r| std::array::from_fn(|c| f[(r, c)]))),
-            stereo_matches: Some(rig.stereo_matches),
-            stereo_inliers: Some(rig.stereo_inliers),
-            stereo_rms_px: Some(rig.stereo_rms_px),
-            files: Vec::new(),
-            seconds: t0.elapsed().as_secs_f64(),
-        };
-        let json = serde_json::to_value(&report)?;
-        return Ok(Outcome { stereo, json, calibration: None, density: None });
-    }
-    let opts = options(args);
+/// The library's options from the flags, with the known lenses of `--distortion` or
+/// `--lens-from` read (`image_size`: the views', for a recording's lenses).
+fn views_options(args: &CalibrateArgs, image_size: [u32; 2]) -> Result<CalibrateViewsOptions> {
     let lenses = match (&args.distortion, &args.lens_from) {
         (Some(path), _) => Some(read_lenses(path)?),
         (None, Some(spec)) => {
@@ -356,78 +235,161 @@ fn calibrate_rig_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -
         }
         (None, None) => None,
     };
-    let undistort = |v: Vec<View>| match &lenses {
-        Some(l) => undistort_views(&v, l),
-        None => v,
-    };
-    // The scene-depth check on each view's own matches first: a planar target fails here
-    // with the degeneracy named, not later in matching across views (a long sequence
-    // checks its keyframes instead).
-    if views.len() <= REFERENCE_ROUTE_MAX_VIEWS {
-        require_depth(&undistort(stereo_only(views, &front)?), &opts)?;
-    }
-    // The front end over the views in order, against the first view or through
-    // consecutive views (`track_views` chooses), and the self-calibration by that route,
-    // at a corner count.
-    let run = |corners: usize| -> (Result<MotionCalibration>, DensityTrial) {
-        let t = Instant::now();
-        let result = (|| {
-            let bar = crate::progress::views(&format!("tracking ({corners} corners)"), views.len());
-            let tracked = track_views_reporting(views, &front_end(args, corners), &opts, &mut |p| {
-                bar.set_message(match p.route {
-                    Route::Reference => "against the first",
-                    Route::Sequence => "as a sequence",
-                });
-                bar.set_position(p.done as u64);
+    let density = density(args);
+    Ok(CalibrateViewsOptions {
+        calibrate: options(args),
+        front_end: front_end(args, density.corners),
+        density,
+        automatic_density: args.corners.is_none(),
+        lenses,
+    })
+}
+
+/// A progress display of [`calibrate_views`] on stderr: a bar per tracking, a spinner
+/// per self-calibration.
+fn progress_display(total: usize) -> impl FnMut(ViewsProgress) {
+    let mut bar: Option<indicatif::ProgressBar> = None;
+    move |p| match p {
+        ViewsProgress::Tracking { corners, progress } => {
+            let b = bar.get_or_insert_with(|| {
+                crate::progress::views(&format!("tracking ({corners} corners)"), total)
             });
-            bar.finish_and_clear();
-            let spin = crate::progress::spinner(format!("self-calibration of {} views", views.len()));
-            let cal = calibrate_tracked(tracked?, lenses.as_ref(), &opts);
-            spin.finish_and_clear();
-            Ok(cal?)
-        })();
-        let seconds = t.elapsed().as_secs_f64();
-        let trial = match &result {
-            Ok(c) => DensityTrial::new(corners, c, &opts, seconds),
-            Err(e) => DensityTrial::failed(corners, format!("{e:#}"), seconds),
-        };
-        (result, trial)
-    };
-    let (first_result, first_trial) = run(density.corners);
-    // A missing motion or a bad option is not a matter of density.
-    let structural = first_result
-        .as_ref()
-        .err()
-        .and_then(|e| e.downcast_ref::<AlignError>())
-        .is_some_and(|e| matches!(e, AlignError::MissingMotion(_) | AlignError::InvalidOption(_)));
-    let (mut cal, density_report) = if density.retry(&first_trial) && !structural {
-        let (denser_result, denser_trial) = run(density.retry_corners);
-        let report = DensityReport::choose(args.corners.is_none(), first_trial, Some(denser_trial));
-        let cal = match (first_result, denser_result) {
-            (Ok(first), Ok(denser)) => {
-                if report.kept == 1 {
-                    denser
-                } else {
-                    first
-                }
+            b.set_message(match progress.route {
+                Route::Reference => "against the first",
+                Route::Sequence => "as a sequence",
+            });
+            b.set_position(progress.done as u64);
+        }
+        ViewsProgress::Tracked { corners } => {
+            bar.take()
+                .unwrap_or_else(|| crate::progress::views(&format!("tracking ({corners} corners)"), total))
+                .finish_and_clear();
+        }
+        ViewsProgress::Solving { views } => {
+            bar = Some(crate::progress::spinner(format!("self-calibration of {views} views")));
+        }
+        ViewsProgress::Solved => {
+            if let Some(b) = bar.take() {
+                b.finish_and_clear();
             }
-            (Ok(first), Err(_)) => first,
-            (Err(_), Ok(denser)) => denser,
-            (Err(first), Err(denser)) => {
-                return Err(first.context(format!(
-                    "self-calibration failed with {} and with {} corners per image (with {}: {denser:#})",
-                    density.corners, density.retry_corners, density.retry_corners
-                )));
-            }
-        };
-        (cal, report)
-    } else {
-        (first_result?, DensityReport::choose(args.corners.is_none(), first_trial, None))
-    };
-    if density_report.warn {
-        cal.report.warnings.push(density_report.note.clone());
+        }
     }
-    self_calibration_outcome(cal, Some(density_report), lenses, image_size, args, t0)
+}
+
+/// Run `calibrate` on named views (from disk or memory alike): the library's
+/// [`calibrate_views`] (one rig, known lenses, corner density), or the known-intrinsics
+/// route; the views of other rigs named in the report's `skipped`.
+pub fn calibrate_views(views: &[(String, StereoImages)], args: &CalibrateArgs) -> Result<Outcome> {
+    let t0 = Instant::now();
+    if let Some(r) = args.search_px
+        && !(r.is_finite() && r > 0.0)
+    {
+        bail!("--search-px must be a positive number of pixels, got {r}");
+    }
+    if let Some(path) = &args.intrinsics {
+        let (rig, other_rigs) = one_rig(views, |(n, v)| (n.as_str(), v.encoders));
+        let mut outcome = known_intrinsics(&rig, path, args, t0)?;
+        if !other_rigs.is_empty() {
+            outcome.json["skipped"] = json!(other_rigs);
+        }
+        return Ok(outcome);
+    }
+    let image_size = views.first().map_or([0, 0], |(_, v)| v.image_size());
+    let opts = views_options(args, image_size)?;
+    let r = headalign::calibrate::calibrate_views(
+        StereoViews::Images(views),
+        &opts,
+        &mut progress_display(views.len()),
+    )?;
+    let mut outcome =
+        self_calibration_outcome(r.calibration, r.density, opts.lenses, r.image_size, args, t0)?;
+    if !r.other_rigs.is_empty() {
+        outcome.json["skipped"] = json!(r.other_rigs);
+    }
+    Ok(outcome)
+}
+
+/// `calibrate DIR` on a point-mode session: the tracked points its views recorded (no
+/// front end, so no corner density), through the library's [`calibrate_views`] as
+/// images are. The front end's flags (`--corners`, `--search-px`,
+/// `--patch-refinement`) and a recording's are an error here.
+fn calibrate_points(args: &CalibrateArgs) -> Result<Outcome> {
+    let t0 = Instant::now();
+    if args.intrinsics.is_some() {
+        bail!(
+            "'{}' is a point-mode session: --intrinsics calibrates the rig from each view's own stereo matches, which need images",
+            args.dir.display()
+        );
+    }
+    args.recording.only_for_recordings(&args.dir, "a point session", false)?;
+    crate::flags::refuse(
+        &[
+            ("--corners", args.corners.is_some()),
+            ("--search-px", args.search_px.is_some()),
+            ("--patch-refinement", args.patch_refinement != PatchRefinement::Stereo),
+        ],
+        &format!("images; '{}' is a point-mode session (tracked points, no images)", args.dir.display()),
+    )?;
+    let views: Vec<View> =
+        headalign_io::session::read_point_session(&args.dir)?.into_iter().map(|r| r.view).collect();
+    let Some(image_size) = views.first().map(|v| v.capture.image_size) else { bail!("no views") };
+    let opts = views_options(args, image_size)?;
+    let r = headalign::calibrate::calibrate_views(StereoViews::Tracked(&views), &opts, &mut |_| {})
+        .with_context(|| format!("session {}", args.dir.display()))?;
+    let mut outcome = self_calibration_outcome(r.calibration, None, opts.lenses, r.image_size, args, t0)?;
+    outcome.json["skipped"] = json!(r.other_rigs);
+    Ok(outcome)
+}
+
+/// The known-intrinsics route (`--intrinsics`): no self-calibration, only the rig from
+/// each view's own stereo matches.
+fn known_intrinsics(
+    views: &[(String, StereoImages)],
+    path: &Path,
+    args: &CalibrateArgs,
+    t0: Instant,
+) -> Result<Outcome> {
+    let density = density(args);
+    density.validate()?;
+    let front = front_end(args, density.corners);
+    let Some((_, first)) = views.first() else { bail!("no views") };
+    let image_size = first.image_size();
+    let lenses = read_lenses(path)?;
+    let stereo_views = undistort_views(&stereo_only(views, &front)?, &lenses);
+    let opts = options(args);
+    let rig = rig_from_known_intrinsics(&stereo_views, &lenses[0].k, &lenses[1].k, &opts.estimation)?;
+    let stereo = stereo_calibration(
+        image_size,
+        lenses[0].k,
+        lenses[1].k,
+        rig.right_from_left,
+        [lenses[0].distortion, lenses[1].distortion],
+        args.baseline_m,
+    )?;
+    let f = rig.fundamental.0;
+    let distortion = [lenses[0].distortion, lenses[1].distortion];
+    let report = schema::CalibrateReport {
+        schema: schema::CALIBRATE,
+        route: "known intrinsics (no self-calibration)",
+        views: views.iter().map(|(n, _)| n.clone()).collect(),
+        skipped: Vec::new(),
+        left: schema::CalibratedCamera::new(&lenses[0].k, |_| None),
+        right: schema::CalibratedCamera::new(&lenses[1].k, |_| None),
+        right_from_left: schema::rig_json(&rig.right_from_left),
+        distortion: schema::distortion_json(&distortion, false, None),
+        constraints: constraints(args),
+        translation_unit: schema::unit_name(stereo.unit),
+        report: None,
+        density: None,
+        fundamental_undistorted: Some(std::array::from_fn(|r| std::array::from_fn(|c| f[(r, c)]))),
+        stereo_matches: Some(rig.stereo_matches),
+        stereo_inliers: Some(rig.stereo_inliers),
+        stereo_rms_px: Some(rig.stereo_rms_px),
+        files: Vec::new(),
+        seconds: t0.elapsed().as_secs_f64(),
+    };
+    let json = serde_json::to_value(&report)?;
+    Ok(Outcome { stereo, json, calibration: None, density: None })
 }
 
 /// The outcome of the self-calibration route: the files' content and the JSON report
@@ -456,10 +418,10 @@ pub fn self_calibration_outcome(
         skipped: Vec::new(),
         left: schema::CalibratedCamera::new(&st.left, sigma("left")),
         right: schema::CalibratedCamera::new(&st.right, sigma("right")),
-        right_from_left: rig_json(&st.right_from_left),
-        distortion: distortion_json(&distortion, lens_estimated(args, &cal), Some(c)),
+        right_from_left: schema::rig_json(&st.right_from_left),
+        distortion: schema::distortion_json(&distortion, lens_estimated(args, &cal), Some(c)),
         constraints: constraints(args),
-        translation_unit: unit_name(stereo.unit),
+        translation_unit: schema::unit_name(stereo.unit),
         report: Some(serde_json::to_value(&cal.report)?),
         density: density_report.as_ref().map(serde_json::to_value).transpose()?,
         fundamental_undistorted: None,
@@ -479,14 +441,6 @@ fn constraints(args: &CalibrateArgs) -> schema::Constraints {
         zero_skew: !args.free_skew,
         square_pixels: args.square_pixels,
         fix_principal_point: args.fix_principal_point,
-    }
-}
-
-/// The report's name of a translation unit.
-fn unit_name(unit: TranslationUnit) -> &'static str {
-    match unit {
-        TranslationUnit::Metres => "m",
-        TranslationUnit::Baselines => "baselines",
     }
 }
 
@@ -519,32 +473,6 @@ fn print_lenses(distortion: &[Distortion; 2], estimated: bool, covariance: &Cova
         line.push_str(if estimated { " (estimated)" } else { " (given)" });
         println!("{line}");
     }
-}
-
-/// The `distortion` member: each camera's model and coefficients (in the model's order,
-/// OpenCV's `D`), and the sigma of every estimated coefficient (none without a covariance `c`).
-fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: Option<&Covariance>) -> Value {
-    let mut sigma = serde_json::Map::new();
-    for (side, d) in ["left", "right"].iter().zip(distortion) {
-        for name in d.kind.coefficient_names() {
-            let key = format!("{side}.{name}");
-            if let Some(s) = c.and_then(|c| c.sigma(&key)) {
-                sigma.insert(key, json!(s));
-            }
-        }
-    }
-    json!({
-        "estimated": estimated,
-        "model": [distortion[0].kind.ros_name(), distortion[1].kind.ros_name()],
-        "left": distortion[0].coefficients(), "right": distortion[1].coefficients(),
-        "sigma": sigma,
-    })
-}
-
-fn rig_json(m: &Isometry3<f64>) -> Value {
-    let (axis, angle) = m.rotation.axis_angle().map_or(([0.0; 3], 0.0), |(a, t)| ([a.x, a.y, a.z], t));
-    let t = m.translation.vector;
-    json!({"rotation_deg": angle.to_degrees(), "rotation_axis": axis, "translation_direction": [t.x / t.norm(), t.y / t.norm(), t.z / t.norm()]})
 }
 
 fn stereo_calibration(
@@ -581,7 +509,7 @@ fn stereo_calibration(
 
 /// `headalign calibrate`.
 pub fn run(args: &CalibrateArgs) -> Result<()> {
-    check_lens_terms(lens_choice(args), args.lens_terms)?;
+    crate::flags::check_lens_terms(lens_choice(args), args.lens_terms)?;
     if args.zero_skew {
         eprintln!("note: --zero-skew is the default (--free-skew estimates the skew)");
     }
@@ -589,7 +517,7 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
         crate::recording::lens_paths(spec, &args.dir, &args.recording)?;
     }
     let outcome = if headalign_io::session::is_point_session(&args.dir) {
-        crate::points::calibrate(args)?
+        calibrate_points(args)?
     } else {
         calibrate_views(&load_views(&args.dir, &args.recording)?, args)?
     };
@@ -637,63 +565,70 @@ pub fn run(args: &CalibrateArgs) -> Result<()> {
     show("right", &s.right, &s.sigmas[1]);
     println!("rig: {}", outcome.json["right_from_left"]);
     if let Some(cal) = &outcome.calibration {
-        print_lenses(&s.distortion, lens_estimated(args, cal), &cal.bundle.covariance);
-        let r = &cal.report;
-        if let Some(sel) = &r.lens_selection {
-            println!("lens model {} (--lens auto): {}", sel.spec.label(), sel.reason);
-            for f in &sel.failed {
-                println!("lens candidate {} left out: {}", f.candidate, f.reason);
-            }
-        }
-        println!(
-            "{} views ({} skipped), {} stereo inliers, final RMS {:.3} px over {} observations",
-            r.views.len(),
-            r.skipped.len(),
-            r.stereo_inliers,
-            r.final_rms_px,
-            r.bundle_observations
-        );
-        match &r.image_noise {
-            Some(n) if n.status == "checked" => println!(
-                "residuals {:.3} px against {:.3} px expected from the localisation noise measured in the images ({:.3} px): chi-square {:.0} for {:.0} degrees of freedom",
-                n.residual_sigma_px.unwrap_or(f64::NAN),
-                n.expected_residual_sigma_px.unwrap_or(f64::NAN),
-                n.measured_sigma_px.unwrap_or(f64::NAN),
-                n.chi2.unwrap_or(f64::NAN),
-                n.dof.unwrap_or(f64::NAN)
-            ),
-            Some(n) => println!("no check against the images' noise: {}", n.reason.as_deref().unwrap_or("")),
-            None => {}
-        }
-        if !r.skipped.is_empty() {
-            let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
-            println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
-        }
-        if let Some(seq) = &r.sequence {
-            println!(
-                "a sequence of {} views, {} keyframes, {} segments",
-                seq.views,
-                seq.keyframes,
-                seq.segments.len()
-            );
-        }
-        for m in &r.motions {
-            let from = m.relative_to.as_ref().map_or(String::new(), |g| format!(" from {g}"));
-            println!(
-                "  {}{from}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers{}",
-                m.view,
-                m.rotation_deg,
-                m.translation_baselines,
-                m.along_axis_baselines,
-                m.inliers,
-                if m.linear { ", in the linear start" } else { "" }
-            );
-        }
+        print_self_calibration(cal, &s.distortion, lens_estimated(args, cal));
     }
     for p in &written {
         println!("wrote {}", p.display());
     }
     Ok(())
+}
+
+/// The summary of a self-calibration: its lenses (`distortion`, `estimated` or given),
+/// the lens choice, views, residuals against the images' noise, left-out views and each
+/// motion.
+fn print_self_calibration(cal: &MotionCalibration, distortion: &[Distortion; 2], estimated: bool) {
+    print_lenses(distortion, estimated, &cal.bundle.covariance);
+    let r = &cal.report;
+    if let Some(sel) = &r.lens_selection {
+        println!("lens model {} (--lens auto): {}", sel.spec.label(), sel.reason);
+        for f in &sel.failed {
+            println!("lens candidate {} left out: {}", f.candidate, f.reason);
+        }
+    }
+    println!(
+        "{} views ({} skipped), {} stereo inliers, final RMS {:.3} px over {} observations",
+        r.views.len(),
+        r.skipped.len(),
+        r.stereo_inliers,
+        r.final_rms_px,
+        r.bundle_observations
+    );
+    match &r.image_noise {
+        Some(n) if n.status == "checked" => println!(
+            "residuals {:.3} px against {:.3} px expected from the localisation noise measured in the images ({:.3} px): chi-square {:.0} for {:.0} degrees of freedom",
+            n.residual_sigma_px.unwrap_or(f64::NAN),
+            n.expected_residual_sigma_px.unwrap_or(f64::NAN),
+            n.measured_sigma_px.unwrap_or(f64::NAN),
+            n.chi2.unwrap_or(f64::NAN),
+            n.dof.unwrap_or(f64::NAN)
+        ),
+        Some(n) => println!("no check against the images' noise: {}", n.reason.as_deref().unwrap_or("")),
+        None => {}
+    }
+    if !r.skipped.is_empty() {
+        let names: Vec<&str> = r.skipped.iter().map(|s| s.split(':').next().unwrap_or(s)).collect();
+        println!("left out: {} (reasons in --json's report.skipped)", names.join(", "));
+    }
+    if let Some(seq) = &r.sequence {
+        println!(
+            "a sequence of {} views, {} keyframes, {} segments",
+            seq.views,
+            seq.keyframes,
+            seq.segments.len()
+        );
+    }
+    for m in &r.motions {
+        let from = m.relative_to.as_ref().map_or(String::new(), |g| format!(" from {g}"));
+        println!(
+            "  {}{from}: rotation {:.2} deg, translation {:.3} baselines ({:.3} along the axis), {} inliers{}",
+            m.view,
+            m.rotation_deg,
+            m.translation_baselines,
+            m.along_axis_baselines,
+            m.inliers,
+            if m.linear { ", in the linear start" } else { "" }
+        );
+    }
 }
 
 /// Render the views of a calibration session in memory: `rotations` (initial, elevation
@@ -771,7 +706,7 @@ pub fn simulate_to_disk(scenario: &Scenario, motion: &str, out: &Path) -> Result
     let (views, head) = simulate_views(scenario, motion)?;
     let writer = write_session(out, &views, &session_info(scenario, motion)?)?;
     let t = head.truth();
-    let truth = json!({"left": k_json(&t.left), "right": k_json(&t.right), "motion": motion, "baseline_m": scenario.baseline_m});
+    let truth = json!({"left": schema::k_json(&t.left), "right": schema::k_json(&t.right), "motion": motion, "baseline_m": scenario.baseline_m});
     std::fs::write(out.join("truth.json"), serde_json::to_string_pretty(&truth)? + "\n")?;
     writer.write_report(&json!({"recorded": views.len(), "motion": motion}))?;
     eprintln!("wrote {} views to {}", views.len(), out.display());

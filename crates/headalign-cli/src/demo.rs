@@ -7,7 +7,7 @@
 //! calibration errors in percent), or one JSON object (`--json`,
 //! [`crate::schema::DemoReport`]: the same members on every route), which a recorded
 //! session also keeps as `report.json`. The stages and their settings are a [`RobotPlan`]
-//! ([`crate::stages`]); `verge-tilt` must be among them, since every robot stage uses its
+//! ([`headalign::robot::stages`]); `verge-tilt` must be among them, since every robot stage uses its
 //! calibration.
 
 use std::path::PathBuf;
@@ -25,8 +25,11 @@ use headalign_sim::{
 };
 use serde_json::json;
 
-use crate::stages::{self, RobotOutcomes, RobotPlan};
-use crate::{ScenarioArgs, bootstrap_line, images, points, schema, sigma};
+use crate::align::{bootstrap_line, sigma};
+use crate::flags::ScenarioArgs;
+use crate::stages;
+use crate::{images, points, schema};
+use headalign::robot::stages::{RobotOutcomes, RobotPlan};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
 /// head`, is not a failure of the command and must not panic).
@@ -44,7 +47,7 @@ pub struct DemoArgs {
     scenario: ScenarioArgs,
     /// Stages to run in order, comma separated: verge-tilt (required), pan, steering,
     /// pan-fixate, one-motion; a stage may repeat.
-    // Names: `stages::STAGES`. The default's first pan is coarse (derotated drive, a bent
+    // Names: `headalign::robot::stages::STAGES`. The default's first pan is coarse (derotated drive, a bent
     // wheel tolerated), the second exact once steering has straightened the wheel.
     #[arg(long, default_value = "verge-tilt,pan,steering,pan")]
     stages: String,
@@ -67,7 +70,7 @@ pub struct DemoArgs {
     drive: Option<f64>,
     /// Drive per steering setting of the steering stage, metres (default 0.3; 0.2 with
     /// --images).
-    // The 0.2 m image default is `stages::IMAGE_STEER_DRIVE_M` (see `robot_plan`).
+    // The 0.2 m image default is `headalign::robot::stages::IMAGE_STEER_DRIVE_M` (see `robot_plan`).
     #[arg(long)]
     steer_drive: Option<f64>,
     /// Steering settings of the steering stage relative to the start reading, degrees,
@@ -103,7 +106,7 @@ pub struct DemoArgs {
     /// Widen the verge/tilt sigmas to a bootstrap over point tracks with this many
     /// replicates (at least 3; off by default; point mode only).
     // `EstimationOptions::bootstrap`; each replicate costs about one more adjustment.
-    #[arg(long, value_parser = crate::parse_replicates, conflicts_with = "images")]
+    #[arg(long, value_parser = headalign_eval::parse_replicates, conflicts_with = "images")]
     bootstrap: Option<BootstrapOptions>,
     /// With --images: the lens model estimated (recorded in the session; default auto when
     /// the scenario draws a lens, else pinhole).
@@ -112,9 +115,9 @@ pub struct DemoArgs {
 }
 
 /// The robot stages and their settings from the demo's flags.
-fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan> {
-    let stages = stages::RobotPlan::parse_stages(&args.stages)?;
-    RobotPlan::refuse_unused_flags(
+fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<RobotPlan> {
+    let stages = stages::parse_stages(&args.stages)?;
+    stages::refuse_unused_flags(
         &stages,
         &[
             ("--drive", args.drive.is_some()),
@@ -131,7 +134,7 @@ fn robot_plan(args: &DemoArgs, scenario: &Scenario) -> Result<stages::RobotPlan>
         plan.horizon_from_drive = args.horizon_from_drive;
         return Ok(plan);
     }
-    Ok(stages::RobotPlan {
+    Ok(RobotPlan {
         stages,
         drive_m: scenario.drive_m,
         horizon_from_drive: args.horizon_from_drive,
@@ -349,19 +352,19 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
         RouteOutcome::General(outcome, scene) => (*outcome, scene),
         RouteOutcome::Planar(p) => {
             crate::facing_plane::report(robot.head(), &p)?;
-            let verdict = json!({"verdict": images::verdict_json(&p.verdict)?});
+            let verdict = json!({"verdict": schema::verdict_json(&p.verdict)?});
             images::judgement_lines(&verdict).iter().for_each(|l| say!("{l}"));
             return images::fail_on_verdict(&verdict);
         }
     };
     let robot_out = robot_out.unwrap_or_default();
     let after = After::read(&robot, &outcome, &robot_out);
-    say!("{}", crate::facing_plane::scene_line(&scene));
+    say!("{}", crate::report_html::scene_line(&scene));
     print_calibration(scenario, &outcome, &after);
     print_errors(&outcome, &before, &after);
     print_robot_stages(&robot_out, &before, &after);
     say!("time: estimation {:.1} ms, total {:.1} ms", 1e3 * outcome.estimation_seconds, 1e3 * total);
-    let verdict = json!({"verdict": images::verdict_json(&outcome.verdict)?});
+    let verdict = json!({"verdict": schema::verdict_json(&outcome.verdict)?});
     for line in images::judgement_lines(&verdict) {
         say!("{line}");
     }
@@ -611,7 +614,7 @@ fn print_robot_stages(stages: &RobotOutcomes, before: &Before, after: &After) {
 
 /// Image mode: the procedure on rendered images ([`crate::images::run`]), printed as a
 /// table or one JSON object.
-fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &stages::RobotPlan) -> Result<()> {
+fn run_images(args: &DemoArgs, scenario: &Scenario, plan: &RobotPlan) -> Result<()> {
     let target = match (&args.session, args.no_session) {
         (Some(d), _) => images::SessionTarget::Dir(d.clone()),
         (None, true) => images::SessionTarget::None,

@@ -5,7 +5,7 @@
 //! reconstruction a plane does not give: they are skipped, and the report says so.
 
 use anyhow::Result;
-use headalign::facing_plane::{CameraPlanar, SceneCheck};
+use headalign::facing_plane::CameraPlanar;
 use headalign::procedure::PlanarOutcome;
 use headalign_sim::SimulatedHead;
 use serde_json::{Value, json};
@@ -17,14 +17,6 @@ macro_rules! say {
         let _ = writeln!(std::io::stdout(), $($arg)*);
     }};
 }
-
-/// The text line of a scene check: `scene: kind (why)`.
-pub fn scene_line(check: &SceneCheck) -> String {
-    format!("scene: {} ({})", check.kind.name(), check.why)
-}
-
-/// What the robot stages say on the planar route.
-pub const ROBOT_STAGES_SKIPPED: &str = "skipped: they need the 3D reconstruction a plane does not give";
 
 /// The lines every command prints about the route from a report's JSON: the scene
 /// (`scene: kind (why)`, when the report has one) and, on the planar route, what is
@@ -62,7 +54,7 @@ pub fn summary_lines(v: &Value) -> Vec<String> {
     if let Some(why) = v["check_failure"].as_str() {
         lines.push(format!("check after the move: not made ({why})"));
     }
-    lines.push(format!("robot stages: {ROBOT_STAGES_SKIPPED}"));
+    lines.push(format!("robot stages: {}", crate::schema::ROBOT_STAGES_SKIPPED));
     lines
 }
 
@@ -74,74 +66,6 @@ pub fn session_files(v: &Value) -> &'static str {
     } else {
         "views, report.json, figure6.png, aligned.png"
     }
-}
-
-/// The planar route's sections of a `report.html`: the scene and route, each camera's
-/// intrinsics, the aligned readings, the check after the move and what is undetermined.
-pub fn html_sections(rep: &mut crate::report_html::HtmlReport, out: &PlanarOutcome) {
-    let cal = &out.calibration;
-    rep.intro(&scene_line(&cal.scene));
-    rep.intro("Planar route (paper section 3.3): each camera from its own plane homographies; the robot stages are skipped (they need the 3D reconstruction a plane does not give).");
-    let pm = |v: f64, s: Option<f64>| format!("{v:.2} ± {:.2}", s.unwrap_or(f64::NAN));
-    let rows = [("left", &cal.left), ("right", &cal.right)]
-        .iter()
-        .map(|(name, c)| {
-            let k = &c.intrinsics;
-            vec![
-                name.to_string(),
-                pm(k.fx, c.sigma("fx")),
-                pm(k.fy, c.sigma("fy")),
-                pm(k.cx, c.sigma("cx")),
-                pm(k.cy, c.sigma("cy")),
-                format!("{:.3}", c.rms_px),
-                c.points.to_string(),
-            ]
-        })
-        .collect();
-    rep.table(
-        "Intrinsics",
-        Some("Pixels, 1-sigma from the planar model's covariance."),
-        &["camera", "fx", "fy", "cx", "cy", "rms (px)", "points"],
-        rows,
-    );
-    let (a, s) = (out.solution.aligned_encoders, out.sigmas);
-    let rows = [
-        ("elevation", a.elevation, s.elevation_deg),
-        ("verge_left", a.verge_left, s.verge_left_deg),
-        ("verge_right", a.verge_right, s.verge_right_deg),
-    ]
-    .iter()
-    .map(|(n, v, s)| vec![n.to_string(), format!("{v:.4}"), format!("{s:.4}")])
-    .collect();
-    rep.table("Aligned readings", None, &["reading", "value (deg)", "sigma (deg)"], rows);
-    if let Some(c) = out.checks.last() {
-        let m = c.measured;
-        let rows = [
-            ("verge left", m.verge_err_l_deg),
-            ("verge right", m.verge_err_r_deg),
-            ("elevation left", m.elev_err_l_deg),
-            ("elevation right", m.elev_err_r_deg),
-        ]
-        .iter()
-        .map(|(n, v)| vec![n.to_string(), format!("{v:+.4}")])
-        .collect();
-        let note = format!(
-            "Each camera against its own estimated axes; unmodelled rotation left {:.4} deg, right {:.4} deg. Not checked: {}.",
-            c.left.unmodelled_rotation_deg,
-            c.right.unmodelled_rotation_deg,
-            c.unchecked.join("; ")
-        );
-        rep.table("Check after the move", Some(&note), &["error", "measured (deg)"], rows);
-    } else if let Some(why) = &out.check_failure {
-        rep.table("Check after the move", Some(&format!("Not made: {why}.")), &["error"], Vec::new());
-    }
-    let rows = cal.undetermined.iter().map(|u| vec![u.clone()]).collect();
-    rep.table(
-        "Undetermined",
-        Some("What a plane cannot give: reported, never a number."),
-        &["quantity"],
-        rows,
-    );
 }
 
 /// One camera's line: intrinsics with sigmas, residual, plane normal.
@@ -179,7 +103,7 @@ pub fn report(head: &SimulatedHead, out: &PlanarOutcome) -> Result<()> {
     let a = out.solution.aligned_encoders;
     let after = head.alignment_errors(&head.encoders());
     let cal = &out.calibration;
-    say!("{}", scene_line(&cal.scene));
+    say!("{}", crate::report_html::scene_line(&cal.scene));
     say!("planar route (paper section 3.3): each camera from its own plane homographies");
     let t = head.truth();
     say!("{}", camera_line("left", &cal.left, &t.left));

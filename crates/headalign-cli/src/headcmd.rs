@@ -1,7 +1,7 @@
 //! `headalign run --head-cmd CMD`: verging, then the verge/tilt procedure on images, on a
 //! head behind a driver process that speaks the JSON-lines head protocol
 //! (`docs/head-protocol.md`; [`headalign_io::process_head::ProcessHead`]), then the robot
-//! stages of `--stages` (pan, steering, ...: [`crate::stages`]) when the driver has a base.
+//! stages of `--stages` (pan, steering, ...: [`headalign::robot::stages`]) when the driver has a base.
 //! Every capture is recorded to the session folder before it is processed (always: a real
 //! head's captures cannot be made again); `report.json` gets the results. A timeout, a
 //! driver that exits or a malformed answer stops the run with one line naming the request
@@ -18,8 +18,8 @@ use headalign_io::process_head::{ProcessHead, ProcessHeadOptions};
 use headalign_platform::StereoHead;
 use serde_json::json;
 
-use crate::stages::RobotPlan;
 use crate::{images, replay, schema, stages};
+use headalign::robot::stages::RobotPlan;
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {
@@ -52,7 +52,7 @@ pub struct RunArgs {
     pub auto_rotation: bool,
     /// Stages to run in order, comma separated: verge-tilt (first), then pan, steering,
     /// pan-fixate, one-motion (these drive: the driver needs a base).
-    // Names: `stages::STAGES`; `demo`'s default is verge-tilt,pan,steering,pan.
+    // Names: `headalign::robot::stages::STAGES`; `demo`'s default is verge-tilt,pan,steering,pan.
     #[arg(long, default_value = "verge-tilt")]
     pub stages: String,
     /// Forward drive of the pan, pan-fixate and one-motion stages, metres.
@@ -60,7 +60,7 @@ pub struct RunArgs {
     #[arg(long)]
     pub drive: Option<f64>,
     /// Drive per steering setting of the steering stage, metres (default 0.2).
-    // `stages::IMAGE_STEER_DRIVE_M`.
+    // `headalign::robot::stages::IMAGE_STEER_DRIVE_M`.
     #[arg(long)]
     pub steer_drive: Option<f64>,
     /// Steering settings of the steering stage relative to the start reading, degrees,
@@ -81,11 +81,11 @@ pub struct RunArgs {
 
 /// The stage plan of `run`'s flags; fails when the verge/tilt stage is not first.
 fn plan(args: &RunArgs) -> Result<RobotPlan> {
-    let stages = RobotPlan::parse_stages(&args.stages)?;
+    let stages = stages::parse_stages(&args.stages)?;
     if stages.first().map(String::as_str) != Some("verge-tilt") {
         bail!("--stages must start with verge-tilt: every robot stage uses its calibration");
     }
-    RobotPlan::refuse_unused_flags(
+    stages::refuse_unused_flags(
         &stages,
         &[
             ("--drive", args.drive.is_some()),
@@ -163,8 +163,8 @@ pub fn run(args: &RunArgs) -> Result<()> {
             seed,
             &plan,
             &mut |_, run, route, robot| {
-                let p = images::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
-                Ok(serde_json::to_value(schema::RunReport::new(images::with_robot(p, &plan, robot)?))?)
+                let p = schema::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
+                Ok(serde_json::to_value(schema::RunReport::new(schema::with_robot(p, &plan, robot)?))?)
             },
         )?
     } else {
@@ -175,8 +175,8 @@ pub fn run(args: &RunArgs) -> Result<()> {
             args.auto_rotation,
             seed,
             &mut |_, run, route| {
-                let p = images::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
-                Ok(serde_json::to_value(schema::RunReport::new(images::with_robot(p, &plan, None)?))?)
+                let p = schema::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
+                Ok(serde_json::to_value(schema::RunReport::new(schema::with_robot(p, &plan, None)?))?)
             },
         )?
     };

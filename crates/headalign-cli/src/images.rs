@@ -1,52 +1,40 @@
-//! `headalign demo --images`: the verge/tilt procedure on rendered images with the real
-//! front end (no simulator-provided correspondences): verging (paper section 6), then the
-//! captures, tracking, estimation, alignment and checks of the point-mode procedure; then
-//! the robot stages (`--stages`, [`robot_stages`]) on the simulated robot's renders,
-//! through the front end in its drive mode with the calibrated rig guiding stereo. Every
-//! captured view is recorded to a session folder as it is captured (format: the
-//! `headalign_io::session` module documentation), with the results in `report.json` and the
-//! annotated images of the paper's Figure 6 and a `report.html` with the numbers.
+//! Image mode on the command line (`demo --images`, `run --head-cmd`, `replay`): the
+//! library's image-mode procedure and robot stages ([`headalign::image_mode`]) run
+//! through a recording head, so that every captured view is recorded to a session folder
+//! as it is captured (format: the `headalign_io::session` module documentation), with the
+//! results in `report.json`, the annotated images of the paper's Figure 6 and a
+//! `report.html` with the numbers; and the lens flags ([`LensArgs`]).
 //!
-//! [`procedure`] is the one image-mode procedure: the demo runs it on the simulator, `run
-//! --head-cmd` on a driver, `replay` on a recorded session; the same code on the same
-//! images gives the same numbers. It detects a planar or far scene from the tracked views
-//! ([`VergeTiltRun::run_detecting`]) and then takes the planar route: no robot stages,
-//! no `figure6.png` (it draws the general route's calibration), the report's `route`,
-//! `scene`, `planar` and `checks` members (the same members on both routes:
-//! [`crate::schema::Procedure`]) and a `report.html` of the planar route's numbers
-//! ([`crate::facing_plane::html_sections`]).
+//! [`procedure`] maps the flags to the library's options and its stages to the session's
+//! stage names: the demo runs it on the simulator, `run --head-cmd` on a driver, `replay`
+//! on a recorded session; the same code on the same images gives the same numbers. A
+//! planar or far scene takes the planar route: no robot stages, no `figure6.png` (it
+//! draws the general route's calibration), the report's `route`, `scene`, `planar` and
+//! `checks` members (the same members on both routes: [`crate::schema::Procedure`]) and
+//! a `report.html` of the planar route's numbers
+//! ([`crate::report_html::write_session_report`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use headalign::alignment::AlignmentSolution;
-use headalign::calibrate::LensChoice;
-use headalign::calibrate::image_noise::MeasuredVariances;
-use headalign::fixation::{VergingOptions, VergingReport, verge_to_common_view};
-use headalign::observations::View;
-use headalign::procedure::{
-    AutoRotation, CheckVerdict, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
-    resolve_rotation,
+use headalign::calibrate::{LensChoice, lens_terms};
+use headalign::image_mode::{
+    self, ImageModeOptions, ImageRun, ImageStagesOptions, RobotRun, Stage, tracked_estimation,
 };
-use headalign::robot::stereo_fundamental;
-use headalign::tracking::{FrontEndOptions, TrackingHead, TrackingMode, ViewTracking, tracked_view_name};
-use headalign::verge_tilt::{EstimationOptions, ModelFit, RigCalibration, model_fit, observation_view_names};
-use headalign_geometry::bundle::{BundleOptions, CovarianceModel};
+use headalign::procedure::{RouteOutcome, VergeTiltOutcome};
+use headalign::robot::stages::{RobotPlan, StageHooks};
+use headalign::verge_tilt::EstimationOptions;
 use headalign_geometry::distortion::DistortionTerms;
-use headalign_io::export::CalibrationFiles as _;
 use headalign_io::session::{
     RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter,
     default_session_dir,
 };
-use headalign_platform::{Encoders, ImagingHead, StereoImages, Vehicle};
-use headalign_sim::{Scenario, SimulatedRobot, calibration_errors};
-use headalign_vision::draw::{BLUE, Canvas, GREEN, MAGENTA, RED, YELLOW};
+use headalign_platform::{Encoders, ImagingHead, Vehicle};
+use headalign_sim::{Scenario, SimulatedRobot};
 use serde_json::{Value, json};
 
-use crate::report_html::{AlignmentResults, HtmlReport, REPORT_FILE};
-use crate::schema;
-use crate::stages::{RobotOutcomes, RobotPlan, run_robot_stages};
+use crate::{report_html, schema};
 
 /// The procedure name in `session.json` for image mode.
 pub const PROCEDURE: &str = "verge-tilt-images";
@@ -63,10 +51,10 @@ pub struct LensArgs {
     /// Lens model estimated for both cameras: `pinhole`, `radtan`, `equidistant` or `auto`
     /// (model and terms chosen by BIC, reported; the default).
     // `demo --images` defaults to auto only when the scenario's renderer has a lens.
-    #[arg(long, value_parser = crate::calibrate::parse_lens)]
+    #[arg(long, value_parser = crate::flags::parse_lens)]
     pub lens: Option<LensChoice>,
     /// Lens coefficients estimated: `radial` (k1 k2), `4` or `5` (as `calibrate --lens-terms`).
-    #[arg(long, value_parser = crate::calibrate::parse_terms)]
+    #[arg(long, value_parser = crate::flags::parse_terms)]
     pub lens_terms: Option<DistortionTerms>,
 }
 
@@ -89,7 +77,7 @@ impl LensArgs {
     /// An error when lens terms are asked of the pinhole (nothing would be estimated: the
     /// flag would be ignored).
     pub fn validate(&self) -> Result<()> {
-        crate::calibrate::check_lens_terms(self.choice(), self.lens_terms)
+        crate::flags::check_lens_terms(self.choice(), self.lens_terms)
     }
 
     /// The lens a session recorded (`session.json`'s `lens`, `lens_terms`; the pinhole when
@@ -112,14 +100,10 @@ impl LensArgs {
     }
 
     /// The estimation options with this lens (`auto` without `--lens-terms` chooses the
-    /// terms too: `calibrate::lens_terms`).
+    /// terms too: [`lens_terms`]).
     pub fn apply(&self, estimation: EstimationOptions) -> EstimationOptions {
         let lens = self.choice();
-        EstimationOptions {
-            lens,
-            lens_terms: crate::calibrate::lens_terms(lens, self.lens_terms),
-            ..estimation
-        }
+        EstimationOptions { lens, lens_terms: lens_terms(lens, self.lens_terms), ..estimation }
     }
 }
 
@@ -158,33 +142,13 @@ impl SessionTarget {
     }
 }
 
-/// What the image procedure captured and found, whether it succeeded or not.
-#[derive(Default)]
-pub struct ImageRun {
-    /// The verging report (if verging finished).
-    pub verging: Option<VergingReport>,
-    /// The verge/tilt views (tracked observations), in capture order.
-    pub run: VergeTiltRun,
-    /// Their images.
-    pub images: Vec<StereoImages>,
-    /// The front end's report per view.
-    pub tracking: Vec<ViewTracking>,
-    /// The rotations were chosen by probing (`--auto-rotation`).
-    pub auto_rotation: bool,
-}
-
 /// Called before each stage with the stage's name, its planned captures `(name, target)`
 /// and the name of unplanned captures.
 pub type OnStage<'a, H> = dyn FnMut(&mut H, &str, Vec<(String, Encoders)>, &str) + 'a;
 
-/// Verging, then the verge/tilt procedure on images through the front end, on any
-/// imaging head. `on_stage` is called with the stage name and the planned captures before
-/// each stage (a recording head names its folders with them). With `auto_rotation` the
-/// elevation/pan rotations are chosen first by probing ([`resolve_rotation`], default
-/// [`AutoRotation`]: up to 10 deg each way plus diagonal views, while the tracker keeps
-/// the reference view's tracks), in stage `rotation-probe` through a tracking head of its
-/// own; the verge/tilt stage then starts a fresh tracker at its initial view, so `align
-/// --images` on the recorded verge/tilt views sees the same tracks.
+/// The library's image-mode procedure ([`image_mode::run`]) with the estimation choices
+/// of the command line; `on_stage` gets each stage's name in the session format and the
+/// name of its unplanned captures (verging's, `probe`, `check`).
 pub fn procedure<H: ImagingHead>(
     head: &mut H,
     rotation_deg: f64,
@@ -192,68 +156,23 @@ pub fn procedure<H: ImagingHead>(
     estimation: Estimation,
     on_stage: &mut OnStage<'_, H>,
 ) -> (ImageRun, Result<RouteOutcome>) {
-    let mut out = ImageRun { auto_rotation, ..ImageRun::default() };
-    on_stage(head, STAGE_VERGING, Vec::new(), STAGE_VERGING);
-    let verging = match verge_to_common_view(head, &VergingOptions::default()).context("verging") {
-        Ok(v) => v,
-        Err(e) => return (out, Err(e)),
-    };
-    let options = VergeTiltOptions {
+    let options = ImageModeOptions {
         rotation_deg,
-        verge_rotation_deg: rotation_deg,
+        auto_rotation,
         // The session records the seed: a replay reproduces this run bit for bit (and
         // `align --images`, which uses the default seed, too when the run did).
         estimation: estimation.lens.apply(tracked_estimation(estimation.seed)),
-        auto_rotation: auto_rotation.then(AutoRotation::default),
-        ..VergeTiltOptions::default()
+        ..ImageModeOptions::default()
     };
-    let options = if auto_rotation {
-        on_stage(head, STAGE_ROTATION_PROBE, Vec::new(), "probe");
-        let resolved = TrackingHead::new(head, FrontEndOptions::default())
-            .map_err(anyhow::Error::from)
-            .and_then(|mut probing| resolve_rotation(&mut probing, &options).map_err(anyhow::Error::from))
-            .context("choosing the rotations");
-        match resolved {
-            Ok(o) => o,
-            Err(e) => {
-                out.verging = Some(verging);
-                return (out, Err(e));
-            }
-        }
-    } else {
-        options
-    };
-    on_stage(head, STAGE_VERGE_TILT, capture_plan(&verging.encoders, &options), "check");
-    out.verging = Some(verging);
-    let tracking_head = TrackingHead::new(head, FrontEndOptions::default());
-    let mut tracking_head = match tracking_head {
-        Ok(t) => t,
-        Err(e) => return (out, Err(e.into())),
-    };
-    let outcome =
-        out.run.run_detecting(&mut tracking_head, &options).context("verge/tilt procedure on images");
-    out.images = std::mem::take(&mut tracking_head.images);
-    out.tracking = std::mem::take(&mut tracking_head.tracking);
-    (out, outcome)
-}
-
-/// The estimation options of image mode: the default ones with the covariance clustered
-/// by track ([`CovarianceModel::PointClustered`], the sandwich estimate from the
-/// residuals themselves). Tracked corners are not i.i.d. Gaussian: their localisation
-/// error differs from track to track (per-track RMS 0.20 / 0.35 / 0.58 px at the 10 / 50
-/// / 90 % quantiles against the true cameras, seed 1, a past measurement), and
-/// the Gaussian model spreads one `sigma_px` evenly. Measured (`bench/seeds.py 1 20
-/// --images`, the same estimates): z-score RMS over the 13 reported quantities 1.39 ->
-/// 1.32, 95 % coverage 85 -> 89 %; right focal lengths and the aligned readings stay
-/// 1.3-1.5. Measured once more (no command reproduces it): no mean bias, no error
-/// correlation between neighbouring tracks, coarser clusters do not help; tracks at depth
-/// steps carry part of it, but leaving them out ([`headalign::verge_tilt::DepthStepGate`])
-/// did not improve the full pipeline on seeds 1-20 and cost focal accuracy, so it stays
-/// off here.
-pub fn tracked_estimation(seed: u64) -> EstimationOptions {
-    let d = EstimationOptions::default();
-    let bundle = BundleOptions { covariance_model: CovarianceModel::PointClustered, ..d.bundle.clone() };
-    EstimationOptions { seed, bundle, ..d }
+    let (run, outcome) = image_mode::run(head, &options, &mut |h, stage, plan| {
+        let (name, other) = match stage {
+            Stage::Verging => (STAGE_VERGING, STAGE_VERGING),
+            Stage::RotationProbe => (STAGE_ROTATION_PROBE, "probe"),
+            Stage::VergeTilt => (STAGE_VERGE_TILT, "check"),
+        };
+        on_stage(h, name, plan, other);
+    });
+    (run, outcome.map_err(anyhow::Error::from))
 }
 
 /// Run [`procedure`] on `head`, recording into `session` (if any): `report.json` holds
@@ -287,96 +206,17 @@ pub fn recorded<H: ImagingHead>(
     finish(&writer, run, result)
 }
 
-/// What the robot stages of an image-mode run found, and the front end's report per
-/// capture of theirs.
-pub struct RobotRun {
-    /// The stages' outcomes.
-    pub outcomes: RobotOutcomes,
-    /// The front end's report per robot-stage capture, in order.
-    pub tracking: Vec<ViewTracking>,
-}
-
-/// Corners per image in the robot stages (the verge/tilt stage uses the front end's
-/// 1500). A forward drive's pan is sensitive to the drive's measured rotation (an error
-/// `d` moves the epipole by about `d Z / D`: 15 d for a 0.10 m drive at 1.5 m), so the
-/// rigid motion needs many tracks: seed 11 linked 63-69 tracks per drive with 1500
-/// corners and ended 4.2 deg off; with 3000, 285-296 tracks and 0.26 deg (seed 20: 2.9
-/// -> 0.7 deg).
-pub const ROBOT_FEATURES: usize = 3000;
-
-/// The robot stages on images: the front end in [`TrackingMode::Previous`] (the captures
-/// before and after each drive share track ids) over `head`; `on_stage` as in
-/// [`run_robot_stages`].
+/// The library's robot stages on images ([`image_mode::robot_stages`], default options)
+/// with warnings printed as they arise; `on_stage(head, name)` before each stage.
 pub fn robot_stages<H: ImagingHead + Vehicle>(
     head: &mut H,
     plan: &RobotPlan,
     outcome: &VergeTiltOutcome,
     on_stage: &mut dyn FnMut(&mut H, &str),
 ) -> Result<RobotRun> {
-    let mut options = FrontEndOptions { mode: TrackingMode::Previous, ..FrontEndOptions::default() };
-    options.features.max_features = ROBOT_FEATURES;
-    // Stereo matching guided by the calibrated rig: with parallel cameras and the near
-    // scene 1 m away, disparities reach 200 px and free matching finds mostly wrong pairs.
-    let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
-    let prior = move |enc: &Encoders| stereo_fundamental(calib, verge, enc).ok();
-    let mut tracking_head = TrackingHead::new(head, options)?.with_stereo_prior(Box::new(prior));
-    // The stages' geometry is pinhole: they see the tracks undistorted with the
-    // calibration's lenses (unchanged for a pinhole calibration).
-    let mut undistorting = Undistorting { inner: &mut tracking_head, calib };
-    let outcomes = run_robot_stages(
-        &mut undistorting,
-        plan,
-        &outcome.calibration,
-        &outcome.verge_axes,
-        Some(&outcome.axis_perturbations()),
-        &mut |t, stage| on_stage(t.inner.inner(), stage),
-    )
-    .context("robot stages on images")?;
-    Ok(RobotRun { outcomes, tracking: std::mem::take(&mut tracking_head.tracking) })
-}
-
-/// A head whose captures are undistorted with a calibration's estimated lenses
-/// (`headalign::procedure::pinhole_capture`; unchanged for a pinhole calibration), for the
-/// robot stages, whose geometry is pinhole. Every other call goes to `inner`.
-struct Undistorting<'a, H> {
-    inner: &'a mut H,
-    calib: &'a RigCalibration,
-}
-
-impl<H: headalign_platform::StereoHead> headalign_platform::StereoHead for Undistorting<'_, H> {
-    fn image_size(&self) -> [u32; 2] {
-        self.inner.image_size()
-    }
-    fn read_encoders(&mut self) -> std::result::Result<Encoders, headalign_platform::PlatformError> {
-        self.inner.read_encoders()
-    }
-    fn move_to(&mut self, target: &Encoders) -> std::result::Result<(), headalign_platform::PlatformError> {
-        self.inner.move_to(target)
-    }
-    fn capture(
-        &mut self,
-    ) -> std::result::Result<headalign_platform::StereoCapture, headalign_platform::PlatformError> {
-        let capture = self.inner.capture()?;
-        Ok(headalign::procedure::pinhole_capture(self.calib, &capture))
-    }
-}
-
-impl<H: Vehicle> Vehicle for Undistorting<'_, H> {
-    fn drive(&mut self, distance_m: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
-        self.inner.drive(distance_m)
-    }
-    fn steer_to(&mut self, encoder_deg: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
-        self.inner.steer_to(encoder_deg)
-    }
-    fn read_steering(&mut self) -> std::result::Result<f64, headalign_platform::PlatformError> {
-        self.inner.read_steering()
-    }
-    fn steer_by(&mut self, delta_deg: f64) -> std::result::Result<(), headalign_platform::PlatformError> {
-        self.inner.steer_by(delta_deg)
-    }
-    fn last_odometry(&self) -> Option<headalign_platform::Odometry> {
-        self.inner.last_odometry()
-    }
+    let mut warn = crate::progress::warn;
+    let hooks = StageHooks { stage: on_stage, warn: &mut warn };
+    Ok(image_mode::robot_stages(head, plan, outcome, &ImageStagesOptions::default(), hooks)?)
 }
 
 /// The report of [`recorded_robot`]: the JSON of the run from the head, the captures,
@@ -441,20 +281,9 @@ fn finish(
         if let Some(m) = json.as_object_mut() {
             m.insert("session".into(), json!(writer.dir().display().to_string()));
         }
-        let o = match &route {
-            RouteOutcome::General(o, _) => o,
-            RouteOutcome::Planar(p) => {
-                aligned_image(writer.dir(), &run)?;
-                write_planar_report(writer.dir(), &info_title(&json), &run, p, &json)?;
-                return Ok((route, json));
-            }
-        };
-        annotate(writer.dir(), &run, o)?;
-        write_report(writer.dir(), &info_title(&json), &run, o, &json)?;
-        if let Some(m) = json.as_object_mut()
-            && o.calibration.report.lens.is_some()
+        if let Some(files) = report_html::write_session_report(writer.dir(), &run, &route, &json)?
+            && let Some(m) = json.as_object_mut()
         {
-            let files = write_calibration_files(writer.dir(), &run, o)?;
             m.insert(
                 "files".into(),
                 json!(files.iter().map(|p| p.display().to_string()).collect::<Vec<_>>()),
@@ -469,17 +298,6 @@ fn finish(
         }
         Err(e) => Err(failed_in_session(writer, e)),
     }
-}
-
-/// `DIR/calibration/`: the calibration files `calibrate --out` and `align --out` write
-/// (OpenCV YAML, ROS `camera_info`, Kalibr camchain, JSON; `StereoCalibration::write_all`)
-/// with the estimated lenses; written by a run with a lens model (`--lens`), so that the
-/// pinhole runs' sessions hold what they always held. The paths written.
-fn write_calibration_files(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<Vec<PathBuf>> {
-    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
-    let stereo = headalign::calibration::StereoCalibration::from_rig(&outcome.calibration, image_size, None)
-        .context("calibration files")?;
-    Ok(stereo.write_all(&dir.join("calibration"))?)
 }
 
 /// A failure of a recorded run: `report.json` says so (best effort: the error itself is
@@ -565,72 +383,6 @@ pub fn lens_line(estimate: &Value) -> Option<String> {
     Some(line)
 }
 
-/// The estimated lenses of a calibration with their sigmas (`None` for a pinhole
-/// estimate): `model` (ROS names, left and right), the coefficients in each model's
-/// order (`k1 k2 p1 p2 k3` or `k1..k4`), `sigma` per estimated coefficient (`left.k1`
-/// ...), and how they were estimated (`estimation`: first estimate, the auto choice).
-pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
-    let lens = calib.report.lens.as_ref()?;
-    let st = &calib.bundle.state;
-    let cov = &calib.bundle.covariance;
-    let mut sigma = serde_json::Map::new();
-    for (side, d) in [("left", &st.left_distortion), ("right", &st.right_distortion)] {
-        for name in d.kind.coefficient_names() {
-            let key = format!("{side}.{name}");
-            if let Some(s) = cov.sigma(&key) {
-                sigma.insert(key, json!(s));
-            }
-        }
-    }
-    Some(json!({
-        "model": [st.left_distortion.kind.ros_name(), st.right_distortion.kind.ros_name()],
-        "left": st.left_distortion.coefficients(),
-        "right": st.right_distortion.coefficients(),
-        "sigma": sigma,
-        "estimation": serde_json::to_value(lens).ok(),
-    }))
-}
-
-/// The verdict of a route's check after the move ([`headalign::procedure::check_verdict`])
-/// and, on the general route, the estimate's model-fit checks against the noise the front
-/// end measured in the rig views ([`headalign::verge_tilt::model_fit`]).
-pub fn judgement(run: &ImageRun, route: &RouteOutcome) -> (CheckVerdict, Option<ModelFit>) {
-    match route {
-        RouteOutcome::Planar(p) => (p.verdict.clone(), None),
-        RouteOutcome::General(o, _) => {
-            let names: Vec<String> = run.run.views.iter().map(|v| v.name.clone()).collect();
-            let rig_views = names.iter().position(|n| n == "verge").unwrap_or(names.len());
-            let rig: Vec<(String, String)> = names
-                .iter()
-                .take(rig_views)
-                .enumerate()
-                .map(|(i, n)| (n.clone(), tracked_view_name(i)))
-                .collect();
-            let keys = observation_view_names(&o.calibration, &rig);
-            let measured: MeasuredVariances = run
-                .tracking
-                .iter()
-                .enumerate()
-                .map(|(i, t)| (tracked_view_name(i), t.localisation.clone()))
-                .collect();
-            let size = run.images.first().map_or([0, 0], StereoImages::image_size);
-            let fit = model_fit(&o.calibration, &keys, &measured, size);
-            let mut verdict = o.verdict.clone();
-            verdict.judge_fit(&fit);
-            (verdict, Some(fit))
-        }
-    }
-}
-
-/// The `verdict` member: the verdict and, when it failed, its one-line `failure`.
-pub fn verdict_json(verdict: &CheckVerdict) -> Result<Value, serde_json::Error> {
-    let mut v = serde_json::to_value(verdict)?;
-    if let Some(m) = v.as_object_mut() {
-        m.insert("failure".into(), json!(verdict.failure_line()));
-    }
-    Ok(v)
-}
-
 /// The run's JSON `v` judged: `Ok` when its `verdict` did not fail, otherwise an error of
 /// one line (the failure, where the report is). Called after the results are printed, so
 /// that a failed check still shows them and exits non-zero.
@@ -679,40 +431,6 @@ pub fn judgement_lines(v: &Value) -> Vec<String> {
     lines
 }
 
-/// The members of an image-mode run on either route ([`schema::Procedure`]): the
-/// estimate, checks and timings, and the front end's report (`images`); no robot stages
-/// ([`with_robot`] adds them).
-pub fn procedure_report(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> Result<schema::Procedure> {
-    let views = run.run.views.iter().map(|v| v.name.clone()).collect();
-    let mut p = schema::Procedure::new("images", route, views, run.auto_rotation, total_s)?;
-    let (verdict, fit) = judgement(run, route);
-    p.verdict = verdict_json(&verdict)?;
-    if let Some(fit) = &fit {
-        p.warnings.extend(fit.warnings.iter().cloned());
-        p.model_fit = Some(serde_json::to_value(fit)?);
-    }
-    p.images = Some(json!({
-        "verging": serde_json::to_value(&run.verging)?,
-        "tracking": serde_json::to_value(&run.tracking)?,
-        "views": run.run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
-    }));
-    Ok(p)
-}
-
-/// The stages of `plan` and, when they ran, their outcomes and the front end's report per
-/// robot-stage capture (`robot_tracking`).
-pub fn with_robot(
-    p: schema::Procedure,
-    plan: &RobotPlan,
-    robot: Option<&RobotRun>,
-) -> Result<schema::Procedure> {
-    let mut p = p.with_robot(&plan.stages, robot.map(|r| &r.outcomes));
-    if let Some(r) = robot {
-        p.robot_tracking = Some(serde_json::to_value(&r.tracking)?);
-    }
-    Ok(p)
-}
-
 /// Run verging, the verge/tilt procedure and then the robot stages of `plan` on rendered
 /// images of the simulated robot (the demo), recording to `session`; the JSON has the
 /// estimate against the simulator's truth, and with robot stages their results, the
@@ -751,212 +469,13 @@ pub fn run(
         plan,
         &mut |robot, run, route, robot_run| {
             let total = t0.elapsed().as_secs_f64();
-            let head = robot.head();
-            let after = head.alignment_errors(&head.encoders());
-            let truth = schema::Truth::of(robot, scenario)?;
-            let (k_left, k_right) = match route {
-                RouteOutcome::General(o, _) => {
-                    (o.calibration.bundle.state.left, o.calibration.bundle.state.right)
-                }
-                RouteOutcome::Planar(p) => (p.calibration.left.intrinsics, p.calibration.right.intrinsics),
-            };
-            let t = head.truth();
-            let cal = calibration_errors(&t.left, &t.right, &k_left, &k_right);
-            let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
+            let procedure =
+                schema::with_robot(schema::procedure_report(run, route, total)?, plan, robot_run)?;
+            let before = schema::Before::new(&before, pan_before, steer_before);
             let stages = robot_run.map(|r| &r.outcomes);
-            let pan_after = stages.filter(|o| o.panned()).map(|_| robot.pan_err_deg(&head.encoders()));
-            let steer_after = stages
-                .and_then(|o| o.steering.as_ref())
-                .map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
-            let procedure = with_robot(procedure_report(run, route, total)?, plan, robot_run)?;
-            let aligned = procedure.estimate.aligned_encoders;
-            let report = schema::DemoReport {
-                schema: schema::DEMO,
-                procedure,
-                scenario: serde_json::to_value(scenario)?,
-                errors: schema::Errors::new(&after, unavoidable_r, &cal, None, pan_after, steer_after),
-                before: schema::Before::new(&before, pan_before, steer_before),
-                aligned_reading_errors_deg: schema::ReadingErrors::new(&aligned, &truth.aligned_encoders),
-                truth,
-            };
+            let report = schema::demo_images_report(robot, scenario, route, procedure, stages, before)?;
             Ok(serde_json::to_value(&report)?)
         },
     )?;
     Ok(json)
-}
-
-/// The paper's Figure 6 on the reference view (stereo pair side by side): features used by
-/// the adjustment (green; others red), the invariant lines of the pan (horizon, blue) and
-/// elevation (yellow) rotations, and the fixation point (magenta). `view0` is the tracked
-/// reference view, `first` its images.
-pub fn figure6(
-    first: &StereoImages,
-    view0: &View,
-    calib: &RigCalibration,
-    solution: &AlignmentSolution,
-) -> Canvas {
-    let used: std::collections::HashSet<u64> =
-        calib.observations.iter().filter(|o| o.view == 0).map(|o| calib.point_tracks[o.point]).collect();
-    let lines = &solution.invariant_lines;
-    let fixation = [solution.fixation_px_left, solution.fixation_px_right];
-    let mut halves = Vec::new();
-    for (k, (image, list)) in
-        [(&first.left, &view0.capture.left), (&first.right, &view0.capture.right)].into_iter().enumerate()
-    {
-        let mut c = Canvas::from_gray(image);
-        for o in list {
-            let colour = if used.contains(&o.track) { GREEN } else { RED };
-            c.circle([o.pixel.x, o.pixel.y], 3.0, colour, 1);
-        }
-        let (pan, elevation) = if k == 0 {
-            (lines.pan_left, lines.elevation_left)
-        } else {
-            (lines.pan_right, lines.elevation_right)
-        };
-        c.image_line(pan, BLUE, 2);
-        c.image_line(elevation, YELLOW, 2);
-        c.circle(fixation[k], 12.0, MAGENTA, 2);
-        c.cross(fixation[k], 18.0, MAGENTA, 2);
-        halves.push(c);
-    }
-    Canvas::beside(&halves[0], &halves[1])
-}
-
-/// Caption of `figure6.png` in the reports.
-pub const FIGURE6_CAPTION: &str = "figure6.png: the first view (left | right) as the paper's Figure 6: features the bundle adjustment used (green) and not (red), the invariant lines of the pan (blue) and elevation (yellow) rotations, and the fixation point (magenta).";
-
-/// `figure6.png` (see [`figure6`]) and `aligned.png` ([`aligned_image`]).
-fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()> {
-    let images = &run.images;
-    let (Some(first), Some(view0)) = (images.first(), run.run.views.first()) else { return Ok(()) };
-    figure6(first, view0, &outcome.calibration, &outcome.solution).save(&dir.join("figure6.png"))?;
-    aligned_image(dir, run)
-}
-
-/// `aligned.png`: the last check view with the image centres marked.
-fn aligned_image(dir: &Path, run: &ImageRun) -> Result<()> {
-    if let Some(last) = run.images.last() {
-        let mut c = Canvas::side_by_side(&last.left, &last.right);
-        let [w, h] = last.image_size();
-        let centre = [(f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0];
-        let dx = f64::from(w);
-        for p in [centre, [centre[0] + dx, centre[1]]] {
-            c.cross(p, 20.0, MAGENTA, 2);
-        }
-        c.save(&dir.join("aligned.png"))?;
-    }
-    Ok(())
-}
-
-/// The report's title line from the run's JSON (simulated or not).
-fn info_title(json: &Value) -> String {
-    if json.get("truth").is_some() {
-        "headalign demo --images (simulated head)".into()
-    } else {
-        "headalign: verge/tilt alignment on images".into()
-    }
-}
-
-/// `DIR/report.html`: the numbers, the errors against the truth when the run was
-/// simulated (the JSON's `before` and `errors` members), the annotated images and links
-/// to every captured view of the session.
-fn write_report(
-    dir: &Path,
-    title: &str,
-    run: &ImageRun,
-    outcome: &VergeTiltOutcome,
-    json: &Value,
-) -> Result<()> {
-    let (image_size, mut rep) = report_with_intro(dir, title, run);
-    rep.alignment_results(&AlignmentResults {
-        calibration: &outcome.calibration,
-        image_size,
-        baseline_m: None,
-        verge_axes: &outcome.verge_axes,
-        reference: outcome.calibration.reference_encoders,
-        solution: &outcome.solution,
-        sigmas: &outcome.sigmas,
-    })?;
-    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
-        (json.get("before"), json.get("errors"))
-    {
-        rep.errors_vs_truth(before, errors);
-    }
-    rep.figures(
-        "Annotated images",
-        &[
-            ("figure6.png".into(), FIGURE6_CAPTION.into()),
-            (
-                "aligned.png".into(),
-                "aligned.png: the last view, after alignment, with the image centres marked (magenta)."
-                    .into(),
-            ),
-        ],
-    );
-    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
-    rep.write(&dir.join(REPORT_FILE))
-}
-
-/// The note above the captured views' links in `report.html`.
-const VIEW_LINKS_NOTE: &str =
-    "Every captured view (PNG and view.json in each folder): headalign replay DIR re-runs them.";
-
-/// Links to both images of every view folder of the session `dir`, in order.
-fn view_links(dir: &Path) -> Vec<(String, String)> {
-    let mut folders: Vec<String> = std::fs::read_dir(dir)
-        .map(|entries| {
-            entries
-                .filter_map(Result::ok)
-                .filter(|e| e.path().join("view.json").is_file())
-                .filter_map(|e| e.file_name().to_str().map(str::to_string))
-                .collect()
-        })
-        .unwrap_or_default();
-    folders.sort();
-    folders
-        .iter()
-        .flat_map(|f| ["left", "right"].map(|side| (format!("{f}/{side}.png"), format!("{f} {side}"))))
-        .collect()
-}
-
-/// The session report's page with its introduction (image size, views, folder), and the
-/// image size.
-fn report_with_intro(dir: &Path, title: &str, run: &ImageRun) -> ([u32; 2], HtmlReport) {
-    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
-    let mut rep = HtmlReport::new(title);
-    rep.intro(&format!(
-        "{} x {} images, vision front end (verging, FAST+BRIEF features, matching); {} verge/tilt views captured; session folder {}.",
-        image_size[0],
-        image_size[1],
-        run.run.views.len(),
-        dir.display()
-    ));
-    (image_size, rep)
-}
-
-/// `DIR/report.html` of a planar-route run: its numbers ([`crate::facing_plane::html_sections`]),
-/// the errors against the truth when simulated, `aligned.png` and the captured views.
-fn write_planar_report(
-    dir: &Path,
-    title: &str,
-    run: &ImageRun,
-    outcome: &headalign::procedure::PlanarOutcome,
-    json: &Value,
-) -> Result<()> {
-    let (_, mut rep) = report_with_intro(dir, title, run);
-    crate::facing_plane::html_sections(&mut rep, outcome);
-    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
-        (json.get("before"), json.get("errors"))
-    {
-        rep.errors_vs_truth(before, errors);
-    }
-    rep.figures(
-        "Annotated images",
-        &[(
-            "aligned.png".into(),
-            "aligned.png: the check view after alignment, with the image centres marked (magenta).".into(),
-        )],
-    );
-    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
-    rep.write(&dir.join(REPORT_FILE))
 }

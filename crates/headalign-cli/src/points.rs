@@ -5,15 +5,11 @@
 //! by `align --observations`) and the demo's JSON as `report.json`. The robot stages
 //! that follow are recorded too ([`robot_stages`]: their captures in folders named by
 //! stage, drives and steering as events, the stage plan in `session.json` `stages`), and
-//! `replay` re-runs the verge/tilt stage and then those stages. `calibrate DIR` on such a
-//! session self-calibrates from the recorded points ([`calibrate`]).
+//! `replay` re-runs the verge/tilt stage and then those stages.
 
 use std::path::PathBuf;
-use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
-use headalign::calibrate::{calibrate_rig, select_rig, undistort_views};
-use headalign::observations::View;
+use anyhow::{Context, Result};
 use headalign::procedure::{
     AutoRotation, RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan,
     resolve_rotation,
@@ -24,7 +20,7 @@ use headalign_io::session::{
 };
 use headalign_platform::{StereoHead, Vehicle};
 
-use crate::stages::{RobotOutcomes, RobotPlan, run_robot_stages};
+use headalign::robot::stages::{RobotOutcomes, RobotPlan, StageHooks, run_robot_stages};
 
 /// The procedure name in `session.json` for point mode.
 pub const PROCEDURE: &str = "verge-tilt-points";
@@ -102,64 +98,20 @@ pub fn robot_stages<R: StereoHead + Vehicle>(
     let (calib, verge) = (&outcome.calibration, &outcome.verge_axes);
     let perturbations = outcome.axis_perturbations();
     let axes = Some(&perturbations);
+    let mut warn = crate::progress::warn;
     let Some(writer) = writer else {
-        return Ok((run_robot_stages(robot, plan, calib, verge, axes, &mut |_, _| {})?, None));
+        let hooks = StageHooks { stage: &mut |_, _| {}, warn: &mut warn };
+        return Ok((run_robot_stages(robot, plan, calib, verge, axes, hooks)?, None));
     };
     let mut rec = RecordingHead::new(robot, writer);
-    let result = run_robot_stages(&mut rec, plan, calib, verge, axes, &mut |h, stage| {
-        h.set_stage(stage, Vec::new(), stage)
-    });
+    let hooks = StageHooks {
+        stage: &mut |h: &mut RecordingHead<'_, R>, stage| h.set_stage(stage, Vec::new(), stage),
+        warn: &mut warn,
+    };
+    let result = run_robot_stages(&mut rec, plan, calib, verge, axes, hooks).map_err(anyhow::Error::from);
     let writer = rec.into_writer();
     match result {
         Ok(r) => Ok((r, Some(writer))),
         Err(e) => Err(crate::images::failed_in_session(&writer, e)),
     }
-}
-
-/// `calibrate DIR` on a point-mode session: the tracked points its views recorded (no
-/// front end, so no corner density), the views of one rig ([`select_rig`], the others
-/// named in the report's `skipped`), a known lens (`--distortion`, `--lens-from`) removed
-/// first, self-calibrated as `calibrate` does images. The front end's flags (`--corners`,
-/// `--search-px`, `--patch-refinement`) and a recording's are an error here.
-pub fn calibrate(args: &crate::calibrate::CalibrateArgs) -> Result<crate::calibrate::Outcome> {
-    let t0 = Instant::now();
-    if args.intrinsics.is_some() {
-        bail!(
-            "'{}' is a point-mode session: --intrinsics calibrates the rig from each view's own stereo matches, which need images",
-            args.dir.display()
-        );
-    }
-    args.recording.only_for_recordings(&args.dir, "a point session", false)?;
-    crate::flags::refuse(
-        &[
-            ("--corners", args.corners.is_some()),
-            ("--search-px", args.search_px.is_some()),
-            ("--patch-refinement", args.patch_refinement != crate::calibrate::PatchRefinement::Stereo),
-        ],
-        &format!("images; '{}' is a point-mode session (tracked points, no images)", args.dir.display()),
-    )?;
-    let views: Vec<View> =
-        headalign_io::session::read_point_session(&args.dir)?.into_iter().map(|r| r.view).collect();
-    let pairs: Vec<(&str, _)> = views.iter().map(|v| (v.name.as_str(), v.capture.encoders)).collect();
-    let choice = select_rig(&pairs);
-    let rig: Vec<View> = choice.used.iter().map(|&i| views[i].clone()).collect();
-    let Some(image_size) = rig.first().map(|v| v.capture.image_size) else { bail!("no views") };
-    let lenses = match (&args.distortion, &args.lens_from) {
-        (Some(path), _) => Some(crate::calibrate::read_lenses(path)?),
-        (None, Some(spec)) => {
-            Some(crate::recording::lens_from(spec, &args.dir, &args.recording, image_size)?)
-        }
-        (None, None) => None,
-    };
-    let rig = match &lenses {
-        Some(l) => undistort_views(&rig, l),
-        None => rig,
-    };
-    let mut cal = calibrate_rig(&rig, &crate::calibrate::options(args))
-        .with_context(|| format!("session {}", args.dir.display()))?;
-    let left_out: Vec<String> = choice.left_out.into_iter().map(|(_, why)| why).collect();
-    cal.report.skipped.splice(0..0, left_out.iter().cloned());
-    let mut outcome = crate::calibrate::self_calibration_outcome(cal, None, lenses, image_size, args, t0)?;
-    outcome.json["skipped"] = serde_json::json!(left_out);
-    Ok(outcome)
 }

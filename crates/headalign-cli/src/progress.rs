@@ -111,6 +111,11 @@ impl<H: Vehicle> Vehicle for Narrated<'_, H> {
     }
 }
 
+/// Print a warning of a procedure on stderr as it arises (`warning: ...`).
+pub fn warn(text: &str) {
+    eprintln!("warning: {text}");
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -16,9 +16,9 @@ use clap::Args;
 use headalign_io::session::{ReplayHead, SessionInfo, read_session_info};
 use serde_json::Value;
 
-use crate::stages::RobotPlan;
 use crate::{calibrate, images, points, schema};
 use headalign::procedure::{RouteOutcome, VergeTiltRun};
+use headalign::robot::stages::RobotPlan;
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {
@@ -57,10 +57,10 @@ pub struct ReplayArgs {
     pub recording: crate::recording::RecordingArgs,
     /// Lens model estimated: `pinhole`, `radtan`, `equidistant` or `auto` (default: the
     /// session's own, auto for a recording).
-    #[arg(long, value_parser = crate::calibrate::parse_lens)]
+    #[arg(long, value_parser = crate::flags::parse_lens)]
     pub lens: Option<headalign::calibrate::LensChoice>,
     /// Lens coefficients estimated: `radial`, `4` or `5` (default: the session's own).
-    #[arg(long, value_parser = crate::calibrate::parse_terms)]
+    #[arg(long, value_parser = crate::flags::parse_terms)]
     pub lens_terms: Option<headalign_geometry::distortion::DistortionTerms>,
 }
 
@@ -89,7 +89,7 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
     let outcome = outcome.with_context(|| format!("replay of '{}'", args.dir.display()))?;
     let report = schema::ReplayReport {
         schema: schema::REPLAY,
-        procedure: images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?,
+        procedure: schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?,
         replayed: args.dir.display().to_string(),
         unplayed_events: None,
         still_views: Some(head.views().len()),
@@ -137,7 +137,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     let (p, views) = if info.procedure == images::PROCEDURE {
         let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
-        (images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
+        (schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
     } else if info.procedure == images::PROCEDURE_ROBOT {
         let plan = session_plan(&args.dir, &info)?.with_context(|| {
             format!(
@@ -154,9 +154,9 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             }
             RouteOutcome::Planar(_) => None,
         };
-        let p = images::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?;
+        let p = schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?;
         let views = run.run.views.len() + robot.as_ref().map_or(0, |r| r.tracking.len());
-        (images::with_robot(p, &plan, robot.as_ref())?, views)
+        (schema::with_robot(p, &plan, robot.as_ref())?, views)
     } else if info.procedure == points::PROCEDURE {
         let mut run = VergeTiltRun::default();
         let route = run.run_detecting(&mut head, &points::options(&info)).with_context(context)?;

@@ -14,7 +14,8 @@
 //! Use: build an [`HtmlReport`], add [`AlignmentResults`] (any procedure that produced a
 //! [`RigCalibration`] and an [`AlignmentSolution`] can: `align`, `demo --images`, a
 //! replay), optionally [`HtmlReport::errors_vs_truth`], figures and free sections, then
-//! [`HtmlReport::write`].
+//! [`HtmlReport::write`]. [`write_session_report`] writes the report files of a recorded
+//! image-mode run (`report.html`, `figure6.png`, `aligned.png`, the calibration files).
 //!
 //! Pitfalls: every piece of text (view names, file names, numbers) is HTML-escaped;
 //! images are referenced by a path relative to the report (the report and its images are
@@ -27,12 +28,17 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use headalign::alignment::{AlignmentSolution, VergeAxes};
 use headalign::calibration::{IntrinsicSigmas, StereoCalibration, TranslationUnit};
+use headalign::facing_plane::SceneCheck;
+use headalign::image_mode::{self, ImageRun};
 use headalign::observations::View;
 use headalign::procedure::AlignmentSigmas;
+use headalign::procedure::{PlanarOutcome, RouteOutcome, VergeTiltOutcome};
 use headalign::verge_tilt::{RigCalibration, axes_of};
 use headalign_geometry::so3::Line;
+use headalign_io::export::CalibrationFiles as _;
 use headalign_io::session::RecordedView;
-use headalign_platform::{Encoders, Joint};
+use headalign_platform::{Encoders, Joint, StereoImages};
+use headalign_vision::draw::{Canvas, MAGENTA};
 use serde_json::{Map, Value};
 
 /// The file name the commands write.
@@ -456,9 +462,13 @@ pub fn write_align_report(
     rep.alignment_results(results)?;
     if let (Some(rec), Some(view0)) = (recorded.and_then(|r| r.first()), views.first()) {
         let path = dir.join("figure6.png");
-        crate::images::figure6(&rec.images, view0, results.calibration, results.solution).save(&path)?;
+        headalign::image_mode::figure6(&rec.images, view0, results.calibration, results.solution)
+            .save(&path)?;
         written.push(path);
-        rep.figures("Annotated images", &[("figure6.png".into(), crate::images::FIGURE6_CAPTION.into())]);
+        rep.figures(
+            "Annotated images",
+            &[("figure6.png".into(), headalign::image_mode::FIGURE6_CAPTION.into())],
+        );
     }
     let path = dir.join(REPORT_FILE);
     rep.write(&path)?;
@@ -502,6 +512,254 @@ fn lens_note(d: &[headalign_geometry::distortion::Distortion; 2]) -> String {
         format!("k1 {:.5}, k2 {:.5}, p1 {:.5}, p2 {:.5}, k3 {:.5}", x.k1, x.k2, x.p1, x.p2, x.k3)
     };
     format!("lens distortion (OpenCV plumb_bob): left {}; right {}", one(&d[0]), one(&d[1]))
+}
+
+/// The text line of a scene check: `scene: kind (why)`.
+pub fn scene_line(check: &SceneCheck) -> String {
+    format!("scene: {} ({})", check.kind.name(), check.why)
+}
+
+/// The report files of a recorded image-mode run in its session folder `dir`: on the
+/// planar route `aligned.png` and a `report.html` of its numbers; on the general route
+/// `figure6.png`, `aligned.png`, `report.html` and, for a run with a lens model, the
+/// calibration files in `dir/calibration/` (their paths returned). `json` is the run's
+/// report (its title, and the errors against the truth when simulated).
+pub fn write_session_report(
+    dir: &Path,
+    run: &ImageRun,
+    route: &RouteOutcome,
+    json: &Value,
+) -> Result<Option<Vec<PathBuf>>> {
+    let o = match route {
+        RouteOutcome::General(o, _) => o,
+        RouteOutcome::Planar(p) => {
+            aligned_image(dir, run)?;
+            write_planar_report(dir, &info_title(json), run, p, json)?;
+            return Ok(None);
+        }
+    };
+    annotate(dir, run, o)?;
+    write_report(dir, &info_title(json), run, o, json)?;
+    if o.calibration.report.lens.is_none() {
+        return Ok(None);
+    }
+    Ok(Some(write_calibration_files(dir, run, o)?))
+}
+
+/// `figure6.png` ([`image_mode::figure6`]) and `aligned.png` ([`aligned_image`]).
+fn annotate(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<()> {
+    let images = &run.images;
+    let (Some(first), Some(view0)) = (images.first(), run.run.views.first()) else { return Ok(()) };
+    image_mode::figure6(first, view0, &outcome.calibration, &outcome.solution)
+        .save(&dir.join("figure6.png"))?;
+    aligned_image(dir, run)
+}
+
+/// `aligned.png`: the last check view with the image centres marked.
+fn aligned_image(dir: &Path, run: &ImageRun) -> Result<()> {
+    if let Some(last) = run.images.last() {
+        let mut c = Canvas::side_by_side(&last.left, &last.right);
+        let [w, h] = last.image_size();
+        let centre = [(f64::from(w) - 1.0) / 2.0, (f64::from(h) - 1.0) / 2.0];
+        let dx = f64::from(w);
+        for p in [centre, [centre[0] + dx, centre[1]]] {
+            c.cross(p, 20.0, MAGENTA, 2);
+        }
+        c.save(&dir.join("aligned.png"))?;
+    }
+    Ok(())
+}
+
+/// The report's title line from the run's JSON (simulated or not).
+fn info_title(json: &Value) -> String {
+    if json.get("truth").is_some() {
+        "headalign demo --images (simulated head)".into()
+    } else {
+        "headalign: verge/tilt alignment on images".into()
+    }
+}
+
+/// `DIR/report.html`: the numbers, the errors against the truth when the run was
+/// simulated (the JSON's `before` and `errors` members), the annotated images and links
+/// to every captured view of the session.
+fn write_report(
+    dir: &Path,
+    title: &str,
+    run: &ImageRun,
+    outcome: &VergeTiltOutcome,
+    json: &Value,
+) -> Result<()> {
+    let (image_size, mut rep) = report_with_intro(dir, title, run);
+    rep.alignment_results(&AlignmentResults {
+        calibration: &outcome.calibration,
+        image_size,
+        baseline_m: None,
+        verge_axes: &outcome.verge_axes,
+        reference: outcome.calibration.reference_encoders,
+        solution: &outcome.solution,
+        sigmas: &outcome.sigmas,
+    })?;
+    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
+        (json.get("before"), json.get("errors"))
+    {
+        rep.errors_vs_truth(before, errors);
+    }
+    rep.figures(
+        "Annotated images",
+        &[
+            ("figure6.png".into(), image_mode::FIGURE6_CAPTION.into()),
+            (
+                "aligned.png".into(),
+                "aligned.png: the last view, after alignment, with the image centres marked (magenta)."
+                    .into(),
+            ),
+        ],
+    );
+    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
+    rep.write(&dir.join(REPORT_FILE))
+}
+
+/// The note above the captured views' links in `report.html`.
+const VIEW_LINKS_NOTE: &str =
+    "Every captured view (PNG and view.json in each folder): headalign replay DIR re-runs them.";
+
+/// Links to both images of every view folder of the session `dir`, in order.
+fn view_links(dir: &Path) -> Vec<(String, String)> {
+    let mut folders: Vec<String> = std::fs::read_dir(dir)
+        .map(|entries| {
+            entries
+                .filter_map(Result::ok)
+                .filter(|e| e.path().join("view.json").is_file())
+                .filter_map(|e| e.file_name().to_str().map(str::to_string))
+                .collect()
+        })
+        .unwrap_or_default();
+    folders.sort();
+    folders
+        .iter()
+        .flat_map(|f| ["left", "right"].map(|side| (format!("{f}/{side}.png"), format!("{f} {side}"))))
+        .collect()
+}
+
+/// The session report's page with its introduction (image size, views, folder), and the
+/// image size.
+fn report_with_intro(dir: &Path, title: &str, run: &ImageRun) -> ([u32; 2], HtmlReport) {
+    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
+    let mut rep = HtmlReport::new(title);
+    rep.intro(&format!(
+        "{} x {} images, vision front end (verging, FAST+BRIEF features, matching); {} verge/tilt views captured; session folder {}.",
+        image_size[0],
+        image_size[1],
+        run.run.views.len(),
+        dir.display()
+    ));
+    (image_size, rep)
+}
+
+/// `DIR/report.html` of a planar-route run: its numbers ([`planar_sections`]),
+/// the errors against the truth when simulated, `aligned.png` and the captured views.
+fn write_planar_report(
+    dir: &Path,
+    title: &str,
+    run: &ImageRun,
+    outcome: &headalign::procedure::PlanarOutcome,
+    json: &Value,
+) -> Result<()> {
+    let (_, mut rep) = report_with_intro(dir, title, run);
+    planar_sections(&mut rep, outcome);
+    if let (Some(Value::Object(before)), Some(Value::Object(errors))) =
+        (json.get("before"), json.get("errors"))
+    {
+        rep.errors_vs_truth(before, errors);
+    }
+    rep.figures(
+        "Annotated images",
+        &[(
+            "aligned.png".into(),
+            "aligned.png: the check view after alignment, with the image centres marked (magenta).".into(),
+        )],
+    );
+    rep.links("Captured views", VIEW_LINKS_NOTE, view_links(dir));
+    rep.write(&dir.join(REPORT_FILE))
+}
+
+/// `DIR/calibration/`: the calibration files `calibrate --out` and `align --out` write
+/// (OpenCV YAML, ROS `camera_info`, Kalibr camchain, JSON; `StereoCalibration::write_all`)
+/// with the estimated lenses; written by a run with a lens model (`--lens`), so that the
+/// pinhole runs' sessions hold what they always held. The paths written.
+fn write_calibration_files(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<Vec<PathBuf>> {
+    let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
+    let stereo = headalign::calibration::StereoCalibration::from_rig(&outcome.calibration, image_size, None)
+        .context("calibration files")?;
+    Ok(stereo.write_all(&dir.join("calibration"))?)
+}
+
+/// The planar route's sections of a `report.html`: the scene and route, each camera's
+/// intrinsics, the aligned readings, the check after the move and what is undetermined.
+fn planar_sections(rep: &mut HtmlReport, out: &PlanarOutcome) {
+    let cal = &out.calibration;
+    rep.intro(&scene_line(&cal.scene));
+    rep.intro("Planar route (paper section 3.3): each camera from its own plane homographies; the robot stages are skipped (they need the 3D reconstruction a plane does not give).");
+    let pm = |v: f64, s: Option<f64>| format!("{v:.2} ± {:.2}", s.unwrap_or(f64::NAN));
+    let rows = [("left", &cal.left), ("right", &cal.right)]
+        .iter()
+        .map(|(name, c)| {
+            let k = &c.intrinsics;
+            vec![
+                name.to_string(),
+                pm(k.fx, c.sigma("fx")),
+                pm(k.fy, c.sigma("fy")),
+                pm(k.cx, c.sigma("cx")),
+                pm(k.cy, c.sigma("cy")),
+                format!("{:.3}", c.rms_px),
+                c.points.to_string(),
+            ]
+        })
+        .collect();
+    rep.table(
+        "Intrinsics",
+        Some("Pixels, 1-sigma from the planar model's covariance."),
+        &["camera", "fx", "fy", "cx", "cy", "rms (px)", "points"],
+        rows,
+    );
+    let (a, s) = (out.solution.aligned_encoders, out.sigmas);
+    let rows = [
+        ("elevation", a.elevation, s.elevation_deg),
+        ("verge_left", a.verge_left, s.verge_left_deg),
+        ("verge_right", a.verge_right, s.verge_right_deg),
+    ]
+    .iter()
+    .map(|(n, v, s)| vec![n.to_string(), format!("{v:.4}"), format!("{s:.4}")])
+    .collect();
+    rep.table("Aligned readings", None, &["reading", "value (deg)", "sigma (deg)"], rows);
+    if let Some(c) = out.checks.last() {
+        let m = c.measured;
+        let rows = [
+            ("verge left", m.verge_err_l_deg),
+            ("verge right", m.verge_err_r_deg),
+            ("elevation left", m.elev_err_l_deg),
+            ("elevation right", m.elev_err_r_deg),
+        ]
+        .iter()
+        .map(|(n, v)| vec![n.to_string(), format!("{v:+.4}")])
+        .collect();
+        let note = format!(
+            "Each camera against its own estimated axes; unmodelled rotation left {:.4} deg, right {:.4} deg. Not checked: {}.",
+            c.left.unmodelled_rotation_deg,
+            c.right.unmodelled_rotation_deg,
+            c.unchecked.join("; ")
+        );
+        rep.table("Check after the move", Some(&note), &["error", "measured (deg)"], rows);
+    } else if let Some(why) = &out.check_failure {
+        rep.table("Check after the move", Some(&format!("Not made: {why}.")), &["error"], Vec::new());
+    }
+    let rows = cal.undetermined.iter().map(|u| vec![u.clone()]).collect();
+    rep.table(
+        "Undetermined",
+        Some("What a plane cannot give: reported, never a number."),
+        &["quantity"],
+        rows,
+    );
 }
 
 #[cfg(test)]

@@ -13,7 +13,7 @@
 //!
 //! Adding a member: add a field to the struct of its schema (shared by demo, run and
 //! replay: [`Procedure`]; with the truth: [`DemoReport`]; the robot stages' outcome types
-//! in `crate::stages` flow through as they are), fill it where that struct is built, add
+//! in `headalign::robot::stages` flow through as they are), fill it where that struct is built, add
 //! a row to its table in docs/formats.md (the `json_schemas` integration test compares
 //! the two), and bump the schema's version when a member changes meaning or goes.
 //!
@@ -22,14 +22,22 @@
 //! the top-level members and those of `errors` and `before`.
 
 use headalign::alignment::{AlignmentSolution, InvariantLines};
+use headalign::calibration::TranslationUnit;
+use headalign::image_mode::{self as image_mode, ImageRun, RobotRun};
+use headalign::procedure::CheckVerdict;
 use headalign::procedure::{AlignmentSigmas, PlanarOutcome, RouteOutcome, VergeTiltOutcome};
+use headalign::robot::stages::RobotPlan;
+use headalign::verge_tilt::RigCalibration;
+use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
+use headalign_geometry::distortion::Distortion;
 use headalign_platform::Encoders;
-use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot};
+use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot, calibration_errors};
+use nalgebra::Isometry3;
 use serde::Serialize;
-use serde_json::Value;
+use serde_json::{Value, json};
 
-use crate::stages::RobotOutcomes;
+use headalign::robot::stages::RobotOutcomes;
 
 /// Schema of `demo --json` (and a demo session's `report.json`).
 pub const DEMO: &str = "headalign-demo/1";
@@ -108,7 +116,7 @@ pub struct Estimate {
     pub predicted_elev_err_r_deg: f64,
     pub roll_left_deg: f64,
     pub roll_right_deg: f64,
-    /// The estimated lenses (`images::lens_json`); null for pinhole cameras.
+    /// The estimated lenses ([`lens_json`]); null for pinhole cameras.
     pub lens: Option<Value>,
 }
 
@@ -435,7 +443,7 @@ impl Estimate {
             &outcome.solution,
             outcome.sigmas,
             outcome.final_encoders,
-            crate::images::lens_json(cal),
+            lens_json(cal),
         )
     }
 
@@ -519,7 +527,7 @@ impl Procedure {
             report,
             checks,
             check_failure,
-            verdict: crate::images::verdict_json(verdict)?,
+            verdict: verdict_json(verdict)?,
             model_fit: None,
             warnings: Vec::new(),
             rotations: Rotations {
@@ -532,7 +540,7 @@ impl Procedure {
             views,
             images: None,
             stages: vec![headalign_io::session::STAGE_VERGE_TILT.to_string()],
-            robot_stages: planar_route.then_some(crate::facing_plane::ROBOT_STAGES_SKIPPED),
+            robot_stages: planar_route.then_some(ROBOT_STAGES_SKIPPED),
             robot: RobotOutcomes::default(),
             robot_tracking: None,
             session: None,
@@ -608,4 +616,160 @@ impl Truth {
             pan_tilt_deg: robot.truth().pan_tilt_deg(),
         })
     }
+}
+
+/// The `verdict` member: the verdict and, when it failed, its one-line `failure`.
+pub fn verdict_json(verdict: &CheckVerdict) -> Result<Value, serde_json::Error> {
+    let mut v = serde_json::to_value(verdict)?;
+    if let Some(m) = v.as_object_mut() {
+        m.insert("failure".into(), json!(verdict.failure_line()));
+    }
+    Ok(v)
+}
+
+/// The estimated lenses of a calibration with their sigmas (`None` for a pinhole
+/// estimate): `model` (ROS names, left and right), the coefficients in each model's
+/// order (`k1 k2 p1 p2 k3` or `k1..k4`), `sigma` per estimated coefficient (`left.k1`
+/// ...), and how they were estimated (`estimation`: first estimate, the auto choice).
+pub fn lens_json(calib: &RigCalibration) -> Option<Value> {
+    let lens = calib.report.lens.as_ref()?;
+    let st = &calib.bundle.state;
+    let cov = &calib.bundle.covariance;
+    let mut sigma = serde_json::Map::new();
+    for (side, d) in [("left", &st.left_distortion), ("right", &st.right_distortion)] {
+        for name in d.kind.coefficient_names() {
+            let key = format!("{side}.{name}");
+            if let Some(s) = cov.sigma(&key) {
+                sigma.insert(key, json!(s));
+            }
+        }
+    }
+    Some(json!({
+        "model": [st.left_distortion.kind.ros_name(), st.right_distortion.kind.ros_name()],
+        "left": st.left_distortion.coefficients(),
+        "right": st.right_distortion.coefficients(),
+        "sigma": sigma,
+        "estimation": serde_json::to_value(lens).ok(),
+    }))
+}
+
+/// The robot stages' entry of a planar-route report: why they did not run.
+pub const ROBOT_STAGES_SKIPPED: &str = "skipped: they need the 3D reconstruction a plane does not give";
+/// The report's name of a translation unit.
+pub fn unit_name(unit: TranslationUnit) -> &'static str {
+    match unit {
+        TranslationUnit::Metres => "m",
+        TranslationUnit::Baselines => "baselines",
+    }
+}
+
+/// The `distortion` member: each camera's model and coefficients (in the model's order,
+/// OpenCV's `D`), and the sigma of every estimated coefficient (none without a covariance `c`).
+pub fn distortion_json(distortion: &[Distortion; 2], estimated: bool, c: Option<&Covariance>) -> Value {
+    let mut sigma = serde_json::Map::new();
+    for (side, d) in ["left", "right"].iter().zip(distortion) {
+        for name in d.kind.coefficient_names() {
+            let key = format!("{side}.{name}");
+            if let Some(s) = c.and_then(|c| c.sigma(&key)) {
+                sigma.insert(key, json!(s));
+            }
+        }
+    }
+    json!({
+        "estimated": estimated,
+        "model": [distortion[0].kind.ros_name(), distortion[1].kind.ros_name()],
+        "left": distortion[0].coefficients(), "right": distortion[1].coefficients(),
+        "sigma": sigma,
+    })
+}
+
+pub fn rig_json(m: &Isometry3<f64>) -> Value {
+    let (axis, angle) = m.rotation.axis_angle().map_or(([0.0; 3], 0.0), |(a, t)| ([a.x, a.y, a.z], t));
+    let t = m.translation.vector;
+    json!({"rotation_deg": angle.to_degrees(), "rotation_axis": axis, "translation_direction": [t.x / t.norm(), t.y / t.norm(), t.z / t.norm()]})
+}
+
+pub fn k_json(k: &Intrinsics) -> Value {
+    json!({"fx": k.fx, "fy": k.fy, "skew": k.skew, "cx": k.cx, "cy": k.cy})
+}
+
+/// The file `alignment.json` of `align --out` on `route`: the reference and aligned
+/// readings with their sigmas, the rolls and what the scene leaves `undetermined`.
+pub fn alignment_file(
+    route: &'static str,
+    reference: Encoders,
+    solution: &AlignmentSolution,
+    sigmas: AlignmentSigmas,
+    undetermined: &[String],
+) -> AlignmentFile {
+    AlignmentFile::new(route, reference, solution, sigmas, undetermined)
+}
+
+/// The members of an image-mode run on either route ([`Procedure`]): the
+/// estimate, checks and timings, and the front end's report (`images`); no robot stages
+/// ([`with_robot`] adds them).
+pub fn procedure_report(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> anyhow::Result<Procedure> {
+    let views = run.run.views.iter().map(|v| v.name.clone()).collect();
+    let mut p = Procedure::new("images", route, views, run.auto_rotation, total_s)?;
+    let (verdict, fit) = image_mode::judgement(run, route);
+    p.verdict = verdict_json(&verdict)?;
+    if let Some(fit) = &fit {
+        p.warnings.extend(fit.warnings.iter().cloned());
+        p.model_fit = Some(serde_json::to_value(fit)?);
+    }
+    p.images = Some(json!({
+        "verging": serde_json::to_value(&run.verging)?,
+        "tracking": serde_json::to_value(&run.tracking)?,
+        "views": run.run.views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
+    }));
+    Ok(p)
+}
+
+/// The stages of `plan` and, when they ran, their outcomes and the front end's report per
+/// robot-stage capture (`robot_tracking`).
+pub fn with_robot(
+    p: Procedure,
+    plan: &RobotPlan,
+    robot: Option<&RobotRun>,
+) -> Result<Procedure, serde_json::Error> {
+    let mut p = p.with_robot(&plan.stages, robot.map(|r| &r.outcomes));
+    if let Some(r) = robot {
+        p.robot_tracking = Some(serde_json::to_value(&r.tracking)?);
+    }
+    Ok(p)
+}
+/// The JSON of `demo --images` ([`DemoReport`]): the run's `procedure` (on `route`, with
+/// the robot stages' outcomes `stages`) against the simulated robot's truth after the
+/// run, and its errors `before` any stage.
+pub fn demo_images_report(
+    robot: &SimulatedRobot,
+    scenario: &Scenario,
+    route: &RouteOutcome,
+    procedure: Procedure,
+    stages: Option<&RobotOutcomes>,
+    before: Before,
+) -> anyhow::Result<DemoReport> {
+    let head = robot.head();
+    let after = head.alignment_errors(&head.encoders());
+    let truth = Truth::of(robot, scenario)?;
+    let (k_left, k_right) = match route {
+        RouteOutcome::General(o, _) => (o.calibration.bundle.state.left, o.calibration.bundle.state.right),
+        RouteOutcome::Planar(p) => (p.calibration.left.intrinsics, p.calibration.right.intrinsics),
+    };
+    let t = head.truth();
+    let cal = calibration_errors(&t.left, &t.right, &k_left, &k_right);
+    let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
+    let pan_after = stages.filter(|o| o.panned()).map(|_| robot.pan_err_deg(&head.encoders()));
+    let steer_after =
+        stages.and_then(|o| o.steering.as_ref()).map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
+    let aligned = procedure.estimate.aligned_encoders;
+    Ok(DemoReport {
+        schema: DEMO,
+        procedure,
+        scenario: serde_json::to_value(scenario)?,
+        errors: Errors::new(&after, unavoidable_r, &cal, None, pan_after, steer_after),
+        before,
+        aligned_reading_errors_deg: ReadingErrors::new(&aligned, &truth.aligned_encoders),
+        truth,
+    })
 }

@@ -163,6 +163,23 @@ pub enum AlignError {
     /// topic, an unsupported encoding, images with no partner, a malformed file.
     #[error("recording: {0}")]
     Recording(String),
+    /// A named step of a procedure failed: the step's name (its message), the failure as
+    /// the source (printed after it by a caller that prints the chain, `step: cause`).
+    #[error("{step}")]
+    InStep {
+        /// The step, e.g. `verging`.
+        step: String,
+        /// What failed in it.
+        #[source]
+        source: Box<AlignError>,
+    },
+}
+
+impl AlignError {
+    /// This error as the failure of the step `step` ([`AlignError::InStep`]).
+    pub fn in_step(self, step: &str) -> Self {
+        AlignError::InStep { step: step.to_string(), source: Box::new(self) }
+    }
 }
 
 /// Attach the name of a step to geometry errors.

@@ -19,7 +19,10 @@
 //!   captures.
 //! - [`calibration`]: a calibrated stereo pair ([`calibration::StereoCalibration`]) with
 //!   its rectification.
-//! - [`robot`]: the robot stages (pan, steering, floor), pan alignment without calibration
+//! - [`image_mode`]: the procedure on images through the front end (verging first) and the
+//!   robot stages on images, over any `ImagingHead`.
+//! - [`robot`]: the robot stages (pan, steering, floor) and their driver ([`robot::stages`]),
+//!   pan alignment without calibration
 //!   by fixating a drive's epipole ([`robot::pan_fixation`]) and one-motion alignment
 //!   ([`robot::one_motion`]).
 //! - [`fixation`]: verging and fixating with no calibration; [`tracking`]: the tracker.
@@ -63,6 +66,7 @@ pub mod calibration;
 pub mod error;
 pub mod facing_plane;
 pub mod fixation;
+pub mod image_mode;
 pub mod observations;
 pub mod plan;
 pub mod procedure;

@@ -209,7 +209,7 @@ fn demo_on_rendered_images_aligns_and_saves_the_views() {
     assert!(v["errors"]["f_err_pct"].as_f64().unwrap() < 2.0);
     assert!(v["before"]["verge_err_l_deg"].is_number());
     // Image mode reports sigmas from the track-clustered covariance
-    // (`images::tracked_estimation`): it widens some sigma over the Gaussian model's
+    // (`headalign::image_mode::tracked_estimation`): it widens some sigma over the Gaussian model's
     // (measured 1.5-2.0x on seeds 1-3), and the focal sigma is reported.
     let inflation = v["report"]["sigma_inflation"].as_f64().unwrap();
     assert!(inflation > 1.0 && inflation.is_finite(), "sigma_inflation {inflation}");

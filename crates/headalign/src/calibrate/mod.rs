@@ -84,7 +84,8 @@
 //! and focal sigmas), `density` (the corner density of self-calibration from images); the
 //! lens models, their choice and the checks themselves are [`crate::rig`]'s, shared with
 //! the verge/tilt route;
-//! `calibrate_once` chains them. Sequences: `route` (which tracking and chain a folder
+//! `calibrate_once` chains them; `views` is the one entry point for a list of stereo
+//! views ([`calibrate_views`]: rig selection, known lenses, corner density). Sequences: `route` (which tracking and chain a folder
 //! gets), `graph` (keyframes, view graph, segments, spanning trees), `sequence` (the
 //! sequence chain, reusing the steps above).
 
@@ -104,6 +105,7 @@ mod sequence;
 #[cfg(test)]
 mod tests;
 mod two_pass;
+pub mod views;
 
 use headalign_geometry::GeometryError;
 use headalign_geometry::bundle::{BundleObservation, BundleResult};
@@ -125,12 +127,13 @@ pub use route::{
     calibrate_tracked, track_views, track_views_reporting,
 };
 pub use sequence::{RANSAC_PAIRS, SequenceReport, calibrate_sequence};
+pub use views::{CalibrateViewsOptions, StereoViews, ViewsCalibration, ViewsProgress, calibrate_views};
 
 use crate::error::AlignError;
 use crate::observations::View;
 pub use crate::rig::{
     FailedCandidate, ImageNoiseCheck, LensCandidate, LensChoice, LensModel, LensSelection, LensSpec,
-    MeasuredVariances, image_noise, read_opencv_lenses, residuals, undistort_views,
+    MeasuredVariances, image_noise, lens_terms, read_opencv_lenses, residuals, undistort_views,
 };
 use crate::verge_tilt::EstimationOptions;
 

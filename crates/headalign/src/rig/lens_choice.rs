@@ -457,6 +457,16 @@ fn equidistant_like(radtan: &Distortion, field: f64, terms: DistortionTerms) -> 
     out
 }
 
+/// The coefficients estimated of `lens`: `given` when given; otherwise every candidate's
+/// terms for [`LensChoice::Auto`] (it chooses them) and `k1 k2` for a given model.
+pub fn lens_terms(lens: LensChoice, given: Option<DistortionTerms>) -> DistortionTerms {
+    match (lens, given) {
+        (_, Some(t)) => t,
+        (LensChoice::Auto, None) => DistortionTerms::Full5,
+        (_, None) => DistortionTerms::Radial2,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -18,4 +18,4 @@ pub const FINAL_ITERATIONS: usize = 300;
 
 pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
 pub use known_lens::{LensModel, read_opencv_lenses, undistort_views};
-pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec};
+pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec, lens_terms};

@@ -174,6 +174,7 @@ mod pan;
 pub mod pan_fixation;
 mod propagation;
 mod rig;
+pub mod stages;
 mod steering;
 #[cfg(test)]
 mod tests;

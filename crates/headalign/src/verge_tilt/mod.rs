@@ -423,7 +423,7 @@ impl DepthStepGate {
     /// seeds at 3-7); radius 25 px and ratio 1.2 flagged fewer tracks and did less (1.17,
     /// 1.90); dropping as many random tracks changed nothing (1.28, 2.18). In the full
     /// pipeline (gate before the maximum-likelihood pass, `bench/seeds.py 1 20 --images`
-    /// with it set in `images::tracked_estimation`) it did not pay: the z-scores hardly
+    /// with it set in `image_mode::tracked_estimation`) it did not pay: the z-scores hardly
     /// moved and the focal and elevation errors grew (README), so nothing sets it by
     /// default.
     pub const IMAGES: DepthStepGate = DepthStepGate { radius_px: 40.0, ratio: 1.15 };

@@ -1,6 +1,8 @@
-//! `headalign experiment <name>`: Monte-Carlo experiments of the verge/tilt procedure on
-//! the simulated head (paper section 5, figure 5), with the Cramer-Rao bound and the
-//! coverage of the reported uncertainties.
+//! headalign-eval: the Monte-Carlo experiments of `headalign experiment <name>` (the
+//! command line's subcommand calls [`run`] with its [`ExperimentArgs`]): the verge/tilt
+//! procedure on the simulated head (paper section 5, figure 5), with the Cramer-Rao bound
+//! ([`trial`]: the scoring of each trial against it) and the coverage of the reported
+//! uncertainties.
 //!
 //! An experiment is a list of conditions (a swept parameter value `x`: noise in pixels,
 //! point count, rotation in degrees or outlier fraction) times `trials` seeds. A *trial*
@@ -34,6 +36,10 @@
 //! Each experiment's conditions, series and default trial count are defined in [`catalog`].
 //! `lens` ([`lens`] module) runs the `calibrate` route with a lens model instead of the
 //! verge/tilt procedure (its own runner, tables and plot); `all` runs it last.
+
+// The experiments' docs link their private helpers (read with `cargo doc
+// --document-private-items`).
+#![allow(rustdoc::private_intra_doc_links)]
 
 mod catalog;
 pub mod lens;
@@ -158,6 +164,17 @@ fn parse_bootstrap(v: &str) -> Result<BootstrapSetting, String> {
         return Ok(BootstrapSetting(None));
     }
     crate::parse_replicates(v).map(|b| BootstrapSetting(Some(b)))
+}
+
+/// Parse a bootstrap replicate count (`--bootstrap` of `experiment` and `align`),
+/// validated as [`EstimationOptions::validate`] does.
+pub fn parse_replicates(v: &str) -> Result<BootstrapOptions, String> {
+    let replicates = v.trim().parse::<usize>().map_err(|e| format!("'{v}': {e}"))?;
+    let b = BootstrapOptions { replicates, ..BootstrapOptions::default() };
+    EstimationOptions { bootstrap: Some(b), ..EstimationOptions::default() }
+        .validate()
+        .map_err(|e| e.to_string())?;
+    Ok(b)
 }
 
 /// Parse `readings` / `independent`.
