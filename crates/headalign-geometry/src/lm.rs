@@ -1,8 +1,11 @@
 //! The one Levenberg-Marquardt loop of the project (Hartley & Zisserman appendix A6.2;
 //! Madsen, Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004,
-//! section 3.2). Every non-linear least-squares refinement runs it: the rig bundle
-//! adjustment, the rig motion, the planar route's adjustment, the refinements of F (7
-//! dof), of a 3D homography (16), of a pose (6) and the small Gauss-Newton fits.
+//! section 3.2). The rig bundle adjustment, the rig motion, the refinements of F (7
+//! dof), of a 3D homography (16), of a pose (6), of a translation and of a frame, and the
+//! small fits (the planar check's rotation, the steering zero) run it. Not yet: the
+//! planar route's adjustment (`headalign::planar::refine`), whose profile runs stop at an
+//! iteration limit before convergence, so that its results depend on the damping path
+//! (under this policy `experiment planar` changed beyond rounding).
 //!
 //! # What it computes
 //!
