@@ -424,9 +424,24 @@ pub fn minimise<const N: usize, S>(
         function_tolerance: MINIMISE_FUNCTION_TOLERANCE,
         parameter_tolerance: 0.0,
     };
+    minimise_with(start, start_cost, &options, normal_equations, retract, cost)
+}
+
+/// [`minimise`] under the stopping rules `options` (the parameter tolerance against `|x| =
+/// 0`: a step at most `parameter_tolerance^2` long). A function tolerance of 0 runs to
+/// rounding: until no step lowers the cost (the damping limit), what a fit that is
+/// differentiated numerically needs.
+pub fn minimise_with<const N: usize, S>(
+    start: S,
+    start_cost: f64,
+    options: &LmOptions,
+    normal_equations: impl Fn(&S) -> Option<(SMatrix<f64, N, N>, SVector<f64, N>)>,
+    retract: impl Fn(&S, &SVector<f64, N>) -> Option<S>,
+    cost: impl Fn(&S) -> f64,
+) -> (S, f64) {
     let mut problem =
         Closures { normal: normal_equations, retract, cost, state: std::marker::PhantomData::<fn(&S)> };
-    match run(&mut problem, start, 0.5 * start_cost, &options) {
+    match run(&mut problem, start, 0.5 * start_cost, options) {
         Ok(out) => (out.state, 2.0 * out.value),
         Err(never) => match never {},
     }
