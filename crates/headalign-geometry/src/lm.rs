@@ -1,8 +1,11 @@
 //! The one Levenberg-Marquardt loop of the project (Hartley & Zisserman appendix A6.2;
 //! Madsen, Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004,
-//! section 3.2). Every non-linear least-squares refinement runs it: the rig bundle
-//! adjustment, the rig motion, the planar route's adjustment, the refinements of F (7
-//! dof), of a 3D homography (16), of a pose (6) and the small Gauss-Newton fits.
+//! section 3.2). The rig bundle adjustment, the rig motion, the refinements of F (7
+//! dof), of a 3D homography (16), of a pose (6), of a translation and of a frame, and the
+//! small fits (the planar check's rotation, the steering zero) run it. Not yet: the
+//! planar route's adjustment (`headalign::planar::refine`), whose profile runs stop at an
+//! iteration limit before convergence, so that its results depend on the damping path
+//! (under this policy `experiment planar` changed beyond rounding).
 //!
 //! # What it computes
 //!
@@ -421,9 +424,24 @@ pub fn minimise<const N: usize, S>(
         function_tolerance: MINIMISE_FUNCTION_TOLERANCE,
         parameter_tolerance: 0.0,
     };
+    minimise_with(start, start_cost, &options, normal_equations, retract, cost)
+}
+
+/// [`minimise`] under the stopping rules `options` (the parameter tolerance against `|x| =
+/// 0`: a step at most `parameter_tolerance^2` long). A function tolerance of 0 runs to
+/// rounding: until no step lowers the cost (the damping limit), what a fit that is
+/// differentiated numerically needs.
+pub fn minimise_with<const N: usize, S>(
+    start: S,
+    start_cost: f64,
+    options: &LmOptions,
+    normal_equations: impl Fn(&S) -> Option<(SMatrix<f64, N, N>, SVector<f64, N>)>,
+    retract: impl Fn(&S, &SVector<f64, N>) -> Option<S>,
+    cost: impl Fn(&S) -> f64,
+) -> (S, f64) {
     let mut problem =
         Closures { normal: normal_equations, retract, cost, state: std::marker::PhantomData::<fn(&S)> };
-    match run(&mut problem, start, 0.5 * start_cost, &options) {
+    match run(&mut problem, start, 0.5 * start_cost, options) {
         Ok(out) => (out.state, 2.0 * out.value),
         Err(never) => match never {},
     }

@@ -16,7 +16,7 @@
 //! given by a hint (the direction the robot drove). Then `(p, L)` are linear for fixed `z`:
 //! a scan of `z` over `(-45, 45)` degrees between the singularities of `cot`, then
 //! least squares on `(p, L, z)` (analytic Jacobian) by the project's Levenberg-Marquardt
-//! ([`crate::lm`]) to the cost's rounding level.
+//! ([`crate::lm`]) until no step lowers the cost (machine precision).
 //!
 //! Units: the centres' length unit (e.g. stereo baselines) for `L` and `p`; degrees for
 //! encoders and `z`. Residual: distance along the axle line, centre units.
@@ -215,7 +215,8 @@ fn scan_zero(u: &[f64], e: &[f64], wheelbase: Option<f64>) -> Option<(f64, f64, 
 const REFINE_ITERATIONS: usize = 50;
 
 /// The least-squares `(z, p, L)` of the positions `u` along the axle line at encoder
-/// readings `e` (radians) from `start` (the scan's best), by [`crate::lm::minimise`]
+/// readings `e` (radians) from `start` (the scan's best), by [`crate::lm::minimise_with`]
+/// run to rounding
 /// (analytic Jacobian; `L` held when `hold_l`, the wheelbase known). Residuals in centre
 /// units.
 fn refine(u: &[f64], e: &[f64], start: (f64, f64, f64), hold_l: bool) -> (f64, f64, f64) {
@@ -241,7 +242,14 @@ fn refine(u: &[f64], e: &[f64], start: (f64, f64, f64), hold_l: bool) -> (f64, f
         Some((jtj, jtr))
     };
     let x0 = Vector3::new(start.1, start.2, start.0);
-    let (x, _) = crate::lm::minimise(x0, cost(&x0), REFINE_ITERATIONS, normal, |x, d| Some(x + d), cost);
+    // To rounding (no function tolerance): the robot's steering stage differentiates this
+    // fit by central differences at 1e-6.
+    let options = crate::lm::LmOptions {
+        max_iterations: REFINE_ITERATIONS,
+        function_tolerance: 0.0,
+        parameter_tolerance: 0.0,
+    };
+    let (x, _) = crate::lm::minimise_with(x0, cost(&x0), &options, normal, |x, d| Some(x + d), cost);
     (x.z, x.x, x.y)
 }
 

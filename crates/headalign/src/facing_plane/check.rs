@@ -226,9 +226,9 @@ fn residual(
 /// before: a 3-dof fit from a start within a degree).
 const FIT_ITERATIONS: usize = 50;
 
-/// The least-squares `delta` (3 dof) from `start` by [`lm::minimise`] (the project's
-/// Levenberg-Marquardt with the dense back end), numeric Jacobian (central differences at
-/// 1e-7 rad).
+/// The least-squares `delta` (3 dof) from `start` by [`lm::minimise_with`] (the project's
+/// Levenberg-Marquardt with the dense back end) until no step lowers the cost, numeric
+/// Jacobian (central differences at 1e-7 rad).
 fn fit_rotation(
     data: &[(Vector3<f64>, Point2<f64>)],
     km: &Matrix3<f64>,
@@ -254,5 +254,8 @@ fn fit_rotation(
         }
         Some((jtj, jtr))
     };
-    lm::minimise(start, cost(&start), FIT_ITERATIONS, normal, |d, step| Some(d + step), cost).0
+    // To rounding (no function tolerance), as a Gauss-Newton run to convergence.
+    let options =
+        lm::LmOptions { max_iterations: FIT_ITERATIONS, function_tolerance: 0.0, parameter_tolerance: 0.0 };
+    lm::minimise_with(start, cost(&start), &options, normal, |d, step| Some(d + step), cost).0
 }
