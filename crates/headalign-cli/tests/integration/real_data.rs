@@ -1,6 +1,5 @@
-//! `headalign calibrate` on the real images in `../shared/data` (see each folder's README
-//! for provenance and licence; docs/real-data.md for the numbers). Skipped, with a
-//! message, only if that folder is absent; it is present in CI.
+//! `headalign calibrate` on the real images in `data/` (see each folder's README for
+//! provenance and licence; docs/real-data.md for the numbers).
 //!
 //! Reference data in `tests/data`: `motorcycle_calibration.yml` (the Middlebury
 //! calibration of the down-sampled pair, from the data's README), and from
@@ -13,14 +12,8 @@ use std::process::Command;
 
 use serde_json::Value;
 
-fn data_dir() -> Option<PathBuf> {
-    let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
-    if d.is_dir() {
-        Some(d)
-    } else {
-        eprintln!("SKIPPED: {} is absent (the real-image tests need ../shared/data)", d.display());
-        None
-    }
+fn data_dir() -> &'static Path {
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../data"))
 }
 
 fn fixture(name: &str) -> PathBuf {
@@ -78,7 +71,7 @@ fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
 /// (measured 0.23 deg, 0.39 deg with refinement off; bound 1 deg; docs/real-data.md).
 #[test]
 fn motorcycle_f_agrees_with_the_known_calibration() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = data.join("skimage_data/motorcycle_stereo");
     let cal = fixture("motorcycle_calibration.yml");
     let (ok, j, err) = calibrate(&[dir.to_str().unwrap(), "--intrinsics", cal.to_str().unwrap(), "--json"]);
@@ -109,7 +102,7 @@ fn motorcycle_f_agrees_with_the_known_calibration() {
 /// has no projective reconstruction) and says so, with a non-zero exit.
 #[test]
 fn chessboard_self_calibration_names_the_degeneracy() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = data.join("opencv_samples/stereo_chessboard");
     let (ok, _, err) = calibrate(&[dir.to_str().unwrap()]);
     assert!(!ok);
@@ -132,7 +125,7 @@ fn chessboard_self_calibration_names_the_degeneracy() {
 /// rotation within 0.5 deg (measured 0.19 deg; 0.15 deg unrefined).
 #[test]
 fn chessboard_with_known_intrinsics_agrees_with_the_board() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = data.join("opencv_samples/stereo_chessboard");
     let cal = fixture("chessboard_reference.yml");
     let (ok, j, err) = calibrate(&[dir.to_str().unwrap(), "--intrinsics", cal.to_str().unwrap(), "--json"]);
@@ -249,7 +242,7 @@ fn euroc_focal_errors(j: &Value) -> Vec<f64> {
 /// their sigmas; the report file holds the same JSON.
 #[test]
 fn euroc_raw_pairs_default_flags_give_the_focal_lengths() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = euroc_one_motion(&data, "auto");
     let out_dir = dir.path().join("out");
     let out = Command::new(env!("CARGO_BIN_EXE_headalign"))
@@ -315,7 +308,7 @@ fn euroc_raw_pairs_default_flags_give_the_focal_lengths() {
 /// candidate with a one-line reason and the text says it was left out.
 #[test]
 fn euroc_lens_auto_leaves_out_a_failed_candidate() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = euroc_pairs(&data, "failed-candidate", [2, 3]);
     let out_dir = dir.path().join("out");
     let out = Command::new(env!("CARGO_BIN_EXE_headalign"))
@@ -378,7 +371,7 @@ fn euroc_intrinsics_within_3_sigmas_or_warned(j: &Value) {
 /// that YAML back as an equidistant lens.
 #[test]
 fn euroc_raw_pairs_lens_models_and_their_files() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = euroc_one_motion(&data, "models");
     let d = dir.path().to_str().unwrap();
     let (ok, j, err) = calibrate(&[d, "--lens", "radtan", "--zero-skew", "--json"]);
@@ -427,7 +420,7 @@ fn euroc_raw_pairs_lens_models_and_their_files() {
 /// "A held-out motion"): an open defect.
 #[test]
 fn euroc_held_out_weak_motion_is_warned() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = euroc_pairs(&data, "held-out", [1, 0]);
     let d = dir.path().to_str().unwrap();
     let lens = fixture("euroc_v101_lenses.yml");
@@ -472,7 +465,7 @@ fn euroc_dataset_calibration_held() {
     use headalign_geometry::distortion::LensKind;
     use headalign_platform::{GrayImage, StereoImages};
 
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let rss = |state: &RigState, obs: &[BundleObservation]| -> f64 {
         obs.iter().filter_map(|o| residual_pixels(state, o)).map(|r| r.norm_squared()).sum()
     };
@@ -558,7 +551,7 @@ fn euroc_dataset_calibration_held() {
 /// intrinsics are within 3 sigmas of the dataset's or a warning says why not.
 #[test]
 fn euroc_four_pairs_calibrate_with_both_motions() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let src = data.join("euroc_v101_pairs");
     let dir = std::env::temp_dir().join(format!("headalign-euroc4-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
