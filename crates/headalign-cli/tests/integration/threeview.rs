@@ -8,11 +8,7 @@ use std::path::Path;
 
 use serde_json::Value;
 
-use super::common::{bin, ok_json};
-
-fn sessions_dir() -> &'static Path {
-    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../data/threeview_sessions"))
-}
+use super::common::{bin, data_dir, ok_json};
 
 fn read_json(path: &Path) -> Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
@@ -47,7 +43,7 @@ fn fixation_z(dir: &Path) -> Vec<[f64; 2]> {
 /// less the principal point's).
 #[test]
 fn fixation_sigmas_cover_the_independent_sessions() {
-    let root = sessions_dir();
+    let root = data_dir().join("threeview_sessions");
     let mut z = [Vec::new(), Vec::new()];
     for seed in 1..=10 {
         for [x, y] in fixation_z(&root.join(format!("seed{seed:02}"))) {

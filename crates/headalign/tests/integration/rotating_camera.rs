@@ -7,8 +7,6 @@
 //! ([`headalign_geometry::selfcal::calibrate_from_infinite_homographies`], the solver
 //! `headalign calibrate` uses for one general motion).
 
-use std::path::Path;
-
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::homography2d::Homography2Estimator;
 use headalign_geometry::ransac::{RansacOptions, ransac};
@@ -17,6 +15,8 @@ use headalign_vision::{
     FeatureOptions, GrayImage, MatchOptions, detect_and_describe, match_descriptors, match_homography,
 };
 use nalgebra::Point2;
+
+use super::common::data_path;
 
 /// Measured: fx = fy = 693.0 (1.0 % low), principal point (322.4, 238.6) from 64 inlier
 /// matches of 85 after guided matching (without it, 49 inliers gave 684-691 depending on
@@ -28,8 +28,7 @@ use nalgebra::Point2;
 /// focal length.
 #[test]
 fn one_rotation_of_a_real_camera_gives_k() {
-    let dir =
-        Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../data/opencv_samples/blender_suzanne_rotation"));
+    let dir = data_path("opencv_samples/blender_suzanne_rotation");
     let a = GrayImage::load(&dir.join("Blender_Suzanne1.jpg")).unwrap();
     let b = GrayImage::load(&dir.join("Blender_Suzanne2.jpg")).unwrap();
     let options = FeatureOptions { max_features: 3000, ..FeatureOptions::default() };
