@@ -8,7 +8,6 @@ use headalign::AlignError;
 use headalign::procedure::{AxisPerturbations, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun};
 use headalign::robot::{PanOptions, SteeringOptions, align_pan, zero_steering};
 use headalign::verge_tilt::EstimationOptions;
-use headalign_platform::StereoHead;
 use headalign_sim::{Scenario, SimulatedRobot};
 
 /// A simulated robot for `s` and its verge/tilt calibration (estimation seed = the
