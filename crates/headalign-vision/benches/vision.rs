@@ -12,7 +12,7 @@
 //! the benchmark with the reason. Thread count: set `RAYON_NUM_THREADS=1` for one thread.
 
 use std::hint::black_box;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use headalign_vision::{

@@ -207,7 +207,7 @@ fn euroc_focal_errors(j: &Value) -> Vec<f64> {
 #[test]
 fn euroc_raw_pairs_default_flags_give_the_focal_lengths() {
     let data = data_dir();
-    let dir = euroc_one_motion(&data, "auto");
+    let dir = euroc_one_motion(data, "auto");
     let out_dir = dir.join("out");
     let out = bin().args(["calibrate", dir.to_str().unwrap(), "--out"]).arg(&out_dir).output().unwrap();
     let (text, err) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
@@ -269,7 +269,7 @@ fn euroc_raw_pairs_default_flags_give_the_focal_lengths() {
 #[test]
 fn euroc_lens_auto_leaves_out_a_failed_candidate() {
     let data = data_dir();
-    let dir = euroc_pairs(&data, "failed-candidate", [2, 3]);
+    let dir = euroc_pairs(data, "failed-candidate", [2, 3]);
     let out_dir = dir.join("out");
     let out = bin()
         .args(["calibrate", dir.to_str().unwrap(), "--free-skew", "--corners", "1500", "--out"])
@@ -332,7 +332,7 @@ fn euroc_intrinsics_within_3_sigmas_or_warned(j: &Value) {
 #[test]
 fn euroc_raw_pairs_lens_models_and_their_files() {
     let data = data_dir();
-    let dir = euroc_one_motion(&data, "models");
+    let dir = euroc_one_motion(data, "models");
     let d = dir.to_str().unwrap();
     let (ok, j, err) = calibrate(&[d, "--lens", "radtan", "--zero-skew", "--json"]);
     assert!(ok, "{err}");
@@ -381,7 +381,7 @@ fn euroc_raw_pairs_lens_models_and_their_files() {
 #[test]
 fn euroc_held_out_weak_motion_is_warned() {
     let data = data_dir();
-    let dir = euroc_pairs(&data, "held-out", [1, 0]);
+    let dir = euroc_pairs(data, "held-out", [1, 0]);
     let d = dir.to_str().unwrap();
     let lens = fixture("euroc_v101_lenses.yml");
     let known = ["--distortion", lens.to_str().unwrap(), "--zero-skew", "--square-pixels"];
@@ -433,7 +433,7 @@ fn euroc_dataset_calibration_held() {
     let lenses =
         read_opencv_lenses(&std::fs::read_to_string(&file).unwrap(), "euroc_v101_lenses.yml").unwrap();
     for pairs in [[3, 2], [1, 0]] {
-        let dir = euroc_pairs(&data, "held", pairs);
+        let dir = euroc_pairs(data, "held", pairs);
         let views: Vec<(String, StereoImages)> = (0..2)
             .map(|i| {
                 let load = |side: &str| GrayImage::load(&dir.join(format!("{side}{i:02}.png"))).unwrap();
