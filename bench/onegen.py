@@ -12,7 +12,7 @@ default scenario with square-pixel cameras, as `--square-pixels` assumes; with
 simulator's truth.json. `--motion rotations` records two head rotations instead (the
 default scenario's cameras, calibrated with no constraints). Flags after `--` go to
 `calibrate` (e.g. `-- --tracking reference`); `--procedural` renders the
-procedural textures (as a clone without ../shared/data); `--near N` adds N near
+procedural textures (`render.use_photos = false`); `--near N` adds N near
 panels (Scenario::near_panels) to the scene; `--reuse` keeps the sessions already in
 the --keep folder (compare calibrate flags on the same images). Prints one line per seed and a summary; a seed whose calibrate
 warns is marked "warned", and one that `calibrate` re-detected with more corners (its

@@ -24,12 +24,12 @@ import cv2
 import numpy as np
 
 cv2.setNumThreads(int(os.environ.get("OPENCV_THREADS", "1")))
-# The default image: the shared data folder beside the repository (as the vision bench's default).
-DEFAULT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data",
+# The default image: the repository's data/ folder (as the vision bench's default).
+DEFAULT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "data",
                        "opencv_samples", "textures", "building.jpg")
 PATH = sys.argv[1] if len(sys.argv) > 1 else os.path.normpath(DEFAULT)
 if not os.path.isfile(PATH):
-    sys.exit(f"{PATH} is absent: put the shared data folder beside the repository or give the image's path")
+    sys.exit(f"{PATH} is absent: give the image's path")
 
 
 def timeit(fn, reps=50):

@@ -2,7 +2,7 @@
 """Reference numbers for docs/real-data.md from the data's own calibration, with OpenCV
 (pip opencv-python-headless; a script, not a dependency of the crates).
 
-1. OpenCV stereo chessboard (../shared/data/opencv_samples/stereo_chessboard): the board's
+1. OpenCV stereo chessboard (data/opencv_samples/stereo_chessboard): the board's
    corners in every pair (findChessboardCorners + cornerSubPix, 9x6, 25 mm), then
    cv2.stereoCalibrate: once with the data's intrinsics.yml held fixed (its RMS shows how
    well that file fits), once re-estimating everything from it (the reference: M1 D1 M2 D2
@@ -23,7 +23,7 @@ import numpy as np
 
 here = os.path.dirname(os.path.abspath(__file__))
 root = os.path.dirname(here)
-data = sys.argv[1] if len(sys.argv) > 1 else os.path.join(root, "..", "shared", "data")
+data = sys.argv[1] if len(sys.argv) > 1 else os.path.join(root, "data")
 board = os.path.join(data, "opencv_samples", "stereo_chessboard")
 
 fs = cv2.FileStorage(os.path.join(board, "intrinsics.yml"), cv2.FILE_STORAGE_READ)

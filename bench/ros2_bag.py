@@ -5,7 +5,7 @@ headalign reads what other ROS 2 tools write.
 
 usage:
   bench/ros2_bag.py euroc OUT.mcap [--encoding mono8|rgb8|bgr8|mono16|png] [--compression zstd|lz4|none]
-      the EuRoC pairs 3 and 2 of ../shared/data/euroc_v101_pairs as /cam0/image_raw and
+      the EuRoC pairs 3 and 2 of data/euroc_v101_pairs as /cam0/image_raw and
       /cam1/image_raw, 0.5 s apart (then: headalign calibrate OUT.mcap --zero-skew
       --square-pixels --lens-from $D/euroc_v101_pairs/cam0_sensor.yaml,$D/euroc_v101_pairs/cam1_sensor.yaml)
   bench/ros2_bag.py session DIR OUT.mcap
@@ -52,7 +52,7 @@ def image(t_ns, frame, width, height, encoding, data, big=0):
 def euroc(args):
     import numpy as np
     from PIL import Image as Pil
-    data = os.path.join(os.path.dirname(__file__), "../../shared/data/euroc_v101_pairs")
+    data = os.path.join(os.path.dirname(__file__), "../data/euroc_v101_pairs")
     comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[args.compression]
     with open(args.out, "wb") as f:
         w = Writer(f, compression=comp)

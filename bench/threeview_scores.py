@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Score `headalign align` on three-view sessions with truth (the format of
-../shared/data/threeview_sessions: seedNN/session.json and seedNN/truth.json, whose
+data/threeview_sessions: seedNN/session.json and seedNN/truth.json, whose
 README defines the scoring) against three sigmas, per image axis:
 
   readings   the fixation point's error over the true focal length, in degrees, against
@@ -21,7 +21,7 @@ A reading's error is the fixation point's less the principal point's, so `readin
 mixes two quantities (docs/accuracy.md, "Three-view sessions").
 
 usage: bench/threeview_scores.py [DIR] [--bin PATH] [--first N]
-  DIR    default ../shared/data/threeview_sessions (relative to the repository)
+  DIR    default data/threeview_sessions (in the repository)
   --bin  default target/release/headalign
 """
 import glob, json, math, os, subprocess, sys
@@ -41,7 +41,7 @@ while args:
         first = int(args.pop(0))
     else:
         pos.append(a)
-root = os.path.normpath(pos[0] if pos else os.path.join(repo, "../shared/data/threeview_sessions"))
+root = os.path.normpath(pos[0] if pos else os.path.join(repo, "data/threeview_sessions"))
 dirs = sorted(glob.glob(os.path.join(root, "seed*")))[:first]
 if not dirs:
     sys.exit(f"no seed*/ folders in {root}")

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Write three-view observation sessions with truth from a head model written from the
-description in ../shared/data/threeview_sessions/README.md (a reading of that README,
+description in data/threeview_sessions/README.md (a reading of that README,
 not its generator): held-out sessions for bench/threeview_scores.py.
 
 Each session: views `initial`, `elevation` (+3 deg) and `pan` (+3 deg), no vergence

@@ -891,7 +891,7 @@ mod tests {
     /// corners the few points off the wall let the adjustment settle 19.7 % off in f
     /// (sigma 0.93 %, warned); the default then re-detects with 3000 corners (-0.16 %,
     /// sigma 0.30 %), keeps that result and warns that the two disagree by 17 sigmas.
-    /// Without ../shared/data (a clean clone) the renderer's procedural textures give
+    /// With procedural textures only (`use_photos = false`) the renderer gives
     /// other images (measured 0.17 % at 1500, not retried). Tolerance 1 %: the bar.
     #[test]
     fn one_general_motion_on_a_wall_dominated_scene() {

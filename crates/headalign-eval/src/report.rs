@@ -289,7 +289,8 @@ Encoder readings with Gaussian noise, by default the 0.01 deg the estimate's ang
 (each section states it; `--encoder-noise`): with exact readings the data hold more than the \
 estimate and the bound count, errors fall below the bound and sigmas over-cover. \
 The pan stage (`fig5-pan-tilt`, the paper's robot experiment) runs on the simulated robot \
-(tricycle, 6 near panels about 1 m ahead) after the verge/tilt procedure, as `headalign demo` does.\n\n\
+(tricycle, 6 near panels about 1 m ahead) after the verge/tilt procedure, as `headalign demo` does. \
+Results on real and rendered images, with their commands: [results-real.md](results-real.md).\n\n\
 The Cramer-Rao bound of a quantity is the standard deviation the bundle adjustment's covariance \
 predicts at the true parameters (evaluated on the noise-free run of the same seed, which has \
 the trial's outliers and reads the encoders exactly, with the scenario's pixel noise and the \

@@ -159,6 +159,18 @@ mod tests {
         (-3.0..3.0f64, -3.0..3.0f64, -3.0..3.0f64).prop_map(|(x, y, z)| Vector3::new(x, y, z))
     }
 
+    /// A rotation vector of angle in `[min_angle, pi - 1e-3)` about a uniform direction:
+    /// drawn inside the domain rather than filtered to it (a filter rejects about 40 % of
+    /// the cube's vectors, and proptest gives up after 1024 rejects at 2000 cases).
+    fn rotation_vector(min_angle: f64) -> impl Strategy<Value = Vector3<f64>> {
+        (-1.0..1.0f64, 0.0..std::f64::consts::TAU, min_angle..std::f64::consts::PI - 1e-3).prop_map(
+            |(z, phi, angle)| {
+                let r = (1.0 - z * z).sqrt();
+                Vector3::new(r * phi.cos(), r * phi.sin(), z) * angle
+            },
+        )
+    }
+
     proptest! {
         #[test]
         fn exp_matches_nalgebra(w in vec3()) {
@@ -167,16 +179,23 @@ mod tests {
             prop_assert!((r.matrix() - expected.matrix()).norm() < 1e-12);
         }
 
+        /// The quaternion route of `log` (an `atan2` of the vector and scalar parts) is
+        /// well conditioned at every angle below pi: a few eps of the angle (about 1e-15
+        /// here); 1e-10 leaves room for the matrix-to-quaternion step's rounding, which
+        /// near pi divides by the largest diagonal term (at least 1/3), not by sin(angle).
         #[test]
-        fn log_inverts_exp(w in vec3()) {
-            prop_assume!(w.norm() < std::f64::consts::PI - 1e-3);
+        fn log_inverts_exp(w in rotation_vector(0.0)) {
             let back = log(&exp(&w));
             prop_assert!((back - w).norm() < 1e-10);
         }
 
+        /// Conditioning: the axis point solves `(I - R + d d^T) p = t_perp`, whose smallest
+        /// singular value is `2 sin(angle / 2)` (>= 1e-3 here), so `p` carries eps
+        /// |t| / 1e-3, about 1e-12 at |t| < 6; the direction from the scaled axis carries
+        /// eps / angle, about 2e-13. The bounds (1e-9 to 1e-8) are three or more orders
+        /// above these worst cases.
         #[test]
-        fn screw_round_trip(w in vec3(), p in vec3(), pitch in -1.0..1.0f64) {
-            prop_assume!(w.norm() > 1e-3 && w.norm() < std::f64::consts::PI - 1e-3);
+        fn screw_round_trip(w in rotation_vector(1e-3), p in vec3(), pitch in -1.0..1.0f64) {
             let s = Screw { axis: Line::new(Unit::new_normalize(w), Point3::from(p)), angle: w.norm(), pitch };
             let m = s.to_isometry();
             let back = screw_from_isometry(&m, 1e-9).unwrap();

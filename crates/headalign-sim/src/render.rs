@@ -210,7 +210,7 @@ pub struct RenderOptions {
     /// Use the texture photographs (else procedural textures only). Default true.
     pub use_photos: bool,
     /// Data directory holding `opencv_samples/textures` and `skimage_data/textures`;
-    /// `None` (default) means `../shared/data` relative to the workspace root. A missing
+    /// `None` (default) means `data/` at the workspace root. A missing
     /// folder is not an error: procedural textures replace the photographs.
     pub data_dir: Option<PathBuf>,
 }
@@ -706,10 +706,9 @@ mod tests {
             let (left, right) = head.render_stereo().unwrap();
             assert_eq!(left.size(), [768, 576]);
             let report = head.textured_scene().report.clone();
-            if crate::texture::default_data_dir().join(crate::texture::PHOTO_FILES[0]).exists() {
-                assert_eq!(report.photos_loaded.len(), crate::texture::PHOTO_FILES.len(), "{report:?}");
-                assert!(!report.procedural_fallback);
-            }
+            // The photographs are in the repository (data/): all of them load.
+            assert_eq!(report.photos_loaded.len(), crate::texture::PHOTO_FILES.len(), "{report:?}");
+            assert!(!report.procedural_fallback);
             for img in [&left, &right] {
                 let (mut textured, mut blocks) = (0, 0);
                 for by in 0..576 / 32 {

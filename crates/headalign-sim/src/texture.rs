@@ -4,8 +4,8 @@
 //! `metres_per_texel` (default 5 mm), so nothing repeats across surfaces and the scene
 //! has texture at every scale. A texel value is
 //! `128 + 36 * (gain * (photo + noise + patches) + offset)`, clamped to `[0, 255]`:
-//! - `photo`: one of the texture photographs of the shared data folder
-//!   (`opencv_samples/textures`, `skimage_data/textures`; see README for credits), turned
+//! - `photo`: one of the texture photographs of the repository's `data/` folder
+//!   (`opencv_samples/textures`, `skimage_data/textures`; their READMEs credit them), turned
 //!   grey, normalised to zero mean and unit standard deviation, tiled (repeat) at a random
 //!   scale of 1 to 2 texels per photo pixel (never minified, so baking does not alias)
 //!   and a random offset. If no photograph can be read, a procedural mosaic (random grey
@@ -54,9 +54,12 @@ pub const PHOTO_FILES: [&str; 12] = [
     "skimage_data/textures/rocket.jpg",
 ];
 
-/// The default data directory: `../shared/data` relative to the workspace root.
+/// The default data directory: `data/` at the workspace root (data/README.md). The path
+/// is fixed at build time, so a built or installed binary reads the photographs of the
+/// checkout it was built from; without them [`bake_textures`] falls back to procedural
+/// textures and its [`TextureReport`] says so.
 pub fn default_data_dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data")
+    Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../../data")).to_path_buf()
 }
 
 /// What the texture baking used.

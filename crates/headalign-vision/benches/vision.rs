@@ -6,14 +6,13 @@
 //!   (+20, +12) px, pyramids included.
 //!
 //! Image: OpenCV sample `textures/building.jpg` (868x600, Apache-2.0/BSD-3-Clause, see
-//! `opencv_samples/README.md` in the shared data folder), cropped to 768x576 at (60, 20) for
-//! the reference and at (40, 8) for the moved image. Default path:
-//! `../shared/data/opencv_samples/textures/building.jpg` beside the repository (the folder
-//! the real-image tests read); override it with `HEADALIGN_BENCH_IMAGE`. Without the
-//! image the benchmarks are skipped with a message. Thread count: set `RAYON_NUM_THREADS=1` for one thread.
+//! `data/opencv_samples/README.md`), cropped to 768x576 at (60, 20) for the reference and
+//! at (40, 8) for the moved image. Default path: `data/opencv_samples/textures/building.jpg`
+//! in the repository; override it with `HEADALIGN_BENCH_IMAGE`. An unreadable image stops
+//! the benchmark with the reason. Thread count: set `RAYON_NUM_THREADS=1` for one thread.
 
 use std::hint::black_box;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use headalign_vision::{
@@ -21,8 +20,9 @@ use headalign_vision::{
     register_translation,
 };
 
-/// The default image, relative to this crate's directory.
-const DEFAULT_IMAGE: &str = "../../../shared/data/opencv_samples/textures/building.jpg";
+/// The default image, in the repository's `data/` folder.
+const DEFAULT_IMAGE: &str =
+    concat!(env!("CARGO_MANIFEST_DIR"), "/../../data/opencv_samples/textures/building.jpg");
 
 fn crop(img: &GrayImage, x0: u32, y0: u32, w: u32, h: u32) -> GrayImage {
     let data = (y0..y0 + h).flat_map(|y| img.row(y)[x0 as usize..(x0 + w) as usize].to_vec()).collect();
@@ -33,10 +33,10 @@ fn crop(img: &GrayImage, x0: u32, y0: u32, w: u32, h: u32) -> GrayImage {
 fn images() -> Result<(GrayImage, GrayImage), String> {
     let path = std::env::var("HEADALIGN_BENCH_IMAGE")
         .map(PathBuf::from)
-        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_IMAGE));
+        .unwrap_or_else(|_| PathBuf::from(DEFAULT_IMAGE));
     if !path.is_file() {
         return Err(format!(
-            "{} is absent: put the shared data folder beside the repository or set HEADALIGN_BENCH_IMAGE",
+            "{} is absent (the repository's data/ folder, or set HEADALIGN_BENCH_IMAGE)",
             path.display()
         ));
     }
@@ -50,10 +50,7 @@ fn images() -> Result<(GrayImage, GrayImage), String> {
 fn bench(c: &mut Criterion) {
     let (reference, moved) = match images() {
         Ok(crops) => crops,
-        Err(why) => {
-            eprintln!("vision benchmarks skipped: {why}");
-            return;
-        }
+        Err(why) => panic!("vision benchmarks: {why}"),
     };
     let fo = FeatureOptions::default();
     c.bench_function("detect_describe_768x576", |b| {

@@ -244,7 +244,7 @@ mod tests {
         assert_eq!(c.get(3, 0), Some([10, 10, 10]));
         assert_eq!(c.get(4, 1), Some([200, 200, 200]));
         assert_eq!(c.get(4, 2), Some([0, 0, 0]));
-        let p = std::env::temp_dir().join(format!("headalign-draw-{}.png", std::process::id()));
+        let p = crate::test_util::scratch_dir("draw").join("side-by-side.png");
         c.save(&p).unwrap();
         assert!(std::fs::metadata(&p).unwrap().len() > 0);
         std::fs::remove_file(&p).ok();

@@ -180,8 +180,7 @@ mod tests {
     #[test]
     fn png_round_trip_and_errors() {
         let img = GrayImage::new(3, 2, vec![0, 10, 20, 30, 40, 255]).unwrap();
-        let dir = std::env::temp_dir().join(format!("headalign-vision-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::test_util::scratch_dir("png-round-trip");
         let p = dir.join("a.png");
         img.save(&p).unwrap();
         assert_eq!(GrayImage::load(&p).unwrap(), img);
@@ -213,8 +212,7 @@ mod tests {
         // Within the side limit but beyond the pixel limit: refused from the header.
         let small = DecodeLimits { max_pixels: 19, ..DecodeLimits::default() };
         let img = GrayImage::new(5, 4, (0..20).map(|i| (i * 13) as u8).collect()).unwrap();
-        let dir = std::env::temp_dir().join(format!("headalign-vision-trunc-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let dir = crate::test_util::scratch_dir("png-truncated");
         let p = dir.join("a.png");
         img.save(&p).unwrap();
         let bytes = std::fs::read(&p).unwrap();

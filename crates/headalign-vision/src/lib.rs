@@ -26,6 +26,8 @@ pub mod image;
 pub mod matching;
 pub mod pyramid;
 pub mod refine;
+#[cfg(test)]
+mod test_util;
 
 pub use correlation::{
     PatchMatch, PatchSearchOptions, Registration, RegistrationOptions, locate_patch,

@@ -6,20 +6,15 @@
 //! replayed here too, so CI checks them without a nightly toolchain.
 
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 
 use headalign_vision::GrayImage;
+
+use super::common::{bin, tmp_dir};
 use serde_json::{Value, json};
 
 fn run(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_headalign")).args(args).env("RUST_BACKTRACE", "1").output().unwrap()
-}
-
-fn base(test: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("headalign-bad-input-{}-{test}", std::process::id()));
-    std::fs::remove_dir_all(&dir).ok();
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    bin().args(args).env("RUST_BACKTRACE", "1").output().unwrap()
 }
 
 /// Non-zero exit, one line on stderr, no panic or backtrace, and every `expected` part
@@ -69,7 +64,7 @@ fn good_observations() -> String {
 /// `align --observations FILE` must fail cleanly naming the file and the case's expected
 /// parts.
 fn check_observation_cases(test: &str, cases: &[(&str, Vec<u8>, Vec<&str>)]) {
-    let dir = base(test);
+    let dir = tmp_dir(test);
     for (i, (case, bytes, expected)) in cases.iter().enumerate() {
         let path = dir.join(format!("case{i}.json"));
         std::fs::write(&path, bytes).unwrap();
@@ -114,7 +109,7 @@ fn align_observations_malformed_json() {
         ],
     );
     // Not a readable file.
-    let dir = base("obs-unreadable");
+    let dir = tmp_dir("obs-unreadable");
     let d = dir.to_str().unwrap();
     assert_clean_failure("a directory", &run(&["align", "--observations", d]), &[d, "cannot read"]);
     let missing = dir.join("missing.json");
@@ -128,7 +123,7 @@ fn align_observations_malformed_json() {
 /// `error.txt` there.
 #[test]
 fn long_errors_are_cut_and_written_in_full() {
-    let dir = base("long-error");
+    let dir = tmp_dir("long-error");
     let missing = dir.join(format!("{}.json", "a-very-long-file-name".repeat(16)));
     let m = missing.to_str().unwrap();
     let out_dir = dir.join("out");
@@ -378,7 +373,7 @@ fn check_image_cases(root: &Path, cases: &[(&str, Setup, Vec<&str>)]) {
 /// that are empty or taken, not a file.
 #[test]
 fn align_images_bad_view_json() {
-    let root = base("images-json");
+    let root = tmp_dir("images-json");
     check_image_cases(
         &root,
         &[
@@ -475,7 +470,7 @@ fn align_images_bad_view_json() {
 /// sizes that do not match.
 #[test]
 fn align_images_bad_image_files() {
-    let root = base("images-files");
+    let root = tmp_dir("images-files");
     let (_, good) = good_png(&root);
     check_image_cases(
         &root,
@@ -552,7 +547,7 @@ fn align_images_bad_image_files() {
 /// Folders that are not sessions, or sessions whose images cannot be tracked.
 #[test]
 fn align_images_bad_folders() {
-    let root = base("images-folders");
+    let root = tmp_dir("images-folders");
     check_image_cases(
         &root,
         &[
@@ -600,7 +595,7 @@ fn align_images_bad_folders() {
 /// what the folder is, not ignored; a folder of stereo pairs takes `--every` (and refuses 0).
 #[test]
 fn recording_flags_on_other_folders() {
-    let root = base("recording-flags");
+    let root = tmp_dir("recording-flags");
     let session = root.join("session");
     image_session(&session);
     let pairs = root.join("pairs");
@@ -651,7 +646,7 @@ fn recording_flags_on_other_folders() {
 /// command that takes it; so is the radial-tangential `k3` (`5`) of the equidistant model.
 #[test]
 fn lens_terms_without_a_lens() {
-    let root = base("lens-terms");
+    let root = tmp_dir("lens-terms");
     let r = root.to_str().unwrap();
     let cases: [(&str, Vec<&str>); 4] = [
         ("calibrate, a known lens", vec!["calibrate", r, "--lens-from", "recording", "--lens-terms", "4"]),
@@ -672,7 +667,7 @@ fn lens_terms_without_a_lens() {
 
 #[test]
 fn demo_scenario_bad_input_table() {
-    let dir = base("scenario");
+    let dir = tmp_dir("scenario");
     let cases: Vec<(&str, &str, Vec<&str>)> = vec![
         ("truncated TOML", "noise_px = ", vec!["TOML"]),
         ("not TOML", "{\"noise_px\": 1}", vec!["TOML"]),

@@ -7,12 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 use std::sync::OnceLock;
 
-use super::common::{assert_clean_failure, bin, driver, scratch};
+use super::common::{assert_clean_failure, bin, driver, tmp};
 use serde_json::Value;
-
-fn tmp(name: &str) -> PathBuf {
-    scratch("cli", name)
-}
 
 fn run(args: &[&str]) -> Output {
     bin().args(args).output().unwrap()

@@ -7,20 +7,14 @@
 //! one process. The Monte-Carlo statistics themselves are `headalign experiment`'s
 //! (`docs/results`), not these tests'.
 
-use super::common::bin;
+use super::common::{bin, tmp_dir};
 use std::path::{Path, PathBuf};
 use std::process::Output;
-
-fn out_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("headalign-exp-tests-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
 
 /// `experiment NAME --trials 1` (one seed, run at every condition) with `extra` flags,
 /// into its own folder; asserts success.
 fn run_one_seed(name: &str, extra: &[&str]) -> (PathBuf, Output) {
-    let dir = out_dir(name);
+    let dir = tmp_dir(name);
     let out = bin()
         .args(["experiment", name, "--trials", "1", "--out", dir.to_str().unwrap()])
         .args(extra)
@@ -79,7 +73,7 @@ fn outliers_writes_its_files() {
 /// procedure's tuning flags refused.
 #[test]
 fn lens_writes_its_files() {
-    let dir = out_dir("lens");
+    let dir = tmp_dir("lens");
     let out = bin()
         .args(["experiment", "lens", "--trials", "2", "--only", "1", "--out", dir.to_str().unwrap()])
         .output()
@@ -129,7 +123,7 @@ fn points_writes_its_files_and_a_json_summary() {
 
 #[test]
 fn clean_errors() {
-    let dir = out_dir("errors");
+    let dir = tmp_dir("errors");
     for (args, expected) in [
         (vec!["experiment", "nope"], "unknown experiment"),
         (vec!["experiment", "points", "--trials", "0"], "at least 1"),
@@ -151,7 +145,7 @@ fn clean_errors() {
 /// deg (the verge/tilt solver's tolerance; seed 1 measures 0.006 deg of pan, seeds 2-20
 /// below 1e-5).
 fn pan_tilt_rows(stem: &str, only: &str, rows_expected: usize) {
-    let dir = out_dir(stem);
+    let dir = tmp_dir(stem);
     let out = bin()
         .args(["experiment", "fig5-pan-tilt", "--trials", "1", "--encoder-noise", "0", "--only", only])
         .args(["--out", dir.to_str().unwrap()])
@@ -209,7 +203,7 @@ fn pan_tilt_pan_zero_and_drive_groups_are_finite() {
 /// and the trials ran in the near room (reconstruction and bounds finite).
 #[test]
 fn paper_scene_writes_its_own_files() {
-    let dir = out_dir("paper");
+    let dir = tmp_dir("paper");
     let out = bin()
         .args(["experiment", "points", "--scene", "paper", "--only", "50", "--trials", "2"])
         .arg("--out")

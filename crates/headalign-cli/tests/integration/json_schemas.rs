@@ -7,14 +7,10 @@
 //! the fixtures of `cli.rs` and `sessions.rs` (run once per test process).
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-use super::common::{bin, driver, ok_json, scratch};
+use super::common::{bin, driver, ok_json, tmp};
 use serde_json::Value;
-
-fn tmp(name: &str) -> PathBuf {
-    scratch("json-schemas", name)
-}
 
 /// `headalign ARGS` that must succeed: its JSON.
 fn json(args: &[&str]) -> Value {

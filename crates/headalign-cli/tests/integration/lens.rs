@@ -4,14 +4,10 @@
 //! the calibration files) and `replay` reproduces the run with it; `--lens pinhole` on the
 //! same images is far off, and its verdict fails (exit code 1).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-use super::common::{assert_clean_failure, bin, ok_json, scratch};
+use super::common::{assert_clean_failure, bin, ok_json, tmp};
 use serde_json::Value;
-
-fn tmp(name: &str) -> PathBuf {
-    scratch("lens", name)
-}
 
 /// A scenario file whose cameras have a barrel lens `k1` (the simulator's
 /// `render.distortion`, applied to renders and points alike). The one place the test

@@ -1,6 +1,5 @@
-//! `headalign calibrate` on the real images in `../shared/data` (see each folder's README
-//! for provenance and licence; docs/real-data.md for the numbers). Skipped, with a
-//! message, only if that folder is absent; it is present in CI.
+//! `headalign calibrate` on the real images in `data/` (see each folder's README for
+//! provenance and licence; docs/results-real.md for the numbers).
 //!
 //! Reference data in `tests/data`: `motorcycle_calibration.yml` (the Middlebury
 //! calibration of the down-sampled pair, from the data's README), and from
@@ -9,26 +8,13 @@
 //! by OpenCV in all 13 pairs, undistorted).
 
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use serde_json::Value;
 
-fn data_dir() -> Option<PathBuf> {
-    let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
-    if d.is_dir() {
-        Some(d)
-    } else {
-        eprintln!("SKIPPED: {} is absent (the real-image tests need ../shared/data)", d.display());
-        None
-    }
-}
-
-fn fixture(name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data").join(name)
-}
+use super::common::{bin, data_dir, fixture, tmp_dir};
 
 fn calibrate(args: &[&str]) -> (bool, Value, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_headalign")).arg("calibrate").args(args).output().unwrap();
+    let out = bin().arg("calibrate").args(args).output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr).to_string();
     let json = serde_json::from_slice(&out.stdout).unwrap_or(Value::Null);
     (out.status.success(), json, stderr)
@@ -75,10 +61,10 @@ fn angle_deg(a: [f64; 3], b: [f64; 3]) -> f64 {
 /// 0.31 px; 0.44 px with `--patch-refinement off`). 1 px: twice the feature localisation
 /// RMS, since the grid reaches the image corners where F is extrapolated. With the known
 /// intrinsics the rig is R = I (measured 0.03 deg; bound 0.3 deg) and t along -x
-/// (measured 0.23 deg, 0.39 deg with refinement off; bound 1 deg; docs/real-data.md).
+/// (measured 0.23 deg, 0.39 deg with refinement off; bound 1 deg; docs/results-real.md).
 #[test]
 fn motorcycle_f_agrees_with_the_known_calibration() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = data.join("skimage_data/motorcycle_stereo");
     let cal = fixture("motorcycle_calibration.yml");
     let (ok, j, err) = calibrate(&[dir.to_str().unwrap(), "--intrinsics", cal.to_str().unwrap(), "--json"]);
@@ -109,7 +95,7 @@ fn motorcycle_f_agrees_with_the_known_calibration() {
 /// has no projective reconstruction) and says so, with a non-zero exit.
 #[test]
 fn chessboard_self_calibration_names_the_degeneracy() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = data.join("opencv_samples/stereo_chessboard");
     let (ok, _, err) = calibrate(&[dir.to_str().unwrap()]);
     assert!(!ok);
@@ -132,7 +118,7 @@ fn chessboard_self_calibration_names_the_degeneracy() {
 /// rotation within 0.5 deg (measured 0.19 deg; 0.15 deg unrefined).
 #[test]
 fn chessboard_with_known_intrinsics_agrees_with_the_board() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let dir = data.join("opencv_samples/stereo_chessboard");
     let cal = fixture("chessboard_reference.yml");
     let (ok, j, err) = calibrate(&[dir.to_str().unwrap(), "--intrinsics", cal.to_str().unwrap(), "--json"]);
@@ -177,51 +163,22 @@ fn chessboard_with_known_intrinsics_agrees_with_the_board() {
 
 /// The raw EuRoC V1_01 pairs 3 and 2 (one general motion of a real VI-Sensor rig with a
 /// barrel lens, k1 about -0.28) in a temporary folder of `leftNN.png` / `rightNN.png`.
-fn euroc_one_motion(data: &Path, name: &str) -> tempfile_dir::Dir {
+fn euroc_one_motion(data: &Path, name: &str) -> PathBuf {
     euroc_pairs(data, name, [3, 2])
 }
 
-/// The raw EuRoC V1_01 pairs `pairs` (the shared folder's numbers) in a temporary folder
+/// The raw EuRoC V1_01 pairs `pairs` (the data folder's numbers) in a temporary folder
 /// of `leftNN.png` / `rightNN.png`, in that order.
-fn euroc_pairs(data: &Path, name: &str, pairs: [usize; 2]) -> tempfile_dir::Dir {
+fn euroc_pairs(data: &Path, name: &str, pairs: [usize; 2]) -> PathBuf {
     let src = data.join("euroc_v101_pairs");
-    let dir = tempfile_dir::Dir::new(name);
+    let dir = tmp_dir(name);
     for (i, pair) in pairs.iter().enumerate() {
         for side in ["left", "right"] {
-            std::fs::copy(
-                src.join(format!("{side}_img_{pair}.png")),
-                dir.path().join(format!("{side}{i:02}.png")),
-            )
-            .unwrap();
+            std::fs::copy(src.join(format!("{side}_img_{pair}.png")), dir.join(format!("{side}{i:02}.png")))
+                .unwrap();
         }
     }
     dir
-}
-
-/// A temporary folder removed on drop (no dependency for one test helper).
-mod tempfile_dir {
-    use std::path::{Path, PathBuf};
-
-    pub struct Dir(PathBuf);
-
-    impl Dir {
-        pub fn new(name: &str) -> Self {
-            let p = std::env::temp_dir().join(format!("headalign-real-{name}-{}", std::process::id()));
-            let _ = std::fs::remove_dir_all(&p);
-            std::fs::create_dir_all(&p).unwrap();
-            Self(p)
-        }
-
-        pub fn path(&self) -> &Path {
-            &self.0
-        }
-    }
-
-    impl Drop for Dir {
-        fn drop(&mut self) {
-            let _ = std::fs::remove_dir_all(&self.0);
-        }
-    }
 }
 
 /// The dataset's own calibration (Kalibr, a target): fx, fy of cam0 and cam1.
@@ -249,14 +206,10 @@ fn euroc_focal_errors(j: &Value) -> Vec<f64> {
 /// their sigmas; the report file holds the same JSON.
 #[test]
 fn euroc_raw_pairs_default_flags_give_the_focal_lengths() {
-    let Some(data) = data_dir() else { return };
-    let dir = euroc_one_motion(&data, "auto");
-    let out_dir = dir.path().join("out");
-    let out = Command::new(env!("CARGO_BIN_EXE_headalign"))
-        .args(["calibrate", dir.path().to_str().unwrap(), "--out"])
-        .arg(&out_dir)
-        .output()
-        .unwrap();
+    let data = data_dir();
+    let dir = euroc_one_motion(data, "auto");
+    let out_dir = dir.join("out");
+    let out = bin().args(["calibrate", dir.to_str().unwrap(), "--out"]).arg(&out_dir).output().unwrap();
     let (text, err) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "{err}");
     let report = std::fs::read_to_string(out_dir.join("calibrate_report.json")).unwrap();
@@ -315,11 +268,11 @@ fn euroc_raw_pairs_default_flags_give_the_focal_lengths() {
 /// candidate with a one-line reason and the text says it was left out.
 #[test]
 fn euroc_lens_auto_leaves_out_a_failed_candidate() {
-    let Some(data) = data_dir() else { return };
-    let dir = euroc_pairs(&data, "failed-candidate", [2, 3]);
-    let out_dir = dir.path().join("out");
-    let out = Command::new(env!("CARGO_BIN_EXE_headalign"))
-        .args(["calibrate", dir.path().to_str().unwrap(), "--free-skew", "--corners", "1500", "--out"])
+    let data = data_dir();
+    let dir = euroc_pairs(data, "failed-candidate", [2, 3]);
+    let out_dir = dir.join("out");
+    let out = bin()
+        .args(["calibrate", dir.to_str().unwrap(), "--free-skew", "--corners", "1500", "--out"])
         .arg(&out_dir)
         .output()
         .unwrap();
@@ -378,9 +331,9 @@ fn euroc_intrinsics_within_3_sigmas_or_warned(j: &Value) {
 /// that YAML back as an equidistant lens.
 #[test]
 fn euroc_raw_pairs_lens_models_and_their_files() {
-    let Some(data) = data_dir() else { return };
-    let dir = euroc_one_motion(&data, "models");
-    let d = dir.path().to_str().unwrap();
+    let data = data_dir();
+    let dir = euroc_one_motion(data, "models");
+    let d = dir.to_str().unwrap();
     let (ok, j, err) = calibrate(&[d, "--lens", "radtan", "--zero-skew", "--json"]);
     assert!(ok, "{err}");
     assert!(euroc_focal_errors(&j).iter().all(|e| e.abs() < 0.01), "{:?}", euroc_focal_errors(&j));
@@ -390,7 +343,7 @@ fn euroc_raw_pairs_lens_models_and_their_files() {
         assert!(j["distortion"]["sigma"][format!("{side}.k1")].as_f64().unwrap() > 0.0);
     }
     euroc_intrinsics_within_3_sigmas_or_warned(&j);
-    let out = dir.path().join("out");
+    let out = dir.join("out");
     let (ok, j, err) =
         calibrate(&[d, "--lens", "equidistant", "--zero-skew", "--json", "--out", out.to_str().unwrap()]);
     assert!(ok, "{err}");
@@ -412,7 +365,7 @@ fn euroc_raw_pairs_lens_models_and_their_files() {
 }
 
 /// Issue 31 items 2-3 on a real motion held out from the bar's pairs: EuRoC pairs 1 -> 0
-/// (37.5 deg and 0.44 m, 98 s apart, the same place revisited; docs/real-data.md). One
+/// (37.5 deg and 0.44 m, 98 s apart, the same place revisited; docs/results-real.md). One
 /// weak motion: about 270 tracks seen in both views (480 for pairs 3 -> 2). Measured:
 /// `--lens radtan --zero-skew` puts the focal lengths +34 / +19 % off (5-8 sigmas, cx and
 /// cy too) and warns that the focal length is poorly determined and that the
@@ -423,13 +376,13 @@ fn euroc_raw_pairs_lens_models_and_their_files() {
 /// intrinsic within 3 sigmas of the dataset's or a warning says why, and a focal error
 /// beyond 3 % is flagged as poorly determined. Not held here: `auto` with every term
 /// (the default) on this motion keeps `radtan k1 k2 p1 p2 k3` (p1 -0.006 for the
-/// dataset's 0.0002) at +8.2 % with a sigma of 0.73 % and no warning (docs/real-data.md,
+/// dataset's 0.0002) at +8.2 % with a sigma of 0.73 % and no warning (docs/results-real.md,
 /// "A held-out motion"): an open defect.
 #[test]
 fn euroc_held_out_weak_motion_is_warned() {
-    let Some(data) = data_dir() else { return };
-    let dir = euroc_pairs(&data, "held-out", [1, 0]);
-    let d = dir.path().to_str().unwrap();
+    let data = data_dir();
+    let dir = euroc_pairs(data, "held-out", [1, 0]);
+    let d = dir.to_str().unwrap();
     let lens = fixture("euroc_v101_lenses.yml");
     let known = ["--distortion", lens.to_str().unwrap(), "--zero-skew", "--square-pixels"];
     for flags in [
@@ -451,7 +404,7 @@ fn euroc_held_out_weak_motion_is_warned() {
     }
 }
 
-/// The dataset's calibration against the tracks (docs/real-data.md, "A held-out motion"):
+/// The dataset's calibration against the tracks (docs/results-real.md, "A held-out motion"):
 /// on the tracks of `calibrate --lens radtan --zero-skew` (3000 corners, as the density
 /// rule keeps), the adjustment with the dataset's intrinsics and lenses held (rig, motion
 /// and points free) against the estimate, and the adjustment freed from there. Prints the
@@ -472,7 +425,7 @@ fn euroc_dataset_calibration_held() {
     use headalign_geometry::distortion::LensKind;
     use headalign_platform::{GrayImage, StereoImages};
 
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let rss = |state: &RigState, obs: &[BundleObservation]| -> f64 {
         obs.iter().filter_map(|o| residual_pixels(state, o)).map(|r| r.norm_squared()).sum()
     };
@@ -480,11 +433,10 @@ fn euroc_dataset_calibration_held() {
     let lenses =
         read_opencv_lenses(&std::fs::read_to_string(&file).unwrap(), "euroc_v101_lenses.yml").unwrap();
     for pairs in [[3, 2], [1, 0]] {
-        let dir = euroc_pairs(&data, "held", pairs);
+        let dir = euroc_pairs(data, "held", pairs);
         let views: Vec<(String, StereoImages)> = (0..2)
             .map(|i| {
-                let load =
-                    |side: &str| GrayImage::load(&dir.path().join(format!("{side}{i:02}.png"))).unwrap();
+                let load = |side: &str| GrayImage::load(&dir.join(format!("{side}{i:02}.png"))).unwrap();
                 (
                     format!("left{i:02}"),
                     StereoImages::new(Default::default(), load("left"), load("right")).unwrap(),
@@ -558,10 +510,9 @@ fn euroc_dataset_calibration_held() {
 /// intrinsics are within 3 sigmas of the dataset's or a warning says why not.
 #[test]
 fn euroc_four_pairs_calibrate_with_both_motions() {
-    let Some(data) = data_dir() else { return };
+    let data = data_dir();
     let src = data.join("euroc_v101_pairs");
-    let dir = std::env::temp_dir().join(format!("headalign-euroc4-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = tmp_dir("euroc4");
     for (view, pair) in [(0, 3), (1, 2), (2, 1), (3, 0)] {
         for side in ["left", "right"] {
             std::fs::copy(

@@ -1,31 +1,19 @@
 //! The commands on recordings: `calibrate` on an EuRoC folder and a ROS 2 bag built from
-//! the real EuRoC pairs in `../shared/data/euroc_v101_pairs` (the dataset's lens through
+//! the real EuRoC pairs in `data/euroc_v101_pairs` (the dataset's lens through
 //! `--lens-from`), `align --images` on a bag of a head run, and the one-line errors of a
 //! missing topic, an unsupported encoding and images with no partner.
 
 use std::path::{Path, PathBuf};
 
-use super::common::{assert_clean_failure, bin, ok_json, scratch};
+use super::common::{assert_clean_failure, bin, data_dir, ok_json, tmp_dir};
 use headalign_io::recordings::cdr::{encode_image, encode_joint_state};
 use headalign_io::recordings::rosbag::{BagWriter, MessageKind};
 use headalign_io::session::{STAGE_VERGE_TILT, SessionInfo, SessionWriter, ViewLabel};
 use headalign_platform::{Encoders, GrayImage, ImagingHead, Joint, StereoHead, StereoImages};
 use serde_json::Value;
 
-fn tmp(name: &str) -> PathBuf {
-    let p = scratch("recording", name);
-    std::fs::create_dir_all(&p).unwrap();
-    p
-}
-
-fn euroc_data() -> Option<PathBuf> {
-    let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/euroc_v101_pairs");
-    if d.is_dir() {
-        Some(d)
-    } else {
-        eprintln!("SKIPPED: {} is absent (the real-image tests need ../shared/data)", d.display());
-        None
-    }
+fn euroc_data() -> PathBuf {
+    data_dir().join("euroc_v101_pairs")
 }
 
 /// Pair 3, then pair 2 half a second later (one general motion of the rig: 15.6 deg,
@@ -35,7 +23,7 @@ const STAMPS: [(i64, u32); 2] = [(1_403_715_273_262_142_976, 3), (1_403_715_273_
 /// An EuRoC folder `SEQ/mav0/cam{0,1}/` with `data.csv`, `data/<stamp>.png` and the
 /// dataset's `sensor.yaml`, built from the shared pairs.
 fn euroc_fixture(data: &Path) -> PathBuf {
-    let seq = tmp("euroc");
+    let seq = tmp_dir("euroc");
     for (cam, side, yaml) in [("cam0", "left", "cam0_sensor.yaml"), ("cam1", "right", "cam1_sensor.yaml")] {
         let dir = seq.join("mav0").join(cam);
         std::fs::create_dir_all(dir.join("data")).unwrap();
@@ -68,7 +56,7 @@ fn calibrate(input: &Path, extra: &[&str]) -> Value {
 /// same lens, same seeds).
 #[test]
 fn euroc_folder_and_bag_calibrate_with_the_datasets_lens() {
-    let Some(data) = euroc_data() else { return };
+    let data = euroc_data();
     let seq = euroc_fixture(&data);
     let own = calibrate(&seq, &["--lens-from", "recording"]);
     for (side, fu, fv) in [("left", 458.654, 457.296), ("right", 457.587, 456.134)] {
@@ -83,7 +71,7 @@ fn euroc_folder_and_bag_calibrate_with_the_datasets_lens() {
         format!("{},{}", data.join("cam0_sensor.yaml").display(), data.join("cam1_sensor.yaml").display());
     let named = calibrate(&seq, &["--lens-from", &files]);
     // The pairs in a bag (mono8 Image, a left and a right topic).
-    let bag = tmp("euroc-bag").join("pairs.mcap");
+    let bag = tmp_dir("euroc-bag").join("pairs.mcap");
     let mut w = BagWriter::create(&bag).unwrap();
     for (stamp, pair) in STAMPS {
         for (topic, side) in [("/cam0/image_raw", "left"), ("/cam1/image_raw", "right")] {
@@ -112,7 +100,7 @@ fn texture(k: u32) -> Vec<u8> {
 /// The three errors a user meets first, one line each.
 #[test]
 fn missing_topic_unsupported_encoding_and_no_partner_are_one_line_errors() {
-    let dir = tmp("errors");
+    let dir = tmp_dir("errors");
     let write = |name: &str, encoding: &str, lag: i64| {
         let path = dir.join(name);
         let mut w = BagWriter::create(&path).unwrap();
@@ -173,7 +161,7 @@ fn align_reads_a_bag_of_a_head_run() {
         head.move_to(enc).unwrap();
         views.push((name.clone(), head.capture_images().unwrap()));
     }
-    let dir = tmp("head-run");
+    let dir = tmp_dir("head-run");
     // The session.
     let session = dir.join("session");
     let mut s =
@@ -277,7 +265,7 @@ fn align_reads_a_bag_of_a_head_run() {
 /// the readings' own sigmas (0.01 deg on rendered images) and far above rounding.
 #[test]
 fn replay_plays_back_a_bag_of_a_recorded_run() {
-    let dir = tmp("replay");
+    let dir = tmp_dir("replay");
     let session = dir.join("session");
     let live = ok_json(
         &bin()

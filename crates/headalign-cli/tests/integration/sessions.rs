@@ -10,12 +10,8 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use super::common::{assert_clean_failure, bin, driver, ok_json, scratch};
+use super::common::{assert_clean_failure, bin, driver, ok_json, tmp};
 use serde_json::Value;
-
-fn tmp(name: &str) -> PathBuf {
-    scratch("session", name)
-}
 
 fn view_folders(dir: &Path) -> Vec<String> {
     let mut v: Vec<String> = std::fs::read_dir(dir)
@@ -502,7 +498,7 @@ fn rendered_wall_sessions_take_the_planar_route() {
 /// the encoders' 0.01 deg quantisation is added to each).
 #[test]
 fn a_tilted_robot_with_a_tangential_lens_runs_every_stage_with_default_flags() {
-    let dir = scratch("sessions", "tilted-lens-robot");
+    let dir = tmp("tilted-lens-robot");
     std::fs::create_dir_all(&dir).unwrap();
     let scenario = dir.join("scenario.toml");
     std::fs::write(

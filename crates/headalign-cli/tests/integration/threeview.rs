@@ -1,25 +1,14 @@
 //! `headalign align` on the three-view sessions of an independent head model in
-//! `../shared/data/threeview_sessions` (its README: the head model, the truth, the
-//! scoring): the fixation points against the truth, by their own sigmas
-//! (`fixation_sigma_px`). Skipped, with a message, only if that folder is absent.
+//! `data/threeview_sessions` (its README: the head model, the truth, the scoring): the
+//! fixation points against the truth, by their own sigmas (`fixation_sigma_px`).
 //! The whole set of 30 and the same scoring of headalign's own simulator are in
 //! `docs/accuracy.md` ("Three-view sessions").
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde_json::Value;
 
-use super::common::{bin, ok_json};
-
-fn sessions_dir() -> Option<PathBuf> {
-    let d = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/threeview_sessions");
-    if d.is_dir() {
-        Some(d)
-    } else {
-        eprintln!("SKIPPED: {} is absent (the three-view test needs ../shared/data)", d.display());
-        None
-    }
-}
+use super::common::{bin, data_dir, ok_json};
 
 fn read_json(path: &Path) -> Value {
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
@@ -54,7 +43,7 @@ fn fixation_z(dir: &Path) -> Vec<[f64; 2]> {
 /// less the principal point's).
 #[test]
 fn fixation_sigmas_cover_the_independent_sessions() {
-    let Some(root) = sessions_dir() else { return };
+    let root = data_dir().join("threeview_sessions");
     let mut z = [Vec::new(), Vec::new()];
     for seed in 1..=10 {
         for [x, y] in fixation_z(&root.join(format!("seed{seed:02}"))) {

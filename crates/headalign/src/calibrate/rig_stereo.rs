@@ -176,7 +176,7 @@ pub fn rig_from_known_intrinsics(
         .step("relative pose from E")?;
     // The 5-dof ML refinement on the inliers: decomposing the 7-dof F alone lets noise in
     // its two surplus degrees of freedom leak into the pose (measured on the Middlebury
-    // motorcycle pair, docs/real-data.md).
+    // motorcycle pair, docs/results-real.md).
     let (right_from_left, stereo_rms_px) =
         headalign_geometry::frame::refine_relative_pose(&decomposed, k_left, k_right, &inlier_pairs, 100)
             .step("relative pose refinement")?;

@@ -29,7 +29,7 @@ fn trial(corners: usize, f: [f64; 2], sigma: [f64; 2], weak: bool) -> DensityTri
 
 /// Trials that disagree beyond their sigmas: the principal points decide, not the
 /// smaller sigma. The three re-detected one-motion sessions whose two results disagree
-/// (docs/real-data.md; focal lengths, sigmas and mean principal-point distances from
+/// (docs/results-real.md; focal lengths, sigmas and mean principal-point distances from
 /// the image centre as measured): procedural seed 14 keeps 1500 corners (+0.63 %, where
 /// the denser +2.84 % has the smaller sigma), photographs seeds 14 and 20 keep 3000
 /// (+1.18 % and -0.15 %, against +4.04 % and +19.7 %). Trials that agree still go by
@@ -59,7 +59,7 @@ fn disagreeing_densities_are_decided_by_the_principal_points() {
     assert_eq!(DensityTrial::failed(1500, "x".into(), 1.0).principal_point_offset_px, None);
 }
 
-/// The density choice on the trials measured on rendered sessions (docs/real-data.md):
+/// The density choice on the trials measured on rendered sessions (docs/results-real.md):
 /// seed 20 (one wall) is retried and the dense result kept, with the 17-sigma
 /// disagreement as a warning; a sound first result is not retried; a dense run that
 /// diverged (one motion with k1, k2 estimated, seed 1 at 3000: f 2805 px, sigma 15 %)
@@ -265,7 +265,7 @@ fn one_general_motion_half_pixel_within_one_percent() {
     }
 }
 
-/// The Monte-Carlo behind the numbers in docs/real-data.md (seeds 1-20, 0.5 px):
+/// The Monte-Carlo behind the numbers in docs/results-real.md (seeds 1-20, 0.5 px):
 /// `cargo test --release -p headalign --lib calibrate::tests::general_motion_seeds -- --ignored --nocapture`.
 #[test]
 #[ignore = "experiment: prints statistics over 20 seeds"]

@@ -63,7 +63,7 @@ use crate::tracking::Localisation;
 /// `residuals_are_checked_against_the_images_noise` in the CLI), so 1.25 is 1.5 times
 /// what a fitting model gives there, room for scenes whose alignments fit worse than the
 /// simulator's; a barrel lens fitted as a pinhole leaves 3.1 times, the real EuRoC pairs
-/// with an estimated lens 1.4-1.6 times (docs/real-data.md).
+/// with an estimated lens 1.4-1.6 times (docs/results-real.md).
 pub const RESIDUAL_OVER_NOISE_WARN: f64 = 1.25;
 
 /// Why the check is skipped when the observations came without their images'

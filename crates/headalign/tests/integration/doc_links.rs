@@ -1,13 +1,17 @@
 //! Citations that resolve: every relative link of the repository's markdown (README.md,
-//! docs/, fuzz/README.md), with its `#anchor` checked against the target's headings by
-//! GitHub's slug rule, and every backticked repository path in `.rs` comments and in the
-//! markdown (a path under crates/, docs/, bench/, fuzz/ or .ci/ from the root, or under
-//! tests/, src/, examples/, benches/ of a crate, with an optional #anchor) must exist; no code or doc may cite the design notes that are not in
-//! the repository. Each failure names the file, the line and the target. Std only, no
-//! network: external links (`http://`, `https://`, `mailto:`) are not followed.
+//! docs/, fuzz/README.md, data/README.md), with its `#anchor` checked against the
+//! target's headings by GitHub's slug rule, and every repository path cited in `.rs`
+//! comments, in the `bench/` scripts and in the markdown must exist: a backticked path
+//! under crates/, docs/, bench/, fuzz/, data/ or .ci/ from the root, or under tests/,
+//! src/, examples/, benches/ of a crate, with an optional #anchor; and a bare (not
+//! backticked) word that starts with one of the root folders. No code or doc may cite the
+//! design notes that are not in the repository. Each failure names the file, the line and
+//! the target. Std only, no network: external links (`http://`, `https://`, `mailto:`) are
+//! not followed. `.ci/run` runs this test (its `cargo test --workspace --release`).
 //!
 //! Pitfalls: paths with placeholders (`<experiment>`, `{dir}`, `*`, `$`, `...`, an
-//! upper-case segment such as `TARGET`) are skipped;
+//! upper-case segment such as `TARGET`) are skipped; a bare word loses its trailing
+//! punctuation (`docs/<page>.md.` cites `docs/<page>.md`);
 //! `tests/`, `src/`, `examples/` and `benches/` paths are resolved against the citing
 //! file's crate first, then (from markdown) against every crate; text in fenced code
 //! blocks is neither a link nor a heading.
@@ -39,7 +43,7 @@ fn walk(dir: &Path, ext: &str, out: &mut Vec<PathBuf>) {
 
 /// The markdown files whose links are checked.
 fn markdown_files(root: &Path) -> Vec<PathBuf> {
-    let mut files = vec![root.join("README.md"), root.join("fuzz/README.md")];
+    let mut files = vec![root.join("README.md"), root.join("fuzz/README.md"), root.join("data/README.md")];
     walk(&root.join("docs"), "md", &mut files);
     files.retain(|f| f.is_file());
     files
@@ -121,7 +125,20 @@ fn backticked(line: &str) -> Vec<&str> {
 }
 
 /// Prefixes of the repository's top-level folders, resolved from the root.
-const ROOT_PREFIXES: [&str; 5] = ["crates/", "docs/", "bench/", "fuzz/", ".ci/"];
+const ROOT_PREFIXES: [&str; 6] = ["crates/", "docs/", "bench/", "fuzz/", "data/", ".ci/"];
+
+/// The words outside backticks of one line that start with a root folder (`docs/<page>.md`),
+/// their trailing punctuation removed.
+fn bare_paths(line: &str) -> Vec<&str> {
+    let delimiters =
+        |c: char| c.is_whitespace() || matches!(c, '(' | ')' | '[' | ']' | '"' | '\'' | ',' | ';');
+    line.split('`')
+        .step_by(2)
+        .flat_map(|outside| outside.split(delimiters))
+        .map(|w| w.trim_end_matches(['.', ':', '!', '?']))
+        .filter(|w| ROOT_PREFIXES.iter().any(|p| w.starts_with(p)))
+        .collect()
+}
 /// Prefixes resolved inside a crate.
 const CRATE_PREFIXES: [&str; 4] = ["tests/", "src/", "examples/", "benches/"];
 
@@ -249,7 +266,7 @@ fn links_and_cited_paths_resolve() {
         checker.markdown_links(&file, &text);
         checker.design_notes(&file, &text);
         for (n, line) in prose_lines(&text) {
-            for span in backticked(line) {
+            for span in backticked(line).into_iter().chain(bare_paths(line)) {
                 checker.cited_path(&file, n, span);
             }
         }
@@ -263,7 +280,7 @@ fn links_and_cited_paths_resolve() {
         checker.design_notes(file, &text);
         for (i, line) in text.lines().enumerate() {
             let Some(comment) = line.trim_start().strip_prefix("//") else { continue };
-            for span in backticked(comment) {
+            for span in backticked(comment).into_iter().chain(bare_paths(comment)) {
                 checker.cited_path(file, i + 1, span);
             }
         }
@@ -273,7 +290,15 @@ fn links_and_cited_paths_resolve() {
     for file in &scripts {
         let text = fs::read_to_string(file).unwrap_or_default();
         checker.design_notes(file, &text);
+        for (i, line) in text.lines().enumerate() {
+            for span in backticked(line).into_iter().chain(bare_paths(line)) {
+                checker.cited_path(file, i + 1, span);
+            }
+        }
     }
+    // A markdown link's target is also a bare word: one failure each.
+    checker.failures.sort();
+    checker.failures.dedup();
     assert!(
         checker.failures.is_empty(),
         "{} broken citations:\n{}",
@@ -296,4 +321,8 @@ fn slugs_follow_github() {
     let a = anchors("# A\n```\n# not a heading\n```\n## A\n");
     assert!(a.contains("a") && a.contains("a-1") && !a.contains("not-a-heading"));
     assert_eq!(link_targets("see [x](a.md#b \"t\") and [y](c/)"), ["a.md#b", "c/"]);
+    assert_eq!(
+        bare_paths("see docs/a.md. and (bench/b.py), not `docs/c.md` nor xdocs/d"),
+        ["docs/a.md", "bench/b.py"]
+    );
 }

@@ -19,7 +19,7 @@ struct RenderedPair {
 
 fn rendered_pair() -> RenderedPair {
     let mut s = Scenario { seed: 3, ..Scenario::default() };
-    s.render.use_photos = false; // the same textures with or without ../shared/data
+    s.render.use_photos = false; // procedural textures: the measured numbers below are theirs
     let mut head = SimulatedHead::new(s.clone()).unwrap();
     let e0 = head.read_encoders().unwrap();
     let first = head.capture_images().unwrap();

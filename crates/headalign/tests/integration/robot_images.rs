@@ -51,9 +51,9 @@ fn pan_stage_on_rendered_images() {
         "pan error {before:+.3} -> {after:+.3} deg in {:.2} s: {outcome:?}",
         t0.elapsed().as_secs_f64()
     );
-    // The seed starts 15 deg off. Tolerance 1 deg: measured -0.21 deg with the
-    // `../shared/data` textures and +0.505 deg without them (a clone elsewhere renders the
-    // procedural fallback: other images, other tracks); the image-mode bar is an RMS of
+    // The seed starts 15 deg off. Tolerance 1 deg: measured -0.21 deg with the `data/`
+    // photographs and +0.505 deg with the procedural textures (`use_photos = false`: other
+    // images, other tracks); the image-mode bar is an RMS of
     // 1.7 deg over seeds (twice the point-mode 0.85), and single seeds of `demo --images`
     // measured up to 0.96 deg (`bench/seeds.py 1 20 --images`).
     assert!(before.abs() > 5.0, "{before}");

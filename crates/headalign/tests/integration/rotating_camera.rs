@@ -1,14 +1,11 @@
 //! Self-calibration from ONE rotation on real (Blender-rendered) images: OpenCV's
-//! `Blender_Suzanne1.jpg` / `Blender_Suzanne2.jpg` (../shared/data/opencv_samples/
+//! `Blender_Suzanne1.jpg` / `Blender_Suzanne2.jpg` (data/opencv_samples/
 //! blender_suzanne_rotation, Apache-2.0/BSD-3-Clause, see its README) are a pure 30 deg
 //! rotation of a camera with K = [[700, 0, 320], [0, 700, 240], [0, 0, 1]]. The image
 //! homography of a pure rotation is the infinite homography `K R K^-1`; one rotation
 //! leaves a pencil of conics, which zero skew and square pixels resolve
 //! ([`headalign_geometry::selfcal::calibrate_from_infinite_homographies`], the solver
-//! `headalign calibrate` uses for one general motion). Skipped with a message only if the
-//! data folder is absent.
-
-use std::path::Path;
+//! `headalign calibrate` uses for one general motion).
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::homography2d::Homography2Estimator;
@@ -18,6 +15,8 @@ use headalign_vision::{
     FeatureOptions, GrayImage, MatchOptions, detect_and_describe, match_descriptors, match_homography,
 };
 use nalgebra::Point2;
+
+use super::common::data_path;
 
 /// Measured: fx = fy = 693.0 (1.0 % low), principal point (322.4, 238.6) from 64 inlier
 /// matches of 85 after guided matching (without it, 49 inliers gave 684-691 depending on
@@ -29,12 +28,7 @@ use nalgebra::Point2;
 /// focal length.
 #[test]
 fn one_rotation_of_a_real_camera_gives_k() {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/data/opencv_samples/blender_suzanne_rotation");
-    if !dir.is_dir() {
-        eprintln!("SKIPPED: {} is absent", dir.display());
-        return;
-    }
+    let dir = data_path("opencv_samples/blender_suzanne_rotation");
     let a = GrayImage::load(&dir.join("Blender_Suzanne1.jpg")).unwrap();
     let b = GrayImage::load(&dir.join("Blender_Suzanne2.jpg")).unwrap();
     let options = FeatureOptions { max_features: 3000, ..FeatureOptions::default() };

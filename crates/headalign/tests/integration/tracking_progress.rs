@@ -10,7 +10,7 @@ use headalign_sim::{Scenario, SimulatedHead};
 /// The initial view and views after the scenario's pan and elevation (seed 5).
 fn rendered_views() -> Vec<(String, StereoImages)> {
     let mut s = Scenario { seed: 5, ..Scenario::default() };
-    s.render.use_photos = false; // the same textures with or without ../shared/data
+    s.render.use_photos = false; // procedural textures: progress does not depend on them
     let mut head = SimulatedHead::new(s.clone()).unwrap();
     let e0 = head.read_encoders().unwrap();
     let mut views = Vec::new();
