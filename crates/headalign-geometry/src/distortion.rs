@@ -157,9 +157,10 @@ impl DistortionTerms {
     }
 
     /// The estimated parameters' slots of [`Distortion::slots`] in a `kind` lens.
-    pub fn slots(self, kind: LensKind) -> Vec<usize> {
+    pub fn slots(self, kind: LensKind) -> &'static [usize] {
+        // The estimated parameters are always the model's first ones.
         let slots = kind.model().slots();
-        self.params(kind).iter().filter_map(|&i| slots.get(i).copied()).collect()
+        &slots[..self.params(kind).len().min(slots.len())]
     }
 
     /// Parse `k1k2` / `radial` (radial terms), `4` / `full4`, `5` / `full5`.
