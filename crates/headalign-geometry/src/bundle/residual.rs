@@ -420,6 +420,9 @@ mod tests {
         ds.left.skew = 0.4;
         fd_check(&ds, &five, &pick);
         let layout = Layout::build(&ds, &five).unwrap();
-        assert!(layout.names().iter().any(|n| n == "left.xi") && layout.names().iter().any(|n| n == "right.alpha"));
+        assert!(
+            layout.names().iter().any(|n| n == "left.xi")
+                && layout.names().iter().any(|n| n == "right.alpha")
+        );
     }
 }

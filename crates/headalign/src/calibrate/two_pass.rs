@@ -146,6 +146,28 @@ fn grid_displacements() -> impl Iterator<Item = f64> {
     (-6..=6).map(|i| f64::from(i) * 0.05)
 }
 
+/// The lens of the model `kind` whose first parameter alone moves a point at normalised
+/// radius `corner` radially by the fraction `delta` of its radius: `k1` of the
+/// radial-tangential and equidistant models; the double sphere's `alpha` with `xi = 0`
+/// (`m = x / (alpha |ray| + (1 - alpha) z)`, barrel only: `alpha` in `[0, 1]`). `None`
+/// where the model has no such lens (the pinhole; the double sphere's pincushion).
+fn grid_lens(kind: LensKind, delta: f64, corner: f64) -> Option<Distortion> {
+    let mut d = Distortion::zero(kind);
+    match kind {
+        LensKind::RadialTangential => d.k1 = delta / (corner * corner),
+        LensKind::Equidistant => d.k1 = delta / corner.atan().powi(2),
+        LensKind::DoubleSphere => {
+            let c = corner.atan().cos();
+            d.alpha = c * (1.0 / (1.0 + delta) - 1.0) / (1.0 - c);
+            if !(0.0..=1.0).contains(&d.alpha) {
+                return None;
+            }
+        }
+        LensKind::Pinhole => return None,
+    }
+    Some(d)
+}
+
 /// Step 1's lens: per lens of the
 /// model `kind` whose `k1` alone moves the image corner radially by a fraction
 /// [`grid_displacements`] of its radius (under the image-size guess `K0`), the pixels
@@ -160,11 +182,7 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
     let corner = (k0.cx.hypot(k0.cy)) / k0.fx;
     let mut best: Option<(usize, Distortion)> = None;
     for delta in grid_displacements() {
-        let mut d = Distortion::zero(kind);
-        d.k1 = match kind {
-            LensKind::RadialTangential => delta / (corner * corner),
-            LensKind::Equidistant => delta / corner.atan().powi(2),
-        };
+        let Some(d) = grid_lens(kind, delta, corner) else { continue };
         let lens = LensModel { k: k0, distortion: d };
         let chain = undistort_views(&rig.rig, &[lens, lens]);
         let Ok(stereo) = super::stereo::stereo_geometry(&chain, &k0, &options.estimation) else { continue };
