@@ -165,7 +165,7 @@ struct PointSources<'a> {
 fn triangulate_in_state(state: &RigState, src: &PointSources<'_>, i: usize) -> Option<Point3<f64>> {
     let slot = *src.origin_slot.get(i)?;
     let (_, l, r) = src.recon.get(slot)?.get(src.point_tracks.get(i)?)?;
-    if [state.left_distortion.kind, state.right_distortion.kind].into_iter().any(super::two_pass::is_wide) {
+    if [state.left_distortion.kind, state.right_distortion.kind].into_iter().any(super::wide::is_wide) {
         return triangulate_bearings(state, l, r).map(|p| state.motions.ref_from_cam(slot) * p);
     }
     let l = state.left_distortion.undistort_pixel(&state.left, l).ok()?;
@@ -182,7 +182,11 @@ fn triangulate_in_state(state: &RigState, src: &PointSources<'_>, i: usize) -> O
 /// frame: the triangulation of a wide lens, whose rays may lie beyond 90 deg where a
 /// pinhole pixel does not exist. `None` for rays that do not unproject, near-parallel rays
 /// (1 - cos^2 of their angle below 1e-12) or a point behind either camera along its ray.
-fn triangulate_bearings(state: &RigState, l: &Point2<f64>, r: &Point2<f64>) -> Option<Point3<f64>> {
+pub(super) fn triangulate_bearings(
+    state: &RigState,
+    l: &Point2<f64>,
+    r: &Point2<f64>,
+) -> Option<Point3<f64>> {
     let bl = state.left_distortion.unproject_pixel(&state.left, l).ok()?;
     let br = state.right_distortion.unproject_pixel(&state.right, r).ok()?;
     let left_from_right = state.right_from_left.inverse();

@@ -103,6 +103,7 @@ mod stereo;
 #[cfg(test)]
 mod tests;
 mod two_pass;
+mod wide;
 
 use headalign_geometry::GeometryError;
 use headalign_geometry::bundle::{BundleObservation, BundleResult};

@@ -80,7 +80,7 @@ pub(super) struct LensStart {
     /// The starts' distortion (left, right).
     pub(super) distortion: [Distortion; 2],
     /// Rays farther from the axis than this (degrees) are left out of the linear steps
-    /// (a wide model's run, [`WIDE_CHAIN_MAX_RAY_DEG`]); `None`: every ray in front.
+    /// (a wide model's run, [`super::wide::WIDE_CHAIN_MAX_RAY_DEG`]); `None`: every ray in front.
     pub(super) max_ray_deg: Option<f64>,
 }
 
@@ -102,18 +102,6 @@ impl LensStart {
         }
         out
     }
-}
-
-/// The largest ray angle from the axis (degrees) in the linear steps of a wide model's
-/// run (the double sphere's): the pinhole image of the grid lens is well conditioned
-/// there (a pinhole stretches a ray at 60 deg by 4x its central scale), and rays beyond
-/// 90 deg have no pinhole pixel at all.
-pub const WIDE_CHAIN_MAX_RAY_DEG: f64 = 60.0;
-
-/// True for a model whose field reaches beyond 90 deg (the lens table's metadata): its
-/// run is the lens-grid run alone ([`calibrate_two_pass`]).
-pub(super) fn is_wide(kind: LensKind) -> bool {
-    kind.model().max_half_fov_deg() > 90.0
 }
 
 /// True if every focal length of `c` is within [`MAX_FOCAL_WIDTHS`] of the image width
@@ -155,18 +143,8 @@ pub(super) fn calibrate_two_pass(
     let Some(kind) = options.lens.kind() else {
         return calibrate_with_restarts(views, options);
     };
-    if is_wide(kind) {
-        // The chain on captured pixels beyond 90 deg is no pinhole's: the lens-grid run
-        // alone (its linear steps on the central rays, the adjustment on every pixel).
-        let start = wide_grid_start(views, options, kind).ok_or_else(|| {
-            AlignError::MissingMotion(format!(
-                "no {} lens of the grid gives every view a 3D homography (rays within {WIDE_CHAIN_MAX_RAY_DEG} deg)",
-                kind.kalibr_name()
-            ))
-        })?;
-        let run =
-            with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, Some(&start), None))?;
-        return Ok(wide_xi_scan(run, options));
+    if super::wide::is_wide(kind) {
+        return super::wide::calibrate_wide(views, options, kind);
     }
     // The run on pixels undistorted by the grid's lens (steps 2-3).
     let second = grid_start(views, options, kind).map(|start| {
@@ -248,114 +226,5 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
         chain: [LensModel { k: k0, distortion: d }; 2],
         distortion: [d, d],
         max_ray_deg: None,
-    })
-}
-
-/// The shifts `xi` of [`wide_xi_scan`]'s starts: -0.6 to 0.6 in steps of 0.2.
-fn wide_xi_starts() -> impl Iterator<Item = f64> {
-    (-3..=3).map(|i| f64::from(i) * 0.2)
-}
-
-/// The double sphere's focal length and `xi` share a long valley (near the axis the pixel
-/// scale is `f / (1 + xi)`; only the far field separates them), in which the adjustment of
-/// the lens-grid run can stop short (measured on the 180-deg session of the tests, seed 1,
-/// 0.5 px: `xi` 0.21 for a true -0.15, f +42 %, RMS 0.61 px). So: from the run's result,
-/// least-squares refits on its observations from starts along the valley (`xi` of
-/// [`wide_xi_starts`], each camera's `f` moved to keep `f / (1 + xi)`), and the lowest
-/// sum of squares is kept (the run's own result among them). Its report's RMS, noise and
-/// focal sigmas follow the kept fit, and `start` names it (`xi scan` when a scan start
-/// won). Only the double sphere has the valley; other models pass unchanged.
-fn wide_xi_scan(mut run: MotionCalibration, options: &CalibrateOptions) -> MotionCalibration {
-    use headalign_geometry::bundle::{BundleOptions, RobustLoss, bundle_adjust, residual_pixels};
-    let state = &run.bundle.state;
-    if state.left_distortion.kind != LensKind::DoubleSphere {
-        return run;
-    }
-    let est = super::adjust::adjustment_options(options);
-    let ls = BundleOptions {
-        robust: RobustLoss::None,
-        noise_sigma_px: None,
-        max_iterations: est.bundle.max_iterations.max(crate::estimate::FINAL_ITERATIONS),
-        ..est.bundle
-    };
-    let obs = &run.observations;
-    let rss = |s: &headalign_geometry::bundle::RigState| -> f64 {
-        obs.iter().map(|o| residual_pixels(s, o).map_or(f64::INFINITY, |r| r.norm_squared())).sum()
-    };
-    let mut best: Option<(f64, headalign_geometry::bundle::BundleResult)> = None;
-    for xi in wide_xi_starts() {
-        let mut start = state.clone();
-        for (k, d) in
-            [(&mut start.left, &mut start.left_distortion), (&mut start.right, &mut start.right_distortion)]
-        {
-            let scale = (1.0 + xi) / (1.0 + d.xi);
-            k.fx *= scale;
-            k.fy *= scale;
-            d.xi = xi;
-        }
-        let Ok(fit) = bundle_adjust(&start, obs, &ls) else { continue };
-        let cost = rss(&fit.state);
-        if cost.is_finite() && best.as_ref().is_none_or(|(c, _)| cost < *c) {
-            best = Some((cost, fit));
-        }
-    }
-    if let Some((cost, fit)) = best
-        && cost < rss(state)
-    {
-        run.report.final_rms_px = fit.report.final_rms_px;
-        run.report.sigma_px = fit.report.sigma_px;
-        run.report.focal_sigma_pct = super::report::focal_sigma_pct(&fit);
-        run.report.start = "xi scan".into();
-        run.bundle = fit;
-    }
-    run
-}
-
-/// The half fields (degrees) at the image's horizontal edge of the grid lenses of
-/// [`wide_grid_start`]: 50 to 110 deg in steps of 10.
-fn wide_grid_fields() -> impl Iterator<Item = f64> {
-    (5..=11).map(|i| f64::from(i) * 10.0)
-}
-
-/// [`grid_start`] for a wide model (the double sphere): per half field `phi` of
-/// [`wide_grid_fields`], the stereographic double sphere (`xi = 0`, `alpha = 1/2`: `r =
-/// 2 f tan(theta / 2)`) whose focal length puts `phi` at the image's horizontal edge, the
-/// pixels undistorted with it (rays within [`WIDE_CHAIN_MAX_RAY_DEG`]) and steps 2-3 of the
-/// chain run; the lens whose 3D homographies keep the most quadruplets wins, and its `K`
-/// conditions the chain and starts the rigid start. `None` if no lens gives every view a
-/// homography.
-fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Option<LensStart> {
-    let rig = super::depth::select_views(views, options).ok()?;
-    let [w, h] = rig.image_size;
-    let guess = Intrinsics::rough_guess(w, h);
-    let mut best: Option<(usize, LensModel)> = None;
-    for phi in wide_grid_fields() {
-        let mut d = Distortion::zero(kind);
-        if kind == LensKind::DoubleSphere {
-            d.alpha = 0.5;
-        }
-        let phi = phi.to_radians();
-        let f = 0.5 * f64::from(w) * (0.5 + 0.5 * phi.cos()) / phi.sin();
-        let lens = LensModel { k: Intrinsics::new(f, f, guess.cx, guess.cy), distortion: d };
-        let start =
-            LensStart { chain: [lens; 2], distortion: [d; 2], max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG) };
-        let chain = start.chain_views(&rig.rig);
-        let Ok(stereo) = super::stereo::stereo_geometry(&chain, &lens.k, &options.estimation) else {
-            continue;
-        };
-        let Ok(motions) =
-            super::motion::fit_motions(&chain, &stereo.recon, &stereo.frame, options, &mut None)
-        else {
-            continue;
-        };
-        let score: usize = motions.iter().map(|m| m.report.inliers).sum();
-        if best.as_ref().is_none_or(|(b, _)| score > *b) {
-            best = Some((score, lens));
-        }
-    }
-    best.map(|(_, lens)| LensStart {
-        chain: [lens; 2],
-        distortion: [lens.distortion; 2],
-        max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
     })
 }
