@@ -82,8 +82,8 @@ impl LensChoice {
         }
     }
 
-    /// The model named `pinhole`, `radtan` (also `radial-tangential`, `plumb_bob`),
-    /// `equidistant` (also `fisheye`, `equi`) or `auto`.
+    /// The model named `pinhole`, `auto`, or any name of the lens table
+    /// ([`LensKind::parse`]: `radtan`, `plumb_bob`, `equidistant`, `fisheye`, `ds`, ...).
     pub fn parse(name: &str) -> Option<Self> {
         match name.trim().to_ascii_lowercase().as_str() {
             "pinhole" | "none" => Some(LensChoice::Pinhole),
@@ -92,7 +92,7 @@ impl LensChoice {
         }
     }
 
-    /// The name users give it (`pinhole`, `radtan`, `equidistant`, `auto`).
+    /// The name users give it (`pinhole`, `radtan`, `equidistant`, `ds`, `auto`).
     pub fn name(self) -> &'static str {
         match self {
             LensChoice::Pinhole => "pinhole",

@@ -890,6 +890,7 @@ fn a_180_degree_double_sphere_calibrates() {
 #[test]
 #[ignore = "experiment: prints the 180-deg double-sphere bar over 20 seeds"]
 fn wide_double_sphere_seeds() {
+    use headalign_geometry::bundle::BundleOptions;
     let (mut worst_f, mut worst_z, mut failed) = (0.0f64, 0.0f64, 0);
     for seed in 1..=20 {
         match calibrate_wide(seed, 0.5, 15.0) {
@@ -905,9 +906,36 @@ fn wide_double_sphere_seeds() {
                 ]
                 .map(|(n, e)| cov.sigma(n).map_or(f64::INFINITY, |s| e.abs() / s));
                 let zmax = z.iter().copied().fold(0.0, f64::max);
+                // The least squares from the truth on the same observations: its sum of
+                // squares against the estimate's tells a start problem (truth lower) from
+                // a minimum the data prefer (truth higher).
+                let mut from_truth = st.clone();
+                (from_truth.left, from_truth.right) = (t.left, t.right);
+                from_truth.left_distortion = Distortion::double_sphere(-0.15, 0.55);
+                from_truth.right_distortion = from_truth.left_distortion;
+                let ls = BundleOptions {
+                    zero_skew: true,
+                    estimate_distortion: true,
+                    max_iterations: 100,
+                    ..BundleOptions::default()
+                };
+                let ssr = |s: &RigState| -> f64 {
+                    cal.observations
+                        .iter()
+                        .map(|o| {
+                            headalign_geometry::bundle::residual_pixels(s, o)
+                                .map_or(1e6, |r| r.norm_squared())
+                        })
+                        .sum()
+                };
+                let truth_ssr =
+                    headalign_geometry::bundle::bundle_adjust(&from_truth, &cal.observations, &ls)
+                        .map_or(f64::NAN, |r| ssr(&r.state));
                 println!(
-                    "seed {seed:2}: f error {f:.3} %, lens errors / sigma {z:.2?}, rms {:.3} px, start {}",
-                    cal.report.final_rms_px, cal.report.start
+                    "seed {seed:2}: f error {f:.3} %, lens errors / sigma {z:.2?}, rms {:.3} px, start {}, SSR {:.1} (from the truth {truth_ssr:.1})",
+                    cal.report.final_rms_px,
+                    cal.report.start,
+                    ssr(st)
                 );
                 (worst_f, worst_z) = (worst_f.max(f), worst_z.max(zmax));
             }
@@ -946,8 +974,12 @@ pub(crate) fn wide_rendered_views(
 }
 
 /// The issue-45 bar on rendered images: the 180-deg double sphere (`wide_scenario`, seed
-/// 1) in 15-deg views, tracked by the front end and calibrated with the double sphere:
-/// focal lengths within 1 %, `xi` and `alpha` within 3 reported sigmas.
+/// 1) in 15-deg views, tracked by the front end (0.05 px RMS) and calibrated with the
+/// double sphere: focal lengths within 1 %, `xi` and `alpha` within 3 reported sigmas, and
+/// the sum of squares no higher than the least squares started at the truth reaches on
+/// the same observations (the other end of the f-xi valley, `calibrate::wide`, fits the
+/// profile within 0.5 px out to 110 deg: this run ended there, f +42 %, before the valley
+/// candidates were compared on common observations).
 #[test]
 fn a_180_degree_double_sphere_calibrates_from_rendered_images() {
     let images = wide_rendered_views(1, 15.0);
@@ -960,26 +992,42 @@ fn a_180_degree_double_sphere_calibrates_from_rendered_images() {
     let cal = calibrate_tracked(tracked, None, &options).unwrap();
     let st = &cal.bundle.state;
     let truth = wide_scenario(1, 0.5);
-    eprintln!(
-        "rendered: {:?} {:?} / {:?} {:?}, rms {:.3} px, start {}, {} observations",
-        st.left,
-        st.left_distortion,
-        st.right,
-        st.right_distortion,
-        cal.report.final_rms_px,
-        cal.report.start,
-        cal.observations.len()
-    );
-    assert!(f_err_pct(&st.left, &truth.left) < 1.0, "{:?}", st.left);
-    assert!(f_err_pct(&st.right, &truth.right) < 1.0, "{:?}", st.right);
+    let lens = truth.render.distortion;
+    assert!(f_err_pct(&st.left, &truth.left) < 1.0, "{:?} {:?}", st.left, st.left_distortion);
+    assert!(f_err_pct(&st.right, &truth.right) < 1.0, "{:?} {:?}", st.right, st.right_distortion);
     let cov = &cal.bundle.covariance;
     for (name, err) in [
-        ("left.xi", st.left_distortion.xi + 0.15),
-        ("left.alpha", st.left_distortion.alpha - 0.55),
-        ("right.xi", st.right_distortion.xi + 0.15),
-        ("right.alpha", st.right_distortion.alpha - 0.55),
+        ("left.xi", st.left_distortion.xi - lens.xi),
+        ("left.alpha", st.left_distortion.alpha - lens.alpha),
+        ("right.xi", st.right_distortion.xi - lens.xi),
+        ("right.alpha", st.right_distortion.alpha - lens.alpha),
     ] {
         let sigma = cov.sigma(name).unwrap();
+        eprintln!("rendered {name}: error {err:.5}, sigma {sigma:.5}");
         assert!(err.abs() < 3.0 * sigma, "{name}: error {err:.5}, sigma {sigma:.5}");
     }
+    let mut from_truth = st.clone();
+    (from_truth.left, from_truth.right) = (truth.left, truth.right);
+    (from_truth.left_distortion, from_truth.right_distortion) = (lens, lens);
+    let ls = headalign_geometry::bundle::BundleOptions {
+        estimate_distortion: true,
+        max_iterations: 100,
+        ..Default::default()
+    };
+    let ssr = |s: &RigState| -> f64 {
+        cal.observations
+            .iter()
+            .map(|o| headalign_geometry::bundle::residual_pixels(s, o).map_or(1e6, |r| r.norm_squared()))
+            .sum()
+    };
+    let at_truth =
+        ssr(&headalign_geometry::bundle::bundle_adjust(&from_truth, &cal.observations, &ls).unwrap().state);
+    eprintln!(
+        "rendered: f {:.2} xi {:.4} alpha {:.4}; SSR {:.4} px^2, from the truth {at_truth:.4}",
+        st.left.fx,
+        st.left_distortion.xi,
+        st.left_distortion.alpha,
+        ssr(st)
+    );
+    assert!(ssr(st) <= at_truth * 1.01, "SSR {} against {at_truth} from the truth", ssr(st));
 }
