@@ -33,62 +33,9 @@ use nalgebra::{Matrix2, Point2, SMatrix, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Intrinsics;
-use crate::lens::{self, LensModel, MAX_PARAMS, ParamJacobian, Params};
+pub use crate::lens::LensKind;
+use crate::lens::{self, MAX_PARAMS, ParamJacobian, Params};
 use crate::{GeometryError, Result};
-
-/// The lens model a [`Distortion`]'s parameters belong to (the rows of
-/// [`crate::lens::MODELS`], in this order).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum LensKind {
-    /// Radial-tangential: OpenCV / ROS `plumb_bob`, Kalibr `radtan` (the default; all
-    /// coefficients zero is the pinhole).
-    #[default]
-    RadialTangential,
-    /// Equidistant fisheye: OpenCV `fisheye`, ROS `equidistant`, Kalibr `equidistant`.
-    Equidistant,
-    /// Double sphere (Usenko et al. 2018): Kalibr `ds`, parameters `xi alpha`.
-    DoubleSphere,
-    /// The pinhole, no parameters.
-    Pinhole,
-}
-
-impl LensKind {
-    /// The model's row of the table.
-    pub fn model(self) -> &'static dyn LensModel {
-        lens::model(self)
-    }
-
-    /// ROS `sensor_msgs/CameraInfo.distortion_model` (`None`: ROS has no such model).
-    pub fn ros(self) -> Option<&'static str> {
-        self.model().names().ros
-    }
-
-    /// ROS `distortion_model`, or the short name where ROS has none.
-    pub fn ros_name(self) -> &'static str {
-        let n = self.model().names();
-        n.ros.unwrap_or(n.short)
-    }
-
-    /// The short name (`radtan`, `equidistant`, `ds`, `pinhole`; Kalibr's where it has one).
-    pub fn kalibr_name(self) -> &'static str {
-        self.model().names().short
-    }
-
-    /// The model named by any of the usual spellings of the table (`radtan`,
-    /// `radial-tangential`, `plumb_bob`, `pinhole-radtan`; `equidistant`, `equi`,
-    /// `fisheye`, `pinhole-equi`, `kannala_brandt`; `ds`, `double-sphere`; `pinhole`),
-    /// case-insensitive. OpenCV's `rational_polynomial` (8 coefficients) is none of them.
-    pub fn parse(name: &str) -> Option<Self> {
-        let key = name.trim().to_ascii_lowercase().replace('_', "-");
-        lens::MODELS.iter().find(|m| m.names().aliases.contains(&key.as_str())).map(|m| m.kind())
-    }
-
-    /// Names of the coefficients in the order of [`Distortion::coefficients`].
-    pub fn coefficient_names(self) -> &'static [&'static str] {
-        self.model().param_names()
-    }
-}
 
 /// A camera's lens: the model `kind` and its parameters (all zero in the radial-tangential
 /// model is the pinhole; in the equidistant model it is the ideal equidistant lens
@@ -420,7 +367,7 @@ impl Distortion {
             LensKind::Equidistant => lens::equidistant::undistort(&p, xd),
             _ => {
                 let b = self.kind.model().unproject(&p, xd)?;
-                if !(b.z > 1e-12) {
+                if !lens::gt(b.z, 1e-12) {
                     return Err(GeometryError::Degenerate(format!(
                         "({:.3}, {:.3}) is a ray at or beyond 90 deg: it has no pinhole point",
                         xd.x, xd.y

@@ -35,9 +35,8 @@
 
 use nalgebra::{Matrix2x3, RowVector3, Vector2, Vector3};
 
-use super::{LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, k2};
+use super::{LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, k2};
 use crate::camera::Intrinsics;
-use crate::distortion::LensKind;
 use crate::{GeometryError, Result};
 
 /// The double-sphere model (module docs).
@@ -72,7 +71,7 @@ fn w2(xi: f64, alpha: f64) -> f64 {
 fn terms(p: &Params, ray: &Vector3<f64>) -> Option<Terms> {
     let [xi, alpha, ..] = *p;
     let d1 = ray.norm();
-    if !(d1 > 0.0) || !(ray.z > -w2(xi, alpha) * d1) {
+    if !super::gt(d1, 0.0) || !super::gt(ray.z, -w2(xi, alpha) * d1) {
         return None;
     }
     let s = xi * d1 + ray.z;

@@ -20,9 +20,8 @@
 
 use nalgebra::{Matrix2, Matrix2x3, Vector2, Vector3};
 
-use super::{LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, k2};
+use super::{LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, k2};
 use crate::camera::Intrinsics;
-use crate::distortion::LensKind;
 use crate::{GeometryError, Result};
 
 /// Newton iterations of the unprojection.
@@ -136,14 +135,14 @@ impl LensModel for Equidistant {
     }
 
     fn project(&self, p: &Params, ray: &Vector3<f64>) -> Option<Vector2<f64>> {
-        if !(ray.z > 0.0) {
+        if !super::gt(ray.z, 0.0) {
             return None;
         }
         Some(distort(p, &Vector2::new(ray.x / ray.z, ray.y / ray.z)).0)
     }
 
     fn linearise(&self, k: &Intrinsics, p: &Params, ray: &Vector3<f64>) -> Option<Linearised> {
-        if !(ray.z > 0.0) {
+        if !super::gt(ray.z, 0.0) {
             return None;
         }
         let iz = 1.0 / ray.z;

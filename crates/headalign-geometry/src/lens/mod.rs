@@ -16,7 +16,7 @@
 //! | double sphere | `double_sphere.rs` | `xi alpha` | none | none | `ds` | up to 180 deg and beyond |
 //!
 //! Adding a model is adding a file that implements [`LensModel`], a [`LensKind`] variant
-//! and a row of [`MODELS`]; [`crate::distortion::Distortion`] stores every model's
+//! and a row of [`MODELS`]; `distortion::Distortion` stores every model's
 //! parameters in its slots ([`LensModel::slots`]) and dispatches through [`model`].
 //!
 //! Degrees of freedom: those of the model's parameters ([`LensModel::param_names`]), on
@@ -43,7 +43,6 @@ use nalgebra::{Matrix2x3, SMatrix, Vector2, Vector3};
 
 use crate::Result;
 use crate::camera::Intrinsics;
-use crate::distortion::LensKind;
 
 /// The most parameters a model has (radial-tangential: 5; the parameter arrays of
 /// [`LensModel`] have this length, unused entries zero).
@@ -91,7 +90,7 @@ pub trait LensModel: Sync {
     fn names(&self) -> &'static ModelNames;
     /// The parameters, in the model's order (OpenCV's `D` where OpenCV has the model).
     fn param_names(&self) -> &'static [&'static str];
-    /// The storage slot of each parameter in [`crate::distortion::Distortion::slots`].
+    /// The storage slot of each parameter in `Distortion::slots` (the `distortion` module).
     fn slots(&self) -> &'static [usize];
     /// The largest half field of view the model can represent, degrees (metadata).
     fn max_half_fov_deg(&self) -> f64;
@@ -124,6 +123,60 @@ pub trait LensModel: Sync {
     fn unproject(&self, p: &Params, m: &Vector2<f64>) -> Result<Vector3<f64>>;
 }
 
+/// A lens model's identifier (the rows of [`MODELS`], in this order); a camera's lens
+/// is this kind and its parameters (`Distortion` of the `distortion` module).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum LensKind {
+    /// Radial-tangential: OpenCV / ROS `plumb_bob`, Kalibr `radtan` (the default; all
+    /// coefficients zero is the pinhole).
+    #[default]
+    RadialTangential,
+    /// Equidistant fisheye: OpenCV `fisheye`, ROS `equidistant`, Kalibr `equidistant`.
+    Equidistant,
+    /// Double sphere (Usenko et al. 2018): Kalibr `ds`, parameters `xi alpha`.
+    DoubleSphere,
+    /// The pinhole, no parameters.
+    Pinhole,
+}
+
+impl LensKind {
+    /// The model's row of the table.
+    pub fn model(self) -> &'static dyn LensModel {
+        model(self)
+    }
+
+    /// ROS `sensor_msgs/CameraInfo.distortion_model` (`None`: ROS has no such model).
+    pub fn ros(self) -> Option<&'static str> {
+        self.model().names().ros
+    }
+
+    /// ROS `distortion_model`, or the short name where ROS has none.
+    pub fn ros_name(self) -> &'static str {
+        let n = self.model().names();
+        n.ros.unwrap_or(n.short)
+    }
+
+    /// The short name (`radtan`, `equidistant`, `ds`, `pinhole`; Kalibr's where it has one).
+    pub fn kalibr_name(self) -> &'static str {
+        self.model().names().short
+    }
+
+    /// The model named by any of the usual spellings of the table (`radtan`,
+    /// `radial-tangential`, `plumb_bob`, `pinhole-radtan`; `equidistant`, `equi`,
+    /// `fisheye`, `pinhole-equi`, `kannala_brandt`; `ds`, `double-sphere`; `pinhole`),
+    /// case-insensitive. OpenCV's `rational_polynomial` (8 coefficients) is none of them.
+    pub fn parse(name: &str) -> Option<Self> {
+        let key = name.trim().to_ascii_lowercase().replace('_', "-");
+        MODELS.iter().find(|m| m.names().aliases.contains(&key.as_str())).map(|m| m.kind())
+    }
+
+    /// Names of the coefficients in the order of the `Distortion`'s coefficients.
+    pub fn coefficient_names(self) -> &'static [&'static str] {
+        self.model().param_names()
+    }
+}
+
 /// The table: every model, in the order of [`LensKind`]'s variants. The one place that
 /// enumerates the models.
 pub static MODELS: [&dyn LensModel; 4] = [&RadialTangential, &Equidistant, &DoubleSphere, &Pinhole];
@@ -145,6 +198,12 @@ pub fn pixel_of(k: &Intrinsics, m: &Vector2<f64>) -> Vector2<f64> {
 pub fn plane_of(k: &Intrinsics, pixel: &Vector2<f64>) -> Vector2<f64> {
     let y = (pixel.y - k.cy) / k.fy;
     Vector2::new((pixel.x - k.cx - k.skew * y) / k.fx, y)
+}
+
+/// `a > b`, false when either is NaN (so `!gt(z, 0.0)` also refuses a NaN `z`).
+#[inline]
+pub(crate) fn gt(a: f64, b: f64) -> bool {
+    a > b
 }
 
 /// `K`'s 2x2 linear part `[[fx, skew], [0, fy]]`.

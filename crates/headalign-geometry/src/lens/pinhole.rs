@@ -7,10 +7,9 @@
 
 use nalgebra::{Matrix2x3, Vector2, Vector3};
 
-use super::{LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params};
+use super::{LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params};
 use crate::Result;
 use crate::camera::Intrinsics;
-use crate::distortion::LensKind;
 
 /// The pinhole model (module docs).
 #[derive(Debug, Clone, Copy, Default)]
@@ -53,7 +52,7 @@ impl LensModel for Pinhole {
     }
 
     fn linearise(&self, k: &Intrinsics, _p: &Params, ray: &Vector3<f64>) -> Option<Linearised> {
-        if !(ray.z > 0.0) {
+        if !super::gt(ray.z, 0.0) {
             return None;
         }
         let iz = 1.0 / ray.z;

@@ -18,9 +18,8 @@
 
 use nalgebra::{Matrix2, Matrix2x3, Vector2, Vector3};
 
-use super::{LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, Pinhole, k2};
+use super::{LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, Pinhole, k2};
 use crate::camera::Intrinsics;
-use crate::distortion::LensKind;
 use crate::{GeometryError, Result};
 
 /// Newton iterations of the unprojection.
@@ -126,7 +125,7 @@ impl LensModel for RadialTangential {
         if is_pinhole(p) {
             return Pinhole.project(p, ray);
         }
-        if !(ray.z > 0.0) {
+        if !super::gt(ray.z, 0.0) {
             return None;
         }
         Some(distort(p, &Vector2::new(ray.x / ray.z, ray.y / ray.z)).0)
@@ -136,7 +135,7 @@ impl LensModel for RadialTangential {
         if is_pinhole(p) {
             return Pinhole.linearise(k, p, ray);
         }
-        if !(ray.z > 0.0) {
+        if !super::gt(ray.z, 0.0) {
             return None;
         }
         // pixel = K2 distort(pi(ray)): d pixel / d ray = K2 J_dist d pi / d ray.

@@ -196,7 +196,7 @@ pub(super) fn triangulate_bearings(
     let (a, b, cc) = (bl.dot(&bl), bl.dot(&dr), dr.dot(&dr));
     let (d, e) = (bl.dot(&c), dr.dot(&c));
     let det = a * cc - b * b;
-    if !(det > 1e-12) {
+    if det.is_nan() || det <= 1e-12 {
         return None;
     }
     let s = (d * cc - b * e) / det;

@@ -973,8 +973,8 @@ pub(crate) fn wide_rendered_views(
     .collect()
 }
 
-/// The issue-45 bar on rendered images: the 180-deg double sphere (`wide_scenario`, seed
-/// 1) in 15-deg views, tracked by the front end (0.05 px RMS) and calibrated with the
+/// The issue-45 bar on rendered images: the 180-deg double sphere of `wide_scenario`
+/// (seed 1) in 15-deg views, tracked by the front end (0.05 px RMS) and calibrated with the
 /// double sphere: focal lengths within 1 %, `xi` and `alpha` within 3 reported sigmas, and
 /// the sum of squares no higher than the least squares started at the truth reaches on
 /// the same observations (the other end of the f-xi valley, `calibrate::wide`, fits the
