@@ -779,10 +779,11 @@ mod tests {
         assert!(check_invertible(&Distortion::default(), &wide, [768, 576]).is_ok());
     }
 
-    /// The TOML table: `kind` by any usual name, missing coefficients zero, unknown kinds
-    /// and keys refused; the options refuse a coefficient the model does not have.
+    /// The TOML table: `kind` by any name of the lens table (the double sphere's `xi
+    /// alpha` too), missing coefficients zero, unknown kinds and keys refused; the options
+    /// refuse a coefficient the model does not have.
     #[test]
-    fn lens_table_reads_both_models() {
+    fn lens_table_reads_every_model() {
         let o: RenderOptions =
             toml::from_str("[distortion]\nkind = \"equidistant\"\nk1 = 0.01\nk4 = 0.001\n").unwrap();
         assert_eq!(o.distortion, Distortion::equidistant([0.01, 0.0, 0.0, 0.001]));
@@ -790,7 +791,10 @@ mod tests {
         assert_eq!(o.distortion.kind, LensKind::Equidistant);
         let o: RenderOptions = toml::from_str("[distortion]\nkind = \"radtan\"\np1 = 0.001\n").unwrap();
         assert_eq!(o.distortion, Distortion { p1: 0.001, ..Distortion::default() });
-        assert!(toml::from_str::<RenderOptions>("[distortion]\nkind = \"ds\"\n").is_err());
+        let o: RenderOptions =
+            toml::from_str("[distortion]\nkind = \"ds\"\nxi = -0.15\nalpha = 0.55\n").unwrap();
+        assert_eq!(o.distortion, Distortion::double_sphere(-0.15, 0.55));
+        assert!(toml::from_str::<RenderOptions>("[distortion]\nkind = \"fov\"\n").is_err());
         assert!(toml::from_str::<RenderOptions>("[distortion]\nk5 = 0.1\n").is_err());
         let bad: RenderOptions =
             toml::from_str("[distortion]\nkind = \"equidistant\"\np1 = 0.001\n").unwrap();
