@@ -62,7 +62,7 @@ pub struct CalibrateArgs {
     // The M1 D1 M2 D2 form is what OpenCV's stereo sample and our opencv_stereo.yaml write.
     #[arg(long)]
     pub distortion: Option<PathBuf>,
-    /// Lens model estimated for each camera: `pinhole`, `radtan`, `equidistant` or `auto`
+    /// Lens model estimated for each camera: `pinhole`, `radtan`, `equidistant`, `ds` or `auto`
     /// (model and terms chosen by BIC, reported; the default for images).
     // `headalign::calibrate::LensChoice`; the criterion is in `calibrate::lens_choice`.
     // Point sessions, --distortion and --lens-from default to the pinhole.

@@ -122,6 +122,8 @@ pub const LENSES: [Lens; 2] = [
             p2: 0.0,
             k3: 0.0,
             k4: 0.0,
+            xi: 0.0,
+            alpha: 0.0,
         },
         terms: DistortionTerms::Radial2,
     },
@@ -135,6 +137,8 @@ pub const LENSES: [Lens; 2] = [
             p2: 0.0,
             k3: -0.002_053_236_1,
             k4: 0.000_202_936_74,
+            xi: 0.0,
+            alpha: 0.0,
         },
         terms: DistortionTerms::Full4,
     },
@@ -146,10 +150,11 @@ impl Lens {
     pub fn quantities(&self) -> Vec<String> {
         let mut q: Vec<String> =
             ["left.fx", "left.fy", "right.fx", "right.fy"].iter().map(|s| (*s).to_string()).collect();
-        let names = ["k1", "k2", "p1", "p2", "k3", "k4"];
+        let kind = self.distortion.kind;
+        let names = kind.coefficient_names();
         for side in ["left", "right"] {
-            for &slot in self.terms.slots(self.distortion.kind) {
-                q.push(format!("{side}.{}", names.get(slot).copied().unwrap_or("?")));
+            for &i in self.terms.params(kind) {
+                q.push(format!("{side}.{}", names.get(i).copied().unwrap_or("?")));
             }
         }
         q

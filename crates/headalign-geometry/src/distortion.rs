@@ -1,106 +1,46 @@
-//! Lens distortion of normalised image coordinates `x = K^-1 p`, in the two models users'
-//! tools name ([`LensKind`]):
+//! A camera's lens model and its parameters ([`Distortion`]: a [`LensKind`] and the
+//! parameter values), dispatched through the table of [`crate::lens`]: the pinhole,
+//! radial-tangential (OpenCV `plumb_bob`), equidistant (OpenCV `fisheye`) and double-sphere
+//! (Kalibr `ds`) models, each in its own file there.
 //!
-//! - **radial-tangential** (OpenCV `plumb_bob`, ROS `plumb_bob`, Kalibr `pinhole-radtan`):
+//! What it computes: the maps between the pinhole plane `x = K^-1 p` and the model's image
+//! plane `m` ([`Distortion::distort`], [`Distortion::undistort`]), with Jacobians, for the
+//! code that works on the pinhole plane; [`Distortion::project`] and
+//! [`Distortion::unproject`] for rays and bearings (the only form that reaches beyond
+//! 90 deg). [`Distortion::undistort_pixel`] maps a distorted pixel to the pixel an ideal
+//! pinhole camera with the same `K` would see, which is how headalign uses a known lens
+//! model of a narrow lens: observations are undistorted once, everything after is
+//! pinhole.
 //!
-//!   ```text
-//!   r^2 = x^2 + y^2
-//!   x_d = x (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x y + p2 (r^2 + 2 x^2)
-//!   y_d = y (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y^2) + 2 p2 x y
-//!   ```
+//! Degrees of freedom: the model's parameters ([`LensKind::coefficient_names`]); which of
+//! them a bundle adjustment estimates is [`DistortionTerms`]. Storage: every model's
+//! parameters live in the eight slots `k1 k2 p1 p2 k3 k4 xi alpha` ([`Distortion::slots`],
+//! the table's [`crate::lens::LensModel::slots`]); the JSON form names them (`xi`, `alpha`
+//! appear only when non-zero, so files without them read as before).
 //!
-//! - **equidistant** (OpenCV `fisheye`, ROS `equidistant`, Kalibr `pinhole-equi`):
-//!
-//!   ```text
-//!   r = |x|,  theta = atan(r)
-//!   theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)
-//!   x_d = (theta_d / r) x
-//!   ```
-//!
-//! Degrees of freedom: radial-tangential 5 (`k1 k2 p1 p2 k3`, OpenCV's order of `D`),
-//! equidistant 4 (`k1 k2 k3 k4`, OpenCV fisheye's `D`); which of them a bundle adjustment
-//! estimates is [`DistortionTerms`]. Undistortion inverts the map by Newton's method with
-//! the analytic 2x2 Jacobian (radial-tangential: at most 30 steps, stops below 1e-14 in
-//! normalised units; equidistant: Newton on `theta` alone); where the map folds over
-//! (beyond the radius at which a strong barrel model turns back) it is an error, never a
-//! wrong point. [`Distortion::undistort_pixel`] maps a distorted pixel to the pixel an
-//! ideal pinhole camera with the same `K` would see, which is how headalign uses a known
-//! lens model: observations are undistorted once, everything after is pinhole.
-//! [`Distortion::distort_with_jacobians`] also gives the derivatives with respect to the
-//! coefficients, for the bundle adjustment.
-//!
-//! Units: coefficients are dimensionless (normalised coordinates; the equidistant ones
+//! Units: parameters are dimensionless (normalised coordinates; the equidistant ones
 //! multiply powers of an angle in radians); pixels outside.
 //!
 //! Pitfalls: the coefficients belong to the `K` they were estimated with; undistorting with
-//! a different `K` is a different lens model. The equidistant map is defined for rays in
-//! front of the camera only (`theta < 90 deg` through a pinhole `x`), and its Jacobian
-//! at the centre is the limit `r -> 0` (taken below `r = 1e-8`). The two models' `k1` are
-//! different numbers for the same lens: `k1` of the equidistant model includes the
+//! a different `K` is a different lens model. The pinhole plane holds rays in front of the
+//! camera only: a double-sphere ray beyond 90 deg has a bearing ([`Distortion::unproject`])
+//! but no undistorted pixel (an error, never a folded point). Where a model's map folds
+//! over it is an error, never a wrong point. The radial-tangential and equidistant `k1`
+//! are different numbers for the same lens: the equidistant one includes the
 //! `-1/3 theta^2` of `atan`.
 
-use nalgebra::{Matrix2, Point2, SMatrix, Vector2};
+use nalgebra::{Matrix2, Point2, SMatrix, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Intrinsics;
+pub use crate::lens::LensKind;
+use crate::lens::{self, MAX_PARAMS, ParamJacobian, Params};
 use crate::{GeometryError, Result};
 
-/// The lens model a [`Distortion`]'s coefficients belong to.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum LensKind {
-    /// Radial-tangential: OpenCV / ROS `plumb_bob`, Kalibr `radtan` (the default; all
-    /// coefficients zero is the pinhole).
-    #[default]
-    RadialTangential,
-    /// Equidistant fisheye: OpenCV `fisheye`, ROS `equidistant`, Kalibr `equidistant`.
-    Equidistant,
-}
-
-impl LensKind {
-    /// ROS `sensor_msgs/CameraInfo.distortion_model`.
-    pub fn ros_name(self) -> &'static str {
-        match self {
-            LensKind::RadialTangential => "plumb_bob",
-            LensKind::Equidistant => "equidistant",
-        }
-    }
-
-    /// Kalibr camchain `distortion_model`.
-    pub fn kalibr_name(self) -> &'static str {
-        match self {
-            LensKind::RadialTangential => "radtan",
-            LensKind::Equidistant => "equidistant",
-        }
-    }
-
-    /// The model named by any of the usual spellings (`radtan`, `radial-tangential`,
-    /// `plumb_bob`, `pinhole-radtan`; `equidistant`, `equi`, `fisheye`, `pinhole-equi`,
-    /// `kannala_brandt`), case-insensitive.
-    pub fn parse(name: &str) -> Option<Self> {
-        match name.trim().to_ascii_lowercase().replace('_', "-").as_str() {
-            "radtan" | "radial-tangential" | "plumb-bob" | "pinhole-radtan" | "rational-polynomial" => {
-                Some(LensKind::RadialTangential)
-            }
-            "equidistant" | "equi" | "fisheye" | "pinhole-equi" | "kannala-brandt" => {
-                Some(LensKind::Equidistant)
-            }
-            _ => None,
-        }
-    }
-
-    /// Names of the coefficients in the order of [`Distortion::coefficients`].
-    pub fn coefficient_names(self) -> &'static [&'static str] {
-        match self {
-            LensKind::RadialTangential => &["k1", "k2", "p1", "p2", "k3"],
-            LensKind::Equidistant => &["k1", "k2", "k3", "k4"],
-        }
-    }
-}
-
-/// Lens distortion coefficients of one camera in the model `kind` (all zero in the
-/// radial-tangential model is the pinhole; in the equidistant model it is the ideal
-/// equidistant lens `theta_d = theta`, not a pinhole).
+/// A camera's lens: the model `kind` and its parameters (all zero in the radial-tangential
+/// model is the pinhole; in the equidistant model it is the ideal equidistant lens
+/// `theta_d = theta`; in the double sphere it projects as the pinhole but is not treated
+/// as one: [`Distortion::is_zero`] is false).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct Distortion {
     /// The model (default radial-tangential; older files without it are radial-tangential).
@@ -110,40 +50,64 @@ pub struct Distortion {
     pub k1: f64,
     /// Radial: `r^4` or `theta^5`.
     pub k2: f64,
-    /// Tangential (radial-tangential only; zero in the equidistant model).
+    /// Tangential (radial-tangential only).
     pub p1: f64,
-    /// Tangential (radial-tangential only; zero in the equidistant model).
+    /// Tangential (radial-tangential only).
     pub p2: f64,
     /// Radial: `r^6` or `theta^7`.
     pub k3: f64,
-    /// Radial `theta^9` (equidistant only; zero in the radial-tangential model).
+    /// Radial `theta^9` (equidistant only).
     #[serde(default)]
     pub k4: f64,
+    /// Double sphere: the shift of the second sphere (zero in the other models).
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub xi: f64,
+    /// Double sphere: the shift of the pinhole, `alpha / (1 - alpha)` (zero in the other
+    /// models).
+    #[serde(default, skip_serializing_if = "is_zero_f64")]
+    pub alpha: f64,
+}
+
+fn is_zero_f64(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// Which coefficients a bundle adjustment estimates (the others are held at their
 /// values, usually zero).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum DistortionTerms {
-    /// `k1, k2` (either model; the default: the tangential terms are nearly degenerate with
-    /// the principal point unless the data are strong).
+    /// `k1, k2` (radial-tangential, equidistant; the default: the tangential terms are
+    /// nearly degenerate with the principal point unless the data are strong); the double
+    /// sphere's `xi, alpha`.
     Radial2,
     /// `k1, k2, p1, p2` (radial-tangential: Kalibr's `radtan`) or `k1..k4` (equidistant:
-    /// Kalibr's `equidistant`).
+    /// Kalibr's `equidistant`); the double sphere's `xi, alpha`.
     Full4,
-    /// `k1, k2, p1, p2, k3` (radial-tangential; equidistant as [`Self::Full4`]).
+    /// `k1, k2, p1, p2, k3` (radial-tangential; the others as [`Self::Full4`]).
     Full5,
 }
 
 impl DistortionTerms {
-    /// The estimated coefficients' slots of [`Distortion::slots`] in a `kind` lens.
+    /// The estimated parameters of a `kind` lens, as indices of its parameters
+    /// ([`LensKind::coefficient_names`]).
+    pub fn params(self, kind: LensKind) -> &'static [usize] {
+        const ALL: [usize; MAX_PARAMS] = [0, 1, 2, 3, 4, 5];
+        let n = kind.model().param_names().len();
+        let wanted = match (self, kind) {
+            (_, LensKind::Pinhole) => 0,
+            (_, LensKind::DoubleSphere) => 2,
+            (DistortionTerms::Radial2, _) => 2,
+            (DistortionTerms::Full4, _) => 4,
+            (DistortionTerms::Full5, _) => 5,
+        };
+        &ALL[..wanted.min(n)]
+    }
+
+    /// The estimated parameters' slots of [`Distortion::slots`] in a `kind` lens.
     pub fn slots(self, kind: LensKind) -> &'static [usize] {
-        match (self, kind) {
-            (DistortionTerms::Radial2, _) => &[0, 1],
-            (DistortionTerms::Full4, LensKind::RadialTangential) => &[0, 1, 2, 3],
-            (DistortionTerms::Full5, LensKind::RadialTangential) => &[0, 1, 2, 3, 4],
-            (_, LensKind::Equidistant) => &[0, 1, 4, 5],
-        }
+        // The estimated parameters are always the model's first ones.
+        let slots = kind.model().slots();
+        &slots[..self.params(kind).len().min(slots.len())]
     }
 
     /// Parse `k1k2` / `radial` (radial terms), `4` / `full4`, `5` / `full5`.
@@ -157,12 +121,8 @@ impl DistortionTerms {
     }
 }
 
-/// Newton iterations of [`Distortion::undistort`].
-const MAX_STEPS: usize = 30;
-
-/// Below this normalised radius the equidistant map is the identity to first order and its
-/// Jacobian the limit at the centre.
-const EQUI_CENTRE: f64 = 1e-8;
+/// The names of the eight storage slots of [`Distortion::slots`].
+pub const SLOT_NAMES: [&str; 8] = ["k1", "k2", "p1", "p2", "k3", "k4", "xi", "alpha"];
 
 impl Distortion {
     /// Radial-tangential, radial terms only.
@@ -175,13 +135,19 @@ impl Distortion {
         Self { kind: LensKind::Equidistant, k1: k[0], k2: k[1], k3: k[2], k4: k[3], ..Self::default() }
     }
 
+    /// Double sphere with `xi` and `alpha`.
+    pub fn double_sphere(xi: f64, alpha: f64) -> Self {
+        Self { kind: LensKind::DoubleSphere, xi, alpha, ..Self::default() }
+    }
+
     /// All coefficients zero in the model `kind`.
     pub fn zero(kind: LensKind) -> Self {
         Self { kind, ..Self::default() }
     }
 
-    /// From OpenCV's `D` vector (4, 5 or more entries: `k1 k2 p1 p2 [k3 ...]`; entries
-    /// beyond `k3` must be zero, the rational model is not supported).
+    /// From OpenCV's `D` vector of the `plumb_bob` model (4 or 5 entries: `k1 k2 p1 p2
+    /// [k3]`; more entries are OpenCV's rational or thin-prism models, which headalign does
+    /// not have: an error unless they are all zero).
     pub fn from_opencv(d: &[f64]) -> Result<Self> {
         if d.len() < 4 {
             return Err(GeometryError::InvalidOption(format!(
@@ -190,9 +156,10 @@ impl Distortion {
             )));
         }
         if d.iter().skip(5).any(|&v| v != 0.0) {
-            return Err(GeometryError::InvalidOption(
-                "distortion coefficients beyond k3 (OpenCV's rational model) are not supported".into(),
-            ));
+            return Err(GeometryError::InvalidOption(format!(
+                "{} distortion coefficients with non-zero entries beyond k3: OpenCV's rational_polynomial (k1 k2 p1 p2 k3 k4 k5 k6) or thin-prism model, which headalign does not support (use plumb_bob or fisheye)",
+                d.len()
+            )));
         }
         let out = Self {
             k1: d[0],
@@ -200,54 +167,75 @@ impl Distortion {
             p1: d[2],
             p2: d[3],
             k3: d.get(4).copied().unwrap_or(0.0),
-            k4: 0.0,
-            kind: LensKind::RadialTangential,
+            ..Self::default()
         };
         out.validate()?;
         Ok(out)
     }
 
     /// From a model and its coefficient vector in the order of
-    /// [`LensKind::coefficient_names`] (radial-tangential: 4 or 5 entries; equidistant:
-    /// exactly 4, OpenCV fisheye's `D`).
+    /// [`LensKind::coefficient_names`] (radial-tangential: 4 or 5 entries, OpenCV's `D`;
+    /// the others exactly their count).
     pub fn from_coefficients(kind: LensKind, d: &[f64]) -> Result<Self> {
-        match kind {
-            LensKind::RadialTangential => Self::from_opencv(d),
-            LensKind::Equidistant => {
-                let [k1, k2, k3, k4] = <[f64; 4]>::try_from(d).map_err(|_| {
-                    GeometryError::InvalidOption(format!(
-                        "an equidistant (fisheye) lens has 4 coefficients k1 k2 k3 k4, got {}",
-                        d.len()
-                    ))
-                })?;
-                let out = Self::equidistant([k1, k2, k3, k4]);
-                out.validate()?;
-                Ok(out)
+        if kind == LensKind::RadialTangential {
+            return Self::from_opencv(d);
+        }
+        let model = kind.model();
+        let names = model.param_names();
+        if d.len() != names.len() {
+            return Err(GeometryError::InvalidOption(format!(
+                "a {} lens has {} coefficients {}, got {}",
+                model.names().short,
+                names.len(),
+                names.join(" "),
+                d.len()
+            )));
+        }
+        let mut out = Self::zero(kind);
+        for (&slot, &v) in model.slots().iter().zip(d) {
+            if let Some(o) = out.slot_mut(slot) {
+                *o = v;
             }
         }
+        out.validate()?;
+        Ok(out)
     }
 
-    /// As OpenCV's 5-vector `k1 k2 p1 p2 k3` (radial-tangential; an equidistant lens gives
-    /// its `k1 k2 0 0 k3`, which is not its model: use [`Self::coefficients`]).
+    /// As OpenCV's 5-vector `k1 k2 p1 p2 k3` (radial-tangential; another model gives its
+    /// slots `k1 k2 p1 p2 k3`, which is not its model: use [`Self::coefficients`]).
     pub fn to_opencv(&self) -> [f64; 5] {
         [self.k1, self.k2, self.p1, self.p2, self.k3]
     }
 
     /// The model's coefficient vector, in the order of [`LensKind::coefficient_names`]
-    /// (OpenCV's `D` of `plumb_bob` or of `fisheye`).
+    /// (OpenCV's `D` of `plumb_bob` or of `fisheye`; `xi alpha` of the double sphere).
     pub fn coefficients(&self) -> Vec<f64> {
-        match self.kind {
-            LensKind::RadialTangential => self.to_opencv().to_vec(),
-            LensKind::Equidistant => vec![self.k1, self.k2, self.k3, self.k4],
+        let n = self.kind.model().param_names().len();
+        self.params()[..n].to_vec()
+    }
+
+    /// The model's parameters in its order, zero-padded (the table's [`Params`]).
+    pub fn params(&self) -> Params {
+        let slots = self.slots();
+        let mut p = [0.0; MAX_PARAMS];
+        for (o, &s) in p.iter_mut().zip(self.kind.model().slots()) {
+            *o = slots.get(s).copied().unwrap_or(0.0);
         }
+        p
     }
 
-    /// All six coefficient slots `k1 k2 p1 p2 k3 k4` (the bundle adjustment's indices).
-    pub fn slots(&self) -> [f64; 6] {
-        [self.k1, self.k2, self.p1, self.p2, self.k3, self.k4]
+    /// Mutable access to the model's parameter `i` (order of [`Self::coefficients`]).
+    pub fn param_mut(&mut self, i: usize) -> Option<&mut f64> {
+        let slot = *self.kind.model().slots().get(i)?;
+        self.slot_mut(slot)
     }
 
-    /// Mutable access to slot `i` of [`Self::slots`] (`None` beyond 5).
+    /// All eight storage slots `k1 k2 p1 p2 k3 k4 xi alpha` ([`SLOT_NAMES`]).
+    pub fn slots(&self) -> [f64; 8] {
+        [self.k1, self.k2, self.p1, self.p2, self.k3, self.k4, self.xi, self.alpha]
+    }
+
+    /// Mutable access to slot `i` of [`Self::slots`] (`None` beyond 7).
     pub fn slot_mut(&mut self, i: usize) -> Option<&mut f64> {
         match i {
             0 => Some(&mut self.k1),
@@ -256,137 +244,116 @@ impl Distortion {
             3 => Some(&mut self.p2),
             4 => Some(&mut self.k3),
             5 => Some(&mut self.k4),
+            6 => Some(&mut self.xi),
+            7 => Some(&mut self.alpha),
             _ => None,
         }
     }
 
     /// The slot of the model's `i`-th coefficient (order of [`Self::coefficients`]).
     pub fn slot_of(kind: LensKind, i: usize) -> Option<usize> {
-        let map: &[usize] = match kind {
-            LensKind::RadialTangential => &[0, 1, 2, 3, 4],
-            LensKind::Equidistant => &[0, 1, 4, 5],
-        };
-        map.get(i).copied()
+        kind.model().slots().get(i).copied()
     }
 
-    /// Every coefficient finite, and no coefficient set that the model does not have.
+    /// Every coefficient finite, no slot set that the model does not have, and the
+    /// model's own rules (the double sphere's range).
     pub fn validate(&self) -> Result<()> {
         if !self.slots().iter().all(|v| v.is_finite()) {
             return Err(GeometryError::InvalidOption("distortion coefficients must be finite".into()));
         }
-        let foreign = match self.kind {
-            LensKind::RadialTangential => self.k4 != 0.0,
-            LensKind::Equidistant => self.p1 != 0.0 || self.p2 != 0.0,
-        };
-        if foreign {
+        let model = self.kind.model();
+        let foreign: Vec<&str> = self
+            .slots()
+            .iter()
+            .enumerate()
+            .filter(|(i, v)| **v != 0.0 && !model.slots().contains(i))
+            .filter_map(|(i, _)| SLOT_NAMES.get(i).copied())
+            .collect();
+        if !foreign.is_empty() {
             return Err(GeometryError::InvalidOption(format!(
                 "a {:?} lens has no coefficient {}",
                 self.kind,
-                if self.kind == LensKind::Equidistant { "p1/p2" } else { "k4" }
+                foreign.join("/")
             )));
         }
-        Ok(())
+        model.check_params(&self.params())
     }
 
-    /// True for the pinhole (a radial-tangential lens with every coefficient zero; an
-    /// equidistant lens never is one).
+    /// True for the pinhole (the pinhole model, or a radial-tangential lens with every
+    /// coefficient zero; an equidistant or double-sphere lens never is one).
     pub fn is_zero(&self) -> bool {
-        self.kind == LensKind::RadialTangential && self.slots().iter().all(|&v| v == 0.0)
-    }
-
-    /// Distorted normalised coordinates and the Jacobian `d x_d / d x`.
-    pub fn distort_with_jacobian(&self, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>) {
-        match self.kind {
-            LensKind::RadialTangential => self.radtan(x),
-            LensKind::Equidistant => self.equidistant_map(x).0,
+        match self.kind.model().pinhole_params() {
+            Some(p) => self.slots().iter().all(|&v| v == 0.0) && self.params() == p,
+            None => false,
         }
     }
 
-    /// Distorted normalised coordinates, `d x_d / d x`, and `d x_d / d slot` for the six
-    /// slots of [`Self::slots`] (a slot the model does not have has a zero column).
-    pub fn distort_with_jacobians(
-        &self,
-        x: &Vector2<f64>,
-    ) -> (Vector2<f64>, Matrix2<f64>, SMatrix<f64, 2, 6>) {
+    /// The image-plane point `m` of a ray in the camera frame (`None` outside the model's
+    /// validity region; [`crate::lens::LensModel::project`]).
+    pub fn project(&self, ray: &Vector3<f64>) -> Option<Vector2<f64>> {
+        self.kind.model().project(&self.params(), ray)
+    }
+
+    /// The unit bearing of an image-plane point `m` ([`crate::lens::LensModel::unproject`]).
+    pub fn unproject(&self, m: &Vector2<f64>) -> Result<Vector3<f64>> {
+        if !(m.x.is_finite() && m.y.is_finite()) {
+            return Err(GeometryError::InvalidOption("non-finite point to unproject".into()));
+        }
+        self.kind.model().unproject(&self.params(), m)
+    }
+
+    /// The pixel of a ray in the camera frame through `k` and this lens.
+    pub fn project_pixel(&self, k: &Intrinsics, ray: &Vector3<f64>) -> Option<Point2<f64>> {
+        self.project(ray).map(|m| Point2::from(lens::pixel_of(k, &m)))
+    }
+
+    /// The unit bearing of a pixel through `k` and this lens.
+    pub fn unproject_pixel(&self, k: &Intrinsics, pixel: &Point2<f64>) -> Result<Vector3<f64>> {
+        self.unproject(&lens::plane_of(k, &pixel.coords))
+    }
+
+    /// Distorted normalised coordinates and the Jacobian `d x_d / d x` of a pinhole-plane
+    /// point `x`.
+    pub fn distort_with_jacobian(&self, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>) {
+        let (xd, j, _) = self.distort_with_jacobians(x);
+        (xd, j)
+    }
+
+    /// Distorted normalised coordinates, `d x_d / d x`, and `d x_d / d parameter` (columns
+    /// in the order of [`Self::coefficients`]; columns beyond the model's parameters zero).
+    pub fn distort_with_jacobians(&self, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>, ParamJacobian) {
+        let p = self.params();
         match self.kind {
             LensKind::RadialTangential => {
-                let (xd, j) = self.radtan(x);
-                let (u, v) = (x.x, x.y);
-                let r2 = u * u + v * v;
-                let mut jc = SMatrix::<f64, 2, 6>::zeros();
-                jc.set_column(0, &(x * r2));
-                jc.set_column(1, &(x * (r2 * r2)));
-                jc.set_column(2, &Vector2::new(2.0 * u * v, r2 + 2.0 * v * v));
-                jc.set_column(3, &Vector2::new(r2 + 2.0 * u * u, 2.0 * u * v));
-                jc.set_column(4, &(x * (r2 * r2 * r2)));
-                (xd, j, jc)
+                let (xd, j) = lens::radtan::distort(&p, x);
+                (xd, j, lens::radtan::coefficient_jacobian(x))
             }
-            LensKind::Equidistant => {
-                let ((xd, j), jc) = self.equidistant_map(x);
-                (xd, j, jc)
+            LensKind::Equidistant => lens::equidistant::distort(&p, x),
+            // The other models through their ray projection at (x, y, 1), K = identity.
+            _ => {
+                let model = self.kind.model();
+                let ray = Vector3::new(x.x, x.y, 1.0);
+                let unit = Intrinsics::new(1.0, 1.0, 0.0, 0.0);
+                match model.linearise(&unit, &p, &ray) {
+                    Some(l) => {
+                        let j = l.d_ray.fixed_view::<2, 2>(0, 0).into_owned();
+                        (l.m, j, model.param_jacobian(&unit, &p, &ray, &[true; MAX_PARAMS]))
+                    }
+                    None => (Vector2::repeat(f64::NAN), Matrix2::repeat(f64::NAN), SMatrix::repeat(f64::NAN)),
+                }
             }
         }
     }
 
-    /// The radial-tangential map and its Jacobian.
-    fn radtan(&self, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>) {
-        let (u, v) = (x.x, x.y);
-        let r2 = u * u + v * v;
-        let radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3));
-        // d radial / d r2
-        let dradial = self.k1 + r2 * (2.0 * self.k2 + 3.0 * r2 * self.k3);
-        let xd = u * radial + 2.0 * self.p1 * u * v + self.p2 * (r2 + 2.0 * u * u);
-        let yd = v * radial + self.p1 * (r2 + 2.0 * v * v) + 2.0 * self.p2 * u * v;
-        let j = Matrix2::new(
-            radial + 2.0 * u * u * dradial + 2.0 * self.p1 * v + 6.0 * self.p2 * u,
-            2.0 * u * v * dradial + 2.0 * self.p1 * u + 2.0 * self.p2 * v,
-            2.0 * u * v * dradial + 2.0 * self.p1 * u + 2.0 * self.p2 * v,
-            radial + 2.0 * v * v * dradial + 6.0 * self.p1 * v + 2.0 * self.p2 * u,
-        );
-        (Vector2::new(xd, yd), j)
-    }
-
-    /// `theta_d(theta)` and its derivative.
-    fn theta_d(&self, theta: f64) -> (f64, f64) {
-        let t2 = theta * theta;
-        let poly = 1.0 + t2 * (self.k1 + t2 * (self.k2 + t2 * (self.k3 + t2 * self.k4)));
-        let dpoly = 3.0 * self.k1 + t2 * (5.0 * self.k2 + t2 * (7.0 * self.k3 + t2 * 9.0 * self.k4));
-        (theta * poly, 1.0 + t2 * dpoly)
-    }
-
-    /// The equidistant map, its Jacobian, and the coefficient Jacobian (slots 0, 1, 4, 5).
-    fn equidistant_map(&self, x: &Vector2<f64>) -> ((Vector2<f64>, Matrix2<f64>), SMatrix<f64, 2, 6>) {
-        let r = x.norm();
-        let mut jc = SMatrix::<f64, 2, 6>::zeros();
-        if r < EQUI_CENTRE {
-            // theta_d / r -> 1 and its derivative -> 0 at the centre.
-            for (slot, power) in [(0, 3), (1, 5), (4, 7), (5, 9)] {
-                jc.set_column(slot, &(x * r.powi(power - 1)));
-            }
-            return ((*x, Matrix2::identity()), jc);
-        }
-        let theta = r.atan();
-        let (td, dtd) = self.theta_d(theta);
-        let s = td / r;
-        // d s / d r = (dtd dtheta/dr r - td) / r^2, dtheta/dr = 1 / (1 + r^2).
-        let ds = (dtd / (1.0 + r * r) * r - td) / (r * r);
-        let n = x / r;
-        let j = Matrix2::identity() * s + x * n.transpose() * ds;
-        let t2 = theta * theta;
-        let mut tp = theta * t2;
-        for slot in [0, 1, 4, 5] {
-            jc.set_column(slot, &(n * tp));
-            tp *= t2;
-        }
-        ((x * s, j), jc)
-    }
-
-    /// Distorted normalised coordinates.
+    /// Distorted normalised coordinates of a pinhole-plane point.
     pub fn distort(&self, x: &Vector2<f64>) -> Vector2<f64> {
         self.distort_with_jacobian(x).0
     }
 
-    /// Undistorted normalised coordinates of distorted ones (Newton, see module docs).
+    /// Undistorted normalised coordinates (the pinhole-plane point) of distorted ones:
+    /// the model's inverse (Newton for the radial-tangential and equidistant models, the
+    /// closed form of the double sphere); an error where the model folds over or the
+    /// ray is not in front of the camera.
     pub fn undistort(&self, xd: &Vector2<f64>) -> Result<Vector2<f64>> {
         if self.is_zero() {
             return Ok(*xd);
@@ -394,74 +361,21 @@ impl Distortion {
         if !(xd.x.is_finite() && xd.y.is_finite()) {
             return Err(GeometryError::InvalidOption("non-finite point to undistort".into()));
         }
+        let p = self.params();
         match self.kind {
-            LensKind::RadialTangential => self.undistort_radtan(xd),
-            LensKind::Equidistant => self.undistort_equidistant(xd),
-        }
-    }
-
-    fn undistort_radtan(&self, xd: &Vector2<f64>) -> Result<Vector2<f64>> {
-        let mut x = *xd;
-        for _ in 0..MAX_STEPS {
-            let (f, j) = self.distort_with_jacobian(&x);
-            let r = f - xd;
-            if r.norm() < 1e-14 {
-                return Ok(x);
-            }
-            let det = j.determinant();
-            let inv = j.try_inverse().filter(|_| det > 1e-9).ok_or_else(|| {
-                GeometryError::Degenerate(format!(
-                    "distortion folds over near ({:.3}, {:.3}): not invertible there",
-                    xd.x, xd.y
-                ))
-            })?;
-            x -= inv * r;
-        }
-        let r = self.distort(&x) - xd;
-        if r.norm() < 1e-9 {
-            Ok(x)
-        } else {
-            Err(GeometryError::Numerical(format!(
-                "undistortion did not converge at ({:.3}, {:.3})",
-                xd.x, xd.y
-            )))
-        }
-    }
-
-    /// Newton on `theta_d(theta) = |x_d|` from `theta = |x_d|`, then `r = tan(theta)`.
-    fn undistort_equidistant(&self, xd: &Vector2<f64>) -> Result<Vector2<f64>> {
-        let rd = xd.norm();
-        if rd < EQUI_CENTRE {
-            return Ok(*xd);
-        }
-        let fold = || {
-            GeometryError::Degenerate(format!(
-                "distortion folds over near ({:.3}, {:.3}): not invertible there",
-                xd.x, xd.y
-            ))
-        };
-        let mut theta = rd.min(1.5);
-        for _ in 0..MAX_STEPS {
-            let (td, dtd) = self.theta_d(theta);
-            if dtd <= 1e-9 {
-                return Err(fold());
-            }
-            let step = (td - rd) / dtd;
-            theta -= step;
-            if !(0.0..std::f64::consts::FRAC_PI_2).contains(&theta) {
-                return Err(fold());
-            }
-            if step.abs() < 1e-15 {
-                break;
+            LensKind::RadialTangential => lens::radtan::undistort(&p, xd),
+            LensKind::Equidistant => lens::equidistant::undistort(&p, xd),
+            _ => {
+                let b = self.kind.model().unproject(&p, xd)?;
+                if !lens::gt(b.z, 1e-12) {
+                    return Err(GeometryError::Degenerate(format!(
+                        "({:.3}, {:.3}) is a ray at or beyond 90 deg: it has no pinhole point",
+                        xd.x, xd.y
+                    )));
+                }
+                Ok(Vector2::new(b.x / b.z, b.y / b.z))
             }
         }
-        if (self.theta_d(theta).0 - rd).abs() > 1e-9 {
-            return Err(GeometryError::Numerical(format!(
-                "undistortion did not converge at ({:.3}, {:.3})",
-                xd.x, xd.y
-            )));
-        }
-        Ok(xd * (theta.tan() / rd))
     }
 
     /// The pixel an ideal pinhole camera with intrinsics `k` would see for a pixel of this
@@ -562,20 +476,15 @@ mod tests {
                 prop_assert!((fd - j.column(col)).norm() < 1e-7, "x column {col}: {fd:?} vs {:?}", j.column(col));
             }
             let h = 1e-5;
-            for slot in 0..6 {
+            for i in 0..d.coefficients().len() {
                 let (mut a, mut b) = (d, d);
-                *a.slot_mut(slot).unwrap() += h;
-                *b.slot_mut(slot).unwrap() -= h;
+                *a.param_mut(i).unwrap() += h;
+                *b.param_mut(i).unwrap() -= h;
                 let fd = (a.distort(&p) - b.distort(&p)) / (2.0 * h);
-                let has = match d.kind {
-                    LensKind::RadialTangential => slot != 5,
-                    LensKind::Equidistant => slot != 2 && slot != 3,
-                };
-                if has {
-                    prop_assert!((fd - jc.column(slot)).norm() < 1e-7, "slot {slot}: {fd:?} vs {:?}", jc.column(slot));
-                } else {
-                    prop_assert!(jc.column(slot).norm() == 0.0);
-                }
+                prop_assert!((fd - jc.column(i)).norm() < 1e-7, "parameter {i}: {fd:?} vs {:?}", jc.column(i));
+            }
+            for i in d.coefficients().len()..MAX_PARAMS {
+                prop_assert!(jc.column(i).norm() == 0.0);
             }
         }
     }
@@ -613,7 +522,18 @@ mod tests {
         ] {
             assert_eq!(LensKind::parse(name), Some(kind), "{name}");
         }
-        assert_eq!(LensKind::parse("ds"), None);
+        assert_eq!(LensKind::parse("ds"), Some(LensKind::DoubleSphere));
+        assert_eq!(LensKind::parse("Double_Sphere"), Some(LensKind::DoubleSphere));
+        // OpenCV's 8-coefficient model is not the radial-tangential one.
+        assert_eq!(LensKind::parse("rational_polynomial"), None);
+        let ds = Distortion::from_coefficients(LensKind::DoubleSphere, &[-0.2, 0.6]).unwrap();
+        assert_eq!((ds.xi, ds.alpha, ds.coefficients()), (-0.2, 0.6, vec![-0.2, 0.6]));
+        assert!(Distortion::from_coefficients(LensKind::DoubleSphere, &[0.1, 1.5]).is_err());
+        assert!(!ds.is_zero() && Distortion::zero(LensKind::Pinhole).is_zero());
+        // xi and alpha appear in the JSON of a double sphere only.
+        assert!(!serde_json::to_string(&Distortion::radial(0.1, 0.0)).unwrap().contains("xi"));
+        let back: Distortion = serde_json::from_str(&serde_json::to_string(&ds).unwrap()).unwrap();
+        assert_eq!(back, ds);
         let e = Distortion::from_coefficients(LensKind::Equidistant, &[0.1, 0.2, 0.3, 0.4]).unwrap();
         assert_eq!(e.coefficients(), vec![0.1, 0.2, 0.3, 0.4]);
         assert_eq!([e.k1, e.k2, e.k3, e.k4], [0.1, 0.2, 0.3, 0.4]);
@@ -632,6 +552,9 @@ mod tests {
         assert!(Distortion::from_opencv(&[0.1, 0.2]).is_err());
         assert!(Distortion::from_opencv(&[0.1, f64::NAN, 0.0, 0.0]).is_err());
         assert!(Distortion::from_opencv(&[0.1, 0.0, 0.0, 0.0, 0.0, 0.3]).is_err());
+        // OpenCV's rational_polynomial D (k1 k2 p1 p2 k3 k4 k5 k6) is refused by name.
+        let e = Distortion::from_opencv(&[0.1, 0.0, 0.0, 0.0, 0.0, 0.3, 0.0, 0.0]).unwrap_err();
+        assert!(e.to_string().contains("rational_polynomial"), "{e}");
         assert_eq!(Distortion::from_opencv(&[0.1, 0.2, 0.0, 0.0]).unwrap(), Distortion::radial(0.1, 0.2));
         // A strong barrel lens folds over far out: an error, not a wrong point.
         let d = Distortion::radial(-0.5, 0.0);

@@ -10,7 +10,8 @@
 //!
 //! Modules, in the order the alignment procedure uses them:
 //! - [`camera`]: intrinsics `K`, projective 3x4 cameras, rigid poses.
-//! - [`distortion`]: the radial-tangential (`plumb_bob`) and equidistant (`fisheye`) lens models, undistortion of pixels.
+//! - [`distortion`]: a camera's lens (model and parameters), undistortion of pixels.
+//! - [`lens`]: the lens models as a table (pinhole, radial-tangential `plumb_bob`, equidistant `fisheye`, double sphere `ds`): projection with Jacobians, unprojection, names.
 //! - [`so3`]: rotation exponential/logarithm safe at zero angle, screw axes.
 //! - [`ransac`]: the `Estimator` trait and one generic, seeded, adaptive RANSAC.
 //! - `linear` (inside the crate): the null space of a homogeneous system by SVD, Hartley normalisation.
@@ -51,6 +52,7 @@ pub mod fundamental;
 pub mod homography2d;
 pub mod homography3d;
 pub mod invariant;
+pub mod lens;
 mod linear;
 pub mod lm;
 pub mod plane;

@@ -22,7 +22,11 @@
 //! `plumb_bob` in OpenCV and ROS (`D` = `k1 k2 p1 p2 k3`) and `radtan` in Kalibr (`k1 k2 p1
 //! p2`, a `k3` is noted in a comment); equidistant is OpenCV's `fisheye` (the YAML's
 //! `distortion_model` key; `D` = `k1 k2 k3 k4` for `cv::fisheye`), ROS's `equidistant` and
-//! Kalibr's `equidistant`. Zero radial-tangential when no lens was given.
+//! Kalibr's `equidistant`; the double sphere is Kalibr's `camera_model: ds` (`intrinsics:
+//! [xi, alpha, fu, fv, pu, pv]`, `distortion_model: none`), and OpenCV and ROS have no such
+//! model: their writers refuse it with an error naming the model, and [`StereoCalibration::write_all`]
+//! leaves those files out (the names come from the lens table,
+//! `headalign_geometry::lens`). Zero radial-tangential when no lens was given.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -90,6 +94,10 @@ impl CalibrationFiles for StereoCalibration {
     /// OpenCV FileStorage YAML (readable by `cv::FileStorage` / `cv2.FileStorage`).
     fn opencv_yaml(&self) -> Result<String, AlignError> {
         let r = self.rectification()?;
+        let models = self.distortion.map(|d| d.kind.model().names().opencv);
+        let [Some(m0), Some(m1)] = models else {
+            return Err(inexpressible("OpenCV", &self.distortion));
+        };
         let mut s = String::from("%YAML:1.0\n---\n");
         let _ = writeln!(s, "# headalign stereo calibration; translation unit: {}", self.unit.name());
         let _ = writeln!(s, "image_width: {}", self.image_size[0]);
@@ -100,11 +108,10 @@ impl CalibrationFiles for StereoCalibration {
         };
         // OpenCV's own name of the model the D vectors belong to (`cv::fisheye` for the
         // equidistant one); FileStorage readers that do not know the key ignore it.
-        let models = self.distortion.map(|d| opencv_model_name(d.kind));
-        if models[0] == models[1] {
-            let _ = writeln!(s, "distortion_model: {}", models[0]);
+        if m0 == m1 {
+            let _ = writeln!(s, "distortion_model: {m0}");
         } else {
-            let _ = writeln!(s, "distortion_model_1: {}\ndistortion_model_2: {}", models[0], models[1]);
+            let _ = writeln!(s, "distortion_model_1: {m0}\ndistortion_model_2: {m1}");
         }
         let t = self.right_from_left.translation.vector;
         let entries: [(&str, DMatrix<f64>); 11] = [
@@ -141,6 +148,9 @@ impl CalibrationFiles for StereoCalibration {
             1 => (&self.right, r.rect_from_right, r.p_right, self.distortion[1]),
             _ => return Err(AlignError::Output(format!("camera index {index} (0 = left, 1 = right)"))),
         };
+        let Some(ros_model) = dist.kind.ros() else {
+            return Err(inexpressible("ROS camera_info", &[dist]));
+        };
         let block = |name: &str, m: &DMatrix<f64>| -> Result<String, AlignError> {
             Ok(format!(
                 "{name}:\n  rows: {}\n  cols: {}\n  data: [{}]\n",
@@ -157,7 +167,7 @@ impl CalibrationFiles for StereoCalibration {
             yaml_string(camera_name)
         );
         s += &block("camera_matrix", &dyn3(&k.matrix()))?;
-        let _ = writeln!(s, "distortion_model: {}", dist.kind.ros_name());
+        let _ = writeln!(s, "distortion_model: {ros_model}");
         let coefficients = dist.coefficients();
         s += &block(
             "distortion_coefficients",
@@ -172,9 +182,12 @@ impl CalibrationFiles for StereoCalibration {
     /// `right_from_left` as a 4x4 matrix.
     fn kalibr_camchain(&self) -> Result<String, AlignError> {
         let cam = |k: &Intrinsics, d: &Distortion, topic: &str| -> Result<String, AlignError> {
+            if d.kind == LensKind::DoubleSphere {
+                return kalibr_ds(k, d, topic, self.image_size);
+            }
             let four = match d.kind {
-                LensKind::RadialTangential => [d.k1, d.k2, d.p1, d.p2],
                 LensKind::Equidistant => [d.k1, d.k2, d.k3, d.k4],
+                _ => [d.k1, d.k2, d.p1, d.p2],
             };
             let coeffs: Result<Vec<String>, _> = four.iter().map(|&v| num(v)).collect();
             let coeffs = coeffs?.join(", ");
@@ -212,20 +225,25 @@ impl CalibrationFiles for StereoCalibration {
     }
 
     /// Write every format into `dir` (created if missing): `calibration.json`,
-    /// `opencv_stereo.yaml`, `left.yaml`, `right.yaml` (ROS), `camchain.yaml` (Kalibr).
-    /// Returns the paths written.
+    /// `opencv_stereo.yaml`, `left.yaml`, `right.yaml` (ROS), `camchain.yaml` (Kalibr);
+    /// the OpenCV and ROS files only when their format has the cameras' lens model (not
+    /// the double sphere). Returns the paths written.
     fn write_all(&self, dir: &Path) -> Result<Vec<PathBuf>, AlignError> {
         std::fs::create_dir_all(dir)
             .map_err(|e| AlignError::Output(format!("cannot create {}: {e}", dir.display())))?;
         let json = serde_json::to_string_pretty(&self.json()?)
             .map_err(|e| AlignError::Output(format!("JSON: {e}")))?;
-        let files = [
-            ("calibration.json", json + "\n"),
-            ("opencv_stereo.yaml", self.opencv_yaml()?),
-            ("left.yaml", self.ros_camera_info(0, "left")?),
-            ("right.yaml", self.ros_camera_info(1, "right")?),
-            ("camchain.yaml", self.kalibr_camchain()?),
-        ];
+        let opencv = self.distortion.iter().all(|d| d.kind.model().names().opencv.is_some());
+        let ros = self.distortion.iter().all(|d| d.kind.ros().is_some());
+        let mut files = vec![("calibration.json", json + "\n")];
+        if opencv {
+            files.push(("opencv_stereo.yaml", self.opencv_yaml()?));
+        }
+        if ros {
+            files.push(("left.yaml", self.ros_camera_info(0, "left")?));
+            files.push(("right.yaml", self.ros_camera_info(1, "right")?));
+        }
+        files.push(("camchain.yaml", self.kalibr_camchain()?));
         let mut written = Vec::new();
         for (name, text) in files {
             let path = dir.join(name);
@@ -294,13 +312,34 @@ fn check_finite(v: &Value) -> Result<(), AlignError> {
     }
 }
 
-/// OpenCV's name of a lens model: `plumb_bob` (its default model, `cv::undistort`) or
-/// `fisheye` (`cv::fisheye`).
-fn opencv_model_name(kind: LensKind) -> &'static str {
-    match kind {
-        LensKind::RadialTangential => "plumb_bob",
-        LensKind::Equidistant => "fisheye",
-    }
+/// The error of a writer whose format has no model of one of `lenses`.
+fn inexpressible(format: &str, lenses: &[Distortion]) -> AlignError {
+    let names: Vec<&str> = lenses.iter().map(|d| d.kind.model().names().id).collect();
+    AlignError::Output(format!(
+        "the {format} format has no {} lens model: write the Kalibr camchain (camera_model ds) or the JSON instead",
+        names.join("/")
+    ))
+}
+
+/// One camera of a Kalibr camchain in the double-sphere model (`camera_model: ds`,
+/// `intrinsics: [xi, alpha, fu, fv, pu, pv]`, no further distortion).
+fn kalibr_ds(k: &Intrinsics, d: &Distortion, topic: &str, size: [u32; 2]) -> Result<String, AlignError> {
+    let skew = if k.skew.abs() > 1e-9 {
+        format!("  # skew {} px is not representable in Kalibr's ds model\n", num(k.skew)?)
+    } else {
+        String::new()
+    };
+    Ok(format!(
+        "{skew}  camera_model: ds\n  intrinsics: [{}, {}, {}, {}, {}, {}]\n  distortion_model: none\n  distortion_coeffs: []\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
+        num(d.xi)?,
+        num(d.alpha)?,
+        num(k.fx)?,
+        num(k.fy)?,
+        num(k.cx)?,
+        num(k.cy)?,
+        size[0],
+        size[1]
+    ))
 }
 
 #[cfg(test)]
@@ -377,6 +416,27 @@ mod tests {
         );
         assert!(kalibr.contains("distortion_model: radtan"));
         assert_eq!(c.json().unwrap()["left"]["distortion_model"], "equidistant");
+    }
+
+    /// The double sphere: Kalibr's `ds` camera model with `[xi, alpha, fu, fv, pu, pv]`;
+    /// OpenCV and ROS refuse it by name, and `write_all` leaves their files out.
+    #[test]
+    fn double_sphere_is_written_as_kalibr_ds_only() {
+        let mut c = sample();
+        c.distortion[1] = Distortion::double_sphere(-0.2, 0.57);
+        let kalibr = c.kalibr_camchain().unwrap();
+        assert!(kalibr.contains(
+            "camera_model: ds\n  intrinsics: [-0.2, 0.57, 705.0, 716.0, 380.0, 290.0]\n  distortion_model: none\n  distortion_coeffs: []"
+        ), "{kalibr}");
+        for e in [c.opencv_yaml().unwrap_err(), c.ros_camera_info(1, "right").unwrap_err()] {
+            assert!(e.to_string().contains("double-sphere"), "{e}");
+        }
+        assert_eq!(c.json().unwrap()["right"]["distortion_coefficients"], json!([-0.2, 0.57]));
+        let dir = std::env::temp_dir().join(format!("headalign-export-ds-{}", std::process::id()));
+        let written = c.write_all(&dir).unwrap();
+        let names: Vec<_> = written.iter().filter_map(|p| p.file_name()?.to_str()).collect();
+        assert_eq!(names, ["calibration.json", "camchain.yaml"]);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

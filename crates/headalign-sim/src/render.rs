@@ -73,6 +73,14 @@ struct LensTable {
     p2: f64,
     k3: f64,
     k4: f64,
+    #[serde(skip_serializing_if = "is_zero")]
+    xi: f64,
+    #[serde(skip_serializing_if = "is_zero")]
+    alpha: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// Serde of [`RenderOptions::distortion`] as a [`LensTable`].
@@ -88,6 +96,8 @@ mod lens_table {
             p2: d.p2,
             k3: d.k3,
             k4: d.k4,
+            xi: d.xi,
+            alpha: d.alpha,
         }
         .serialize(s)
     }
@@ -98,24 +108,38 @@ mod lens_table {
             None => LensKind::RadialTangential,
             Some(name) => LensKind::parse(name).ok_or_else(|| {
                 serde::de::Error::custom(format!(
-                    "distortion kind '{name}' is neither 'radtan' nor 'equidistant'"
+                    "distortion kind '{name}' is none of 'radtan', 'equidistant', 'ds'"
                 ))
             })?,
         };
-        Ok(Distortion { kind, k1: t.k1, k2: t.k2, p1: t.p1, p2: t.p2, k3: t.k3, k4: t.k4 })
+        Ok(Distortion {
+            kind,
+            k1: t.k1,
+            k2: t.k2,
+            p1: t.p1,
+            p2: t.p2,
+            k3: t.k3,
+            k4: t.k4,
+            xi: t.xi,
+            alpha: t.alpha,
+        })
     }
 }
 
-/// Pixel of a point in the camera frame through `K` and `distortion`; `None` if the
-/// point is not in front (`z <= 0`). No image bounds check. The pinhole (all coefficients
-/// zero, radial-tangential) skips the lens: `K (X.x / X.z, X.y / X.z, 1)` exactly.
+/// Pixel of a point in the camera frame through `K` and `distortion` (the lens model's
+/// projection, [`Distortion::project_pixel`]); `None` outside the model's validity region
+/// (for the pinhole-plane models a point not in front, `z <= 0`). No image bounds check.
+/// The pinhole (all coefficients zero, radial-tangential) is `K (X.x / X.z, X.y / X.z, 1)`
+/// exactly.
 pub fn project(k: &Intrinsics, distortion: &Distortion, point_in_cam: &Point3<f64>) -> Option<Point2<f64>> {
-    if point_in_cam.z <= 0.0 {
-        return None;
-    }
-    let x = Vector2::new(point_in_cam.x / point_in_cam.z, point_in_cam.y / point_in_cam.z);
-    let d = if distortion.is_zero() { x } else { distortion.distort(&x) };
-    Some(Point2::new(k.fx * d.x + k.skew * d.y + k.cx, k.fy * d.y + k.cy))
+    distortion.project_pixel(k, &point_in_cam.coords)
+}
+
+/// True if the renderer casts the lens's rays as bearings ([`render_clean`]): the models
+/// whose field reaches beyond 90 deg (the double sphere); the others keep the
+/// pinhole-plane rays `(x, y, 1)` and their tile culling.
+fn casts_bearings(distortion: &Distortion) -> bool {
+    distortion.kind.model().max_half_fov_deg() > 90.0
 }
 
 /// Steps of the radial-profile scan of [`check_invertible`] (in the undistorted radius,
@@ -153,12 +177,19 @@ pub fn check_invertible(
         ))
     };
     let d = Distortion { p1: 0.0, p2: 0.0, ..*distortion };
-    // The profile's argument: the undistorted radius up to 100, or the ray angle up to
-    // 90 deg (equidistant).
-    let end = if d.kind == LensKind::Equidistant { std::f64::consts::FRAC_PI_2 } else { 100.0 };
+    // The profile's argument: the undistorted radius up to 100 (radial-tangential), the
+    // ray angle up to 90 deg (equidistant), or up to 180 deg (a model of wider field: the
+    // image-plane radius of the ray at that angle, NaN outside the model's region).
+    let wide = casts_bearings(&d);
+    let end = match d.kind {
+        _ if wide => std::f64::consts::PI,
+        LensKind::Equidistant => std::f64::consts::FRAC_PI_2,
+        _ => 100.0,
+    };
     let profile = |a: f64| match d.kind {
+        _ if wide => d.project(&Vector3::new(a.sin(), 0.0, a.cos())).map_or(f64::NAN, |m| m.x),
         LensKind::Equidistant => d.distort(&Vector2::new(a.tan(), 0.0)).x,
-        LensKind::RadialTangential => d.distort(&Vector2::new(a, 0.0)).x,
+        _ => d.distort(&Vector2::new(a, 0.0)).x,
     };
     let step = end / PROFILE_STEPS as f64;
     let mut prev = 0.0;
@@ -178,7 +209,11 @@ pub fn check_invertible(
         return Err(fail(format!("the lens never reaches the image corners (at most {prev:.3})")));
     }
     for p in &probes {
-        distortion.undistort_pixel(k, p).map_err(|e| fail(e.to_string()))?;
+        if wide {
+            distortion.unproject_pixel(k, p).map_err(|e| fail(e.to_string()))?;
+        } else {
+            distortion.undistort_pixel(k, p).map_err(|e| fail(e.to_string()))?;
+        }
     }
     Ok(())
 }
@@ -370,6 +405,9 @@ fn render_clean(
     let cquads = cam_quads(quads, &cam_from_world);
     let k = view.k;
     let dist = view.distortion;
+    if casts_bearings(dist) {
+        return render_bearings(quads, view, supersampling);
+    }
     let ss = supersampling.max(1) as usize;
     let inv_ss = 1.0 / ss as f64;
     let focal_ss = k.mean_focal() * ss as f64;
@@ -434,10 +472,74 @@ fn render_clean(
     Ok(image)
 }
 
+/// [`render_clean`] for a lens whose rays may lie beyond 90 deg (the double sphere):
+/// each sample position unprojected to its unit bearing by the lens model
+/// ([`Distortion::unproject_pixel`]), cast against every quad facing the camera (no tile
+/// culling: the pinhole-plane bounding boxes do not hold rays behind the camera).
+fn render_bearings(
+    quads: &[TexturedQuad],
+    view: &CameraView<'_>,
+    supersampling: u32,
+) -> Result<Vec<f32>, SimError> {
+    let [w, h] = view.image_size;
+    let (w, h) = (w as usize, h as usize);
+    let cam_from_world = view.world_from_cam.inverse();
+    let all: Vec<CamQuad> = quads
+        .iter()
+        .enumerate()
+        .filter_map(|(index, tq)| {
+            let q = &tq.quad;
+            let corner = (cam_from_world * q.corner).coords;
+            let u = cam_from_world.rotation * q.u;
+            let v = cam_from_world.rotation * q.v;
+            let normal = u.cross(&v);
+            let plane = normal.dot(&corner);
+            let bbox = [f64::NEG_INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::INFINITY];
+            (plane < 0.0).then_some(CamQuad { index, corner, u, v, normal, plane, size: q.size_m, bbox })
+        })
+        .collect();
+    let (k, dist) = (view.k, view.distortion);
+    let ss = supersampling.max(1) as usize;
+    let inv_ss = 1.0 / ss as f64;
+    let focal_ss = k.mean_focal() * ss as f64;
+    let failed = AtomicBool::new(false);
+    let mut image = vec![0f32; w * h];
+    image.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, out) in row.iter_mut().enumerate() {
+            let mut sum = 0f32;
+            for sy in 0..ss {
+                for sx in 0..ss {
+                    let px = x as f64 + (sx as f64 + 0.5) * inv_ss - 0.5;
+                    let py = y as f64 + (sy as f64 + 0.5) * inv_ss - 0.5;
+                    match dist.unproject_pixel(k, &Point2::new(px, py)) {
+                        Ok(d) => sum += shade_ray(quads, &all, &d, focal_ss),
+                        Err(_) => failed.store(true, Ordering::Relaxed),
+                    }
+                }
+            }
+            *out = sum / (ss * ss) as f32;
+        }
+    });
+    if failed.load(Ordering::Relaxed) {
+        return Err(SimError::Render(format!(
+            "distortion {dist:?}: a sample position of the image has no ray"
+        )));
+    }
+    Ok(image)
+}
+
 /// Grey value seen along the ray `(x, y, 1)` (camera frame).
 #[inline]
 fn shade(quads: &[TexturedQuad], candidates: &[CamQuad], x: f64, y: f64, focal_ss: f64) -> f32 {
-    let d = Vector3::new(x, y, 1.0);
+    shade_ray(quads, candidates, &Vector3::new(x, y, 1.0), focal_ss)
+}
+
+/// Grey value seen along the ray `d` (camera frame; `(x, y, 1)` for the pinhole-plane
+/// models, a unit bearing for the wide ones: `best_t` is then the distance, which the
+/// footprint uses as its depth).
+#[inline]
+fn shade_ray(quads: &[TexturedQuad], candidates: &[CamQuad], d: &Vector3<f64>, focal_ss: f64) -> f32 {
+    let d = *d;
     let mut best_t = f64::INFINITY;
     let mut best: Option<(&CamQuad, f64, f64, f64)> = None;
     for q in candidates {
@@ -555,7 +657,7 @@ mod tests {
     /// bit. `deterministic_with_the_seed_and_noise_advances` builds its heads afresh: it
     /// tests that construction.
     fn clean_head(seed: u64, distortion: Distortion) -> SimulatedHead {
-        type Heads = Mutex<HashMap<(u64, LensKind, [u64; 6]), Arc<OnceLock<SimulatedHead>>>>;
+        type Heads = Mutex<HashMap<(u64, LensKind, [u64; 8]), Arc<OnceLock<SimulatedHead>>>>;
         static HEADS: OnceLock<Heads> = OnceLock::new();
         let key = (seed, distortion.kind, distortion.slots().map(f64::to_bits));
         let slot = HEADS.get_or_init(Default::default).lock().unwrap().entry(key).or_default().clone();
@@ -677,10 +779,11 @@ mod tests {
         assert!(check_invertible(&Distortion::default(), &wide, [768, 576]).is_ok());
     }
 
-    /// The TOML table: `kind` by any usual name, missing coefficients zero, unknown kinds
-    /// and keys refused; the options refuse a coefficient the model does not have.
+    /// The TOML table: `kind` by any name of the lens table (the double sphere's `xi
+    /// alpha` too), missing coefficients zero, unknown kinds and keys refused; the options
+    /// refuse a coefficient the model does not have.
     #[test]
-    fn lens_table_reads_both_models() {
+    fn lens_table_reads_every_model() {
         let o: RenderOptions =
             toml::from_str("[distortion]\nkind = \"equidistant\"\nk1 = 0.01\nk4 = 0.001\n").unwrap();
         assert_eq!(o.distortion, Distortion::equidistant([0.01, 0.0, 0.0, 0.001]));
@@ -688,7 +791,10 @@ mod tests {
         assert_eq!(o.distortion.kind, LensKind::Equidistant);
         let o: RenderOptions = toml::from_str("[distortion]\nkind = \"radtan\"\np1 = 0.001\n").unwrap();
         assert_eq!(o.distortion, Distortion { p1: 0.001, ..Distortion::default() });
-        assert!(toml::from_str::<RenderOptions>("[distortion]\nkind = \"ds\"\n").is_err());
+        let o: RenderOptions =
+            toml::from_str("[distortion]\nkind = \"ds\"\nxi = -0.15\nalpha = 0.55\n").unwrap();
+        assert_eq!(o.distortion, Distortion::double_sphere(-0.15, 0.55));
+        assert!(toml::from_str::<RenderOptions>("[distortion]\nkind = \"fov\"\n").is_err());
         assert!(toml::from_str::<RenderOptions>("[distortion]\nk5 = 0.1\n").is_err());
         let bad: RenderOptions =
             toml::from_str("[distortion]\nkind = \"equidistant\"\np1 = 0.001\n").unwrap();

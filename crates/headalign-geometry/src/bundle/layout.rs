@@ -48,17 +48,17 @@ use nalgebra::{DVector, Isometry3, Matrix3x2, Point3, Translation3, Unit, UnitQu
 use super::gt;
 use super::state::{BundleOptions, Motions, RigState, Side};
 use crate::camera::Intrinsics;
+use crate::distortion::SLOT_NAMES;
 use crate::so3::{self, Line};
 use crate::{GeometryError, Result};
 
 const INTR_NAMES: [&str; 5] = ["fx", "fy", "skew", "cx", "cy"];
-const DIST_NAMES: [&str; 6] = ["k1", "k2", "p1", "p2", "k3", "k4"];
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) enum Param {
     Intr(Side, usize),
-    /// Distortion coefficient in the slot order of [`Distortion::slots`]
-    /// (`k1 k2 p1 p2 k3 k4`).
+    /// Lens parameter in the slot order of [`Distortion::slots`] (`k1 k2 p1 p2 k3 k4 xi
+    /// alpha`; which slots a model has is its row of the lens table, `crate::lens`).
     ///
     /// [`Distortion::slots`]: crate::distortion::Distortion::slots
     Dist(Side, usize),
@@ -81,7 +81,7 @@ impl Param {
             }
             Param::Dist(side, i) => {
                 let s = if side == Side::Left { "left" } else { "right" };
-                format!("{s}.{}", DIST_NAMES.get(i).copied().unwrap_or("?"))
+                format!("{s}.{}", SLOT_NAMES.get(i).copied().unwrap_or("?"))
             }
             Param::RigRot(i) => format!("rig.rot{i}"),
             Param::RigTdir(i) => format!("rig.tdir{i}"),
@@ -103,7 +103,7 @@ impl Param {
                     .iter()
                     .position(|n| *n == tail)
                     .map(|i| Param::Intr(side, i))
-                    .or_else(|| DIST_NAMES.iter().position(|n| *n == tail).map(|i| Param::Dist(side, i)))
+                    .or_else(|| SLOT_NAMES.iter().position(|n| *n == tail).map(|i| Param::Dist(side, i)))
             }
             "rig" => num("rot").map(Param::RigRot).or_else(|| num("tdir").map(Param::RigTdir)),
             _ => {
@@ -129,7 +129,7 @@ impl Param {
 pub(super) struct Layout {
     pub(super) params: Vec<Param>,
     pub(super) intr: [[Option<usize>; 5]; 2],
-    pub(super) dist: [[Option<usize>; 6]; 2],
+    pub(super) dist: [[Option<usize>; 8]; 2],
     pub(super) square: [bool; 2],
     pub(super) rig_rot: [Option<usize>; 3],
     pub(super) rig_tdir: [Option<usize>; 2],
@@ -203,7 +203,7 @@ impl Layout {
         let mut l = Layout {
             params: Vec::new(),
             intr: [[None; 5]; 2],
-            dist: [[None; 6]; 2],
+            dist: [[None; 8]; 2],
             square: [false; 2],
             rig_rot: [None; 3],
             rig_tdir: [None; 2],

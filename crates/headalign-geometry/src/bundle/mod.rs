@@ -25,14 +25,17 @@
 //!   `fix_principal_point` holds `cx, cy`. [`bundle_adjust_holding`] holds any named
 //!   camera parameter at its start value (a profile-likelihood point; a held `fy` stays
 //!   untied from `fx`).
-//! - `left.{k1,k2}`, `right.{k1,k2}` (only with `estimate_distortion`): the radial
-//!   coefficients of OpenCV's `plumb_bob` lens model ([`Distortion`], dimensionless, on
-//!   normalised coordinates), additive update. The projection is then
-//!   `K distort(pi(X))`; the other coefficients (`p1 p2 k3`) of
-//!   [`RigState::left_distortion`] / `right_distortion` are held at their given values (a
-//!   known lens model is used as given, estimated or not). Pitfall: with small rotations
-//!   `k1` correlates with the focal length and the principal point (a barrel lens looks
-//!   like a shorter focal length towards the image edges); the covariance shows it.
+//! - `left.{k1,k2}`, `right.{k1,k2}` (only with `estimate_distortion`; the parameters of
+//!   `BundleOptions::distortion_terms` in the camera's lens model: `k1 k2 p1 p2 k3` of
+//!   the radial-tangential, `k1..k4` of the equidistant, `xi alpha` of the double sphere;
+//!   [`Distortion`], dimensionless), additive update. The projection is the lens model's
+//!   (`crate::lens`, the table): `K m(X)` with `m` its image-plane point, `None` outside
+//!   its validity region (for the pinhole-plane models `Z <= 0`; the double sphere
+//!   projects rays beyond 90 deg); the parameters not estimated are held at their given
+//!   values (a known lens model is used as given, estimated or not). Pitfall: with small
+//!   rotations `k1` correlates with the focal length and the principal point (a barrel
+//!   lens looks like a shorter focal length towards the image edges); the covariance
+//!   shows it.
 //! - `rig.rot0..2`: left-multiplicative rotation update of `right_from_left`,
 //!   `R <- exp(w) R`; `rig.tdir0..1`: the *direction* of its translation on the unit
 //!   sphere (tangent-plane update, `t <- |t| normalize(t/|t| + B d)`), its length is held

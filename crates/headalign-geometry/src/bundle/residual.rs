@@ -4,14 +4,16 @@
 //! # What it computes
 //!
 //! The residual of an observation is the projected minus the observed pixel (2
-//! components, pixels): `K_L d(pi(X_c))` in the left camera and `K_R d(pi(R X_c + t))` in
-//! the right one, with `X_c = cam_k_from_ref X`, `pi(p) = (p.x / p.z, p.y / p.z)`, `(R, t)`
-//! the rig's `right_from_left` and `d` the camera's `plumb_bob` distortion; with zero
-//! distortion the pinhole branch is taken, bit-identical to the code before distortion
-//! existed. [`residual_pixels`] and [`residual_pixels_at`] are the public form.
+//! components, pixels): `K_L m_L(X_c)` in the left camera and `K_R m_R(R X_c + t)` in the
+//! right one, with `X_c = cam_k_from_ref X`, `(R, t)` the rig's `right_from_left` and `m`
+//! the camera's lens model's projection to its image plane (`crate::lens`: the pinhole
+//! `(X/Z, Y/Z)`, radial-tangential or equidistant distortion of it, or the double sphere
+//! of the ray itself). The pinhole (a radial-tangential lens with zero coefficients) is
+//! the pinhole row's arithmetic, bit-identical to the code before lens models existed.
+//! [`residual_pixels`] and [`residual_pixels_at`] are the public form.
 //!
 //! `linearise_obs` returns the same residual with its Jacobians, analytic for the
-//! intrinsics, `k1 k2`, the rig rotation and baseline direction, the free view poses (via
+//! intrinsics, the lens parameters (the model's `param_jacobian`), the rig rotation and baseline direction, the free view poses (via
 //! the pose tangent, `so3::skew`) and the point, in its homogeneous 3-dof tangent of
 //! `layout.rs` (2x3). For `Joints` the derivative of each view's pose tangent with respect
 //! to the axis and angle parameters is a central difference of the small pose function
@@ -24,9 +26,10 @@
 //!
 //! # Pitfalls
 //!
-//! - A point on or behind the camera (`z <= 0`, or NaN) has no residual (`None`): the
-//!   problem's set-up leaves such observations out, and the solver rejects a step that
-//!   would bring a used point there.
+//! - A point outside the lens model's validity region (for the pinhole-plane models on
+//!   or behind the camera, `z <= 0` or NaN; for the double sphere beyond its field) has
+//!   no residual (`None`): the problem's set-up leaves such observations out, and the
+//!   solver rejects a step that would bring a used point there.
 //! - These are the plain residuals: the measurement window's shift (`robust.rs`,
 //!   `Problem::observe`) and the robust weights are applied by the callers.
 //! - `linearise_obs` without `cols` computes the residual only; the point Jacobian it
@@ -34,10 +37,8 @@
 
 use nalgebra::{Isometry3, Matrix2x3, Matrix3, Matrix3x2, Point3, Vector2, Vector3, Vector6};
 
-use super::gt;
 use super::layout::{Layout, homogeneous_basis, point_homogeneous, retract_line, side_index, tangent_basis};
 use super::state::{BundleObservation, Motions, RigState, Side, joint_pose};
-use crate::distortion::LensKind;
 use crate::so3;
 
 /// Residual (projected - observed, pixels) of one observation; `None` if the point is
@@ -66,14 +67,8 @@ pub fn residual_pixels_at(
         Side::Left => (&state.left, &state.left_distortion, xc),
         Side::Right => (&state.right, &state.right_distortion, state.right_from_left * xc),
     };
-    if d.is_zero() {
-        return Some(k.project(&xs)? - obs.pixel);
-    }
-    if !gt(xs.z, 0.0) {
-        return None;
-    }
-    let n = d.distort(&Vector2::new(xs.x / xs.z, xs.y / xs.z));
-    Some(Vector2::new(k.fx * n.x + k.skew * n.y + k.cx - obs.pixel.x, k.fy * n.y + k.cy - obs.pixel.y))
+    let m = d.kind.model().project(&d.params(), &xs.coords)?;
+    Some(Vector2::new(k.fx * m.x + k.skew * m.y + k.cx - obs.pixel.x, k.fy * m.y + k.cy - obs.pixel.y))
 }
 
 const JOINT_FD_STEP: f64 = 1e-6;
@@ -202,30 +197,11 @@ pub(super) fn linearise_obs(
         Side::Left => (&state.left, &state.left_distortion, xc, Matrix3::identity()),
         Side::Right => (&state.right, &state.right_distortion, rig.r * xc + rig.t, rig.r),
     };
-    if !gt(xs.z, 0.0) {
-        return None;
-    }
-    let iz = 1.0 / xs.z;
-    let (a, b, jproj) = if dist.is_zero() {
-        // Pinhole: kept exactly as before distortion existed (bit-identical results).
-        let a = xs.x * iz;
-        let b = xs.y * iz;
-        let jproj = Matrix2x3::new(
-            k.fx * iz,
-            k.skew * iz,
-            -(k.fx * a + k.skew * b) * iz,
-            0.0,
-            k.fy * iz,
-            -k.fy * b * iz,
-        );
-        (a, b, jproj)
-    } else {
-        // pixel = K2 distort(pi(xs)): d pixel / d xs = K2 J_dist d pi / d xs.
-        let (n, jd) = dist.distort_with_jacobian(&Vector2::new(xs.x * iz, xs.y * iz));
-        let k2 = nalgebra::Matrix2::new(k.fx, k.skew, 0.0, k.fy);
-        let dpi = Matrix2x3::new(iz, 0.0, -xs.x * iz * iz, 0.0, iz, -xs.y * iz * iz);
-        (n.x, n.y, k2 * jd * dpi)
-    };
+    // The lens model's projection (`crate::lens`): `None` outside its validity region.
+    let model = dist.kind.model();
+    let params = dist.params();
+    let lin = model.linearise(k, &params, &xs)?;
+    let (a, b, jproj) = (lin.m.x, lin.m.y, lin.d_ray);
     let r = Vector2::new(k.fx * a + k.skew * b + k.cx - obs.pixel.x, k.fy * b + k.cy - obs.pixel.y);
     let Some(cols) = cols else {
         // The residual alone (cost evaluations): no Jacobian.
@@ -258,23 +234,16 @@ pub(super) fn linearise_obs(
     }
     let didx = &layout.dist[s];
     if didx.iter().any(Option::is_some) {
-        let (u, v) = (xs.x * iz, xs.y * iz);
-        if dist.kind == LensKind::RadialTangential && didx[2..].iter().all(Option::is_none) {
-            // d distort / d k1 = x r^2, d / d k2 = x r^4 (x the undistorted normalised point).
-            let r2 = u * u + v * v;
-            for (idx, m) in didx.iter().zip([r2, r2 * r2]) {
-                if let Some(idx) = idx {
-                    cols.push((*idx, Vector2::new((k.fx * u + k.skew * v) * m, k.fy * v * m)));
-                }
-            }
-        } else {
-            // Any coefficient of either model: K2 d distort / d coefficient.
-            let (_, _, jc) = dist.distort_with_jacobians(&Vector2::new(u, v));
-            let k2 = nalgebra::Matrix2::new(k.fx, k.skew, 0.0, k.fy);
-            for (slot, idx) in didx.iter().enumerate() {
-                if let Some(idx) = idx {
-                    cols.push((*idx, k2 * jc.column(slot)));
-                }
+        // The layout holds storage slots; the model's parameter `i` is in slot `slots[i]`.
+        let slots = model.slots();
+        let mut estimated = [false; crate::lens::MAX_PARAMS];
+        for (e, &slot) in estimated.iter_mut().zip(slots) {
+            *e = didx.get(slot).is_some_and(Option::is_some);
+        }
+        let jc = model.param_jacobian(k, &params, &xs, &estimated);
+        for (i, &slot) in slots.iter().enumerate() {
+            if let Some(Some(idx)) = didx.get(slot) {
+                cols.push((*idx, jc.column(i).into_owned()));
             }
         }
     }
@@ -310,7 +279,7 @@ mod tests {
     use crate::bundle::BundleOptions;
     use crate::bundle::layout::{retract, retract_point};
     use crate::bundle::test_support::distorted;
-    use crate::distortion::{Distortion, DistortionTerms};
+    use crate::distortion::{Distortion, DistortionTerms, LensKind};
     use crate::synthetic::{Synth, perturb, synth};
     use nalgebra::DVector;
 
@@ -443,6 +412,17 @@ mod tests {
         equi.left_distortion = Distortion::equidistant([0.05, -0.01, 0.002, -0.0005]);
         equi.right_distortion = Distortion::zero(LensKind::Equidistant);
         equi.left.skew = -0.6;
-        fd_check(&equi, &BundleOptions { distortion_terms: DistortionTerms::Full4, ..five }, &pick);
+        fd_check(&equi, &BundleOptions { distortion_terms: DistortionTerms::Full4, ..five.clone() }, &pick);
+        // The double sphere with xi and alpha free (the projection of the ray itself).
+        let mut ds = perturb(&s.truth, 134);
+        ds.left_distortion = Distortion::double_sphere(-0.1, 0.55);
+        ds.right_distortion = Distortion::double_sphere(0.2, 0.6);
+        ds.left.skew = 0.4;
+        fd_check(&ds, &five, &pick);
+        let layout = Layout::build(&ds, &five).unwrap();
+        assert!(
+            layout.names().iter().any(|n| n == "left.xi")
+                && layout.names().iter().any(|n| n == "right.alpha")
+        );
     }
 }

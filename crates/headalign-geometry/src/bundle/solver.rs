@@ -531,9 +531,10 @@ mod tests {
     }
 
     /// Noise-free data through the other lens models, every coefficient free: the
-    /// equidistant model (`k1..k4`) from the zero equidistant lens, and the full
-    /// radial-tangential model (`k1 k2 p1 p2 k3`) from the pinhole, both with `K` ~1.5 %
-    /// off: the truth is again the zero-residual minimum (1e-8 as above).
+    /// equidistant model (`k1..k4`) from the zero equidistant lens, the full
+    /// radial-tangential model (`k1 k2 p1 p2 k3`) from the pinhole, and the double sphere
+    /// (`xi alpha`) from `xi 0, alpha 0.5`, all with `K` ~1.5 % off: the truth is again the
+    /// zero-residual minimum (1e-8 as above).
     #[test]
     fn other_lens_models_noise_free_converge_to_truth() {
         use crate::distortion::{DistortionTerms, LensKind};
@@ -545,9 +546,11 @@ mod tests {
             Distortion { k1: -0.2, k2: 0.05, p1: 1e-3, p2: -5e-4, k3: 0.01, ..Distortion::default() },
             Distortion { k1: -0.15, k2: 0.03, p1: -8e-4, p2: 6e-4, k3: -0.005, ..Distortion::default() },
         ];
+        let ds = [Distortion::double_sphere(-0.15, 0.58), Distortion::double_sphere(0.1, 0.52)];
         for (seed, lenses, start_lens, terms) in [
             (17, equi, Distortion::zero(LensKind::Equidistant), DistortionTerms::Full4),
             (18, radtan, Distortion::default(), DistortionTerms::Full5),
+            (19, ds, Distortion::double_sphere(0.0, 0.5), DistortionTerms::Radial2),
         ] {
             let s = crate::bundle::test_support::distorted_with(seed, 200, true, lenses);
             let mut start = perturb(&s.truth, seed * 10);

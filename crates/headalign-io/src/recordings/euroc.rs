@@ -168,17 +168,22 @@ pub fn parse_sensor_yaml(text: &str, origin: &str) -> Result<(LensModel, Option<
         Ok(nums)
     };
     let scalar = |key: &str| yaml_value(text, key).map(|v| v.trim_matches(['"', '\'']).to_string());
-    if let Some(m) = scalar("camera_model")
-        && m != "pinhole"
-    {
-        return Err(bad(format!("camera_model '{m}' is not supported (pinhole)")));
-    }
-    let k = numbers("intrinsics", 4)?;
+    // Kalibr's camera models: `pinhole` (intrinsics fu fv pu pv, then a distortion model)
+    // or `ds`, the double sphere (intrinsics xi alpha fu fv pu pv).
+    let ds = match scalar("camera_model").as_deref() {
+        None | Some("pinhole") => false,
+        Some("ds") => true,
+        Some(m) => return Err(bad(format!("camera_model '{m}' is not supported (pinhole, ds)"))),
+    };
+    let all = numbers("intrinsics", if ds { 6 } else { 4 })?;
+    let k = &all[all.len() - 4..];
     let k = Intrinsics::new(k[0], k[1], k[2], k[3]);
     if !(k.fx > 0.0 && k.fy > 0.0) {
         return Err(bad(format!("intrinsics: focal lengths must be positive, got {} and {}", k.fx, k.fy)));
     }
     let distortion = match scalar("distortion_model").as_deref() {
+        _ if ds => Distortion::from_coefficients(LensKind::DoubleSphere, &all[..2])
+            .map_err(|e| bad(e.to_string()))?,
         Some("none") | None => Distortion::default(),
         Some(name) => {
             let kind = LensKind::parse(name).ok_or_else(|| {

@@ -106,6 +106,7 @@ mod sequence;
 mod tests;
 mod two_pass;
 pub mod views;
+mod wide;
 
 use headalign_geometry::GeometryError;
 use headalign_geometry::bundle::{BundleObservation, BundleResult};
@@ -488,9 +489,11 @@ fn calibrate_once_from(
     // 1. The views of the rig.
     let depth::RigViews { rig, skipped, planarity, image_size } = depth::select_views(views, options)?;
     let [w, h] = image_size;
-    let k0 = Intrinsics::rough_guess(w, h);
+    // The pixels' conditioning and the rigid start's K: the lens start's (the image-size
+    // guess for the narrow models' grid, the grid lens's own K for a wide model).
+    let k0 = lens_start.map_or_else(|| Intrinsics::rough_guess(w, h), |l| l.chain[0].k);
     let est = &options.estimation;
-    let chain_rig = lens_start.map(|l| undistort_views(&rig, &l.chain));
+    let chain_rig = lens_start.map(|l| l.chain_views(&rig));
     let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
     // 2. F from all views, frame, triangulation.
     let stereo = rig_stereo::stereo_geometry(chain, &k0, est)?;

@@ -30,7 +30,7 @@ use headalign_geometry::bundle::{
 use headalign_geometry::camera::{ProjectiveCamera, dehomogenise3};
 use headalign_geometry::distortion::Distortion;
 use headalign_geometry::triangulation::triangulate_linear;
-use nalgebra::{Isometry3, Point3};
+use nalgebra::{Isometry3, Point2, Point3};
 
 use super::CalibrateOptions;
 use super::bundle_starts::PointSet;
@@ -165,6 +165,9 @@ struct PointSources<'a> {
 fn triangulate_in_state(state: &RigState, src: &PointSources<'_>, i: usize) -> Option<Point3<f64>> {
     let slot = *src.origin_slot.get(i)?;
     let (_, l, r) = src.recon.get(slot)?.get(src.point_tracks.get(i)?)?;
+    if [state.left_distortion.kind, state.right_distortion.kind].into_iter().any(super::wide::is_wide) {
+        return triangulate_bearings(state, l, r).map(|p| state.motions.ref_from_cam(slot) * p);
+    }
     let l = state.left_distortion.undistort_pixel(&state.left, l).ok()?;
     let r = state.right_distortion.undistort_pixel(&state.right, r).ok()?;
     let p_l = ProjectiveCamera::from_pose(&state.left, &Isometry3::identity());
@@ -172,6 +175,33 @@ fn triangulate_in_state(state: &RigState, src: &PointSources<'_>, i: usize) -> O
     let x = triangulate_linear(&p_l, &p_r, &l, &r).ok()?;
     let p = dehomogenise3(&x)?;
     (p.z > 0.0 && (state.right_from_left * p).z > 0.0).then(|| state.motions.ref_from_cam(slot) * p)
+}
+
+/// The midpoint of the closest approach of the two cameras' bearings of a stereo match
+/// (the lens models' unprojection, [`Distortion::unproject_pixel`]), in the left camera's
+/// frame: the triangulation of a wide lens, whose rays may lie beyond 90 deg where a
+/// pinhole pixel does not exist. `None` for rays that do not unproject, near-parallel rays
+/// (1 - cos^2 of their angle below 1e-12) or a point behind either camera along its ray.
+pub(super) fn triangulate_bearings(
+    state: &RigState,
+    l: &Point2<f64>,
+    r: &Point2<f64>,
+) -> Option<Point3<f64>> {
+    let bl = state.left_distortion.unproject_pixel(&state.left, l).ok()?;
+    let br = state.right_distortion.unproject_pixel(&state.right, r).ok()?;
+    let left_from_right = state.right_from_left.inverse();
+    let c = left_from_right.translation.vector;
+    let dr = left_from_right.rotation * br;
+    // Minimise |s bl - (c + u dr)|: the 2x2 normal equations.
+    let (a, b, cc) = (bl.dot(&bl), bl.dot(&dr), dr.dot(&dr));
+    let (d, e) = (bl.dot(&c), dr.dot(&c));
+    let det = a * cc - b * b;
+    if det.is_nan() || det <= 1e-12 {
+        return None;
+    }
+    let s = (d * cc - b * e) / det;
+    let u = (b * d - a * e) / det;
+    (s > 0.0 && u > 0.0).then(|| Point3::from((bl * s + c + dr * u) * 0.5))
 }
 
 /// The start of [`adjust_starts`] from another run's result `other`: its cameras, lenses,

@@ -786,3 +786,227 @@ fn a_sequence_chooses_its_lens() {
         assert_eq!(cal.report.image_noise.as_ref().map(|n| n.status.as_str()), Some("skipped"));
     }
 }
+
+/// The 180-deg double-sphere camera of the issue-45 bar: `xi = -0.15, alpha = 0.55`
+/// (w2 = 0.76: rays up to 139 deg project) with `fx = fy = 188` on a 768 x 576 image,
+/// so that the image's horizontal edges are 90 deg off the axis (180 deg across) and its
+/// corners about 115 deg. The right camera's focal length differs by 2 %.
+pub(crate) fn wide_scenario(seed: u64, noise_px: f64) -> Scenario {
+    let mut scenario = Scenario {
+        seed,
+        noise_px,
+        points: 400,
+        outlier_fraction: 0.0,
+        left: Intrinsics::new(188.0, 188.0, 383.5, 287.5),
+        right: Intrinsics::new(191.0, 191.0, 381.0, 290.0),
+        ..Scenario::default()
+    };
+    scenario.render.distortion = Distortion::double_sphere(-0.15, 0.55);
+    scenario
+}
+
+/// `calibrate` with the double sphere on the simulated head of `wide_scenario(seed)`:
+/// the initial view and views after `rotation_deg` of elevation and of pan (point mode).
+pub(crate) fn calibrate_wide(
+    seed: u64,
+    noise_px: f64,
+    rotation_deg: f64,
+) -> Result<(MotionCalibration, headalign_sim::HeadTruth), AlignError> {
+    let scenario = Scenario { rotation_deg, ..wide_scenario(seed, noise_px) };
+    let mut head = SimulatedHead::new(scenario).map_err(|e| AlignError::InvalidOption(e.to_string()))?;
+    let e0 = head.encoders();
+    let views = capture_views(
+        &mut head,
+        &[
+            ("initial", e0),
+            ("elevation", e0.moved(Joint::Elevation, rotation_deg)),
+            ("pan", e0.moved(Joint::Pan, rotation_deg)),
+        ],
+    );
+    let options = CalibrateOptions {
+        estimation: EstimationOptions::scaled_for_noise(noise_px, seed),
+        zero_skew: true,
+        lens: LensChoice::Model(headalign_geometry::distortion::LensKind::DoubleSphere),
+        ..CalibrateOptions::default()
+    };
+    Ok((calibrate_rig(&views, &options)?, head.truth().clone()))
+}
+
+/// The issue-45 bar in point mode: the 180-deg double sphere in 15-deg views at 0.5 px,
+/// seed 1: focal lengths within 1 %, and `xi`, `alpha` of both cameras within 3 reported
+/// sigmas. Observations beyond 90 deg enter the adjustment.
+#[test]
+fn a_180_degree_double_sphere_calibrates() {
+    let (cal, truth) = calibrate_wide(1, 0.5, 15.0).unwrap();
+    let (st, t) = (&cal.bundle.state, &truth);
+    assert!(f_err_pct(&st.left, &t.left) < 1.0, "{:?} vs {:?}", st.left, t.left);
+    assert!(f_err_pct(&st.right, &t.right) < 1.0, "{:?} vs {:?}", st.right, t.right);
+    let cov = &cal.bundle.covariance;
+    for (name, err) in [
+        ("left.xi", st.left_distortion.xi + 0.15),
+        ("left.alpha", st.left_distortion.alpha - 0.55),
+        ("right.xi", st.right_distortion.xi + 0.15),
+        ("right.alpha", st.right_distortion.alpha - 0.55),
+    ] {
+        let sigma = cov.sigma(name).unwrap();
+        assert!(err.abs() < 3.0 * sigma, "{name}: error {err:.5}, sigma {sigma:.5}");
+    }
+    let behind = cal.observations.iter().filter(|o| {
+        let (k, d) = if o.side == Side::Left {
+            (&st.left, &st.left_distortion)
+        } else {
+            (&st.right, &st.right_distortion)
+        };
+        d.unproject_pixel(k, &o.pixel).is_ok_and(|b| b.z < 0.0)
+    });
+    assert!(behind.count() > 0, "no observation beyond 90 deg entered the adjustment");
+}
+
+/// The bar's measurement over seeds (issue 45): the 180-deg double sphere in 15-deg views
+/// at 0.5 px, seeds 1-20, point mode: per seed the focal errors (percent) and the lens
+/// errors in reported sigmas; `cargo test --release -p headalign --lib
+/// calibrate::tests::wide_double_sphere_seeds -- --ignored --nocapture`.
+#[test]
+#[ignore = "experiment: prints the 180-deg double-sphere bar over 20 seeds"]
+fn wide_double_sphere_seeds() {
+    use headalign_geometry::bundle::BundleOptions;
+    let (mut worst_f, mut worst_z, mut failed) = (0.0f64, 0.0f64, 0);
+    for seed in 1..=20 {
+        match calibrate_wide(seed, 0.5, 15.0) {
+            Ok((cal, t)) => {
+                let st = &cal.bundle.state;
+                let cov = &cal.bundle.covariance;
+                let f = f_err_pct(&st.left, &t.left).max(f_err_pct(&st.right, &t.right));
+                let z = [
+                    ("left.xi", st.left_distortion.xi + 0.15),
+                    ("left.alpha", st.left_distortion.alpha - 0.55),
+                    ("right.xi", st.right_distortion.xi + 0.15),
+                    ("right.alpha", st.right_distortion.alpha - 0.55),
+                ]
+                .map(|(n, e)| cov.sigma(n).map_or(f64::INFINITY, |s| e.abs() / s));
+                let zmax = z.iter().copied().fold(0.0, f64::max);
+                // The least squares from the truth on the same observations: its sum of
+                // squares against the estimate's tells a start problem (truth lower) from
+                // a minimum the data prefer (truth higher).
+                let mut from_truth = st.clone();
+                (from_truth.left, from_truth.right) = (t.left, t.right);
+                from_truth.left_distortion = Distortion::double_sphere(-0.15, 0.55);
+                from_truth.right_distortion = from_truth.left_distortion;
+                let ls = BundleOptions {
+                    zero_skew: true,
+                    estimate_distortion: true,
+                    max_iterations: 100,
+                    ..BundleOptions::default()
+                };
+                let ssr = |s: &RigState| -> f64 {
+                    cal.observations
+                        .iter()
+                        .map(|o| {
+                            headalign_geometry::bundle::residual_pixels(s, o)
+                                .map_or(1e6, |r| r.norm_squared())
+                        })
+                        .sum()
+                };
+                let truth_ssr =
+                    headalign_geometry::bundle::bundle_adjust(&from_truth, &cal.observations, &ls)
+                        .map_or(f64::NAN, |r| ssr(&r.state));
+                println!(
+                    "seed {seed:2}: f error {f:.3} %, lens errors / sigma {z:.2?}, rms {:.3} px, start {}, SSR {:.1} (from the truth {truth_ssr:.1})",
+                    cal.report.final_rms_px,
+                    cal.report.start,
+                    ssr(st)
+                );
+                (worst_f, worst_z) = (worst_f.max(f), worst_z.max(zmax));
+            }
+            Err(e) => {
+                failed += 1;
+                println!("seed {seed:2}: failed: {e}");
+            }
+        }
+    }
+    println!("worst f error {worst_f:.3} %, worst lens error {worst_z:.2} sigma, {failed} failed");
+}
+
+/// The 180-deg views of [`wide_scenario`] rendered (procedural textures, the renderer's
+/// default blur and grey noise): the initial view and views after `rotation_deg` of
+/// elevation and of pan.
+pub(crate) fn wide_rendered_views(
+    seed: u64,
+    rotation_deg: f64,
+) -> Vec<(String, headalign_platform::StereoImages)> {
+    use headalign_platform::ImagingHead;
+    let mut s = Scenario { rotation_deg, ..wide_scenario(seed, 0.5) };
+    s.render.use_photos = false;
+    let mut head = SimulatedHead::new(s).unwrap();
+    let e0 = head.encoders();
+    [
+        ("initial", e0),
+        ("elevation", e0.moved(Joint::Elevation, rotation_deg)),
+        ("pan", e0.moved(Joint::Pan, rotation_deg)),
+    ]
+    .into_iter()
+    .map(|(name, enc)| {
+        head.move_to(&enc).unwrap();
+        (name.to_string(), head.capture_images().unwrap())
+    })
+    .collect()
+}
+
+/// The issue-45 bar on rendered images: the 180-deg double sphere of `wide_scenario`
+/// (seed 1) in 15-deg views, tracked by the front end (0.05 px RMS) and calibrated with the
+/// double sphere: focal lengths within 1 %, `xi` and `alpha` within 3 reported sigmas, and
+/// the sum of squares no higher than the least squares started at the truth reaches on
+/// the same observations (the other end of the f-xi valley, `calibrate::wide`, fits the
+/// profile within 0.5 px out to 110 deg: this run ended there, f +42 %, before the valley
+/// candidates were compared on common observations).
+#[test]
+fn a_180_degree_double_sphere_calibrates_from_rendered_images() {
+    let images = wide_rendered_views(1, 15.0);
+    let options = CalibrateOptions {
+        zero_skew: true,
+        lens: LensChoice::Model(headalign_geometry::distortion::LensKind::DoubleSphere),
+        ..CalibrateOptions::default()
+    };
+    let tracked = track_views(&images, &crate::frontend::FrontEndOptions::default(), &options).unwrap();
+    let cal = calibrate_tracked(tracked, None, &options).unwrap();
+    let st = &cal.bundle.state;
+    let truth = wide_scenario(1, 0.5);
+    let lens = truth.render.distortion;
+    assert!(f_err_pct(&st.left, &truth.left) < 1.0, "{:?} {:?}", st.left, st.left_distortion);
+    assert!(f_err_pct(&st.right, &truth.right) < 1.0, "{:?} {:?}", st.right, st.right_distortion);
+    let cov = &cal.bundle.covariance;
+    for (name, err) in [
+        ("left.xi", st.left_distortion.xi - lens.xi),
+        ("left.alpha", st.left_distortion.alpha - lens.alpha),
+        ("right.xi", st.right_distortion.xi - lens.xi),
+        ("right.alpha", st.right_distortion.alpha - lens.alpha),
+    ] {
+        let sigma = cov.sigma(name).unwrap();
+        eprintln!("rendered {name}: error {err:.5}, sigma {sigma:.5}");
+        assert!(err.abs() < 3.0 * sigma, "{name}: error {err:.5}, sigma {sigma:.5}");
+    }
+    let mut from_truth = st.clone();
+    (from_truth.left, from_truth.right) = (truth.left, truth.right);
+    (from_truth.left_distortion, from_truth.right_distortion) = (lens, lens);
+    let ls = headalign_geometry::bundle::BundleOptions {
+        estimate_distortion: true,
+        max_iterations: 100,
+        ..Default::default()
+    };
+    let ssr = |s: &RigState| -> f64 {
+        cal.observations
+            .iter()
+            .map(|o| headalign_geometry::bundle::residual_pixels(s, o).map_or(1e6, |r| r.norm_squared()))
+            .sum()
+    };
+    let at_truth =
+        ssr(&headalign_geometry::bundle::bundle_adjust(&from_truth, &cal.observations, &ls).unwrap().state);
+    eprintln!(
+        "rendered: f {:.2} xi {:.4} alpha {:.4}; SSR {:.4} px^2, from the truth {at_truth:.4}",
+        st.left.fx,
+        st.left_distortion.xi,
+        st.left_distortion.alpha,
+        ssr(st)
+    );
+    assert!(ssr(st) <= at_truth * 1.01, "SSR {} against {at_truth} from the truth", ssr(st));
+}

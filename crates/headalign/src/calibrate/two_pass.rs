@@ -79,6 +79,29 @@ pub(super) struct LensStart {
     pub(super) chain: [LensModel; 2],
     /// The starts' distortion (left, right).
     pub(super) distortion: [Distortion; 2],
+    /// Rays farther from the axis than this (degrees) are left out of the linear steps
+    /// (a wide model's run, [`super::wide::WIDE_CHAIN_MAX_RAY_DEG`]); `None`: every ray in front.
+    pub(super) max_ray_deg: Option<f64>,
+}
+
+impl LensStart {
+    /// The rig views as the linear steps see them: undistorted by [`Self::chain`], the
+    /// rays beyond [`Self::max_ray_deg`] left out (of the linear steps only: the
+    /// adjustment sees every observation of the points they reconstruct).
+    pub(super) fn chain_views(&self, rig: &[View]) -> Vec<View> {
+        let mut out = undistort_views(rig, &self.chain);
+        if let Some(max) = self.max_ray_deg {
+            let limit = max.to_radians().tan();
+            for v in &mut out {
+                for (list, lens) in
+                    [(&mut v.capture.left, &self.chain[0]), (&mut v.capture.right, &self.chain[1])]
+                {
+                    list.retain(|o| lens.k.unproject(&o.pixel).xy().norm() < limit);
+                }
+            }
+        }
+        out
+    }
 }
 
 /// True if every focal length of `c` is within [`MAX_FOCAL_WIDTHS`] of the image width
@@ -120,6 +143,9 @@ pub(super) fn calibrate_two_pass(
     let Some(kind) = options.lens.kind() else {
         return calibrate_with_restarts(views, options);
     };
+    if super::wide::is_wide(kind) {
+        return super::wide::calibrate_wide(views, options, kind);
+    }
     // The run on pixels undistorted by the grid's lens (steps 2-3).
     let second = grid_start(views, options, kind).map(|start| {
         with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, Some(&start), None))
@@ -146,6 +172,28 @@ fn grid_displacements() -> impl Iterator<Item = f64> {
     (-6..=6).map(|i| f64::from(i) * 0.05)
 }
 
+/// The lens of the model `kind` whose first parameter alone moves a point at normalised
+/// radius `corner` radially by the fraction `delta` of its radius: `k1` of the
+/// radial-tangential and equidistant models; the double sphere's `alpha` with `xi = 0`
+/// (`m = x / (alpha |ray| + (1 - alpha) z)`, barrel only: `alpha` in `[0, 1]`). `None`
+/// where the model has no such lens (the pinhole; the double sphere's pincushion).
+fn grid_lens(kind: LensKind, delta: f64, corner: f64) -> Option<Distortion> {
+    let mut d = Distortion::zero(kind);
+    match kind {
+        LensKind::RadialTangential => d.k1 = delta / (corner * corner),
+        LensKind::Equidistant => d.k1 = delta / corner.atan().powi(2),
+        LensKind::DoubleSphere => {
+            let c = corner.atan().cos();
+            d.alpha = c * (1.0 / (1.0 + delta) - 1.0) / (1.0 - c);
+            if !(0.0..=1.0).contains(&d.alpha) {
+                return None;
+            }
+        }
+        LensKind::Pinhole => return None,
+    }
+    Some(d)
+}
+
 /// Step 1's lens: per lens of the
 /// model `kind` whose `k1` alone moves the image corner radially by a fraction
 /// [`grid_displacements`] of its radius (under the image-size guess `K0`), the pixels
@@ -160,11 +208,7 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
     let corner = (k0.cx.hypot(k0.cy)) / k0.fx;
     let mut best: Option<(usize, Distortion)> = None;
     for delta in grid_displacements() {
-        let mut d = Distortion::zero(kind);
-        d.k1 = match kind {
-            LensKind::RadialTangential => delta / (corner * corner),
-            LensKind::Equidistant => delta / corner.atan().powi(2),
-        };
+        let Some(d) = grid_lens(kind, delta, corner) else { continue };
         let lens = LensModel { k: k0, distortion: d };
         let chain = undistort_views(&rig.rig, &[lens, lens]);
         let Ok(stereo) = super::rig_stereo::stereo_geometry(&chain, &k0, &options.estimation) else {
@@ -180,5 +224,9 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
             best = Some((score, d));
         }
     }
-    best.map(|(_, d)| LensStart { chain: [LensModel { k: k0, distortion: d }; 2], distortion: [d, d] })
+    best.map(|(_, d)| LensStart {
+        chain: [LensModel { k: k0, distortion: d }; 2],
+        distortion: [d, d],
+        max_ray_deg: None,
+    })
 }

@@ -1,7 +1,9 @@
 //! The lens model of self-calibration ([`LensChoice`]) and its automatic choice
 //! ([`LensChoice::Auto`]): the model and its terms, among the pinhole, radial-tangential
 //! (`k1 k2`; `k1 k2 p1 p2`; `k1 k2 p1 p2 k3`) and equidistant (`k1 k2`; `k1..k4`)
-//! lenses ([`LensSpec::candidates`]), decided by the Bayesian information criterion on
+//! lenses ([`LensSpec::candidates`]), and the double sphere (`xi alpha`, started from
+//! the `alpha` closest to the base lens's profile) when the observed field reaches beyond
+//! [`WIDE_FIELD`] (60 deg off the axis), decided by the Bayesian information criterion on
 //! one common set of observations.
 //!
 //! What it computes: the calibration with the radial-tangential `k1 k2` model
@@ -78,8 +80,8 @@ impl LensChoice {
         }
     }
 
-    /// The model named `pinhole`, `radtan` (also `radial-tangential`, `plumb_bob`),
-    /// `equidistant` (also `fisheye`, `equi`) or `auto`.
+    /// The model named `pinhole`, `auto`, or any name of the lens table
+    /// ([`LensKind::parse`]: `radtan`, `plumb_bob`, `equidistant`, `fisheye`, `ds`, ...).
     pub fn parse(name: &str) -> Option<Self> {
         match name.trim().to_ascii_lowercase().as_str() {
             "pinhole" | "none" => Some(LensChoice::Pinhole),
@@ -88,7 +90,7 @@ impl LensChoice {
         }
     }
 
-    /// The name users give it (`pinhole`, `radtan`, `equidistant`, `auto`).
+    /// The name users give it (`pinhole`, `radtan`, `equidistant`, `ds`, `auto`).
     pub fn name(self) -> &'static str {
         match self {
             LensChoice::Pinhole => "pinhole",
@@ -140,13 +142,9 @@ impl LensSpec {
     /// The coefficients estimated per camera, by name (`k1`, `k2`, `p1`, ...; none for
     /// the pinhole).
     pub fn term_names(self) -> Vec<String> {
-        const SLOT_NAMES: [&str; 6] = ["k1", "k2", "p1", "p2", "k3", "k4"];
         self.kind.map_or_else(Vec::new, |kind| {
-            self.terms
-                .slots(kind)
-                .iter()
-                .filter_map(|&i| SLOT_NAMES.get(i).map(|n| (*n).to_string()))
-                .collect()
+            let names = kind.coefficient_names();
+            self.terms.params(kind).iter().filter_map(|&i| names.get(i).map(|n| (*n).to_string())).collect()
         })
     }
 
@@ -241,7 +239,12 @@ pub(crate) fn select_lens(
     let n = 2 * obs.len();
     let mut fitted: Vec<Refit> = Vec::new();
     let mut failed = Vec::new();
-    for spec in LensSpec::candidates(max_terms) {
+    let mut specs = LensSpec::candidates(max_terms);
+    // The double sphere competes when the lens is wide (module docs).
+    if observed_field(state, obs).iter().any(|&f| f > WIDE_FIELD) {
+        specs.push(LensSpec { kind: Some(LensKind::DoubleSphere), terms: DistortionTerms::Radial2 });
+    }
+    for spec in specs {
         let start = candidate_start(spec, state, &fitted, obs);
         match refit(spec, start, obs, bundle) {
             Ok(r) => fitted.push(r),
@@ -349,6 +352,13 @@ fn candidate_start(
         Some(kind) if nested.is_some() || kind == LensKind::RadialTangential => {
             [keep(start.left_distortion, kind), keep(start.right_distortion, kind)]
         }
+        Some(LensKind::DoubleSphere) => {
+            let field = observed_field(state, obs);
+            [
+                double_sphere_like(&state.left_distortion, field[0]),
+                double_sphere_like(&state.right_distortion, field[1]),
+            ]
+        }
         Some(_) => {
             let field = observed_field(state, obs);
             [
@@ -393,6 +403,38 @@ fn one_line(text: &str) -> String {
         Some((i, _)) => format!("{}...", &line[..i]),
         None => line.to_string(),
     }
+}
+
+/// The undistorted normalised radius (of the base fit, [`observed_field`]) beyond which
+/// the double sphere is a candidate of [`LensChoice::Auto`]: `tan 60 deg`. Narrower
+/// fields are described by the pinhole-plane models (the radial-tangential and
+/// equidistant candidates), and there the double sphere would only add a refit.
+pub const WIDE_FIELD: f64 = 1.732_050_807_568_877_2;
+
+/// The double sphere (`xi = 0`, `alpha` on a grid of 0.01 in `[0, 0.95]`) whose radial
+/// profile `sin(theta) / (alpha + (1 - alpha) cos(theta))` is closest, in least squares
+/// over 50 radii up to `field`, to the radial-tangential lens `radtan`'s (tangential terms
+/// ignored); `alpha = 0.5` when the field is empty.
+fn double_sphere_like(radtan: &Distortion, field: f64) -> Distortion {
+    let profile = |r: f64| {
+        let r2 = r * r;
+        r * (1.0 + radtan.k1 * r2 + radtan.k2 * r2 * r2 + radtan.k3 * r2 * r2 * r2)
+    };
+    let cost = |alpha: f64| -> f64 {
+        (1..=50)
+            .map(|i| {
+                let r = field * f64::from(i) / 50.0;
+                let theta = r.atan();
+                let m = theta.sin() / (alpha + (1.0 - alpha) * theta.cos());
+                (m - profile(r)).powi(2)
+            })
+            .sum()
+    };
+    if !(field.is_finite() && field > 0.0) {
+        return Distortion::double_sphere(0.0, 0.5);
+    }
+    let alpha = (0..=95).map(|i| f64::from(i) * 0.01).min_by(|a, b| cost(*a).total_cmp(&cost(*b)));
+    Distortion::double_sphere(0.0, alpha.unwrap_or(0.5))
 }
 
 /// Per camera (left, right), the largest undistorted normalised radius of the

@@ -49,9 +49,6 @@ use crate::observations::View;
 use crate::rig::lens_choice::{BASE_LENS, select_lens};
 use crate::rig::{LensChoice, LensModel, LensSelection};
 
-/// The names of [`Distortion::slots`].
-const SLOT_NAMES: [&str; 6] = ["k1", "k2", "p1", "p2", "k3", "k4"];
-
 /// The lens of a run of the chain (`estimate_rig_once`): the lens that undistorts the
 /// pixels of its linear steps (`None`: the captured pixels), and the distortion its starts
 /// are given (left, right).
@@ -156,11 +153,12 @@ fn second_pass(
     start: &LensStart,
     first_estimate: [Vec<f64>; 2],
 ) -> Result<RigCalibration, Box<(AlignError, LensReport)>> {
+    let names = kind.coefficient_names();
     let terms: Vec<String> = options
         .lens_terms
-        .slots(kind)
+        .params(kind)
         .iter()
-        .filter_map(|&i| SLOT_NAMES.get(i).map(|n| (*n).to_string()))
+        .filter_map(|&i| names.get(i).map(|n| (*n).to_string()))
         .collect();
     let report = LensReport {
         model: kind.kalibr_name().to_string(),
