@@ -967,7 +967,7 @@ fn a_180_degree_double_sphere_calibrates_from_rendered_images() {
         lens: LensChoice::Model(headalign_geometry::distortion::LensKind::DoubleSphere),
         ..CalibrateOptions::default()
     };
-    let tracked = track_views(&images, &crate::frontend::FrontEndOptions::default(), &options).unwrap();
+    let tracked = track_views(&images, &crate::tracking::FrontEndOptions::default(), &options).unwrap();
     let cal = calibrate_tracked(tracked, None, &options).unwrap();
     let st = &cal.bundle.state;
     let truth = wide_scenario(1, 0.5);

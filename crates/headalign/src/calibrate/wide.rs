@@ -112,7 +112,7 @@ fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -
         let start =
             LensStart { chain: [lens; 2], distortion: [d; 2], max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG) };
         let chain = start.chain_views(&rig.rig);
-        let Ok(stereo) = super::stereo::stereo_geometry(&chain, &lens.k, &options.estimation) else {
+        let Ok(stereo) = super::rig_stereo::stereo_geometry(&chain, &lens.k, &options.estimation) else {
             continue;
         };
         let Ok(motions) =
@@ -230,11 +230,11 @@ fn candidate(
     rig: &[View],
     options: &CalibrateOptions,
 ) -> Option<Candidate> {
-    let est = super::adjust::adjustment_options(options);
+    let est = super::rig_bundle::adjustment_options(options);
     let ls = BundleOptions {
         robust: RobustLoss::None,
         noise_sigma_px: None,
-        max_iterations: est.bundle.max_iterations.max(crate::estimate::FINAL_ITERATIONS),
+        max_iterations: est.bundle.max_iterations.max(crate::verge_tilt::FINAL_ITERATIONS),
         ..est.bundle.clone()
     };
     let fit = bundle_adjust(&start, &run.observations, &ls).ok()?;
@@ -304,7 +304,7 @@ fn add_wide_points(
             if index.contains_key(&o.track) {
                 continue;
             }
-            if let Some(p) = super::adjust::triangulate_bearings(&state, &o.pixel, r) {
+            if let Some(p) = super::rig_bundle::triangulate_bearings(&state, &o.pixel, r) {
                 index.insert(o.track, tracks.len());
                 tracks.push(o.track);
                 state.points.push(state.motions.ref_from_cam(slot) * p);
