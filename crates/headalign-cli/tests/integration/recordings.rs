@@ -171,9 +171,40 @@ fn align_reads_a_bag_of_a_head_run() {
         let label = ViewLabel { name, stage: STAGE_VERGE_TILT, commanded: None, vehicle: None };
         s.write_view(&label, pair.encoders, Some(pair), None).unwrap();
     }
-    // The bag: view k stands still over [k s - 0.2 s, k s + 0.3 s], then moves linearly.
+    // The bag of the same run.
     let bag = dir.join("run.mcap");
-    let mut w = BagWriter::create(&bag).unwrap();
+    write_head_run_bag(&bag, &views);
+    let align = |input: &Path, extra: &[&str]| {
+        ok_json(&bin().args(["align", "--json", "--images"]).arg(input).args(extra).output().unwrap())
+    };
+    let joints = "pan=head_pan,elevation=head_tilt,verge_left=eye_left,verge_right=eye_right";
+    let from_session = align(&session, &[]);
+    let from_bag = align(&bag, &["--joint", joints]);
+    let close = |a: &Value, b: &Value| {
+        (a.as_f64().unwrap() - b.as_f64().unwrap()).abs() <= 1e-9 * a.as_f64().unwrap().abs().max(1.0)
+    };
+    for side in ["left", "right"] {
+        for k in ["fx", "fy", "cx", "cy"] {
+            assert!(
+                close(&from_session[side][k], &from_bag[side][k]),
+                "{side}.{k}: {} vs {}",
+                from_session[side][k],
+                from_bag[side][k]
+            );
+        }
+    }
+    for j in ["elevation", "verge_left", "verge_right"] {
+        let (a, b) = (&from_session["aligned_encoders"][j], &from_bag["aligned_encoders"][j]);
+        assert!(close(a, b), "{j}: {a} vs {b}");
+    }
+    std::fs::remove_dir_all(dir).ok();
+}
+
+/// The bag of a head run over `views`: view k stands still over [k s - 0.2 s, k s + 0.3 s]
+/// then moves linearly to the next; joint states at 100 Hz in radians, three still
+/// frames per view and one in motion.
+fn write_head_run_bag(bag: &Path, views: &[(String, StereoImages)]) {
+    let mut w = BagWriter::create(bag).unwrap();
     let t0: i64 = 1_700_000_000_000_000_000;
     let ms = 1_000_000i64;
     let names = ["head_pan", "head_tilt", "eye_left", "eye_right"];
@@ -228,30 +259,6 @@ fn align_reads_a_bag_of_a_head_run() {
         }
     }
     w.finish().unwrap();
-    let align = |input: &Path, extra: &[&str]| {
-        ok_json(&bin().args(["align", "--json", "--images"]).arg(input).args(extra).output().unwrap())
-    };
-    let joints = "pan=head_pan,elevation=head_tilt,verge_left=eye_left,verge_right=eye_right";
-    let from_session = align(&session, &[]);
-    let from_bag = align(&bag, &["--joint", joints]);
-    let close = |a: &Value, b: &Value| {
-        (a.as_f64().unwrap() - b.as_f64().unwrap()).abs() <= 1e-9 * a.as_f64().unwrap().abs().max(1.0)
-    };
-    for side in ["left", "right"] {
-        for k in ["fx", "fy", "cx", "cy"] {
-            assert!(
-                close(&from_session[side][k], &from_bag[side][k]),
-                "{side}.{k}: {} vs {}",
-                from_session[side][k],
-                from_bag[side][k]
-            );
-        }
-    }
-    for j in ["elevation", "verge_left", "verge_right"] {
-        let (a, b) = (&from_session["aligned_encoders"][j], &from_bag["aligned_encoders"][j]);
-        assert!(close(a, b), "{j}: {a} vs {b}");
-    }
-    std::fs::remove_dir_all(dir).ok();
 }
 
 /// `replay BAG`: a simulated head's verge/tilt run (`demo --images --stages verge-tilt`)
