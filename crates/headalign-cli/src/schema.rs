@@ -334,10 +334,10 @@ pub struct AlignReport {
     pub undetermined: Vec<String>,
     /// The adjustment's report; null on the planar route.
     pub report: Option<Value>,
-    /// The estimated lenses; null for pinhole cameras.
     /// The estimate's residuals against the image noise the front end measured
     /// (`headalign::verge_tilt::ModelFit`); null for observation files and the planar route.
     pub model_fit: Option<Value>,
+    /// The estimated lenses; null for pinhole cameras.
     pub lens: Option<Value>,
     pub warnings: Vec<String>,
     pub files: Vec<String>,

@@ -211,15 +211,7 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
         let Some(d) = grid_lens(kind, delta, corner) else { continue };
         let lens = LensModel { k: k0, distortion: d };
         let chain = undistort_views(&rig.rig, &[lens, lens]);
-        let Ok(stereo) = super::rig_stereo::stereo_geometry(&chain, &k0, &options.estimation) else {
-            continue;
-        };
-        let Ok(motions) =
-            super::motion::fit_motions(&chain, &stereo.recon, &stereo.frame, options, &mut None)
-        else {
-            continue;
-        };
-        let score: usize = motions.iter().map(|m| m.report.inliers).sum();
+        let Some(score) = motion_inliers(&chain, &k0, options) else { continue };
         if best.as_ref().is_none_or(|(b, _)| score > *b) {
             best = Some((score, d));
         }
@@ -229,4 +221,13 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
         distortion: [d, d],
         max_ray_deg: None,
     })
+}
+
+/// The score of a candidate lens of a grid start: the 3D homographies' inliers summed over
+/// the moved views of `chain` (the views under that lens), `None` when the stereo geometry
+/// or a motion cannot be fitted.
+pub(super) fn motion_inliers(chain: &[View], k: &Intrinsics, options: &CalibrateOptions) -> Option<usize> {
+    let stereo = super::rig_stereo::stereo_geometry(chain, k, &options.estimation).ok()?;
+    let motions = super::motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, &mut None).ok()?;
+    Some(motions.iter().map(|m| m.report.inliers).sum())
 }

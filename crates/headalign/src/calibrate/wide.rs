@@ -112,15 +112,7 @@ fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -
         let start =
             LensStart { chain: [lens; 2], distortion: [d; 2], max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG) };
         let chain = start.chain_views(&rig.rig);
-        let Ok(stereo) = super::rig_stereo::stereo_geometry(&chain, &lens.k, &options.estimation) else {
-            continue;
-        };
-        let Ok(motions) =
-            super::motion::fit_motions(&chain, &stereo.recon, &stereo.frame, options, &mut None)
-        else {
-            continue;
-        };
-        let score: usize = motions.iter().map(|m| m.report.inliers).sum();
+        let Some(score) = super::two_pass::motion_inliers(&chain, &lens.k, options) else { continue };
         if best.as_ref().is_none_or(|(b, _)| score > *b) {
             best = Some((score, lens));
         }
