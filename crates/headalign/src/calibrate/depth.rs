@@ -25,7 +25,8 @@ use serde::Serialize;
 use super::CalibrateOptions;
 use crate::error::AlignError;
 use crate::observations::View;
-use crate::verge_tilt::{MOVED_DEG, stereo_matches};
+use crate::rig::stereo::stereo_matches;
+use crate::verge_tilt::MOVED_DEG;
 
 /// The scene-depth check of one view.
 #[derive(Debug, Clone, Serialize)]

@@ -28,7 +28,8 @@ use nalgebra::{Isometry3, UnitQuaternion};
 use super::{CalibrateOptions, MotionReport, Seeded};
 use crate::error::AlignError;
 use crate::observations::View;
-use crate::verge_tilt::{PolishedHomography, Reconstruction, guided_reselection, polish, rms};
+use crate::rig::stereo::rms;
+use crate::verge_tilt::{PolishedHomography, Reconstruction, guided_reselection, polish};
 
 /// Rotation angle (radians) of a 3D homography conjugate to a rigid motion, from its
 /// trace at determinant 1 (`tr D = 2 + 2 cos theta`).

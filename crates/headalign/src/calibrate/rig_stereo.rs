@@ -22,7 +22,8 @@ use nalgebra::{Isometry3, Point2};
 
 use crate::error::{AlignError, StepContext};
 use crate::observations::View;
-use crate::verge_tilt::{EstimationOptions, Reconstruction, StereoMatch, rms, stereo_matches};
+use crate::rig::stereo::{StereoMatch, rms, stereo_matches};
+use crate::verge_tilt::{EstimationOptions, Reconstruction};
 
 /// The stereo geometry of the rig's views (step 2).
 pub(super) struct StereoGeometry {

@@ -35,7 +35,7 @@ use nalgebra::Point2;
 use serde::Serialize;
 
 use crate::observations::View;
-use crate::verge_tilt::stereo_matches;
+use crate::rig::stereo::stereo_matches;
 
 /// Most tracks off the best homography in two or more views for a planar scene.
 pub const MAX_PERSISTENT_OFF_PLANE: usize = 1;

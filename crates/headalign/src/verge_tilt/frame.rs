@@ -26,8 +26,9 @@ use headalign_geometry::fundamental::FundamentalMatrix;
 use headalign_geometry::triangulation::triangulate_optimal;
 use nalgebra::{Point2, Vector4};
 
-use super::stereo::{StereoGeometry, StereoMatch};
+use super::stereo::StereoGeometry;
 use crate::error::{AlignError, StepContext};
+use crate::rig::stereo::StereoMatch;
 
 /// One view's reconstruction in the projective frame: track -> (X, left pixel, right pixel).
 pub(crate) type Reconstruction = BTreeMap<u64, (Vector4<f64>, Point2<f64>, Point2<f64>)>;

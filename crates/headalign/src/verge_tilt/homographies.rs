@@ -50,10 +50,10 @@ use headalign_geometry::registration::RigidFrameEstimator;
 use nalgebra::{Matrix3, Point2};
 
 use super::frame::{ProjectiveStructure, Reconstruction};
-use super::stereo::rms;
 use super::{DroppedView, EstimationOptions, HomographyReport};
 use crate::error::{AlignError, StepContext};
 use crate::observations::View;
+use crate::rig::stereo::rms;
 
 /// The plane homographies (left, right) of one rotation.
 pub(super) type PlanePair = (Matrix3<f64>, Matrix3<f64>);

@@ -145,7 +145,6 @@ pub use likelihood::{
 pub use roles::{MOVED_DEG, ViewRole, classify_views};
 pub use sigmas::{MAX_END_WIDENING, PROFILE_END_ITERATIONS, bootstrap_covariance, profile_depth_scale};
 pub(crate) use starts::points_in_ref;
-pub(crate) use stereo::{StereoMatch, rms, stereo_matches};
 
 use adjust::{PointSources, first_selection, rig_observations};
 use frame::projective_frame;

@@ -14,19 +14,14 @@
 //! count, shifted the relative yaw against depth and cost up to 7 % in focal length, hence
 //! DEGENSAC and at least 500 samples by default.
 
-use std::collections::HashMap;
-
 use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
 use headalign_geometry::ransac::RansacOptions;
-use headalign_platform::StereoCapture;
 use nalgebra::Point2;
 
 use super::EstimationOptions;
 use crate::error::{AlignError, StepContext};
 use crate::observations::View;
-
-/// A stereo match: track id, left pixel, right pixel.
-pub(crate) type StereoMatch = (u64, Point2<f64>, Point2<f64>);
+use crate::rig::stereo::{StereoMatch, rms, stereo_matches};
 
 /// The stereo geometry of the rig views ([`stereo_geometry`]).
 pub(super) struct StereoGeometry {
@@ -67,28 +62,4 @@ pub(super) fn stereo_geometry(
     let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = f_report.inliers.iter().map(|&i| pairs[i]).collect();
     let rms_px = rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r)));
     Ok(StereoGeometry { per_view, pairs, inliers: f_report.inliers.len(), f, inlier_pairs, rms_px })
-}
-
-/// Pixel of each track in one image's observations.
-fn to_map(obs: &[headalign_platform::TrackObservation]) -> HashMap<u64, Point2<f64>> {
-    obs.iter().map(|o| (o.track, o.pixel)).collect()
-}
-
-/// Stereo matches (track, left, right) of a capture, sorted by track id.
-pub(crate) fn stereo_matches(c: &StereoCapture) -> Vec<StereoMatch> {
-    let right = to_map(&c.right);
-    let mut m: Vec<_> =
-        c.left.iter().filter_map(|o| right.get(&o.track).map(|r| (o.track, o.pixel, *r))).collect();
-    m.sort_by_key(|x| x.0);
-    m
-}
-
-/// Root mean square of `values` (0 when there are none).
-pub(crate) fn rms(values: impl Iterator<Item = f64>) -> f64 {
-    let (mut s, mut n) = (0.0, 0usize);
-    for v in values {
-        s += v * v;
-        n += 1;
-    }
-    if n == 0 { 0.0 } else { (s / n as f64).sqrt() }
 }
