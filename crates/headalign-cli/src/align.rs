@@ -24,7 +24,8 @@ use headalign_io::session::RecordedView;
 use headalign_platform::Encoders;
 use serde_json::{Value, json};
 
-use crate::{flags, images, recording, report_html, schema};
+use crate::{flags, images, recording};
+use headalign_io::report::{html as report_html, schema};
 
 /// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
 /// head`, is not a failure of the command and must not panic).

@@ -36,7 +36,7 @@ use headalign_sim::{Scenario, SimulatedHead};
 use nalgebra::Isometry3;
 
 use crate::recording::RecordingArgs;
-use crate::schema;
+use headalign_io::report::schema;
 use serde_json::{Value, json};
 
 /// Arguments of `headalign calibrate`.

@@ -5,7 +5,7 @@
 //! ([`crate::images::run`]). Output: a table of estimate, truth and sigma (the
 //! calibration in pixels, the aligned readings and alignment errors in degrees, the
 //! calibration errors in percent), or one JSON object (`--json`,
-//! [`crate::schema::DemoReport`]: the same members on every route), which a recorded
+//! [`headalign_io::report::schema::DemoReport`]: the same members on every route), which a recorded
 //! session also keeps as `report.json`. The stages and their settings are a [`RobotPlan`]
 //! ([`headalign::robot::stages`]); `verge-tilt` must be among them, since every robot stage uses its
 //! calibration.
@@ -28,8 +28,9 @@ use serde_json::json;
 use crate::align::{bootstrap_line, sigma};
 use crate::flags::ScenarioArgs;
 use crate::stages;
-use crate::{images, points, schema};
+use crate::{images, points};
 use headalign::robot::stages::{RobotOutcomes, RobotPlan};
+use headalign_io::report::schema;
 
 /// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
 /// head`, is not a failure of the command and must not panic).
@@ -359,7 +360,7 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     };
     let robot_out = robot_out.unwrap_or_default();
     let after = After::read(&robot, &outcome, &robot_out);
-    say!("{}", crate::report_html::scene_line(&scene));
+    say!("{}", headalign_io::report::html::scene_line(&scene));
     print_calibration(scenario, &outcome, &after);
     print_errors(&outcome, &before, &after);
     print_robot_stages(&robot_out, &before, &after);
@@ -395,11 +396,11 @@ fn points_report(
     let procedure =
         schema::Procedure::new("points", run.route, run.views.clone(), args.auto_rotation, run.total)?
             .with_robot(run.stages, run.robot);
-    let truth = schema::Truth::of(robot, run.scenario)?;
+    let truth = crate::truth::truth(robot, run.scenario)?;
     let errors = match run.route {
         RouteOutcome::General(outcome, _) => {
             let a = After::read(robot, outcome, run.robot.unwrap_or(&RobotOutcomes::default()));
-            schema::Errors::new(&a.errors, a.unavoidable_r, &a.cal, a.recon, a.pan_deg, a.steer_deg)
+            crate::truth::errors(&a.errors, a.unavoidable_r, &a.cal, a.recon, a.pan_deg, a.steer_deg)
         }
         RouteOutcome::Planar(p) => {
             let head = robot.head();
@@ -408,7 +409,7 @@ fn points_report(
             let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
             let after = head.alignment_errors(&head.encoders());
             // No 3D reconstruction on a plane, and no robot stage moved the pan or steering.
-            schema::Errors::new(&after, unavoidable_r, &cal, None, None, None)
+            crate::truth::errors(&after, unavoidable_r, &cal, None, None, None)
         }
     };
     let aligned = procedure.estimate.aligned_encoders;
@@ -417,7 +418,7 @@ fn points_report(
         procedure,
         scenario: serde_json::to_value(run.scenario)?,
         errors,
-        before: schema::Before::new(&before.errors, before.pan_deg, before.steer_deg),
+        before: crate::truth::before(&before.errors, before.pan_deg, before.steer_deg),
         aligned_reading_errors_deg: schema::ReadingErrors::new(&aligned, &truth.aligned_encoders),
         truth,
     })

@@ -54,7 +54,7 @@ pub fn summary_lines(v: &Value) -> Vec<String> {
     if let Some(why) = v["check_failure"].as_str() {
         lines.push(format!("check after the move: not made ({why})"));
     }
-    lines.push(format!("robot stages: {}", crate::schema::ROBOT_STAGES_SKIPPED));
+    lines.push(format!("robot stages: {}", headalign_io::report::schema::ROBOT_STAGES_SKIPPED));
     lines
 }
 
@@ -97,13 +97,13 @@ fn camera_line(name: &str, c: &CameraPlanar, truth: &headalign_geometry::camera:
 
 /// Print the planar outcome of a point-mode demo run on `head` (after the procedure, the
 /// head at the aligned readings) against its truth; its JSON is the demo's
-/// ([`crate::schema::DemoReport`]).
+/// ([`headalign_io::report::schema::DemoReport`]).
 pub fn report(head: &SimulatedHead, out: &PlanarOutcome) -> Result<()> {
     let truth = head.aligned_encoders();
     let a = out.solution.aligned_encoders;
     let after = head.alignment_errors(&head.encoders());
     let cal = &out.calibration;
-    say!("{}", crate::report_html::scene_line(&cal.scene));
+    say!("{}", headalign_io::report::html::scene_line(&cal.scene));
     say!("planar route (paper section 3.3): each camera from its own plane homographies");
     let t = head.truth();
     say!("{}", camera_line("left", &cal.left, &t.left));

@@ -18,8 +18,9 @@ use headalign_io::process_head::{ProcessHead, ProcessHeadOptions};
 use headalign_platform::StereoHead;
 use serde_json::json;
 
-use crate::{images, replay, schema, stages};
+use crate::{images, replay, stages};
 use headalign::robot::stages::RobotPlan;
+use headalign_io::report::schema;
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {

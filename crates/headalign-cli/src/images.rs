@@ -10,9 +10,9 @@
 //! on a recorded session; the same code on the same images gives the same numbers. A
 //! planar or far scene takes the planar route: no robot stages, no `figure6.png` (it
 //! draws the general route's calibration), the report's `route`, `scene`, `planar` and
-//! `checks` members (the same members on both routes: [`crate::schema::Procedure`]) and
+//! `checks` members (the same members on both routes: [`headalign_io::report::schema::Procedure`]) and
 //! a `report.html` of the planar route's numbers
-//! ([`crate::report_html::write_session_report`]).
+//! ([`headalign_io::report::html::write_session_report`]).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -34,7 +34,7 @@ use headalign_platform::{Encoders, ImagingHead, Vehicle};
 use headalign_sim::{Scenario, SimulatedRobot};
 use serde_json::{Value, json};
 
-use crate::{report_html, schema};
+use headalign_io::report::{html as report_html, schema};
 
 /// The procedure name in `session.json` for image mode.
 pub const PROCEDURE: &str = "verge-tilt-images";
@@ -471,9 +471,9 @@ pub fn run(
             let total = t0.elapsed().as_secs_f64();
             let procedure =
                 schema::with_robot(schema::procedure_report(run, route, total)?, plan, robot_run)?;
-            let before = schema::Before::new(&before, pan_before, steer_before);
+            let before = crate::truth::before(&before, pan_before, steer_before);
             let stages = robot_run.map(|r| &r.outcomes);
-            let report = schema::demo_images_report(robot, scenario, route, procedure, stages, before)?;
+            let report = crate::truth::demo_images_report(robot, scenario, route, procedure, stages, before)?;
             Ok(serde_json::to_value(&report)?)
         },
     )?;

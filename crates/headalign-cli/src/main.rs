@@ -24,10 +24,9 @@ mod points;
 mod progress;
 mod recording;
 mod replay;
-mod report_html;
-mod schema;
 mod simulate;
 mod stages;
+mod truth;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;

@@ -16,9 +16,10 @@ use clap::Args;
 use headalign_io::session::{ReplayHead, SessionInfo, read_session_info};
 use serde_json::Value;
 
-use crate::{calibrate, images, points, schema};
+use crate::{calibrate, images, points};
 use headalign::procedure::{RouteOutcome, VergeTiltRun};
 use headalign::robot::stages::RobotPlan;
+use headalign_io::report::schema;
 
 /// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
 macro_rules! say {

@@ -17,6 +17,11 @@
 //! a row to its table in docs/formats.md (the `json_schemas` integration test compares
 //! the two), and bump the schema's version when a member changes meaning or goes.
 //!
+//! The demo's members against the simulator's truth ([`Truth`], [`Errors`], [`Before`],
+//! [`ReadingErrors`]) are plain data: this crate does not depend on the simulator (its
+//! truth is visible only to the simulator, the demo and the experiments), so the command
+//! line fills them from `headalign_sim`.
+//!
 //! Pitfall: a schema's nested members that differ by route (`checks`, `planar`, `scene`,
 //! `report`) are kept as the library's own serialisations ([`Value`]); the test compares
 //! the top-level members and those of `errors` and `before`.
@@ -32,7 +37,6 @@ use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::Distortion;
 use headalign_platform::Encoders;
-use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot, calibration_errors};
 use nalgebra::Isometry3;
 use serde::Serialize;
 use serde_json::{Value, json};
@@ -346,7 +350,7 @@ pub struct AlignReport {
 
 /// The file `alignment.json` of `align --out`, on either route (its format lives in
 /// `headalign-io`).
-pub use headalign_io::alignment_file::AlignmentFile;
+pub use crate::alignment_file::AlignmentFile;
 
 /// A calibrated camera of `calibrate`, pixels.
 #[derive(Debug, Clone, Serialize)]
@@ -539,7 +543,7 @@ impl Procedure {
             timings: Timings { estimation_s: o.3, total_s },
             views,
             images: None,
-            stages: vec![headalign_io::session::STAGE_VERGE_TILT.to_string()],
+            stages: vec![crate::session::STAGE_VERGE_TILT.to_string()],
             robot_stages: planar_route.then_some(ROBOT_STAGES_SKIPPED),
             robot: RobotOutcomes::default(),
             robot_tracking: None,
@@ -555,66 +559,6 @@ impl Procedure {
             self.robot = r.clone();
         }
         self
-    }
-}
-
-impl Errors {
-    /// The errors after the run: the alignment errors at the final readings, the right
-    /// camera's unavoidable part (`unavoidable_r`, degrees), the calibration errors, and
-    /// the pan and steering errors where a stage moved them.
-    pub fn new(
-        after: &AlignmentErrors,
-        unavoidable_r: f64,
-        cal: &CalibrationErrors,
-        recon_err_pct: Option<f64>,
-        pan_err_deg: Option<f64>,
-        steer_err_deg: Option<f64>,
-    ) -> Self {
-        Self {
-            verge_err_l_deg: after.verge_err_l_deg,
-            verge_err_r_deg: after.verge_err_r_deg,
-            elev_err_l_deg: after.elev_err_l_deg,
-            elev_err_r_deg: after.elev_err_r_deg,
-            elev_err_r_unavoidable_deg: unavoidable_r,
-            elev_err_r_excess_deg: after.elev_err_r_deg - unavoidable_r,
-            pan_err_deg,
-            steer_err_deg,
-            f_err_pct: cal.f_err_pct,
-            aspect_err_pct: cal.aspect_err_pct,
-            pp_err_pct: cal.pp_err_pct,
-            recon_err_pct,
-        }
-    }
-}
-
-impl Before {
-    /// The alignment, pan and steering errors at the start.
-    pub fn new(e: &AlignmentErrors, pan_err_deg: f64, steer_err_deg: f64) -> Self {
-        Self {
-            verge_err_l_deg: e.verge_err_l_deg,
-            verge_err_r_deg: e.verge_err_r_deg,
-            elev_err_l_deg: e.elev_err_l_deg,
-            elev_err_r_deg: e.elev_err_r_deg,
-            pan_err_deg,
-            steer_err_deg,
-        }
-    }
-}
-
-impl Truth {
-    /// The simulated robot's truth: its cameras, rendered lens and aligned readings.
-    pub fn of(robot: &SimulatedRobot, scenario: &Scenario) -> Result<Self, serde_json::Error> {
-        let head = robot.head();
-        let t = head.truth();
-        Ok(Self {
-            left: Camera::new(&t.left, |_| None),
-            right: Camera::new(&t.right, |_| None),
-            distortion: serde_json::to_value(scenario.render.distortion)?,
-            aligned_encoders: head.aligned_encoders(),
-            steer_zero_deg: robot.truth().steer_zero_deg,
-            wheelbase_m: robot.truth().wheelbase_m,
-            pan_tilt_deg: robot.truth().pan_tilt_deg(),
-        })
     }
 }
 
@@ -708,7 +652,11 @@ pub fn alignment_file(
 /// The members of an image-mode run on either route ([`Procedure`]): the
 /// estimate, checks and timings, and the front end's report (`images`); no robot stages
 /// ([`with_robot`] adds them).
-pub fn procedure_report(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> anyhow::Result<Procedure> {
+pub fn procedure_report(
+    run: &ImageRun,
+    route: &RouteOutcome,
+    total_s: f64,
+) -> Result<Procedure, serde_json::Error> {
     let views = run.run.views.iter().map(|v| v.name.clone()).collect();
     let mut p = Procedure::new("images", route, views, run.auto_rotation, total_s)?;
     let (verdict, fit) = image_mode::judgement(run, route);
@@ -737,39 +685,4 @@ pub fn with_robot(
         p.robot_tracking = Some(serde_json::to_value(&r.tracking)?);
     }
     Ok(p)
-}
-/// The JSON of `demo --images` ([`DemoReport`]): the run's `procedure` (on `route`, with
-/// the robot stages' outcomes `stages`) against the simulated robot's truth after the
-/// run, and its errors `before` any stage.
-pub fn demo_images_report(
-    robot: &SimulatedRobot,
-    scenario: &Scenario,
-    route: &RouteOutcome,
-    procedure: Procedure,
-    stages: Option<&RobotOutcomes>,
-    before: Before,
-) -> anyhow::Result<DemoReport> {
-    let head = robot.head();
-    let after = head.alignment_errors(&head.encoders());
-    let truth = Truth::of(robot, scenario)?;
-    let (k_left, k_right) = match route {
-        RouteOutcome::General(o, _) => (o.calibration.bundle.state.left, o.calibration.bundle.state.right),
-        RouteOutcome::Planar(p) => (p.calibration.left.intrinsics, p.calibration.right.intrinsics),
-    };
-    let t = head.truth();
-    let cal = calibration_errors(&t.left, &t.right, &k_left, &k_right);
-    let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
-    let pan_after = stages.filter(|o| o.panned()).map(|_| robot.pan_err_deg(&head.encoders()));
-    let steer_after =
-        stages.and_then(|o| o.steering.as_ref()).map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
-    let aligned = procedure.estimate.aligned_encoders;
-    Ok(DemoReport {
-        schema: DEMO,
-        procedure,
-        scenario: serde_json::to_value(scenario)?,
-        errors: Errors::new(&after, unavoidable_r, &cal, None, pan_after, steer_after),
-        before,
-        aligned_reading_errors_deg: ReadingErrors::new(&aligned, &truth.aligned_encoders),
-        truth,
-    })
 }
