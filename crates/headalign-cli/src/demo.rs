@@ -318,11 +318,18 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     let options = verge_tilt_options(args, scenario);
     let mut run = VergeTiltRun::default();
     let session = point_session(args, scenario, &options, rplan, &robot);
-    let (route, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session)?;
+    let (route, writer) =
+        headalign_io::runs::verge_tilt_points(&mut run, robot.head_mut(), &options, session)?;
     // The robot stages need the general route's 3D reconstruction.
     let (robot_out, writer) = match &route {
         RouteOutcome::General(outcome, _) => {
-            let (r, w) = points::robot_stages(&mut robot, rplan, outcome, writer)?;
+            let (r, w) = headalign_io::runs::robot_stages_points(
+                &mut robot,
+                rplan,
+                outcome,
+                writer,
+                &mut crate::progress::warn,
+            )?;
             (Some(r), w)
         }
         RouteOutcome::Planar(_) => (None, writer),
