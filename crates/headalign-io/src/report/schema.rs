@@ -26,16 +26,20 @@
 //! `report`) are kept as the library's own serialisations ([`Value`]); the test compares
 //! the top-level members and those of `errors` and `before`.
 
-use headalign::alignment::{AlignmentSolution, InvariantLines};
+use headalign::alignment::{AlignmentSolution, InvariantLines, VergeAxes};
 use headalign::calibration::TranslationUnit;
+use headalign::facing_plane::SceneCheck;
 use headalign::image_mode::{self as image_mode, ImageRun, RobotRun};
 use headalign::procedure::CheckVerdict;
-use headalign::procedure::{AlignmentSigmas, PlanarOutcome, RouteOutcome, VergeTiltOutcome};
+use headalign::procedure::{
+    AlignmentSigmas, PlanarOutcome, PlanarSessionAlignment, RouteOutcome, SessionAlignment, VergeTiltOutcome,
+};
 use headalign::robot::stages::RobotPlan;
-use headalign::verge_tilt::RigCalibration;
+use headalign::verge_tilt::{ModelFit, RigCalibration};
 use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::Distortion;
+use headalign_geometry::so3::Line;
 use headalign_platform::Encoders;
 use nalgebra::Isometry3;
 use serde::Serialize;
@@ -346,6 +350,121 @@ pub struct AlignReport {
     pub warnings: Vec<String>,
     pub files: Vec<String>,
     pub seconds: f64,
+}
+
+impl AlignReport {
+    /// `align --json` on the general route: the session's alignment `a`, the scene check
+    /// that chose the route, the head's axes ([`head_axes_json`]), the model-fit checks
+    /// (image sessions), the warnings, the files written and the wall time (seconds).
+    pub fn general(
+        a: &SessionAlignment,
+        scene: &SceneCheck,
+        axes: Value,
+        fit: Option<&ModelFit>,
+        warnings: Vec<String>,
+        files: Vec<String>,
+        seconds: f64,
+    ) -> Result<Self, serde_json::Error> {
+        let (calib, solution) = (&a.calibration, &a.solution);
+        let state = &calib.bundle.state;
+        let s = |side: &'static str| move |p: &str| calib.bundle.covariance.sigma(&format!("{side}.{p}"));
+        Ok(Self {
+            schema: ALIGN,
+            route: "general",
+            scene: serde_json::to_value(scene)?,
+            planar: None,
+            left: Camera::new(&state.left, s("left")),
+            right: Camera::new(&state.right, s("right")),
+            fixation_px: PixelPair { left: solution.fixation_px_left, right: solution.fixation_px_right },
+            fixation_sigma_px: Some(PixelPair {
+                left: a.fixation_sigmas.left_px,
+                right: a.fixation_sigmas.right_px,
+            }),
+            invariant_lines: solution.invariant_lines,
+            axes: Some(axes),
+            aligned_encoders: solution.aligned_encoders,
+            aligned_sigma_deg: a.sigmas,
+            verge_axes_measured: solution.verge_axes_measured,
+            predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
+            roll_left_deg: solution.roll_left_deg,
+            roll_right_deg: solution.roll_right_deg,
+            undetermined: Vec::new(),
+            report: Some(serde_json::to_value(&calib.report)?),
+            lens: lens_json(calib),
+            model_fit: fit.map(serde_json::to_value).transpose()?,
+            warnings,
+            files,
+            seconds,
+        })
+    }
+
+    /// `align --json` on the planar route (a planar or far scene): the session's planar
+    /// alignment `p`, the warnings, the files written and the wall time (seconds).
+    pub fn planar(
+        p: &PlanarSessionAlignment,
+        warnings: Vec<String>,
+        files: Vec<String>,
+        seconds: f64,
+    ) -> Result<Self, serde_json::Error> {
+        let (cal, sol) = (&p.calibration, &p.solution);
+        Ok(Self {
+            schema: ALIGN,
+            route: "planar",
+            scene: serde_json::to_value(&cal.scene)?,
+            planar: Some(serde_json::to_value(cal)?),
+            left: Camera::new(&cal.left.intrinsics, |n| cal.left.sigma(n)),
+            right: Camera::new(&cal.right.intrinsics, |n| cal.right.sigma(n)),
+            fixation_px: PixelPair { left: sol.fixation_px_left, right: sol.fixation_px_right },
+            fixation_sigma_px: None,
+            invariant_lines: sol.invariant_lines,
+            axes: None,
+            aligned_encoders: sol.aligned_encoders,
+            aligned_sigma_deg: p.sigmas,
+            verge_axes_measured: sol.verge_axes_measured,
+            predicted_elev_err_r_deg: sol.predicted_elev_err_r_deg,
+            roll_left_deg: sol.roll_left_deg,
+            roll_right_deg: sol.roll_right_deg,
+            undetermined: cal.undetermined.clone(),
+            report: None,
+            lens: None,
+            model_fit: None,
+            warnings,
+            files,
+            seconds,
+        })
+    }
+}
+
+/// The head's axes of `align` (`axes` of its JSON and of `head.json`): the pan and
+/// elevation axes `pan`, `elev` of the calibration `calib` (direction, the point in
+/// baselines, the direction's sigma in degrees) and the vergence axes where measured, in
+/// the left camera frame of the first view.
+pub fn head_axes_json(calib: &RigCalibration, pan: &Line, elev: &Line, verge: &VergeAxes) -> Value {
+    let axis = |line: &Line, index: usize| {
+        let c = &calib.bundle.covariance;
+        let dir_sigma = match (c.sigma(&format!("axis{index}.dir0")), c.sigma(&format!("axis{index}.dir1"))) {
+            (Some(a), Some(b)) => Some(a.hypot(b).to_degrees()),
+            _ => None,
+        };
+        json!({
+            "direction": [line.direction.x, line.direction.y, line.direction.z],
+            "point_baselines": [line.point.x, line.point.y, line.point.z],
+            "direction_sigma_deg": dir_sigma,
+        })
+    };
+    let verge_json = |line: &Option<Line>| match line {
+        Some(l) => {
+            json!({"direction": [l.direction.x, l.direction.y, l.direction.z], "point_baselines": [l.point.x, l.point.y, l.point.z]})
+        }
+        None => Value::Null,
+    };
+    json!({
+        "frame": "left camera of the first view; points in baselines",
+        "pan": axis(pan, 0),
+        "elevation": axis(elev, 1),
+        "verge_left": verge_json(&verge.left),
+        "verge_right": verge_json(&verge.right),
+    })
 }
 
 /// The file `alignment.json` of `align --out`, on either route (its format lives in
