@@ -27,15 +27,6 @@ use serde_json::json;
 
 use crate::{flags, images, recording};
 
-/// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
-/// head`, is not a failure of the command and must not panic).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
-
 #[derive(Args)]
 pub struct AlignArgs {
     /// Observation session (JSON, format headalign-observations/1).

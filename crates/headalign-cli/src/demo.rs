@@ -32,15 +32,6 @@ use crate::{images, points};
 use headalign::robot::stages::{RobotOutcomes, RobotPlan};
 use headalign_io::report::schema;
 
-/// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
-/// head`, is not a failure of the command and must not panic).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
-
 /// Arguments of `headalign demo`.
 #[derive(Args)]
 pub struct DemoArgs {

@@ -10,14 +10,6 @@ use headalign::procedure::PlanarOutcome;
 use headalign_sim::SimulatedHead;
 use serde_json::{Value, json};
 
-/// Print a line to stdout, ignoring write errors (as `demo`).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
-
 /// The lines every command prints about the route from a report's JSON: the scene
 /// (`scene: kind (why)`, when the report has one) and, on the planar route, what is
 /// undetermined, the check after the move and what it cannot check.

@@ -23,14 +23,6 @@ use crate::{images, replay, stages};
 use headalign::robot::stages::RobotPlan;
 use headalign_io::report::schema;
 
-/// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
-
 /// Arguments of `headalign run`.
 #[derive(Args)]
 pub struct RunArgs {

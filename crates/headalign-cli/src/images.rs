@@ -11,7 +11,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use headalign::calibrate::{LensChoice, lens_terms};
 use headalign::image_mode::{ImageModeOptions, tracked_estimation};
 use headalign::robot::stages::RobotPlan;
@@ -63,20 +63,12 @@ impl LensArgs {
     /// The lens a session recorded (`session.json`'s `lens`, `lens_terms`; the pinhole when
     /// absent); an unknown name is an error naming it.
     pub fn of_session(info: &SessionInfo) -> Result<Self> {
-        let lens = match &info.lens {
-            None => LensChoice::Pinhole,
-            Some(name) => LensChoice::parse(name)
-                .with_context(|| format!("session.json: unknown lens model '{name}'"))?,
-        };
-        Ok(Self { lens: Some(lens), lens_terms: info.lens_terms })
+        Ok(Self { lens: Some(info.lens_choice()?), lens_terms: info.lens_terms })
     }
 
     /// Record this lens in a session description (nothing for the pinhole).
     pub fn record(&self, info: &mut SessionInfo) {
-        if self.choice() != LensChoice::Pinhole {
-            info.lens = Some(self.choice().name().to_string());
-            info.lens_terms = self.lens_terms;
-        }
+        info.set_lens(self.choice(), self.lens_terms);
     }
 
     /// The estimation options with this lens (`auto` without `--lens-terms` chooses the

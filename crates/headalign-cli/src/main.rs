@@ -13,6 +13,16 @@
 //!   process ([`headcmd`]).
 //! - `headalign calibrate DIR`: self-calibration from rig motions ([`calibrate`]).
 
+/// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
+/// head`, is not a failure of the command and must not panic). Every module declared
+/// below sees it.
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+
 mod align;
 mod calibrate;
 mod demo;

@@ -14,21 +14,12 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign_io::runs;
-use headalign_io::session::{ReplayHead, SessionInfo, read_session_info};
+use headalign_io::session::{ReplayHead, read_session_info};
 use serde_json::Value;
 
 use crate::{calibrate, images, points};
 use headalign::procedure::{RouteOutcome, VergeTiltRun};
-use headalign::robot::stages::RobotPlan;
 use headalign_io::report::schema;
-
-/// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
 
 /// Default of `--rotation` (a recording's), degrees: `run`'s.
 const DEFAULT_ROTATION_DEG: f64 = 3.0;
@@ -145,7 +136,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         let outcome = outcome.with_context(context)?;
         (schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
     } else if info.procedure == runs::PROCEDURE_ROBOT {
-        let plan = session_plan(&args.dir, &info)?.with_context(|| {
+        let plan = info.robot_plan(&args.dir)?.with_context(|| {
             format!(
                 "'{}' names no stages for procedure '{}'",
                 args.dir.join("session.json").display(),
@@ -171,7 +162,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         let total = t0.elapsed().as_secs_f64();
         let mut p = schema::Procedure::new("points", &route, names, info.auto_rotation, total)?;
         // The robot stages recorded after the verge/tilt stage (sessions that have them).
-        if let (RouteOutcome::General(outcome, _), Some(plan)) = (&route, session_plan(&args.dir, &info)?) {
+        if let (RouteOutcome::General(outcome, _), Some(plan)) = (&route, info.robot_plan(&args.dir)?) {
             let (robot, _) =
                 runs::robot_stages_points(&mut head, &plan, outcome, None, &mut crate::progress::warn)
                     .with_context(context)?;
@@ -179,7 +170,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             p.timings.total_s = t0.elapsed().as_secs_f64();
         }
         (p, run.views.len())
-    } else if info.procedure == calibrate::PROCEDURE {
+    } else if info.procedure == runs::PROCEDURE_CALIBRATE {
         // A calibration session (`simulate --images`): no head calls to play back; the
         // result is `calibrate --json` with the recorded constraints.
         let v = calibrate::replay(&args.dir, &info).with_context(context)?;
@@ -205,7 +196,7 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             runs::PROCEDURE_IMAGES,
             runs::PROCEDURE_ROBOT,
             runs::PROCEDURE_POINTS,
-            calibrate::PROCEDURE
+            runs::PROCEDURE_CALIBRATE
         );
     };
     finish_replay(args, p, &head, views)
@@ -276,13 +267,4 @@ pub fn print_summary(v: &Value) {
     if let Some(dir) = v["session"].as_str() {
         say!("session ({}): {dir}", crate::facing_plane::session_files(v));
     }
-}
-
-/// The robot stages a session recorded (`session.json` `stages`), if any.
-fn session_plan(dir: &std::path::Path, info: &SessionInfo) -> Result<Option<RobotPlan>> {
-    info.stages
-        .clone()
-        .map(serde_json::from_value)
-        .transpose()
-        .with_context(|| format!("'{}': stages", dir.join("session.json").display()))
 }

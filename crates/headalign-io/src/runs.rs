@@ -12,6 +12,9 @@
 //!   tracked points, no images) and `observations.json`; [`robot_stages_points`] the robot
 //!   stages that follow.
 //!
+//! - Calibration sessions: [`write_calibration_session`] writes rendered views for
+//!   `calibrate` (`simulate --images`).
+//!
 //! A failure keeps the session: `report.json` says `{"status": "failed", "error": ...}`
 //! and the error ([`RunError::InSession`]), its cause first, ends with where the captured
 //! views are kept. Nothing is estimated here: the procedures are the library's.
@@ -24,7 +27,7 @@ use headalign::procedure::{
     RouteOutcome, VergeTiltOptions, VergeTiltOutcome, VergeTiltRun, capture_plan, resolve_rotation,
 };
 use headalign::robot::stages::{RobotOutcomes, RobotPlan, StageHooks, run_robot_stages};
-use headalign_platform::{Encoders, ImagingHead, StereoHead, Vehicle};
+use headalign_platform::{Encoders, ImagingHead, StereoHead, StereoImages, Vehicle};
 use serde_json::{Value, json};
 use thiserror::Error;
 
@@ -32,6 +35,7 @@ use crate::observations::session_to_json;
 use crate::report::ReportError;
 use crate::session::{
     RecordingHead, STAGE_ROTATION_PROBE, STAGE_VERGE_TILT, STAGE_VERGING, SessionInfo, SessionWriter,
+    ViewLabel,
 };
 
 /// The procedure name in `session.json` for image mode.
@@ -43,6 +47,14 @@ pub const PROCEDURE_ROBOT: &str = "robot-images";
 
 /// The procedure name in `session.json` for point mode.
 pub const PROCEDURE_POINTS: &str = "verge-tilt-points";
+
+/// The procedure name in `session.json` of a calibration session (`simulate --images`):
+/// views for `calibrate`; `replay` runs `calibrate` on it with the constraints in
+/// `session.json`'s `head.calibrate`.
+pub const PROCEDURE_CALIBRATE: &str = "calibrate-images";
+
+/// The stage name of the views of a calibration session.
+pub const STAGE_CALIBRATE: &str = "calibrate";
 
 /// A recorded run that failed.
 #[derive(Debug, Error)]
@@ -265,6 +277,22 @@ pub fn one_line(e: &(dyn std::error::Error + 'static)) -> String {
         next = c.source();
     }
     parts.join(": ")
+}
+
+/// Write named stereo views as a calibration session ([`PROCEDURE_CALIBRATE`], stage
+/// [`STAGE_CALIBRATE`]) with the one session writer (`session.json`, `NN-name/left.png`,
+/// `right.png`, `view.json`, `events.jsonl`); refuses a folder that already holds a session.
+pub fn write_calibration_session(
+    dir: &std::path::Path,
+    views: &[(String, StereoImages)],
+    info: &SessionInfo,
+) -> Result<SessionWriter, AlignError> {
+    let mut writer = SessionWriter::create(dir, info)?;
+    for (name, pair) in views {
+        let label = ViewLabel { name, stage: STAGE_CALIBRATE, commanded: None, vehicle: None };
+        writer.write_view(&label, pair.encoders, Some(pair), None)?;
+    }
+    Ok(writer)
 }
 
 /// Run the verge/tilt procedure on `head` in point mode, recording into `session` if

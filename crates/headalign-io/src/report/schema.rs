@@ -27,6 +27,7 @@
 //! the top-level members and those of `errors` and `before`.
 
 use headalign::alignment::{AlignmentSolution, InvariantLines, VergeAxes};
+use headalign::calibrate::{DensityReport, KnownIntrinsicsRig, LensModel, MotionCalibration};
 use headalign::calibration::TranslationUnit;
 use headalign::facing_plane::SceneCheck;
 use headalign::image_mode::{self as image_mode, ImageRun, RobotRun};
@@ -552,6 +553,79 @@ pub struct CalibrateReport {
     pub stereo_rms_px: Option<f64>,
     pub files: Vec<String>,
     pub seconds: f64,
+}
+
+impl CalibrateReport {
+    /// The known-intrinsics route (`calibrate --intrinsics`): the views, the given lenses,
+    /// the rig from the undistorted views' stereo matches, and the wall time (seconds).
+    pub fn known_intrinsics(
+        views: Vec<String>,
+        lenses: &[LensModel; 2],
+        rig: &KnownIntrinsicsRig,
+        constraints: Constraints,
+        unit: TranslationUnit,
+        seconds: f64,
+    ) -> Self {
+        let f = rig.fundamental.0;
+        let distortion = [lenses[0].distortion, lenses[1].distortion];
+        Self {
+            schema: CALIBRATE,
+            route: "known intrinsics (no self-calibration)",
+            views,
+            skipped: Vec::new(),
+            left: CalibratedCamera::new(&lenses[0].k, |_| None),
+            right: CalibratedCamera::new(&lenses[1].k, |_| None),
+            right_from_left: rig_json(&rig.right_from_left),
+            distortion: distortion_json(&distortion, false, None),
+            constraints,
+            translation_unit: unit_name(unit),
+            report: None,
+            density: None,
+            fundamental_undistorted: Some(std::array::from_fn(|r| std::array::from_fn(|c| f[(r, c)]))),
+            stereo_matches: Some(rig.stereo_matches),
+            stereo_inliers: Some(rig.stereo_inliers),
+            stereo_rms_px: Some(rig.stereo_rms_px),
+            files: Vec::new(),
+            seconds,
+        }
+    }
+
+    /// The self-calibration route: the calibration `cal` with each camera's lens
+    /// (`distortion`, `lens_estimated` or given), the corner counts tried (`density`, none
+    /// for tracked points) and the wall time (seconds).
+    pub fn self_calibration(
+        cal: &MotionCalibration,
+        distortion: &[Distortion; 2],
+        lens_estimated: bool,
+        constraints: Constraints,
+        unit: TranslationUnit,
+        density: Option<&DensityReport>,
+        seconds: f64,
+    ) -> Result<Self, serde_json::Error> {
+        let st = &cal.bundle.state;
+        let c = &cal.bundle.covariance;
+        let sigma = |side: &'static str| move |p: &str| c.sigma(&format!("{side}.{p}"));
+        Ok(Self {
+            schema: CALIBRATE,
+            route: "self-calibration",
+            views: cal.report.views.clone(),
+            skipped: Vec::new(),
+            left: CalibratedCamera::new(&st.left, sigma("left")),
+            right: CalibratedCamera::new(&st.right, sigma("right")),
+            right_from_left: rig_json(&st.right_from_left),
+            distortion: distortion_json(distortion, lens_estimated, Some(c)),
+            constraints,
+            translation_unit: unit_name(unit),
+            report: Some(serde_json::to_value(&cal.report)?),
+            density: density.map(serde_json::to_value).transpose()?,
+            fundamental_undistorted: None,
+            stereo_matches: None,
+            stereo_inliers: None,
+            stereo_rms_px: None,
+            files: Vec::new(),
+            seconds,
+        })
+    }
 }
 
 impl Estimate {
