@@ -32,7 +32,7 @@ use headalign_io::export::CalibrationFiles as _;
 use headalign_io::folder::{FolderKind, FolderOptions};
 use headalign_io::runs;
 use headalign_io::session::SessionInfo;
-use headalign_platform::{ImagingHead, Joint, StereoHead, StereoImages};
+use headalign_platform::StereoImages;
 use headalign_sim::{Scenario, SimulatedHead};
 
 use crate::recording::RecordingArgs;
@@ -580,22 +580,13 @@ pub fn simulate_views(
     scenario: &Scenario,
     motion: &str,
 ) -> Result<(Vec<(String, StereoImages)>, SimulatedHead)> {
-    let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
-    let e0 = head.read_encoders()?;
-    let mut views = vec![("initial".to_string(), head.capture_images()?)];
-    match motion {
-        "rotations" => {
-            for (name, joint) in [("elevation", Joint::Elevation), ("pan", Joint::Pan)] {
-                head.move_to(&e0.moved(joint, scenario.rotation_deg))?;
-                views.push((name.to_string(), head.capture_images()?));
-            }
-        }
-        "general" => {
-            head.set_world_from_robot(headalign_sim::rigmotion::general_rig_motion());
-            views.push(("moved".to_string(), head.capture_images()?));
-        }
+    let general = match motion {
+        "rotations" => false,
+        "general" => true,
         other => bail!("unknown motion '{other}' (expected rotations or general)"),
-    }
+    };
+    let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
+    let views = head.calibration_views(general, scenario.rotation_deg)?;
     Ok((views, head))
 }
 

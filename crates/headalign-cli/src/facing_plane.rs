@@ -1,7 +1,7 @@
 //! The planar route's report ([`headalign::facing_plane`]): `demo` on a planar or far scene
 //! (point mode, against the simulator's truth, as a table), and the summary lines every
 //! command shares (`demo --images`, `replay`, `run`, `align`): [`summary_lines`]. The
-//! JSON of every route is [`crate::schema`]'s. The robot stages need the 3D
+//! JSON of every route is [`headalign_io::report::schema`]'s. The robot stages need the 3D
 //! reconstruction a plane does not give: they are skipped, and the report says so.
 
 use anyhow::Result;
