@@ -4,36 +4,28 @@
 //! ([`headalign::procedure::align_session_detecting`]), printed, as JSON, or written as
 //! calibration files (`--out`).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::alignment::{AlignmentSolution, VergeAxes};
 use headalign::calibrate::image_noise::MeasuredVariances;
-use headalign::calibration::StereoCalibration;
 use headalign::observations::View;
-use headalign::procedure::{AlignmentSigmas, PlanarSessionAlignment, SessionRoute, align_session_detecting};
-use headalign::verge_tilt::{EstimationOptions, ModelFit, RigCalibration};
+use headalign::procedure::{
+    AlignmentSigmas, PlanarSessionAlignment, SessionAlignment, SessionRoute, align_session_detecting,
+    session_model_fit,
+};
+use headalign::verge_tilt::{EstimationOptions, ModelFit, RigCalibration, axes_of};
 use headalign_geometry::bootstrap::BootstrapOptions;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::so3::Line;
-use headalign_io::export::CalibrationFiles as _;
 use headalign_io::observations::read_session;
+use headalign_io::report::{html as report_html, schema, write_align_files};
 use headalign_io::session::RecordedView;
 use headalign_platform::Encoders;
-use serde_json::{Value, json};
+use serde_json::json;
 
-use crate::{flags, images, recording, report_html, schema};
-
-/// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
-/// head`, is not a failure of the command and must not panic).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
+use crate::{flags, images, recording};
 
 #[derive(Args)]
 pub struct AlignArgs {
@@ -98,28 +90,6 @@ pub fn sigma(calib: &RigCalibration, name: &str) -> Option<f64> {
     calib.bundle.covariance.sigma(name)
 }
 
-fn axis_json(line: &Line, calib: &RigCalibration, index: usize) -> Value {
-    let c = &calib.bundle.covariance;
-    let dir_sigma = match (c.sigma(&format!("axis{index}.dir0")), c.sigma(&format!("axis{index}.dir1"))) {
-        (Some(a), Some(b)) => Some(a.hypot(b).to_degrees()),
-        _ => None,
-    };
-    json!({
-        "direction": [line.direction.x, line.direction.y, line.direction.z],
-        "point_baselines": [line.point.x, line.point.y, line.point.z],
-        "direction_sigma_deg": dir_sigma,
-    })
-}
-
-fn verge_json(line: &Option<Line>) -> Value {
-    match line {
-        Some(l) => {
-            json!({"direction": [l.direction.x, l.direction.y, l.direction.z], "point_baselines": [l.point.x, l.point.y, l.point.z]})
-        }
-        None => Value::Null,
-    }
-}
-
 pub fn run(args: &AlignArgs) -> Result<()> {
     let lens = args.lens()?;
     let (views, recorded, measured) = read_align_views(args)?;
@@ -133,21 +103,21 @@ pub fn run(args: &AlignArgs) -> Result<()> {
         AlignRoute::General(a, scene) => (a, scene),
         AlignRoute::Planar(p, seconds) => return align_planar(args, &p, seconds),
     };
-    a.fit = measured.map(|m| align_model_fit(&a.calib, &views, &m));
-    let (pan, elev) = headalign::verge_tilt::axes_of(&a.calib.bundle.state).context("axes")?;
-    let axes = json!({
-        "frame": "left camera of the first view; points in baselines",
-        "pan": axis_json(&pan, &a.calib, 0),
-        "elevation": axis_json(&elev, &a.calib, 1),
-        "verge_left": verge_json(&a.verge.left),
-        "verge_right": verge_json(&a.verge.right),
-    });
+    a.fit = measured.map(|m| session_model_fit(&a.alignment.calibration, &views, &m));
+    let (pan, elev) = axes_of(&a.alignment.calibration.bundle.state).context("axes")?;
+    let axes = schema::head_axes_json(&a.alignment.calibration, &pan, &elev, &a.alignment.verge_axes);
     let mut written = Vec::new();
     if let Some(dir) = &args.out {
-        written = write_align_files(dir, args, &views, recorded.as_deref(), &a, &axes)?;
+        let source = args.observations.as_ref().or(args.images.as_ref());
+        let (rec, baseline) = (recorded.as_deref(), args.baseline_m);
+        written = write_align_files(dir, &a.alignment, &views, rec, &axes, baseline, source)?;
     }
     if args.json {
-        say!("{}", serde_json::to_string_pretty(&align_report(&a, axes, &scene, &written)?)?);
+        let files = written.iter().map(|p| p.display().to_string()).collect();
+        let (fit, warnings) = (a.fit.as_ref(), align_warnings(&a));
+        let report =
+            schema::AlignReport::general(&a.alignment, &scene, axes, fit, warnings, files, a.seconds)?;
+        say!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
     }
     say!("{}", report_html::scene_line(&scene));
@@ -170,36 +140,12 @@ fn align_planar(args: &AlignArgs, p: &PlanarSessionAlignment, seconds: f64) -> R
     }
     let not_written = "calibration files and head.json: not written (the rig's translation and the axes' positions are undetermined on a plane)";
     if args.json {
-        let sol = &p.solution;
         let mut warnings = vec![not_written.to_string()];
-        if !sol.verge_axes_measured {
+        if !p.solution.verge_axes_measured {
             warnings.push(NOMINAL_VERGE_WARNING.to_string());
         }
-        let report = schema::AlignReport {
-            schema: schema::ALIGN,
-            route: "planar",
-            scene: serde_json::to_value(&cal.scene)?,
-            planar: Some(serde_json::to_value(cal)?),
-            left: schema::Camera::new(&cal.left.intrinsics, |n| cal.left.sigma(n)),
-            right: schema::Camera::new(&cal.right.intrinsics, |n| cal.right.sigma(n)),
-            fixation_px: schema::PixelPair { left: sol.fixation_px_left, right: sol.fixation_px_right },
-            fixation_sigma_px: None,
-            invariant_lines: sol.invariant_lines,
-            axes: None,
-            aligned_encoders: sol.aligned_encoders,
-            aligned_sigma_deg: p.sigmas,
-            verge_axes_measured: sol.verge_axes_measured,
-            predicted_elev_err_r_deg: sol.predicted_elev_err_r_deg,
-            roll_left_deg: sol.roll_left_deg,
-            roll_right_deg: sol.roll_right_deg,
-            undetermined: cal.undetermined.clone(),
-            report: None,
-            lens: None,
-            model_fit: None,
-            warnings,
-            files: written.iter().map(|p| p.display().to_string()).collect(),
-            seconds,
-        };
+        let files = written.iter().map(|p| p.display().to_string()).collect();
+        let report = schema::AlignReport::planar(p, warnings, files, seconds)?;
         say!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
     }
@@ -271,34 +217,12 @@ fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
 /// What `align` says when no view moved a vergence joint.
 const NOMINAL_VERGE_WARNING: &str = "no view moved the vergence joints: the vergence readings assume axes perpendicular to the elevation axis with a positive vergence turning each camera right, and their sigmas exclude the cameras' mounting on those axes; add a view with both vergences moved";
 
-/// The model-fit checks of `align`'s estimate on an image session
-/// ([`headalign::verge_tilt::model_fit`]): the rig views (the reference and the views where
-/// no vergence joint moved), each keyed by its name in the front end's noise `measured`.
-fn align_model_fit(calib: &RigCalibration, views: &[View], measured: &MeasuredVariances) -> ModelFit {
-    let roles = headalign::verge_tilt::classify_views(views).unwrap_or_default();
-    let rig: Vec<(String, String)> = views
-        .iter()
-        .zip(&roles)
-        .filter(|(_, r)| !matches!(r, headalign::verge_tilt::ViewRole::Verge))
-        .map(|(v, _)| (v.name.clone(), v.name.clone()))
-        .collect();
-    let keys = headalign::verge_tilt::observation_view_names(calib, &rig);
-    let size = views.first().map_or([0, 0], |v| v.capture.image_size);
-    headalign::verge_tilt::model_fit(calib, &keys, measured, size)
-}
-
 /// What `align` estimated from a session.
 struct AlignEstimate {
     /// The model-fit checks (image sessions only).
     fit: Option<ModelFit>,
-    calib: RigCalibration,
-    /// Readings of the first view, the reference of the alignment.
-    reference: Encoders,
-    verge: VergeAxes,
-    solution: AlignmentSolution,
-    sigmas: AlignmentSigmas,
-    /// The fixation points' sigmas, pixels.
-    fixation_sigmas: headalign::procedure::FixationSigmas,
+    /// The calibration, the alignment and their sigmas.
+    alignment: SessionAlignment,
     /// Wall time of the estimation, seconds.
     seconds: f64,
 }
@@ -327,113 +251,22 @@ fn estimate_alignment(
         SessionRoute::General(a, scene) => (a, scene),
         SessionRoute::Planar(p) => return Ok(AlignRoute::Planar(p, seconds)),
     };
-    Ok(AlignRoute::General(
-        Box::new(AlignEstimate {
-            fit: None,
-            calib: a.calibration,
-            reference: a.reference,
-            verge: a.verge_axes,
-            solution: a.solution,
-            sigmas: a.sigmas,
-            fixation_sigmas: a.fixation_sigmas,
-            seconds,
-        }),
-        scene,
-    ))
-}
-
-/// `align --out DIR`: the calibration files, head.json, alignment.json and report.html;
-/// the paths written, in order.
-fn write_align_files(
-    dir: &Path,
-    args: &AlignArgs,
-    views: &[View],
-    recorded: Option<&[RecordedView]>,
-    a: &AlignEstimate,
-    axes: &Value,
-) -> Result<Vec<PathBuf>> {
-    let (calib, solution, sig) = (&a.calib, &a.solution, a.sigmas);
-    let stereo = StereoCalibration::from_rig(calib, views[0].capture.image_size, args.baseline_m)?;
-    let mut written = stereo.write_all(dir)?;
-    let extra = [
-        ("head.json", json!({"format": "headalign-head/1", "axes": axes})),
-        (
-            "alignment.json",
-            serde_json::to_value(schema::alignment_file("general", a.reference, solution, sig, &[]))?,
-        ),
-    ];
-    for (name, value) in extra {
-        let path = dir.join(name);
-        std::fs::write(&path, serde_json::to_string_pretty(&value)? + "\n")
-            .with_context(|| format!("cannot write {}", path.display()))?;
-        written.push(path);
-    }
-    let results = report_html::AlignmentResults {
-        calibration: calib,
-        image_size: views[0].capture.image_size,
-        baseline_m: args.baseline_m,
-        verge_axes: &a.verge,
-        reference: a.reference,
-        solution,
-        sigmas: &sig,
-    };
-    let source = args.observations.as_ref().or(args.images.as_ref());
-    written.extend(report_html::write_align_report(dir, source, views, recorded, &results)?);
-    Ok(written)
+    Ok(AlignRoute::General(Box::new(AlignEstimate { fit: None, alignment: *a, seconds }), scene))
 }
 
 /// `align`'s warnings: the model's misfit to the images, nominal vergence axes.
 fn align_warnings(a: &AlignEstimate) -> Vec<String> {
     let mut w: Vec<String> = a.fit.iter().flat_map(|f| f.warnings.clone()).collect();
-    if !a.solution.verge_axes_measured {
+    if !a.alignment.solution.verge_axes_measured {
         w.push(NOMINAL_VERGE_WARNING.to_string());
     }
     w
 }
 
-/// The JSON object of `align --json` on the general route.
-fn align_report(
-    a: &AlignEstimate,
-    axes: Value,
-    scene: &headalign::facing_plane::SceneCheck,
-    written: &[PathBuf],
-) -> Result<schema::AlignReport> {
-    let (calib, solution) = (&a.calib, &a.solution);
-    let state = &calib.bundle.state;
-    let s = |side: &'static str| move |p: &str| sigma(calib, &format!("{side}.{p}"));
-    Ok(schema::AlignReport {
-        schema: schema::ALIGN,
-        route: "general",
-        scene: serde_json::to_value(scene)?,
-        planar: None,
-        left: schema::Camera::new(&state.left, s("left")),
-        right: schema::Camera::new(&state.right, s("right")),
-        fixation_px: schema::PixelPair { left: solution.fixation_px_left, right: solution.fixation_px_right },
-        fixation_sigma_px: Some(schema::PixelPair {
-            left: a.fixation_sigmas.left_px,
-            right: a.fixation_sigmas.right_px,
-        }),
-        invariant_lines: solution.invariant_lines,
-        axes: Some(axes),
-        aligned_encoders: solution.aligned_encoders,
-        aligned_sigma_deg: a.sigmas,
-        verge_axes_measured: solution.verge_axes_measured,
-        predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
-        roll_left_deg: solution.roll_left_deg,
-        roll_right_deg: solution.roll_right_deg,
-        undetermined: Vec::new(),
-        report: Some(serde_json::to_value(&calib.report)?),
-        lens: schema::lens_json(calib),
-        model_fit: a.fit.as_ref().map(serde_json::to_value).transpose()?,
-        warnings: align_warnings(a),
-        files: written.iter().map(|p| p.display().to_string()).collect(),
-        seconds: a.seconds,
-    })
-}
-
 /// `align`'s summary: intrinsics, fixation point, axes, aligned readings, files written.
 fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBuf]) {
-    let (state, solution, sig) = (&a.calib.bundle.state, &a.solution, &a.sigmas);
+    let (calib, solution, sig) = (&a.alignment.calibration, &a.alignment.solution, &a.alignment.sigmas);
+    let state = &calib.bundle.state;
     let show_k = |name: &str, k: &Intrinsics| {
         say!(
             "{name} K = [[{:.2}, {:.3}, {:.2}], [0, {:.2}, {:.2}], [0, 0, 1]]",
@@ -446,10 +279,10 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     };
     show_k("left ", &state.left);
     show_k("right", &state.right);
-    if let Some(line) = schema::lens_json(&a.calib).and_then(|l| images::lens_line(&json!({ "lens": l }))) {
+    if let Some(line) = schema::lens_json(calib).and_then(|l| images::lens_line(&json!({ "lens": l }))) {
         say!("{line}");
     }
-    let (fl, fr) = (a.fixation_sigmas.left_px, a.fixation_sigmas.right_px);
+    let (fl, fr) = (a.alignment.fixation_sigmas.left_px, a.alignment.fixation_sigmas.right_px);
     say!(
         "fixation point: left ({:.2}, {:.2}) +- ({:.2}, {:.2}) px, right ({:.2}, {:.2}) +- ({:.2}, {:.2}) px",
         solution.fixation_px_left[0],
@@ -465,7 +298,7 @@ fn print_alignment(a: &AlignEstimate, pan: &Line, elev: &Line, written: &[PathBu
     say!("pan axis direction {}   elevation axis direction {}", d(pan), d(elev));
     let e = solution.aligned_encoders;
     say!("{}", aligned_readings_line(&e, sig));
-    if let Some(b) = &a.calib.report.bootstrap {
+    if let Some(b) = &calib.report.bootstrap {
         say!("{}", bootstrap_line(b));
     }
     for w in align_warnings(a) {

@@ -22,7 +22,7 @@ use headalign::calibrate::{
     MotionCalibration, Route, StereoViews, ViewsProgress, read_opencv_lenses, rig_from_known_intrinsics,
     undistort_views,
 };
-use headalign::calibration::{StereoCalibration, TranslationUnit};
+use headalign::calibration::StereoCalibration;
 use headalign::observations::View;
 use headalign::tracking::FrontEndOptions;
 use headalign_geometry::bundle::Covariance;
@@ -30,13 +30,13 @@ use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
 use headalign_io::export::CalibrationFiles as _;
 use headalign_io::folder::{FolderKind, FolderOptions};
-use headalign_io::session::{SessionInfo, SessionWriter, ViewLabel};
-use headalign_platform::{ImagingHead, Joint, StereoHead, StereoImages};
+use headalign_io::runs;
+use headalign_io::session::SessionInfo;
+use headalign_platform::StereoImages;
 use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::Isometry3;
 
 use crate::recording::RecordingArgs;
-use crate::schema;
+use headalign_io::report::schema;
 use serde_json::{Value, json};
 
 /// Arguments of `headalign calibrate`.
@@ -358,36 +358,19 @@ fn known_intrinsics(
     let stereo_views = undistort_views(&stereo_only(views, &front)?, &lenses);
     let opts = options(args);
     let rig = rig_from_known_intrinsics(&stereo_views, &lenses[0].k, &lenses[1].k, &opts.estimation)?;
-    let stereo = stereo_calibration(
-        image_size,
-        lenses[0].k,
-        lenses[1].k,
-        rig.right_from_left,
-        [lenses[0].distortion, lenses[1].distortion],
-        args.baseline_m,
-    )?;
-    let f = rig.fundamental.0;
     let distortion = [lenses[0].distortion, lenses[1].distortion];
-    let report = schema::CalibrateReport {
-        schema: schema::CALIBRATE,
-        route: "known intrinsics (no self-calibration)",
-        views: views.iter().map(|(n, _)| n.clone()).collect(),
-        skipped: Vec::new(),
-        left: schema::CalibratedCamera::new(&lenses[0].k, |_| None),
-        right: schema::CalibratedCamera::new(&lenses[1].k, |_| None),
-        right_from_left: schema::rig_json(&rig.right_from_left),
-        distortion: schema::distortion_json(&distortion, false, None),
-        constraints: constraints(args),
-        translation_unit: schema::unit_name(stereo.unit),
-        report: None,
-        density: None,
-        fundamental_undistorted: Some(std::array::from_fn(|r| std::array::from_fn(|c| f[(r, c)]))),
-        stereo_matches: Some(rig.stereo_matches),
-        stereo_inliers: Some(rig.stereo_inliers),
-        stereo_rms_px: Some(rig.stereo_rms_px),
-        files: Vec::new(),
-        seconds: t0.elapsed().as_secs_f64(),
-    };
+    let (k, rfl) = ((lenses[0].k, lenses[1].k), rig.right_from_left);
+    let stereo = StereoCalibration::from_known(image_size, k.0, k.1, rfl, distortion, args.baseline_m)?;
+    let views = views.iter().map(|(n, _)| n.clone()).collect();
+    let seconds = t0.elapsed().as_secs_f64();
+    let report = schema::CalibrateReport::known_intrinsics(
+        views,
+        &lenses,
+        &rig,
+        constraints(args),
+        stereo.unit,
+        seconds,
+    );
     let json = serde_json::to_value(&report)?;
     Ok(Outcome { stereo, json, calibration: None, density: None })
 }
@@ -409,28 +392,18 @@ pub fn self_calibration_outcome(
     };
     let mut stereo = StereoCalibration::from_bundle(&cal.bundle, image_size, args.baseline_m)?;
     stereo.distortion = distortion;
-    let c = &cal.bundle.covariance;
-    let sigma = |side: &'static str| move |p: &str| c.sigma(&format!("{side}.{p}"));
-    let report = schema::CalibrateReport {
-        schema: schema::CALIBRATE,
-        route: "self-calibration",
-        views: cal.report.views.clone(),
-        skipped: Vec::new(),
-        left: schema::CalibratedCamera::new(&st.left, sigma("left")),
-        right: schema::CalibratedCamera::new(&st.right, sigma("right")),
-        right_from_left: schema::rig_json(&st.right_from_left),
-        distortion: schema::distortion_json(&distortion, lens_estimated(args, &cal), Some(c)),
-        constraints: constraints(args),
-        translation_unit: schema::unit_name(stereo.unit),
-        report: Some(serde_json::to_value(&cal.report)?),
-        density: density_report.as_ref().map(serde_json::to_value).transpose()?,
-        fundamental_undistorted: None,
-        stereo_matches: None,
-        stereo_inliers: None,
-        stereo_rms_px: None,
-        files: Vec::new(),
-        seconds: t0.elapsed().as_secs_f64(),
-    };
+    let (estimated, unit) = (lens_estimated(args, &cal), stereo.unit);
+    let seconds = t0.elapsed().as_secs_f64();
+    let density = density_report.as_ref();
+    let report = schema::CalibrateReport::self_calibration(
+        &cal,
+        &distortion,
+        estimated,
+        constraints(args),
+        unit,
+        density,
+        seconds,
+    )?;
     let json = serde_json::to_value(&report)?;
     Ok(Outcome { stereo, json, calibration: Some(cal), density: density_report })
 }
@@ -473,38 +446,6 @@ fn print_lenses(distortion: &[Distortion; 2], estimated: bool, covariance: &Cova
         line.push_str(if estimated { " (estimated)" } else { " (given)" });
         println!("{line}");
     }
-}
-
-fn stereo_calibration(
-    image_size: [u32; 2],
-    left: Intrinsics,
-    right: Intrinsics,
-    right_from_left: Isometry3<f64>,
-    distortion: [Distortion; 2],
-    baseline_m: Option<f64>,
-) -> Result<StereoCalibration> {
-    let mut rfl = right_from_left;
-    let n = rfl.translation.vector.norm();
-    let unit = match baseline_m {
-        Some(b) if b.is_finite() && b > 0.0 => {
-            rfl.translation.vector *= b / n;
-            TranslationUnit::Metres
-        }
-        Some(b) => bail!("baseline must be positive, got {b}"),
-        None => {
-            rfl.translation.vector /= n;
-            TranslationUnit::Baselines
-        }
-    };
-    Ok(StereoCalibration {
-        image_size,
-        left,
-        right,
-        sigmas: Default::default(),
-        right_from_left: rfl,
-        unit,
-        distortion,
-    })
 }
 
 /// `headalign calibrate`.
@@ -639,31 +580,15 @@ pub fn simulate_views(
     scenario: &Scenario,
     motion: &str,
 ) -> Result<(Vec<(String, StereoImages)>, SimulatedHead)> {
-    let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
-    let e0 = head.read_encoders()?;
-    let mut views = vec![("initial".to_string(), head.capture_images()?)];
-    match motion {
-        "rotations" => {
-            for (name, joint) in [("elevation", Joint::Elevation), ("pan", Joint::Pan)] {
-                head.move_to(&e0.moved(joint, scenario.rotation_deg))?;
-                views.push((name.to_string(), head.capture_images()?));
-            }
-        }
-        "general" => {
-            head.set_world_from_robot(headalign_sim::rigmotion::general_rig_motion());
-            views.push(("moved".to_string(), head.capture_images()?));
-        }
+    let general = match motion {
+        "rotations" => false,
+        "general" => true,
         other => bail!("unknown motion '{other}' (expected rotations or general)"),
-    }
+    };
+    let mut head = SimulatedHead::new(scenario.clone()).map_err(|e| anyhow::anyhow!("simulator: {e}"))?;
+    let views = head.calibration_views(general, scenario.rotation_deg)?;
     Ok((views, head))
 }
-
-/// The `procedure` of a session `simulate --images` records: views for `calibrate`
-/// (`replay` runs `calibrate` on it with the constraints in `session.json`'s `head.calibrate`).
-pub const PROCEDURE: &str = "calibrate-images";
-
-/// The stage name of the views of such a session.
-pub const STAGE: &str = "calibrate";
 
 /// The session description of a simulated calibration session: the scenario, the motion,
 /// and the `calibrate` constraints it is meant for (zero skew, `calibrate`'s default;
@@ -671,7 +596,7 @@ pub const STAGE: &str = "calibrate";
 pub fn session_info(scenario: &Scenario, motion: &str) -> Result<SessionInfo> {
     let general = motion == "general";
     let mut info = SessionInfo::new(
-        PROCEDURE,
+        runs::PROCEDURE_CALIBRATE,
         scenario.rotation_deg,
         CalibrateOptions::default().estimation.seed,
         scenario.image_size,
@@ -684,27 +609,11 @@ pub fn session_info(scenario: &Scenario, motion: &str) -> Result<SessionInfo> {
     Ok(info)
 }
 
-/// Write views as an image session with the one session writer
-/// ([`headalign_io::session::SessionWriter`]: `session.json`, `NN-name/left.png`,
-/// `right.png`, `view.json`, `events.jsonl`); refuses a folder that already holds a session.
-pub fn write_session(
-    dir: &Path,
-    views: &[(String, StereoImages)],
-    info: &SessionInfo,
-) -> Result<SessionWriter> {
-    let mut writer = SessionWriter::create(dir, info)?;
-    for (name, pair) in views {
-        let label = ViewLabel { name, stage: STAGE, commanded: None, vehicle: None };
-        writer.write_view(&label, pair.encoders, Some(pair), None)?;
-    }
-    Ok(writer)
-}
-
 /// `headalign simulate --images --motion M --out DIR`: the session, and `truth.json`
 /// beside it (the simulator's intrinsics, for comparison; `calibrate` never reads it).
 pub fn simulate_to_disk(scenario: &Scenario, motion: &str, out: &Path) -> Result<()> {
     let (views, head) = simulate_views(scenario, motion)?;
-    let writer = write_session(out, &views, &session_info(scenario, motion)?)?;
+    let writer = runs::write_calibration_session(out, &views, &session_info(scenario, motion)?)?;
     let t = head.truth();
     let truth = json!({"left": schema::k_json(&t.left), "right": schema::k_json(&t.right), "motion": motion, "baseline_m": scenario.baseline_m});
     std::fs::write(out.join("truth.json"), serde_json::to_string_pretty(&truth)? + "\n")?;
@@ -713,7 +622,7 @@ pub fn simulate_to_disk(scenario: &Scenario, motion: &str, out: &Path) -> Result
     Ok(())
 }
 
-/// `replay DIR` of a [`PROCEDURE`] session: `calibrate` with the session's constraints,
+/// `replay DIR` of a [`runs::PROCEDURE_CALIBRATE`] session: `calibrate` with the session's constraints,
 /// the JSON of `calibrate --json`.
 pub fn replay(dir: &Path, info: &SessionInfo) -> Result<Value> {
     let flag = |name: &str| info.head["calibrate"][name].as_bool().unwrap_or(false);
@@ -800,14 +709,14 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("headalign-calibrate-{}", std::process::id()));
         std::fs::remove_dir_all(&dir).ok();
         let info = session_info(&scenario, "rotations").unwrap();
-        write_session(&dir, &views, &info).unwrap();
+        runs::write_calibration_session(&dir, &views, &info).unwrap();
         let memory = calibrate_views(&views, &args(&dir)).unwrap();
         // The one session writer made it: a session.json that replay reads.
         let read = headalign_io::session::read_session_info(&dir).unwrap();
-        assert_eq!(read.procedure, PROCEDURE);
+        assert_eq!(read.procedure, runs::PROCEDURE_CALIBRATE);
         let replayed = replay(&dir, &read).unwrap();
         // A second session into the same folder is refused (never mixed or overwritten).
-        assert!(write_session(&dir, &views, &info).is_err());
+        assert!(runs::write_calibration_session(&dir, &views, &info).is_err());
         std::fs::remove_dir_all(&dir).ok();
         assert!(memory.json["left"]["fx"].is_number() && memory.json["right_from_left"].is_object());
         assert_eq!(without_seconds(replayed), without_seconds(memory.json.clone()));

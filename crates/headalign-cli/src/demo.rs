@@ -5,7 +5,7 @@
 //! ([`crate::images::run`]). Output: a table of estimate, truth and sigma (the
 //! calibration in pixels, the aligned readings and alignment errors in degrees, the
 //! calibration errors in percent), or one JSON object (`--json`,
-//! [`crate::schema::DemoReport`]: the same members on every route), which a recorded
+//! [`headalign_io::report::schema::DemoReport`]: the same members on every route), which a recorded
 //! session also keeps as `report.json`. The stages and their settings are a [`RobotPlan`]
 //! ([`headalign::robot::stages`]); `verge-tilt` must be among them, since every robot stage uses its
 //! calibration.
@@ -28,17 +28,9 @@ use serde_json::json;
 use crate::align::{bootstrap_line, sigma};
 use crate::flags::ScenarioArgs;
 use crate::stages;
-use crate::{images, points, schema};
+use crate::{images, points};
 use headalign::robot::stages::{RobotOutcomes, RobotPlan};
-
-/// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
-/// head`, is not a failure of the command and must not panic).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
+use headalign_io::report::schema;
 
 /// Arguments of `headalign demo`.
 #[derive(Args)]
@@ -317,11 +309,18 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     let options = verge_tilt_options(args, scenario);
     let mut run = VergeTiltRun::default();
     let session = point_session(args, scenario, &options, rplan, &robot);
-    let (route, writer) = points::verge_tilt(&mut run, robot.head_mut(), &options, session)?;
+    let (route, writer) =
+        headalign_io::runs::verge_tilt_points(&mut run, robot.head_mut(), &options, session)?;
     // The robot stages need the general route's 3D reconstruction.
     let (robot_out, writer) = match &route {
         RouteOutcome::General(outcome, _) => {
-            let (r, w) = points::robot_stages(&mut robot, rplan, outcome, writer)?;
+            let (r, w) = headalign_io::runs::robot_stages_points(
+                &mut robot,
+                rplan,
+                outcome,
+                writer,
+                &mut crate::progress::warn,
+            )?;
             (Some(r), w)
         }
         RouteOutcome::Planar(_) => (None, writer),
@@ -359,7 +358,7 @@ fn run_points(args: &DemoArgs, scenario: &Scenario, rplan: &RobotPlan) -> Result
     };
     let robot_out = robot_out.unwrap_or_default();
     let after = After::read(&robot, &outcome, &robot_out);
-    say!("{}", crate::report_html::scene_line(&scene));
+    say!("{}", headalign_io::report::html::scene_line(&scene));
     print_calibration(scenario, &outcome, &after);
     print_errors(&outcome, &before, &after);
     print_robot_stages(&robot_out, &before, &after);
@@ -395,11 +394,11 @@ fn points_report(
     let procedure =
         schema::Procedure::new("points", run.route, run.views.clone(), args.auto_rotation, run.total)?
             .with_robot(run.stages, run.robot);
-    let truth = schema::Truth::of(robot, run.scenario)?;
+    let truth = crate::truth::truth(robot, run.scenario)?;
     let errors = match run.route {
         RouteOutcome::General(outcome, _) => {
             let a = After::read(robot, outcome, run.robot.unwrap_or(&RobotOutcomes::default()));
-            schema::Errors::new(&a.errors, a.unavoidable_r, &a.cal, a.recon, a.pan_deg, a.steer_deg)
+            crate::truth::errors(&a.errors, a.unavoidable_r, &a.cal, a.recon, a.pan_deg, a.steer_deg)
         }
         RouteOutcome::Planar(p) => {
             let head = robot.head();
@@ -408,7 +407,7 @@ fn points_report(
             let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
             let after = head.alignment_errors(&head.encoders());
             // No 3D reconstruction on a plane, and no robot stage moved the pan or steering.
-            schema::Errors::new(&after, unavoidable_r, &cal, None, None, None)
+            crate::truth::errors(&after, unavoidable_r, &cal, None, None, None)
         }
     };
     let aligned = procedure.estimate.aligned_encoders;
@@ -417,7 +416,7 @@ fn points_report(
         procedure,
         scenario: serde_json::to_value(run.scenario)?,
         errors,
-        before: schema::Before::new(&before.errors, before.pan_deg, before.steer_deg),
+        before: crate::truth::before(&before.errors, before.pan_deg, before.steer_deg),
         aligned_reading_errors_deg: schema::ReadingErrors::new(&aligned, &truth.aligned_encoders),
         truth,
     })

@@ -1,7 +1,7 @@
 //! The planar route's report ([`headalign::facing_plane`]): `demo` on a planar or far scene
 //! (point mode, against the simulator's truth, as a table), and the summary lines every
 //! command shares (`demo --images`, `replay`, `run`, `align`): [`summary_lines`]. The
-//! JSON of every route is [`crate::schema`]'s. The robot stages need the 3D
+//! JSON of every route is [`headalign_io::report::schema`]'s. The robot stages need the 3D
 //! reconstruction a plane does not give: they are skipped, and the report says so.
 
 use anyhow::Result;
@@ -9,14 +9,6 @@ use headalign::facing_plane::CameraPlanar;
 use headalign::procedure::PlanarOutcome;
 use headalign_sim::SimulatedHead;
 use serde_json::{Value, json};
-
-/// Print a line to stdout, ignoring write errors (as `demo`).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
 
 /// The lines every command prints about the route from a report's JSON: the scene
 /// (`scene: kind (why)`, when the report has one) and, on the planar route, what is
@@ -54,7 +46,7 @@ pub fn summary_lines(v: &Value) -> Vec<String> {
     if let Some(why) = v["check_failure"].as_str() {
         lines.push(format!("check after the move: not made ({why})"));
     }
-    lines.push(format!("robot stages: {}", crate::schema::ROBOT_STAGES_SKIPPED));
+    lines.push(format!("robot stages: {}", headalign_io::report::schema::ROBOT_STAGES_SKIPPED));
     lines
 }
 
@@ -97,13 +89,13 @@ fn camera_line(name: &str, c: &CameraPlanar, truth: &headalign_geometry::camera:
 
 /// Print the planar outcome of a point-mode demo run on `head` (after the procedure, the
 /// head at the aligned readings) against its truth; its JSON is the demo's
-/// ([`crate::schema::DemoReport`]).
+/// ([`headalign_io::report::schema::DemoReport`]).
 pub fn report(head: &SimulatedHead, out: &PlanarOutcome) -> Result<()> {
     let truth = head.aligned_encoders();
     let a = out.solution.aligned_encoders;
     let after = head.alignment_errors(&head.encoders());
     let cal = &out.calibration;
-    say!("{}", crate::report_html::scene_line(&cal.scene));
+    say!("{}", headalign_io::report::html::scene_line(&cal.scene));
     say!("planar route (paper section 3.3): each camera from its own plane homographies");
     let t = head.truth();
     say!("{}", camera_line("left", &cal.left, &t.left));

@@ -15,19 +15,13 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::robot::PanOptions;
 use headalign_io::process_head::{ProcessHead, ProcessHeadOptions};
+use headalign_io::runs;
 use headalign_platform::StereoHead;
 use serde_json::json;
 
-use crate::{images, replay, schema, stages};
+use crate::{images, replay, stages};
 use headalign::robot::stages::RobotPlan;
-
-/// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
+use headalign_io::report::schema;
 
 /// Arguments of `headalign run`.
 #[derive(Args)]
@@ -144,7 +138,7 @@ pub fn run(args: &RunArgs) -> Result<()> {
             &args.lens,
         );
         if plan.drives() {
-            info.procedure = images::PROCEDURE_ROBOT.to_string();
+            info.procedure = headalign_io::runs::PROCEDURE_ROBOT.to_string();
             info.stages = serde_json::to_value(&plan).ok();
         }
         (d, info)
@@ -154,31 +148,24 @@ pub fn run(args: &RunArgs) -> Result<()> {
         lens: args.lens,
     };
     let mut head = crate::progress::Narrated::new(&mut head, "run");
+    let options = seed.image_mode(args.rotation, args.auto_rotation);
     let (run, _, v) = if plan.drives() {
-        images::recorded_robot(
+        runs::recorded_robot(
             &mut head,
             session,
-            args.rotation,
-            args.auto_rotation,
-            seed,
+            &options,
             &plan,
             &mut |_, run, route, robot| {
                 let p = schema::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
                 Ok(serde_json::to_value(schema::RunReport::new(schema::with_robot(p, &plan, robot)?))?)
             },
+            &mut crate::progress::warn,
         )?
     } else {
-        images::recorded(
-            &mut head,
-            session,
-            args.rotation,
-            args.auto_rotation,
-            seed,
-            &mut |_, run, route| {
-                let p = schema::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
-                Ok(serde_json::to_value(schema::RunReport::new(schema::with_robot(p, &plan, None)?))?)
-            },
-        )?
+        runs::recorded(&mut head, session, &options, &mut |_, run, route| {
+            let p = schema::procedure_report(run, route, t0.elapsed().as_secs_f64())?;
+            Ok(serde_json::to_value(schema::RunReport::new(schema::with_robot(p, &plan, None)?))?)
+        })?
     };
     drop(head); // the spinner goes before the results print
     if args.json {

@@ -13,6 +13,16 @@
 //!   process ([`headcmd`]).
 //! - `headalign calibrate DIR`: self-calibration from rig motions ([`calibrate`]).
 
+/// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
+/// head`, is not a failure of the command and must not panic). Every module declared
+/// below sees it.
+macro_rules! say {
+    ($($arg:tt)*) => {{
+        use std::io::Write as _;
+        let _ = writeln!(std::io::stdout(), $($arg)*);
+    }};
+}
+
 mod align;
 mod calibrate;
 mod demo;
@@ -24,10 +34,9 @@ mod points;
 mod progress;
 mod recording;
 mod replay;
-mod report_html;
-mod schema;
 mod simulate;
 mod stages;
+mod truth;
 
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -91,7 +100,7 @@ fn error_line(msg: &str, dir: Option<&Path>) -> String {
         return msg.to_string();
     }
     // A recorded run's failure ends with where its session is, whose report.json holds
-    // the whole error (`images::failed_in_session`): that end is kept.
+    // the whole error (`headalign_io::runs::failed_in_session`): that end is kept.
     let session = msg.rfind(" (session with ").filter(|&i| msg.len() - i <= MAX_ERROR_LINE / 2);
     let tail = if let Some(i) = session {
         format!(" ...{}", &msg[i..])
@@ -131,7 +140,7 @@ fn main() -> ExitCode {
             // One line naming the problem (the chain joined by ": ", repeated causes left
             // out; a cause that spans lines, e.g. a third-party parser's message, is folded
             // onto one).
-            let msg = images::one_line(&e);
+            let msg = headalign_io::runs::one_line(e.as_ref());
             let one_line: Vec<&str> = msg.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
             let line = error_line(&one_line.join(" "), dir.as_deref());
             eprintln!("error: {line}");

@@ -164,25 +164,7 @@ pub fn lens_from(
     args: &RecordingArgs,
     image_size: [u32; 2],
 ) -> Result<[LensModel; 2]> {
-    let paths = lens_paths(spec, input, args)?;
-    let mut lenses = Vec::new();
-    for p in &paths {
-        let (lens, resolution) = euroc::read_sensor_yaml(p)?;
-        if let Some(r) = resolution
-            && r != image_size
-        {
-            bail!(
-                "'{}' describes a {}x{} camera but the images are {}x{}",
-                p.display(),
-                r[0],
-                r[1],
-                image_size[0],
-                image_size[1]
-            );
-        }
-        lenses.push(lens);
-    }
-    Ok([lenses[0], lenses[1]])
+    Ok(euroc::read_sensor_yaml_pair(&lens_paths(spec, input, args)?, image_size)?)
 }
 
 /// The two `sensor.yaml` files a `--lens-from` names, each read once to check it (before

@@ -13,20 +13,13 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign_io::session::{ReplayHead, SessionInfo, read_session_info};
+use headalign_io::runs;
+use headalign_io::session::{ReplayHead, read_session_info};
 use serde_json::Value;
 
-use crate::{calibrate, images, points, schema};
+use crate::{calibrate, images, points};
 use headalign::procedure::{RouteOutcome, VergeTiltRun};
-use headalign::robot::stages::RobotPlan;
-
-/// Print a line to stdout, ignoring write errors (a closed pipe is not a failure).
-macro_rules! say {
-    ($($arg:tt)*) => {{
-        use std::io::Write as _;
-        let _ = writeln!(std::io::stdout(), $($arg)*);
-    }};
-}
+use headalign_io::report::schema;
 
 /// Default of `--rotation` (a recording's), degrees: `run`'s.
 const DEFAULT_ROTATION_DEG: f64 = 3.0;
@@ -84,8 +77,11 @@ fn replay_recording(args: &ReplayArgs) -> Result<()> {
         seed: headalign::verge_tilt::EstimationOptions::default().seed,
         lens: args.lens(images::LensArgs::default())?,
     };
-    let (run, outcome) =
-        images::procedure(&mut head, args.rotation, args.auto_rotation, seed, &mut |_, _, _, _| {});
+    let (run, outcome) = runs::image_procedure(
+        &mut head,
+        &seed.image_mode(args.rotation, args.auto_rotation),
+        &mut |_, _, _, _| {},
+    );
     let outcome = outcome.with_context(|| format!("replay of '{}'", args.dir.display()))?;
     let report = schema::ReplayReport {
         schema: schema::REPLAY,
@@ -132,14 +128,15 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
     };
     // The verge/tilt part of an image session, as recorded (seed and rotation choice).
     let verge_tilt = |head: &mut ReplayHead| {
-        images::procedure(head, info.rotation_deg, info.auto_rotation, estimation, &mut |_, _, _, _| {})
+        let options = estimation.image_mode(info.rotation_deg, info.auto_rotation);
+        runs::image_procedure(head, &options, &mut |_, _, _, _| {})
     };
-    let (p, views) = if info.procedure == images::PROCEDURE {
+    let (p, views) = if info.procedure == runs::PROCEDURE_IMAGES {
         let (run, outcome) = verge_tilt(&mut head);
         let outcome = outcome.with_context(context)?;
         (schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?, run.run.views.len())
-    } else if info.procedure == images::PROCEDURE_ROBOT {
-        let plan = session_plan(&args.dir, &info)?.with_context(|| {
+    } else if info.procedure == runs::PROCEDURE_ROBOT {
+        let plan = info.robot_plan(&args.dir)?.with_context(|| {
             format!(
                 "'{}' names no stages for procedure '{}'",
                 args.dir.join("session.json").display(),
@@ -150,27 +147,30 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
         let outcome = outcome.with_context(context)?;
         let robot = match &outcome {
             RouteOutcome::General(o, _) => {
-                Some(images::robot_stages(&mut head, &plan, o, &mut |_, _| {}).with_context(context)?)
+                let warn = &mut crate::progress::warn;
+                Some(runs::robot_stages(&mut head, &plan, o, &mut |_, _| {}, warn).with_context(context)?)
             }
             RouteOutcome::Planar(_) => None,
         };
         let p = schema::procedure_report(&run, &outcome, t0.elapsed().as_secs_f64())?;
         let views = run.run.views.len() + robot.as_ref().map_or(0, |r| r.tracking.len());
         (schema::with_robot(p, &plan, robot.as_ref())?, views)
-    } else if info.procedure == points::PROCEDURE {
+    } else if info.procedure == runs::PROCEDURE_POINTS {
         let mut run = VergeTiltRun::default();
         let route = run.run_detecting(&mut head, &points::options(&info)).with_context(context)?;
         let names = run.views.iter().map(|v| v.name.clone()).collect();
         let total = t0.elapsed().as_secs_f64();
         let mut p = schema::Procedure::new("points", &route, names, info.auto_rotation, total)?;
         // The robot stages recorded after the verge/tilt stage (sessions that have them).
-        if let (RouteOutcome::General(outcome, _), Some(plan)) = (&route, session_plan(&args.dir, &info)?) {
-            let (robot, _) = points::robot_stages(&mut head, &plan, outcome, None).with_context(context)?;
+        if let (RouteOutcome::General(outcome, _), Some(plan)) = (&route, info.robot_plan(&args.dir)?) {
+            let (robot, _) =
+                runs::robot_stages_points(&mut head, &plan, outcome, None, &mut crate::progress::warn)
+                    .with_context(context)?;
             p = p.with_robot(&plan.stages, Some(&robot));
             p.timings.total_s = t0.elapsed().as_secs_f64();
         }
         (p, run.views.len())
-    } else if info.procedure == calibrate::PROCEDURE {
+    } else if info.procedure == runs::PROCEDURE_CALIBRATE {
         // A calibration session (`simulate --images`): no head calls to play back; the
         // result is `calibrate --json` with the recorded constraints.
         let v = calibrate::replay(&args.dir, &info).with_context(context)?;
@@ -193,10 +193,10 @@ pub fn run(args: &ReplayArgs) -> Result<()> {
             "'{}': cannot replay procedure '{}' (this version replays '{}', '{}', '{}' and '{}')",
             args.dir.join("session.json").display(),
             info.procedure,
-            images::PROCEDURE,
-            images::PROCEDURE_ROBOT,
-            points::PROCEDURE,
-            calibrate::PROCEDURE
+            runs::PROCEDURE_IMAGES,
+            runs::PROCEDURE_ROBOT,
+            runs::PROCEDURE_POINTS,
+            runs::PROCEDURE_CALIBRATE
         );
     };
     finish_replay(args, p, &head, views)
@@ -267,13 +267,4 @@ pub fn print_summary(v: &Value) {
     if let Some(dir) = v["session"].as_str() {
         say!("session ({}): {dir}", crate::facing_plane::session_files(v));
     }
-}
-
-/// The robot stages a session recorded (`session.json` `stages`), if any.
-fn session_plan(dir: &std::path::Path, info: &SessionInfo) -> Result<Option<RobotPlan>> {
-    info.stages
-        .clone()
-        .map(serde_json::from_value)
-        .transpose()
-        .with_context(|| format!("'{}': stages", dir.join("session.json").display()))
 }

@@ -17,6 +17,10 @@
 //! - [`alignment_file`]: the file `alignment.json` (`headalign-alignment/2`).
 //! - [`folder`]: a folder of stereo views (an image session or `left*`/`right*` pairs),
 //!   read by one set of rules for the command line and the examples.
+//! - [`runs`]: the library's procedures run through a recording head into a session
+//!   (image mode, its robot stages, point mode), with the report files.
+//! - [`report`]: the reports of a run: the JSON of every command's `--json`
+//!   ([`report::schema`]) and `report.html` ([`report::html`]).
 //!
 //! The formats are specified in `docs/formats.md`. The example `calibrate_folder`
 //! self-calibrates a rig from a folder of stereo images
@@ -29,6 +33,8 @@ pub mod folder;
 pub mod observations;
 pub mod process_head;
 pub mod recordings;
+pub mod report;
+pub mod runs;
 pub mod session;
 
 pub use error::FileError;

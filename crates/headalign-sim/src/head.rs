@@ -125,6 +125,29 @@ impl SimulatedHead {
         self.world_from_robot
     }
 
+    /// The rendered views of a calibration session (`headalign simulate --images`): the
+    /// initial view, then either the elevation and pan moved by `rotation_deg` degrees
+    /// (`general` false; views `initial`, `elevation`, `pan`) or the whole rig moved by
+    /// [`crate::rigmotion::general_rig_motion`] (`general`; views `initial`, `moved`).
+    pub fn calibration_views(
+        &mut self,
+        general: bool,
+        rotation_deg: f64,
+    ) -> Result<Vec<(String, StereoImages)>, PlatformError> {
+        let e0 = self.read_encoders()?;
+        let mut views = vec![("initial".to_string(), self.capture_images()?)];
+        if general {
+            self.set_world_from_robot(crate::rigmotion::general_rig_motion());
+            views.push(("moved".to_string(), self.capture_images()?));
+        } else {
+            for (name, joint) in [("elevation", Joint::Elevation), ("pan", Joint::Pan)] {
+                self.move_to(&e0.moved(joint, rotation_deg))?;
+                views.push((name.to_string(), self.capture_images()?));
+            }
+        }
+        Ok(views)
+    }
+
     /// Move the robot (and the head on it) to a new pose in the scene's world frame.
     /// Captures see the scene from there; the head's own geometry and every metric,
     /// which live in the robot frame, are unchanged.

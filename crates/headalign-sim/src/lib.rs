@@ -26,11 +26,14 @@
 //! - [`robot`]: [`SimulatedRobot`], a tricycle AGV carrying the head ([`headalign_platform::Vehicle`]).
 //! - [`metrics`]: ground-truth error metrics (alignment, calibration, reconstruction,
 //!   axes).
+//! - [`driver`]: the simulated robot behind the JSON-lines head protocol (the server of
+//!   the example driver `headalign-sim-driver`), its truth written to a file at the end.
 //!
 //! Frames: the world is the robot frame, origin on the pan axis at the ground, x right,
 //! y down (gravity +y), z forward; cameras are x right, y down, z forward. Angles in the
 //! public API are degrees (as encoders are); inside, radians. Lengths are metres.
 
+pub mod driver;
 pub mod head;
 pub mod kinematics;
 pub mod metrics;

@@ -100,17 +100,7 @@ impl StereoCalibration {
         if !norm.is_finite() || norm <= 0.0 {
             return Err(AlignError::Output("the rig has no baseline".into()));
         }
-        let unit = match baseline_m {
-            Some(b) if b.is_finite() && b > 0.0 => {
-                right_from_left.translation.vector *= b / norm;
-                TranslationUnit::Metres
-            }
-            Some(b) => return Err(AlignError::InvalidOption(format!("baseline must be positive, got {b}"))),
-            None => {
-                right_from_left.translation.vector /= norm;
-                TranslationUnit::Baselines
-            }
-        };
+        let unit = scale_translation(&mut right_from_left, baseline_m)?;
         let c = &bundle.covariance;
         let sig = |side: &str| IntrinsicSigmas {
             fx: c.sigma(&format!("{side}.fx")),
@@ -130,6 +120,22 @@ impl StereoCalibration {
         })
     }
 
+    /// From known cameras (`left`, `right`, no sigmas), their lenses and the rig
+    /// `right_from_left` of a calibrated relative pose (any translation length: scaled to
+    /// `baseline_m` metres, else to one baseline).
+    pub fn from_known(
+        image_size: [u32; 2],
+        left: Intrinsics,
+        right: Intrinsics,
+        right_from_left: Isometry3<f64>,
+        distortion: [Distortion; 2],
+        baseline_m: Option<f64>,
+    ) -> Result<Self, AlignError> {
+        let mut right_from_left = right_from_left;
+        let unit = scale_translation(&mut right_from_left, baseline_m)?;
+        Ok(Self { image_size, left, right, sigmas: Default::default(), right_from_left, unit, distortion })
+    }
+
     /// The rectification of the pair.
     pub fn rectification(&self) -> Result<Rectification, AlignError> {
         rectify_stereo(&self.left, &self.right, &self.right_from_left, self.image_size)
@@ -139,5 +145,25 @@ impl StereoCalibration {
     /// The rotation of `right_from_left` as a matrix.
     pub fn rotation(&self) -> Matrix3<f64> {
         self.right_from_left.rotation.to_rotation_matrix().into_inner()
+    }
+}
+
+/// Scale the rig's translation to `baseline_m` metres, or to one baseline without it; the
+/// unit it is then in. A baseline that is not a positive number is an error.
+fn scale_translation(
+    right_from_left: &mut Isometry3<f64>,
+    baseline_m: Option<f64>,
+) -> Result<TranslationUnit, AlignError> {
+    let norm = right_from_left.translation.vector.norm();
+    match baseline_m {
+        Some(b) if b.is_finite() && b > 0.0 => {
+            right_from_left.translation.vector *= b / norm;
+            Ok(TranslationUnit::Metres)
+        }
+        Some(b) => Err(AlignError::InvalidOption(format!("baseline must be positive, got {b}"))),
+        None => {
+            right_from_left.translation.vector /= norm;
+            Ok(TranslationUnit::Baselines)
+        }
     }
 }

@@ -38,6 +38,8 @@ use super::{Recording, RecordingFormat, RecordingOptions, Stamped, build_views, 
 use headalign::AlignError;
 use headalign::calibrate::LensModel;
 
+use crate::FileError;
+
 /// The folder holding the camera folders: `path/mav0` if it exists, else `path`.
 pub fn camera_root(path: &Path) -> PathBuf {
     let mav0 = path.join("mav0");
@@ -206,6 +208,29 @@ pub fn parse_sensor_yaml(text: &str, origin: &str) -> Result<(LensModel, Option<
         None => None,
     };
     Ok((LensModel { k, distortion }, resolution))
+}
+
+/// The lenses of two `sensor.yaml` files (left, right), each file's `resolution` (where
+/// it gives one) checked against the images' size `image_size`, pixels.
+pub fn read_sensor_yaml_pair(
+    paths: &[PathBuf; 2],
+    image_size: [u32; 2],
+) -> Result<[LensModel; 2], FileError> {
+    let read = |p: &PathBuf| -> Result<LensModel, FileError> {
+        let (lens, resolution) = read_sensor_yaml(p)?;
+        match resolution {
+            Some(r) if r != image_size => Err(FileError::File(format!(
+                "'{}' describes a {}x{} camera but the images are {}x{}",
+                p.display(),
+                r[0],
+                r[1],
+                image_size[0],
+                image_size[1]
+            ))),
+            _ => Ok(lens),
+        }
+    };
+    Ok([read(&paths[0])?, read(&paths[1])?])
 }
 
 /// Read a `sensor.yaml` file.

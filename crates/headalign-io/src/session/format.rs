@@ -8,9 +8,13 @@ use std::path::{Path, PathBuf};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use headalign::AlignError;
+use headalign::calibrate::LensChoice;
+use headalign::robot::stages::RobotPlan;
+use headalign_geometry::distortion::DistortionTerms;
 use headalign_platform::{Encoders, GrayImage, Odometry, StereoCapture, StereoImages};
 use serde::{Deserialize, Serialize};
 
+use crate::FileError;
 use crate::observations::View;
 /// The format tag of `session.json`.
 pub const SESSION_FORMAT: &str = "headalign-session/1";
@@ -87,6 +91,34 @@ impl SessionInfo {
             stages: None,
             lens: None,
             lens_terms: None,
+        }
+    }
+
+    /// The robot stages the session recorded (`stages`: their names and settings), if
+    /// any; an error names `dir`'s `session.json`.
+    pub fn robot_plan(&self, dir: &Path) -> Result<Option<RobotPlan>, FileError> {
+        self.stages
+            .clone()
+            .map(serde_json::from_value)
+            .transpose()
+            .map_err(|e| FileError::File(format!("'{}': stages: {e}", dir.join("session.json").display())))
+    }
+
+    /// The lens model the session recorded (`lens`; the pinhole when absent); an unknown
+    /// name is an error naming it.
+    pub fn lens_choice(&self) -> Result<LensChoice, FileError> {
+        match &self.lens {
+            None => Ok(LensChoice::Pinhole),
+            Some(name) => LensChoice::parse(name)
+                .ok_or_else(|| FileError::File(format!("session.json: unknown lens model '{name}'"))),
+        }
+    }
+
+    /// Record the lens model `lens` and its `terms` (nothing for the pinhole).
+    pub fn set_lens(&mut self, lens: LensChoice, terms: Option<DistortionTerms>) {
+        if lens != LensChoice::Pinhole {
+            self.lens = Some(lens.name().to_string());
+            self.lens_terms = terms;
         }
     }
 }

@@ -87,6 +87,7 @@ pub use axes::{
 };
 pub use offline::{
     PlanarSessionAlignment, SessionAlignment, SessionRoute, align_session, align_session_detecting,
+    session_model_fit,
 };
 pub use rotation::{RotationChoice, choose_rotations, resolve_rotation, shared_stereo_tracks};
 pub use sigmas::{alignment_sigmas, alignment_sigmas_measured, fixation_sigmas};

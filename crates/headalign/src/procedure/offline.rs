@@ -39,7 +39,11 @@ use crate::alignment::{
 use crate::error::AlignError;
 use crate::facing_plane::{PlanarCalibration, SceneCheck, SceneKind, detect_scene};
 use crate::observations::View;
-use crate::verge_tilt::{EstimationOptions, RigCalibration, ViewRole, classify_views, estimate_rig};
+use crate::rig::image_noise::MeasuredVariances;
+use crate::verge_tilt::{
+    EstimationOptions, ModelFit, RigCalibration, ViewRole, classify_views, estimate_rig, model_fit,
+    observation_view_names,
+};
 
 /// What [`align_session`] estimated.
 #[derive(Debug, Clone)]
@@ -110,6 +114,22 @@ pub struct PlanarSessionAlignment {
     pub solution: AlignmentSolution,
     /// Their 1-sigma uncertainties (both cameras' covariances and the reading noise).
     pub sigmas: AlignmentSigmas,
+}
+
+/// The model-fit checks of a session's estimate `calib` ([`crate::verge_tilt::model_fit`])
+/// on its rig views (the reference and the views where no vergence joint moved), each
+/// keyed by its name in the front end's noise `measured` (image sessions: `align --images`).
+pub fn session_model_fit(calib: &RigCalibration, views: &[View], measured: &MeasuredVariances) -> ModelFit {
+    let roles = classify_views(views).unwrap_or_default();
+    let rig: Vec<(String, String)> = views
+        .iter()
+        .zip(&roles)
+        .filter(|(_, r)| !matches!(r, ViewRole::Verge))
+        .map(|(v, _)| (v.name.clone(), v.name.clone()))
+        .collect();
+    let keys = observation_view_names(calib, &rig);
+    let size = views.first().map_or([0, 0], |v| v.capture.image_size);
+    model_fit(calib, &keys, measured, size)
 }
 
 /// The views that move the whole rig (every view but the vergence one), in order.

@@ -17,22 +17,31 @@
 //! a row to its table in docs/formats.md (the `json_schemas` integration test compares
 //! the two), and bump the schema's version when a member changes meaning or goes.
 //!
+//! The demo's members against the simulator's truth ([`Truth`], [`Errors`], [`Before`],
+//! [`ReadingErrors`]) are plain data: this crate does not depend on the simulator (its
+//! truth is visible only to the simulator, the demo and the experiments), so the command
+//! line fills them from `headalign_sim`.
+//!
 //! Pitfall: a schema's nested members that differ by route (`checks`, `planar`, `scene`,
 //! `report`) are kept as the library's own serialisations ([`Value`]); the test compares
 //! the top-level members and those of `errors` and `before`.
 
-use headalign::alignment::{AlignmentSolution, InvariantLines};
+use headalign::alignment::{AlignmentSolution, InvariantLines, VergeAxes};
+use headalign::calibrate::{DensityReport, KnownIntrinsicsRig, LensModel, MotionCalibration};
 use headalign::calibration::TranslationUnit;
+use headalign::facing_plane::SceneCheck;
 use headalign::image_mode::{self as image_mode, ImageRun, RobotRun};
 use headalign::procedure::CheckVerdict;
-use headalign::procedure::{AlignmentSigmas, PlanarOutcome, RouteOutcome, VergeTiltOutcome};
+use headalign::procedure::{
+    AlignmentSigmas, PlanarOutcome, PlanarSessionAlignment, RouteOutcome, SessionAlignment, VergeTiltOutcome,
+};
 use headalign::robot::stages::RobotPlan;
-use headalign::verge_tilt::RigCalibration;
+use headalign::verge_tilt::{ModelFit, RigCalibration};
 use headalign_geometry::bundle::Covariance;
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::Distortion;
+use headalign_geometry::so3::Line;
 use headalign_platform::Encoders;
-use headalign_sim::{AlignmentErrors, CalibrationErrors, Scenario, SimulatedRobot, calibration_errors};
 use nalgebra::Isometry3;
 use serde::Serialize;
 use serde_json::{Value, json};
@@ -344,9 +353,124 @@ pub struct AlignReport {
     pub seconds: f64,
 }
 
+impl AlignReport {
+    /// `align --json` on the general route: the session's alignment `a`, the scene check
+    /// that chose the route, the head's axes ([`head_axes_json`]), the model-fit checks
+    /// (image sessions), the warnings, the files written and the wall time (seconds).
+    pub fn general(
+        a: &SessionAlignment,
+        scene: &SceneCheck,
+        axes: Value,
+        fit: Option<&ModelFit>,
+        warnings: Vec<String>,
+        files: Vec<String>,
+        seconds: f64,
+    ) -> Result<Self, serde_json::Error> {
+        let (calib, solution) = (&a.calibration, &a.solution);
+        let state = &calib.bundle.state;
+        let s = |side: &'static str| move |p: &str| calib.bundle.covariance.sigma(&format!("{side}.{p}"));
+        Ok(Self {
+            schema: ALIGN,
+            route: "general",
+            scene: serde_json::to_value(scene)?,
+            planar: None,
+            left: Camera::new(&state.left, s("left")),
+            right: Camera::new(&state.right, s("right")),
+            fixation_px: PixelPair { left: solution.fixation_px_left, right: solution.fixation_px_right },
+            fixation_sigma_px: Some(PixelPair {
+                left: a.fixation_sigmas.left_px,
+                right: a.fixation_sigmas.right_px,
+            }),
+            invariant_lines: solution.invariant_lines,
+            axes: Some(axes),
+            aligned_encoders: solution.aligned_encoders,
+            aligned_sigma_deg: a.sigmas,
+            verge_axes_measured: solution.verge_axes_measured,
+            predicted_elev_err_r_deg: solution.predicted_elev_err_r_deg,
+            roll_left_deg: solution.roll_left_deg,
+            roll_right_deg: solution.roll_right_deg,
+            undetermined: Vec::new(),
+            report: Some(serde_json::to_value(&calib.report)?),
+            lens: lens_json(calib),
+            model_fit: fit.map(serde_json::to_value).transpose()?,
+            warnings,
+            files,
+            seconds,
+        })
+    }
+
+    /// `align --json` on the planar route (a planar or far scene): the session's planar
+    /// alignment `p`, the warnings, the files written and the wall time (seconds).
+    pub fn planar(
+        p: &PlanarSessionAlignment,
+        warnings: Vec<String>,
+        files: Vec<String>,
+        seconds: f64,
+    ) -> Result<Self, serde_json::Error> {
+        let (cal, sol) = (&p.calibration, &p.solution);
+        Ok(Self {
+            schema: ALIGN,
+            route: "planar",
+            scene: serde_json::to_value(&cal.scene)?,
+            planar: Some(serde_json::to_value(cal)?),
+            left: Camera::new(&cal.left.intrinsics, |n| cal.left.sigma(n)),
+            right: Camera::new(&cal.right.intrinsics, |n| cal.right.sigma(n)),
+            fixation_px: PixelPair { left: sol.fixation_px_left, right: sol.fixation_px_right },
+            fixation_sigma_px: None,
+            invariant_lines: sol.invariant_lines,
+            axes: None,
+            aligned_encoders: sol.aligned_encoders,
+            aligned_sigma_deg: p.sigmas,
+            verge_axes_measured: sol.verge_axes_measured,
+            predicted_elev_err_r_deg: sol.predicted_elev_err_r_deg,
+            roll_left_deg: sol.roll_left_deg,
+            roll_right_deg: sol.roll_right_deg,
+            undetermined: cal.undetermined.clone(),
+            report: None,
+            lens: None,
+            model_fit: None,
+            warnings,
+            files,
+            seconds,
+        })
+    }
+}
+
+/// The head's axes of `align` (`axes` of its JSON and of `head.json`): the pan and
+/// elevation axes `pan`, `elev` of the calibration `calib` (direction, the point in
+/// baselines, the direction's sigma in degrees) and the vergence axes where measured, in
+/// the left camera frame of the first view.
+pub fn head_axes_json(calib: &RigCalibration, pan: &Line, elev: &Line, verge: &VergeAxes) -> Value {
+    let axis = |line: &Line, index: usize| {
+        let c = &calib.bundle.covariance;
+        let dir_sigma = match (c.sigma(&format!("axis{index}.dir0")), c.sigma(&format!("axis{index}.dir1"))) {
+            (Some(a), Some(b)) => Some(a.hypot(b).to_degrees()),
+            _ => None,
+        };
+        json!({
+            "direction": [line.direction.x, line.direction.y, line.direction.z],
+            "point_baselines": [line.point.x, line.point.y, line.point.z],
+            "direction_sigma_deg": dir_sigma,
+        })
+    };
+    let verge_json = |line: &Option<Line>| match line {
+        Some(l) => {
+            json!({"direction": [l.direction.x, l.direction.y, l.direction.z], "point_baselines": [l.point.x, l.point.y, l.point.z]})
+        }
+        None => Value::Null,
+    };
+    json!({
+        "frame": "left camera of the first view; points in baselines",
+        "pan": axis(pan, 0),
+        "elevation": axis(elev, 1),
+        "verge_left": verge_json(&verge.left),
+        "verge_right": verge_json(&verge.right),
+    })
+}
+
 /// The file `alignment.json` of `align --out`, on either route (its format lives in
 /// `headalign-io`).
-pub use headalign_io::alignment_file::AlignmentFile;
+pub use crate::alignment_file::AlignmentFile;
 
 /// A calibrated camera of `calibrate`, pixels.
 #[derive(Debug, Clone, Serialize)]
@@ -429,6 +553,79 @@ pub struct CalibrateReport {
     pub stereo_rms_px: Option<f64>,
     pub files: Vec<String>,
     pub seconds: f64,
+}
+
+impl CalibrateReport {
+    /// The known-intrinsics route (`calibrate --intrinsics`): the views, the given lenses,
+    /// the rig from the undistorted views' stereo matches, and the wall time (seconds).
+    pub fn known_intrinsics(
+        views: Vec<String>,
+        lenses: &[LensModel; 2],
+        rig: &KnownIntrinsicsRig,
+        constraints: Constraints,
+        unit: TranslationUnit,
+        seconds: f64,
+    ) -> Self {
+        let f = rig.fundamental.0;
+        let distortion = [lenses[0].distortion, lenses[1].distortion];
+        Self {
+            schema: CALIBRATE,
+            route: "known intrinsics (no self-calibration)",
+            views,
+            skipped: Vec::new(),
+            left: CalibratedCamera::new(&lenses[0].k, |_| None),
+            right: CalibratedCamera::new(&lenses[1].k, |_| None),
+            right_from_left: rig_json(&rig.right_from_left),
+            distortion: distortion_json(&distortion, false, None),
+            constraints,
+            translation_unit: unit_name(unit),
+            report: None,
+            density: None,
+            fundamental_undistorted: Some(std::array::from_fn(|r| std::array::from_fn(|c| f[(r, c)]))),
+            stereo_matches: Some(rig.stereo_matches),
+            stereo_inliers: Some(rig.stereo_inliers),
+            stereo_rms_px: Some(rig.stereo_rms_px),
+            files: Vec::new(),
+            seconds,
+        }
+    }
+
+    /// The self-calibration route: the calibration `cal` with each camera's lens
+    /// (`distortion`, `lens_estimated` or given), the corner counts tried (`density`, none
+    /// for tracked points) and the wall time (seconds).
+    pub fn self_calibration(
+        cal: &MotionCalibration,
+        distortion: &[Distortion; 2],
+        lens_estimated: bool,
+        constraints: Constraints,
+        unit: TranslationUnit,
+        density: Option<&DensityReport>,
+        seconds: f64,
+    ) -> Result<Self, serde_json::Error> {
+        let st = &cal.bundle.state;
+        let c = &cal.bundle.covariance;
+        let sigma = |side: &'static str| move |p: &str| c.sigma(&format!("{side}.{p}"));
+        Ok(Self {
+            schema: CALIBRATE,
+            route: "self-calibration",
+            views: cal.report.views.clone(),
+            skipped: Vec::new(),
+            left: CalibratedCamera::new(&st.left, sigma("left")),
+            right: CalibratedCamera::new(&st.right, sigma("right")),
+            right_from_left: rig_json(&st.right_from_left),
+            distortion: distortion_json(distortion, lens_estimated, Some(c)),
+            constraints,
+            translation_unit: unit_name(unit),
+            report: Some(serde_json::to_value(&cal.report)?),
+            density: density.map(serde_json::to_value).transpose()?,
+            fundamental_undistorted: None,
+            stereo_matches: None,
+            stereo_inliers: None,
+            stereo_rms_px: None,
+            files: Vec::new(),
+            seconds,
+        })
+    }
 }
 
 impl Estimate {
@@ -539,7 +736,7 @@ impl Procedure {
             timings: Timings { estimation_s: o.3, total_s },
             views,
             images: None,
-            stages: vec![headalign_io::session::STAGE_VERGE_TILT.to_string()],
+            stages: vec![crate::session::STAGE_VERGE_TILT.to_string()],
             robot_stages: planar_route.then_some(ROBOT_STAGES_SKIPPED),
             robot: RobotOutcomes::default(),
             robot_tracking: None,
@@ -555,66 +752,6 @@ impl Procedure {
             self.robot = r.clone();
         }
         self
-    }
-}
-
-impl Errors {
-    /// The errors after the run: the alignment errors at the final readings, the right
-    /// camera's unavoidable part (`unavoidable_r`, degrees), the calibration errors, and
-    /// the pan and steering errors where a stage moved them.
-    pub fn new(
-        after: &AlignmentErrors,
-        unavoidable_r: f64,
-        cal: &CalibrationErrors,
-        recon_err_pct: Option<f64>,
-        pan_err_deg: Option<f64>,
-        steer_err_deg: Option<f64>,
-    ) -> Self {
-        Self {
-            verge_err_l_deg: after.verge_err_l_deg,
-            verge_err_r_deg: after.verge_err_r_deg,
-            elev_err_l_deg: after.elev_err_l_deg,
-            elev_err_r_deg: after.elev_err_r_deg,
-            elev_err_r_unavoidable_deg: unavoidable_r,
-            elev_err_r_excess_deg: after.elev_err_r_deg - unavoidable_r,
-            pan_err_deg,
-            steer_err_deg,
-            f_err_pct: cal.f_err_pct,
-            aspect_err_pct: cal.aspect_err_pct,
-            pp_err_pct: cal.pp_err_pct,
-            recon_err_pct,
-        }
-    }
-}
-
-impl Before {
-    /// The alignment, pan and steering errors at the start.
-    pub fn new(e: &AlignmentErrors, pan_err_deg: f64, steer_err_deg: f64) -> Self {
-        Self {
-            verge_err_l_deg: e.verge_err_l_deg,
-            verge_err_r_deg: e.verge_err_r_deg,
-            elev_err_l_deg: e.elev_err_l_deg,
-            elev_err_r_deg: e.elev_err_r_deg,
-            pan_err_deg,
-            steer_err_deg,
-        }
-    }
-}
-
-impl Truth {
-    /// The simulated robot's truth: its cameras, rendered lens and aligned readings.
-    pub fn of(robot: &SimulatedRobot, scenario: &Scenario) -> Result<Self, serde_json::Error> {
-        let head = robot.head();
-        let t = head.truth();
-        Ok(Self {
-            left: Camera::new(&t.left, |_| None),
-            right: Camera::new(&t.right, |_| None),
-            distortion: serde_json::to_value(scenario.render.distortion)?,
-            aligned_encoders: head.aligned_encoders(),
-            steer_zero_deg: robot.truth().steer_zero_deg,
-            wheelbase_m: robot.truth().wheelbase_m,
-            pan_tilt_deg: robot.truth().pan_tilt_deg(),
-        })
     }
 }
 
@@ -708,7 +845,11 @@ pub fn alignment_file(
 /// The members of an image-mode run on either route ([`Procedure`]): the
 /// estimate, checks and timings, and the front end's report (`images`); no robot stages
 /// ([`with_robot`] adds them).
-pub fn procedure_report(run: &ImageRun, route: &RouteOutcome, total_s: f64) -> anyhow::Result<Procedure> {
+pub fn procedure_report(
+    run: &ImageRun,
+    route: &RouteOutcome,
+    total_s: f64,
+) -> Result<Procedure, serde_json::Error> {
     let views = run.run.views.iter().map(|v| v.name.clone()).collect();
     let mut p = Procedure::new("images", route, views, run.auto_rotation, total_s)?;
     let (verdict, fit) = image_mode::judgement(run, route);
@@ -737,39 +878,4 @@ pub fn with_robot(
         p.robot_tracking = Some(serde_json::to_value(&r.tracking)?);
     }
     Ok(p)
-}
-/// The JSON of `demo --images` ([`DemoReport`]): the run's `procedure` (on `route`, with
-/// the robot stages' outcomes `stages`) against the simulated robot's truth after the
-/// run, and its errors `before` any stage.
-pub fn demo_images_report(
-    robot: &SimulatedRobot,
-    scenario: &Scenario,
-    route: &RouteOutcome,
-    procedure: Procedure,
-    stages: Option<&RobotOutcomes>,
-    before: Before,
-) -> anyhow::Result<DemoReport> {
-    let head = robot.head();
-    let after = head.alignment_errors(&head.encoders());
-    let truth = Truth::of(robot, scenario)?;
-    let (k_left, k_right) = match route {
-        RouteOutcome::General(o, _) => (o.calibration.bundle.state.left, o.calibration.bundle.state.right),
-        RouteOutcome::Planar(p) => (p.calibration.left.intrinsics, p.calibration.right.intrinsics),
-    };
-    let t = head.truth();
-    let cal = calibration_errors(&t.left, &t.right, &k_left, &k_right);
-    let unavoidable_r = head.alignment_errors(&truth.aligned_encoders).elev_err_r_deg;
-    let pan_after = stages.filter(|o| o.panned()).map(|_| robot.pan_err_deg(&head.encoders()));
-    let steer_after =
-        stages.and_then(|o| o.steering.as_ref()).map(|_| robot.steer_err_deg(robot.steering_encoder_deg()));
-    let aligned = procedure.estimate.aligned_encoders;
-    Ok(DemoReport {
-        schema: DEMO,
-        procedure,
-        scenario: serde_json::to_value(scenario)?,
-        errors: Errors::new(&after, unavoidable_r, &cal, None, pan_after, steer_after),
-        before,
-        aligned_reading_errors_deg: ReadingErrors::new(&aligned, &truth.aligned_encoders),
-        truth,
-    })
 }

@@ -25,7 +25,9 @@
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use super::ReportError;
+use crate::export::CalibrationFiles as _;
+use crate::session::RecordedView;
 use headalign::alignment::{AlignmentSolution, VergeAxes};
 use headalign::calibration::{IntrinsicSigmas, StereoCalibration, TranslationUnit};
 use headalign::facing_plane::SceneCheck;
@@ -35,11 +37,12 @@ use headalign::procedure::AlignmentSigmas;
 use headalign::procedure::{PlanarOutcome, RouteOutcome, VergeTiltOutcome};
 use headalign::verge_tilt::{RigCalibration, axes_of};
 use headalign_geometry::so3::Line;
-use headalign_io::export::CalibrationFiles as _;
-use headalign_io::session::RecordedView;
 use headalign_platform::{Encoders, Joint, StereoImages};
 use headalign_vision::draw::{Canvas, MAGENTA};
 use serde_json::{Map, Value};
+
+/// The result of building or writing a report.
+type Result<T> = std::result::Result<T, ReportError>;
 
 /// The file name the commands write.
 pub const REPORT_FILE: &str = "report.html";
@@ -168,7 +171,7 @@ impl HtmlReport {
     /// The calibration, head geometry, alignment and fit of a run.
     pub fn alignment_results(&mut self, r: &AlignmentResults) -> Result<()> {
         let stereo = StereoCalibration::from_rig(r.calibration, r.image_size, r.baseline_m)
-            .context("report: calibration")?;
+            .map_err(|source| ReportError::Step { what: "report: calibration", source })?;
         self.stereo_calibration(&stereo);
         self.head(r)?;
         self.alignment(r);
@@ -252,7 +255,7 @@ impl HtmlReport {
     }
 
     fn head(&mut self, r: &AlignmentResults) -> Result<()> {
-        let (pan, elev) = axes_of(&r.calibration.bundle.state).context("report: head axes")?;
+        let (pan, elev) = axes_of(&r.calibration.bundle.state).ok_or(ReportError::HeadAxes)?;
         let cov = &r.calibration.bundle.covariance;
         let dir_sigma =
             |i: usize| match (cov.sigma(&format!("axis{i}.dir0")), cov.sigma(&format!("axis{i}.dir1"))) {
@@ -434,7 +437,8 @@ impl HtmlReport {
 
     /// Write the page to `path`.
     pub fn write(&self, path: &Path) -> Result<()> {
-        std::fs::write(path, self.to_html()).with_context(|| format!("cannot write {}", path.display()))
+        std::fs::write(path, self.to_html())
+            .map_err(|source| ReportError::Write { path: path.to_path_buf(), source })
     }
 }
 
@@ -628,7 +632,7 @@ fn view_links(dir: &Path) -> Vec<(String, String)> {
     let mut folders: Vec<String> = std::fs::read_dir(dir)
         .map(|entries| {
             entries
-                .filter_map(Result::ok)
+                .filter_map(std::result::Result::ok)
                 .filter(|e| e.path().join("view.json").is_file())
                 .filter_map(|e| e.file_name().to_str().map(str::to_string))
                 .collect()
@@ -690,7 +694,7 @@ fn write_planar_report(
 fn write_calibration_files(dir: &Path, run: &ImageRun, outcome: &VergeTiltOutcome) -> Result<Vec<PathBuf>> {
     let image_size = run.images.first().map_or([0, 0], StereoImages::image_size);
     let stereo = headalign::calibration::StereoCalibration::from_rig(&outcome.calibration, image_size, None)
-        .context("calibration files")?;
+        .map_err(|source| ReportError::Step { what: "calibration files", source })?;
     Ok(stereo.write_all(&dir.join("calibration"))?)
 }
 
