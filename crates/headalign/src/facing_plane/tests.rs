@@ -121,6 +121,10 @@ fn the_noisy_wall_fit_is_its_least_squares_minimum() {
         for side in [Side::Left, Side::Right] {
             let (truth, regular) = (fit(&exact, side), fit(&views, side));
             let (c_regular, c_restart, restart) = refine::restart_from(&regular, &truth, &options);
+            eprintln!(
+                "seed {seed} {side:?}: cost {c_regular} restart {c_restart} rel {:e}",
+                (c_restart - c_regular) / c_regular
+            );
             assert!(
                 (c_restart - c_regular).abs() < 1e-4 * c_regular,
                 "seed {seed} {side:?}: {c_regular} {c_restart}"
@@ -133,6 +137,7 @@ fn the_noisy_wall_fit_is_its_least_squares_minimum() {
         for (x, y) in
             [(a.elevation, b.elevation), (a.verge_left, b.verge_left), (a.verge_right, b.verge_right)]
         {
+            eprintln!("seed {seed}: reading difference {:e}", x - y);
             assert!((x - y).abs() < 0.05, "seed {seed}: {a:?} vs {b:?}");
         }
     }
