@@ -145,7 +145,7 @@ pub fn options(args: &CalibrateArgs) -> CalibrateOptions {
 pub fn lens_choice(args: &CalibrateArgs) -> LensChoice {
     match args.lens {
         Some(l) => l,
-        None if args.estimate_distortion => LensChoice::Model(LensKind::RadialTangential),
+        None if args.estimate_distortion => LensChoice::Model(LensKind::default()),
         None if args.distortion.is_some() || args.lens_from.is_some() || args.intrinsics.is_some() => {
             LensChoice::Pinhole
         }
@@ -747,7 +747,10 @@ mod tests {
         assert!(err(&pinhole.stereo) > 0.1, "pinhole fx {}", pinhole.stereo.left.fx);
         assert!(err(&est.stereo) < 0.02, "fx {} vs {}", est.stereo.left.fx, t.left.fx);
         for d in est.stereo.distortion {
-            assert!((d.k1 + 0.2).abs() < 0.02 && (d.k2 - 0.05).abs() < 0.03, "{d:?}");
+            assert!(
+                (d.param("k1").unwrap() + 0.2).abs() < 0.02 && (d.param("k2").unwrap() - 0.05).abs() < 0.03,
+                "{d:?}"
+            );
         }
         assert_eq!(pinhole.stereo.distortion, [Distortion::default(); 2]);
     }

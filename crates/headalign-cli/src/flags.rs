@@ -9,7 +9,7 @@ use std::path::PathBuf;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::LensChoice;
-use headalign_geometry::distortion::{DistortionTerms, LensKind};
+use headalign_geometry::distortion::DistortionTerms;
 use headalign_sim::Scenario;
 
 /// An error naming each flag of `given` (flag, whether given) that was given: "`--a, --b`
@@ -24,17 +24,31 @@ pub fn refuse(given: &[(&str, bool)], only_to: &str) -> Result<()> {
 }
 
 /// An error when `--lens-terms` come without a lens model to estimate (the pinhole
-/// estimates none: the flag would be ignored), or ask the equidistant model for the
-/// radial-tangential `k3` (`5`: it has four coefficients, and would silently estimate
-/// those of `4`).
+/// estimates none: the flag would be ignored), or ask a model for a level of terms that
+/// adds none to the level before while the model has levels (the equidistant model's `5`:
+/// it has four coefficients, and would silently estimate those of `4`).
 pub fn check_lens_terms(lens: LensChoice, terms: Option<DistortionTerms>) -> Result<()> {
     if lens == LensChoice::Pinhole && terms.is_some() {
         bail!("--lens-terms needs a lens model to estimate (--lens radtan, equidistant or auto)");
     }
-    if lens == LensChoice::Model(LensKind::Equidistant) && terms == Some(DistortionTerms::Full5) {
-        bail!(
-            "--lens-terms 5 adds the radial-tangential k3; the equidistant model has four coefficients (--lens-terms 4)"
-        );
+    if let (Some(kind), Some(terms)) = (lens.kind(), terms) {
+        let m = kind.model();
+        let levels = DistortionTerms::LEVELS;
+        let below = levels.iter().rev().find(|t| t.count() < terms.count());
+        let nested = m.estimated(DistortionTerms::Radial2) < m.param_names().len();
+        if let Some(&below) = below
+            && nested
+            && m.estimated(terms) == m.estimated(below)
+        {
+            bail!(
+                "--lens-terms {} adds no coefficient to the {} model, which has {} ({}; --lens-terms {})",
+                terms.count(),
+                m.names().short,
+                m.param_names().len(),
+                m.param_names().join(" "),
+                below.count()
+            );
+        }
     }
     Ok(())
 }

@@ -63,6 +63,7 @@
 
 use std::fmt::Write as _;
 use std::path::Path;
+use std::sync::LazyLock;
 use std::time::Instant;
 
 use anyhow::{Context, Result, anyhow, bail};
@@ -79,6 +80,8 @@ use serde_json::json;
 use super::ExperimentArgs;
 use super::plot::{Curve, write_plots};
 use super::stats::{coverage_in_bar, coverage_interval, rms};
+
+mod wide;
 
 /// The experiment's name.
 pub const NAME: &str = "lens";
@@ -111,38 +114,21 @@ pub struct Lens {
 /// - `fisheye`: equidistant `k1..k4 = 0.0034823894, 0.00071503485, -0.0020532361,
 ///   0.00020293674` (TUM VI's cam0 `pinhole-equi` calibration, a 195 deg fisheye), all
 ///   four estimated (`DistortionTerms::Full4`, Kalibr's `equidistant`).
-pub const LENSES: [Lens; 2] = [
-    Lens {
-        label: "radtan",
-        distortion: Distortion {
-            kind: headalign_geometry::distortion::LensKind::RadialTangential,
-            k1: -0.3,
-            k2: 0.08,
-            p1: 0.0,
-            p2: 0.0,
-            k3: 0.0,
-            k4: 0.0,
-            xi: 0.0,
-            alpha: 0.0,
+pub static LENSES: LazyLock<[Lens; 2]> = LazyLock::new(|| {
+    [
+        Lens { label: "radtan", distortion: Distortion::radial(-0.3, 0.08), terms: DistortionTerms::Radial2 },
+        Lens {
+            label: "fisheye",
+            distortion: Distortion::equidistant([
+                0.003_482_389_4,
+                0.000_715_034_85,
+                -0.002_053_236_1,
+                0.000_202_936_74,
+            ]),
+            terms: DistortionTerms::Full4,
         },
-        terms: DistortionTerms::Radial2,
-    },
-    Lens {
-        label: "fisheye",
-        distortion: Distortion {
-            kind: headalign_geometry::distortion::LensKind::Equidistant,
-            k1: 0.003_482_389_4,
-            k2: 0.000_715_034_85,
-            p1: 0.0,
-            p2: 0.0,
-            k3: -0.002_053_236_1,
-            k4: 0.000_202_936_74,
-            xi: 0.0,
-            alpha: 0.0,
-        },
-        terms: DistortionTerms::Full4,
-    },
-];
+    ]
+});
 
 impl Lens {
     /// The reported quantities: the four focal lengths, then each camera's estimated
@@ -188,21 +174,16 @@ struct Trial {
     result: Result<Outcome, String>,
 }
 
-/// The true value of a quantity named as in [`Lens::quantities`].
+/// The true value of a quantity named as in [`Lens::quantities`] (a lens parameter by the
+/// name its model gives it).
 fn truth_of(name: &str, left: &Intrinsics, right: &Intrinsics, d: &Distortion) -> Option<f64> {
     let (side, what) = name.split_once('.')?;
     let k = if side == "left" { left } else { right };
-    Some(match what {
-        "fx" => k.fx,
-        "fy" => k.fy,
-        "k1" => d.k1,
-        "k2" => d.k2,
-        "p1" => d.p1,
-        "p2" => d.p2,
-        "k3" => d.k3,
-        "k4" => d.k4,
-        _ => return None,
-    })
+    match what {
+        "fx" => Some(k.fx),
+        "fy" => Some(k.fy),
+        _ => d.param(what),
+    }
 }
 
 /// The estimate of a quantity in a calibrated state.
@@ -349,11 +330,11 @@ fn f(v: f64, digits: usize) -> String {
     if v.is_finite() { format!("{v:.digits$}") } else { "-".into() }
 }
 
-/// The CSV: one row per trial, the quantities of both lenses as columns (NaN where the
-/// trial's lens has none).
-fn write_csv(path: &Path, trials: &[Trial]) -> Result<()> {
+/// The CSV: one row per trial, the quantities of every lens of `lenses` as columns (NaN
+/// where the trial's lens has none; a trial's `lens` indexes `lenses`).
+fn write_csv(path: &Path, trials: &[Trial], lenses: &[Lens]) -> Result<()> {
     let mut all: Vec<String> = Vec::new();
-    for l in &LENSES {
+    for l in lenses {
         for q in l.quantities() {
             if !all.contains(&q) {
                 all.push(q);
@@ -366,7 +347,7 @@ fn write_csv(path: &Path, trials: &[Trial]) -> Result<()> {
     }
     s.push('\n');
     for t in trials {
-        let lens = &LENSES[t.lens];
+        let Some(lens) = lenses.get(t.lens) else { continue };
         let _ = write!(s, "{NAME},{},{},{},", lens.label, t.noise_px, t.seed);
         match &t.result {
             Ok(o) => {
@@ -570,9 +551,17 @@ fn refuse_tuning(args: &ExperimentArgs) -> Result<()> {
     Ok(())
 }
 
-/// Run the experiment and write its files (module docs); returns the output stem, the
-/// Markdown summary and the summaries.
-fn run_files(args: &ExperimentArgs) -> Result<(String, String, Vec<Summary>)> {
+/// What [`run_files`] ran: the output stem, the Markdown summary, the summaries of the
+/// narrow conditions and that of the wide one (when it ran).
+struct Ran {
+    stem: String,
+    md: String,
+    sums: Vec<Summary>,
+    wide: Option<wide::WideSummary>,
+}
+
+/// Run the experiment and write its files (module docs).
+fn run_files(args: &ExperimentArgs) -> Result<Ran> {
     refuse_tuning(args)?;
     let preset = Scenario::preset(&args.scene).map_err(|e| anyhow!("{e}"))?;
     let levels: Vec<f64> = if args.only.is_empty() { DEFAULT_NOISE_PX.to_vec() } else { args.only.clone() };
@@ -612,7 +601,7 @@ fn run_files(args: &ExperimentArgs) -> Result<(String, String, Vec<Summary>)> {
             summarise(l, n, &mine)
         })
         .collect();
-    write_csv(&args.out.join(format!("{stem}.csv")), &trials)?;
+    write_csv(&args.out.join(format!("{stem}.csv")), &trials, &*LENSES)?;
     write_plots(
         &args.out.join(&stem),
         "Lens models estimated by calibrate: median error and sigma vs noise",
@@ -620,29 +609,39 @@ fn run_files(args: &ExperimentArgs) -> Result<(String, String, Vec<Summary>)> {
         "median |error| (%, k1 x 100)",
         &curves(&sums),
     )?;
+    // The wide condition (its own CSV: `lens.csv` keeps the narrow conditions' columns).
+    let wide = levels.contains(&wide::WIDE_NOISE_PX).then(|| wide::run_trials(&preset, seeds, args.seed));
+    let wide_csv = format!("{stem}-wide.csv");
+    if let Some(trials) = &wide {
+        write_csv(&args.out.join(&wide_csv), trials, &[wide::lens()])?;
+    }
+    let wide = wide.map(|trials| wide::summarise(&trials));
     let mut md = markdown(seeds, args.seed, &Scenario { rotation_deg: rotation, ..preset }, &sums, seconds);
     if args.scene != "default" {
         md = md.replace(&format!("]({NAME}.png)"), &format!("]({stem}.png)"));
     }
+    if let Some(w) = &wide {
+        md.push_str(&wide::markdown(w, args.seed, &wide_csv));
+    }
     std::fs::write(args.out.join(format!("{stem}.md")), &md)
         .with_context(|| format!("cannot write {stem}.md"))?;
-    Ok((stem, md, sums))
+    Ok(Ran { stem, md, sums, wide })
 }
 
 /// The lens experiment's part of `experiment all` ([`super::run`]): its files, and its
 /// Markdown summary for `results.md` (output stem, summary).
 pub fn run_for_all(args: &ExperimentArgs) -> Result<(String, String)> {
-    let (stem, md, _) = run_files(args)?;
-    Ok((stem, md))
+    let ran = run_files(args)?;
+    Ok((ran.stem, ran.md))
 }
 
 /// Entry point of `headalign experiment lens`.
 pub fn run(args: &ExperimentArgs) -> Result<()> {
-    let (_, md, sums) = run_files(args)?;
+    let Ran { md, sums, wide, .. } = run_files(args)?;
     use std::io::Write as _;
     let mut stdout = std::io::stdout();
     if args.json {
-        let v: Vec<_> = sums
+        let mut v: Vec<_> = sums
             .iter()
             .map(|s| {
                 let cov: serde_json::Map<String, serde_json::Value> = LENSES[s.lens]
@@ -656,6 +655,20 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
                     "k1_sigma": s.k1_sigma, "f_median_pct": s.f_median_pct, "k1_median": s.k1_median, "coverage": cov})
             })
             .collect();
+        if let Some(w) = &wide {
+            let cov: serde_json::Map<String, serde_json::Value> = wide::lens()
+                .quantities()
+                .into_iter()
+                .zip(&w.coverage_counts)
+                .map(|(n, &(h, t))| {
+                    (n, if t > 0 { json!(h as f64 / t as f64) } else { serde_json::Value::Null })
+                })
+                .collect();
+            let spread = |s: &wide::Spread| json!({"rms": s.rms, "median": s.median, "sigma_rms": s.sigma_rms, "sigma_median": s.sigma_median});
+            v.push(json!({"lens": wide::lens().label, "noise_px": wide::WIDE_NOISE_PX, "ok": w.ok, "total": w.total,
+                "f_pct": spread(&w.focal_pct), "xi": spread(&w.xi), "alpha": spread(&w.alpha), "bar_met": w.bar_met,
+                "coverage": cov}));
+        }
         let _ = writeln!(stdout, "{}", serde_json::to_string_pretty(&v)?);
     } else {
         let _ = writeln!(stdout, "{md}");

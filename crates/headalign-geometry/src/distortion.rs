@@ -1,7 +1,7 @@
 //! A camera's lens model and its parameters ([`Distortion`]: a [`LensKind`] and the
-//! parameter values), dispatched through the table of [`crate::lens`]: the pinhole,
-//! radial-tangential (OpenCV `plumb_bob`), equidistant (OpenCV `fisheye`) and double-sphere
-//! (Kalibr `ds`) models, each in its own file there.
+//! parameter values), dispatched through the table of [`crate::lens`] (every model in its
+//! own file there; this module names none of them but in the conveniences
+//! [`Distortion::radial`], [`Distortion::equidistant`] and [`Distortion::double_sphere`]).
 //!
 //! What it computes: the maps between the pinhole plane `x = K^-1 p` and the model's image
 //! plane `m` ([`Distortion::distort`], [`Distortion::undistort`]), with Jacobians, for the
@@ -13,10 +13,13 @@
 //! pinhole.
 //!
 //! Degrees of freedom: the model's parameters ([`LensKind::coefficient_names`]); which of
-//! them a bundle adjustment estimates is [`DistortionTerms`]. Storage: every model's
-//! parameters live in the eight slots `k1 k2 p1 p2 k3 k4 xi alpha` ([`Distortion::slots`],
-//! the table's [`crate::lens::LensModel::slots`]); the JSON form names them (`xi`, `alpha`
-//! appear only when non-zero, so files without them read as before).
+//! them a bundle adjustment estimates is [`DistortionTerms`]. Storage: the model's
+//! parameters in its order ([`Distortion::params`], zero-padded to
+//! [`crate::lens::MAX_PARAMS`]). The JSON form names them: `kind`, then `k1 k2 p1 p2 k3
+//! k4` always (zero where the model has no such parameter: the form older files and
+//! readers have), then the model's other parameters where non-zero ([`LEGACY_NAMES`],
+//! [`Distortion::named_values`]); a file naming a non-zero parameter its model lacks is
+//! an error.
 //!
 //! Units: parameters are dimensionless (normalised coordinates; the equidistant ones
 //! multiply powers of an angle in radians); pixels outside.
@@ -27,271 +30,184 @@
 //! but no undistorted pixel (an error, never a folded point). Where a model's map folds
 //! over it is an error, never a wrong point. The radial-tangential and equidistant `k1`
 //! are different numbers for the same lens: the equidistant one includes the
-//! `-1/3 theta^2` of `atan`.
+//! `-1/3 theta^2` of `atan`. Setting [`Distortion::kind`] directly reinterprets the
+//! parameters in the other model's order: build another model's lens with
+//! [`Distortion::from_params`].
 
-use nalgebra::{Matrix2, Point2, SMatrix, Vector2, Vector3};
+use nalgebra::{Matrix2, Point2, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Intrinsics;
-pub use crate::lens::LensKind;
 use crate::lens::{self, MAX_PARAMS, ParamJacobian, Params};
+pub use crate::lens::{DistortionTerms, LensKind};
 use crate::{GeometryError, Result};
 
 /// A camera's lens: the model `kind` and its parameters (all zero in the radial-tangential
 /// model is the pinhole; in the equidistant model it is the ideal equidistant lens
 /// `theta_d = theta`; in the double sphere it projects as the pinhole but is not treated
 /// as one: [`Distortion::is_zero`] is false).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Distortion {
     /// The model (default radial-tangential; older files without it are radial-tangential).
-    #[serde(default)]
     pub kind: LensKind,
-    /// Radial: `r^2` (radial-tangential) or `theta^3` (equidistant).
-    pub k1: f64,
-    /// Radial: `r^4` or `theta^5`.
-    pub k2: f64,
-    /// Tangential (radial-tangential only).
-    pub p1: f64,
-    /// Tangential (radial-tangential only).
-    pub p2: f64,
-    /// Radial: `r^6` or `theta^7`.
-    pub k3: f64,
-    /// Radial `theta^9` (equidistant only).
-    #[serde(default)]
-    pub k4: f64,
-    /// Double sphere: the shift of the second sphere (zero in the other models).
-    #[serde(default, skip_serializing_if = "is_zero_f64")]
-    pub xi: f64,
-    /// Double sphere: the shift of the pinhole, `alpha / (1 - alpha)` (zero in the other
-    /// models).
-    #[serde(default, skip_serializing_if = "is_zero_f64")]
-    pub alpha: f64,
+    /// The model's parameters in its order, zero beyond its count.
+    params: Params,
 }
 
-fn is_zero_f64(v: &f64) -> bool {
-    *v == 0.0
-}
-
-/// Which coefficients a bundle adjustment estimates (the others are held at their
-/// values, usually zero).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub enum DistortionTerms {
-    /// `k1, k2` (radial-tangential, equidistant; the default: the tangential terms are
-    /// nearly degenerate with the principal point unless the data are strong); the double
-    /// sphere's `xi, alpha`.
-    Radial2,
-    /// `k1, k2, p1, p2` (radial-tangential: Kalibr's `radtan`) or `k1..k4` (equidistant:
-    /// Kalibr's `equidistant`); the double sphere's `xi, alpha`.
-    Full4,
-    /// `k1, k2, p1, p2, k3` (radial-tangential; the others as [`Self::Full4`]).
-    Full5,
-}
-
-impl DistortionTerms {
-    /// The estimated parameters of a `kind` lens, as indices of its parameters
-    /// ([`LensKind::coefficient_names`]).
-    pub fn params(self, kind: LensKind) -> &'static [usize] {
-        const ALL: [usize; MAX_PARAMS] = [0, 1, 2, 3, 4, 5];
-        let n = kind.model().param_names().len();
-        let wanted = match (self, kind) {
-            (_, LensKind::Pinhole) => 0,
-            (_, LensKind::DoubleSphere) => 2,
-            (DistortionTerms::Radial2, _) => 2,
-            (DistortionTerms::Full4, _) => 4,
-            (DistortionTerms::Full5, _) => 5,
-        };
-        &ALL[..wanted.min(n)]
-    }
-
-    /// The estimated parameters' slots of [`Distortion::slots`] in a `kind` lens.
-    pub fn slots(self, kind: LensKind) -> &'static [usize] {
-        // The estimated parameters are always the model's first ones.
-        let slots = kind.model().slots();
-        &slots[..self.params(kind).len().min(slots.len())]
-    }
-
-    /// Parse `k1k2` / `radial` (radial terms), `4` / `full4`, `5` / `full5`.
-    pub fn parse(name: &str) -> Option<Self> {
-        match name.trim().to_ascii_lowercase().as_str() {
-            "radial" | "2" | "k1k2" | "radial2" => Some(Self::Radial2),
-            "4" | "full4" => Some(Self::Full4),
-            "5" | "full5" => Some(Self::Full5),
-            _ => None,
-        }
-    }
-}
-
-/// The names of the eight storage slots of [`Distortion::slots`].
-pub const SLOT_NAMES: [&str; 8] = ["k1", "k2", "p1", "p2", "k3", "k4", "xi", "alpha"];
+/// The parameter names every JSON form writes, zero where the model lacks them (the
+/// radial-tangential and equidistant names: the form of older files; module docs).
+pub const LEGACY_NAMES: [&str; 6] = ["k1", "k2", "p1", "p2", "k3", "k4"];
 
 impl Distortion {
+    /// A `kind` lens with the parameters `params` in its order (entries beyond its count
+    /// are dropped; not validated: [`Self::validate`]).
+    pub fn from_params(kind: LensKind, params: Params) -> Self {
+        Self { kind, params }.masked()
+    }
+
+    /// Entries beyond the model's parameter count set to zero.
+    fn masked(mut self) -> Self {
+        let n = self.kind.model().param_names().len();
+        for v in self.params.iter_mut().skip(n) {
+            *v = 0.0;
+        }
+        self
+    }
+
     /// Radial-tangential, radial terms only.
     pub fn radial(k1: f64, k2: f64) -> Self {
-        Self { k1, k2, ..Self::default() }
+        Self::from_params(LensKind::RadialTangential, [k1, k2, 0.0, 0.0, 0.0, 0.0])
     }
 
     /// Equidistant with `k1..k4`.
     pub fn equidistant(k: [f64; 4]) -> Self {
-        Self { kind: LensKind::Equidistant, k1: k[0], k2: k[1], k3: k[2], k4: k[3], ..Self::default() }
+        Self::from_params(LensKind::Equidistant, [k[0], k[1], k[2], k[3], 0.0, 0.0])
     }
 
     /// Double sphere with `xi` and `alpha`.
     pub fn double_sphere(xi: f64, alpha: f64) -> Self {
-        Self { kind: LensKind::DoubleSphere, xi, alpha, ..Self::default() }
+        Self::from_params(LensKind::DoubleSphere, [xi, alpha, 0.0, 0.0, 0.0, 0.0])
     }
 
     /// All coefficients zero in the model `kind`.
     pub fn zero(kind: LensKind) -> Self {
-        Self { kind, ..Self::default() }
+        Self { kind, params: [0.0; MAX_PARAMS] }
     }
 
     /// From OpenCV's `D` vector of the `plumb_bob` model (4 or 5 entries: `k1 k2 p1 p2
     /// [k3]`; more entries are OpenCV's rational or thin-prism models, which headalign does
     /// not have: an error unless they are all zero).
     pub fn from_opencv(d: &[f64]) -> Result<Self> {
-        if d.len() < 4 {
-            return Err(GeometryError::InvalidOption(format!(
-                "a distortion vector needs at least 4 coefficients (k1 k2 p1 p2 [k3]), got {}",
-                d.len()
-            )));
-        }
-        if d.iter().skip(5).any(|&v| v != 0.0) {
-            return Err(GeometryError::InvalidOption(format!(
-                "{} distortion coefficients with non-zero entries beyond k3: OpenCV's rational_polynomial (k1 k2 p1 p2 k3 k4 k5 k6) or thin-prism model, which headalign does not support (use plumb_bob or fisheye)",
-                d.len()
-            )));
-        }
-        let out = Self {
-            k1: d[0],
-            k2: d[1],
-            p1: d[2],
-            p2: d[3],
-            k3: d.get(4).copied().unwrap_or(0.0),
-            ..Self::default()
-        };
-        out.validate()?;
-        Ok(out)
+        Self::from_coefficients(LensKind::RadialTangential, d)
     }
 
     /// From a model and its coefficient vector in the order of
-    /// [`LensKind::coefficient_names`] (radial-tangential: 4 or 5 entries, OpenCV's `D`;
-    /// the others exactly their count).
+    /// [`LensKind::coefficient_names`] (the model's
+    /// [`crate::lens::LensModel::read_coefficients`]: radial-tangential 4 or 5 entries,
+    /// OpenCV's `D`; the others exactly their count), validated.
     pub fn from_coefficients(kind: LensKind, d: &[f64]) -> Result<Self> {
-        if kind == LensKind::RadialTangential {
-            return Self::from_opencv(d);
-        }
-        let model = kind.model();
-        let names = model.param_names();
-        if d.len() != names.len() {
-            return Err(GeometryError::InvalidOption(format!(
-                "a {} lens has {} coefficients {}, got {}",
-                model.names().short,
-                names.len(),
-                names.join(" "),
-                d.len()
-            )));
-        }
-        let mut out = Self::zero(kind);
-        for (&slot, &v) in model.slots().iter().zip(d) {
-            if let Some(o) = out.slot_mut(slot) {
-                *o = v;
-            }
-        }
+        let out = Self { kind, params: kind.model().read_coefficients(d)? }.masked();
         out.validate()?;
         Ok(out)
     }
 
+    /// From a model and named values (the JSON / TOML forms: any of the model's parameter
+    /// names; a name of [`LEGACY_NAMES`] the model lacks only with the value zero; any
+    /// other name an error). Not validated.
+    pub fn from_named_values<'a>(
+        kind: LensKind,
+        values: impl IntoIterator<Item = (&'a str, f64)>,
+    ) -> Result<Self> {
+        let names = kind.model().param_names();
+        let mut out = Self::zero(kind);
+        for (name, v) in values {
+            match names.iter().position(|n| *n == name) {
+                Some(i) => out.params[i] = v,
+                None if LEGACY_NAMES.contains(&name) && v == 0.0 => {}
+                None => {
+                    return Err(GeometryError::InvalidOption(format!(
+                        "a {} lens has no coefficient {name} (its coefficients: {})",
+                        kind.model().names().short,
+                        names.join(" ")
+                    )));
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// The named values of the JSON form (module docs): [`LEGACY_NAMES`] always (zero
+    /// where the model lacks them), then the model's other parameters where non-zero.
+    pub fn named_values(&self) -> Vec<(&'static str, f64)> {
+        let mut out: Vec<(&'static str, f64)> =
+            LEGACY_NAMES.iter().map(|&n| (n, self.param(n).unwrap_or(0.0))).collect();
+        let names = self.kind.model().param_names();
+        for (&n, &v) in names.iter().zip(&self.params) {
+            if !LEGACY_NAMES.contains(&n) && v != 0.0 {
+                out.push((n, v));
+            }
+        }
+        out
+    }
+
     /// As OpenCV's 5-vector `k1 k2 p1 p2 k3` (radial-tangential; another model gives its
-    /// slots `k1 k2 p1 p2 k3`, which is not its model: use [`Self::coefficients`]).
+    /// parameters of those names, zero where it has none, which is not its model: use
+    /// [`Self::coefficients`]).
     pub fn to_opencv(&self) -> [f64; 5] {
-        [self.k1, self.k2, self.p1, self.p2, self.k3]
+        ["k1", "k2", "p1", "p2", "k3"].map(|n| self.param(n).unwrap_or(0.0))
     }
 
     /// The model's coefficient vector, in the order of [`LensKind::coefficient_names`]
     /// (OpenCV's `D` of `plumb_bob` or of `fisheye`; `xi alpha` of the double sphere).
     pub fn coefficients(&self) -> Vec<f64> {
         let n = self.kind.model().param_names().len();
-        self.params()[..n].to_vec()
+        self.params[..n.min(MAX_PARAMS)].to_vec()
     }
 
     /// The model's parameters in its order, zero-padded (the table's [`Params`]).
     pub fn params(&self) -> Params {
-        let slots = self.slots();
-        let mut p = [0.0; MAX_PARAMS];
-        for (o, &s) in p.iter_mut().zip(self.kind.model().slots()) {
-            *o = slots.get(s).copied().unwrap_or(0.0);
-        }
-        p
+        self.params
     }
 
-    /// Mutable access to the model's parameter `i` (order of [`Self::coefficients`]).
+    /// The model's parameter named `name` (`None`: the model has no such parameter).
+    pub fn param(&self, name: &str) -> Option<f64> {
+        let i = self.kind.model().param_names().iter().position(|n| *n == name)?;
+        self.params.get(i).copied()
+    }
+
+    /// Mutable access to the model's parameter `i` (order of [`Self::coefficients`];
+    /// `None` beyond its count).
     pub fn param_mut(&mut self, i: usize) -> Option<&mut f64> {
-        let slot = *self.kind.model().slots().get(i)?;
-        self.slot_mut(slot)
-    }
-
-    /// All eight storage slots `k1 k2 p1 p2 k3 k4 xi alpha` ([`SLOT_NAMES`]).
-    pub fn slots(&self) -> [f64; 8] {
-        [self.k1, self.k2, self.p1, self.p2, self.k3, self.k4, self.xi, self.alpha]
-    }
-
-    /// Mutable access to slot `i` of [`Self::slots`] (`None` beyond 7).
-    pub fn slot_mut(&mut self, i: usize) -> Option<&mut f64> {
-        match i {
-            0 => Some(&mut self.k1),
-            1 => Some(&mut self.k2),
-            2 => Some(&mut self.p1),
-            3 => Some(&mut self.p2),
-            4 => Some(&mut self.k3),
-            5 => Some(&mut self.k4),
-            6 => Some(&mut self.xi),
-            7 => Some(&mut self.alpha),
-            _ => None,
+        if i >= self.kind.model().param_names().len() {
+            return None;
         }
+        self.params.get_mut(i)
     }
 
-    /// The slot of the model's `i`-th coefficient (order of [`Self::coefficients`]).
-    pub fn slot_of(kind: LensKind, i: usize) -> Option<usize> {
-        kind.model().slots().get(i).copied()
+    /// Mutable access to the model's parameter named `name`.
+    pub fn param_named_mut(&mut self, name: &str) -> Option<&mut f64> {
+        let i = self.kind.model().param_names().iter().position(|n| *n == name)?;
+        self.params.get_mut(i)
     }
 
-    /// Every coefficient finite, no slot set that the model does not have, and the
-    /// model's own rules (the double sphere's range).
+    /// Every coefficient finite, and the model's own rules (the double sphere's range).
     pub fn validate(&self) -> Result<()> {
-        if !self.slots().iter().all(|v| v.is_finite()) {
+        if !self.params.iter().all(|v| v.is_finite()) {
             return Err(GeometryError::InvalidOption("distortion coefficients must be finite".into()));
         }
-        let model = self.kind.model();
-        let foreign: Vec<&str> = self
-            .slots()
-            .iter()
-            .enumerate()
-            .filter(|(i, v)| **v != 0.0 && !model.slots().contains(i))
-            .filter_map(|(i, _)| SLOT_NAMES.get(i).copied())
-            .collect();
-        if !foreign.is_empty() {
-            return Err(GeometryError::InvalidOption(format!(
-                "a {:?} lens has no coefficient {}",
-                self.kind,
-                foreign.join("/")
-            )));
-        }
-        model.check_params(&self.params())
+        self.kind.model().check_params(&self.params)
     }
 
     /// True for the pinhole (the pinhole model, or a radial-tangential lens with every
     /// coefficient zero; an equidistant or double-sphere lens never is one).
     pub fn is_zero(&self) -> bool {
-        match self.kind.model().pinhole_params() {
-            Some(p) => self.slots().iter().all(|&v| v == 0.0) && self.params() == p,
-            None => false,
-        }
+        self.kind.model().pinhole_params() == Some(self.params)
     }
 
     /// The image-plane point `m` of a ray in the camera frame (`None` outside the model's
     /// validity region; [`crate::lens::LensModel::project`]).
     pub fn project(&self, ray: &Vector3<f64>) -> Option<Vector2<f64>> {
-        self.kind.model().project(&self.params(), ray)
+        self.kind.model().project(&self.params, ray)
     }
 
     /// The unit bearing of an image-plane point `m` ([`crate::lens::LensModel::unproject`]).
@@ -299,7 +215,7 @@ impl Distortion {
         if !(m.x.is_finite() && m.y.is_finite()) {
             return Err(GeometryError::InvalidOption("non-finite point to unproject".into()));
         }
-        self.kind.model().unproject(&self.params(), m)
+        self.kind.model().unproject(&self.params, m)
     }
 
     /// The pixel of a ray in the camera frame through `k` and this lens.
@@ -320,29 +236,10 @@ impl Distortion {
     }
 
     /// Distorted normalised coordinates, `d x_d / d x`, and `d x_d / d parameter` (columns
-    /// in the order of [`Self::coefficients`]; columns beyond the model's parameters zero).
+    /// in the order of [`Self::coefficients`]; columns beyond the model's parameters zero):
+    /// the model's [`crate::lens::LensModel::distort`].
     pub fn distort_with_jacobians(&self, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>, ParamJacobian) {
-        let p = self.params();
-        match self.kind {
-            LensKind::RadialTangential => {
-                let (xd, j) = lens::radtan::distort(&p, x);
-                (xd, j, lens::radtan::coefficient_jacobian(x))
-            }
-            LensKind::Equidistant => lens::equidistant::distort(&p, x),
-            // The other models through their ray projection at (x, y, 1), K = identity.
-            _ => {
-                let model = self.kind.model();
-                let ray = Vector3::new(x.x, x.y, 1.0);
-                let unit = Intrinsics::new(1.0, 1.0, 0.0, 0.0);
-                match model.linearise(&unit, &p, &ray) {
-                    Some(l) => {
-                        let j = l.d_ray.fixed_view::<2, 2>(0, 0).into_owned();
-                        (l.m, j, model.param_jacobian(&unit, &p, &ray, &[true; MAX_PARAMS]))
-                    }
-                    None => (Vector2::repeat(f64::NAN), Matrix2::repeat(f64::NAN), SMatrix::repeat(f64::NAN)),
-                }
-            }
-        }
+        self.kind.model().distort(&self.params, x)
     }
 
     /// Distorted normalised coordinates of a pinhole-plane point.
@@ -351,9 +248,9 @@ impl Distortion {
     }
 
     /// Undistorted normalised coordinates (the pinhole-plane point) of distorted ones:
-    /// the model's inverse (Newton for the radial-tangential and equidistant models, the
-    /// closed form of the double sphere); an error where the model folds over or the
-    /// ray is not in front of the camera.
+    /// the model's inverse ([`crate::lens::LensModel::undistort`]: Newton for the
+    /// radial-tangential and equidistant models, the closed form of the double sphere);
+    /// an error where the model folds over or the ray is not in front of the camera.
     pub fn undistort(&self, xd: &Vector2<f64>) -> Result<Vector2<f64>> {
         if self.is_zero() {
             return Ok(*xd);
@@ -361,21 +258,7 @@ impl Distortion {
         if !(xd.x.is_finite() && xd.y.is_finite()) {
             return Err(GeometryError::InvalidOption("non-finite point to undistort".into()));
         }
-        let p = self.params();
-        match self.kind {
-            LensKind::RadialTangential => lens::radtan::undistort(&p, xd),
-            LensKind::Equidistant => lens::equidistant::undistort(&p, xd),
-            _ => {
-                let b = self.kind.model().unproject(&p, xd)?;
-                if !lens::gt(b.z, 1e-12) {
-                    return Err(GeometryError::Degenerate(format!(
-                        "({:.3}, {:.3}) is a ray at or beyond 90 deg: it has no pinhole point",
-                        xd.x, xd.y
-                    )));
-                }
-                Ok(Vector2::new(b.x / b.z, b.y / b.z))
-            }
-        }
+        self.kind.model().undistort(&self.params, xd)
     }
 
     /// The pixel an ideal pinhole camera with intrinsics `k` would see for a pixel of this
@@ -394,6 +277,35 @@ impl Distortion {
     }
 }
 
+impl Serialize for Distortion {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        use serde::ser::SerializeMap;
+        let values = self.named_values();
+        let mut map = s.serialize_map(Some(values.len() + 1))?;
+        map.serialize_entry("kind", &self.kind)?;
+        for (name, v) in values {
+            map.serialize_entry(name, &v)?;
+        }
+        map.end()
+    }
+}
+
+impl<'de> Deserialize<'de> for Distortion {
+    fn deserialize<D: serde::Deserializer<'de>>(de: D) -> std::result::Result<Self, D::Error> {
+        /// The JSON form: the model (default radial-tangential) and named values.
+        #[derive(Deserialize)]
+        struct Form {
+            #[serde(default)]
+            kind: LensKind,
+            #[serde(flatten)]
+            values: std::collections::BTreeMap<String, f64>,
+        }
+        let form = Form::deserialize(de)?;
+        Self::from_named_values(form.kind, form.values.iter().map(|(n, v)| (n.as_str(), *v)))
+            .map_err(serde::de::Error::custom)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -408,7 +320,7 @@ mod tests {
             k1 in -0.3..0.3f64, k2 in -0.1..0.1f64, p1 in -0.002..0.002f64, p2 in -0.002..0.002f64,
             k3 in -0.02..0.02f64, u in 0.0..768.0f64, v in 0.0..576.0f64,
         ) {
-            let d = Distortion { k1, k2, p1, p2, k3, ..Distortion::default() };
+            let d = Distortion::from_params(LensKind::RadialTangential, [k1, k2, p1, p2, k3, 0.0]);
             let k = Intrinsics::new(700.0, 720.0, 390.0, 284.0);
             let ideal = Point2::new(u, v);
             let distorted = d.distort_pixel(&k, &ideal);
@@ -422,7 +334,7 @@ mod tests {
             k1 in -0.3..0.3f64, k2 in -0.1..0.1f64, p1 in -0.01..0.01f64, p2 in -0.01..0.01f64,
             k3 in -0.05..0.05f64, x in -0.7..0.7f64, y in -0.5..0.5f64,
         ) {
-            let d = Distortion { k1, k2, p1, p2, k3, ..Distortion::default() };
+            let d = Distortion::from_params(LensKind::RadialTangential, [k1, k2, p1, p2, k3, 0.0]);
             let p = Vector2::new(x, y);
             let (_, j) = d.distort_with_jacobian(&p);
             let h = 1e-6;
@@ -463,7 +375,7 @@ mod tests {
             let d = if equi {
                 Distortion::equidistant([c[0], c[1], c[4], c[5]])
             } else {
-                Distortion { k1: c[0], k2: c[1], p1: c[2] * 0.1, p2: c[3] * 0.1, k3: c[4], ..Distortion::default() }
+                Distortion::from_params(LensKind::RadialTangential, [c[0], c[1], c[2] * 0.1, c[3] * 0.1, c[4], 0.0])
             };
             let p = Vector2::new(x, y);
             let (xd, j, jc) = d.distort_with_jacobians(&p);
@@ -527,7 +439,10 @@ mod tests {
         // OpenCV's 8-coefficient model is not the radial-tangential one.
         assert_eq!(LensKind::parse("rational_polynomial"), None);
         let ds = Distortion::from_coefficients(LensKind::DoubleSphere, &[-0.2, 0.6]).unwrap();
-        assert_eq!((ds.xi, ds.alpha, ds.coefficients()), (-0.2, 0.6, vec![-0.2, 0.6]));
+        assert_eq!(
+            (ds.param("xi"), ds.param("alpha"), ds.coefficients()),
+            (Some(-0.2), Some(0.6), vec![-0.2, 0.6])
+        );
         assert!(Distortion::from_coefficients(LensKind::DoubleSphere, &[0.1, 1.5]).is_err());
         assert!(!ds.is_zero() && Distortion::zero(LensKind::Pinhole).is_zero());
         // xi and alpha appear in the JSON of a double sphere only.
@@ -536,11 +451,24 @@ mod tests {
         assert_eq!(back, ds);
         let e = Distortion::from_coefficients(LensKind::Equidistant, &[0.1, 0.2, 0.3, 0.4]).unwrap();
         assert_eq!(e.coefficients(), vec![0.1, 0.2, 0.3, 0.4]);
-        assert_eq!([e.k1, e.k2, e.k3, e.k4], [0.1, 0.2, 0.3, 0.4]);
+        assert_eq!(["k1", "k2", "k3", "k4"].map(|n| e.param(n)), [0.1, 0.2, 0.3, 0.4].map(Some));
+        assert_eq!(e.param("p1"), None);
         assert!(Distortion::from_coefficients(LensKind::Equidistant, &[0.1, 0.2, 0.3]).is_err());
-        let mut bad = e;
-        bad.p1 = 0.1;
-        assert!(bad.validate().is_err());
+        // A coefficient the model lacks: an error when read, unless zero (the JSON form
+        // writes k1 k2 p1 p2 k3 k4 for every model).
+        assert!(Distortion::from_named_values(LensKind::Equidistant, [("p1", 0.1)]).is_err());
+        assert!(Distortion::from_named_values(LensKind::Equidistant, [("p1", 0.0), ("k4", 0.4)]).is_ok());
+        assert!(serde_json::from_str::<Distortion>(r#"{"kind":"equidistant","p1":0.1}"#).is_err());
+        assert!(serde_json::from_str::<Distortion>(r#"{"kind":"double-sphere","k5":0.0}"#).is_err());
+        // The JSON form: kind, k1 k2 p1 p2 k3 k4 always, the model's others when non-zero.
+        assert_eq!(
+            serde_json::to_string(&ds).unwrap(),
+            r#"{"kind":"double-sphere","k1":0.0,"k2":0.0,"p1":0.0,"p2":0.0,"k3":0.0,"k4":0.0,"xi":-0.2,"alpha":0.6}"#
+        );
+        assert_eq!(
+            serde_json::to_string(&Distortion::radial(-0.2, 0.05)).unwrap(),
+            r#"{"kind":"radial-tangential","k1":-0.2,"k2":0.05,"p1":0.0,"p2":0.0,"k3":0.0,"k4":0.0}"#
+        );
         // Older JSON without `kind` and `k4` reads as radial-tangential.
         let old: Distortion =
             serde_json::from_str(r#"{"k1":-0.2,"k2":0.05,"p1":0.0,"p2":0.0,"k3":0.0}"#).unwrap();

@@ -25,8 +25,11 @@
 //! Kalibr's `equidistant`; the double sphere is Kalibr's `camera_model: ds` (`intrinsics:
 //! [xi, alpha, fu, fv, pu, pv]`, `distortion_model: none`), and OpenCV and ROS have no such
 //! model: their writers refuse it with an error naming the model, and [`StereoCalibration::write_all`]
-//! leaves those files out (the names come from the lens table,
-//! `headalign_geometry::lens`). Zero radial-tangential when no lens was given.
+//! leaves those files out. The names, and Kalibr's form of each model (camera model,
+//! parameters before `fu fv pu pv`, distortion model and coefficients; a non-zero
+//! parameter it has no place for noted in a comment), come from the lens table
+//! (`headalign_geometry::lens`), so a new model is written without a change here.
+//! Zero radial-tangential when no lens was given.
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -34,7 +37,7 @@ use std::path::{Path, PathBuf};
 use headalign::AlignError;
 pub use headalign::calibration::{IntrinsicSigmas, StereoCalibration, TranslationUnit};
 use headalign_geometry::camera::Intrinsics;
-use headalign_geometry::distortion::{Distortion, LensKind};
+use headalign_geometry::distortion::Distortion;
 use nalgebra::{DMatrix, Matrix3};
 use serde_json::{Value, json};
 
@@ -181,37 +184,7 @@ impl CalibrationFiles for StereoCalibration {
     /// Kalibr `camchain.yaml`: `cam0` (left), `cam1` (right) with `T_cn_cnm1` =
     /// `right_from_left` as a 4x4 matrix.
     fn kalibr_camchain(&self) -> Result<String, AlignError> {
-        let cam = |k: &Intrinsics, d: &Distortion, topic: &str| -> Result<String, AlignError> {
-            if d.kind == LensKind::DoubleSphere {
-                return kalibr_ds(k, d, topic, self.image_size);
-            }
-            let four = match d.kind {
-                LensKind::Equidistant => [d.k1, d.k2, d.k3, d.k4],
-                _ => [d.k1, d.k2, d.p1, d.p2],
-            };
-            let coeffs: Result<Vec<String>, _> = four.iter().map(|&v| num(v)).collect();
-            let coeffs = coeffs?.join(", ");
-            let k3 = if d.kind == LensKind::RadialTangential && d.k3 != 0.0 {
-                format!("  # k3 = {} is not representable in Kalibr's radtan model\n", num(d.k3)?)
-            } else {
-                String::new()
-            };
-            let skew = if k.skew.abs() > 1e-9 {
-                format!("  # skew {} px is not representable in Kalibr's pinhole model\n", num(k.skew)?)
-            } else {
-                String::new()
-            };
-            Ok(format!(
-                "{skew}{k3}  camera_model: pinhole\n  intrinsics: [{}, {}, {}, {}]\n  distortion_model: {}\n  distortion_coeffs: [{coeffs}]\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
-                num(k.fx)?,
-                num(k.fy)?,
-                num(k.cx)?,
-                num(k.cy)?,
-                d.kind.kalibr_name(),
-                self.image_size[0],
-                self.image_size[1]
-            ))
-        };
+        let cam = |k: &Intrinsics, d: &Distortion, topic: &str| kalibr_camera(k, d, topic, self.image_size);
         let mut s = format!("# headalign; translation unit: {}\ncam0:\n", self.unit.name());
         s += &cam(&self.left, &self.distortion[0], "/left/image_raw")?;
         s += "cam1:\n  T_cn_cnm1:\n";
@@ -226,7 +199,7 @@ impl CalibrationFiles for StereoCalibration {
 
     /// Write every format into `dir` (created if missing): `calibration.json`,
     /// `opencv_stereo.yaml`, `left.yaml`, `right.yaml` (ROS), `camchain.yaml` (Kalibr);
-    /// the OpenCV and ROS files only when their format has the cameras' lens model (not
+    /// each file only when its format has the cameras' lens model (OpenCV and ROS lack
     /// the double sphere). Returns the paths written.
     fn write_all(&self, dir: &Path) -> Result<Vec<PathBuf>, AlignError> {
         std::fs::create_dir_all(dir)
@@ -243,7 +216,9 @@ impl CalibrationFiles for StereoCalibration {
             files.push(("left.yaml", self.ros_camera_info(0, "left")?));
             files.push(("right.yaml", self.ros_camera_info(1, "right")?));
         }
-        files.push(("camchain.yaml", self.kalibr_camchain()?));
+        if self.distortion.iter().all(|d| d.kind.model().names().kalibr.is_some()) {
+            files.push(("camchain.yaml", self.kalibr_camchain()?));
+        }
         let mut written = Vec::new();
         for (name, text) in files {
             let path = dir.join(name);
@@ -316,27 +291,49 @@ fn check_finite(v: &Value) -> Result<(), AlignError> {
 fn inexpressible(format: &str, lenses: &[Distortion]) -> AlignError {
     let names: Vec<&str> = lenses.iter().map(|d| d.kind.model().names().id).collect();
     AlignError::Output(format!(
-        "the {format} format has no {} lens model: write the Kalibr camchain (camera_model ds) or the JSON instead",
+        "the {format} format has no {} lens model: write a format that has it (the JSON has every model; Kalibr's camchain the double sphere, camera_model ds)",
         names.join("/")
     ))
 }
 
-/// One camera of a Kalibr camchain in the double-sphere model (`camera_model: ds`,
-/// `intrinsics: [xi, alpha, fu, fv, pu, pv]`, no further distortion).
-fn kalibr_ds(k: &Intrinsics, d: &Distortion, topic: &str, size: [u32; 2]) -> Result<String, AlignError> {
-    let skew = if k.skew.abs() > 1e-9 {
-        format!("  # skew {} px is not representable in Kalibr's ds model\n", num(k.skew)?)
-    } else {
-        String::new()
+/// One camera of a Kalibr camchain in its model's Kalibr form (the lens table's
+/// `KalibrForm`): `camera_model`, `intrinsics` (the form's parameters, then `fu fv pu
+/// pv`), `distortion_model` and `distortion_coeffs`; a non-zero parameter the form has no
+/// place for, and a skew, noted in a comment. A model Kalibr lacks is an error.
+fn kalibr_camera(k: &Intrinsics, d: &Distortion, topic: &str, size: [u32; 2]) -> Result<String, AlignError> {
+    let Some(form) = d.kind.model().names().kalibr else {
+        return Err(inexpressible("Kalibr", &[*d]));
     };
+    let value = |n: &str| d.param(n).unwrap_or(0.0);
+    let list =
+        |names: &[&str]| -> Result<Vec<String>, AlignError> { names.iter().map(|n| num(value(n))).collect() };
+    let mut notes = String::new();
+    if k.skew.abs() > 1e-9 {
+        let _ = writeln!(
+            notes,
+            "  # skew {} px is not representable in Kalibr's {} model",
+            num(k.skew)?,
+            form.camera_model
+        );
+    }
+    for (&n, &v) in d.kind.coefficient_names().iter().zip(&d.params()) {
+        if v != 0.0 && !form.intrinsics.contains(&n) && !form.distortion_coeffs.contains(&n) {
+            let _ = writeln!(
+                notes,
+                "  # {n} = {} is not representable in Kalibr's {} model",
+                num(v)?,
+                form.distortion_model
+            );
+        }
+    }
+    let mut intrinsics = list(form.intrinsics)?;
+    intrinsics.extend([num(k.fx)?, num(k.fy)?, num(k.cx)?, num(k.cy)?]);
     Ok(format!(
-        "{skew}  camera_model: ds\n  intrinsics: [{}, {}, {}, {}, {}, {}]\n  distortion_model: none\n  distortion_coeffs: []\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
-        num(d.xi)?,
-        num(d.alpha)?,
-        num(k.fx)?,
-        num(k.fy)?,
-        num(k.cx)?,
-        num(k.cy)?,
+        "{notes}  camera_model: {}\n  intrinsics: [{}]\n  distortion_model: {}\n  distortion_coeffs: [{}]\n  resolution: [{}, {}]\n  rostopic: {topic}\n",
+        form.camera_model,
+        intrinsics.join(", "),
+        form.distortion_model,
+        list(form.distortion_coeffs)?.join(", "),
         size[0],
         size[1]
     ))
@@ -359,7 +356,7 @@ mod tests {
             ),
             unit: TranslationUnit::Metres,
             distortion: [
-                Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, ..Distortion::default() },
+                Distortion::from_opencv(&[-0.25, 0.125, 0.001, -0.002]).unwrap(),
                 Distortion::default(),
             ],
         }
@@ -499,7 +496,7 @@ mod tests {
     #[test]
     fn reads_back_our_own_export() {
         let d = [
-            Distortion { k1: -0.25, k2: 0.125, p1: 0.001, p2: -0.002, k3: 0.01, ..Distortion::default() },
+            Distortion::from_opencv(&[-0.25, 0.125, 0.001, -0.002, 0.01]).unwrap(),
             Distortion::radial(0.1, 0.0),
         ];
         let stereo = StereoCalibration {

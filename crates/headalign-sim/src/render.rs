@@ -1,21 +1,24 @@
 //! Ray-cast renderer of the textured room: what a simulated camera sees, as an 8-bit
 //! grey image.
 //!
-//! Camera model: pinhole `K` after a lens model of the normalised coordinates, the
-//! geometry crate's [`Distortion`] (radial-tangential `k1 k2 p1 p2 k3`, OpenCV
-//! `plumb_bob`; or equidistant fisheye `k1..k4`, OpenCV `fisheye`): a point `X` in the
-//! camera frame (x right, y down, z forward) with `x = (X.x / X.z, X.y / X.z)` is seen at
-//! `K (distort(x), 1)` ([`project`]). The image is rendered **in the distorted model**:
-//! each sample position is mapped by `K^-1` to distorted normalised coordinates and
-//! undistorted by [`Distortion::undistort`] (Newton with the analytic Jacobian). Before
-//! rendering, [`check_invertible`] refuses a lens whose radial profile is not strictly
-//! increasing out to the image's farthest corner (a strong barrel folds over: the inverse
-//! is not unique), or, for the equidistant model, whose corner rays would lie 90 deg or
-//! more off the axis (behind the pinhole plane).
+//! Camera model: any model of the geometry crate's lens table, a [`Distortion`] (its
+//! `crate::lens` rows: the pinhole, radial-tangential `k1 k2 p1 p2 k3` (OpenCV
+//! `plumb_bob`), equidistant fisheye `k1..k4` (OpenCV `fisheye`), the double sphere `xi
+//! alpha`): a point `X` in the camera frame (x right, y down, z forward) is seen at `K m`,
+//! `m` the model's projection ([`project`]). The image is rendered **in the distorted
+//! model**: each sample position is mapped by `K^-1` to the model's image plane and
+//! undistorted by [`Distortion::undistort`] (Newton with the analytic Jacobian), or, for a
+//! model whose field reaches beyond 90 deg (the table's `max_half_fov_deg`), unprojected
+//! to a bearing. Before rendering, [`check_invertible`] refuses a lens whose radial
+//! profile (the table's `radial_profile`) is not strictly increasing out to the image's
+//! farthest corner (a strong barrel folds over: the inverse is not unique), or, for the
+//! equidistant model, whose corner rays would lie 90 deg or more off the axis (behind the
+//! pinhole plane).
 //!
-//! The TOML table `[render.distortion]` holds `kind = "radtan" | "equidistant"` (default
-//! radtan; any spelling [`LensKind::parse`] accepts) and the coefficients `k1 k2 p1 p2 k3
-//! k4` (default 0; `p1 p2` are radtan-only, `k4` equidistant-only). A file with `k1, k2`
+//! The TOML table `[render.distortion]` holds `kind` (default radtan; any spelling
+//! [`LensKind::parse`] accepts) and the model's coefficients by name (`k1 k2 p1 p2 k3`,
+//! `k1 k2 k3 k4`, `xi alpha`; default 0; a non-zero coefficient the model does not have is
+//! an error). A file with `k1, k2`
 //! only is the two-term radial lens `x (1 + k1 r^2 + k2 r^4)`: its projections are those
 //! of the same lens written as `(1 + r^2 (k1 + r^2 k2))`, within 1e-12 px (rounding; the
 //! rendered sample rays within 1e-11 px, Newton's tolerance: see the test
@@ -61,68 +64,43 @@ use crate::texture::TexturedQuad;
 /// lens, and the Newton inverse would need far more steps).
 pub const MAX_LENS_COEFFICIENT: f64 = 2.0;
 
-/// The TOML / JSON form of [`RenderOptions::distortion`]: `kind` by name, every
-/// coefficient optional (module docs).
-#[derive(Clone, Debug, Default, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-struct LensTable {
-    kind: Option<String>,
-    k1: f64,
-    k2: f64,
-    p1: f64,
-    p2: f64,
-    k3: f64,
-    k4: f64,
-    #[serde(skip_serializing_if = "is_zero")]
-    xi: f64,
-    #[serde(skip_serializing_if = "is_zero")]
-    alpha: f64,
-}
-
-fn is_zero(v: &f64) -> bool {
-    *v == 0.0
-}
-
-/// Serde of [`RenderOptions::distortion`] as a [`LensTable`].
+/// Serde of [`RenderOptions::distortion`] as its TOML / JSON table (module docs): `kind`
+/// by the model's short name, then the named values of the geometry crate's JSON form
+/// ([`Distortion::named_values`]); read back by any name of the lens table, missing
+/// coefficients zero, a coefficient the model lacks an error.
 mod lens_table {
     use super::*;
+    use serde::ser::SerializeMap;
 
     pub fn serialize<S: serde::Serializer>(d: &Distortion, s: S) -> Result<S::Ok, S::Error> {
-        LensTable {
-            kind: Some(d.kind.kalibr_name().to_string()),
-            k1: d.k1,
-            k2: d.k2,
-            p1: d.p1,
-            p2: d.p2,
-            k3: d.k3,
-            k4: d.k4,
-            xi: d.xi,
-            alpha: d.alpha,
+        let values = d.named_values();
+        let mut map = s.serialize_map(Some(values.len() + 1))?;
+        map.serialize_entry("kind", d.kind.kalibr_name())?;
+        for (name, v) in values {
+            map.serialize_entry(name, &v)?;
         }
-        .serialize(s)
+        map.end()
     }
 
     pub fn deserialize<'de, D: serde::Deserializer<'de>>(de: D) -> Result<Distortion, D::Error> {
+        /// The table: the model's name and named values.
+        #[derive(Deserialize)]
+        struct LensTable {
+            kind: Option<String>,
+            #[serde(flatten)]
+            values: std::collections::BTreeMap<String, f64>,
+        }
         let t = LensTable::deserialize(de)?;
         let kind = match t.kind.as_deref() {
-            None => LensKind::RadialTangential,
+            None => LensKind::default(),
             Some(name) => LensKind::parse(name).ok_or_else(|| {
-                serde::de::Error::custom(format!(
-                    "distortion kind '{name}' is none of 'radtan', 'equidistant', 'ds'"
-                ))
+                let names: Vec<&str> =
+                    headalign_geometry::lens::MODELS.iter().map(|m| m.names().short).collect();
+                serde::de::Error::custom(format!("distortion kind '{name}' is none of {}", names.join(", ")))
             })?,
         };
-        Ok(Distortion {
-            kind,
-            k1: t.k1,
-            k2: t.k2,
-            p1: t.p1,
-            p2: t.p2,
-            k3: t.k3,
-            k4: t.k4,
-            xi: t.xi,
-            alpha: t.alpha,
-        })
+        Distortion::from_named_values(kind, t.values.iter().map(|(n, v)| (n.as_str(), *v)))
+            .map_err(serde::de::Error::custom)
     }
 }
 
@@ -176,21 +154,14 @@ pub fn check_invertible(
             "distortion {distortion:?} is not invertible over the image (normalised radius {rd_max:.3}): {why}"
         ))
     };
-    let d = Distortion { p1: 0.0, p2: 0.0, ..*distortion };
-    // The profile's argument: the undistorted radius up to 100 (radial-tangential), the
-    // ray angle up to 90 deg (equidistant), or up to 180 deg (a model of wider field: the
-    // image-plane radius of the ray at that angle, NaN outside the model's region).
-    let wide = casts_bearings(&d);
-    let end = match d.kind {
-        _ if wide => std::f64::consts::PI,
-        LensKind::Equidistant => std::f64::consts::FRAC_PI_2,
-        _ => 100.0,
-    };
-    let profile = |a: f64| match d.kind {
-        _ if wide => d.project(&Vector3::new(a.sin(), 0.0, a.cos())).map_or(f64::NAN, |m| m.x),
-        LensKind::Equidistant => d.distort(&Vector2::new(a.tan(), 0.0)).x,
-        _ => d.distort(&Vector2::new(a, 0.0)).x,
-    };
+    // The profile's argument (the lens table's `profile_end`, `radial_profile`): the
+    // undistorted radius up to 100 (radial-tangential), the ray angle up to 90 deg
+    // (equidistant), or up to 180 deg (a model of wider field: the image-plane radius of
+    // the ray at that angle, NaN outside the model's region).
+    let wide = casts_bearings(distortion);
+    let (model, params) = (distortion.kind.model(), distortion.params());
+    let end = model.profile_end();
+    let profile = |a: f64| model.radial_profile(&params, a);
     let step = end / PROFILE_STEPS as f64;
     let mut prev = 0.0;
     let mut reached = false;
@@ -284,7 +255,7 @@ impl RenderOptions {
             p.push(format!("render.noise_sigma_grey must be >= 0, got {}", self.noise_sigma_grey));
         }
         let d = self.distortion;
-        if !d.slots().iter().all(|v| v.is_finite() && v.abs() <= MAX_LENS_COEFFICIENT) {
+        if !d.params().iter().all(|v| v.is_finite() && v.abs() <= MAX_LENS_COEFFICIENT) {
             p.push(format!(
                 "render.distortion coefficients must be finite and in [-{MAX_LENS_COEFFICIENT}, {MAX_LENS_COEFFICIENT}], got {d:?}"
             ));
@@ -657,9 +628,9 @@ mod tests {
     /// bit. `deterministic_with_the_seed_and_noise_advances` builds its heads afresh: it
     /// tests that construction.
     fn clean_head(seed: u64, distortion: Distortion) -> SimulatedHead {
-        type Heads = Mutex<HashMap<(u64, LensKind, [u64; 8]), Arc<OnceLock<SimulatedHead>>>>;
+        type Heads = Mutex<HashMap<(u64, LensKind, [u64; 6]), Arc<OnceLock<SimulatedHead>>>>;
         static HEADS: OnceLock<Heads> = OnceLock::new();
-        let key = (seed, distortion.kind, distortion.slots().map(f64::to_bits));
+        let key = (seed, distortion.kind, distortion.params().map(f64::to_bits));
         let slot = HEADS.get_or_init(Default::default).lock().unwrap().entry(key).or_default().clone();
         slot.get_or_init(|| {
             let render = RenderOptions { distortion, ..RenderOptions::clean() };
@@ -755,7 +726,7 @@ mod tests {
     fn render_project_round_trip_and_invertibility_for_both_models() {
         let k = Scenario::default().left;
         let lenses = [
-            Distortion { k1: -0.3, k2: 0.08, p1: 0.001, p2: -0.0015, k3: 0.01, ..Distortion::default() },
+            Distortion::from_params(LensKind::RadialTangential, [-0.3, 0.08, 0.001, -0.0015, 0.01, 0.0]),
             fisheye(),
         ];
         for d in lenses {
@@ -780,8 +751,8 @@ mod tests {
     }
 
     /// The TOML table: `kind` by any name of the lens table (the double sphere's `xi
-    /// alpha` too), missing coefficients zero, unknown kinds and keys refused; the options
-    /// refuse a coefficient the model does not have.
+    /// alpha` too), missing coefficients zero, unknown kinds and keys refused, and a
+    /// non-zero coefficient the model does not have refused.
     #[test]
     fn lens_table_reads_every_model() {
         let o: RenderOptions =
@@ -790,15 +761,18 @@ mod tests {
         let o: RenderOptions = toml::from_str("[distortion]\nkind = \"fisheye\"\n").unwrap();
         assert_eq!(o.distortion.kind, LensKind::Equidistant);
         let o: RenderOptions = toml::from_str("[distortion]\nkind = \"radtan\"\np1 = 0.001\n").unwrap();
-        assert_eq!(o.distortion, Distortion { p1: 0.001, ..Distortion::default() });
+        assert_eq!(
+            o.distortion,
+            Distortion::from_params(LensKind::RadialTangential, [0.0, 0.0, 0.001, 0.0, 0.0, 0.0])
+        );
         let o: RenderOptions =
             toml::from_str("[distortion]\nkind = \"ds\"\nxi = -0.15\nalpha = 0.55\n").unwrap();
         assert_eq!(o.distortion, Distortion::double_sphere(-0.15, 0.55));
         assert!(toml::from_str::<RenderOptions>("[distortion]\nkind = \"fov\"\n").is_err());
         assert!(toml::from_str::<RenderOptions>("[distortion]\nk5 = 0.1\n").is_err());
-        let bad: RenderOptions =
-            toml::from_str("[distortion]\nkind = \"equidistant\"\np1 = 0.001\n").unwrap();
-        assert!(bad.validate().is_err());
+        assert!(
+            toml::from_str::<RenderOptions>("[distortion]\nkind = \"equidistant\"\np1 = 0.001\n").is_err()
+        );
         // Written and read back.
         let o = RenderOptions { distortion: fisheye(), ..RenderOptions::default() };
         let text = toml::to_string(&o).unwrap();
@@ -923,7 +897,8 @@ mod tests {
     fn equidistant_images_agree_with_the_projection() {
         let mut head = clean_head(2, fisheye());
         check_consistency(&mut head, &Encoders::default());
-        let tangential = Distortion { k1: -0.3, k2: 0.08, p1: 0.001, p2: -0.0015, ..Distortion::default() };
+        let tangential =
+            Distortion::from_params(LensKind::RadialTangential, [-0.3, 0.08, 0.001, -0.0015, 0.0, 0.0]);
         let mut head = clean_head(3, tangential);
         check_consistency(&mut head, &Encoders::default());
     }

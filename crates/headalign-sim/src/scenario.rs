@@ -523,7 +523,7 @@ mod tests {
         let s = Scenario::from_toml_str("[render]\nblur_sigma_px = 1.5\n[render.distortion]\nk1 = -0.1\n")
             .unwrap();
         assert_eq!(s.render.blur_sigma_px, 1.5);
-        assert_eq!(s.render.distortion.k1, -0.1);
+        assert_eq!(s.render.distortion.param("k1"), Some(-0.1));
         assert_eq!(s.render.supersampling, 2);
         assert!(matches!(Scenario::from_toml_str("[render]\nblur = 1.0\n"), Err(SimError::Toml(_))));
         assert!(matches!(

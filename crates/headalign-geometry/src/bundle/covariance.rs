@@ -337,9 +337,10 @@ mod tests {
         }
         let opts = BundleOptions { estimate_distortion: true, ..BundleOptions::default() };
         let res = bundle_adjust(&s.truth, &s.obs, &opts).unwrap();
+        let k = |d: &crate::distortion::Distortion, name: &str| d.param(name).unwrap();
         for (n, est, tru) in [
-            ("left.k1", res.state.left_distortion.k1, s.truth.left_distortion.k1),
-            ("right.k2", res.state.right_distortion.k2, s.truth.right_distortion.k2),
+            ("left.k1", k(&res.state.left_distortion, "k1"), k(&s.truth.left_distortion, "k1")),
+            ("right.k2", k(&res.state.right_distortion, "k2"), k(&s.truth.right_distortion, "k2")),
         ] {
             let sigma = res.covariance.sigma(n).unwrap();
             eprintln!("{n}: est {est:.5} true {tru:.5} sigma {sigma:.5}");

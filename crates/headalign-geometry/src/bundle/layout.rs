@@ -48,7 +48,8 @@ use nalgebra::{DVector, Isometry3, Matrix3x2, Point3, Translation3, Unit, UnitQu
 use super::gt;
 use super::state::{BundleOptions, Motions, RigState, Side};
 use crate::camera::Intrinsics;
-use crate::distortion::SLOT_NAMES;
+use crate::distortion::LensKind;
+use crate::lens::MAX_PARAMS;
 use crate::so3::{self, Line};
 use crate::{GeometryError, Result};
 
@@ -57,11 +58,9 @@ const INTR_NAMES: [&str; 5] = ["fx", "fy", "skew", "cx", "cy"];
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub(super) enum Param {
     Intr(Side, usize),
-    /// Lens parameter in the slot order of [`Distortion::slots`] (`k1 k2 p1 p2 k3 k4 xi
-    /// alpha`; which slots a model has is its row of the lens table, `crate::lens`).
-    ///
-    /// [`Distortion::slots`]: crate::distortion::Distortion::slots
-    Dist(Side, usize),
+    /// Lens parameter `i` of the camera's model, in the model's order (its row of the lens
+    /// table, `crate::lens`, names it).
+    Dist(Side, LensKind, usize),
     RigRot(usize),
     RigTdir(usize),
     AxisDir(usize, usize),
@@ -79,9 +78,9 @@ impl Param {
                 let s = if side == Side::Left { "left" } else { "right" };
                 format!("{s}.{}", INTR_NAMES.get(i).copied().unwrap_or("?"))
             }
-            Param::Dist(side, i) => {
+            Param::Dist(side, kind, i) => {
                 let s = if side == Side::Left { "left" } else { "right" };
-                format!("{s}.{}", SLOT_NAMES.get(i).copied().unwrap_or("?"))
+                format!("{s}.{}", kind.coefficient_names().get(i).copied().unwrap_or("?"))
             }
             Param::RigRot(i) => format!("rig.rot{i}"),
             Param::RigTdir(i) => format!("rig.tdir{i}"),
@@ -93,17 +92,21 @@ impl Param {
         }
     }
 
-    pub(super) fn parse(name: &str) -> Option<Param> {
+    /// The parameter named `name` in `state` (a lens parameter by the name its camera's
+    /// model gives it).
+    pub(super) fn parse(name: &str, state: &RigState) -> Option<Param> {
         let (head, tail) = name.split_once('.')?;
         let num = |prefix: &str| tail.strip_prefix(prefix).and_then(|s| s.parse::<usize>().ok());
         match head {
             "left" | "right" => {
                 let side = if head == "left" { Side::Left } else { Side::Right };
-                INTR_NAMES
-                    .iter()
-                    .position(|n| *n == tail)
-                    .map(|i| Param::Intr(side, i))
-                    .or_else(|| SLOT_NAMES.iter().position(|n| *n == tail).map(|i| Param::Dist(side, i)))
+                INTR_NAMES.iter().position(|n| *n == tail).map(|i| Param::Intr(side, i)).or_else(|| {
+                    let kind = state.distortion(side).kind;
+                    kind.coefficient_names()
+                        .iter()
+                        .position(|n| *n == tail)
+                        .map(|i| Param::Dist(side, kind, i))
+                })
             }
             "rig" => num("rot").map(Param::RigRot).or_else(|| num("tdir").map(Param::RigTdir)),
             _ => {
@@ -129,7 +132,7 @@ impl Param {
 pub(super) struct Layout {
     pub(super) params: Vec<Param>,
     pub(super) intr: [[Option<usize>; 5]; 2],
-    pub(super) dist: [[Option<usize>; 8]; 2],
+    pub(super) dist: [[Option<usize>; MAX_PARAMS]; 2],
     pub(super) square: [bool; 2],
     pub(super) rig_rot: [Option<usize>; 3],
     pub(super) rig_tdir: [Option<usize>; 2],
@@ -163,9 +166,8 @@ impl Layout {
                 p.push(Param::Intr(side, 4));
             }
             if options.estimate_distortion {
-                let kind =
-                    if side == Side::Left { state.left_distortion.kind } else { state.right_distortion.kind };
-                p.extend(options.distortion_terms.slots(kind).iter().map(|&i| Param::Dist(side, i)));
+                let kind = state.distortion(side).kind;
+                p.extend(options.distortion_terms.params(kind).iter().map(|&i| Param::Dist(side, kind, i)));
             }
         }
         p.extend((0..3).map(Param::RigRot));
@@ -203,7 +205,7 @@ impl Layout {
         let mut l = Layout {
             params: Vec::new(),
             intr: [[None; 5]; 2],
-            dist: [[None; 8]; 2],
+            dist: [[None; MAX_PARAMS]; 2],
             square: [false; 2],
             rig_rot: [None; 3],
             rig_tdir: [None; 2],
@@ -219,7 +221,7 @@ impl Layout {
         for (idx, p) in params.iter().enumerate() {
             let slot: Option<&mut Option<usize>> = match *p {
                 Param::Intr(s, i) => l.intr[side_index(s)].get_mut(i),
-                Param::Dist(s, i) => l.dist[side_index(s)].get_mut(i),
+                Param::Dist(s, _, i) => l.dist[side_index(s)].get_mut(i),
                 Param::RigRot(i) => l.rig_rot.get_mut(i),
                 Param::RigTdir(i) => l.rig_tdir.get_mut(i),
                 Param::AxisDir(j, i) => l.axis_dir.get_mut(j).and_then(|a| a.get_mut(i)),
@@ -298,8 +300,8 @@ pub(super) fn retract(state: &RigState, layout: &Layout, delta: &DVector<f64>) -
     }
     for (s, d) in [(0, &mut out.left_distortion), (1, &mut out.right_distortion)] {
         let c = comp(&layout.dist[s], delta);
-        for (slot, step) in c.iter().enumerate() {
-            if let Some(v) = d.slot_mut(slot) {
+        for (i, step) in c.iter().enumerate() {
+            if let Some(v) = d.param_mut(i) {
                 *v += step;
             }
         }
@@ -383,13 +385,13 @@ pub(super) fn local(from: &RigState, to: &RigState, params: &[Param]) -> Result<
                 let f = |k: &Intrinsics| [k.fx, k.fy, k.skew, k.cx, k.cy];
                 f(b).get(i).copied().ok_or_else(shape)? - f(a).get(i).copied().ok_or_else(shape)?
             }
-            Param::Dist(side, i) => {
-                let (a, b) = if side == Side::Left {
-                    (&from.left_distortion, &to.left_distortion)
-                } else {
-                    (&from.right_distortion, &to.right_distortion)
-                };
-                b.slots().get(i).copied().ok_or_else(shape)? - a.slots().get(i).copied().ok_or_else(shape)?
+            Param::Dist(side, kind, i) => {
+                let (a, b) = (from.distortion(side), to.distortion(side));
+                if a.kind != kind || b.kind != kind {
+                    return Err(shape());
+                }
+                b.params().get(i).copied().ok_or_else(shape)?
+                    - a.params().get(i).copied().ok_or_else(shape)?
             }
             Param::RigRot(i) => rig_rot.get(i).copied().ok_or_else(shape)?,
             Param::RigTdir(i) if along > 0.0 => tdir.get(i).copied().ok_or_else(shape)?,

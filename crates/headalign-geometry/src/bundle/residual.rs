@@ -234,15 +234,14 @@ pub(super) fn linearise_obs(
     }
     let didx = &layout.dist[s];
     if didx.iter().any(Option::is_some) {
-        // The layout holds storage slots; the model's parameter `i` is in slot `slots[i]`.
-        let slots = model.slots();
+        // The layout's lens entries are the model's parameters, in its order.
         let mut estimated = [false; crate::lens::MAX_PARAMS];
-        for (e, &slot) in estimated.iter_mut().zip(slots) {
-            *e = didx.get(slot).is_some_and(Option::is_some);
+        for (e, i) in estimated.iter_mut().zip(didx) {
+            *e = i.is_some();
         }
         let jc = model.param_jacobian(k, &params, &xs, &estimated);
-        for (i, &slot) in slots.iter().enumerate() {
-            if let Some(Some(idx)) = didx.get(slot) {
+        for (i, idx) in didx.iter().enumerate() {
+            if let Some(idx) = idx {
                 cols.push((*idx, jc.column(i).into_owned()));
             }
         }
@@ -381,8 +380,8 @@ mod tests {
         fd_check(&st, &opts, &pick);
         // Tangential and k3 held but used; square pixels.
         let mut sq = perturb(&s.truth, 131);
-        sq.left_distortion.p1 = 1e-3;
-        sq.right_distortion.k3 = 0.01;
+        *sq.left_distortion.param_named_mut("p1").unwrap() = 1e-3;
+        *sq.right_distortion.param_named_mut("k3").unwrap() = 0.01;
         for k in [&mut sq.left, &mut sq.right] {
             k.fy = k.fx;
         }
@@ -398,8 +397,8 @@ mod tests {
         ); // Every radial-tangential coefficient free (k1 k2 p1 p2 k3), and the equidistant
         // model with k1..k4 free, with a skew.
         let mut full = perturb(&s.truth, 132);
-        full.left_distortion.p1 = 1e-3;
-        full.right_distortion.p2 = -2e-3;
+        *full.left_distortion.param_named_mut("p1").unwrap() = 1e-3;
+        *full.right_distortion.param_named_mut("p2").unwrap() = -2e-3;
         full.left.skew = 0.8;
         let five = BundleOptions {
             estimate_distortion: true,

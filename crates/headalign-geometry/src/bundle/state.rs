@@ -146,6 +146,16 @@ pub struct RigState {
     pub points: Vec<Point3<f64>>,
 }
 
+impl RigState {
+    /// The lens of the camera `side`.
+    pub fn distortion(&self, side: Side) -> &Distortion {
+        match side {
+            Side::Left => &self.left_distortion,
+            Side::Right => &self.right_distortion,
+        }
+    }
+}
+
 /// Options of [`bundle_adjust`].
 ///
 /// [`bundle_adjust`]: super::bundle_adjust
@@ -322,7 +332,8 @@ impl BundleResult {
             .names
             .iter()
             .map(|n| {
-                Param::parse(n).ok_or_else(|| GeometryError::InvalidOption(format!("unknown parameter {n}")))
+                Param::parse(n, &self.state)
+                    .ok_or_else(|| GeometryError::InvalidOption(format!("unknown parameter {n}")))
             })
             .collect()
     }

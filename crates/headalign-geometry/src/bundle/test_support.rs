@@ -31,7 +31,7 @@ pub(super) fn state_distance(a: &RigState, b: &RigState) -> f64 {
         d = d.max((ka.skew - kb.skew).abs() / kb.fx);
     }
     for (da, db) in [(&a.left_distortion, &b.left_distortion), (&a.right_distortion, &b.right_distortion)] {
-        for (x, y) in da.slots().iter().zip(db.slots()) {
+        for (x, y) in da.params().iter().zip(db.params()) {
             d = d.max((x - y).abs());
         }
     }

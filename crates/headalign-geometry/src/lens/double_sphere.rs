@@ -35,7 +35,10 @@
 
 use nalgebra::{Matrix2x3, RowVector3, Vector2, Vector3};
 
-use super::{LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, k2};
+use super::{
+    DistortionTerms, KalibrForm, LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian,
+    Params, k2,
+};
 use crate::camera::Intrinsics;
 use crate::{GeometryError, Result};
 
@@ -48,7 +51,12 @@ static NAMES: ModelNames = ModelNames {
     short: "ds",
     opencv: None,
     ros: None,
-    kalibr: Some("ds"),
+    kalibr: Some(KalibrForm {
+        camera_model: "ds",
+        intrinsics: &["xi", "alpha"],
+        distortion_model: "none",
+        distortion_coeffs: &[],
+    }),
     aliases: &["double-sphere", "ds", "doublesphere", "ds-none"],
 };
 
@@ -90,8 +98,9 @@ impl LensModel for DoubleSphere {
     fn param_names(&self) -> &'static [&'static str] {
         &["xi", "alpha"]
     }
-    fn slots(&self) -> &'static [usize] {
-        &[6, 7]
+    /// Both parameters at every level (`xi alpha` are one shape, not nested terms).
+    fn estimated(&self, _terms: DistortionTerms) -> usize {
+        2
     }
     fn max_half_fov_deg(&self) -> f64 {
         // Up to 90 deg + asin(w2) (module docs): beyond 90 deg for any w2 > 0.
@@ -172,5 +181,71 @@ impl LensModel for DoubleSphere {
             return Err(outside());
         }
         Ok(b / n)
+    }
+
+    /// The argument is the ray angle, up to 180 deg (NaN outside the model's region).
+    fn profile_end(&self) -> f64 {
+        std::f64::consts::PI
+    }
+
+    fn radial_profile(&self, p: &Params, a: f64) -> f64 {
+        self.project(p, &Vector3::new(a.sin(), 0.0, a.cos())).map_or(f64::NAN, |m| m.x)
+    }
+
+    /// `alpha` with `xi = 0` (`m = x / (alpha |ray| + (1 - alpha) z)`): `alpha = c (1 / (1
+    /// + delta) - 1) / (1 - c)`, `c` the cosine of the corner's ray angle; barrel only
+    /// (`None` outside `alpha` in `[0, 1]`).
+    fn grid_lens(&self, delta: f64, corner: f64) -> Option<Params> {
+        let c = corner.atan().cos();
+        let alpha = c * (1.0 / (1.0 + delta) - 1.0) / (1.0 - c);
+        (0.0..=1.0).contains(&alpha).then_some([0.0, alpha, 0.0, 0.0, 0.0, 0.0])
+    }
+
+    /// `xi = 0`, `alpha = 1/2`: `m = sin theta / ((1 + cos theta) / 2) = 2 tan(theta / 2)`.
+    fn stereographic(&self) -> Option<Params> {
+        Some([0.0, 0.5, 0.0, 0.0, 0.0, 0.0])
+    }
+
+    /// The f-xi valley: near the axis the pixel scale is `f / (1 + xi)`, so `f` scales by
+    /// `(1 + value) / (1 + xi)`, and `alpha` is chosen so that the ray at `theta` lands on
+    /// the same pixel radius (`m = sin theta / (alpha d2 + (1 - alpha) s)`, `s = value +
+    /// cos theta`, solved for `alpha`, clamped to `[0, 1]`; kept where not finite).
+    fn along_focal_valley(&self, p: &Params, value: f64, theta: f64) -> Option<(f64, Params)> {
+        let scale = (1.0 + value) / (1.0 + p[0]);
+        let ray = Vector3::new(theta.sin(), 0.0, theta.cos());
+        let mut out = *p;
+        out[0] = value;
+        if let Some(m) = self.project(p, &ray) {
+            // The new lens's denominator D' for the same pixel radius f m = f' sin / D'.
+            let den = scale * theta.sin() / m.x;
+            let s = value + theta.cos();
+            let d2 = (theta.sin().powi(2) + s * s).sqrt();
+            let alpha = (den - s) / (d2 - s);
+            if alpha.is_finite() {
+                out[1] = alpha.clamp(0.0, 1.0);
+            }
+        }
+        Some((scale, out))
+    }
+
+    /// `xi = 0` and `alpha` on a grid of 0.01 in `[0, 0.95]` whose profile `sin(theta) /
+    /// (alpha + (1 - alpha) cos(theta))` is closest to `profile` in least squares over 50
+    /// radii up to `field`; `alpha = 0.5` when the field is empty.
+    fn fit_radial_profile(&self, profile: &dyn Fn(f64) -> f64, field: f64, _estimated: usize) -> Params {
+        let cost = |alpha: f64| -> f64 {
+            (1..=50)
+                .map(|i| {
+                    let r = field * f64::from(i) / 50.0;
+                    let theta = r.atan();
+                    let m = theta.sin() / (alpha + (1.0 - alpha) * theta.cos());
+                    (m - profile(r)).powi(2)
+                })
+                .sum()
+        };
+        if !(field.is_finite() && field > 0.0) {
+            return [0.0, 0.5, 0.0, 0.0, 0.0, 0.0];
+        }
+        let alpha = (0..=95).map(|i| f64::from(i) * 0.01).min_by(|a, b| cost(*a).total_cmp(&cost(*b)));
+        [0.0, alpha.unwrap_or(0.5), 0.0, 0.0, 0.0, 0.0]
     }
 }

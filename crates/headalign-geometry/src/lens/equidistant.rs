@@ -20,7 +20,7 @@
 
 use nalgebra::{Matrix2, Matrix2x3, Vector2, Vector3};
 
-use super::{LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, k2};
+use super::{KalibrForm, LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, k2};
 use crate::camera::Intrinsics;
 use crate::{GeometryError, Result};
 
@@ -40,7 +40,12 @@ static NAMES: ModelNames = ModelNames {
     short: "equidistant",
     opencv: Some("fisheye"),
     ros: Some("equidistant"),
-    kalibr: Some("equidistant"),
+    kalibr: Some(KalibrForm {
+        camera_model: "pinhole",
+        intrinsics: &[],
+        distortion_model: "equidistant",
+        distortion_coeffs: &["k1", "k2", "k3", "k4"],
+    }),
     aliases: &["equidistant", "equi", "fisheye", "pinhole-equi", "kannala-brandt"],
 };
 
@@ -127,9 +132,6 @@ impl LensModel for Equidistant {
     fn param_names(&self) -> &'static [&'static str] {
         &["k1", "k2", "k3", "k4"]
     }
-    fn slots(&self) -> &'static [usize] {
-        &[0, 1, 4, 5]
-    }
     fn max_half_fov_deg(&self) -> f64 {
         90.0
     }
@@ -171,5 +173,59 @@ impl LensModel for Equidistant {
     fn unproject(&self, p: &Params, m: &Vector2<f64>) -> Result<Vector3<f64>> {
         let x = undistort(p, m)?;
         Ok(Vector3::new(x.x, x.y, 1.0).normalize())
+    }
+
+    fn distort(&self, p: &Params, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>, ParamJacobian) {
+        distort(p, x)
+    }
+
+    fn undistort(&self, p: &Params, m: &Vector2<f64>) -> Result<Vector2<f64>> {
+        undistort(p, m)
+    }
+
+    /// The argument is the ray angle, up to 90 deg.
+    fn profile_end(&self) -> f64 {
+        std::f64::consts::FRAC_PI_2
+    }
+
+    fn radial_profile(&self, p: &Params, a: f64) -> f64 {
+        distort(p, &Vector2::new(a.tan(), 0.0)).0.x
+    }
+
+    /// `k1 = delta / atan(corner)^2`.
+    fn grid_lens(&self, delta: f64, corner: f64) -> Option<Params> {
+        Some([delta / corner.atan().powi(2), 0.0, 0.0, 0.0, 0.0, 0.0])
+    }
+
+    /// Least squares over 50 radii up to `field` of `theta (1 + k1 theta^2 + k2 theta^4 +
+    /// ...) - profile(r)`, `theta = atan r`, for the first `estimated` coefficients (the
+    /// powers `theta^3, ^5, ^7, ^9`); the ideal equidistant lens (all zero) when the field
+    /// is empty or the fit singular.
+    fn fit_radial_profile(&self, profile: &dyn Fn(f64) -> f64, field: f64, estimated: usize) -> Params {
+        let mut out = [0.0; MAX_PARAMS];
+        let n = estimated.min(4);
+        if !(field.is_finite() && field > 0.0) {
+            return out;
+        }
+        let samples = 50;
+        let mut a = nalgebra::DMatrix::<f64>::zeros(samples, n);
+        let mut b = nalgebra::DVector::<f64>::zeros(samples);
+        for i in 0..samples {
+            let r = field * (i + 1) as f64 / samples as f64;
+            let theta = r.atan();
+            let rd = profile(r);
+            for j in 0..n {
+                a[(i, j)] = theta.powi(2 * j as i32 + 3);
+            }
+            b[i] = rd - theta;
+        }
+        if let Ok(x) = a.svd(true, true).solve(&b, 1e-12) {
+            for (o, v) in out.iter_mut().zip(x.iter()) {
+                if v.is_finite() {
+                    *o = *v;
+                }
+            }
+        }
+        out
     }
 }

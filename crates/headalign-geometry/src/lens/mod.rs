@@ -15,9 +15,31 @@
 //! | equidistant | `equidistant.rs` | `k1 k2 k3 k4` | `fisheye` | `equidistant` | `equidistant` | < 90 deg (here) |
 //! | double sphere | `double_sphere.rs` | `xi alpha` | none | none | `ds` | up to 180 deg and beyond |
 //!
-//! Adding a model is adding a file that implements [`LensModel`], a [`LensKind`] variant
-//! and a row of [`MODELS`]; `distortion::Distortion` stores every model's
-//! parameters in its slots ([`LensModel::slots`]) and dispatches through [`model`].
+//! **Adding a model** is exactly:
+//! 1. a file here with a unit struct implementing [`LensModel`]: its names
+//!    ([`ModelNames`]: id, short name, OpenCV / ROS names or `None`, its [`KalibrForm`] or
+//!    `None`, the spellings [`LensKind::parse`] accepts), its parameter names (at most
+//!    [`MAX_PARAMS`]), its field ([`LensModel::max_half_fov_deg`]), `project`,
+//!    `linearise`, `param_jacobian` and `unproject`; the other methods have defaults
+//!    (override where the model has the property: `estimated` for terms that are not
+//!    nested levels, `check_params` for a range, `read_coefficients` for a file's
+//!    vector of another length, `distort` / `undistort` for a faster pinhole-plane map,
+//!    the profile for the renderer's fold check, and the starts `calibrate` takes from
+//!    the model: `grid_lens`, `stereographic`, `along_focal_valley`,
+//!    `fit_radial_profile`);
+//! 2. a [`LensKind`] variant, and its row in [`MODELS`] at the variant's index (the `mod`
+//!    and `pub use` lines above);
+//! 3. nothing else: `distortion::Distortion` stores any model's parameters by index and
+//!    names them through the row (its JSON, the simulator's TOML table, the bundle
+//!    adjustment's parameter names `left.<name>`), the residual projects through
+//!    [`LensModel::linearise`], the file writers take the names and refuse a model their
+//!    format lacks by its `None` name (Kalibr's form writes any model that has one), the
+//!    renderer casts bearings for a model wider than 90 deg, and `--lens auto` offers
+//!    every model of the table (the narrow ones at the nested levels of
+//!    [`DistortionTerms`], a wide one when the observed field exceeds 60 deg).
+//!
+//! Tests to add: the model's rows in `tests.rs` (`instance`, `field`: the Jacobians and
+//! the round trip are then checked), and its formula written out by hand for one ray.
 //!
 //! Degrees of freedom: those of the model's parameters ([`LensModel::param_names`]), on
 //! top of the 4-5 of `K`. Units: rays in any length unit (only the direction matters),
@@ -39,10 +61,10 @@ pub use equidistant::Equidistant;
 pub use pinhole::Pinhole;
 pub use radtan::RadialTangential;
 
-use nalgebra::{Matrix2x3, SMatrix, Vector2, Vector3};
+use nalgebra::{Matrix2, Matrix2x3, SMatrix, Vector2, Vector3};
 
-use crate::Result;
 use crate::camera::Intrinsics;
+use crate::{GeometryError, Result};
 
 /// The most parameters a model has (radial-tangential: 5; the parameter arrays of
 /// [`LensModel`] have this length, unused entries zero).
@@ -62,14 +84,30 @@ pub struct ModelNames {
     pub id: &'static str,
     /// Short name in reports and the CLI (`radtan`, `equidistant`, `ds`, `pinhole`).
     pub short: &'static str,
-    /// OpenCV's model (`None`: OpenCV has none).
+    /// OpenCV's model (`None`: OpenCV has none; its writer refuses the model by name).
     pub opencv: Option<&'static str>,
-    /// ROS `sensor_msgs/CameraInfo.distortion_model` (`None`: none).
+    /// ROS `sensor_msgs/CameraInfo.distortion_model` (`None`: none; refused likewise).
     pub ros: Option<&'static str>,
-    /// Kalibr camchain `distortion_model` (or `camera_model` for the double sphere).
-    pub kalibr: Option<&'static str>,
+    /// Kalibr's camchain form of the model (`None`: Kalibr has none).
+    pub kalibr: Option<KalibrForm>,
     /// Every spelling [`LensKind::parse`] accepts (lower case, `-` for `_`).
     pub aliases: &'static [&'static str],
+}
+
+/// How Kalibr's `camchain.yaml` writes a model: `camera_model`, the model's parameters
+/// that precede `fu fv pu pv` in `intrinsics`, `distortion_model` and the parameters of
+/// `distortion_coeffs`. A parameter in neither list is not representable in Kalibr (the
+/// writer notes a non-zero one in a comment).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct KalibrForm {
+    /// `camera_model` (`pinhole`, `ds`).
+    pub camera_model: &'static str,
+    /// The parameters written before `fu fv pu pv` in `intrinsics` (the double sphere's `xi alpha`).
+    pub intrinsics: &'static [&'static str],
+    /// `distortion_model` (`radtan`, `equidistant`, `none`).
+    pub distortion_model: &'static str,
+    /// The parameters of `distortion_coeffs`, in Kalibr's order.
+    pub distortion_coeffs: &'static [&'static str],
 }
 
 /// Linearisation of a projection at one ray: the image-plane point and the pixel
@@ -82,6 +120,53 @@ pub struct Linearised {
     pub d_ray: Matrix2x3<f64>,
 }
 
+/// Which of a model's parameters a bundle adjustment estimates: always the model's first
+/// ones, as many as [`LensModel::estimated`] says for the level (the others are held at
+/// their values, usually zero).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum DistortionTerms {
+    /// `k1, k2` (radial-tangential, equidistant; the default: the tangential terms are
+    /// nearly degenerate with the principal point unless the data are strong); the double
+    /// sphere's `xi, alpha`.
+    Radial2,
+    /// `k1, k2, p1, p2` (radial-tangential: Kalibr's `radtan`) or `k1..k4` (equidistant:
+    /// Kalibr's `equidistant`); the double sphere's `xi, alpha`.
+    Full4,
+    /// `k1, k2, p1, p2, k3` (radial-tangential; the others as [`Self::Full4`]).
+    Full5,
+}
+
+impl DistortionTerms {
+    /// The levels, smallest first.
+    pub const LEVELS: [DistortionTerms; 3] = [Self::Radial2, Self::Full4, Self::Full5];
+
+    /// The count of leading parameters the level names (2, 4, 5), before a model caps it.
+    pub fn count(self) -> usize {
+        match self {
+            Self::Radial2 => 2,
+            Self::Full4 => 4,
+            Self::Full5 => 5,
+        }
+    }
+
+    /// The estimated parameters of a `kind` lens, as indices of its parameters
+    /// ([`LensKind::coefficient_names`]).
+    pub fn params(self, kind: LensKind) -> &'static [usize] {
+        const ALL: [usize; MAX_PARAMS] = [0, 1, 2, 3, 4, 5];
+        &ALL[..kind.model().estimated(self).min(MAX_PARAMS)]
+    }
+
+    /// Parse `k1k2` / `radial` (radial terms), `4` / `full4`, `5` / `full5`.
+    pub fn parse(name: &str) -> Option<Self> {
+        match name.trim().to_ascii_lowercase().as_str() {
+            "radial" | "2" | "k1k2" | "radial2" => Some(Self::Radial2),
+            "4" | "full4" => Some(Self::Full4),
+            "5" | "full5" => Some(Self::Full5),
+            _ => None,
+        }
+    }
+}
+
 /// One lens model (a row of [`MODELS`]; module docs).
 pub trait LensModel: Sync {
     /// The identifier of this row.
@@ -90,10 +175,15 @@ pub trait LensModel: Sync {
     fn names(&self) -> &'static ModelNames;
     /// The parameters, in the model's order (OpenCV's `D` where OpenCV has the model).
     fn param_names(&self) -> &'static [&'static str];
-    /// The storage slot of each parameter in `Distortion::slots` (the `distortion` module).
-    fn slots(&self) -> &'static [usize];
-    /// The largest half field of view the model can represent, degrees (metadata).
+    /// The largest half field of view the model can represent, degrees (metadata; beyond
+    /// 90 deg the model has rays with no pinhole point: the renderer casts bearings and
+    /// `calibrate` takes its wide route).
     fn max_half_fov_deg(&self) -> f64;
+    /// How many leading parameters an adjustment at `terms` estimates (default: the
+    /// level's count, capped at the model's parameter count).
+    fn estimated(&self, terms: DistortionTerms) -> usize {
+        terms.count().min(self.param_names().len())
+    }
     /// The model's parameters that make it the identity on the pinhole plane (the
     /// pinhole); `None` when no choice does (equidistant, double sphere).
     fn pinhole_params(&self) -> Option<Params> {
@@ -102,6 +192,26 @@ pub trait LensModel: Sync {
     /// Validity of the parameters beyond finiteness (`Err` names the rule broken).
     fn check_params(&self, _p: &Params) -> Result<()> {
         Ok(())
+    }
+    /// The parameters of a coefficient vector in the model's order as files write it
+    /// (default: exactly [`Self::param_names`]'s count; the radial-tangential model reads
+    /// OpenCV's `D` of 4 or 5 entries).
+    fn read_coefficients(&self, d: &[f64]) -> Result<Params> {
+        let names = self.param_names();
+        if d.len() != names.len() {
+            return Err(GeometryError::InvalidOption(format!(
+                "a {} lens has {} coefficients {}, got {}",
+                self.names().short,
+                names.len(),
+                names.join(" "),
+                d.len()
+            )));
+        }
+        let mut p = [0.0; MAX_PARAMS];
+        for (o, v) in p.iter_mut().zip(d) {
+            *o = *v;
+        }
+        Ok(p)
     }
     /// The image-plane point `m` of a ray in the camera frame; `None` outside the model's
     /// validity region.
@@ -121,6 +231,72 @@ pub trait LensModel: Sync {
     /// The unit bearing of an image-plane point `m` (the inverse of [`Self::project`]);
     /// an error outside the image of the model (where it folds or has no ray).
     fn unproject(&self, p: &Params, m: &Vector2<f64>) -> Result<Vector3<f64>>;
+    /// The map of the pinhole plane: the image-plane point of the pinhole-plane point `x`,
+    /// `d m / d x` and `d m / d parameter` (default: through [`Self::linearise`] and
+    /// [`Self::param_jacobian`] at the ray `(x, y, 1)` with `K` the identity; NaN where
+    /// the ray does not project).
+    fn distort(&self, p: &Params, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>, ParamJacobian) {
+        let ray = Vector3::new(x.x, x.y, 1.0);
+        let unit = Intrinsics::new(1.0, 1.0, 0.0, 0.0);
+        match self.linearise(&unit, p, &ray) {
+            Some(l) => {
+                let j = l.d_ray.fixed_view::<2, 2>(0, 0).into_owned();
+                (l.m, j, self.param_jacobian(&unit, p, &ray, &[true; MAX_PARAMS]))
+            }
+            None => (Vector2::repeat(f64::NAN), Matrix2::repeat(f64::NAN), ParamJacobian::repeat(f64::NAN)),
+        }
+    }
+    /// The pinhole-plane point of the image-plane point `m` (the inverse of
+    /// [`Self::distort`]; default: [`Self::unproject`], an error for a ray at or beyond
+    /// 90 deg).
+    fn undistort(&self, p: &Params, m: &Vector2<f64>) -> Result<Vector2<f64>> {
+        let b = self.unproject(p, m)?;
+        if !gt(b.z, 1e-12) {
+            return Err(GeometryError::Degenerate(format!(
+                "({:.3}, {:.3}) is a ray at or beyond 90 deg: it has no pinhole point",
+                m.x, m.y
+            )));
+        }
+        Ok(Vector2::new(b.x / b.z, b.y / b.z))
+    }
+    /// The radial profile the renderer checks for a fold (`check_invertible` of the
+    /// simulator): the end of its argument's range, and the image-plane radius along `+x`
+    /// at argument `a` (terms that are not radially symmetric left out; NaN outside the
+    /// model's region). Default: the argument is the pinhole-plane radius, up to 100.
+    fn profile_end(&self) -> f64 {
+        100.0
+    }
+    /// See [`Self::profile_end`].
+    fn radial_profile(&self, p: &Params, a: f64) -> f64 {
+        self.distort(p, &Vector2::new(a, 0.0)).0.x
+    }
+    /// The lens of `calibrate`'s lens grid (`calibrate::two_pass`): the parameters whose
+    /// first parameter alone (the first two for a two-parameter shape) moves a point at
+    /// pinhole-plane radius `corner` radially by the fraction `delta` of its radius;
+    /// `None` where the model has no such lens (default: none).
+    fn grid_lens(&self, _delta: f64, _corner: f64) -> Option<Params> {
+        None
+    }
+    /// The start of a wide model's lens grid (`calibrate::wide`): the model's
+    /// stereographic lens, `r = 2 f tan(theta / 2)`; `None` where it has none (default).
+    fn stereographic(&self) -> Option<Params> {
+        None
+    }
+    /// Along the model's focal valley (a parameter that trades with the focal length
+    /// near the axis; `calibrate::wide`): the focal-length factor and the parameters with
+    /// that parameter set to `value` that keep the central pixel scale and the pixel of a
+    /// ray `theta` radians off the axis. `None`: the model has no such valley (default;
+    /// `calibrate::wide` scans the valley only of a model that answers).
+    fn along_focal_valley(&self, _p: &Params, _value: f64, _theta: f64) -> Option<(f64, Params)> {
+        None
+    }
+    /// The lens of this model with `estimated` leading parameters free whose radial
+    /// profile is closest to `profile` (image-plane radius of a pinhole-plane radius),
+    /// over pinhole-plane radii up to `field`: the start of `--lens auto`'s refit of this
+    /// model from the base (radial-tangential) fit. Default: the zero parameters.
+    fn fit_radial_profile(&self, _profile: &dyn Fn(f64) -> f64, _field: f64, _estimated: usize) -> Params {
+        [0.0; MAX_PARAMS]
+    }
 }
 
 /// A lens model's identifier (the rows of [`MODELS`], in this order); a camera's lens

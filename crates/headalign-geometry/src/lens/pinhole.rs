@@ -7,7 +7,7 @@
 
 use nalgebra::{Matrix2x3, Vector2, Vector3};
 
-use super::{LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params};
+use super::{KalibrForm, LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params};
 use crate::Result;
 use crate::camera::Intrinsics;
 
@@ -20,7 +20,12 @@ static NAMES: ModelNames = ModelNames {
     short: "pinhole",
     opencv: None,
     ros: None,
-    kalibr: Some("none"),
+    kalibr: Some(KalibrForm {
+        camera_model: "pinhole",
+        intrinsics: &[],
+        distortion_model: "none",
+        distortion_coeffs: &[],
+    }),
     aliases: &["pinhole", "none"],
 };
 
@@ -32,9 +37,6 @@ impl LensModel for Pinhole {
         &NAMES
     }
     fn param_names(&self) -> &'static [&'static str] {
-        &[]
-    }
-    fn slots(&self) -> &'static [usize] {
         &[]
     }
     fn max_half_fov_deg(&self) -> f64 {

@@ -18,7 +18,9 @@
 
 use nalgebra::{Matrix2, Matrix2x3, Vector2, Vector3};
 
-use super::{LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, Pinhole, k2};
+use super::{
+    KalibrForm, LensKind, LensModel, Linearised, MAX_PARAMS, ModelNames, ParamJacobian, Params, Pinhole, k2,
+};
 use crate::camera::Intrinsics;
 use crate::{GeometryError, Result};
 
@@ -34,7 +36,12 @@ static NAMES: ModelNames = ModelNames {
     short: "radtan",
     opencv: Some("plumb_bob"),
     ros: Some("plumb_bob"),
-    kalibr: Some("radtan"),
+    kalibr: Some(KalibrForm {
+        camera_model: "pinhole",
+        intrinsics: &[],
+        distortion_model: "radtan",
+        distortion_coeffs: &["k1", "k2", "p1", "p2"],
+    }),
     aliases: &["radtan", "radial-tangential", "plumb-bob", "pinhole-radtan"],
 };
 
@@ -111,9 +118,6 @@ impl LensModel for RadialTangential {
     fn param_names(&self) -> &'static [&'static str] {
         &["k1", "k2", "p1", "p2", "k3"]
     }
-    fn slots(&self) -> &'static [usize] {
-        &[0, 1, 2, 3, 4]
-    }
     fn max_half_fov_deg(&self) -> f64 {
         90.0
     }
@@ -175,5 +179,44 @@ impl LensModel for RadialTangential {
     fn unproject(&self, p: &Params, m: &Vector2<f64>) -> Result<Vector3<f64>> {
         let x = if is_pinhole(p) { *m } else { undistort(p, m)? };
         Ok(Vector3::new(x.x, x.y, 1.0).normalize())
+    }
+
+    /// OpenCV's `D` of `plumb_bob`: 4 or 5 entries `k1 k2 p1 p2 [k3]`; more entries are
+    /// OpenCV's rational or thin-prism models, which headalign does not have: an error
+    /// unless they are all zero.
+    fn read_coefficients(&self, d: &[f64]) -> Result<Params> {
+        if d.len() < 4 {
+            return Err(GeometryError::InvalidOption(format!(
+                "a distortion vector needs at least 4 coefficients (k1 k2 p1 p2 [k3]), got {}",
+                d.len()
+            )));
+        }
+        if d.iter().skip(5).any(|&v| v != 0.0) {
+            return Err(GeometryError::InvalidOption(format!(
+                "{} distortion coefficients with non-zero entries beyond k3: OpenCV's rational_polynomial (k1 k2 p1 p2 k3 k4 k5 k6) or thin-prism model, which headalign does not support (use plumb_bob or fisheye)",
+                d.len()
+            )));
+        }
+        Ok([d[0], d[1], d[2], d[3], d.get(4).copied().unwrap_or(0.0), 0.0])
+    }
+
+    fn distort(&self, p: &Params, x: &Vector2<f64>) -> (Vector2<f64>, Matrix2<f64>, ParamJacobian) {
+        let (xd, j) = distort(p, x);
+        (xd, j, coefficient_jacobian(x))
+    }
+
+    fn undistort(&self, p: &Params, m: &Vector2<f64>) -> Result<Vector2<f64>> {
+        undistort(p, m)
+    }
+
+    /// The radial polynomial alone (`p1 = p2 = 0`) at pinhole-plane radius `a`.
+    fn radial_profile(&self, p: &Params, a: f64) -> f64 {
+        let radial = [p[0], p[1], 0.0, 0.0, p[4], p[5]];
+        distort(&radial, &Vector2::new(a, 0.0)).0.x
+    }
+
+    /// `k1 = delta / corner^2`.
+    fn grid_lens(&self, delta: f64, corner: f64) -> Option<Params> {
+        Some([delta / (corner * corner), 0.0, 0.0, 0.0, 0.0, 0.0])
     }
 }

@@ -19,8 +19,9 @@
 //! Kalibr's camera description as EuRoC ships it, `%YAML:1.0` first:
 //! `camera_model: pinhole`, `intrinsics: [fu, fv, cu, cv]`, `distortion_model:
 //! radial-tangential` (also written `radtan` or `plumb_bob`) with `distortion_coefficients:
-//! [k1, k2, p1, p2]`, or `equidistant` with `[k1, k2, k3, k4]`, and `resolution: [width,
-//! height]`; the rest (`T_BS`, `rate_hz`) is not read. The reader is a small parser of these top-level keys (flow lists may span lines,
+//! [k1, k2, p1, p2]`, or `equidistant` with `[k1, k2, k3, k4]`; or `camera_model: ds`
+//! with `intrinsics: [xi, alpha, fu, fv, cu, cv]` (every form is the lens table's
+//! `KalibrForm`); and `resolution: [width, height]`; the rest (`T_BS`, `rate_hz`) is not read. The reader is a small parser of these top-level keys (flow lists may span lines,
 //! `#` starts a comment), not a general YAML parser.
 //!
 //! Degrees of freedom: none. Units: stamps in nanoseconds, intrinsics in pixels.
@@ -32,6 +33,7 @@ use std::path::{Path, PathBuf};
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
+use headalign_geometry::lens::{KalibrForm, MODELS};
 use headalign_platform::{Encoders, GrayImage};
 
 use super::{Recording, RecordingFormat, RecordingOptions, Stamped, build_views, pair_streams, select_pairs};
@@ -170,31 +172,47 @@ pub fn parse_sensor_yaml(text: &str, origin: &str) -> Result<(LensModel, Option<
         Ok(nums)
     };
     let scalar = |key: &str| yaml_value(text, key).map(|v| v.trim_matches(['"', '\'']).to_string());
-    // Kalibr's camera models: `pinhole` (intrinsics fu fv pu pv, then a distortion model)
-    // or `ds`, the double sphere (intrinsics xi alpha fu fv pu pv).
-    let ds = match scalar("camera_model").as_deref() {
-        None | Some("pinhole") => false,
-        Some("ds") => true,
-        Some(m) => return Err(bad(format!("camera_model '{m}' is not supported (pinhole, ds)"))),
+    // Kalibr's camera models, from the lens table's Kalibr forms: `pinhole` (intrinsics fu
+    // fv pu pv, then a distortion model) or a model of its own (the double sphere's `ds`:
+    // intrinsics xi alpha fu fv pu pv).
+    let camera_model = scalar("camera_model").unwrap_or_else(|| "pinhole".into());
+    let forms: Vec<(LensKind, KalibrForm)> =
+        MODELS.iter().filter_map(|m| m.names().kalibr.map(|f| (m.kind(), f))).collect();
+    let mine: Vec<(LensKind, KalibrForm)> =
+        forms.iter().copied().filter(|(_, f)| f.camera_model == camera_model).collect();
+    let Some(&(_, first)) = mine.first() else {
+        let mut known: Vec<&str> = forms.iter().map(|(_, f)| f.camera_model).collect();
+        known.dedup();
+        return Err(bad(format!("camera_model '{camera_model}' is not supported ({})", known.join(", "))));
     };
-    let all = numbers("intrinsics", if ds { 6 } else { 4 })?;
+    let all = numbers("intrinsics", first.intrinsics.len() + 4)?;
     let k = &all[all.len() - 4..];
     let k = Intrinsics::new(k[0], k[1], k[2], k[3]);
     if !(k.fx > 0.0 && k.fy > 0.0) {
         return Err(bad(format!("intrinsics: focal lengths must be positive, got {} and {}", k.fx, k.fy)));
     }
-    let distortion = match scalar("distortion_model").as_deref() {
-        _ if ds => Distortion::from_coefficients(LensKind::DoubleSphere, &all[..2])
-            .map_err(|e| bad(e.to_string()))?,
-        Some("none") | None => Distortion::default(),
-        Some(name) => {
-            let kind = LensKind::parse(name).ok_or_else(|| {
-                bad(format!(
-                    "distortion_model '{name}' is not supported (radial-tangential: k1, k2, p1, p2; equidistant: k1..k4)"
-                ))
-            })?;
-            let d = numbers("distortion_coefficients", 4)?;
-            Distortion::from_coefficients(kind, &d).map_err(|e| bad(e.to_string()))?
+    let read = |kind: LensKind, names: &[&str], values: &[f64]| {
+        Distortion::from_named_values(kind, names.iter().copied().zip(values.iter().copied()))
+            .and_then(|d| d.validate().map(|()| d))
+            .map_err(|e| bad(e.to_string()))
+    };
+    let distortion = match (mine.as_slice(), scalar("distortion_model").as_deref()) {
+        // A camera model of one lens model (`ds`): its parameters lead the intrinsics.
+        ([(kind, form)], _) => read(*kind, form.intrinsics, &all[..form.intrinsics.len()])?,
+        (_, Some("none") | None) => Distortion::default(),
+        (_, Some(name)) => {
+            let supported = || {
+                let list: Vec<String> = mine
+                    .iter()
+                    .filter(|(_, f)| !f.distortion_coeffs.is_empty())
+                    .map(|(_, f)| format!("{}: {}", f.distortion_model, f.distortion_coeffs.join(", ")))
+                    .collect();
+                bad(format!("distortion_model '{name}' is not supported ({})", list.join("; ")))
+            };
+            let kind = LensKind::parse(name).ok_or_else(supported)?;
+            let (_, form) = mine.iter().find(|(k, _)| *k == kind).ok_or_else(supported)?;
+            let d = numbers("distortion_coefficients", form.distortion_coeffs.len())?;
+            read(kind, form.distortion_coeffs, &d)?
         }
     };
     let resolution = match yaml_value(text, "resolution") {

@@ -506,16 +506,37 @@ ul.links { columns: 3; font-size: .9em; }
 footer { margin-top: 3em; font-size: .8em; color: #888; }
 ";
 
-/// How the report names the lens model: none, or each camera's OpenCV `plumb_bob`
-/// coefficients.
+/// How the report names the lens model: none, or each camera's model (OpenCV's name where
+/// it has one, `OpenCV plumb_bob`, else the lens table's short name) and coefficients.
 fn lens_note(d: &[headalign_geometry::distortion::Distortion; 2]) -> String {
     if d.iter().all(|x| x.is_zero()) {
         return "no lens distortion".into();
     }
-    let one = |x: &headalign_geometry::distortion::Distortion| {
-        format!("k1 {:.5}, k2 {:.5}, p1 {:.5}, p2 {:.5}, k3 {:.5}", x.k1, x.k2, x.p1, x.p2, x.k3)
+    let model = |x: &headalign_geometry::distortion::Distortion| {
+        let names = x.kind.model().names();
+        names.opencv.map_or_else(|| names.short.to_string(), |o| format!("OpenCV {o}"))
     };
-    format!("lens distortion (OpenCV plumb_bob): left {}; right {}", one(&d[0]), one(&d[1]))
+    let one = |x: &headalign_geometry::distortion::Distortion| {
+        let values: Vec<String> = x
+            .kind
+            .coefficient_names()
+            .iter()
+            .zip(x.coefficients())
+            .map(|(n, v)| format!("{n} {v:.5}"))
+            .collect();
+        values.join(", ")
+    };
+    if d[0].kind == d[1].kind {
+        format!("lens distortion ({}): left {}; right {}", model(&d[0]), one(&d[0]), one(&d[1]))
+    } else {
+        format!(
+            "lens distortion: left ({}) {}; right ({}) {}",
+            model(&d[0]),
+            one(&d[0]),
+            model(&d[1]),
+            one(&d[1])
+        )
+    }
 }
 
 /// The text line of a scene check: `scene: kind (why)`.

@@ -564,12 +564,16 @@ fn a_strong_lens_in_ten_degree_views_starts_well() {
         let (st, t) = (&cal.bundle.state, &truth);
         assert!(f_err_pct(&st.left, &t.left) < 1.0, "seed {seed}: {:?} vs {:?}", st.left, t.left);
         assert!(f_err_pct(&st.right, &t.right) < 1.0, "seed {seed}: {:?} vs {:?}", st.right, t.right);
-        assert!((st.left_distortion.k1 - lens.k1).abs() < 0.01, "seed {seed}: {:?}", st.left_distortion);
+        assert!(
+            (st.left_distortion.param("k1").unwrap() - lens.param("k1").unwrap()).abs() < 0.01,
+            "seed {seed}: {:?}",
+            st.left_distortion
+        );
         let cov = &cal.bundle.covariance;
         for (name, err) in [
             ("left.fx", st.left.fx - t.left.fx),
             ("right.fx", st.right.fx - t.right.fx),
-            ("left.k1", st.left_distortion.k1 - lens.k1),
+            ("left.k1", st.left_distortion.param("k1").unwrap() - lens.param("k1").unwrap()),
         ] {
             let sigma = cov.sigma(name).unwrap();
             assert!(err.abs() < 4.0 * sigma, "seed {seed}: {name} error {err} sigma {sigma}");
@@ -594,7 +598,11 @@ fn a_strong_lens_in_three_degree_views_keeps_the_lowest_minimum() {
     let (st, t) = (&cal.bundle.state, &truth);
     assert!(f_err_pct(&st.left, &t.left) < 2.0, "{:?} vs {:?}", st.left, t.left);
     assert!(f_err_pct(&st.right, &t.right) < 2.0, "{:?} vs {:?}", st.right, t.right);
-    assert!((st.left_distortion.k1 - lens.k1).abs() < 0.01, "{:?}", st.left_distortion);
+    assert!(
+        (st.left_distortion.param("k1").unwrap() - lens.param("k1").unwrap()).abs() < 0.01,
+        "{:?}",
+        st.left_distortion
+    );
     assert_eq!(cal.report.start, "lens grid");
 }
 
@@ -774,7 +782,7 @@ fn a_sequence_chooses_its_lens() {
             assert!(cal.report.lens_sigmas.is_none(), "the pinhole keeps its linearised sigmas");
         } else {
             assert_ne!(sel.chosen, "pinhole", "{}", sel.reason);
-            assert!(st.left_distortion.k1 < -0.1, "{:?}", st.left_distortion);
+            assert!(st.left_distortion.param("k1").unwrap() < -0.1, "{:?}", st.left_distortion);
             // The chosen lens's sigmas are bootstrapped, the segment gauges held.
             let boot = cal.report.lens_sigmas.as_ref().expect("lens bootstrap of a sequence");
             assert!(boot.replicates >= 3 && boot.widening.iter().all(|(_, w)| *w >= 1.0), "{boot:?}");
@@ -843,10 +851,10 @@ fn a_180_degree_double_sphere_calibrates() {
     assert!(f_err_pct(&st.right, &t.right) < 1.0, "{:?} vs {:?}", st.right, t.right);
     let cov = &cal.bundle.covariance;
     for (name, err) in [
-        ("left.xi", st.left_distortion.xi + 0.15),
-        ("left.alpha", st.left_distortion.alpha - 0.55),
-        ("right.xi", st.right_distortion.xi + 0.15),
-        ("right.alpha", st.right_distortion.alpha - 0.55),
+        ("left.xi", st.left_distortion.param("xi").unwrap() + 0.15),
+        ("left.alpha", st.left_distortion.param("alpha").unwrap() - 0.55),
+        ("right.xi", st.right_distortion.param("xi").unwrap() + 0.15),
+        ("right.alpha", st.right_distortion.param("alpha").unwrap() - 0.55),
     ] {
         let sigma = cov.sigma(name).unwrap();
         assert!(err.abs() < 3.0 * sigma, "{name}: error {err:.5}, sigma {sigma:.5}");
@@ -878,10 +886,10 @@ fn wide_double_sphere_seeds() {
                 let cov = &cal.bundle.covariance;
                 let f = f_err_pct(&st.left, &t.left).max(f_err_pct(&st.right, &t.right));
                 let z = [
-                    ("left.xi", st.left_distortion.xi + 0.15),
-                    ("left.alpha", st.left_distortion.alpha - 0.55),
-                    ("right.xi", st.right_distortion.xi + 0.15),
-                    ("right.alpha", st.right_distortion.alpha - 0.55),
+                    ("left.xi", st.left_distortion.param("xi").unwrap() + 0.15),
+                    ("left.alpha", st.left_distortion.param("alpha").unwrap() - 0.55),
+                    ("right.xi", st.right_distortion.param("xi").unwrap() + 0.15),
+                    ("right.alpha", st.right_distortion.param("alpha").unwrap() - 0.55),
                 ]
                 .map(|(n, e)| cov.sigma(n).map_or(f64::INFINITY, |s| e.abs() / s));
                 let zmax = z.iter().copied().fold(0.0, f64::max);
@@ -976,10 +984,10 @@ fn a_180_degree_double_sphere_calibrates_from_rendered_images() {
     assert!(f_err_pct(&st.right, &truth.right) < 1.0, "{:?} {:?}", st.right, st.right_distortion);
     let cov = &cal.bundle.covariance;
     for (name, err) in [
-        ("left.xi", st.left_distortion.xi - lens.xi),
-        ("left.alpha", st.left_distortion.alpha - lens.alpha),
-        ("right.xi", st.right_distortion.xi - lens.xi),
-        ("right.alpha", st.right_distortion.alpha - lens.alpha),
+        ("left.xi", st.left_distortion.param("xi").unwrap() - lens.param("xi").unwrap()),
+        ("left.alpha", st.left_distortion.param("alpha").unwrap() - lens.param("alpha").unwrap()),
+        ("right.xi", st.right_distortion.param("xi").unwrap() - lens.param("xi").unwrap()),
+        ("right.alpha", st.right_distortion.param("alpha").unwrap() - lens.param("alpha").unwrap()),
     ] {
         let sigma = cov.sigma(name).unwrap();
         eprintln!("rendered {name}: error {err:.5}, sigma {sigma:.5}");
@@ -1004,8 +1012,8 @@ fn a_180_degree_double_sphere_calibrates_from_rendered_images() {
     eprintln!(
         "rendered: f {:.2} xi {:.4} alpha {:.4}; SSR {:.4} px^2, from the truth {at_truth:.4}",
         st.left.fx,
-        st.left_distortion.xi,
-        st.left_distortion.alpha,
+        st.left_distortion.param("xi").unwrap(),
+        st.left_distortion.param("alpha").unwrap(),
         ssr(st)
     );
     assert!(ssr(st) <= at_truth * 1.01, "SSR {} against {at_truth} from the truth", ssr(st));

@@ -173,25 +173,12 @@ fn grid_displacements() -> impl Iterator<Item = f64> {
 }
 
 /// The lens of the model `kind` whose first parameter alone moves a point at normalised
-/// radius `corner` radially by the fraction `delta` of its radius: `k1` of the
-/// radial-tangential and equidistant models; the double sphere's `alpha` with `xi = 0`
-/// (`m = x / (alpha |ray| + (1 - alpha) z)`, barrel only: `alpha` in `[0, 1]`). `None`
-/// where the model has no such lens (the pinhole; the double sphere's pincushion).
+/// radius `corner` radially by the fraction `delta` of its radius (the lens table's
+/// `grid_lens`: `k1` of the radial-tangential and equidistant models; the double sphere's
+/// `alpha` with `xi = 0`, barrel only). `None` where the model has no such lens (the
+/// pinhole; the double sphere's pincushion).
 fn grid_lens(kind: LensKind, delta: f64, corner: f64) -> Option<Distortion> {
-    let mut d = Distortion::zero(kind);
-    match kind {
-        LensKind::RadialTangential => d.k1 = delta / (corner * corner),
-        LensKind::Equidistant => d.k1 = delta / corner.atan().powi(2),
-        LensKind::DoubleSphere => {
-            let c = corner.atan().cos();
-            d.alpha = c * (1.0 / (1.0 + delta) - 1.0) / (1.0 - c);
-            if !(0.0..=1.0).contains(&d.alpha) {
-                return None;
-            }
-        }
-        LensKind::Pinhole => return None,
-    }
-    Some(d)
+    kind.model().grid_lens(delta, corner).map(|p| Distortion::from_params(kind, p))
 }
 
 /// Step 1's lens: per lens of the

@@ -90,8 +90,10 @@ fn wide_grid_fields() -> impl Iterator<Item = f64> {
 }
 
 /// [`grid_start`] for a wide model (the double sphere): per half field `phi` of
-/// [`wide_grid_fields`], the stereographic double sphere (`xi = 0`, `alpha = 1/2`: `r =
-/// 2 f tan(theta / 2)`) whose focal length puts `phi` at the image's horizontal edge, the
+/// [`wide_grid_fields`], the model's stereographic lens (the lens table's
+/// `stereographic`; `None` for a model without one; the double sphere's `xi = 0`, `alpha =
+/// 1/2`: `r = 2 f tan(theta / 2)`) whose focal length puts `phi` at the image's horizontal
+/// edge, the
 /// pixels undistorted with it (rays within [`WIDE_CHAIN_MAX_RAY_DEG`]) and steps 2-3 of the
 /// chain run; the lens whose 3D homographies keep the most quadruplets wins, and its `K`
 /// conditions the chain and starts the rigid start. `None` if no lens gives every view a
@@ -100,12 +102,9 @@ fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -
     let rig = super::depth::select_views(views, options).ok()?;
     let [w, h] = rig.image_size;
     let guess = Intrinsics::rough_guess(w, h);
+    let d = Distortion::from_params(kind, kind.model().stereographic()?);
     let mut best: Option<(usize, LensModel)> = None;
     for phi in wide_grid_fields() {
-        let mut d = Distortion::zero(kind);
-        if kind == LensKind::DoubleSphere {
-            d.alpha = 0.5;
-        }
         let phi = phi.to_radians();
         let f = 0.5 * f64::from(w) * (0.5 + 0.5 * phi.cos()) / phi.sin();
         let lens = LensModel { k: Intrinsics::new(f, f, guess.cx, guess.cy), distortion: d };
@@ -129,28 +128,19 @@ fn wide_xi_starts() -> impl Iterator<Item = f64> {
     (-3..=3).map(|i| f64::from(i) * 0.2)
 }
 
-/// The double sphere with shift `xi` in the f-xi valley of `(k, d)`: `f` scaled to keep the
-/// central pixel scale `f / (1 + xi)`, and `alpha` chosen so that a ray at
-/// [`WIDE_CHAIN_MAX_RAY_DEG`] (the edge of the linear steps' field) lands on the same pixel
-/// radius (`m = sin theta / (alpha d2 + (1 - alpha) s)`, `s = xi + cos theta`, solved for
-/// `alpha`, clamped to `[0, 1]`).
+/// The lens with shift `xi` in the f-xi valley of `(k, d)` (the lens table's
+/// `along_focal_valley`; the double sphere's: `f` scaled to keep the central pixel scale
+/// `f / (1 + xi)`, and `alpha` chosen so that a ray at [`WIDE_CHAIN_MAX_RAY_DEG`] (the edge
+/// of the linear steps' field) lands on the same pixel radius); `(k, d)` unchanged for a
+/// model without the valley.
 fn along_valley(k: &Intrinsics, d: &Distortion, xi: f64) -> (Intrinsics, Distortion) {
-    let scale = (1.0 + xi) / (1.0 + d.xi);
-    let k2 = Intrinsics { fx: k.fx * scale, fy: k.fy * scale, ..*k };
     let theta = WIDE_CHAIN_MAX_RAY_DEG.to_radians();
-    let ray = nalgebra::Vector3::new(theta.sin(), 0.0, theta.cos());
-    let mut out = Distortion { xi, ..*d };
-    if let Some(m) = d.project(&ray) {
-        // The new lens's denominator D' for the same pixel radius f m = f' sin / D'.
-        let den = scale * theta.sin() / m.x;
-        let s = xi + theta.cos();
-        let d2 = (theta.sin().powi(2) + s * s).sqrt();
-        let alpha = (den - s) / (d2 - s);
-        if alpha.is_finite() {
-            out.alpha = alpha.clamp(0.0, 1.0);
+    match d.kind.model().along_focal_valley(&d.params(), xi, theta) {
+        Some((scale, params)) => {
+            (Intrinsics { fx: k.fx * scale, fy: k.fy * scale, ..*k }, Distortion::from_params(d.kind, params))
         }
+        None => (*k, *d),
     }
-    (k2, out)
 }
 
 /// Re-selection gates (of the candidate's noise estimate) within which an observation of
@@ -177,7 +167,9 @@ fn choose_along_valley(
     rig: &[View],
     options: &CalibrateOptions,
 ) -> MotionCalibration {
-    if run.bundle.state.left_distortion.kind != LensKind::DoubleSphere {
+    let lens = run.bundle.state.left_distortion;
+    let theta = WIDE_CHAIN_MAX_RAY_DEG.to_radians();
+    if lens.kind.model().along_focal_valley(&lens.params(), 0.0, theta).is_none() {
         return run;
     }
     let gate = options.estimation.reselect_sigmas * run.report.sigma_px.max(0.05);

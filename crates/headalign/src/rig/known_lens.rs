@@ -96,7 +96,7 @@ pub fn read_opencv_lenses(text: &str, origin: &str) -> Result<[LensModel; 2], Al
     // `distortion_model[_1|_2]` key, radial-tangential (`plumb_bob`) when absent.
     let model = |keys: &[&str]| -> Result<LensKind, AlignError> {
         match keys.iter().find_map(|k| scalar(text, k)) {
-            None => Ok(LensKind::RadialTangential),
+            None => Ok(LensKind::default()),
             Some(name) => LensKind::parse(&name).ok_or_else(|| {
                 bad(format!(
                     "distortion model '{name}' is not supported (plumb_bob/radtan or fisheye/equidistant)"

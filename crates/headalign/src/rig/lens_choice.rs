@@ -53,6 +53,7 @@ use headalign_geometry::bundle::{
     BundleObservation, BundleOptions, RigState, RobustLoss, Side, bundle_adjust, residual_pixels,
 };
 use headalign_geometry::distortion::{Distortion, DistortionTerms, LensKind};
+use headalign_geometry::lens::{MAX_PARAMS, MODELS};
 use serde::Serialize;
 
 use super::FINAL_ITERATIONS;
@@ -114,19 +115,19 @@ impl LensSpec {
     /// the order pinhole; radtan `k1 k2`, `k1 k2 p1 p2`, `k1 k2 p1 p2 k3`; equidistant
     /// `k1 k2`, `k1..k4` (each nested model after the one it extends: its start).
     pub fn candidates(max_terms: DistortionTerms) -> Vec<LensSpec> {
-        use DistortionTerms::{Full4, Full5, Radial2};
-        let rank = |t: DistortionTerms| match t {
-            Radial2 => 0,
-            Full4 => 1,
-            Full5 => 2,
-        };
-        let radtan = Some(LensKind::RadialTangential);
-        let equi = Some(LensKind::Equidistant);
-        [(None, Radial2), (radtan, Radial2), (radtan, Full4), (radtan, Full5), (equi, Radial2), (equi, Full4)]
-            .into_iter()
-            .filter(|(_, t)| rank(*t) <= rank(max_terms))
-            .map(|(kind, terms)| LensSpec { kind, terms })
-            .collect()
+        let mut out = vec![LensSpec { kind: None, terms: DistortionTerms::Radial2 }];
+        // Every narrow model of the lens table with parameters, at each level of terms up
+        // to `max_terms` that adds parameters to the level before.
+        for m in MODELS.iter().filter(|m| !m.param_names().is_empty() && m.max_half_fov_deg() <= 90.0) {
+            let mut last = 0;
+            for terms in DistortionTerms::LEVELS.into_iter().filter(|t| t.count() <= max_terms.count()) {
+                if m.estimated(terms) > last {
+                    last = m.estimated(terms);
+                    out.push(LensSpec { kind: Some(m.kind()), terms });
+                }
+            }
+        }
+        out
     }
 
     /// The lens choice of a calibration with this model.
@@ -242,7 +243,8 @@ pub(crate) fn select_lens(
     let mut specs = LensSpec::candidates(max_terms);
     // The double sphere competes when the lens is wide (module docs).
     if observed_field(state, obs).iter().any(|&f| f > WIDE_FIELD) {
-        specs.push(LensSpec { kind: Some(LensKind::DoubleSphere), terms: DistortionTerms::Radial2 });
+        let wide = MODELS.iter().filter(|m| m.max_half_fov_deg() > 90.0);
+        specs.extend(wide.map(|m| LensSpec { kind: Some(m.kind()), terms: DistortionTerms::Radial2 }));
     }
     for spec in specs {
         let start = candidate_start(spec, state, &fitted, obs);
@@ -329,41 +331,33 @@ fn selection_reason(
 /// whose terms it extends (its extra coefficients zero), else `state` with the lens the
 /// model takes from it: none for the pinhole, `state`'s own radial-tangential lens with
 /// the coefficients outside `spec`'s terms zeroed, or the equidistant lens closest to
-/// `state`'s radial profile over the observed field ([`equidistant_like`]).
+/// `state`'s radial profile over the observed field ([`profile_like`]).
 fn candidate_start(
     spec: LensSpec,
     state: &RigState,
     fitted: &[Refit],
     obs: &[BundleObservation],
 ) -> RigState {
+    // The fit's own lens with the parameters outside `spec`'s terms zeroed.
     let keep = |d: Distortion, kind: LensKind| {
-        let mut out = Distortion::zero(kind);
-        for &i in spec.terms.slots(kind) {
-            if let (Some(o), Some(v)) = (out.slot_mut(i), d.slots().get(i)) {
-                *o = *v;
-            }
+        let mut p = [0.0; MAX_PARAMS];
+        for &i in spec.terms.params(kind) {
+            p[i] = d.params()[i];
         }
-        out
+        Distortion::from_params(kind, p)
     };
     let nested = fitted.iter().rev().find(|r| r.spec.kind == spec.kind && r.spec.kind.is_some());
     let mut start = nested.map_or_else(|| state.clone(), |r| r.state.clone());
     let lenses = match spec.kind {
         None => [Distortion::default(); 2],
-        Some(kind) if nested.is_some() || kind == LensKind::RadialTangential => {
+        Some(kind) if nested.is_some() || spec.kind == BASE_LENS.kind => {
             [keep(start.left_distortion, kind), keep(start.right_distortion, kind)]
         }
-        Some(LensKind::DoubleSphere) => {
+        Some(kind) => {
             let field = observed_field(state, obs);
             [
-                double_sphere_like(&state.left_distortion, field[0]),
-                double_sphere_like(&state.right_distortion, field[1]),
-            ]
-        }
-        Some(_) => {
-            let field = observed_field(state, obs);
-            [
-                equidistant_like(&state.left_distortion, field[0], spec.terms),
-                equidistant_like(&state.right_distortion, field[1], spec.terms),
+                profile_like(kind, &state.left_distortion, field[0], spec.terms),
+                profile_like(kind, &state.right_distortion, field[1], spec.terms),
             ]
         }
     };
@@ -411,30 +405,21 @@ fn one_line(text: &str) -> String {
 /// equidistant candidates), and there the double sphere would only add a refit.
 pub const WIDE_FIELD: f64 = 1.732_050_807_568_877_2;
 
-/// The double sphere (`xi = 0`, `alpha` on a grid of 0.01 in `[0, 0.95]`) whose radial
-/// profile `sin(theta) / (alpha + (1 - alpha) cos(theta))` is closest, in least squares
-/// over 50 radii up to `field`, to the radial-tangential lens `radtan`'s (tangential terms
-/// ignored); `alpha = 0.5` when the field is empty.
-fn double_sphere_like(radtan: &Distortion, field: f64) -> Distortion {
+/// The lens of the model `kind` with the parameters of `terms` whose radial profile is
+/// closest, over the observed field (pinhole-plane radii up to `field`), to the base
+/// radial-tangential lens `radtan`'s profile `r (1 + k1 r^2 + k2 r^4 + k3 r^6)` (its
+/// tangential terms ignored): the lens table's `fit_radial_profile` (the equidistant
+/// model: least squares over 50 radii, all zero when the field is empty or the fit
+/// singular; the double sphere: `xi = 0` and the best `alpha` on a grid of 0.01 in `[0,
+/// 0.95]`, 0.5 when the field is empty).
+fn profile_like(kind: LensKind, radtan: &Distortion, field: f64, terms: DistortionTerms) -> Distortion {
+    let [k1, k2, k3] = ["k1", "k2", "k3"].map(|n| radtan.param(n).unwrap_or(0.0));
     let profile = |r: f64| {
         let r2 = r * r;
-        r * (1.0 + radtan.k1 * r2 + radtan.k2 * r2 * r2 + radtan.k3 * r2 * r2 * r2)
+        r * (1.0 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2)
     };
-    let cost = |alpha: f64| -> f64 {
-        (1..=50)
-            .map(|i| {
-                let r = field * f64::from(i) / 50.0;
-                let theta = r.atan();
-                let m = theta.sin() / (alpha + (1.0 - alpha) * theta.cos());
-                (m - profile(r)).powi(2)
-            })
-            .sum()
-    };
-    if !(field.is_finite() && field > 0.0) {
-        return Distortion::double_sphere(0.0, 0.5);
-    }
-    let alpha = (0..=95).map(|i| f64::from(i) * 0.01).min_by(|a, b| cost(*a).total_cmp(&cost(*b)));
-    Distortion::double_sphere(0.0, alpha.unwrap_or(0.5))
+    let model = kind.model();
+    Distortion::from_params(kind, model.fit_radial_profile(&profile, field, model.estimated(terms)))
 }
 
 /// Per camera (left, right), the largest undistorted normalised radius of the
@@ -454,49 +439,6 @@ fn observed_field(state: &RigState, obs: &[BundleObservation]) -> [f64; 2] {
         }
     }
     field
-}
-
-/// The equidistant lens with the coefficients of `terms` whose radial profile
-/// `theta (1 + k1 theta^2 + k2 theta^4 + ...)` is closest, in least squares over 50
-/// radii up to `field`, to the radial-tangential lens `radtan`'s profile
-/// `r (1 + k1 r^2 + k2 r^4 + k3 r^6)` (its tangential terms ignored); the ideal
-/// equidistant lens (all zero) when the field is empty or the fit singular.
-fn equidistant_like(radtan: &Distortion, field: f64, terms: DistortionTerms) -> Distortion {
-    let mut out = Distortion::zero(LensKind::Equidistant);
-    let slots = terms.slots(LensKind::Equidistant);
-    if !(field.is_finite() && field > 0.0) {
-        return out;
-    }
-    // Equidistant slots 0, 1, 4, 5 are the powers theta^3, ^5, ^7, ^9.
-    let power = |slot: usize| match slot {
-        0 => 3,
-        1 => 5,
-        4 => 7,
-        _ => 9,
-    };
-    let samples = 50;
-    let mut a = nalgebra::DMatrix::<f64>::zeros(samples, slots.len());
-    let mut b = nalgebra::DVector::<f64>::zeros(samples);
-    for i in 0..samples {
-        let r = field * (i + 1) as f64 / samples as f64;
-        let theta = r.atan();
-        let r2 = r * r;
-        let rd = r * (1.0 + radtan.k1 * r2 + radtan.k2 * r2 * r2 + radtan.k3 * r2 * r2 * r2);
-        for (j, &slot) in slots.iter().enumerate() {
-            a[(i, j)] = theta.powi(power(slot));
-        }
-        b[i] = rd - theta;
-    }
-    if let Ok(x) = a.svd(true, true).solve(&b, 1e-12) {
-        for (j, &slot) in slots.iter().enumerate() {
-            if let (Some(o), Some(v)) = (out.slot_mut(slot), x.get(j))
-                && v.is_finite()
-            {
-                *o = *v;
-            }
-        }
-    }
-    out
 }
 
 /// The coefficients estimated of `lens`: `given` when given; otherwise every candidate's
@@ -545,7 +487,7 @@ mod tests {
     fn the_equidistant_start_follows_the_radial_profile() {
         let radtan = Distortion::radial(-0.283, 0.074);
         for (terms, tolerance) in [(DistortionTerms::Full4, 2e-4), (DistortionTerms::Radial2, 2e-3)] {
-            let equi = equidistant_like(&radtan, 1.0, terms);
+            let equi = profile_like(LensKind::Equidistant, &radtan, 1.0, terms);
             assert_eq!(equi.kind, LensKind::Equidistant);
             let worst = (1..=20)
                 .map(|i| {
@@ -556,7 +498,7 @@ mod tests {
             assert!(worst < tolerance, "{terms:?}: {worst} {equi:?}");
         }
         assert_eq!(
-            equidistant_like(&radtan, 0.0, DistortionTerms::Full4),
+            profile_like(LensKind::Equidistant, &radtan, 0.0, DistortionTerms::Full4),
             Distortion::zero(LensKind::Equidistant)
         );
     }
