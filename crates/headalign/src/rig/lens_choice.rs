@@ -399,7 +399,7 @@ fn one_line(text: &str) -> String {
     }
 }
 
-/// The undistorted normalised radius (of the base fit, [`observed_field`]) beyond which
+/// The undistorted normalised radius (of the base fit, `observed_field`) beyond which
 /// the double sphere is a candidate of [`LensChoice::Auto`]: `tan 60 deg`. Narrower
 /// fields are described by the pinhole-plane models (the radial-tangential and
 /// equidistant candidates), and there the double sphere would only add a refit.
