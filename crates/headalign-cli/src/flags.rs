@@ -10,6 +10,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::LensChoice;
 use headalign_geometry::distortion::DistortionTerms;
+use headalign_geometry::lens::MODELS;
 use headalign_sim::Scenario;
 
 /// An error naming each flag of `given` (flag, whether given) that was given: "`--a, --b`
@@ -29,7 +30,9 @@ pub fn refuse(given: &[(&str, bool)], only_to: &str) -> Result<()> {
 /// it has four coefficients, and would silently estimate those of `4`).
 pub fn check_lens_terms(lens: LensChoice, terms: Option<DistortionTerms>) -> Result<()> {
     if lens == LensChoice::Pinhole && terms.is_some() {
-        bail!("--lens-terms needs a lens model to estimate (--lens radtan, equidistant or auto)");
+        let estimated: Vec<&str> =
+            MODELS.iter().filter(|m| !m.param_names().is_empty()).map(|m| m.names().short).collect();
+        bail!("--lens-terms needs a lens model to estimate (--lens {} or auto)", estimated.join(", "));
     }
     if let (Some(kind), Some(terms)) = (lens.kind(), terms) {
         let m = kind.model();
@@ -53,9 +56,14 @@ pub fn check_lens_terms(lens: LensChoice, terms: Option<DistortionTerms>) -> Res
     Ok(())
 }
 
+/// The short names of the lens table's models (`--lens`).
+fn model_names() -> Vec<&'static str> {
+    MODELS.iter().map(|m| m.names().short).collect()
+}
+
 pub fn parse_lens(s: &str) -> Result<LensChoice, String> {
     LensChoice::parse(s)
-        .ok_or_else(|| format!("unknown lens model '{s}': pinhole, radtan, equidistant or auto"))
+        .ok_or_else(|| format!("unknown lens model '{s}': {}, or auto", model_names().join(", ")))
 }
 
 pub fn parse_terms(s: &str) -> Result<DistortionTerms, String> {

@@ -1,7 +1,8 @@
 //! `headalign experiment lens`: the rig bundle adjustment of `calibrate` estimating a lens
 //! model, against image noise, for a strong radial-tangential lens and for an equidistant
 //! fisheye (issue 31 item 7): focal-length and `k1` errors, and the 95 % coverage of every
-//! reported lens and focal-length sigma.
+//! reported lens and focal-length sigma; and, at 0.5 px, the double sphere on a 180-deg
+//! field in views 15 deg apart (issue 45, the submodule `wide`: its own CSV and section).
 //!
 //! What a trial computes. The simulated head of the scene preset (seed `seed + t`) draws
 //! and projects through the lens of its condition ([`LENSES`]; both cameras carry the same
@@ -29,9 +30,11 @@
 //! the 2 x 4 conditions (default [`DEFAULT_TRIALS`]: 120 per condition, enough to tell a
 //! 90 % coverage from 95 % by 2.5 binomial standard deviations); `--only` the noise
 //! levels; `--scene` the preset; `--seed` the first seed. The procedure's tuning flags do
-//! not apply (error). Outputs in `--out`: `lens.csv` (one row per trial, failures with
-//! their message), `lens.md` (the tables), `lens.png` / `lens.svg` (median errors and
-//! sigmas against noise).
+//! not apply (error). Outputs in `--out`: `lens.csv` (one row per trial of the two narrow
+//! lenses, failures with their message), `lens.md` (the tables), `lens.png` / `lens.svg`
+//! (median errors and sigmas against noise); with 0.5 px among the noise levels also the
+//! wide condition (submodule `wide`): `lens-wide.csv` (its trials, as many as per narrow
+//! condition, the same columns for its quantities) and its section of `lens.md`.
 //!
 //! Pitfalls (measured, the default 960 trials: 120 per condition, seeds 1-120,
 //! `docs/results.md`): with 3 deg views the focal length is determined to about 1.5 % at

@@ -41,6 +41,12 @@
 //! Tests to add: the model's rows in `tests.rs` (`instance`, `field`: the Jacobians and
 //! the round trip are then checked), and its formula written out by hand for one ray.
 //!
+//! Named outside this folder, on purpose: the radial-tangential model as the default kind
+//! (`LensKind::default`, older files without `kind`), OpenCV's `plumb_bob` `D`
+//! (`Distortion::from_opencv`), and the base of `--lens auto`'s criterion (`BASE_LENS` of
+//! `headalign::rig::lens_choice`); the conveniences `Distortion::radial`, `equidistant`
+//! and `double_sphere`; and tests.
+//!
 //! Degrees of freedom: those of the model's parameters ([`LensModel::param_names`]), on
 //! top of the 4-5 of `K`. Units: rays in any length unit (only the direction matters),
 //! `m` dimensionless, pixels outside, parameters dimensionless (the equidistant ones

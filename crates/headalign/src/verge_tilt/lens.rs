@@ -188,7 +188,7 @@ fn estimate_choosing(
 ) -> Result<RigCalibration, AlignError> {
     let with = |terms| EstimationOptions { lens_terms: terms, ..options.clone() };
     let base = with(BASE_LENS.terms);
-    let rich = estimate_model(views, &base, LensKind::RadialTangential, mode, at_view)?;
+    let rich = estimate_model(views, &base, BASE_LENS.kind.unwrap_or_default(), mode, at_view)?;
     let selection =
         select_lens(&rich.bundle.state, &rich.observations, &lens_free(&base).bundle, options.lens_terms)?;
     let spec = selection.spec;
