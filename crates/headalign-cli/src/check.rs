@@ -9,9 +9,9 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::calibrate::StereoViews;
+use headalign::calibrate::{CalibrateViewsOptions, StereoViews};
 use headalign::calibration::StereoCalibration;
-use headalign::check::{Angles, CheckOptions, CheckReport, check_views};
+use headalign::check::{Angles, CheckOptions, CheckReport, FullUpdate, check_views, update_full};
 use headalign::observations::View;
 use headalign_io::export::CalibrationFiles as _;
 use serde_json::json;
@@ -28,10 +28,14 @@ pub struct CheckArgs {
     /// M2 D2 R T) or a Kalibr camchain.yaml.
     #[arg(long)]
     pub calibration: PathBuf,
-    /// Write the corrected calibration here in every format (only when the refit
-    /// validates): the rotation refitted, the intrinsics and lenses held.
+    /// Write the corrected calibration here in every format, only when the refit validates
+    /// (the rotation refitted, the intrinsics and lenses held unless --full).
     #[arg(long, value_name = "OUT")]
     pub update: Option<PathBuf>,
+    /// With --update: refit the intrinsics and lenses too (self-calibration of the views,
+    /// which needs rig motions between them; slow).
+    #[arg(long, requires = "update")]
+    pub full: bool,
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
@@ -93,12 +97,12 @@ fn read_given(args: &CheckArgs, image_size: [u32; 2]) -> Result<StereoCalibratio
 pub fn run(args: &CheckArgs) -> Result<()> {
     let options = options(args);
     options.validate()?;
-    let report = if headalign_io::session::is_point_session(&args.source) {
+    let (mut report, full) = if headalign_io::session::is_point_session(&args.source) {
         let views: Vec<View> =
             headalign_io::session::read_point_session(&args.source)?.into_iter().map(|r| r.view).collect();
         let Some(size) = views.first().map(|v| v.capture.image_size) else { bail!("no views") };
         let given = read_given(args, size)?;
-        check_views(StereoViews::Tracked(&views), &given, &options)?
+        checked(StereoViews::Tracked(&views), &given, &options, args)?
     } else {
         let views = crate::calibrate::load_views(&args.source, &args.recording)?;
         let Some(size) = views.first().map(|(_, v)| v.image_size()) else {
@@ -107,22 +111,46 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         let given = read_given(args, size)?;
         let spinner =
             (!args.json).then(|| crate::progress::spinner(format!("checking {} pairs", views.len())));
-        let r = check_views(StereoViews::Images(&views), &given, &options)
+        let r = checked(StereoViews::Images(&views), &given, &options, args)
             .with_context(|| format!("check of {}", args.source.display()));
         if let Some(s) = spinner {
             s.finish_and_clear();
         }
         r?
     };
+    if let Some(f) = &full {
+        report.updated = f.calibration.clone();
+        report.update_refused = f.refused.clone();
+    }
     let written = write_update(args, &report)?;
     if args.json {
         let mut v = serde_json::to_value(&report)?;
+        if let Some(f) = &full {
+            v["full_update"] = json!({"recheck": f.recheck, "refused": f.refused});
+        }
         v["written"] = json!(written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>());
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         print_text(&report, &written);
     }
     Ok(())
+}
+
+/// The check, and with `--full` the full update.
+fn checked(
+    views: StereoViews<'_>,
+    given: &StereoCalibration,
+    options: &CheckOptions,
+    args: &CheckArgs,
+) -> Result<(CheckReport, Option<FullUpdate>)> {
+    let report = check_views(views, given, options)?;
+    if !args.full {
+        return Ok((report, None));
+    }
+    let mut calibrate = CalibrateViewsOptions { front_end: options.front_end.clone(), ..Default::default() };
+    calibrate.calibrate.estimation.seed = args.seed;
+    let full = update_full(views, given, &report, options, &calibrate)?;
+    Ok((report, Some(full)))
 }
 
 /// `--update OUT`: the refitted calibration in every format, or a note on stderr why not.

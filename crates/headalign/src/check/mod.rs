@@ -72,6 +72,7 @@ pub mod matches;
 pub mod refit;
 #[cfg(test)]
 mod tests;
+pub mod update;
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::ransac::{RansacOptions, ransac};
@@ -89,6 +90,7 @@ pub use depth::{DepthErrors, disparity_shift_px};
 pub use intrinsics::{Estimate, IntrinsicsChange};
 use matches::{PairMatches, pair_matches, vertical_disparity};
 use refit::{EpipolarModel, Match, RobustFit, percentile, refit_rotation, select_by_noise};
+pub use update::{FullUpdate, update_full};
 
 /// The options of [`check_views`].
 #[derive(Debug, Clone)]
@@ -351,7 +353,7 @@ pub fn check_views(
 }
 
 /// The baseline in metres: the calibration's, or the options' for one in baselines.
-fn metric_baseline(given: &StereoCalibration, options: &CheckOptions) -> Result<f64, CheckError> {
+pub(crate) fn metric_baseline(given: &StereoCalibration, options: &CheckOptions) -> Result<f64, CheckError> {
     let norm = given.right_from_left.translation.vector.norm();
     if !(norm.is_finite() && norm > 0.0) {
         return Err(CheckError::Calibration("the given calibration has no baseline".into()));
