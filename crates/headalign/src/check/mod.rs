@@ -19,9 +19,9 @@
 //! # Method
 //!
 //! 1. Matches: each pair's own left-right matches by the front end of `calibrate`, the
-//!    given lenses removed ([`matches`]).
+//!    given lenses removed ([`mod@matches`]).
 //! 2. Outliers: RANSAC with a 3-match minimal solver of the rotation change, pooled over
-//!    the pairs (one rig), threshold [`CheckOptions::ransac_threshold_px`] on the Sampson
+//!    the pairs (one rig), threshold [`CheckOptions::ransac`] on the Sampson
 //!    distance ([`refit`]).
 //! 3. The maximum-likelihood refit: least squares of the Sampson distances (the
 //!    first-order reprojection error, Hartley & Zisserman 2nd ed. section 11.4.3) by the
@@ -42,13 +42,16 @@
 //!
 //! # Verdict
 //!
-//! With `z_i = |w_i| / sigma_i` per axis, "significant" meaning some `z_i >=
-//! significance_sigmas` (5), and `e(w)` the depth error at
-//! [`CheckOptions::reference_depth_m`] (5 m) of a change `w`:
-//! - `recalibrate`: significant and `e(w) > depth_limit_pct` (1 %);
-//! - `can-improve`: otherwise, when significant and `e(w) > improve_fraction` (1/4) of the
-//!   limit, or when the intrinsics test is significant;
+//! With `z_i = |w_i| / sigma_i` per axis, the significant part of the change `w_s` (the
+//! axes with `z_i >= significance_sigmas`, 5; the others set to zero), and `e(w)` the
+//! depth error at [`CheckOptions::reference_depth_m`] (5 m) of a change `w`:
+//! - `recalibrate`: `e(w_s) > depth_limit_pct` (1 %): a significant change that matters;
+//! - `can-improve`: otherwise, when `e(w_s) > improve_fraction` (1/4) of the limit, or
+//!   when the intrinsics test is significant;
 //! - `good`: otherwise.
+//!
+//! Only the significant part counts: an axis within its noise (yaw, the worst seen, often
+//! is) would otherwise decide the verdict by its noise alone.
 //!
 //! `conclusive` says whether the data can tell: `e` at every corner of the box `|w_i| +
 //! bound_sigmas sigma_i` (3 sigma) is below the limit, or the verdict is `recalibrate`. A
@@ -111,8 +114,8 @@ pub struct CheckOptions {
     pub depth_limit_pct: f64,
     /// The depth of the verdict's depth error, metres. Default 5.
     pub reference_depth_m: f64,
-    /// `can-improve` needs a significant change causing this fraction of the depth
-    /// limit. Default 0.25.
+    /// `can-improve` needs the change's significant part to cause this fraction of the
+    /// depth limit. Default 0.25.
     pub improve_fraction: f64,
     /// `conclusive` needs the change plus this many sigmas below the limit. Default 3.
     pub bound_sigmas: f64,
@@ -461,7 +464,7 @@ pub fn check_matches(
         &fit.selected,
         &fit.fit.dr,
         fit.fit.cost,
-        fit.sigma_px,
+        fit.sigma_px * scatter_ratio,
         options.significance_sigmas,
     );
     let sigma_w = Vector3::from_fn(|i, _| covariance[(i, i)].max(0.0).sqrt());
@@ -534,9 +537,12 @@ pub fn verdict(
     options: &CheckOptions,
     depth_at_reference: impl Fn(&Vector3<f64>) -> f64,
 ) -> (Verdict, bool) {
-    let significant = (0..3).any(|i| w[i].abs() >= options.significance_sigmas * sigma[i]);
-    let e = depth_at_reference(w);
-    if significant && e > options.depth_limit_pct {
+    let significant =
+        Vector3::from_fn(
+            |i, _| if w[i].abs() >= options.significance_sigmas * sigma[i] { w[i] } else { 0.0 },
+        );
+    let e = depth_at_reference(&significant);
+    if e > options.depth_limit_pct {
         return (Verdict::Recalibrate, true);
     }
     let bound = w.abs() + sigma * options.bound_sigmas;
@@ -547,7 +553,7 @@ pub fn verdict(
         })
         .fold(0.0, f64::max);
     let conclusive = worst <= options.depth_limit_pct;
-    let worth = significant && e > options.improve_fraction * options.depth_limit_pct;
+    let worth = e > options.improve_fraction * options.depth_limit_pct;
     if worth || intrinsics.is_some_and(|c| c.significant) {
         (Verdict::CanImprove, conclusive)
     } else {

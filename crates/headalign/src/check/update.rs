@@ -32,7 +32,7 @@ pub struct FullUpdate {
 }
 
 impl FullUpdate {
-    fn refused(why: String, recheck: Option<CheckReport>) -> Self {
+    fn refusal(why: String, recheck: Option<CheckReport>) -> Self {
         Self { calibration: None, recheck, refused: Some(why) }
     }
 }
@@ -62,7 +62,7 @@ pub fn update_full(
     opts.lenses = None;
     let cal = match calibrate_views(views, &opts, &mut |_| {}) {
         Ok(c) => c,
-        Err(e) => return Ok(FullUpdate::refused(format!("self-calibration failed: {e}"), None)),
+        Err(e) => return Ok(FullUpdate::refusal(format!("self-calibration failed: {e}"), None)),
     };
     let bundle = &cal.calibration.bundle;
     let mut fresh = StereoCalibration::from_bundle(bundle, given.image_size, Some(baseline_m))?;
@@ -75,14 +75,14 @@ pub fn update_full(
         check_views(views, &fresh, &CheckOptions { baseline_m: Some(baseline_m), ..options.clone() })?;
     let Some(updated) = recheck.updated.clone() else {
         let why = recheck.update_refused.clone().unwrap_or_default();
-        return Ok(FullUpdate::refused(
+        return Ok(FullUpdate::refusal(
             format!("the re-check's refit does not validate: {why}"),
             Some(recheck),
         ));
     };
     let (now, before) = (recheck.refit.sampson_px.median, report.sampson_px.median);
     if now.partial_cmp(&before) == Some(std::cmp::Ordering::Greater) || now.is_nan() {
-        return Ok(FullUpdate::refused(
+        return Ok(FullUpdate::refusal(
             format!(
                 "the self-calibration fits the matches worse than the given calibration (median Sampson {now:.3} px against {before:.3} px)"
             ),
