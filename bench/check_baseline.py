@@ -16,7 +16,11 @@
    dataset's calibration and for it with the right camera turned by 0.3 deg of yaw (the
    file's R = exp(-0.3 deg y) R: the images then show a change of +0.3 deg).
 
-Usage: python3 bench/check_baseline.py [--write-fixture]
+3. With --write-turned DIR: the fixture with the right camera turned back by 0.3 deg of
+   yaw, 0.1 deg of pitch and 0.1 deg of roll (DIR/yaw0.3.yaml, pitch0.1.yaml, roll0.1.yaml:
+   R = exp(-w) R, T = exp(-w) T), the files `headalign check` is measured with.
+
+Usage: python3 bench/check_baseline.py [--write-fixture] [--write-turned DIR]
 (numpy and opencv-python; a script, not a dependency of the crates.)
 """
 import os
@@ -58,8 +62,9 @@ def fixture():
     return k1, d1, k2, d2, r, t
 
 
-def write_fixture(path):
+def write_fixture(path, turn=np.eye(3)):
     k1, d1, k2, d2, r, t = fixture()
+    r, t = turn @ r, turn @ t
     fmt = lambda m: ", ".join(repr(float(v)) for v in np.asarray(m).ravel())
     mat = lambda name, m, rows, cols: (
         f"{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n   data: [ {fmt(m)} ]\n"
@@ -143,6 +148,11 @@ def baseline(r_given, t_given, xl, xr):
 def main():
     if "--write-fixture" in sys.argv:
         write_fixture(os.path.join(data, "opencv_stereo.yaml"))
+    if "--write-turned" in sys.argv:
+        out = sys.argv[sys.argv.index("--write-turned") + 1]
+        os.makedirs(out, exist_ok=True)
+        for name, w in [("yaw0.3", [0, 0.3, 0]), ("pitch0.1", [0.1, 0, 0]), ("roll0.1", [0, 0, 0.1])]:
+            write_fixture(os.path.join(out, name + ".yaml"), so3_exp(-np.radians(w)))
     _, _, _, _, r, t = fixture()
     xl, xr = lk_matches()
     print(f"{len(xl)} LK matches over 4 pairs")
