@@ -409,6 +409,44 @@ fn pooled_fit(model: &EpipolarModel, all: &[Match], options: &CheckOptions) -> R
         .ok_or_else(|| too_few(r.inliers.len()))
 }
 
+/// Each pair's report and its own refit `(w, covariance)` (radians; pairs with fewer than
+/// 10 kept matches have none), on the pooled fit's selection and noise.
+fn pair_reports(
+    model: &EpipolarModel,
+    rect: &headalign_geometry::rectify::Rectification,
+    pairs: &[PairMatches],
+    fit: &RobustFit,
+) -> (Vec<PairReport>, Vec<(Vector3<f64>, Matrix3<f64>)>) {
+    let k_inv = [&model.kl_inv, &model.kr_inv];
+    let mut pair_reports = Vec::new();
+    let mut offset = 0;
+    let mut per_pair = Vec::new();
+    for p in pairs {
+        let range = offset..offset + p.matches.len();
+        offset = range.end;
+        let sel: Vec<usize> =
+            fit.selected.iter().filter(|i| range.contains(i)).map(|i| i - range.start).collect();
+        let one =
+            refit_rotation(model, &p.matches, &sel, &fit.fit.dr).filter(|_| sel.len() >= 10).and_then(|f| {
+                let cov = f.jtj.try_inverse()? * fit.sigma_px.powi(2);
+                Some((so3::log(&f.dr), cov))
+            });
+        if let Some(o) = one {
+            per_pair.push(o);
+        }
+        pair_reports.push(PairReport {
+            name: p.name.clone(),
+            matches: p.matches.len(),
+            inliers: sel.len(),
+            rotation_change_deg: one.map(|(w, _)| Angles::from_rad(&w)),
+            rotation_change_sigma_deg: one.map(|(_, c)| sigmas_deg(&c)),
+            vertical_disparity_px: Spread::of(vertical_disparity(rect, k_inv, &p.matches, &sel)),
+            sampson_px: Spread::of(model.residuals(&Rotation3::identity(), &p.matches, &sel)),
+        });
+    }
+    (pair_reports, per_pair)
+}
+
 /// The check on undistorted matches (module docs).
 pub fn check_matches(
     pairs: &[PairMatches],
@@ -426,32 +464,7 @@ pub fn check_matches(
     })?;
     let rect = given.rectification()?;
     let k_inv = [&model.kl_inv, &model.kr_inv];
-    let mut pair_reports = Vec::new();
-    let mut offset = 0;
-    let mut per_pair = Vec::new();
-    for p in pairs {
-        let range = offset..offset + p.matches.len();
-        offset = range.end;
-        let sel: Vec<usize> =
-            fit.selected.iter().filter(|i| range.contains(i)).map(|i| i - range.start).collect();
-        let one =
-            refit_rotation(&model, &p.matches, &sel, &fit.fit.dr).filter(|_| sel.len() >= 10).and_then(|f| {
-                let cov = f.jtj.try_inverse()? * fit.sigma_px.powi(2);
-                Some((so3::log(&f.dr), cov))
-            });
-        if let Some(o) = one {
-            per_pair.push(o);
-        }
-        pair_reports.push(PairReport {
-            name: p.name.clone(),
-            matches: p.matches.len(),
-            inliers: sel.len(),
-            rotation_change_deg: one.map(|(w, _)| Angles::from_rad(&w)),
-            rotation_change_sigma_deg: one.map(|(_, c)| sigmas_deg(&c)),
-            vertical_disparity_px: Spread::of(vertical_disparity(&rect, k_inv, &p.matches, &sel)),
-            sampson_px: Spread::of(model.residuals(&Rotation3::identity(), &p.matches, &sel)),
-        });
-    }
+    let (pair_reports, per_pair) = pair_reports(&model, &rect, pairs, &fit);
     let w = so3::log(&fit.fit.dr);
     let scatter_ratio = scatter_ratio(&w, &per_pair);
     let covariance = fit.covariance * scatter_ratio.powi(2);
