@@ -409,6 +409,9 @@ fn pooled_fit(model: &EpipolarModel, all: &[Match], options: &CheckOptions) -> R
         .ok_or_else(|| too_few(r.inliers.len()))
 }
 
+/// One pair's own refit: the change `w` and its covariance, radians.
+type PairFit = (Vector3<f64>, Matrix3<f64>);
+
 /// Each pair's report and its own refit `(w, covariance)` (radians; pairs with fewer than
 /// 10 kept matches have none), on the pooled fit's selection and noise.
 fn pair_reports(
@@ -416,7 +419,7 @@ fn pair_reports(
     rect: &headalign_geometry::rectify::Rectification,
     pairs: &[PairMatches],
     fit: &RobustFit,
-) -> (Vec<PairReport>, Vec<(Vector3<f64>, Matrix3<f64>)>) {
+) -> (Vec<PairReport>, Vec<PairFit>) {
     let k_inv = [&model.kl_inv, &model.kr_inv];
     let mut pair_reports = Vec::new();
     let mut offset = 0;
@@ -525,7 +528,7 @@ fn sigmas_deg(c: &Matrix3<f64>) -> Angles {
 
 /// Birge's ratio of the pairs' changes about the pooled one: `max(1, sqrt(chi2 / dof))`,
 /// `dof = 3 (pairs - 1)`; 1 with fewer than two pairs.
-fn scatter_ratio(pooled: &Vector3<f64>, pairs: &[(Vector3<f64>, Matrix3<f64>)]) -> f64 {
+fn scatter_ratio(pooled: &Vector3<f64>, pairs: &[PairFit]) -> f64 {
     if pairs.len() < 2 {
         return 1.0;
     }
