@@ -1,6 +1,7 @@
 //! Is a stereo calibration still good? A targetless health check of a given calibration
-//! against stereo pairs of natural scenes ([`check_views`]), and its rotation-only
-//! correction. The user's guide: `docs/check.md`.
+//! against stereo pairs of natural scenes ([`check_views`]), its rotation-only correction
+//! ([`CheckReport::updated`]) and the full one ([`update`]). The user's guide:
+//! `docs/check.md`.
 //!
 //! # What it computes
 //!
@@ -28,7 +29,9 @@
 //!    geometry crate's Levenberg-Marquardt, on the matches within
 //!    [`CheckOptions::inlier_sigmas`] of the measured noise, re-selected until stable.
 //! 4. Sigmas: the noise `sigma` measured from the residuals (`sqrt(cost / (n - 3))`, the
-//!    truncation of the tails undone), covariance `sigma^2 (J^T J)^-1`. With several
+//!    truncation of the tails undone; with independent noise of `s` pixels in each
+//!    coordinate a Sampson distance has the sigma `s`), covariance `sigma^2 (J^T J)^-1`,
+//!    mapped from the refit's tangent steps to `w = log(dR)`. With several
 //!    pairs, each pair is refitted alone on its selected matches; when the pairs scatter
 //!    about the pooled change more than their sigmas allow (`chi2 / dof > 1`, `dof = 3
 //!    (pairs - 1)`), the sigmas are multiplied by `sqrt(chi2 / dof)` (Birge's ratio: the
