@@ -66,9 +66,8 @@ enum Command {
     Run(headcmd::RunArgs),
     /// Self-calibrate a stereo rig from views related by rigid motions of the whole rig.
     Calibrate(calibrate::CalibrateArgs),
-    /// Check a stereo calibration against natural stereo pairs: rotation change with sigmas,
-    /// depth error, verdict good / can-improve / recalibrate (recalibrate: a change significant
-    /// at 5 sigma causing more than 1 % depth error at 5 m).
+    /// Check a stereo calibration on natural stereo pairs: rotation change with sigmas, depth
+    /// error, verdict (recalibrate: a change significant at 5 sigma causing over 1 % at 5 m).
     Check(check::CheckArgs),
 }
 
