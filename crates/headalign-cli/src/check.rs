@@ -14,7 +14,7 @@ use headalign::calibration::StereoCalibration;
 use headalign::check::{Angles, CheckOptions, CheckReport, FullUpdate, check_views, update_full};
 use headalign::observations::View;
 use headalign_io::export::CalibrationFiles as _;
-use serde_json::json;
+use serde_json::{Value, json};
 
 use crate::recording::RecordingArgs;
 
@@ -124,10 +124,12 @@ pub fn run(args: &CheckArgs) -> Result<()> {
     }
     let written = write_update(args, &report)?;
     if args.json {
-        let mut v = serde_json::to_value(&report)?;
-        if let Some(f) = &full {
-            v["full_update"] = json!({"recheck": f.recheck, "refused": f.refused});
+        let mut v = json!({"schema": "headalign-check/1"});
+        if let (Some(o), Value::Object(r)) = (v.as_object_mut(), serde_json::to_value(&report)?) {
+            o.extend(r);
         }
+        v["full_update"] =
+            full.as_ref().map_or(Value::Null, |f| json!({"recheck": f.recheck, "refused": f.refused}));
         v["written"] = json!(written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>());
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {

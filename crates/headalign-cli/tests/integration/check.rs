@@ -54,6 +54,8 @@ fn dataset_calibration_is_not_recalibrate() {
         assert!(v["depth_error_pct"][z].as_f64().is_some(), "depth_error_pct.{z}");
     }
     assert_eq!(v["pairs"].as_array().map(Vec::len), Some(4));
+    // The members are exactly those of docs/formats.md (`json_schemas`).
+    super::json_schemas::check_documented("check", &v);
 }
 
 /// The dataset's calibration with the right camera turned back by `w` (degrees; the
