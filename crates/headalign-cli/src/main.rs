@@ -12,6 +12,8 @@
 //! - `headalign run --head-cmd CMD`: the image procedure and the robot stages on a driver
 //!   process ([`headcmd`]).
 //! - `headalign calibrate DIR`: self-calibration from rig motions ([`calibrate`]).
+//! - `headalign check SOURCE --calibration FILE`: the targetless health check of a stereo
+//!   calibration ([`check`]).
 
 /// Print a line to stdout, ignoring write errors (a closed pipe, as in `headalign demo |
 /// head`, is not a failure of the command and must not panic). Every module declared
@@ -25,6 +27,7 @@ macro_rules! say {
 
 mod align;
 mod calibrate;
+mod check;
 mod demo;
 mod facing_plane;
 mod flags;
@@ -72,6 +75,9 @@ enum Command {
     Run(headcmd::RunArgs),
     /// Self-calibrate a stereo rig from views related by rigid motions of the whole rig.
     Calibrate(calibrate::CalibrateArgs),
+    /// Check a stereo calibration on natural stereo pairs: rotation change with sigmas, depth
+    /// error, verdict (recalibrate: a change significant at 5 sigma causing over 1 % at 5 m).
+    Check(check::CheckArgs),
 }
 
 /// Longest error message printed, characters: 300 with the `error: ` before it (the
@@ -83,6 +89,7 @@ const MAX_ERROR_LINE: usize = 293;
 fn report_dir(command: &Command) -> Option<PathBuf> {
     match command {
         Command::Calibrate(a) => a.out.clone(),
+        Command::Check(a) => a.update.clone(),
         Command::Align(a) => a.out.clone(),
         Command::Run(a) => a.session.clone(),
         Command::Demo(a) => a.session.clone(),
@@ -133,6 +140,7 @@ fn main() -> ExitCode {
         Command::Replay(a) => replay::run(&a),
         Command::Run(a) => headcmd::run(&a),
         Command::Calibrate(a) => calibrate::run(&a),
+        Command::Check(a) => check::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -76,6 +76,12 @@ fn check(docs: &BTreeMap<String, BTreeSet<String>>, what: &str, v: &Value) {
     );
 }
 
+/// `v` (what `what` printed) has the documented members of its schema (for the other
+/// modules' runs).
+pub fn check_documented(what: &str, v: &Value) {
+    check(&documented(), what, v);
+}
+
 /// The demo's `errors` hold every metric on every route, numbers where the route gives
 /// them: the alignment errors always.
 fn check_errors(what: &str, v: &Value) {
