@@ -9,7 +9,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use headalign::alignment::{AlignmentSolution, VergeAxes};
+use headalign::alignment::{AlignmentSolution, NOMINAL_VERGE_WARNING, VergeAxes};
 use headalign::calibrate::image_noise::MeasuredVariances;
 use headalign::calibration::StereoCalibration;
 use headalign::observations::View;
@@ -267,9 +267,6 @@ fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
         (None, None) => bail!("give --observations FILE or --images DIR"),
     }
 }
-
-/// What `align` says when no view moved a vergence joint.
-const NOMINAL_VERGE_WARNING: &str = "no view moved the vergence joints: the vergence readings assume axes perpendicular to the elevation axis with a positive vergence turning each camera right, and their sigmas exclude the cameras' mounting on those axes; add a view with both vergences moved";
 
 /// The model-fit checks of `align`'s estimate on an image session
 /// ([`headalign::verge_tilt::model_fit`]): the rig views (the reference and the views where
