@@ -161,7 +161,7 @@ impl Calibration {
         }
     }
 
-    /// `baselines` or `metres`: the unit of `T`.
+    /// `baselines`, or `m` with `baseline_m`: the unit of `T`.
     #[getter]
     fn translation_unit(&self) -> &'static str {
         self.stereo.unit.name()

@@ -1,6 +1,7 @@
 """Type stubs of headalign (the docstrings are in __init__.py and the extension module)."""
 
 import os
+import pathlib
 from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
@@ -45,7 +46,7 @@ class Calibration:
     def warnings(self) -> List[str]: ...
     @property
     def report(self) -> Optional[Dict[str, Any]]: ...
-    def write(self, dir: PathLike) -> List[str]: ...
+    def write(self, dir: PathLike) -> List[pathlib.Path]: ...
 
 class Alignment:
     """The verge/tilt alignment of a head: aligned readings (degrees) and their sigmas."""
