@@ -52,6 +52,8 @@ pub struct Calibration {
     stereo: StereoCalibration,
     /// headalign's name of the lens model (`pinhole`, `radtan`, `equidistant`, `ds`).
     lens: String,
+    /// The sigma of each estimated parameter, by name.
+    sigmas: Vec<(String, f64)>,
     covariance_names: Vec<String>,
     covariance: DMatrix<f64>,
     warnings: Vec<String>,
@@ -75,6 +77,19 @@ fn opencv_distortion(d: &Distortion) -> Vec<f64> {
     }
 }
 
+/// The intrinsics' sigmas a calibration carries (`left.fx`, ...), where known.
+fn file_sigmas(stereo: &StereoCalibration) -> Vec<(String, f64)> {
+    let mut out = Vec::new();
+    for (side, s) in ["left", "right"].iter().zip(&stereo.sigmas) {
+        for (name, v) in [("fx", s.fx), ("fy", s.fy), ("cx", s.cx), ("cy", s.cy), ("skew", s.skew)] {
+            if let Some(v) = v {
+                out.push((format!("{side}.{name}"), v));
+            }
+        }
+    }
+    out
+}
+
 impl Calibration {
     /// From the library's stereo calibration; `lens` is headalign's model name.
     pub fn new(
@@ -88,7 +103,22 @@ impl Calibration {
             Some(c) => (c.names.clone(), c.matrix.clone()),
             None => (Vec::new(), DMatrix::zeros(0, 0)),
         };
-        Self { stereo, lens, covariance_names, covariance, warnings, report }
+        let sigmas = if covariance_names.is_empty() {
+            file_sigmas(&stereo)
+        } else {
+            let diagonal = covariance.diagonal();
+            covariance_names.iter().zip(diagonal.iter()).map(|(n, v)| (n.clone(), v.max(0.0).sqrt())).collect()
+        };
+        Self { stereo, lens, sigmas, covariance_names, covariance, warnings, report }
+    }
+
+    /// A calibration read from a file: its lens named by its model (`pinhole` when every
+    /// coefficient is zero), its intrinsics' sigmas where the file has them (headalign's
+    /// JSON), no covariance, warnings or report.
+    pub fn from_file(stereo: StereoCalibration) -> Self {
+        let zero = stereo.distortion.iter().all(|d| d.coefficients().iter().all(|&c| c == 0.0));
+        let lens = if zero { "pinhole" } else { stereo.distortion[0].kind.kalibr_name() };
+        Self::new(stereo, lens.to_string(), None, Vec::new(), serde_json::Value::Null)
     }
 
     /// The library's stereo calibration.
@@ -168,12 +198,13 @@ impl Calibration {
     }
 
     /// The standard deviation of every estimated parameter, by name (`left.fx`,
-    /// `right.k1`, ...; pixels for the intrinsics, radians for rotations).
+    /// `right.k1`, ...; pixels for the intrinsics, radians for rotations); of a file, the
+    /// intrinsics' sigmas it holds.
     #[getter]
     fn sigmas<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let d = PyDict::new(py);
-        for (i, name) in self.covariance_names.iter().enumerate() {
-            d.set_item(name, self.covariance[(i, i)].max(0.0).sqrt())?;
+        for (name, sigma) in &self.sigmas {
+            d.set_item(name, sigma)?;
         }
         Ok(d)
     }
@@ -301,32 +332,81 @@ impl CalibrateArgs {
     }
 }
 
-/// What `calibrate` reads: images in memory or from a path, or a point session's tracks.
-enum Source {
+/// What `calibrate` and `check` are given: images in memory, or a path.
+pub enum Source {
+    /// Named stereo views from numpy arrays.
     Images(Vec<(String, StereoImages)>),
+    /// A folder, session or recording.
     Path(PathBuf),
 }
 
-/// The views of a path, read as `headalign calibrate DIR` reads them.
-enum PathViews {
+impl Source {
+    /// `views` of the Python API: a path (`str` or `os.PathLike`), or a list of pairs.
+    pub fn of(views: &Bound<'_, PyAny>) -> PyResult<Self> {
+        match views.extract::<PathBuf>() {
+            Ok(path) => Ok(Source::Path(path)),
+            Err(_) => Ok(Source::Images(stereo_views(views)?)),
+        }
+    }
+
+    /// The views, a path read as `headalign calibrate DIR` reads it (every `every`-th
+    /// pair); call without the GIL.
+    pub fn read(self, every: usize) -> PyResult<Views> {
+        match self {
+            Source::Images(images) => Ok(Views::Images(images)),
+            Source::Path(path) => read_path(&path, every),
+        }
+    }
+}
+
+/// The views of a [`Source`].
+pub enum Views {
+    /// Stereo images, to be tracked.
     Images(Vec<(String, StereoImages)>),
+    /// A point session's tracked points.
     Tracked(Vec<View>),
 }
 
+impl Views {
+    /// The library's view of them.
+    pub fn stereo_views(&self) -> StereoViews<'_> {
+        match self {
+            Views::Images(images) => StereoViews::Images(images),
+            Views::Tracked(tracked) => StereoViews::Tracked(tracked),
+        }
+    }
+
+    /// Image size of the first view (`None`: no views).
+    pub fn image_size(&self) -> Option<[u32; 2]> {
+        match self {
+            Views::Images(images) => images.first().map(|(_, v)| v.image_size()),
+            Views::Tracked(tracked) => tracked.first().map(|v| v.capture.image_size),
+        }
+    }
+
+    /// How many views.
+    pub fn count(&self) -> usize {
+        match self {
+            Views::Images(images) => images.len(),
+            Views::Tracked(tracked) => tracked.len(),
+        }
+    }
+}
+
 /// Read `path` (module docs) with every `every`-th pair.
-fn read_path(path: &Path, every: usize) -> PyResult<PathViews> {
+fn read_path(path: &Path, every: usize) -> PyResult<Views> {
     if headalign_io::recordings::detect(path).is_some() {
         let options = RecordingOptions { every, ..RecordingOptions::default() };
         let rec = headalign_io::recordings::read_recording(path, &options).map_err(align_error)?;
-        return Ok(PathViews::Images(rec.views.into_iter().map(|v| (v.name, v.images)).collect()));
+        return Ok(Views::Images(rec.views.into_iter().map(|v| (v.name, v.images)).collect()));
     }
     if headalign_io::session::is_point_session(path) {
         let views = headalign_io::session::read_point_session(path).map_err(align_error)?;
-        return Ok(PathViews::Tracked(views.into_iter().map(|r| r.view).collect()));
+        return Ok(Views::Tracked(views.into_iter().map(|r| r.view).collect()));
     }
     let views = headalign_io::folder::read_folder(path, &FolderOptions { every }, &mut |_, _| {})
         .map_err(file_error)?;
-    Ok(PathViews::Images(views))
+    Ok(Views::Images(views))
 }
 
 /// Run the library on `source` without the GIL.
@@ -338,15 +418,8 @@ fn run(
     progress: &Progress,
 ) -> PyResult<ViewsCalibration> {
     py.detach(|| {
-        let views = match source {
-            Source::Images(images) => PathViews::Images(images),
-            Source::Path(path) => read_path(&path, every)?,
-        };
-        let stereo_views = match &views {
-            PathViews::Images(images) => StereoViews::Images(images),
-            PathViews::Tracked(tracked) => StereoViews::Tracked(tracked),
-        };
-        calibrate_views(stereo_views, options, &mut |p| progress.views(p)).map_err(align_error)
+        let views = source.read(every)?;
+        calibrate_views(views.stereo_views(), options, &mut |p| progress.views(p)).map_err(align_error)
     })
 }
 
@@ -385,10 +458,7 @@ pub fn calibrate(
     {
         return Err(value_error(format!("baseline must be positive, got {b}")));
     }
-    let source = match views.extract::<PathBuf>() {
-        Ok(path) => Source::Path(path),
-        Err(_) => Source::Images(stereo_views(views)?),
-    };
+    let source = Source::of(views)?;
     let r = run(py, source, &options, args.every, &Progress::new(progress))?;
     let cal = r.calibration;
     let state = &cal.bundle.state;

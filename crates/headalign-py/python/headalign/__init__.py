@@ -8,6 +8,10 @@ and out:
   and returns a :class:`Calibration` in OpenCV's conventions.
 - :func:`align` runs the verge/tilt alignment of a recorded head run and returns an
   :class:`Alignment` (aligned readings, their sigmas, the head's calibration).
+- :func:`check` checks a given calibration against stereo pairs of natural scenes (the
+  right camera's rotation change, the depth error it causes, a verdict), and
+  :func:`read_calibration` reads a calibration file (headalign JSON, OpenCV stereo YAML,
+  Kalibr camchain).
 - :func:`read_image` reads a PNG or JPEG file as a grey ``uint8`` array.
 
 Bad input raises ``ValueError``, a failed estimation ``RuntimeError``. Long calls release
@@ -23,9 +27,19 @@ from typing import Any, Callable, Optional, Sequence, Tuple, Union
 import numpy as np
 
 from . import _headalign
-from ._headalign import Alignment, Calibration, __version__, read_image
+from ._headalign import Alignment, Calibration, CheckReport, __version__, read_calibration, read_image
 
-__all__ = ["Alignment", "Calibration", "align", "calibrate", "read_image", "__version__"]
+__all__ = [
+    "Alignment",
+    "Calibration",
+    "CheckReport",
+    "align",
+    "calibrate",
+    "check",
+    "read_calibration",
+    "read_image",
+    "__version__",
+]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -211,3 +225,58 @@ def align(
         RuntimeError: the estimation failed.
     """
     return _headalign.align(os.fsdecode(session), lens, lens_terms, baseline_m, _progress_callback(progress))
+
+
+def check(
+    views: Union[PathLike, Sequence[Tuple[np.ndarray, np.ndarray]]],
+    calibration: Union[Calibration, PathLike],
+    *,
+    baseline_m: Optional[float] = None,
+    corners: Optional[int] = None,
+    seed: int = 0,
+    significance: float = 5.0,
+    depth_limit_pct: float = 1.0,
+    progress: Union[bool, Callable[[str, str, int, int], Any]] = False,
+) -> CheckReport:
+    """Is a stereo calibration still good? The targetless check of ``headalign check``.
+
+    Refits the right camera's rotation relative to the left (pitch, yaw, roll) on the
+    pairs' own stereo matches with the intrinsics and lenses held, and judges the change
+    by the depth error it causes at 5 m (docs/check.md).
+
+    Args:
+        views: as in :func:`calibrate` (a path, or a list of ``(left, right)`` ``uint8``
+            arrays of one rig), natural scenes, no target needed.
+        calibration: a :class:`Calibration`, or the path of a calibration file
+            (headalign's ``calibration.json``, an OpenCV stereo YAML ``M1 D1 M2 D2 R T``, a
+            Kalibr ``camchain.yaml``).
+        baseline_m: the baseline in metres, for a calibration whose ``T`` is in baselines.
+        corners: corners detected per image (default 1500).
+        seed: seed of the RANSAC.
+        significance: a change is significant at this many sigmas.
+        depth_limit_pct: the depth error at 5 m that asks for recalibration, percent.
+        progress: as in :func:`calibrate`.
+
+    Returns:
+        The :class:`CheckReport`: ``verdict`` (``good``, ``can-improve``,
+        ``recalibrate``), ``conclusive``, the rotation change and its sigmas, ``updated``
+        (the calibration with the refitted rotation, when the refit validates) and the
+        whole ``report``.
+
+    Raises:
+        ValueError: bad input (images, options, a calibration in baselines without
+            ``baseline_m``, a calibration of another image size).
+        RuntimeError: too few matches survive.
+    """
+    if not isinstance(calibration, Calibration):
+        calibration = os.fsdecode(calibration)
+    return _headalign.check(
+        _as_views(views),
+        calibration,
+        baseline_m,
+        corners,
+        seed,
+        significance,
+        depth_limit_pct,
+        _progress_callback(progress),
+    )

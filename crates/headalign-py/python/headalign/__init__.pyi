@@ -76,6 +76,24 @@ class Alignment:
     @property
     def warnings(self) -> List[str]: ...
 
+class CheckReport:
+    """The result of :func:`check`: a verdict on a given calibration."""
+
+    @property
+    def verdict(self) -> str: ...
+    @property
+    def conclusive(self) -> bool: ...
+    @property
+    def rotation_change_deg(self) -> Dict[str, float]: ...
+    @property
+    def rotation_change_sigma_deg(self) -> Dict[str, float]: ...
+    @property
+    def updated(self) -> Optional[Calibration]: ...
+    @property
+    def update_refused(self) -> Optional[str]: ...
+    @property
+    def report(self) -> Dict[str, Any]: ...
+
 def calibrate(
     views: Union[PathLike, Sequence[ImagePair]],
     *,
@@ -106,4 +124,22 @@ def align(
 
 def read_image(path: PathLike) -> npt.NDArray[np.uint8]:
     """Read a PNG or JPEG file as a grey uint8 array of shape (height, width)."""
+    ...
+
+def check(
+    views: Union[PathLike, Sequence[ImagePair]],
+    calibration: Union[Calibration, PathLike],
+    *,
+    baseline_m: Optional[float] = None,
+    corners: Optional[int] = None,
+    seed: int = 0,
+    significance: float = 5.0,
+    depth_limit_pct: float = 1.0,
+    progress: Union[bool, ProgressCallback] = False,
+) -> CheckReport:
+    """Check a given stereo calibration against stereo pairs of natural scenes."""
+    ...
+
+def read_calibration(path: PathLike) -> Calibration:
+    """Read a calibration file: headalign JSON, OpenCV stereo YAML or Kalibr camchain."""
     ...
