@@ -49,8 +49,8 @@ pub fn fundamental_from_pose(
     FundamentalMatrix(if n > 0.0 { f / n } else { f })
 }
 
-/// Signed Sampson distance (pixels) of one match under `f`.
-fn signed_sampson(f: &Matrix3<f64>, l: &Point2<f64>, r: &Point2<f64>) -> f64 {
+/// Signed Sampson distance (pixels) of one match under `f` (`x_R^T F x_L = 0`).
+pub fn signed_sampson(f: &Matrix3<f64>, l: &Point2<f64>, r: &Point2<f64>) -> f64 {
     let xl = Vector3::new(l.x, l.y, 1.0);
     let xr = Vector3::new(r.x, r.y, 1.0);
     let fx = f * xl;
@@ -64,7 +64,11 @@ fn signed_sampson(f: &Matrix3<f64>, l: &Point2<f64>, r: &Point2<f64>) -> f64 {
 /// and `d = a_0^2 + a_1^2 + b_0^2 + b_1^2`, `s = e / sqrt d` and
 /// `d s / d F_ij = x_Ri x_Lj / sqrt d - e / (2 d^(3/2)) (2 a_i x_Lj [i < 2] + 2 b_j x_Ri [j < 2])`.
 /// `None` where `d` vanishes (the distance is then infinite).
-fn signed_sampson_gradient(f: &Matrix3<f64>, l: &Point2<f64>, r: &Point2<f64>) -> Option<(f64, [f64; 9])> {
+pub fn signed_sampson_gradient(
+    f: &Matrix3<f64>,
+    l: &Point2<f64>,
+    r: &Point2<f64>,
+) -> Option<(f64, [f64; 9])> {
     let xl = [l.x, l.y, 1.0];
     let xr = [r.x, r.y, 1.0];
     let fx = f * Vector3::from(xl);

@@ -13,6 +13,8 @@
 //!   correspondences).
 //! - [`export`]: calibration files (JSON, OpenCV YAML, ROS `camera_info`, Kalibr
 //!   `camchain.yaml`) of the library's [`headalign::calibration::StereoCalibration`].
+//! - [`import`]: calibration files read back (headalign's JSON, OpenCV stereo YAML,
+//!   Kalibr `camchain.yaml`), for `check`.
 //! - [`process_head`]: a head behind a driver process (JSON lines, `docs/head-protocol.md`).
 //! - [`alignment_file`]: the file `alignment.json` (`headalign-alignment/2`).
 //! - [`folder`]: a folder of stereo views (an image session or `left*`/`right*` pairs),
@@ -26,6 +28,7 @@ pub mod alignment_file;
 pub mod error;
 pub mod export;
 pub mod folder;
+pub mod import;
 pub mod observations;
 pub mod process_head;
 pub mod recordings;

@@ -17,6 +17,8 @@
 //!   general motion with constraints, or two rotations about different axes).
 //! - [`procedure`]: the verge/tilt procedure over any `StereoHead`; [`plan`]: the views it
 //!   captures.
+//! - [`check`]: the targetless health check of a given stereo calibration (rotation
+//!   change with sigmas, depth error, verdict).
 //! - [`calibration`]: a calibrated stereo pair ([`calibration::StereoCalibration`]) with
 //!   its rectification.
 //! - [`image_mode`]: the procedure on images through the front end (verging first) and the
@@ -63,6 +65,7 @@
 pub mod alignment;
 pub mod calibrate;
 pub mod calibration;
+pub mod check;
 pub mod error;
 pub mod facing_plane;
 pub mod fixation;

@@ -56,8 +56,8 @@ pub fn undistort_views(views: &[View], lenses: &[LensModel; 2]) -> Vec<View> {
 }
 
 /// Parse the numbers of an OpenCV FileStorage matrix `name: !!opencv-matrix ... data: [...]`
-/// (or an inline `name: [ ... ]`).
-fn opencv_matrix(text: &str, name: &str) -> Option<Vec<f64>> {
+/// (or an inline `name: [ ... ]`), in the file's (row-major) order.
+pub fn opencv_matrix(text: &str, name: &str) -> Option<Vec<f64>> {
     let key = format!("{name}:");
     let start = text.lines().scan(0usize, |pos, line| {
         let here = *pos;
@@ -76,8 +76,9 @@ fn opencv_matrix(text: &str, name: &str) -> Option<Vec<f64>> {
     rest[open + 1..close].split(',').map(|v| v.trim().parse::<f64>().ok()).collect()
 }
 
-/// The value of a top-level scalar `name: value` (quotes removed), if present.
-fn scalar(text: &str, name: &str) -> Option<String> {
+/// The value of a top-level scalar `name: value` (quotes and a trailing comment removed),
+/// if present.
+pub fn scalar(text: &str, name: &str) -> Option<String> {
     let key = format!("{name}:");
     let line = text.lines().find(|l| l.starts_with(&key))?;
     let value = line[key.len()..].split('#').next()?.trim().trim_matches(|c| c == '"' || c == '\'');

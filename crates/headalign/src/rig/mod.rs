@@ -19,5 +19,5 @@ pub(crate) mod stereo;
 pub const FINAL_ITERATIONS: usize = 300;
 
 pub use image_noise::{ImageNoiseCheck, MeasuredVariances};
-pub use known_lens::{LensModel, read_opencv_lenses, undistort_views};
+pub use known_lens::{LensModel, opencv_matrix, read_opencv_lenses, scalar, undistort_views};
 pub use lens_choice::{FailedCandidate, LensCandidate, LensChoice, LensSelection, LensSpec, lens_terms};
