@@ -107,7 +107,11 @@ impl Calibration {
             file_sigmas(&stereo)
         } else {
             let diagonal = covariance.diagonal();
-            covariance_names.iter().zip(diagonal.iter()).map(|(n, v)| (n.clone(), v.max(0.0).sqrt())).collect()
+            covariance_names
+                .iter()
+                .zip(diagonal.iter())
+                .map(|(n, v)| (n.clone(), v.max(0.0).sqrt()))
+                .collect()
         };
         Self { stereo, lens, sigmas, covariance_names, covariance, warnings, report }
     }

@@ -1,6 +1,7 @@
 //! The Python extension module `headalign._headalign` (PyO3, rust-numpy): the library's
-//! stereo self-calibration ([`headalign::calibrate::calibrate_views`]) and verge/tilt
-//! alignment ([`headalign::procedure::align_session_detecting`]) called in process, with
+//! stereo self-calibration ([`headalign::calibrate::calibrate_views`]), verge/tilt
+//! alignment ([`headalign::procedure::align_session_detecting`]) and calibration check
+//! ([`headalign::check::check_views`]) called in process, with
 //! numpy arrays in and out; the Python package `headalign` (`python/headalign/`) wraps it
 //! with keyword arguments, type stubs and a progress bar. No subprocess, no temporary
 //! files. The API and its conventions are in docs/python.md.
@@ -9,7 +10,7 @@
 //! library's [`headalign_platform::GrayImage`], the library's results to `float64`
 //! arrays), reads paths with the readers the CLI uses ([`headalign_io::folder`],
 //! [`headalign_io::recordings`], [`headalign_io::session`],
-//! [`headalign_io::observations`]) and writes files with
+//! [`headalign_io::observations`], [`headalign_io::import`]) and writes files with
 //! [`headalign_io::export::CalibrationFiles`].
 //!
 //! Conventions (OpenCV's, so that `cv2.stereoRectify(K1, D1, K2, D2, size, R, T)` takes
@@ -34,6 +35,7 @@ use pyo3::prelude::*;
 
 mod alignment;
 mod calibration;
+mod check;
 mod errors;
 mod images;
 mod progress;
@@ -44,8 +46,11 @@ mod progress;
 fn headalign_module(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<calibration::Calibration>()?;
     m.add_class::<alignment::Alignment>()?;
+    m.add_class::<check::Check>()?;
     m.add_function(wrap_pyfunction!(calibration::calibrate, m)?)?;
     m.add_function(wrap_pyfunction!(alignment::align, m)?)?;
+    m.add_function(wrap_pyfunction!(check::check, m)?)?;
+    m.add_function(wrap_pyfunction!(check::read_calibration, m)?)?;
     m.add_function(wrap_pyfunction!(images::read_image, m)?)?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     Ok(())

@@ -173,3 +173,35 @@ def test_align_an_observation_session(seed):
 def test_align_bad_path_raises_value_error():
     with pytest.raises(ValueError):
         headalign.align(DATA / "no-such-session.json")
+
+
+def test_read_calibration_of_the_dataset():
+    # The dataset's own calibration as an OpenCV stereo YAML (data/euroc_v101_pairs).
+    given = headalign.read_calibration(EUROC / "opencv_stereo.yaml")
+    fu, fv = sensor_focal("cam0_sensor.yaml")
+    assert given.K1[0, 0] == fu and given.K1[1, 1] == fv and given.image_size == (752, 480)
+    assert given.lens_model == "plumb_bob" and given.translation_unit == "m"
+    assert abs(np.linalg.norm(given.T) - 0.110) < 0.001
+
+
+@pytest.fixture(scope="module")
+def four_pairs() -> list[tuple[np.ndarray, np.ndarray]]:
+    return [euroc_pair(i) for i in range(4)]
+
+
+def test_check_the_dataset_calibration(four_pairs):
+    # Issue 46's bar, as the CLI's test holds it on the same four pairs: the dataset's
+    # calibration shows no change beyond 0.03 deg and is not `recalibrate`. The numpy
+    # arrays and the folder give the same check (the same images, the same seed).
+    given = headalign.read_calibration(EUROC / "opencv_stereo.yaml")
+    r = headalign.check(four_pairs, given)
+    assert max(abs(v) for v in r.rotation_change_deg.values()) < 0.03, r.rotation_change_deg
+    assert r.verdict != "recalibrate" and all(s > 0 for s in r.rotation_change_sigma_deg.values())
+    assert len(r.report["pairs"]) == 4
+    from_folder = headalign.check(EUROC, EUROC / "opencv_stereo.yaml")
+    assert from_folder.rotation_change_deg == r.rotation_change_deg
+
+
+def test_check_of_a_calibration_in_baselines_needs_the_baseline(calibration, four_pairs):
+    with pytest.raises(ValueError, match="baseline"):
+        headalign.check(four_pairs, calibration)
