@@ -1,6 +1,7 @@
 //! Is a stereo calibration still good? A targetless health check of a given calibration
-//! against stereo pairs of natural scenes ([`check_views`]), and its rotation-only
-//! correction. The user's guide: `docs/check.md`.
+//! against stereo pairs of natural scenes ([`check_views`]), its rotation-only correction
+//! ([`CheckReport::updated`]) and the full one ([`update`]). The user's guide:
+//! `docs/check.md`.
 //!
 //! # What it computes
 //!
@@ -28,7 +29,9 @@
 //!    geometry crate's Levenberg-Marquardt, on the matches within
 //!    [`CheckOptions::inlier_sigmas`] of the measured noise, re-selected until stable.
 //! 4. Sigmas: the noise `sigma` measured from the residuals (`sqrt(cost / (n - 3))`, the
-//!    truncation of the tails undone), covariance `sigma^2 (J^T J)^-1`. With several
+//!    truncation of the tails undone; with independent noise of `s` pixels in each
+//!    coordinate a Sampson distance has the sigma `s`), covariance `sigma^2 (J^T J)^-1`,
+//!    mapped from the refit's tangent steps to `w = log(dR)`. With several
 //!    pairs, each pair is refitted alone on its selected matches; when the pairs scatter
 //!    about the pooled change more than their sigmas allow (`chi2 / dof > 1`, `dof = 3
 //!    (pairs - 1)`), the sigmas are multiplied by `sqrt(chi2 / dof)` (Birge's ratio: the
@@ -409,6 +412,47 @@ fn pooled_fit(model: &EpipolarModel, all: &[Match], options: &CheckOptions) -> R
         .ok_or_else(|| too_few(r.inliers.len()))
 }
 
+/// One pair's own refit: the change `w` and its covariance, radians.
+type PairFit = (Vector3<f64>, Matrix3<f64>);
+
+/// Each pair's report and its own refit `(w, covariance)` (radians; pairs with fewer than
+/// 10 kept matches have none), on the pooled fit's selection and noise.
+fn pair_reports(
+    model: &EpipolarModel,
+    rect: &headalign_geometry::rectify::Rectification,
+    pairs: &[PairMatches],
+    fit: &RobustFit,
+) -> (Vec<PairReport>, Vec<PairFit>) {
+    let k_inv = [&model.kl_inv, &model.kr_inv];
+    let mut pair_reports = Vec::new();
+    let mut offset = 0;
+    let mut per_pair = Vec::new();
+    for p in pairs {
+        let range = offset..offset + p.matches.len();
+        offset = range.end;
+        let sel: Vec<usize> =
+            fit.selected.iter().filter(|i| range.contains(i)).map(|i| i - range.start).collect();
+        let one =
+            refit_rotation(model, &p.matches, &sel, &fit.fit.dr).filter(|_| sel.len() >= 10).and_then(|f| {
+                let cov = f.jtj.try_inverse()? * fit.sigma_px.powi(2);
+                Some((so3::log(&f.dr), cov))
+            });
+        if let Some(o) = one {
+            per_pair.push(o);
+        }
+        pair_reports.push(PairReport {
+            name: p.name.clone(),
+            matches: p.matches.len(),
+            inliers: sel.len(),
+            rotation_change_deg: one.map(|(w, _)| Angles::from_rad(&w)),
+            rotation_change_sigma_deg: one.map(|(_, c)| sigmas_deg(&c)),
+            vertical_disparity_px: Spread::of(vertical_disparity(rect, k_inv, &p.matches, &sel)),
+            sampson_px: Spread::of(model.residuals(&Rotation3::identity(), &p.matches, &sel)),
+        });
+    }
+    (pair_reports, per_pair)
+}
+
 /// The check on undistorted matches (module docs).
 pub fn check_matches(
     pairs: &[PairMatches],
@@ -426,32 +470,7 @@ pub fn check_matches(
     })?;
     let rect = given.rectification()?;
     let k_inv = [&model.kl_inv, &model.kr_inv];
-    let mut pair_reports = Vec::new();
-    let mut offset = 0;
-    let mut per_pair = Vec::new();
-    for p in pairs {
-        let range = offset..offset + p.matches.len();
-        offset = range.end;
-        let sel: Vec<usize> =
-            fit.selected.iter().filter(|i| range.contains(i)).map(|i| i - range.start).collect();
-        let one =
-            refit_rotation(&model, &p.matches, &sel, &fit.fit.dr).filter(|_| sel.len() >= 10).and_then(|f| {
-                let cov = f.jtj.try_inverse()? * fit.sigma_px.powi(2);
-                Some((so3::log(&f.dr), cov))
-            });
-        if let Some(o) = one {
-            per_pair.push(o);
-        }
-        pair_reports.push(PairReport {
-            name: p.name.clone(),
-            matches: p.matches.len(),
-            inliers: sel.len(),
-            rotation_change_deg: one.map(|(w, _)| Angles::from_rad(&w)),
-            rotation_change_sigma_deg: one.map(|(_, c)| sigmas_deg(&c)),
-            vertical_disparity_px: Spread::of(vertical_disparity(&rect, k_inv, &p.matches, &sel)),
-            sampson_px: Spread::of(model.residuals(&Rotation3::identity(), &p.matches, &sel)),
-        });
-    }
+    let (pair_reports, per_pair) = pair_reports(&model, &rect, pairs, &fit);
     let w = so3::log(&fit.fit.dr);
     let scatter_ratio = scatter_ratio(&w, &per_pair);
     let covariance = fit.covariance * scatter_ratio.powi(2);
@@ -512,7 +531,7 @@ fn sigmas_deg(c: &Matrix3<f64>) -> Angles {
 
 /// Birge's ratio of the pairs' changes about the pooled one: `max(1, sqrt(chi2 / dof))`,
 /// `dof = 3 (pairs - 1)`; 1 with fewer than two pairs.
-fn scatter_ratio(pooled: &Vector3<f64>, pairs: &[(Vector3<f64>, Matrix3<f64>)]) -> f64 {
+fn scatter_ratio(pooled: &Vector3<f64>, pairs: &[PairFit]) -> f64 {
     if pairs.len() < 2 {
         return 1.0;
     }
