@@ -81,8 +81,7 @@ class _Progress:
 
     def _update(self, done: int, total: int) -> None:
         if self._tqdm is not None:
-            self._bar.n = done
-            self._bar.refresh()
+            self._bar.update(max(done - self._bar.n, 0))
             return
         self._bar[0] = done
         width = 30
