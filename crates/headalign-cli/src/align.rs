@@ -9,6 +9,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use headalign::alignment::NOMINAL_VERGE_WARNING;
 use headalign::calibrate::image_noise::MeasuredVariances;
 use headalign::observations::View;
 use headalign::procedure::{
@@ -214,8 +215,6 @@ fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
     }
 }
 
-/// What `align` says when no view moved a vergence joint.
-const NOMINAL_VERGE_WARNING: &str = "no view moved the vergence joints: the vergence readings assume axes perpendicular to the elevation axis with a positive vergence turning each camera right, and their sigmas exclude the cameras' mounting on those axes; add a view with both vergences moved";
 
 /// What `align` estimated from a session.
 struct AlignEstimate {

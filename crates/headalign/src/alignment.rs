@@ -84,6 +84,10 @@ pub struct AlignmentSolution {
     pub verge_axes_measured: bool,
 }
 
+/// What a solution with nominal vergence axes (`verge_axes_measured` false) must say: no
+/// view moved a vergence joint, so the readings carry the nominal axes' assumptions.
+pub const NOMINAL_VERGE_WARNING: &str = "no view moved the vergence joints: the vergence readings assume axes perpendicular to the elevation axis with a positive vergence turning each camera right, and their sigmas exclude the cameras' mounting on those axes; add a view with both vergences moved";
+
 /// The images of the invariant lines at infinity of the pan and elevation rotations in the
 /// reference view (paper section 3.2 steps 5-6), each a unit homogeneous line.
 #[derive(Debug, Clone, Copy, Serialize)]
