@@ -52,12 +52,14 @@ pub fn update_full(
     let kind = given.distortion[0].kind;
     opts.calibrate.lens =
         if kind == LensKind::Pinhole { LensChoice::Pinhole } else { LensChoice::Model(kind) };
-    let d = given.distortion[0];
-    let terms = match kind {
-        LensKind::RadialTangential if d.k3 != 0.0 => Some(DistortionTerms::Full5),
-        LensKind::RadialTangential if d.p1 != 0.0 || d.p2 != 0.0 => Some(DistortionTerms::Full4),
-        _ => None,
-    };
+    // The smallest level that estimates every non-zero coefficient of the given lens;
+    // `None` (the default terms) when the radial level does.
+    let params = given.distortion[0].params();
+    let used = params.iter().rposition(|v| *v != 0.0).map_or(0, |i| i + 1);
+    let terms = DistortionTerms::LEVELS
+        .into_iter()
+        .find(|t| t.params(kind).len() >= used)
+        .filter(|t| *t != DistortionTerms::Radial2);
     opts.calibrate.lens_terms = crate::calibrate::lens_terms(opts.calibrate.lens, terms);
     opts.lenses = None;
     let cal = match calibrate_views(views, &opts, &mut |_| {}) {
