@@ -2,10 +2,13 @@
 //! Madsen, Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004,
 //! section 3.2). The rig bundle adjustment, the rig motion, the refinements of F (7
 //! dof), of a 3D homography (16), of a pose (6), of a translation and of a frame, and the
-//! small fits (the planar check's rotation, the steering zero) run it. Not yet: the
-//! planar route's adjustment (`headalign::planar::refine`), whose profile runs stop at an
-//! iteration limit before convergence, so that its results depend on the damping path
-//! (under this policy `experiment planar` changed beyond rounding).
+//! small fits (the planar check's rotation, the steering zero, the robot stages' floor
+//! normal) run it. Outside it: the patch alignment of `headalign_vision::refine`, a
+//! fixed-point iteration on the template's Jacobian that is no descent method (its
+//! module docs say why). Not yet: the planar route's adjustment
+//! (`headalign::facing_plane::refine`): its cost has several minima near its starts at 2
+//! px, and which one a start reaches depends on the damping path (under this policy
+//! `experiment planar --scene wall --only 2` changed beyond rounding).
 //!
 //! # What it computes
 //!

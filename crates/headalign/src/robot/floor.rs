@@ -9,11 +9,13 @@
 //! `propagation::out_of_plane`), zero for a planar drive. `n` is parametrised by its
 //! tangent offset `a` (2 dof, radians) from the calibrated pan axis `u`,
 //! `n(a) = (u + a_1 e_1 + a_2 e_2) / |...|`, with a Gaussian prior `a ~ N(0, s^2 I)`,
-//! `s` = [`FLOOR_TILT_PRIOR_DEG`], and fitted by Gauss-Newton on
-//! `sum_k v_k(a)^T W_k v_k(a) + |a|^2 / s^2`, `W_k` the inverse of drive `k`'s
-//! out-of-plane covariance from its own motion's covariance (fixed at `n = u`, so the
+//! `s` = [`FLOOR_TILT_PRIOR_DEG`], and fitted on `sum_k v_k(a)^T W_k v_k(a) + |a|^2 / s^2`
+//! (`W_k` the inverse of drive `k`'s
+//! out-of-plane covariance from its own motion's covariance, fixed at `n = u`, so the
 //! estimate is a smooth function of the motions and can be propagated by central
-//! differences). A turn of angle `phi` fixes `n` through its rotation axis (to about
+//! differences) by the project's Levenberg-Marquardt (`headalign_geometry::lm`, its
+//! damping policy, run to rounding: until no step lowers the cost, as a fit with a
+//! numerical Jacobian needs; at most [`FIT_ITERATIONS`] linearisations). A turn of angle `phi` fixes `n` through its rotation axis (to about
 //! `sigma_rot / phi` per component); a straight drive fixes the component of `n` along its
 //! travel direction through `t . n = 0` (to about `sigma_t / |t|`) and leaves the other to
 //! the prior. Jacobian by central differences (step 1e-7 rad; `v` is smooth and O(1)).
@@ -41,9 +43,10 @@
 //! beyond its quantile at the false alarm rate of the planarity limit (23 deg with the
 //! point-mode default) is [`AlignError::NotPlanar`] (`FloorFit::plausible`). It is what
 //! catches a pitching robot's straight drive: with exact data its best "floor" is the one
-//! perpendicular to the pitch axis, 90 deg off, where the drive's own chi-square vanishes.
-//! The Gauss-Newton steps are limited to 3 deg each, so the fit walks there and stops
-//! rather than jump.
+//! perpendicular to the pitch axis, 90 deg off, where the drive's own chi-square vanishes;
+//! the fit's minimum, between that floor and the prior, lies far beyond the quantile
+//! (a step is taken only if it lowers the cost, so the fit goes there by descent and
+//! stops at that minimum or at the iteration limit, never at a jump).
 //!
 //! Pitfalls: the fit cannot tell a floor that is a ramp from a level one (both are
 //! planes: the motion is planar either way); a robot that pitches or rolls during a drive
@@ -53,6 +56,7 @@
 //! sigma is `|a|`'s along `a` (for a tilt below its sigma it is a Rayleigh-like magnitude,
 //! biased up).
 
+use headalign_geometry::lm::{LmOptions, minimise_with};
 use nalgebra::{Isometry3, Matrix2, Matrix3, SMatrix, Unit, UnitQuaternion, Vector2, Vector3};
 use serde::Serialize;
 
@@ -63,14 +67,11 @@ use crate::error::AlignError;
 /// tangent component), degrees (module docs, "why a prior of 5 deg").
 pub const FLOOR_TILT_PRIOR_DEG: f64 = 5.0;
 
-/// Gauss-Newton iterations of the fit at most (it converges in 2-4: `v` is nearly linear
-/// in `a` for tilts of a few degrees).
-const FIT_ITERATIONS: usize = 20;
-
-/// Largest Gauss-Newton step of the fit, radians (3 deg): the model is nearly linear
-/// within it; a fit that needs many (a pitching robot's straight drive pulls the normal
-/// towards its pitch axis, 90 deg away) ends far out and fails [`FloorFit::plausible`].
-const MAX_STEP_RAD: f64 = 0.05;
+/// Linearisations of the fit at most: it converges in a few (`v` is nearly linear in `a`
+/// for tilts of a few degrees; the remaining ones reach rounding); a fit that needs many
+/// (a pitching robot's straight drive pulls the normal towards its pitch axis, 90 deg
+/// away) ends far out and fails [`FloorFit::plausible`].
+pub const FIT_ITERATIONS: usize = 50;
 
 /// The floor's normal estimated from a stage's drives (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -157,22 +158,24 @@ pub(super) fn fit_floor_normal(
         j.iter().zip(weights).map(|(jk, w)| jk.transpose() * w * jk).sum::<Matrix2<f64>>()
             + Matrix2::identity() * prior_w
     };
-    let mut a = Vector2::zeros();
-    for _ in 0..FIT_ITERATIONS {
-        let r = residuals(&a);
-        let j = jacobians(&a);
+    let cost = |a: &Vector2<f64>| -> f64 {
+        let r = residuals(a);
+        r.iter().zip(weights).map(|(rk, w)| (rk.transpose() * w * rk)[(0, 0)]).sum::<f64>()
+            + a.norm_squared() * prior_w
+    };
+    let normal_equations = |a: &Vector2<f64>| -> Option<(Matrix2<f64>, Vector2<f64>)> {
+        let r = residuals(a);
+        let j = jacobians(a);
         let g: Vector2<f64> =
             j.iter().zip(weights).zip(&r).map(|((jk, w), rk)| jk.transpose() * w * rk).sum::<Vector2<f64>>()
                 + a * prior_w;
-        let mut step = normal_matrix(&j).try_inverse()? * g;
-        if step.norm() > MAX_STEP_RAD {
-            step *= MAX_STEP_RAD / step.norm();
-        }
-        a -= step;
-        if step.norm() < 1e-14 {
-            break;
-        }
-    }
+        Some((normal_matrix(&j), g))
+    };
+    // Run to rounding (function tolerance 0: until no step lowers the cost).
+    let options =
+        LmOptions { max_iterations: FIT_ITERATIONS, function_tolerance: 0.0, parameter_tolerance: 0.0 };
+    let start = Vector2::zeros();
+    let (a, _) = minimise_with(start, cost(&start), &options, normal_equations, |a, d| Some(a + d), cost);
     let j = jacobians(&a);
     let sigma_a = normal_matrix(&j).try_inverse()?;
     let leverage: Vec<f64> =
