@@ -71,7 +71,7 @@ pub const FLOOR_TILT_PRIOR_DEG: f64 = 5.0;
 /// for tilts of a few degrees; the remaining ones reach rounding); a fit that needs many
 /// (a pitching robot's straight drive pulls the normal towards its pitch axis, 90 deg
 /// away) ends far out and fails [`FloorFit::plausible`].
-pub const FIT_ITERATIONS: usize = 50;
+const FIT_ITERATIONS: usize = 50;
 
 /// The floor's normal estimated from a stage's drives (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
