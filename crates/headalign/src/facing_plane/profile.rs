@@ -66,8 +66,8 @@ use super::refine::{PlaneHold, Problem, adjust, covariance_at};
 use crate::verge_tilt::MAX_END_WIDENING;
 
 /// Iterations of each end's re-adjustment (warm-started at the estimate with the normal
-/// moved by `z` sigmas, so the end's minimum is near; the general route's ends use 20 for
-/// the same reason).
+/// moved by `z` sigmas; the general route's ends use 20 for the same reason: a few
+/// Gauss-Newton steps reach the end's minimum).
 pub const PROFILE_END_ITERATIONS: usize = 20;
 
 /// Largest angle of an end from the estimated normal, radians (60 deg): a normal whose
