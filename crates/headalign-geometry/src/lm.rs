@@ -6,9 +6,8 @@
 //! normal) run it. Outside it: the patch alignment of `headalign_vision::refine`, a
 //! fixed-point iteration on the template's Jacobian that is no descent method (its
 //! module docs say why). Not yet: the planar route's adjustment
-//! (`headalign::facing_plane::refine`): its cost has several minima near its starts at 2
-//! px, and which one a start reaches depends on the damping path (under this policy
-//! `experiment planar --scene wall --only 2` changed beyond rounding).
+//! (`headalign::facing_plane::refine`, its module docs say why: its cost has several
+//! minima near its starts, and under this policy some fits end in a higher one).
 //!
 //! # What it computes
 //!
