@@ -1,12 +1,13 @@
 //! The one Levenberg-Marquardt loop of the project (Hartley & Zisserman appendix A6.2;
 //! Madsen, Nielsen, Tingleff, "Methods for non-linear least squares problems", 2004,
-//! section 3.2). The rig bundle adjustment, the rig motion, the planar route's adjustment
-//! (`headalign::facing_plane::refine`, with its own 2-dof point-Schur back end), the
-//! refinements of F (7 dof), of a 3D homography (16), of a pose (6), of a translation and
-//! of a frame, and the small fits (the planar check's rotation, the steering zero, the
-//! robot stages' floor normal) run it. The one iterative least-squares loop outside it
-//! is the patch alignment of `headalign_vision::refine`, a fixed-point iteration on the
-//! template's Jacobian that is no descent method (its module docs say why).
+//! section 3.2). The rig bundle adjustment, the rig motion, the refinements of F (7
+//! dof), of a 3D homography (16), of a pose (6), of a translation and of a frame, and the
+//! small fits (the planar check's rotation, the steering zero, the robot stages' floor
+//! normal) run it. Outside it: the patch alignment of `headalign_vision::refine`, a
+//! fixed-point iteration on the template's Jacobian that is no descent method (its
+//! module docs say why). Not yet: the planar route's adjustment
+//! (`headalign::facing_plane::refine`, its module docs say why: its cost has several
+//! minima near its starts, and under this policy some fits end in a higher one).
 //!
 //! # What it computes
 //!
@@ -19,8 +20,7 @@
 //! Two back ends: [`Dense`] / [`DenseDyn`] (the whole normal matrix by Cholesky, fixed
 //! or dynamic size) and the point-Schur complement of the bundle adjustment
 //! (`bundle/normal.rs`: the points eliminated 3x3 block by block, the reduced camera
-//! system by Cholesky), which the rig motion shares (`rigmotion.rs`); the planar route
-//! has the same over its 2-dof plane points (`headalign::facing_plane::refine`).
+//! system by Cholesky), which the rig motion shares (`rigmotion.rs`).
 //!
 //! # Damping policy
 //!

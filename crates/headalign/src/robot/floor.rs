@@ -10,14 +10,14 @@
 //! tangent offset `a` (2 dof, radians) from the calibrated pan axis `u`,
 //! `n(a) = (u + a_1 e_1 + a_2 e_2) / |...|`, with a Gaussian prior `a ~ N(0, s^2 I)`,
 //! `s` = [`FLOOR_TILT_PRIOR_DEG`], and fitted on `sum_k v_k(a)^T W_k v_k(a) + |a|^2 / s^2`
-//! (`W_k` the inverse of drive `k`'s
-//! out-of-plane covariance from its own motion's covariance, fixed at `n = u`, so the
-//! estimate is a smooth function of the motions and can be propagated by central
-//! differences) by the project's Levenberg-Marquardt (`headalign_geometry::lm`, its
-//! damping policy, run to rounding: until no step lowers the cost, as a fit with a
-//! numerical Jacobian needs; at most [`FIT_ITERATIONS`] linearisations). A turn of angle `phi` fixes `n` through its rotation axis (to about
-//! `sigma_rot / phi` per component); a straight drive fixes the component of `n` along its
-//! travel direction through `t . n = 0` (to about `sigma_t / |t|`) and leaves the other to
+//! (`W_k` the inverse of drive `k`'s out-of-plane covariance from its own motion's
+//! covariance, fixed at `n = u`, so the estimate is a smooth function of the motions and
+//! can be propagated by central differences) by the project's Levenberg-Marquardt
+//! (`headalign_geometry::lm`, its damping policy, run to rounding: until no step lowers
+//! the cost, as a fit with a numerical Jacobian needs; at most 50 linearisations). A turn
+//! of angle `phi` fixes `n` through its rotation axis (to about `sigma_rot / phi` per
+//! component); a straight drive fixes the component of `n` along its travel direction
+//! through `t . n = 0` (to about `sigma_t / |t|`) and leaves the other to
 //! the prior. Jacobian by central differences (step 1e-7 rad; `v` is smooth and O(1)).
 //!
 //! **Why a prior of 5 deg.** A real robot's pan axis stands 1-3 deg off its floor's
@@ -71,7 +71,7 @@ pub const FLOOR_TILT_PRIOR_DEG: f64 = 5.0;
 /// for tilts of a few degrees; the remaining ones reach rounding); a fit that needs many
 /// (a pitching robot's straight drive pulls the normal towards its pitch axis, 90 deg
 /// away) ends far out and fails [`FloorFit::plausible`].
-pub const FIT_ITERATIONS: usize = 50;
+const FIT_ITERATIONS: usize = 50;
 
 /// The floor's normal estimated from a stage's drives (module docs).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
