@@ -70,6 +70,7 @@ pub mod depth;
 pub mod intrinsics;
 pub mod matches;
 pub mod refit;
+pub mod split;
 #[cfg(test)]
 mod tests;
 
