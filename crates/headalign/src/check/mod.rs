@@ -68,6 +68,7 @@
 
 pub mod depth;
 pub mod intrinsics;
+pub mod live;
 pub mod matches;
 pub mod refit;
 pub mod split;
