@@ -419,7 +419,7 @@ fn verdict_table(trials: &[Trial]) -> String {
         return String::new();
     }
     let mut md = String::from(
-        "\nVerdicts per change at 3 pairs, 0.5 px (good / can-improve / recalibrate / failed) against the rule on the true change:\n\n| axis | change deg | truth | verdicts | right |\n| --- | --- | --- | --- | --- |\n",
+        "\nVerdicts per change at 3 pairs, 0.5 px (good / can-improve / recalibrate / failed) against the rule on the true change (truth: sessions per verdict):\n\n| axis | change deg | truth | verdicts | right |\n| --- | --- | --- | --- | --- |\n",
     );
     let mut keys: Vec<(Option<usize>, f64)> = Vec::new();
     for t in &chosen {
@@ -432,7 +432,14 @@ fn verdict_table(trials: &[Trial]) -> String {
         let g: Vec<&&Trial> =
             chosen.iter().filter(|t| t.condition.axis == axis && t.condition.change_deg == change).collect();
         let count = |v: Option<Verdict>| g.iter().filter(|t| t.verdict == v).count();
-        let truth = g.first().map_or("-", |t| t.truth.name());
+        // The truth differs between seeds near a threshold (each seed's head has its own rig).
+        let truths: Vec<String> = [Verdict::Good, Verdict::CanImprove, Verdict::Recalibrate]
+            .iter()
+            .map(|&v| (v, g.iter().filter(|t| t.truth == v).count()))
+            .filter(|(_, n)| *n > 0)
+            .map(|(v, n)| format!("{} {n}", v.name()))
+            .collect();
+        let truth = truths.join(", ");
         let right = g.iter().filter(|t| t.verdict == Some(t.truth)).count();
         let _ = writeln!(
             md,
