@@ -12,9 +12,12 @@
 //! - `headalign run --head-cmd CMD`: the image procedure and the robot stages on a driver
 //!   process ([`headcmd`]).
 //! - `headalign calibrate DIR`: self-calibration from rig motions ([`calibrate`]).
+//! - `headalign check SOURCE --calibration FILE`: the targetless health check of a stereo
+//!   calibration ([`check`]).
 
 mod align;
 mod calibrate;
+mod check;
 mod demo;
 mod facing_plane;
 mod flags;
@@ -63,6 +66,10 @@ enum Command {
     Run(headcmd::RunArgs),
     /// Self-calibrate a stereo rig from views related by rigid motions of the whole rig.
     Calibrate(calibrate::CalibrateArgs),
+    /// Check a stereo calibration against natural stereo pairs: rotation change with sigmas,
+    /// depth error, verdict good / can-improve / recalibrate (recalibrate: a change significant
+    /// at 5 sigma causing more than 1 % depth error at 5 m).
+    Check(check::CheckArgs),
 }
 
 /// Longest error message printed, characters: 300 with the `error: ` before it (the
@@ -74,6 +81,7 @@ const MAX_ERROR_LINE: usize = 293;
 fn report_dir(command: &Command) -> Option<PathBuf> {
     match command {
         Command::Calibrate(a) => a.out.clone(),
+        Command::Check(a) => a.update.clone(),
         Command::Align(a) => a.out.clone(),
         Command::Run(a) => a.session.clone(),
         Command::Demo(a) => a.session.clone(),
@@ -124,6 +132,7 @@ fn main() -> ExitCode {
         Command::Replay(a) => replay::run(&a),
         Command::Run(a) => headcmd::run(&a),
         Command::Calibrate(a) => calibrate::run(&a),
+        Command::Check(a) => check::run(&a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

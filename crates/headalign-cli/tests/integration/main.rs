@@ -3,6 +3,7 @@
 //! Run one subject with `cargo test --release -p headalign-cli --test integration <module>::`.
 
 mod bad_input;
+mod check;
 mod cli;
 mod common;
 mod experiment;

@@ -11,7 +11,8 @@
 //! growing with the row), `cy` shifts them (nearly a pitch: told apart by the pitch's
 //! perspective term `y^2 / f`, so its sigma is large and it correlates with the pitch).
 //! Units: the focal change in percent, the principal point in pixels; their sigmas from
-//! the measured noise of the held refit (`sigma^2 (J^T J)^-1`). Jacobian: the rotation
+//! the measured noise of the held refit times the pairs' scatter ratio (`sigma^2 (J^T
+//! J)^-1`, [`super`] module docs, "Method" step 4). Jacobian: the rotation
 //! columns analytic (as in [`super::refit`], with the moved `K_R`), the intrinsic columns by
 //! central differences of `F` (steps 1e-6 in the scale, 1e-3 px in `cy`: `F` is smooth
 //! and O(1) in these units).

@@ -2,7 +2,7 @@
 //! pair's own left-right matches (the front end of `calibrate`,
 //! [`crate::calibrate::views::stereo_only`]: corners, descriptor matches, `F` by RANSAC,
 //! guided matching, the right corner aligned against its left partner's patch), the given
-//! lenses removed ([`crate::rig::known_lens::undistort_views`]), and the vertical disparity
+//! lenses removed ([`crate::rig::undistort_views`]), and the vertical disparity
 //! after the given rectification ([`vertical_disparity`]).
 //!
 //! Units: pixels (undistorted pinhole pixels of the given intrinsics). Pitfalls: a match

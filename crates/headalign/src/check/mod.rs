@@ -19,9 +19,9 @@
 //! # Method
 //!
 //! 1. Matches: each pair's own left-right matches by the front end of `calibrate`, the
-//!    given lenses removed ([`matches`]).
+//!    given lenses removed ([`mod@matches`]).
 //! 2. Outliers: RANSAC with a 3-match minimal solver of the rotation change, pooled over
-//!    the pairs (one rig), threshold [`CheckOptions::ransac_threshold_px`] on the Sampson
+//!    the pairs (one rig), threshold [`CheckOptions::ransac`] on the Sampson
 //!    distance ([`refit`]).
 //! 3. The maximum-likelihood refit: least squares of the Sampson distances (the
 //!    first-order reprojection error, Hartley & Zisserman 2nd ed. section 11.4.3) by the
@@ -42,13 +42,16 @@
 //!
 //! # Verdict
 //!
-//! With `z_i = |w_i| / sigma_i` per axis, "significant" meaning some `z_i >=
-//! significance_sigmas` (5), and `e(w)` the depth error at
-//! [`CheckOptions::reference_depth_m`] (5 m) of a change `w`:
-//! - `recalibrate`: significant and `e(w) > depth_limit_pct` (1 %);
-//! - `can-improve`: otherwise, when significant and `e(w) > improve_fraction` (1/4) of the
-//!   limit, or when the intrinsics test is significant;
+//! With `z_i = |w_i| / sigma_i` per axis, the significant part of the change `w_s` (the
+//! axes with `z_i >= significance_sigmas`, 5; the others set to zero), and `e(w)` the
+//! depth error at [`CheckOptions::reference_depth_m`] (5 m) of a change `w`:
+//! - `recalibrate`: `e(w_s) > depth_limit_pct` (1 %): a significant change that matters;
+//! - `can-improve`: otherwise, when `e(w_s) > improve_fraction` (1/4) of the limit, or
+//!   when the intrinsics test is significant;
 //! - `good`: otherwise.
+//!
+//! Only the significant part counts: an axis within its noise (yaw, the worst seen, often
+//! is) would otherwise decide the verdict by its noise alone.
 //!
 //! `conclusive` says whether the data can tell: `e` at every corner of the box `|w_i| +
 //! bound_sigmas sigma_i` (3 sigma) is below the limit, or the verdict is `recalibrate`. A
@@ -74,6 +77,7 @@ pub mod refit;
 pub mod split;
 #[cfg(test)]
 mod tests;
+pub mod update;
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::ransac::{RansacOptions, ransac};
@@ -91,6 +95,7 @@ pub use depth::{DepthErrors, disparity_shift_px};
 pub use intrinsics::{Estimate, IntrinsicsChange};
 use matches::{PairMatches, pair_matches, vertical_disparity};
 use refit::{EpipolarModel, Match, RobustFit, percentile, refit_rotation, select_by_noise};
+pub use update::{FullUpdate, update_full};
 
 /// The options of [`check_views`].
 #[derive(Debug, Clone)]
@@ -111,8 +116,8 @@ pub struct CheckOptions {
     pub depth_limit_pct: f64,
     /// The depth of the verdict's depth error, metres. Default 5.
     pub reference_depth_m: f64,
-    /// `can-improve` needs a significant change causing this fraction of the depth
-    /// limit. Default 0.25.
+    /// `can-improve` needs the change's significant part to cause this fraction of the
+    /// depth limit. Default 0.25.
     pub improve_fraction: f64,
     /// `conclusive` needs the change plus this many sigmas below the limit. Default 3.
     pub bound_sigmas: f64,
@@ -353,7 +358,7 @@ pub fn check_views(
 }
 
 /// The baseline in metres: the calibration's, or the options' for one in baselines.
-fn metric_baseline(given: &StereoCalibration, options: &CheckOptions) -> Result<f64, CheckError> {
+pub(crate) fn metric_baseline(given: &StereoCalibration, options: &CheckOptions) -> Result<f64, CheckError> {
     let norm = given.right_from_left.translation.vector.norm();
     if !(norm.is_finite() && norm > 0.0) {
         return Err(CheckError::Calibration("the given calibration has no baseline".into()));
@@ -406,6 +411,47 @@ fn pooled_fit(model: &EpipolarModel, all: &[Match], options: &CheckOptions) -> R
         .ok_or_else(|| too_few(r.inliers.len()))
 }
 
+/// One pair's own refit: the change `w` and its covariance, radians.
+type PairFit = (Vector3<f64>, Matrix3<f64>);
+
+/// Each pair's report and its own refit `(w, covariance)` (radians; pairs with fewer than
+/// 10 kept matches have none), on the pooled fit's selection and noise.
+fn pair_reports(
+    model: &EpipolarModel,
+    rect: &headalign_geometry::rectify::Rectification,
+    pairs: &[PairMatches],
+    fit: &RobustFit,
+) -> (Vec<PairReport>, Vec<PairFit>) {
+    let k_inv = [&model.kl_inv, &model.kr_inv];
+    let mut pair_reports = Vec::new();
+    let mut offset = 0;
+    let mut per_pair = Vec::new();
+    for p in pairs {
+        let range = offset..offset + p.matches.len();
+        offset = range.end;
+        let sel: Vec<usize> =
+            fit.selected.iter().filter(|i| range.contains(i)).map(|i| i - range.start).collect();
+        let one =
+            refit_rotation(model, &p.matches, &sel, &fit.fit.dr).filter(|_| sel.len() >= 10).and_then(|f| {
+                let cov = f.jtj.try_inverse()? * fit.sigma_px.powi(2);
+                Some((so3::log(&f.dr), cov))
+            });
+        if let Some(o) = one {
+            per_pair.push(o);
+        }
+        pair_reports.push(PairReport {
+            name: p.name.clone(),
+            matches: p.matches.len(),
+            inliers: sel.len(),
+            rotation_change_deg: one.map(|(w, _)| Angles::from_rad(&w)),
+            rotation_change_sigma_deg: one.map(|(_, c)| sigmas_deg(&c)),
+            vertical_disparity_px: Spread::of(vertical_disparity(rect, k_inv, &p.matches, &sel)),
+            sampson_px: Spread::of(model.residuals(&Rotation3::identity(), &p.matches, &sel)),
+        });
+    }
+    (pair_reports, per_pair)
+}
+
 /// The check on undistorted matches (module docs).
 pub fn check_matches(
     pairs: &[PairMatches],
@@ -423,32 +469,7 @@ pub fn check_matches(
     })?;
     let rect = given.rectification()?;
     let k_inv = [&model.kl_inv, &model.kr_inv];
-    let mut pair_reports = Vec::new();
-    let mut offset = 0;
-    let mut per_pair = Vec::new();
-    for p in pairs {
-        let range = offset..offset + p.matches.len();
-        offset = range.end;
-        let sel: Vec<usize> =
-            fit.selected.iter().filter(|i| range.contains(i)).map(|i| i - range.start).collect();
-        let one =
-            refit_rotation(&model, &p.matches, &sel, &fit.fit.dr).filter(|_| sel.len() >= 10).and_then(|f| {
-                let cov = f.jtj.try_inverse()? * fit.sigma_px.powi(2);
-                Some((so3::log(&f.dr), cov))
-            });
-        if let Some(o) = one {
-            per_pair.push(o);
-        }
-        pair_reports.push(PairReport {
-            name: p.name.clone(),
-            matches: p.matches.len(),
-            inliers: sel.len(),
-            rotation_change_deg: one.map(|(w, _)| Angles::from_rad(&w)),
-            rotation_change_sigma_deg: one.map(|(_, c)| sigmas_deg(&c)),
-            vertical_disparity_px: Spread::of(vertical_disparity(&rect, k_inv, &p.matches, &sel)),
-            sampson_px: Spread::of(model.residuals(&Rotation3::identity(), &p.matches, &sel)),
-        });
-    }
+    let (pair_reports, per_pair) = pair_reports(&model, &rect, pairs, &fit);
     let w = so3::log(&fit.fit.dr);
     let scatter_ratio = scatter_ratio(&w, &per_pair);
     let covariance = fit.covariance * scatter_ratio.powi(2);
@@ -461,7 +482,7 @@ pub fn check_matches(
         &fit.selected,
         &fit.fit.dr,
         fit.fit.cost,
-        fit.sigma_px,
+        fit.sigma_px * scatter_ratio,
         options.significance_sigmas,
     );
     let sigma_w = Vector3::from_fn(|i, _| covariance[(i, i)].max(0.0).sqrt());
@@ -509,7 +530,7 @@ fn sigmas_deg(c: &Matrix3<f64>) -> Angles {
 
 /// Birge's ratio of the pairs' changes about the pooled one: `max(1, sqrt(chi2 / dof))`,
 /// `dof = 3 (pairs - 1)`; 1 with fewer than two pairs.
-fn scatter_ratio(pooled: &Vector3<f64>, pairs: &[(Vector3<f64>, Matrix3<f64>)]) -> f64 {
+fn scatter_ratio(pooled: &Vector3<f64>, pairs: &[PairFit]) -> f64 {
     if pairs.len() < 2 {
         return 1.0;
     }
@@ -534,9 +555,12 @@ pub fn verdict(
     options: &CheckOptions,
     depth_at_reference: impl Fn(&Vector3<f64>) -> f64,
 ) -> (Verdict, bool) {
-    let significant = (0..3).any(|i| w[i].abs() >= options.significance_sigmas * sigma[i]);
-    let e = depth_at_reference(w);
-    if significant && e > options.depth_limit_pct {
+    let significant =
+        Vector3::from_fn(
+            |i, _| if w[i].abs() >= options.significance_sigmas * sigma[i] { w[i] } else { 0.0 },
+        );
+    let e = depth_at_reference(&significant);
+    if e > options.depth_limit_pct {
         return (Verdict::Recalibrate, true);
     }
     let bound = w.abs() + sigma * options.bound_sigmas;
@@ -547,7 +571,7 @@ pub fn verdict(
         })
         .fold(0.0, f64::max);
     let conclusive = worst <= options.depth_limit_pct;
-    let worth = significant && e > options.improve_fraction * options.depth_limit_pct;
+    let worth = e > options.improve_fraction * options.depth_limit_pct;
     if worth || intrinsics.is_some_and(|c| c.significant) {
         (Verdict::CanImprove, conclusive)
     } else {

@@ -14,7 +14,7 @@
 //! Outliers: RANSAC with a 3-match minimal solver ([`RotationChange`]: the epipolar
 //! constraint `x_R^T exp(w) E x_L = 0` linearised in `w` at the current rotation, three
 //! Newton steps) and the LM refit as its local optimisation; then the selection is made
-//! by the measured noise ([`robust_fit`]: `sigma` from the median absolute residual, the
+//! by the measured noise ([`select_by_noise`]: `sigma` from the median absolute residual, the
 //! matches within `k sigma` refitted, until the selection is stable).
 //!
 //! Pitfalls: `[T]x` makes `E` of rank 2, so a rotation about the baseline and one about an

@@ -157,3 +157,53 @@ fn bad_options_are_errors() {
     let o = CheckOptions { min_matches: 2, ..CheckOptions::default() };
     assert!(o.validate().is_err());
 }
+
+/// The minimal solver is exact on three noise-free matches of a change of 0.5 deg (its
+/// Newton steps converge quadratically: 1e-12 rad after three).
+#[test]
+fn minimal_solver_is_exact_noise_free() {
+    let given = rig();
+    let w = w_deg(0.2, -0.5, 0.3);
+    let m = matches(&turned(&given, &so3::exp(&w)), 3, 0.0, 5);
+    let model = epipolar_model(&given).unwrap();
+    let dr = refit::minimal_rotation(&model, &m).unwrap();
+    // Three matches fix three angles; the perspective terms that carry yaw are small, so
+    // the sample's conditioning costs digits: 1e-9 rad is far below any noise.
+    assert!((so3::log(&dr) - w).abs().max() < 1e-9, "{} vs {w}", so3::log(&dr));
+}
+
+/// A right camera whose `fy` grew by 0.5 % (and no rotation): the intrinsics test finds it
+/// within 4 sigmas and calls it significant; with `fy` unchanged it is not.
+#[test]
+fn intrinsics_test_finds_a_focal_change() {
+    let given = rig();
+    for (change_pct, expect) in [(0.5, true), (0.0, false)] {
+        let mut truth = given.clone();
+        truth.right.fy *= 1.0 + change_pct / 100.0;
+        let m = matches(&truth, 2000, 0.25, 6);
+        let pairs = vec![PairMatches { name: "a".into(), matches: m }];
+        let r = check_matches(&pairs, &given, 0.11, &CheckOptions::default()).unwrap();
+        let i = r.intrinsics_change.unwrap();
+        assert!((i.fy_pct.value - change_pct).abs() < 4.0 * i.fy_pct.sigma, "{i:?}");
+        assert_eq!(i.significant, expect, "{i:?}");
+    }
+}
+
+/// Too few matches: an error naming the counts, never a report.
+#[test]
+fn too_few_matches_is_an_error() {
+    let given = rig();
+    let pairs = vec![PairMatches { name: "a".into(), matches: matches(&given, 12, 0.25, 7) }];
+    let e = check_matches(&pairs, &given, 0.11, &CheckOptions::default()).unwrap_err();
+    assert!(matches!(e, CheckError::TooFewMatches { got: 12, needed: 30, pairs: 1 }), "{e}");
+}
+
+/// A calibration in baselines needs the baseline in metres for the depth error.
+#[test]
+fn baselines_need_a_metric_baseline() {
+    let mut given = rig();
+    given.unit = TranslationUnit::Baselines;
+    assert!(matches!(metric_baseline(&given, &CheckOptions::default()), Err(CheckError::Calibration(_))));
+    let o = CheckOptions { baseline_m: Some(0.11), ..CheckOptions::default() };
+    assert_eq!(metric_baseline(&given, &o).unwrap(), 0.11);
+}
