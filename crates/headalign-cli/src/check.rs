@@ -37,8 +37,8 @@ pub struct CheckArgs {
     /// which needs rig motions between them; slow).
     #[arg(long, requires = "update")]
     pub full: bool,
-    /// Also cross-validate: self-calibrate each half of the views (interleaved) and warn
-    /// where the two differ by more than 3 of their sigmas (needs rig motions; slow).
+    /// Also cross-validate: self-calibrate the first and the second half of the views and
+    /// warn where the two differ by more than 3 of their sigmas (needs rig motions; slow).
     #[arg(long)]
     pub split: bool,
     /// Print one JSON object.

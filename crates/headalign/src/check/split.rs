@@ -37,13 +37,16 @@
 //! # The split
 //!
 //! Views of one rig ([`crate::calibrate::views::one_rig`], the others named in `skipped`)
-//! are interleaved: even-indexed views form the first half, odd-indexed the second, so
-//! that both halves span the session's motions (a self-calibration needs rotations; a
-//! split in time could leave one half with a single motion axis). Each half needs at least
-//! two views (a reference and one moved view), so at least four views are needed. With
-//! only two views per half (four pairs, e.g. `data/euroc_v101_pairs`) each half has one
-//! motion: its calibration leans on the constraints and its sigmas are large; the
-//! comparison is still valid, but weak.
+//! are split in order: the first `ceil(n / 2)` views and the rest (each half a stretch of
+//! the recording, whose views overlap the way the recording's do). With
+//! [`SplitOptions::interleave`] even-indexed views form the first half and odd-indexed the
+//! second, so that both halves span the session's motions (the procedure's session,
+//! initial, elevation+-, pan+-, split in order leaves one half with a single rotation
+//! axis). Each half needs at least two views (a reference and one moved view), so at least
+//! four views are needed. Four pairs (e.g. `data/euroc_v101_pairs`, two places visited
+//! twice: pairs 0-1 and 2-3 overlap, 0/1 and 2/3 do not) give halves of one motion each:
+//! their calibrations lean on the constraints (zero skew) and their sigmas are large; the
+//! comparison is valid, but weak.
 //!
 //! # Pitfalls
 //!
@@ -74,11 +77,14 @@ pub struct SplitOptions {
     pub calibrate: CalibrateViewsOptions,
     /// A difference beyond this many of its sigmas is a warning. Default 3.
     pub warn_sigmas: f64,
+    /// Split into even- and odd-indexed views instead of the first and the second half of
+    /// the views in order. Default false.
+    pub interleave: bool,
 }
 
 impl Default for SplitOptions {
     fn default() -> Self {
-        Self { calibrate: CalibrateViewsOptions::default(), warn_sigmas: 3.0 }
+        Self { calibrate: CalibrateViewsOptions::default(), warn_sigmas: 3.0, interleave: false }
     }
 }
 
@@ -135,10 +141,15 @@ pub struct SplitReport {
     pub rms_px: [f64; 2],
 }
 
-/// The even- and odd-indexed items of `items`.
-fn interleave<T: Clone>(items: &[T]) -> [Vec<T>; 2] {
-    let half = |r: usize| items.iter().skip(r).step_by(2).cloned().collect();
-    [half(0), half(1)]
+/// The two halves of `items`: the first `ceil(n / 2)` and the rest, or with `interleave`
+/// the even- and odd-indexed items.
+fn halves_of<T: Clone>(items: &[T], interleave: bool) -> [Vec<T>; 2] {
+    if interleave {
+        let half = |r: usize| items.iter().skip(r).step_by(2).cloned().collect();
+        return [half(0), half(1)];
+    }
+    let (a, b) = items.split_at(items.len().div_ceil(2));
+    [a.to_vec(), b.to_vec()]
 }
 
 /// Self-calibrate each half of `views` and compare the two (module docs); `progress`
@@ -154,7 +165,7 @@ pub fn cross_validate(
     let skipped = match views {
         StereoViews::Images(images) => {
             let (rig, skipped) = one_rig(images, |(n, v)| (n.as_str(), v.encoders));
-            let split: [Vec<(String, StereoImages)>; 2] = interleave(&rig);
+            let split: [Vec<(String, StereoImages)>; 2] = halves_of(&rig, options.interleave);
             need_views(rig.len())?;
             for (k, half) in split.iter().enumerate() {
                 halves[k] = half.iter().map(|(n, _)| n.clone()).collect();
@@ -164,7 +175,7 @@ pub fn cross_validate(
         }
         StereoViews::Tracked(tracked) => {
             let (rig, skipped) = one_rig(tracked, |v| (v.name.as_str(), v.capture.encoders));
-            let split: [Vec<View>; 2] = interleave(&rig);
+            let split: [Vec<View>; 2] = halves_of(&rig, options.interleave);
             need_views(rig.len())?;
             for (k, half) in split.iter().enumerate() {
                 halves[k] = half.iter().map(|v| v.name.clone()).collect();
@@ -314,8 +325,8 @@ mod tests {
     use super::*;
 
     /// Six point-mode views of the simulated head at one vergence (one rig), ordered so
-    /// that each interleaved half has the initial position and one elevation and one pan
-    /// rotation of 5 deg (two axes: a self-calibration without constraints).
+    /// that each half has the initial position and one elevation and one pan rotation of 5
+    /// deg (two axes: a self-calibration without constraints).
     fn session(noise_px: f64) -> Vec<View> {
         let scenario =
             Scenario { seed: 3, noise_px, points: 600, outlier_fraction: 0.0, ..Scenario::default() };
@@ -323,10 +334,10 @@ mod tests {
         let e0 = head.encoders();
         let at = [
             ("initial-a", e0),
-            ("initial-b", e0),
             ("elevation+", e0.moved(Joint::Elevation, 5.0)),
-            ("elevation-", e0.moved(Joint::Elevation, -5.0)),
             ("pan+", e0.moved(Joint::Pan, 5.0)),
+            ("initial-b", e0),
+            ("elevation-", e0.moved(Joint::Elevation, -5.0)),
             ("pan-", e0.moved(Joint::Pan, -5.0)),
         ];
         at.iter()
@@ -363,7 +374,7 @@ mod tests {
         let mut knocked = views.clone();
         let k = SimulatedHead::new(Scenario { seed: 3, ..Scenario::default() }).unwrap().truth().right;
         let w = Vector3::new(0.3_f64.to_radians(), 0.0, 0.0);
-        for v in knocked.iter_mut().skip(1).step_by(2) {
+        for v in knocked.iter_mut().skip(3) {
             turn_right(v, &k, &w);
         }
         let r = cross_validate(StereoViews::Tracked(&knocked), &options, &mut |_, _| {}).unwrap();
@@ -373,10 +384,9 @@ mod tests {
     }
 
     #[test]
-    fn interleave_splits_even_and_odd() {
-        let [a, b] = interleave(&[0, 1, 2, 3, 4]);
-        assert_eq!(a, vec![0, 2, 4]);
-        assert_eq!(b, vec![1, 3]);
+    fn halves_in_order_or_interleaved() {
+        assert_eq!(halves_of(&[0, 1, 2, 3, 4], true), [vec![0, 2, 4], vec![1, 3]]);
+        assert_eq!(halves_of(&[0, 1, 2, 3, 4], false), [vec![0, 1, 2], vec![3, 4]]);
     }
 
     #[test]
