@@ -128,3 +128,74 @@ fn capture_views<H: ImagingHead + ?Sized>(
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use headalign_platform::{StereoCapture, StereoHead};
+
+    use super::*;
+    use crate::calibration::{IntrinsicSigmas, TranslationUnit};
+
+    /// A head that moves exactly and whose second capture fails.
+    struct Flaky {
+        at: Encoders,
+        captures: usize,
+    }
+
+    impl StereoHead for Flaky {
+        fn image_size(&self) -> [u32; 2] {
+            [64, 48]
+        }
+        fn read_encoders(&mut self) -> Result<Encoders, PlatformError> {
+            Ok(self.at)
+        }
+        fn move_to(&mut self, target: &Encoders) -> Result<(), PlatformError> {
+            self.at = *target;
+            Ok(())
+        }
+        fn capture(&mut self) -> Result<StereoCapture, PlatformError> {
+            Err(PlatformError::Device("no point mode".into()))
+        }
+    }
+
+    impl ImagingHead for Flaky {
+        fn capture_images(&mut self) -> Result<StereoImages, PlatformError> {
+            self.captures += 1;
+            if self.captures == 2 {
+                return Err(PlatformError::Device("camera unplugged".into()));
+            }
+            let image = headalign_vision::GrayImage::new(64, 48, vec![0; 64 * 48])
+                .map_err(|e| PlatformError::Device(e.to_string()))?;
+            StereoImages::new(self.at, image.clone(), image)
+        }
+    }
+
+    /// A failed capture is reported with its view, after the head went back to its start.
+    #[test]
+    fn a_failed_capture_still_returns_the_head() {
+        let start = Encoders { pan: 1.5, elevation: -2.0, verge_left: 3.0, verge_right: -3.0 };
+        let mut head = Flaky { at: start, captures: 0 };
+        let k = headalign_geometry::camera::Intrinsics::new(50.0, 50.0, 32.0, 24.0);
+        let given = StereoCalibration {
+            image_size: [64, 48],
+            left: k,
+            right: k,
+            sigmas: [IntrinsicSigmas::default(); 2],
+            right_from_left: nalgebra::Isometry3::translation(-0.1, 0.0, 0.0),
+            unit: TranslationUnit::Metres,
+            distortion: Default::default(),
+        };
+        let e = check_live_head(&mut head, &given, &LiveCheckOptions::default()).unwrap_err().to_string();
+        assert!(e.contains("pan+3") && e.contains("camera unplugged"), "{e}");
+        assert_eq!(head.at, start);
+    }
+
+    #[test]
+    fn bad_options_are_errors() {
+        let none = LiveCheckOptions { moves_deg: Vec::new(), ..LiveCheckOptions::default() };
+        assert!(none.validate().is_err());
+        let far = LiveCheckOptions { moves_deg: vec![[120.0, 0.0]], ..LiveCheckOptions::default() };
+        assert!(far.validate().is_err());
+        assert!(LiveCheckOptions::default().validate().is_ok());
+    }
+}
