@@ -11,6 +11,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use headalign::calibrate::{CalibrateViewsOptions, StereoViews};
 use headalign::calibration::StereoCalibration;
+use headalign::check::split::{SplitOptions, SplitReport, cross_validate};
 use headalign::check::{Angles, CheckOptions, CheckReport, FullUpdate, check_views, update_full};
 use headalign::observations::View;
 use headalign_io::export::CalibrationFiles as _;
@@ -36,6 +37,10 @@ pub struct CheckArgs {
     /// which needs rig motions between them; slow).
     #[arg(long, requires = "update")]
     pub full: bool,
+    /// Also cross-validate: self-calibrate the first and the second half of the views and
+    /// warn where the two differ by more than 3 of their sigmas (needs rig motions; slow).
+    #[arg(long)]
+    pub split: bool,
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
@@ -97,11 +102,13 @@ fn read_given(args: &CheckArgs, image_size: [u32; 2]) -> Result<StereoCalibratio
 pub fn run(args: &CheckArgs) -> Result<()> {
     let options = options(args);
     options.validate()?;
+    let split;
     let (mut report, full) = if headalign_io::session::is_point_session(&args.source) {
         let views: Vec<View> =
             headalign_io::session::read_point_session(&args.source)?.into_iter().map(|r| r.view).collect();
         let Some(size) = views.first().map(|v| v.capture.image_size) else { bail!("no views") };
         let given = read_given(args, size)?;
+        split = split_of(StereoViews::Tracked(&views), args)?;
         checked(StereoViews::Tracked(&views), &given, &options, args)?
     } else {
         let views = crate::calibrate::load_views(&args.source, &args.recording)?;
@@ -116,6 +123,7 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         if let Some(s) = spinner {
             s.finish_and_clear();
         }
+        split = split_of(StereoViews::Images(&views), args)?;
         r?
     };
     if let Some(f) = &full {
@@ -131,11 +139,45 @@ pub fn run(args: &CheckArgs) -> Result<()> {
         v["full_update"] =
             full.as_ref().map_or(Value::Null, |f| json!({"recheck": f.recheck, "refused": f.refused}));
         v["written"] = json!(written.iter().map(|p| p.display().to_string()).collect::<Vec<_>>());
+        if let Some(s) = &split {
+            v["split"] = serde_json::to_value(s)?;
+        }
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         print_text(&report, &written);
+        if let Some(s) = &split {
+            print_split(s);
+        }
     }
     Ok(())
+}
+
+/// `--split`: the cross-validation of the views ([`headalign::check::split`]).
+fn split_of(views: StereoViews<'_>, args: &CheckArgs) -> Result<Option<SplitReport>> {
+    if !args.split {
+        return Ok(None);
+    }
+    let mut o = SplitOptions::default();
+    if let Some(c) = args.corners {
+        o.calibrate.front_end.features.max_features = c;
+    }
+    o.calibrate.calibrate.estimation.seed = args.seed;
+    let spinner = (!args.json).then(|| crate::progress::spinner("cross-validating two halves".into()));
+    let r = cross_validate(views, &o, &mut |_, _| {}).context("cross-validation (--split)");
+    if let Some(s) = spinner {
+        s.finish_and_clear();
+    }
+    Ok(Some(r?))
+}
+
+fn print_split(s: &SplitReport) {
+    println!("cross-validation: halves {} | {}", s.halves[0].join(" "), s.halves[1].join(" "));
+    for d in &s.differences {
+        println!("  {}: {:+.4} +- {:.4} {} ({:.1} sigma)", d.name, d.difference, d.sigma, d.unit, d.z);
+    }
+    for w in &s.warnings {
+        println!("warning: {w}");
+    }
 }
 
 /// The check, and with `--full` the full update.
@@ -174,7 +216,8 @@ fn angles(a: &Angles, s: &Angles) -> String {
     )
 }
 
-fn print_text(r: &CheckReport, written: &[PathBuf]) {
+/// The report as text (also `run --check-only`'s).
+pub(crate) fn print_text(r: &CheckReport, written: &[PathBuf]) {
     let conclusive = if r.conclusive {
         ""
     } else {

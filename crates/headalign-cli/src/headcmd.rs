@@ -71,6 +71,41 @@ pub struct RunArgs {
     /// The lens model estimated (recorded in the session).
     #[command(flatten)]
     pub lens: images::LensArgs,
+    /// Only check --calibration: capture a few views beside the current position, return
+    /// the head there, and print the check (as `headalign check`; nothing recorded).
+    #[arg(long, requires = "calibration")]
+    pub check_only: bool,
+    /// The calibration --check-only checks (any format `headalign check` reads).
+    #[arg(long, requires = "check_only")]
+    pub calibration: Option<PathBuf>,
+}
+
+/// `--check-only`: the live check ([`headalign::check::live`]) of `--calibration`.
+fn check_only(args: &RunArgs, head: &mut ProcessHead, calibration: &std::path::Path) -> Result<()> {
+    let mut given = headalign_io::import::read_calibration(calibration)?;
+    if given.image_size == [0, 0] {
+        given.image_size = head.image_size();
+    } else if given.image_size != head.image_size() {
+        bail!(
+            "{} is a calibration of {:?} images, the head's are {:?}",
+            calibration.display(),
+            given.image_size,
+            head.image_size()
+        );
+    }
+    let options = headalign::check::live::LiveCheckOptions::default();
+    let live = headalign::check::live::check_live_head(head, &given, &options).context("live check")?;
+    if args.json {
+        say!("{}", serde_json::to_string_pretty(&live)?);
+    } else {
+        crate::check::print_text(&live.report, &[]);
+        let returned = if live.returned { "returned to its start" } else { "NOT at its start" };
+        say!("head '{}': {} views, {returned} ({:?})", args.head_cmd, options.moves_deg.len(), live.end);
+    }
+    if !live.returned {
+        bail!("the head did not return to its start readings {:?} (now {:?})", live.start, live.end);
+    }
+    Ok(())
 }
 
 /// The stage plan of `run`'s flags; fails when the verge/tilt stage is not first.
@@ -115,6 +150,9 @@ pub fn run(args: &RunArgs) -> Result<()> {
     let plan = plan(args)?;
     let options = ProcessHeadOptions { timeout: Duration::from_secs_f64(args.head_timeout) };
     let mut head = ProcessHead::spawn(&args.head_cmd, options).context("head")?;
+    if let Some(calibration) = args.calibration.as_deref().filter(|_| args.check_only) {
+        return check_only(args, &mut head, calibration);
+    }
     if plan.drives() && !head.has_base() {
         let driving: Vec<&str> =
             plan.stages.iter().map(String::as_str).filter(|s| *s != "verge-tilt").collect();

@@ -35,13 +35,16 @@
 //!
 //! Each experiment's conditions, series and default trial count are defined in [`catalog`].
 //! `lens` ([`lens`] module) runs the `calibrate` route with a lens model instead of the
-//! verge/tilt procedure (its own runner, tables and plot); `all` runs it last.
+//! verge/tilt procedure (its own runner, tables and plot); `all` runs it last. `check`
+//! ([`check`] module) scores the targetless health check of a stereo calibration on
+//! turned simulated rigs (its own runner; not in `all`).
 
 // The experiments' docs link their private helpers (read with `cargo doc
 // --document-private-items`).
 #![allow(rustdoc::private_intra_doc_links)]
 
 mod catalog;
+pub mod check;
 pub mod lens;
 pub mod ml_spread;
 pub mod pan;
@@ -71,7 +74,7 @@ use self::stats::{coverage, quantity_crb, quantity_rms, rms};
 use self::trial::{CleanRun, RotationMode, SIGMA_QUANTITIES, TrialRecord, TrialSpec, run_trial};
 
 /// Names accepted by `headalign experiment`.
-pub const NAMES: [&str; 11] = [
+pub const NAMES: [&str; 12] = [
     "fig5-verge-tilt",
     "fig5-pan-tilt",
     "calibration",
@@ -83,13 +86,14 @@ pub const NAMES: [&str; 11] = [
     ml_spread::NAME,
     lens::NAME,
     planar::NAME,
+    check::NAME,
 ];
 
 /// Arguments of `headalign experiment`.
 #[derive(Args, Debug)]
 pub struct ExperimentArgs {
     /// Experiment: fig5-verge-tilt, fig5-pan-tilt, calibration, points, rotation, outliers,
-    /// coverage, lens, or all; or ml-spread, planar (not in all).
+    /// coverage, lens, or all; or ml-spread, planar, check (not in all).
     pub name: String,
     /// Total trials, split evenly over the experiment's conditions; default per
     /// experiment.
@@ -884,6 +888,9 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     if args.name == planar::NAME {
         return planar::run(args);
     }
+    if args.name == check::NAME {
+        return check::run(args);
+    }
     let scene = scene_name(&args.scene)?;
     if args.name == "all" && scene != "default" {
         bail!(
@@ -894,7 +901,13 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
         NAMES
             .iter()
             .copied()
-            .filter(|n| *n != "all" && *n != ml_spread::NAME && *n != lens::NAME && *n != planar::NAME)
+            .filter(|n| {
+                *n != "all"
+                    && *n != ml_spread::NAME
+                    && *n != lens::NAME
+                    && *n != planar::NAME
+                    && *n != check::NAME
+            })
             .collect()
     } else {
         experiment(&args.name, &Scenario::default())?;

@@ -9,6 +9,7 @@ mod common;
 mod experiment;
 mod json_schemas;
 mod lens;
+mod live_check;
 mod real_data;
 mod recordings;
 mod sessions;

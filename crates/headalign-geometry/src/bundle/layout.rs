@@ -254,8 +254,9 @@ impl Layout {
     }
 }
 
-/// Orthonormal basis (3x2) of the plane perpendicular to the unit vector `d`.
-pub(super) fn tangent_basis(d: &Vector3<f64>) -> Matrix3x2<f64> {
+/// Orthonormal basis (3x2) of the plane perpendicular to the unit vector `d`: the basis of
+/// the baseline direction's tangent parameters `rig.tdir0..1` (and of an axis direction's).
+pub fn tangent_basis(d: &Vector3<f64>) -> Matrix3x2<f64> {
     let a = if d.x.abs() < 0.9 { Vector3::x() } else { Vector3::y() };
     let b1 = (a - d * d.dot(&a)).normalize();
     let b2 = d.cross(&b1);

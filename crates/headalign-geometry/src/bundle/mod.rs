@@ -261,6 +261,7 @@ pub mod synthetic;
 mod test_support;
 
 pub use covariance::{Covariance, CovarianceModel, clustered_covariance, log_depth_scale};
+pub use layout::tangent_basis;
 pub(crate) use normal::Normal;
 pub use prior::{AnglePrior, angle_prior_chi2, angle_prior_residuals};
 pub use residual::{residual_pixels, residual_pixels_at};

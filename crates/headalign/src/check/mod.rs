@@ -74,8 +74,10 @@
 
 pub mod depth;
 pub mod intrinsics;
+pub mod live;
 pub mod matches;
 pub mod refit;
+pub mod split;
 #[cfg(test)]
 mod tests;
 pub mod update;
