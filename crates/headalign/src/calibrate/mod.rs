@@ -383,12 +383,14 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
 /// result of `options`, for the model estimated: the options' own, or the one
 /// [`LensChoice::Auto`] chose (none for the pinhole).
 fn widen_lens_sigmas(result: &mut MotionCalibration, options: &CalibrateOptions) {
-    let (lens, lens_terms) = match (&options.lens, &result.report.lens_selection) {
-        (LensChoice::Auto, Some(s)) => (s.spec.choice(), s.spec.terms),
-        (lens, _) => (*lens, options.lens_terms),
-    };
-    let estimated = CalibrateOptions { lens, lens_terms, ..options.clone() };
-    result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(result, &estimated);
+    crate::timing::time(crate::timing::Stage::Covariance, || {
+        let (lens, lens_terms) = match (&options.lens, &result.report.lens_selection) {
+            (LensChoice::Auto, Some(s)) => (s.spec.choice(), s.spec.terms),
+            (lens, _) => (*lens, options.lens_terms),
+        };
+        let estimated = CalibrateOptions { lens, lens_terms, ..options.clone() };
+        result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(result, &estimated);
+    })
 }
 
 /// [`calibrate_rig`] with a fixed lens model: the chain, retried with the next

@@ -149,34 +149,37 @@ pub(super) fn fit_motions(
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
 ) -> Result<Vec<ViewMotion>, AlignError> {
-    let est = &options.estimation;
-    let mut motions: Vec<ViewMotion> = Vec::new();
-    for (slot, v) in rig.iter().enumerate().skip(1) {
-        let (mut tracks, mut quads) = (Vec::new(), Vec::new());
-        for (track, (x, l0, r0)) in &recon[0] {
-            if let Some((y, l1, r1)) = recon[slot].get(track) {
-                tracks.push(*track);
-                quads.push(Quadruplet { x: *x, y: *y, left0: *l0, right0: *r0, left1: *l1, right1: *r1 });
+    crate::timing::time(crate::timing::Stage::Homographies, || {
+        let est = &options.estimation;
+        let mut motions: Vec<ViewMotion> = Vec::new();
+        for (slot, v) in rig.iter().enumerate().skip(1) {
+            let (mut tracks, mut quads) = (Vec::new(), Vec::new());
+            for (track, (x, l0, r0)) in &recon[0] {
+                if let Some((y, l1, r1)) = recon[slot].get(track) {
+                    tracks.push(*track);
+                    quads.push(Quadruplet { x: *x, y: *y, left0: *l0, right0: *r0, left1: *l1, right1: *r1 });
+                }
             }
+            if quads.len() < est.min_tracks {
+                return Err(AlignError::TooFewTracks {
+                    what: format!("seen in both stereo views '{}' and '{}'", rig[0].name, v.name),
+                    needed: est.min_tracks,
+                    got: quads.len(),
+                });
+            }
+            let common = quads.len();
+            let fitted =
+                fit_motion(&quads, &tracks, frame, options, &v.name, est.seed.wrapping_add(slot as u64))
+                    .inspect_err(|_| *seeded = Some(Seeded { common_tracks: common, fitting: 0 }))?;
+            motions.push(fitted);
         }
-        if quads.len() < est.min_tracks {
-            return Err(AlignError::TooFewTracks {
-                what: format!("seen in both stereo views '{}' and '{}'", rig[0].name, v.name),
-                needed: est.min_tracks,
-                got: quads.len(),
-            });
+        if motions.is_empty() {
+            return Err(AlignError::MissingMotion(
+                "one usable view: self-calibration needs the rig in at least two positions".into(),
+            ));
         }
-        let common = quads.len();
-        let fitted = fit_motion(&quads, &tracks, frame, options, &v.name, est.seed.wrapping_add(slot as u64))
-            .inspect_err(|_| *seeded = Some(Seeded { common_tracks: common, fitting: 0 }))?;
-        motions.push(fitted);
-    }
-    if motions.is_empty() {
-        return Err(AlignError::MissingMotion(
-            "one usable view: self-calibration needs the rig in at least two positions".into(),
-        ));
-    }
-    Ok(motions)
+        Ok(motions)
+    })
 }
 
 /// What a failure of the adjustment from every start reports ([`Seeded`]): the motion

@@ -201,25 +201,27 @@ fn grid_lens(kind: LensKind, delta: f64, corner: f64) -> Option<Distortion> {
 /// lens whose 3D homographies keep the most quadruplets (transfer error within the
 /// options' threshold) wins. `None` if no lens gives every view a homography.
 fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Option<LensStart> {
-    let rig = super::depth::select_views(views, options).ok()?;
-    let [w, h] = rig.image_size;
-    let k0 = Intrinsics::rough_guess(w, h);
-    // The corner's normalised radius under K0 (and its angle from the axis).
-    let corner = (k0.cx.hypot(k0.cy)) / k0.fx;
-    let mut best: Option<(usize, Distortion)> = None;
-    for delta in grid_displacements() {
-        let Some(d) = grid_lens(kind, delta, corner) else { continue };
-        let lens = LensModel { k: k0, distortion: d };
-        let chain = undistort_views(&rig.rig, &[lens, lens]);
-        let Some(score) = motion_inliers(&chain, &k0, options) else { continue };
-        if best.as_ref().is_none_or(|(b, _)| score > *b) {
-            best = Some((score, d));
+    crate::timing::time(crate::timing::Stage::LensChoice, || {
+        let rig = super::depth::select_views(views, options).ok()?;
+        let [w, h] = rig.image_size;
+        let k0 = Intrinsics::rough_guess(w, h);
+        // The corner's normalised radius under K0 (and its angle from the axis).
+        let corner = (k0.cx.hypot(k0.cy)) / k0.fx;
+        let mut best: Option<(usize, Distortion)> = None;
+        for delta in grid_displacements() {
+            let Some(d) = grid_lens(kind, delta, corner) else { continue };
+            let lens = LensModel { k: k0, distortion: d };
+            let chain = undistort_views(&rig.rig, &[lens, lens]);
+            let Some(score) = motion_inliers(&chain, &k0, options) else { continue };
+            if best.as_ref().is_none_or(|(b, _)| score > *b) {
+                best = Some((score, d));
+            }
         }
-    }
-    best.map(|(_, d)| LensStart {
-        chain: [LensModel { k: k0, distortion: d }; 2],
-        distortion: [d, d],
-        max_ray_deg: None,
+        best.map(|(_, d)| LensStart {
+            chain: [LensModel { k: k0, distortion: d }; 2],
+            distortion: [d, d],
+            max_ray_deg: None,
+        })
     })
 }
 

@@ -12,7 +12,8 @@
 //! instead), then tracked ([`track_views_reporting`]) and self-calibrated
 //! ([`calibrate_tracked`]) at each corner count. Tracked points
 //! ([`StereoViews::Tracked`], a point-mode session) have no corner density: one
-//! [`super::calibrate_rig`]. Units and thresholds: those of the steps called.
+//! [`super::calibrate_rig`]. The result carries the call's seconds per stage
+//! ([`crate::timing`]). Units and thresholds: those of the steps called.
 
 use std::time::Instant;
 
@@ -25,6 +26,7 @@ use super::{
 };
 use crate::error::AlignError;
 use crate::observations::View;
+use crate::timing::StageTimes;
 use crate::tracking::{FrontEndOptions, Tracker};
 
 /// The views to calibrate from.
@@ -109,6 +111,25 @@ pub struct ViewsCalibration {
     pub other_rigs: Vec<String>,
     /// Image size of the views, pixels.
     pub image_size: [u32; 2],
+    /// The seconds and calls per stage of this call ([`crate::timing`]: thread-seconds,
+    /// counted process-wide over the call's span).
+    pub timing: StageTimes,
+    /// The call's wall time, seconds.
+    pub wall_seconds: f64,
+}
+
+impl ViewsCalibration {
+    /// A result with no other rigs and no timing yet ([`calibrate_views`] sets them).
+    fn new(calibration: MotionCalibration, density: Option<DensityReport>, image_size: [u32; 2]) -> Self {
+        Self {
+            calibration,
+            density,
+            other_rigs: Vec::new(),
+            image_size,
+            timing: StageTimes::default(),
+            wall_seconds: 0.0,
+        }
+    }
 }
 
 /// The views of one rig among `views` ([`select_rig`]) and the reasons of the others.
@@ -147,6 +168,7 @@ pub fn calibrate_views(
     progress: &mut dyn FnMut(ViewsProgress),
 ) -> Result<ViewsCalibration, AlignError> {
     options.validate()?;
+    let (t0, before) = (Instant::now(), StageTimes::now());
     let (mut result, other_rigs) = match views {
         StereoViews::Images(images) => {
             let (rig, other_rigs) = one_rig(images, |(n, v)| (n.as_str(), v.encoders));
@@ -162,11 +184,13 @@ pub fn calibrate_views(
                 None => rig,
             };
             let calibration = calibrate_rig(&rig, &options.calibrate)?;
-            (ViewsCalibration { calibration, density: None, other_rigs: Vec::new(), image_size }, other_rigs)
+            (ViewsCalibration::new(calibration, None, image_size), other_rigs)
         }
     };
     result.calibration.report.skipped.splice(0..0, other_rigs.iter().cloned());
     result.other_rigs = other_rigs;
+    result.timing = StageTimes::since(&before);
+    result.wall_seconds = t0.elapsed().as_secs_f64();
     Ok(result)
 }
 
@@ -261,5 +285,5 @@ fn calibrate_images(
     if report.warn {
         cal.report.warnings.push(report.note.clone());
     }
-    Ok(ViewsCalibration { calibration: cal, density: Some(report), other_rigs: Vec::new(), image_size })
+    Ok(ViewsCalibration::new(cal, Some(report), image_size))
 }

@@ -97,30 +97,32 @@ fn wide_grid_fields() -> impl Iterator<Item = f64> {
 /// conditions the chain and starts the rigid start. `None` if no lens gives every view a
 /// homography.
 fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Option<LensStart> {
-    let rig = super::depth::select_views(views, options).ok()?;
-    let [w, h] = rig.image_size;
-    let guess = Intrinsics::rough_guess(w, h);
-    let mut best: Option<(usize, LensModel)> = None;
-    for phi in wide_grid_fields() {
-        let mut d = Distortion::zero(kind);
-        if kind == LensKind::DoubleSphere {
-            d.alpha = 0.5;
+    crate::timing::time(crate::timing::Stage::LensChoice, || {
+        let rig = super::depth::select_views(views, options).ok()?;
+        let [w, h] = rig.image_size;
+        let guess = Intrinsics::rough_guess(w, h);
+        let mut best: Option<(usize, LensModel)> = None;
+        for phi in wide_grid_fields() {
+            let mut d = Distortion::zero(kind);
+            if kind == LensKind::DoubleSphere {
+                d.alpha = 0.5;
+            }
+            let phi = phi.to_radians();
+            let f = 0.5 * f64::from(w) * (0.5 + 0.5 * phi.cos()) / phi.sin();
+            let lens = LensModel { k: Intrinsics::new(f, f, guess.cx, guess.cy), distortion: d };
+            let start =
+                LensStart { chain: [lens; 2], distortion: [d; 2], max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG) };
+            let chain = start.chain_views(&rig.rig);
+            let Some(score) = super::two_pass::motion_inliers(&chain, &lens.k, options) else { continue };
+            if best.as_ref().is_none_or(|(b, _)| score > *b) {
+                best = Some((score, lens));
+            }
         }
-        let phi = phi.to_radians();
-        let f = 0.5 * f64::from(w) * (0.5 + 0.5 * phi.cos()) / phi.sin();
-        let lens = LensModel { k: Intrinsics::new(f, f, guess.cx, guess.cy), distortion: d };
-        let start =
-            LensStart { chain: [lens; 2], distortion: [d; 2], max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG) };
-        let chain = start.chain_views(&rig.rig);
-        let Some(score) = super::two_pass::motion_inliers(&chain, &lens.k, options) else { continue };
-        if best.as_ref().is_none_or(|(b, _)| score > *b) {
-            best = Some((score, lens));
-        }
-    }
-    best.map(|(_, lens)| LensStart {
-        chain: [lens; 2],
-        distortion: [lens.distortion; 2],
-        max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
+        best.map(|(_, lens)| LensStart {
+            chain: [lens; 2],
+            distortion: [lens.distortion; 2],
+            max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
+        })
     })
 }
 
