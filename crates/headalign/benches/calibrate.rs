@@ -26,7 +26,9 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use headalign::calibrate::{CalibrateOptions, CalibrateViewsOptions, LensChoice, StereoViews, calibrate_views};
+use headalign::calibrate::{
+    CalibrateOptions, CalibrateViewsOptions, LensChoice, StereoViews, calibrate_views,
+};
 use headalign::timing::{Stage, StageTimes, time};
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::LensKind;
@@ -107,7 +109,9 @@ fn case(name: &str, rendered: &Path) -> Result<(Vec<(PathBuf, PathBuf)>, LensCho
         "rendered-10" => {
             render(rendered)?;
             let files = (0..RENDERED)
-                .map(|i| (rendered.join(format!("left{i:02}.png")), rendered.join(format!("right{i:02}.png"))))
+                .map(|i| {
+                    (rendered.join(format!("left{i:02}.png")), rendered.join(format!("right{i:02}.png")))
+                })
                 .collect();
             Ok((files, LensChoice::Auto))
         }

@@ -654,8 +654,13 @@ impl Tracker {
     ) -> Result<(StereoCapture, ViewTracking), AlignError> {
         crate::timing::time(crate::timing::Stage::FrontEnd, || {
             let o = &self.options;
-            let left = detect_and_describe(&images.left, &o.features).map_err(vision("left image"))?;
-            let right = detect_and_describe(&images.right, &o.features).map_err(vision("right image"))?;
+            // The two images' corners on their own (in parallel).
+            let (left, right) = rayon::join(
+                || detect_and_describe(&images.left, &o.features),
+                || detect_and_describe(&images.right, &o.features),
+            );
+            let left = left.map_err(vision("left image"))?;
+            let right = right.map_err(vision("right image"))?;
             let stereo = self.stereo(&left, &right, view, stereo_prior)?;
             let mut report = ViewTracking {
                 corners: [left.len(), right.len()],

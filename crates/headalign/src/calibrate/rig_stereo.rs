@@ -19,6 +19,7 @@ use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
 use headalign_geometry::ransac::{RansacOptions, RansacReport};
 use headalign_geometry::triangulation::triangulate_optimal;
 use nalgebra::{Isometry3, Point2};
+use rayon::prelude::*;
 
 use crate::error::{AlignError, StepContext};
 use crate::observations::View;
@@ -78,8 +79,9 @@ pub(super) fn stereo_geometry_sampled(
         let stereo_rms = rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r)));
         let frame = quasi_euclidean_frame(&f.0, k0, &inlier_pairs).step("projective frame")?;
         let (p_l, p_r) = (frame.left_camera(), frame.right_camera());
+        // Each view's matches triangulated on their own (in parallel, in the views' order).
         let recon: Vec<Reconstruction> = per_view
-            .iter()
+            .par_iter()
             .map(|matches| {
                 matches
                     .iter()

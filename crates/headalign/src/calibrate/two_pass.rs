@@ -48,6 +48,9 @@
 //! Degrees of freedom and units: none added (those of the adjustment); pixels; corner
 //! displacements as fractions of the corner's radius; costs in pixels^2.
 //!
+//! The grid's lenses are scored in parallel (rayon) and reduced in the grid's order: the
+//! same lens at any thread count.
+//!
 //! Pitfalls: a lens estimate costs 13 fits of F and the homographies, a second run of the
 //! chain and a third adjustment of the first. The grid lens is normalised by the
 //! image-size guess `K0`; the final adjustment refits everything. Observations the lens
@@ -58,6 +61,7 @@
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
+use rayon::prelude::*;
 
 use super::{
     CalibrateOptions, LensModel, MotionCalibration, calibrate_once_from, calibrate_with_restarts,
@@ -207,22 +211,38 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
         let k0 = Intrinsics::rough_guess(w, h);
         // The corner's normalised radius under K0 (and its angle from the axis).
         let corner = (k0.cx.hypot(k0.cy)) / k0.fx;
-        let mut best: Option<(usize, Distortion)> = None;
-        for delta in grid_displacements() {
-            let Some(d) = grid_lens(kind, delta, corner) else { continue };
-            let lens = LensModel { k: k0, distortion: d };
-            let chain = undistort_views(&rig.rig, &[lens, lens]);
-            let Some(score) = motion_inliers(&chain, &k0, options) else { continue };
-            if best.as_ref().is_none_or(|(b, _)| score > *b) {
-                best = Some((score, d));
-            }
-        }
-        best.map(|(_, d)| LensStart {
+        // Each lens scored on its own (in parallel), the best taken in the grid's order.
+        let lenses: Vec<Distortion> =
+            grid_displacements().filter_map(|t| grid_lens(kind, t, corner)).collect();
+        let scores: Vec<Option<usize>> = lenses
+            .par_iter()
+            .map(|&d| {
+                crate::timing::time(crate::timing::Stage::LensChoice, || {
+                    let lens = LensModel { k: k0, distortion: d };
+                    motion_inliers(&undistort_views(&rig.rig, &[lens, lens]), &k0, options)
+                })
+            })
+            .collect();
+        best_scored(lenses.into_iter().zip(scores)).map(|(_, d)| LensStart {
             chain: [LensModel { k: k0, distortion: d }; 2],
             distortion: [d, d],
             max_ray_deg: None,
         })
     })
+}
+
+/// The candidate with the highest score among `scored` (in their order; `None` scores
+/// left out), the first of equal ones: the reduction of a grid scored in parallel, the
+/// same at any thread count.
+pub(super) fn best_scored<T>(scored: impl IntoIterator<Item = (T, Option<usize>)>) -> Option<(usize, T)> {
+    let mut best: Option<(usize, T)> = None;
+    for (candidate, score) in scored {
+        let Some(score) = score else { continue };
+        if best.as_ref().is_none_or(|(b, _)| score > *b) {
+            best = Some((score, candidate));
+        }
+    }
+    best
 }
 
 /// The score of a candidate lens of a grid start: the 3D homographies' inliers summed over

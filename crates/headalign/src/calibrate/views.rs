@@ -18,6 +18,7 @@
 use std::time::Instant;
 
 use headalign_platform::{Encoders, StereoImages};
+use rayon::prelude::*;
 
 use super::{
     CalibrateOptions, Density, DensityReport, DensityTrial, LensModel, MotionCalibration,
@@ -143,21 +144,23 @@ pub fn one_rig<T: Clone>(
     (rig, choice.left_out.into_iter().map(|(_, why)| why).collect())
 }
 
-/// Each view's own stereo matches (a fresh tracker per view: no matching across views),
-/// for the scene-depth check and the known-intrinsics route.
+/// Each view's own stereo matches (a fresh tracker per view: no matching across views,
+/// the views in parallel), for the scene-depth check and the known-intrinsics route.
 pub fn stereo_only(
     views: &[(String, StereoImages)],
     front: &FrontEndOptions,
 ) -> Result<Vec<View>, AlignError> {
-    views
-        .iter()
+    // The views on their own (in parallel); the first error in the views' order.
+    let own: Vec<Result<View, AlignError>> = views
+        .par_iter()
         .map(|(name, images)| {
             let mut t = Tracker::new(front.clone())?;
             let (capture, _) =
                 t.track(images, name).map_err(|e| e.in_step(&format!("stereo matching of '{name}'")))?;
             Ok(View { name: name.clone(), capture })
         })
-        .collect()
+        .collect();
+    own.into_iter().collect()
 }
 
 /// Self-calibrate a stereo rig from `views` (module docs); `progress` hears each step on
