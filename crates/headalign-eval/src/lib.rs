@@ -927,10 +927,13 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
             quantities: &[],
         });
         let path = results_path(&args.out);
-        // The planar section is not regenerated here (`planar` module docs): kept as it is.
-        let kept = std::fs::read_to_string(&path).ok().and_then(|old| planar::kept_section(&old));
+        // The planar section is not regenerated here (`planar` module docs), nor the timing
+        // of `calibrate` (`cargo bench -p headalign --bench calibrate`): kept as they are.
+        let old = std::fs::read_to_string(&path).ok();
+        let kept = old.as_deref().and_then(planar::kept_section);
+        let timing = old.as_deref().and_then(|o| planar::section(o, TIMING_HEADING));
         let mut md = report::results_md(&produced, &args.out);
-        if let Some(section) = kept {
+        for section in [kept, timing].into_iter().flatten() {
             md = format!("{}\n\n{section}", md.trim_end());
         }
         std::fs::write(&path, md).with_context(|| format!("cannot write {}", path.display()))?;
@@ -947,6 +950,10 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// The heading of the section of `results.md` that `cargo bench -p headalign --bench
+/// calibrate` fills (kept when `all` regenerates the file).
+const TIMING_HEADING: &str = "## Timing of `calibrate`";
 
 /// `results.md` beside the output directory (`docs/results` -> `docs/results.md`).
 fn results_path(out: &Path) -> PathBuf {

@@ -495,12 +495,20 @@ fn calibrate_once_from(
     // guess for the narrow models' grid, the grid lens's own K for a wide model).
     let k0 = lens_start.map_or_else(|| Intrinsics::rough_guess(w, h), |l| l.chain[0].k);
     let est = &options.estimation;
-    let chain_rig = lens_start.map(|l| l.chain_views(&rig));
-    let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
-    // 2. F from all views, frame, triangulation.
-    let stereo = rig_stereo::stereo_geometry(chain, &k0, est)?;
-    // 3. 3D homographies from the reference.
-    let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
+    // 2-3. F from all views, frame, triangulation; 3D homographies from the reference (or
+    // those the lens grid fitted with this seed under the lens start: the same inputs).
+    let fitted;
+    let (stereo, motions) = match lens_start.and_then(|l| l.fitted.as_ref()).filter(|f| f.seed == est.seed) {
+        Some(f) => (&f.stereo, f.motions.as_slice()),
+        None => {
+            let chain_rig = lens_start.map(|l| l.chain_views(&rig));
+            let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
+            let stereo = rig_stereo::stereo_geometry(chain, &k0, est)?;
+            let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
+            fitted = (stereo, motions);
+            (&fitted.0, fitted.1.as_slice())
+        }
+    };
     // The point set and the observations (as in estimate).
     let points = bundle_starts::point_set(&rig, &stereo.recon, &motions);
     let problem = bundle_starts::Problem {

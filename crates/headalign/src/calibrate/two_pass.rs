@@ -49,7 +49,9 @@
 //! displacements as fractions of the corner's radius; costs in pixels^2.
 //!
 //! The grid's lenses are scored in parallel (rayon) and reduced in the grid's order: the
-//! same lens at any thread count.
+//! same lens at any thread count. The winning lens's F and 3D homographies are kept
+//! ([`LensStart::fitted`]): the lens-grid run with the same seed starts from them instead
+//! of fitting them again.
 //!
 //! Pitfalls: a lens estimate costs 13 fits of F and the homographies, a second run of the
 //! chain and a third adjustment of the first. The grid lens is normalised by the
@@ -63,6 +65,8 @@ use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
 use rayon::prelude::*;
 
+use super::motion::ViewMotion;
+use super::rig_stereo::StereoGeometry;
 use super::{
     CalibrateOptions, LensModel, MotionCalibration, calibrate_once_from, calibrate_with_restarts,
     undistort_views, with_restarts,
@@ -86,6 +90,21 @@ pub(super) struct LensStart {
     /// Rays farther from the axis than this (degrees) are left out of the linear steps
     /// (a wide model's run, [`super::wide::WIDE_CHAIN_MAX_RAY_DEG`]); `None`: every ray in front.
     pub(super) max_ray_deg: Option<f64>,
+    /// The stereo geometry and 3D homographies the grid fitted under [`Self::chain`] with
+    /// the estimation seed it holds: the run with that seed takes them instead of fitting
+    /// them again (the same inputs give the same result); `None`: fitted by the run.
+    pub(super) fitted: Option<GridFit>,
+}
+
+/// What the lens grid fitted under its winning lens (steps 2-3 of the chain), for the run
+/// from it ([`LensStart::fitted`]).
+pub(super) struct GridFit {
+    /// The estimation seed of the fit.
+    pub(super) seed: u64,
+    /// Step 2: F, frame, triangulation.
+    pub(super) stereo: StereoGeometry,
+    /// Step 3: the 3D homographies.
+    pub(super) motions: Vec<ViewMotion>,
 }
 
 impl LensStart {
@@ -214,42 +233,50 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
         // Each lens scored on its own (in parallel), the best taken in the grid's order.
         let lenses: Vec<Distortion> =
             grid_displacements().filter_map(|t| grid_lens(kind, t, corner)).collect();
-        let scores: Vec<Option<usize>> = lenses
+        let scores: Vec<Option<(usize, GridFit)>> = lenses
             .par_iter()
             .map(|&d| {
                 crate::timing::time(crate::timing::Stage::LensChoice, || {
                     let lens = LensModel { k: k0, distortion: d };
-                    motion_inliers(&undistort_views(&rig.rig, &[lens, lens]), &k0, options)
+                    grid_fit(&undistort_views(&rig.rig, &[lens, lens]), &k0, options)
                 })
             })
             .collect();
-        best_scored(lenses.into_iter().zip(scores)).map(|(_, d)| LensStart {
+        best_scored(lenses.into_iter().zip(scores)).map(|(_, (d, fit))| LensStart {
             chain: [LensModel { k: k0, distortion: d }; 2],
             distortion: [d, d],
             max_ray_deg: None,
+            fitted: Some(fit),
         })
     })
 }
 
 /// The candidate with the highest score among `scored` (in their order; `None` scores
-/// left out), the first of equal ones: the reduction of a grid scored in parallel, the
-/// same at any thread count.
-pub(super) fn best_scored<T>(scored: impl IntoIterator<Item = (T, Option<usize>)>) -> Option<(usize, T)> {
-    let mut best: Option<(usize, T)> = None;
+/// left out), the first of equal ones, with what its score came with: the reduction of a
+/// grid scored in parallel, the same at any thread count.
+pub(super) fn best_scored<T, F>(
+    scored: impl IntoIterator<Item = (T, Option<(usize, F)>)>,
+) -> Option<(usize, (T, F))> {
+    let mut best: Option<(usize, (T, F))> = None;
     for (candidate, score) in scored {
-        let Some(score) = score else { continue };
+        let Some((score, fit)) = score else { continue };
         if best.as_ref().is_none_or(|(b, _)| score > *b) {
-            best = Some((score, candidate));
+            best = Some((score, (candidate, fit)));
         }
     }
     best
 }
 
 /// The score of a candidate lens of a grid start: the 3D homographies' inliers summed over
-/// the moved views of `chain` (the views under that lens), `None` when the stereo geometry
-/// or a motion cannot be fitted.
-pub(super) fn motion_inliers(chain: &[View], k: &Intrinsics, options: &CalibrateOptions) -> Option<usize> {
+/// the moved views of `chain` (the views under that lens), with the fit it came from (for
+/// [`LensStart::fitted`]); `None` when the stereo geometry or a motion cannot be fitted.
+pub(super) fn grid_fit(
+    chain: &[View],
+    k: &Intrinsics,
+    options: &CalibrateOptions,
+) -> Option<(usize, GridFit)> {
     let stereo = super::rig_stereo::stereo_geometry(chain, k, &options.estimation).ok()?;
     let motions = super::motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, &mut None).ok()?;
-    Some(motions.iter().map(|m| m.report.inliers).sum())
+    let score = motions.iter().map(|m| m.report.inliers).sum();
+    Some((score, GridFit { seed: options.estimation.seed, stereo, motions }))
 }

@@ -117,7 +117,7 @@ fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -
             })
             .collect();
         // Each lens scored on its own (in parallel), the best taken in the grid's order.
-        let scores: Vec<Option<usize>> = lenses
+        let scores: Vec<Option<(usize, super::two_pass::GridFit)>> = lenses
             .par_iter()
             .map(|&lens| {
                 crate::timing::time(crate::timing::Stage::LensChoice, || {
@@ -125,15 +125,17 @@ fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -
                         chain: [lens; 2],
                         distortion: [lens.distortion; 2],
                         max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
+                        fitted: None,
                     };
-                    super::two_pass::motion_inliers(&start.chain_views(&rig.rig), &lens.k, options)
+                    super::two_pass::grid_fit(&start.chain_views(&rig.rig), &lens.k, options)
                 })
             })
             .collect();
-        super::two_pass::best_scored(lenses.into_iter().zip(scores)).map(|(_, lens)| LensStart {
+        super::two_pass::best_scored(lenses.into_iter().zip(scores)).map(|(_, (lens, fit))| LensStart {
             chain: [lens; 2],
             distortion: [lens.distortion; 2],
             max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
+            fitted: Some(fit),
         })
     })
 }
