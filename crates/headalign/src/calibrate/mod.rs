@@ -510,7 +510,7 @@ fn calibrate_once_from(
         }
     };
     // The point set and the observations (as in estimate).
-    let points = bundle_starts::point_set(&rig, &stereo.recon, &motions);
+    let points = bundle_starts::point_set(&rig, &stereo.recon, motions);
     let problem = bundle_starts::Problem {
         recon: &stereo.recon,
         point_tracks: &points.point_tracks,
@@ -518,8 +518,8 @@ fn calibrate_once_from(
         min_tracks: est.min_tracks,
     };
     // 4. The linear self-calibration, and the rigid start.
-    let linear = bundle_starts::linear_start(&motions, &stereo.frame, &k0, &problem, options);
-    let rigid = bundle_starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
+    let linear = bundle_starts::linear_start(motions, &stereo.frame, &k0, &problem, options);
+    let rigid = bundle_starts::rigid_start(motions, &stereo.frame, &k0, &problem, options);
     let (linear_k, linear_error) = match bundle_starts::linear_summary(&linear.state) {
         // With a lens estimated and no lens start, the 3D homographies of distorted pixels
         // are not conjugate to rigid motions and their angle readings (from the trace)
@@ -539,16 +539,16 @@ fn calibrate_once_from(
     let recon = raw_recon.as_deref().unwrap_or(&stereo.recon);
     let adjusted =
         rig_bundle::adjust_starts([linear.state, rigid], &points, recon, options, start_lens, other)
-            .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
+            .inspect_err(|_| *seeded = motion::weakest_motion(motions))?;
     // 7. The report: final motions, the rotation test, sigmas, warnings.
-    let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
-    report::require_rotation(&motions, &motion_reports, options)?;
+    let motion_reports = report::adjusted_motions(motions, &linear.used, &adjusted.last.state);
+    report::require_rotation(motions, &motion_reports, options)?;
     let report = report::chain_report(
         report::ChainRun {
             views: rig.iter().map(|v| v.name.clone()).collect(),
             skipped,
             planarity,
-            stereo: &stereo,
+            stereo,
             motions: motion_reports,
             motions_fitted: motions.len(),
             plane_conditioning: linear.plane_conditioning,
