@@ -1070,4 +1070,15 @@ mod tests {
         assert!(e.contains("unknown experiment"), "{e}");
         assert_eq!(results_path(Path::new("docs/results")), Path::new("docs/results.md"));
     }
+
+    /// The sections `all` keeps when it regenerates `results.md` are found in the
+    /// repository's own file: the planar one and the timing of `calibrate`, each up to the
+    /// next heading.
+    #[test]
+    fn kept_sections_are_found_in_results_md() {
+        let md = include_str!("../../../docs/results.md");
+        assert!(planar::kept_section(md).is_some_and(|s| s.starts_with("## planar")));
+        let timing = planar::section(md, TIMING_HEADING).unwrap_or_default();
+        assert!(timing.starts_with(TIMING_HEADING) && timing.contains("--bench calibrate"), "{timing}");
+    }
 }
