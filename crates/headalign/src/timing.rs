@@ -7,10 +7,13 @@
 //! exclusive of the stages timed inside it on the same thread (a 3D-homography fit inside
 //! a lens-grid score counts as "3D homographies", the rest of the score as "lens
 //! choice"). Work that rayon runs on another thread counts where that thread's own
-//! [`time`] calls put it; the closures of the library's parallel loops are timed in their
-//! stage, so nothing of them is lost. The sum over stages is therefore thread-seconds:
-//! with one thread it is the wall time of the timed stages, with `n` threads up to `n`
-//! times it (a thread waiting in a parallel loop keeps counting its own stage).
+//! [`time`] calls put it: the closures of the calibration's parallel loops over lenses,
+//! starts and views are timed in their stage; the finer ones (the two images of a view's
+//! corner detection, the views' triangulation, the bootstrap's replicates inside
+//! `headalign-geometry`) count only on the thread that started them. The sum over stages
+//! is therefore thread-seconds: with one thread it is the wall time of the timed stages,
+//! with `n` threads up to `n` times it (a thread waiting in a parallel loop keeps counting
+//! its own stage), less what the finer loops ran elsewhere.
 //!
 //! Units: seconds (from nanosecond counters), and calls.
 //!
