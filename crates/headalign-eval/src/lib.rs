@@ -940,10 +940,13 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
             quantities: &[],
         });
         let path = results_path(&args.out);
-        // The planar section is not regenerated here (`planar` module docs): kept as it is.
-        let kept = std::fs::read_to_string(&path).ok().and_then(|old| planar::kept_section(&old));
+        // The planar section is not regenerated here (`planar` module docs), nor the timing
+        // of `calibrate` (`cargo bench -p headalign --bench calibrate`): kept as they are.
+        let old = std::fs::read_to_string(&path).ok();
+        let kept = old.as_deref().and_then(planar::kept_section);
+        let timing = old.as_deref().and_then(|o| planar::section(o, TIMING_HEADING));
         let mut md = report::results_md(&produced, &args.out);
-        if let Some(section) = kept {
+        for section in [kept, timing].into_iter().flatten() {
             md = format!("{}\n\n{section}", md.trim_end());
         }
         std::fs::write(&path, md).with_context(|| format!("cannot write {}", path.display()))?;
@@ -960,6 +963,10 @@ pub fn run(args: &ExperimentArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// The heading of the section of `results.md` that `cargo bench -p headalign --bench
+/// calibrate` fills (kept when `all` regenerates the file).
+const TIMING_HEADING: &str = "## Timing of `calibrate`";
 
 /// `results.md` beside the output directory (`docs/results` -> `docs/results.md`).
 fn results_path(out: &Path) -> PathBuf {
@@ -1075,5 +1082,16 @@ mod tests {
         let e = experiment("nope", &Scenario::default()).err().map(|e| e.to_string()).unwrap_or_default();
         assert!(e.contains("unknown experiment"), "{e}");
         assert_eq!(results_path(Path::new("docs/results")), Path::new("docs/results.md"));
+    }
+
+    /// The sections `all` keeps when it regenerates `results.md` are found in the
+    /// repository's own file: the planar one and the timing of `calibrate`, each up to the
+    /// next heading.
+    #[test]
+    fn kept_sections_are_found_in_results_md() {
+        let md = include_str!("../../../docs/results.md");
+        assert!(planar::kept_section(md).is_some_and(|s| s.starts_with("## planar")));
+        let timing = planar::section(md, TIMING_HEADING).unwrap_or_default();
+        assert!(timing.starts_with(TIMING_HEADING) && timing.contains("--bench calibrate"), "{timing}");
     }
 }

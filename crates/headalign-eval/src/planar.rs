@@ -311,10 +311,15 @@ pub const SECTION_HEADING: &str = "## planar — ";
 /// The planar section of an existing `results.md` (from [`SECTION_HEADING`] to the next
 /// `## ` heading or the end), which `experiment all` keeps when it rewrites the file.
 pub fn kept_section(existing: &str) -> Option<String> {
-    let start = existing.find(&format!("\n{SECTION_HEADING}"))? + 1;
+    section(existing, SECTION_HEADING)
+}
+
+/// The section of `existing` (a `results.md`) that starts with the line `heading`, up to
+/// the next `## ` heading (or the end), with one final newline.
+pub fn section(existing: &str, heading: &str) -> Option<String> {
+    let start = existing.find(&format!("\n{heading}"))? + 1;
     let rest = &existing[start..];
-    let end =
-        rest[SECTION_HEADING.len()..].find("\n## ").map_or(rest.len(), |i| i + SECTION_HEADING.len() + 1);
+    let end = rest[heading.len()..].find("\n## ").map_or(rest.len(), |i| i + heading.len() + 1);
     Some(rest[..end].trim_end().to_string() + "\n")
 }
 

@@ -33,7 +33,9 @@
 //! # Pitfalls
 //!
 //! - Each replicate is a full least squares: `B` times the cost of a warm-started
-//!   adjustment. Replicates run from the estimate with at most `max_iterations`
+//!   adjustment. The draws come from one generator in order and the adjustments run in
+//!   parallel (rayon), kept in the draws' order: the spread is the same at any thread
+//!   count. Replicates run from the estimate with at most `max_iterations`
 //!   linearisations; one that fails (a point behind a camera, a singular system) is
 //!   skipped and counted, and the spread is over those that succeeded.
 //! - The noise sigma is held at the result's (`BundleReport::sigma_px`): it weighs the
@@ -42,10 +44,11 @@
 //! - Pass the options of the fit being resampled (the maximum-likelihood pass: no robust
 //!   loss, so a replicate is the same estimator on other data).
 
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, DVector};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
+use rayon::prelude::*;
 
 use crate::bundle::{
     AnglePrior, BundleObservation, BundleOptions, BundleResult, Motions, RigState, bundle_adjust,
@@ -134,9 +137,11 @@ pub fn bootstrap_spread(
         noise_sigma_px: Some(result.report.sigma_px),
         ..options.clone()
     };
+    // The replicates' draws in order from one generator, then their adjustments in
+    // parallel (rayon), the offsets kept in the draws' order: the same spread at any
+    // thread count.
     let mut rng = ChaCha8Rng::seed_from_u64(boot.seed);
-    let mut offsets = Vec::with_capacity(boot.replicates);
-    let mut failed = 0;
+    let mut drawn = Vec::with_capacity(boot.replicates);
     for _ in 0..boot.replicates {
         let mut state = result.state.clone();
         state.points.clear();
@@ -150,16 +155,20 @@ pub fn bootstrap_spread(
         if let Some(sigma) = options.angle_prior_sigma {
             redraw_prior_centres(&mut state, &result.state, sigma, options.angle_prior, &mut rng);
         }
-        let offset = bundle_adjust(&state, &obs, &ls)
-            .ok()
-            .filter(|r| r.covariance.names == result.covariance.names)
-            .and_then(|r| result.tangent_offset(&r.state).ok())
-            .filter(|d| d.iter().all(|x| x.is_finite()));
-        match offset {
-            Some(d) => offsets.push(d),
-            None => failed += 1,
-        }
+        drawn.push((state, obs));
     }
+    let fitted: Vec<Option<DVector<f64>>> = drawn
+        .par_iter()
+        .map(|(state, obs)| {
+            bundle_adjust(state, obs, &ls)
+                .ok()
+                .filter(|r| r.covariance.names == result.covariance.names)
+                .and_then(|r| result.tangent_offset(&r.state).ok())
+                .filter(|d| d.iter().all(|x| x.is_finite()))
+        })
+        .collect();
+    let failed = fitted.iter().filter(|d| d.is_none()).count();
+    let offsets: Vec<DVector<f64>> = fitted.into_iter().flatten().collect();
     let n = offsets.len();
     if n < 3 {
         return Err(GeometryError::NotEnoughData {

@@ -27,7 +27,8 @@
 //!   pan alignment without calibration
 //!   by fixating a drive's epipole ([`robot::pan_fixation`]) and one-motion alignment
 //!   ([`robot::one_motion`]).
-//! - [`fixation`]: verging and fixating with no calibration; [`tracking`]: the tracker.
+//! - [`fixation`]: verging and fixating with no calibration; [`tracking`]: the tracker;
+//!   [`timing`]: the seconds a calibration spends per stage.
 //! - [`facing_plane`]: the route facing a plane or a scene too far for stereo depth.
 //!
 //! Aligning a simulated head (`headalign-sim`; any [`StereoHead`] will do): the verge/tilt
@@ -75,6 +76,7 @@ pub mod plan;
 pub mod procedure;
 pub mod rig;
 pub mod robot;
+pub mod timing;
 pub mod tracking;
 pub mod verge_tilt;
 

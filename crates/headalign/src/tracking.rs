@@ -652,47 +652,55 @@ impl Tracker {
         view: &str,
         stereo_prior: Option<&Matrix3<f64>>,
     ) -> Result<(StereoCapture, ViewTracking), AlignError> {
-        let o = &self.options;
-        let left = detect_and_describe(&images.left, &o.features).map_err(vision("left image"))?;
-        let right = detect_and_describe(&images.right, &o.features).map_err(vision("right image"))?;
-        let stereo = self.stereo(&left, &right, view, stereo_prior)?;
-        let mut report = ViewTracking {
-            corners: [left.len(), right.len()],
-            stereo_matches: stereo.len(),
-            ..ViewTracking::default()
-        };
-        let mut corners = ViewCorners::new(left, right, stereo);
-        // Track ids (module docs, step 4): fresh for the first view, else inherited.
-        self.next_id = match &self.reference {
-            None => first_view_ids(self.next_id, &mut corners),
-            Some(r) if o.mode == TrackingMode::Previous => {
-                self.ids_across_drive(r, &mut corners, &mut report)
+        crate::timing::time(crate::timing::Stage::FrontEnd, || {
+            let o = &self.options;
+            // The two images' corners on their own (in parallel).
+            let (left, right) = rayon::join(
+                || detect_and_describe(&images.left, &o.features),
+                || detect_and_describe(&images.right, &o.features),
+            );
+            let left = left.map_err(vision("left image"))?;
+            let right = right.map_err(vision("right image"))?;
+            let stereo = self.stereo(&left, &right, view, stereo_prior)?;
+            let mut report = ViewTracking {
+                corners: [left.len(), right.len()],
+                stereo_matches: stereo.len(),
+                ..ViewTracking::default()
+            };
+            let mut corners = ViewCorners::new(left, right, stereo);
+            // Track ids (module docs, step 4): fresh for the first view, else inherited.
+            self.next_id = match &self.reference {
+                None => first_view_ids(self.next_id, &mut corners),
+                Some(r) if o.mode == TrackingMode::Previous => {
+                    self.ids_across_drive(r, &mut corners, &mut report)
+                }
+                Some(r) => self.ids_from_reference(r, &mut corners, view, &mut report)?,
+            };
+            if let Some(ro) = &o.refine {
+                self.refine_view(ro, images, &mut corners, &mut report);
             }
-            Some(r) => self.ids_from_reference(r, &mut corners, view, &mut report)?,
-        };
-        if let Some(ro) = &o.refine {
-            self.refine_view(ro, images, &mut corners, &mut report);
-        }
-        let capture = corners.capture(images);
-        report.observations = [capture.left.len(), capture.right.len()];
-        let earlier = self.reference.as_ref().map(|r| r.name.as_str());
-        report.localisation = corners.localisation(view, earlier);
-        if self.reference.is_none() || self.options.mode == TrackingMode::Previous {
-            let ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var, .. } = corners;
-            self.reference = Some(Reference {
-                left,
-                right,
-                left_ids,
-                right_ids,
-                stereo,
-                left_var,
-                right_var,
-                name: view.to_string(),
-                left_image: images.left.clone(),
-                right_image: images.right.clone(),
-            });
-        }
-        Ok((capture, report))
+            let capture = corners.capture(images);
+            report.observations = [capture.left.len(), capture.right.len()];
+            let earlier = self.reference.as_ref().map(|r| r.name.as_str());
+            report.localisation = corners.localisation(view, earlier);
+            if self.reference.is_none() || self.options.mode == TrackingMode::Previous {
+                let ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var, .. } =
+                    corners;
+                self.reference = Some(Reference {
+                    left,
+                    right,
+                    left_ids,
+                    right_ids,
+                    stereo,
+                    left_var,
+                    right_var,
+                    name: view.to_string(),
+                    left_image: images.left.clone(),
+                    right_image: images.right.clone(),
+                });
+            }
+            Ok((capture, report))
+        })
     }
 
     /// [`TrackingMode::Previous`] (module docs): the track ids of a view after a drive.

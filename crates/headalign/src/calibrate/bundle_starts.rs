@@ -73,7 +73,9 @@ impl Links {
 /// The point set and the observations of the rig views (module docs; as in
 /// [`crate::verge_tilt`]), every view's motion fitted from the first.
 pub(super) fn point_set(rig: &[View], recon: &[Reconstruction], motions: &[ViewMotion]) -> PointSet {
-    point_set_linked(rig, recon, motions, &Links::reference(rig.len()))
+    crate::timing::time(crate::timing::Stage::Starts, || {
+        point_set_linked(rig, recon, motions, &Links::reference(rig.len()))
+    })
 }
 
 /// [`point_set`] with the views linked by `links`: a point's observations are those in
@@ -86,53 +88,56 @@ pub(super) fn point_set_linked(
     motions: &[ViewMotion],
     links: &Links,
 ) -> PointSet {
-    let mut point_tracks: Vec<u64> = recon[0].keys().copied().collect();
-    let mut origin_slot: Vec<usize> = vec![0; point_tracks.len()];
-    let mut seen: std::collections::HashSet<u64> = point_tracks.iter().copied().collect();
-    for (slot, map) in recon.iter().enumerate().skip(1) {
-        for &track in map.keys() {
-            if seen.insert(track) {
-                point_tracks.push(track);
-                origin_slot.push(slot);
-            }
-        }
-    }
-    let point_index: BTreeMap<u64, usize> = point_tracks.iter().enumerate().map(|(i, &t)| (t, i)).collect();
-    let segment = |slot: usize| links.segment.get(slot).copied().unwrap_or(0);
-    let mut all_obs = Vec::new();
-    for (slot, v) in rig.iter().enumerate() {
-        for (side, list) in [(Side::Left, &v.capture.left), (Side::Right, &v.capture.right)] {
-            for o in list {
-                if let Some(&pi) = point_index.get(&o.track)
-                    && segment(origin_slot[pi]) == segment(slot)
-                {
-                    all_obs.push(BundleObservation { point: pi, view: slot, side, pixel: o.pixel });
+    crate::timing::time(crate::timing::Stage::Starts, || {
+        let mut point_tracks: Vec<u64> = recon[0].keys().copied().collect();
+        let mut origin_slot: Vec<usize> = vec![0; point_tracks.len()];
+        let mut seen: std::collections::HashSet<u64> = point_tracks.iter().copied().collect();
+        for (slot, map) in recon.iter().enumerate().skip(1) {
+            for &track in map.keys() {
+                if seen.insert(track) {
+                    point_tracks.push(track);
+                    origin_slot.push(slot);
                 }
             }
         }
-    }
-    let mut quad_inliers: Vec<Vec<u64>> = vec![Vec::new()];
-    for m in motions {
-        let mut t = m.inlier_tracks.clone();
-        t.sort_unstable();
-        quad_inliers.push(t);
-    }
-    let first_obs: Vec<BundleObservation> = all_obs
-        .iter()
-        .copied()
-        .filter(|o| {
-            let track = point_tracks[o.point];
-            recon[o.view].contains_key(&track)
-                && match links.parent.get(o.view).copied().flatten() {
-                    None => true,
-                    Some(parent) => {
-                        !recon[parent].contains_key(&track)
-                            || quad_inliers[o.view].binary_search(&track).is_ok()
+        let point_index: BTreeMap<u64, usize> =
+            point_tracks.iter().enumerate().map(|(i, &t)| (t, i)).collect();
+        let segment = |slot: usize| links.segment.get(slot).copied().unwrap_or(0);
+        let mut all_obs = Vec::new();
+        for (slot, v) in rig.iter().enumerate() {
+            for (side, list) in [(Side::Left, &v.capture.left), (Side::Right, &v.capture.right)] {
+                for o in list {
+                    if let Some(&pi) = point_index.get(&o.track)
+                        && segment(origin_slot[pi]) == segment(slot)
+                    {
+                        all_obs.push(BundleObservation { point: pi, view: slot, side, pixel: o.pixel });
                     }
                 }
-        })
-        .collect();
-    PointSet { point_tracks, origin_slot, all_obs, first_obs }
+            }
+        }
+        let mut quad_inliers: Vec<Vec<u64>> = vec![Vec::new()];
+        for m in motions {
+            let mut t = m.inlier_tracks.clone();
+            t.sort_unstable();
+            quad_inliers.push(t);
+        }
+        let first_obs: Vec<BundleObservation> = all_obs
+            .iter()
+            .copied()
+            .filter(|o| {
+                let track = point_tracks[o.point];
+                recon[o.view].contains_key(&track)
+                    && match links.parent.get(o.view).copied().flatten() {
+                        None => true,
+                        Some(parent) => {
+                            !recon[parent].contains_key(&track)
+                                || quad_inliers[o.view].binary_search(&track).is_ok()
+                        }
+                    }
+            })
+            .collect();
+        PointSet { point_tracks, origin_slot, all_obs, first_obs }
+    })
 }
 
 /// Everything the starts need.
@@ -222,14 +227,16 @@ pub(super) fn linear_start_from(
     problem: &Problem<'_>,
     options: &CalibrateOptions,
 ) -> LinearStart {
-    let mut diagnostics = LinearDiagnostics { plane_conditioning: None, conic_uniqueness: None };
-    let state = linear_chain(motions, &used, frame, k0, problem, options, &mut diagnostics);
-    LinearStart {
-        state,
-        used,
-        plane_conditioning: diagnostics.plane_conditioning,
-        conic_uniqueness: diagnostics.conic_uniqueness,
-    }
+    crate::timing::time(crate::timing::Stage::Starts, || {
+        let mut diagnostics = LinearDiagnostics { plane_conditioning: None, conic_uniqueness: None };
+        let state = linear_chain(motions, &used, frame, k0, problem, options, &mut diagnostics);
+        LinearStart {
+            state,
+            used,
+            plane_conditioning: diagnostics.plane_conditioning,
+            conic_uniqueness: diagnostics.conic_uniqueness,
+        }
+    })
 }
 
 /// The conditioning figures of the linear chain, set as it reaches them.
@@ -330,27 +337,29 @@ pub(super) fn rigid_start(
     problem: &Problem<'_>,
     options: &CalibrateOptions,
 ) -> Result<RigState, AlignError> {
-    let t = frame.right_conditioned.column(3).into_owned();
-    let rot = headalign_geometry::so3::nearest_rotation(&frame.rotation_guess).ok_or_else(|| {
-        AlignError::Geometry {
-            step: "rigid start".into(),
-            cause: GeometryError::Numerical("SVD failed".into()),
-        }
-    })?;
-    let right_from_left = Isometry3::from_parts(t.into(), UnitQuaternion::from_rotation_matrix(&rot));
-    let mut ref_from_cam = vec![Isometry3::identity()];
-    for m in motions {
-        let d = m.rigid.ok_or_else(|| AlignError::NotARotation {
-            view: m.report.view.clone(),
-            why: "no rigid motion fits its matches in the quasi-Euclidean frame".into(),
+    crate::timing::time(crate::timing::Stage::Starts, || {
+        let t = frame.right_conditioned.column(3).into_owned();
+        let rot = headalign_geometry::so3::nearest_rotation(&frame.rotation_guess).ok_or_else(|| {
+            AlignError::Geometry {
+                step: "rigid start".into(),
+                cause: GeometryError::Numerical("SVD failed".into()),
+            }
         })?;
-        ref_from_cam.push(d.inverse());
-    }
-    problem.state(
-        constrain(k0, options, k0),
-        constrain(k0, options, k0),
-        right_from_left,
-        ref_from_cam,
-        |slot, track| problem.recon[slot].get(&track).and_then(|(x, _, _)| dehomogenise3(x)),
-    )
+        let right_from_left = Isometry3::from_parts(t.into(), UnitQuaternion::from_rotation_matrix(&rot));
+        let mut ref_from_cam = vec![Isometry3::identity()];
+        for m in motions {
+            let d = m.rigid.ok_or_else(|| AlignError::NotARotation {
+                view: m.report.view.clone(),
+                why: "no rigid motion fits its matches in the quasi-Euclidean frame".into(),
+            })?;
+            ref_from_cam.push(d.inverse());
+        }
+        problem.state(
+            constrain(k0, options, k0),
+            constrain(k0, options, k0),
+            right_from_left,
+            ref_from_cam,
+            |slot, track| problem.recon[slot].get(&track).and_then(|(x, _, _)| dehomogenise3(x)),
+        )
+    })
 }

@@ -80,13 +80,15 @@ pub(super) fn held_gauges(cal: &MotionCalibration) -> Vec<usize> {
 /// calibration); a sequence's segment gauges after the first stay held in the refits, as
 /// in its adjustment.
 fn select(rich: &MotionCalibration, options: &CalibrateOptions) -> Result<LensSelection, AlignError> {
-    let gauge_views = held_gauges(rich);
-    let bundle = BundleOptions {
-        zero_skew: options.zero_skew,
-        square_pixels: options.square_pixels,
-        fix_principal_point: options.fix_principal_point,
-        gauge_views,
-        ..options.estimation.bundle.clone()
-    };
-    select_lens(&rich.bundle.state, &rich.observations, &bundle, options.lens_terms)
+    crate::timing::time(crate::timing::Stage::LensChoice, || {
+        let gauge_views = held_gauges(rich);
+        let bundle = BundleOptions {
+            zero_skew: options.zero_skew,
+            square_pixels: options.square_pixels,
+            fix_principal_point: options.fix_principal_point,
+            gauge_views,
+            ..options.estimation.bundle.clone()
+        };
+        select_lens(&rich.bundle.state, &rich.observations, &bundle, options.lens_terms)
+    })
 }

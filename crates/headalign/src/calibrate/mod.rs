@@ -383,12 +383,14 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
 /// result of `options`, for the model estimated: the options' own, or the one
 /// [`LensChoice::Auto`] chose (none for the pinhole).
 fn widen_lens_sigmas(result: &mut MotionCalibration, options: &CalibrateOptions) {
-    let (lens, lens_terms) = match (&options.lens, &result.report.lens_selection) {
-        (LensChoice::Auto, Some(s)) => (s.spec.choice(), s.spec.terms),
-        (lens, _) => (*lens, options.lens_terms),
-    };
-    let estimated = CalibrateOptions { lens, lens_terms, ..options.clone() };
-    result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(result, &estimated);
+    crate::timing::time(crate::timing::Stage::Covariance, || {
+        let (lens, lens_terms) = match (&options.lens, &result.report.lens_selection) {
+            (LensChoice::Auto, Some(s)) => (s.spec.choice(), s.spec.terms),
+            (lens, _) => (*lens, options.lens_terms),
+        };
+        let estimated = CalibrateOptions { lens, lens_terms, ..options.clone() };
+        result.report.lens_sigmas = lens_sigmas::bootstrap_lens_sigmas(result, &estimated);
+    })
 }
 
 /// [`calibrate_rig`] with a fixed lens model: the chain, retried with the next
@@ -493,14 +495,22 @@ fn calibrate_once_from(
     // guess for the narrow models' grid, the grid lens's own K for a wide model).
     let k0 = lens_start.map_or_else(|| Intrinsics::rough_guess(w, h), |l| l.chain[0].k);
     let est = &options.estimation;
-    let chain_rig = lens_start.map(|l| l.chain_views(&rig));
-    let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
-    // 2. F from all views, frame, triangulation.
-    let stereo = rig_stereo::stereo_geometry(chain, &k0, est)?;
-    // 3. 3D homographies from the reference.
-    let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
+    // 2-3. F from all views, frame, triangulation; 3D homographies from the reference (or
+    // those the lens grid fitted with this seed under the lens start: the same inputs).
+    let fitted;
+    let (stereo, motions) = match lens_start.and_then(|l| l.fitted.as_ref()).filter(|f| f.seed == est.seed) {
+        Some(f) => (&f.stereo, f.motions.as_slice()),
+        None => {
+            let chain_rig = lens_start.map(|l| l.chain_views(&rig));
+            let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
+            let stereo = rig_stereo::stereo_geometry(chain, &k0, est)?;
+            let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
+            fitted = (stereo, motions);
+            (&fitted.0, fitted.1.as_slice())
+        }
+    };
     // The point set and the observations (as in estimate).
-    let points = bundle_starts::point_set(&rig, &stereo.recon, &motions);
+    let points = bundle_starts::point_set(&rig, &stereo.recon, motions);
     let problem = bundle_starts::Problem {
         recon: &stereo.recon,
         point_tracks: &points.point_tracks,
@@ -508,8 +518,8 @@ fn calibrate_once_from(
         min_tracks: est.min_tracks,
     };
     // 4. The linear self-calibration, and the rigid start.
-    let linear = bundle_starts::linear_start(&motions, &stereo.frame, &k0, &problem, options);
-    let rigid = bundle_starts::rigid_start(&motions, &stereo.frame, &k0, &problem, options);
+    let linear = bundle_starts::linear_start(motions, &stereo.frame, &k0, &problem, options);
+    let rigid = bundle_starts::rigid_start(motions, &stereo.frame, &k0, &problem, options);
     let (linear_k, linear_error) = match bundle_starts::linear_summary(&linear.state) {
         // With a lens estimated and no lens start, the 3D homographies of distorted pixels
         // are not conjugate to rigid motions and their angle readings (from the trace)
@@ -529,16 +539,16 @@ fn calibrate_once_from(
     let recon = raw_recon.as_deref().unwrap_or(&stereo.recon);
     let adjusted =
         rig_bundle::adjust_starts([linear.state, rigid], &points, recon, options, start_lens, other)
-            .inspect_err(|_| *seeded = motion::weakest_motion(&motions))?;
+            .inspect_err(|_| *seeded = motion::weakest_motion(motions))?;
     // 7. The report: final motions, the rotation test, sigmas, warnings.
-    let motion_reports = report::adjusted_motions(&motions, &linear.used, &adjusted.last.state);
-    report::require_rotation(&motions, &motion_reports, options)?;
+    let motion_reports = report::adjusted_motions(motions, &linear.used, &adjusted.last.state);
+    report::require_rotation(motions, &motion_reports, options)?;
     let report = report::chain_report(
         report::ChainRun {
             views: rig.iter().map(|v| v.name.clone()).collect(),
             skipped,
             planarity,
-            stereo: &stereo,
+            stereo,
             motions: motion_reports,
             motions_fitted: motions.len(),
             plane_conditioning: linear.plane_conditioning,

@@ -12,7 +12,8 @@
 //!
 //! Seeds: each view's RANSAC uses the estimation seed plus the view's slot, so a restart
 //! with the next seed ([`CalibrateOptions::restarts`](super::CalibrateOptions::restarts))
-//! draws other samples. Pitfalls: the rotation angle read from `H`'s trace is a
+//! draws other samples; the views are fitted in parallel (rayon), the first failure in
+//! the rig's order reported: the same result at any thread count. Pitfalls: the rotation angle read from `H`'s trace is a
 //! similarity invariant but noisy for small motions; a view that fits no `H` fails the
 //! run (seeded: another seed may pass), as does one with fewer than
 //! `estimation.min_tracks` common tracks (not seeded).
@@ -24,6 +25,7 @@ use headalign_geometry::homography3d::{
 use headalign_geometry::ransac::{RansacOptions, ransac};
 use headalign_geometry::registration::RigidFrameEstimator;
 use nalgebra::{Isometry3, UnitQuaternion};
+use rayon::prelude::*;
 
 use super::{CalibrateOptions, MotionReport, Seeded};
 use crate::error::AlignError;
@@ -151,26 +153,55 @@ pub(super) fn fit_motions(
     seeded: &mut Option<Seeded>,
 ) -> Result<Vec<ViewMotion>, AlignError> {
     let est = &options.estimation;
-    let mut motions: Vec<ViewMotion> = Vec::new();
-    for (slot, v) in rig.iter().enumerate().skip(1) {
-        let (mut tracks, mut quads) = (Vec::new(), Vec::new());
-        for (track, (x, l0, r0)) in &recon[0] {
-            if let Some((y, l1, r1)) = recon[slot].get(track) {
-                tracks.push(*track);
-                quads.push(Quadruplet { x: *x, y: *y, left0: *l0, right0: *r0, left1: *l1, right1: *r1 });
+    // Each moved view's quadruplets and 3D homography on its own (in parallel, each
+    // seeded by its slot), the first failure in the rig's order reported.
+    let fitted: Vec<Result<ViewMotion, (AlignError, Option<Seeded>)>> = rig
+        .par_iter()
+        .enumerate()
+        .skip(1)
+        .map(|(slot, v)| {
+            crate::timing::time(crate::timing::Stage::Homographies, || {
+                let (mut tracks, mut quads) = (Vec::new(), Vec::new());
+                for (track, (x, l0, r0)) in &recon[0] {
+                    if let Some((y, l1, r1)) = recon[slot].get(track) {
+                        tracks.push(*track);
+                        quads.push(Quadruplet {
+                            x: *x,
+                            y: *y,
+                            left0: *l0,
+                            right0: *r0,
+                            left1: *l1,
+                            right1: *r1,
+                        });
+                    }
+                }
+                if quads.len() < est.min_tracks {
+                    return Err((
+                        AlignError::TooFewTracks {
+                            what: format!("seen in both stereo views '{}' and '{}'", rig[0].name, v.name),
+                            needed: est.min_tracks,
+                            got: quads.len(),
+                        },
+                        None,
+                    ));
+                }
+                let common = quads.len();
+                fit_motion(&quads, &tracks, frame, options, &v.name, est.seed.wrapping_add(slot as u64))
+                    .map_err(|e| (e, Some(Seeded { common_tracks: common, fitting: 0 })))
+            })
+        })
+        .collect();
+    let mut motions: Vec<ViewMotion> = Vec::with_capacity(fitted.len());
+    for f in fitted {
+        match f {
+            Ok(m) => motions.push(m),
+            Err((e, s)) => {
+                if s.is_some() {
+                    *seeded = s;
+                }
+                return Err(e);
             }
         }
-        if quads.len() < est.min_tracks {
-            return Err(AlignError::TooFewTracks {
-                what: format!("seen in both stereo views '{}' and '{}'", rig[0].name, v.name),
-                needed: est.min_tracks,
-                got: quads.len(),
-            });
-        }
-        let common = quads.len();
-        let fitted = fit_motion(&quads, &tracks, frame, options, &v.name, est.seed.wrapping_add(slot as u64))
-            .inspect_err(|_| *seeded = Some(Seeded { common_tracks: common, fitting: 0 }))?;
-        motions.push(fitted);
     }
     if motions.is_empty() {
         return Err(AlignError::MissingMotion(

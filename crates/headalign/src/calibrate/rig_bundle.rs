@@ -18,6 +18,9 @@
 //! result (the lens-grid run's cameras, lenses and motions) with this run's points
 //! triangulated under it, compared on the same truncated cost.
 //!
+//! The starts are adjusted in parallel (rayon) and compared in their order: the same
+//! result at any thread count.
+//!
 //! Pitfalls: with one general motion the cost has shallow valleys: a start that screens
 //! better after a few iterations can end in the worse minimum, hence every start to
 //! convergence. The adjustment is seeded by nothing, but its starts are (step 3): when it
@@ -31,6 +34,7 @@ use headalign_geometry::camera::{ProjectiveCamera, dehomogenise3};
 use headalign_geometry::distortion::Distortion;
 use headalign_geometry::triangulation::triangulate_linear;
 use nalgebra::{Isometry3, Point2, Point3};
+use rayon::prelude::*;
 
 use super::CalibrateOptions;
 use super::bundle_starts::PointSet;
@@ -55,62 +59,74 @@ pub(super) fn adjust_starts(
     start_lens: Option<[Distortion; 2]>,
     other: Option<&RigState>,
 ) -> Result<Adjustment, AlignError> {
-    let est = &options.estimation;
-    let (first_obs, all_obs) = (&points.first_obs, &points.all_obs);
-    let (point_tracks, origin_slot) = (&points.point_tracks, &points.origin_slot);
-    let adjust_options = adjustment_options(options);
-    let kind = options.lens.kind();
-    let mut results: Vec<Adjustment> = Vec::new();
-    let mut last_error = None;
-    let sources = PointSources { point_tracks, origin_slot, recon };
-    // The start's lens: `start_lens`, else zero in the estimated model (the equidistant
-    // one's zero is `atan`, a mild barrel: a fair start for a wide lens).
-    let mut all_starts: Vec<Result<RigState, AlignError>> = starts
-        .into_iter()
-        .map(|start| {
-            start.map(|mut s| {
-                if let Some(kind) = kind {
-                    [s.left_distortion, s.right_distortion] =
-                        start_lens.unwrap_or([Distortion::zero(kind), Distortion::zero(kind)]);
-                }
-                s
+    crate::timing::time(crate::timing::Stage::Adjustment, || {
+        let est = &options.estimation;
+        let (first_obs, all_obs) = (&points.first_obs, &points.all_obs);
+        let (point_tracks, origin_slot) = (&points.point_tracks, &points.origin_slot);
+        let adjust_options = adjustment_options(options);
+        let kind = options.lens.kind();
+        let sources = PointSources { point_tracks, origin_slot, recon };
+        // The start's lens: `start_lens`, else zero in the estimated model (the equidistant
+        // one's zero is `atan`, a mild barrel: a fair start for a wide lens).
+        let mut all_starts: Vec<Result<RigState, AlignError>> = starts
+            .into_iter()
+            .map(|start| {
+                start.map(|mut s| {
+                    if let Some(kind) = kind {
+                        [s.left_distortion, s.right_distortion] =
+                            start_lens.unwrap_or([Distortion::zero(kind), Distortion::zero(kind)]);
+                    }
+                    s
+                })
             })
-        })
-        .collect();
-    if let Some(other) = other {
-        all_starts.push(Ok(transplant(other, &sources)));
-    }
-    for (index, start) in all_starts.into_iter().enumerate() {
-        match adjust_from_starts(
-            vec![start],
-            first_obs,
-            all_obs,
-            point_tracks,
-            origin_slot,
-            recon,
-            &adjust_options,
-        ) {
-            Ok(mut a) => {
-                a.start_index = index;
-                results.push(a);
-            }
-            Err(e) => last_error = Some(e),
+            .collect();
+        if let Some(other) = other {
+            all_starts.push(Ok(transplant(other, &sources)));
         }
-    }
-    let results: Vec<Adjustment> =
-        results.into_iter().map(|a| every_point_pass(a, all_obs, &sources, &adjust_options)).collect();
-    let gate = est.reselect_sigmas * results.iter().map(|a| a.last.report.sigma_px).fold(0.05, f64::max);
-    let truncated_cost = |a: &Adjustment| -> f64 {
-        all_obs
-            .iter()
-            .map(|o| {
-                residual_pixels(&a.last.state, o).map_or(gate * gate, |r| r.norm_squared().min(gate * gate))
+        // Each start adjusted on its own (in parallel), the results kept in the starts'
+        // order: the same choice at any thread count.
+        let adjusted: Vec<Result<Adjustment, AlignError>> = all_starts
+            .into_par_iter()
+            .enumerate()
+            .map(|(index, start)| {
+                crate::timing::time(crate::timing::Stage::Adjustment, || {
+                    let mut a = adjust_from_starts(
+                        vec![start],
+                        first_obs,
+                        all_obs,
+                        point_tracks,
+                        origin_slot,
+                        recon,
+                        &adjust_options,
+                    )?;
+                    a.start_index = index;
+                    Ok(every_point_pass(a, all_obs, &sources, &adjust_options))
+                })
             })
-            .sum()
-    };
-    let adjusted = results.into_iter().min_by(|a, b| truncated_cost(a).total_cmp(&truncated_cost(b)));
-    adjusted
-        .ok_or_else(|| last_error.unwrap_or_else(|| AlignError::MissingMotion("no initialisation".into())))
+            .collect();
+        let mut results: Vec<Adjustment> = Vec::new();
+        let mut last_error = None;
+        for a in adjusted {
+            match a {
+                Ok(a) => results.push(a),
+                Err(e) => last_error = Some(e),
+            }
+        }
+        let gate = est.reselect_sigmas * results.iter().map(|a| a.last.report.sigma_px).fold(0.05, f64::max);
+        let truncated_cost = |a: &Adjustment| -> f64 {
+            all_obs
+                .iter()
+                .map(|o| {
+                    residual_pixels(&a.last.state, o)
+                        .map_or(gate * gate, |r| r.norm_squared().min(gate * gate))
+                })
+                .sum()
+        };
+        let adjusted = results.into_iter().min_by(|a, b| truncated_cost(a).total_cmp(&truncated_cost(b)));
+        adjusted.ok_or_else(|| {
+            last_error.unwrap_or_else(|| AlignError::MissingMotion("no initialisation".into()))
+        })
+    })
 }
 
 /// Steps 5 and 6 for many motions (a sequence's: the cost has one clear valley there):
@@ -124,19 +140,21 @@ pub(super) fn adjust_best_start(
     recon: &[Reconstruction],
     options: &CalibrateOptions,
 ) -> Result<Adjustment, AlignError> {
-    let adjust_options = adjustment_options(options);
-    let (point_tracks, origin_slot) = (&points.point_tracks, &points.origin_slot);
-    let a = adjust_from_starts(
-        starts.into_iter().collect(),
-        &points.first_obs,
-        &points.all_obs,
-        point_tracks,
-        origin_slot,
-        recon,
-        &adjust_options,
-    )?;
-    let sources = PointSources { point_tracks, origin_slot, recon };
-    Ok(every_point_pass(a, &points.all_obs, &sources, &adjust_options))
+    crate::timing::time(crate::timing::Stage::Adjustment, || {
+        let adjust_options = adjustment_options(options);
+        let (point_tracks, origin_slot) = (&points.point_tracks, &points.origin_slot);
+        let a = adjust_from_starts(
+            starts.into_iter().collect(),
+            &points.first_obs,
+            &points.all_obs,
+            point_tracks,
+            origin_slot,
+            recon,
+            &adjust_options,
+        )?;
+        let sources = PointSources { point_tracks, origin_slot, recon };
+        Ok(every_point_pass(a, &points.all_obs, &sources, &adjust_options))
+    })
 }
 
 /// The estimation options of the adjustment: the options' constraints and lens model set

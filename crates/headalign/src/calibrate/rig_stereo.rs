@@ -19,6 +19,7 @@ use headalign_geometry::fundamental::{FundamentalMatrix, estimate_fundamental};
 use headalign_geometry::ransac::{RansacOptions, RansacReport};
 use headalign_geometry::triangulation::triangulate_optimal;
 use nalgebra::{Isometry3, Point2};
+use rayon::prelude::*;
 
 use crate::error::{AlignError, StepContext};
 use crate::observations::View;
@@ -60,37 +61,40 @@ pub(super) fn stereo_geometry_sampled(
     est: &EstimationOptions,
     ransac_pairs: Option<usize>,
 ) -> Result<StereoGeometry, AlignError> {
-    let per_view: Vec<Vec<StereoMatch>> = rig.iter().map(|v| stereo_matches(&v.capture)).collect();
-    let pairs: Vec<(Point2<f64>, Point2<f64>)> = per_view.iter().flatten().map(|m| (m.1, m.2)).collect();
-    let (f, inliers) = match ransac_pairs.filter(|&m| pairs.len() > m) {
-        None => {
-            let f_report = stereo_fundamental(&pairs, est)?;
-            (f_report.model, f_report.inliers)
-        }
-        Some(m) => {
-            let step = pairs.len().div_ceil(m.max(1));
-            let sample: Vec<(Point2<f64>, Point2<f64>)> = pairs.iter().copied().step_by(step).collect();
-            let f_report = stereo_fundamental(&sample, est)?;
-            refine_on_all(f_report.model, &pairs, est.fundamental.threshold)
-        }
-    };
-    let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = inliers.iter().map(|&i| pairs[i]).collect();
-    let stereo_rms = rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r)));
-    let frame = quasi_euclidean_frame(&f.0, k0, &inlier_pairs).step("projective frame")?;
-    let (p_l, p_r) = (frame.left_camera(), frame.right_camera());
-    let recon: Vec<Reconstruction> = per_view
-        .iter()
-        .map(|matches| {
-            matches
-                .iter()
-                .filter(|(_, l, r)| f.sampson_distance(l, r) <= est.fundamental.threshold)
-                .filter_map(|&(t, l, r)| {
-                    triangulate_optimal(&f, &p_l, &p_r, &l, &r).ok().map(|x| (t, (x, l, r)))
-                })
-                .collect()
-        })
-        .collect();
-    Ok(StereoGeometry { matches: pairs.len(), inliers: inliers.len(), rms_px: stereo_rms, frame, recon })
+    crate::timing::time(crate::timing::Stage::StereoF, || {
+        let per_view: Vec<Vec<StereoMatch>> = rig.iter().map(|v| stereo_matches(&v.capture)).collect();
+        let pairs: Vec<(Point2<f64>, Point2<f64>)> = per_view.iter().flatten().map(|m| (m.1, m.2)).collect();
+        let (f, inliers) = match ransac_pairs.filter(|&m| pairs.len() > m) {
+            None => {
+                let f_report = stereo_fundamental(&pairs, est)?;
+                (f_report.model, f_report.inliers)
+            }
+            Some(m) => {
+                let step = pairs.len().div_ceil(m.max(1));
+                let sample: Vec<(Point2<f64>, Point2<f64>)> = pairs.iter().copied().step_by(step).collect();
+                let f_report = stereo_fundamental(&sample, est)?;
+                refine_on_all(f_report.model, &pairs, est.fundamental.threshold)
+            }
+        };
+        let inlier_pairs: Vec<(Point2<f64>, Point2<f64>)> = inliers.iter().map(|&i| pairs[i]).collect();
+        let stereo_rms = rms(inlier_pairs.iter().map(|(l, r)| f.sampson_distance(l, r)));
+        let frame = quasi_euclidean_frame(&f.0, k0, &inlier_pairs).step("projective frame")?;
+        let (p_l, p_r) = (frame.left_camera(), frame.right_camera());
+        // Each view's matches triangulated on their own (in parallel, in the views' order).
+        let recon: Vec<Reconstruction> = per_view
+            .par_iter()
+            .map(|matches| {
+                matches
+                    .iter()
+                    .filter(|(_, l, r)| f.sampson_distance(l, r) <= est.fundamental.threshold)
+                    .filter_map(|&(t, l, r)| {
+                        triangulate_optimal(&f, &p_l, &p_r, &l, &r).ok().map(|x| (t, (x, l, r)))
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(StereoGeometry { matches: pairs.len(), inliers: inliers.len(), rms_px: stereo_rms, frame, recon })
+    })
 }
 
 /// `f` refined on the Sampson distance over its inliers (within `threshold`) among all

@@ -48,6 +48,11 @@
 //! Degrees of freedom and units: none added (those of the adjustment); pixels; corner
 //! displacements as fractions of the corner's radius; costs in pixels^2.
 //!
+//! The grid's lenses are scored in parallel (rayon) and reduced in the grid's order: the
+//! same lens at any thread count. The winning lens's F and 3D homographies are kept
+//! ([`LensStart::fitted`]): the lens-grid run with the same seed starts from them instead
+//! of fitting them again.
+//!
 //! Pitfalls: a lens estimate costs 13 fits of F and the homographies, a second run of the
 //! chain and a third adjustment of the first. The grid lens is normalised by the
 //! image-size guess `K0`; the final adjustment refits everything. Observations the lens
@@ -58,7 +63,10 @@
 
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
+use rayon::prelude::*;
 
+use super::motion::ViewMotion;
+use super::rig_stereo::StereoGeometry;
 use super::{
     CalibrateOptions, LensModel, MotionCalibration, calibrate_once_from, calibrate_with_restarts,
     undistort_views, with_restarts,
@@ -82,6 +90,21 @@ pub(super) struct LensStart {
     /// Rays farther from the axis than this (degrees) are left out of the linear steps
     /// (a wide model's run, [`super::wide::WIDE_CHAIN_MAX_RAY_DEG`]); `None`: every ray in front.
     pub(super) max_ray_deg: Option<f64>,
+    /// The stereo geometry and 3D homographies the grid fitted under [`Self::chain`] with
+    /// the estimation seed it holds: the run with that seed takes them instead of fitting
+    /// them again (the same inputs give the same result); `None`: fitted by the run.
+    pub(super) fitted: Option<GridFit>,
+}
+
+/// What the lens grid fitted under its winning lens (steps 2-3 of the chain), for the run
+/// from it ([`LensStart::fitted`]).
+pub(super) struct GridFit {
+    /// The estimation seed of the fit.
+    pub(super) seed: u64,
+    /// Step 2: F, frame, triangulation.
+    pub(super) stereo: StereoGeometry,
+    /// Step 3: the 3D homographies.
+    pub(super) motions: Vec<ViewMotion>,
 }
 
 impl LensStart {
@@ -188,33 +211,59 @@ fn grid_lens(kind: LensKind, delta: f64, corner: f64) -> Option<Distortion> {
 /// lens whose 3D homographies keep the most quadruplets (transfer error within the
 /// options' threshold) wins. `None` if no lens gives every view a homography.
 fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Option<LensStart> {
-    let rig = super::depth::select_views(views, options).ok()?;
-    let [w, h] = rig.image_size;
-    let k0 = Intrinsics::rough_guess(w, h);
-    // The corner's normalised radius under K0 (and its angle from the axis).
-    let corner = (k0.cx.hypot(k0.cy)) / k0.fx;
-    let mut best: Option<(usize, Distortion)> = None;
-    for delta in grid_displacements() {
-        let Some(d) = grid_lens(kind, delta, corner) else { continue };
-        let lens = LensModel { k: k0, distortion: d };
-        let chain = undistort_views(&rig.rig, &[lens, lens]);
-        let Some(score) = motion_inliers(&chain, &k0, options) else { continue };
-        if best.as_ref().is_none_or(|(b, _)| score > *b) {
-            best = Some((score, d));
-        }
-    }
-    best.map(|(_, d)| LensStart {
-        chain: [LensModel { k: k0, distortion: d }; 2],
-        distortion: [d, d],
-        max_ray_deg: None,
+    crate::timing::time(crate::timing::Stage::LensChoice, || {
+        let rig = super::depth::select_views(views, options).ok()?;
+        let [w, h] = rig.image_size;
+        let k0 = Intrinsics::rough_guess(w, h);
+        // The corner's normalised radius under K0 (and its angle from the axis).
+        let corner = (k0.cx.hypot(k0.cy)) / k0.fx;
+        // Each lens scored on its own (in parallel), the best taken in the grid's order.
+        let lenses: Vec<Distortion> =
+            grid_displacements().filter_map(|t| grid_lens(kind, t, corner)).collect();
+        let scores: Vec<Option<(usize, GridFit)>> = lenses
+            .par_iter()
+            .map(|&d| {
+                crate::timing::time(crate::timing::Stage::LensChoice, || {
+                    let lens = LensModel { k: k0, distortion: d };
+                    grid_fit(&undistort_views(&rig.rig, &[lens, lens]), &k0, options)
+                })
+            })
+            .collect();
+        best_scored(lenses.into_iter().zip(scores)).map(|(_, (d, fit))| LensStart {
+            chain: [LensModel { k: k0, distortion: d }; 2],
+            distortion: [d, d],
+            max_ray_deg: None,
+            fitted: Some(fit),
+        })
     })
 }
 
+/// The candidate with the highest score among `scored` (in their order; `None` scores
+/// left out), the first of equal ones, with what its score came with: the reduction of a
+/// grid scored in parallel, the same at any thread count.
+pub(super) fn best_scored<T, F>(
+    scored: impl IntoIterator<Item = (T, Option<(usize, F)>)>,
+) -> Option<(usize, (T, F))> {
+    let mut best: Option<(usize, (T, F))> = None;
+    for (candidate, score) in scored {
+        let Some((score, fit)) = score else { continue };
+        if best.as_ref().is_none_or(|(b, _)| score > *b) {
+            best = Some((score, (candidate, fit)));
+        }
+    }
+    best
+}
+
 /// The score of a candidate lens of a grid start: the 3D homographies' inliers summed over
-/// the moved views of `chain` (the views under that lens), `None` when the stereo geometry
-/// or a motion cannot be fitted.
-pub(super) fn motion_inliers(chain: &[View], k: &Intrinsics, options: &CalibrateOptions) -> Option<usize> {
+/// the moved views of `chain` (the views under that lens), with the fit it came from (for
+/// [`LensStart::fitted`]); `None` when the stereo geometry or a motion cannot be fitted.
+pub(super) fn grid_fit(
+    chain: &[View],
+    k: &Intrinsics,
+    options: &CalibrateOptions,
+) -> Option<(usize, GridFit)> {
     let stereo = super::rig_stereo::stereo_geometry(chain, k, &options.estimation).ok()?;
     let motions = super::motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, &mut None).ok()?;
-    Some(motions.iter().map(|m| m.report.inliers).sum())
+    let score = motions.iter().map(|m| m.report.inliers).sum();
+    Some((score, GridFit { seed: options.estimation.seed, stereo, motions }))
 }

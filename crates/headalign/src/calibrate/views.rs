@@ -12,11 +12,13 @@
 //! instead), then tracked ([`track_views_reporting`]) and self-calibrated
 //! ([`calibrate_tracked`]) at each corner count. Tracked points
 //! ([`StereoViews::Tracked`], a point-mode session) have no corner density: one
-//! [`super::calibrate_rig`]. Units and thresholds: those of the steps called.
+//! [`super::calibrate_rig`]. The result carries the call's seconds per stage
+//! ([`crate::timing`]). Units and thresholds: those of the steps called.
 
 use std::time::Instant;
 
 use headalign_platform::{Encoders, StereoImages};
+use rayon::prelude::*;
 
 use super::{
     CalibrateOptions, Density, DensityReport, DensityTrial, LensModel, MotionCalibration,
@@ -25,6 +27,7 @@ use super::{
 };
 use crate::error::AlignError;
 use crate::observations::View;
+use crate::timing::StageTimes;
 use crate::tracking::{FrontEndOptions, Tracker};
 
 /// The views to calibrate from.
@@ -109,6 +112,25 @@ pub struct ViewsCalibration {
     pub other_rigs: Vec<String>,
     /// Image size of the views, pixels.
     pub image_size: [u32; 2],
+    /// The seconds and calls per stage of this call ([`crate::timing`]: thread-seconds,
+    /// counted process-wide over the call's span).
+    pub timing: StageTimes,
+    /// The call's wall time, seconds.
+    pub wall_seconds: f64,
+}
+
+impl ViewsCalibration {
+    /// A result with no other rigs and no timing yet ([`calibrate_views`] sets them).
+    fn new(calibration: MotionCalibration, density: Option<DensityReport>, image_size: [u32; 2]) -> Self {
+        Self {
+            calibration,
+            density,
+            other_rigs: Vec::new(),
+            image_size,
+            timing: StageTimes::default(),
+            wall_seconds: 0.0,
+        }
+    }
 }
 
 /// The views of one rig among `views` ([`select_rig`]) and the reasons of the others.
@@ -122,21 +144,23 @@ pub fn one_rig<T: Clone>(
     (rig, choice.left_out.into_iter().map(|(_, why)| why).collect())
 }
 
-/// Each view's own stereo matches (a fresh tracker per view: no matching across views),
-/// for the scene-depth check and the known-intrinsics route.
+/// Each view's own stereo matches (a fresh tracker per view: no matching across views,
+/// the views in parallel), for the scene-depth check and the known-intrinsics route.
 pub fn stereo_only(
     views: &[(String, StereoImages)],
     front: &FrontEndOptions,
 ) -> Result<Vec<View>, AlignError> {
-    views
-        .iter()
+    // The views on their own (in parallel); the first error in the views' order.
+    let own: Vec<Result<View, AlignError>> = views
+        .par_iter()
         .map(|(name, images)| {
             let mut t = Tracker::new(front.clone())?;
             let (capture, _) =
                 t.track(images, name).map_err(|e| e.in_step(&format!("stereo matching of '{name}'")))?;
             Ok(View { name: name.clone(), capture })
         })
-        .collect()
+        .collect();
+    own.into_iter().collect()
 }
 
 /// Self-calibrate a stereo rig from `views` (module docs); `progress` hears each step on
@@ -147,6 +171,7 @@ pub fn calibrate_views(
     progress: &mut dyn FnMut(ViewsProgress),
 ) -> Result<ViewsCalibration, AlignError> {
     options.validate()?;
+    let (t0, before) = (Instant::now(), StageTimes::now());
     let (mut result, other_rigs) = match views {
         StereoViews::Images(images) => {
             let (rig, other_rigs) = one_rig(images, |(n, v)| (n.as_str(), v.encoders));
@@ -162,11 +187,13 @@ pub fn calibrate_views(
                 None => rig,
             };
             let calibration = calibrate_rig(&rig, &options.calibrate)?;
-            (ViewsCalibration { calibration, density: None, other_rigs: Vec::new(), image_size }, other_rigs)
+            (ViewsCalibration::new(calibration, None, image_size), other_rigs)
         }
     };
     result.calibration.report.skipped.splice(0..0, other_rigs.iter().cloned());
     result.other_rigs = other_rigs;
+    result.timing = StageTimes::since(&before);
+    result.wall_seconds = t0.elapsed().as_secs_f64();
     Ok(result)
 }
 
@@ -261,5 +288,5 @@ fn calibrate_images(
     if report.warn {
         cal.report.warnings.push(report.note.clone());
     }
-    Ok(ViewsCalibration { calibration: cal, density: Some(report), other_rigs: Vec::new(), image_size })
+    Ok(ViewsCalibration::new(cal, Some(report), image_size))
 }

@@ -35,6 +35,9 @@
 //! Degrees of freedom and units: those of the adjustment (the model's `xi alpha` per
 //! camera); pixels; degrees for ray angles and fields.
 //!
+//! The grid's lenses and the valley's starts run in parallel (rayon), reduced in their
+//! order: the same result at any thread count.
+//!
 //! Pitfalls: the grid assumes the image's horizontal edge is 50-110 deg off the axis (a
 //! wide lens); a narrow lens calibrated with a wide model has its own, pinhole-plane route
 //! only through `--lens auto`'s refit. The report's `start` names the kept start (`xi
@@ -48,6 +51,7 @@ use headalign_geometry::bundle::{
 };
 use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
+use rayon::prelude::*;
 
 use super::two_pass::LensStart;
 use super::{CalibrateOptions, LensModel, MotionCalibration, calibrate_once_from, with_restarts};
@@ -99,27 +103,39 @@ fn wide_grid_fields() -> impl Iterator<Item = f64> {
 /// conditions the chain and starts the rigid start. `None` if no lens gives every view a
 /// homography.
 fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Option<LensStart> {
-    let rig = super::depth::select_views(views, options).ok()?;
-    let [w, h] = rig.image_size;
-    let guess = Intrinsics::rough_guess(w, h);
-    let d = Distortion::from_params(kind, kind.model().stereographic()?);
-    let mut best: Option<(usize, LensModel)> = None;
-    for phi in wide_grid_fields() {
-        let phi = phi.to_radians();
-        let f = 0.5 * f64::from(w) * (0.5 + 0.5 * phi.cos()) / phi.sin();
-        let lens = LensModel { k: Intrinsics::new(f, f, guess.cx, guess.cy), distortion: d };
-        let start =
-            LensStart { chain: [lens; 2], distortion: [d; 2], max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG) };
-        let chain = start.chain_views(&rig.rig);
-        let Some(score) = super::two_pass::motion_inliers(&chain, &lens.k, options) else { continue };
-        if best.as_ref().is_none_or(|(b, _)| score > *b) {
-            best = Some((score, lens));
-        }
-    }
-    best.map(|(_, lens)| LensStart {
-        chain: [lens; 2],
-        distortion: [lens.distortion; 2],
-        max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
+    crate::timing::time(crate::timing::Stage::LensChoice, || {
+        let rig = super::depth::select_views(views, options).ok()?;
+        let [w, h] = rig.image_size;
+        let guess = Intrinsics::rough_guess(w, h);
+        let d = Distortion::from_params(kind, kind.model().stereographic()?);
+        let lenses: Vec<LensModel> = wide_grid_fields()
+            .map(|phi| {
+                let phi = phi.to_radians();
+                let f = 0.5 * f64::from(w) * (0.5 + 0.5 * phi.cos()) / phi.sin();
+                LensModel { k: Intrinsics::new(f, f, guess.cx, guess.cy), distortion: d }
+            })
+            .collect();
+        // Each lens scored on its own (in parallel), the best taken in the grid's order.
+        let scores: Vec<Option<(usize, super::two_pass::GridFit)>> = lenses
+            .par_iter()
+            .map(|&lens| {
+                crate::timing::time(crate::timing::Stage::LensChoice, || {
+                    let start = LensStart {
+                        chain: [lens; 2],
+                        distortion: [lens.distortion; 2],
+                        max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
+                        fitted: None,
+                    };
+                    super::two_pass::grid_fit(&start.chain_views(&rig.rig), &lens.k, options)
+                })
+            })
+            .collect();
+        super::two_pass::best_scored(lenses.into_iter().zip(scores)).map(|(_, (lens, fit))| LensStart {
+            chain: [lens; 2],
+            distortion: [lens.distortion; 2],
+            max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
+            fitted: Some(fit),
+        })
     })
 }
 
@@ -173,18 +189,28 @@ fn choose_along_valley(
         return run;
     }
     let gate = options.estimation.reselect_sigmas * run.report.sigma_px.max(0.05);
+    // Each start adjusted on its own (in parallel), the lowest cost taken in their order.
+    let xis: Vec<Option<f64>> = std::iter::once(None).chain(wide_xi_starts().map(Some)).collect();
+    let candidates: Vec<Option<Candidate>> = xis
+        .par_iter()
+        .map(|&xi| {
+            crate::timing::time(crate::timing::Stage::Adjustment, || {
+                let mut start = run.bundle.state.clone();
+                if let Some(xi) = xi {
+                    for (k, d) in [
+                        (&mut start.left, &mut start.left_distortion),
+                        (&mut start.right, &mut start.right_distortion),
+                    ] {
+                        (*k, *d) = along_valley(k, d, xi);
+                    }
+                }
+                candidate(start, &run, rig, options)
+            })
+        })
+        .collect();
     let mut best: Option<(f64, Candidate)> = None;
-    for xi in std::iter::once(None).chain(wide_xi_starts().map(Some)) {
-        let mut start = run.bundle.state.clone();
-        if let Some(xi) = xi {
-            for (k, d) in [
-                (&mut start.left, &mut start.left_distortion),
-                (&mut start.right, &mut start.right_distortion),
-            ] {
-                (*k, *d) = along_valley(k, d, xi);
-            }
-        }
-        let Some(mut c) = candidate(start, &run, rig, options) else { continue };
+    for (xi, c) in xis.into_iter().zip(candidates) {
+        let Some(mut c) = c else { continue };
         c.scanned = xi.is_some();
         let cost = common_cost(&c, &run.observations, WIDE_GATE * gate);
         if cost.is_finite() && best.as_ref().is_none_or(|(b, _)| cost < *b) {
