@@ -57,7 +57,6 @@
 //!   linearisation is only indicative (the warning stands).
 
 use headalign_geometry::bundle::{BundleResult, tangent_basis};
-use headalign_geometry::distortion::SLOT_NAMES;
 use headalign_geometry::so3;
 use headalign_platform::StereoImages;
 use nalgebra::{Matrix2, Rotation3};
@@ -264,10 +263,11 @@ fn differences(a: &BundleResult, b: &BundleResult) -> (Vec<Difference>, Vec<Stri
             ));
             continue;
         }
-        for (i, slot) in SLOT_NAMES.iter().enumerate() {
-            let name = format!("{side}.{slot}");
+        let (pa, pb) = (da.params(), db.params());
+        for (i, param) in da.kind.coefficient_names().iter().enumerate() {
+            let name = format!("{side}.{param}");
             if let [Some(s1), Some(s2)] = sig(&name) {
-                out.push(difference(name, "", da.slots()[i], db.slots()[i], [s1, s2]));
+                out.push(difference(name, "", pa[i], pb[i], [s1, s2]));
             }
         }
     }
