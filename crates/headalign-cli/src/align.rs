@@ -215,7 +215,6 @@ fn read_align_views(args: &AlignArgs) -> Result<AlignViews> {
     }
 }
 
-
 /// What `align` estimated from a session.
 struct AlignEstimate {
     /// The model-fit checks (image sessions only).

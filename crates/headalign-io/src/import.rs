@@ -304,16 +304,16 @@ mod tests {
     }
 
     fn lenses() -> Vec<[Distortion; 2]> {
-        let radtan =
-            Distortion::from_params(LensKind::RadialTangential, [-0.2834, 0.07396, 0.000194, 1.76e-5, 0.0, 0.0]);
-        let with_k3 =
-            Distortion::from_params(LensKind::RadialTangential, [-0.2834, 0.07396, 0.000194, 1.76e-5, 0.01, 0.0]);
+        let radtan = Distortion::from_params(
+            LensKind::RadialTangential,
+            [-0.2834, 0.07396, 0.000194, 1.76e-5, 0.0, 0.0],
+        );
+        let with_k3 = Distortion::from_params(
+            LensKind::RadialTangential,
+            [-0.2834, 0.07396, 0.000194, 1.76e-5, 0.01, 0.0],
+        );
         let equi = Distortion::equidistant([0.01, -0.002, 0.0003, -4e-5]);
-        vec![
-            [radtan, with_k3],
-            [equi, radtan],
-            [Distortion::zero(LensKind::RadialTangential); 2],
-        ]
+        vec![[radtan, with_k3], [equi, radtan], [Distortion::zero(LensKind::RadialTangential); 2]]
     }
 
     /// Poses agree to 1e-15 (the quaternion's round trip through a matrix).

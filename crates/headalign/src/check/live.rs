@@ -185,8 +185,15 @@ mod tests {
             unit: TranslationUnit::Metres,
             distortion: Default::default(),
         };
-        let e = check_live_head(&mut head, &given, &LiveCheckOptions::default()).unwrap_err().to_string();
-        assert!(e.contains("pan+3") && e.contains("camera unplugged"), "{e}");
+        let e = check_live_head(&mut head, &given, &LiveCheckOptions::default()).unwrap_err();
+        // The step names the view; the device's words are its cause.
+        let mut text = e.to_string();
+        let mut cause = std::error::Error::source(&e);
+        while let Some(c) = cause {
+            text.push_str(&format!(": {c}"));
+            cause = c.source();
+        }
+        assert!(text.contains("pan+3") && text.contains("camera unplugged"), "{text}");
         assert_eq!(head.at, start);
     }
 
