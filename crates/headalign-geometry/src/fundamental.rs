@@ -614,8 +614,14 @@ struct SoaMatches {
 
 impl SoaMatches {
     fn gather(data: &[(Point2<f64>, Point2<f64>)], indices: &[usize]) -> Self {
-        let coordinate = |c: fn(&(Point2<f64>, Point2<f64>)) -> f64| indices.iter().map(|&i| c(&data[i])).collect();
-        Self { lx: coordinate(|d| d.0.x), ly: coordinate(|d| d.0.y), rx: coordinate(|d| d.1.x), ry: coordinate(|d| d.1.y) }
+        let coordinate =
+            |c: fn(&(Point2<f64>, Point2<f64>)) -> f64| indices.iter().map(|&i| c(&data[i])).collect();
+        Self {
+            lx: coordinate(|d| d.0.x),
+            ly: coordinate(|d| d.0.y),
+            rx: coordinate(|d| d.1.x),
+            ry: coordinate(|d| d.1.y),
+        }
     }
 
     /// Number of matches with [`FundamentalMatrix::sampson_distance`] `<= tol`: the same
@@ -623,8 +629,17 @@ impl SoaMatches {
     /// to right), branch-free, so the count is the same bit for bit.
     fn within_sampson(&self, f: &FundamentalMatrix, tol: f64) -> usize {
         let m = &f.0;
-        let (f00, f01, f02, f10, f11, f12, f20, f21, f22) =
-            (m[(0, 0)], m[(0, 1)], m[(0, 2)], m[(1, 0)], m[(1, 1)], m[(1, 2)], m[(2, 0)], m[(2, 1)], m[(2, 2)]);
+        let (f00, f01, f02, f10, f11, f12, f20, f21, f22) = (
+            m[(0, 0)],
+            m[(0, 1)],
+            m[(0, 2)],
+            m[(1, 0)],
+            m[(1, 1)],
+            m[(1, 2)],
+            m[(2, 0)],
+            m[(2, 1)],
+            m[(2, 2)],
+        );
         let zero_is_within = 0.0 <= tol;
         let mut count = 0;
         for (((&x, &y), &u), &v) in self.lx.iter().zip(&self.ly).zip(&self.rx).zip(&self.ry) {
@@ -674,7 +689,8 @@ impl FundamentalEstimator {
     ) -> Option<Vec<usize>> {
         let tol = self.plane_threshold_px;
         let on_plane = |h: &Matrix3<f64>, i: usize| transfer_error(h, &data[i].0, &data[i].1) <= tol;
-        let on = |h: &Matrix3<f64>| -> Vec<usize> { sample.iter().copied().filter(|&i| on_plane(h, i)).collect() };
+        let on =
+            |h: &Matrix3<f64>| -> Vec<usize> { sample.iter().copied().filter(|&i| on_plane(h, i)).collect() };
         if models.is_empty() {
             let pairs: Vec<_> = sample.iter().map(|&i| data[i]).collect();
             let h = crate::homography2d::Homography2::dlt(&pairs).ok()?;
