@@ -209,7 +209,7 @@ fn null_space_7x9(mut a: [[f64; 9]; 7]) -> Result<[[f64; 9]; 2]> {
             }
         }
     }
-    if !(r_diag[6].abs() > RANK_TOL_7 * r_diag[0].abs()) {
+    if r_diag[6].is_nan() || r_diag[6].abs() <= RANK_TOL_7 * r_diag[0].abs() {
         return Err(GeometryError::Degenerate("7-point system has a null space of dimension > 2".into()));
     }
     // Q e_7 and Q e_8: apply H_6, ..., H_0 to the unit vectors.
