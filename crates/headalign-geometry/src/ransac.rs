@@ -176,6 +176,16 @@ fn score<E: Estimator>(estimator: &E, model: &E::Model, data: &[E::Datum], thres
     Score { cost, inliers, sum_sq }
 }
 
+/// The MSAC cost of [`score`] alone (the same sum in the same order, so bit-identical),
+/// without collecting the inliers: most sample models are rejected on it.
+fn msac_cost<E: Estimator>(estimator: &E, model: &E::Model, data: &[E::Datum], threshold: f64) -> f64 {
+    let t2 = threshold * threshold;
+    data.iter().fold(0.0, |cost, d| {
+        let r = estimator.residual(model, d).abs();
+        if r.is_finite() && r <= threshold { cost + r * r } else { cost + t2 }
+    })
+}
+
 /// Draw `k` distinct indices uniformly from `0..n` (requires `k <= n`): rejection of
 /// repeats, cheap for the small `k` of minimal samples.
 fn sample_indices(rng: &mut ChaCha8Rng, n: usize, k: usize, out: &mut Vec<usize>) {
@@ -259,13 +269,13 @@ pub fn ransac<E: Estimator>(
         iterations += 1;
         sample_indices(&mut rng, n, s, &mut sample);
         for model in estimator.fit_minimal(data, &sample) {
-            let sc = score(estimator, &model, data, threshold);
             // Local optimisation runs whenever a sample's model beats the best *sample*
             // model so far: comparing it with the polished best would never polish a
             // model from another, better basin whose raw sample is a little worse.
-            if sc.cost >= best_raw_cost {
+            if msac_cost(estimator, &model, data, threshold) >= best_raw_cost {
                 continue;
             }
+            let sc = score(estimator, &model, data, threshold);
             best_raw_cost = sc.cost;
             let (model, sc) = if options.local_optimization {
                 local_optimize(estimator, data, threshold, model, sc)
