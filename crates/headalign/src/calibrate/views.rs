@@ -160,7 +160,7 @@ pub fn stereo_only(
 /// [`stereo_only`], also keeping what the tracking of the same views with the same front
 /// end can take from it ([`OwnMatching`]: each view's corners and stereo matches, and the
 /// first view's tracking).
-fn stereo_only_keeping(
+pub(super) fn stereo_only_keeping(
     views: &[(String, StereoImages)],
     front: &FrontEndOptions,
 ) -> Result<(Vec<View>, OwnMatching), AlignError> {
