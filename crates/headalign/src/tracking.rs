@@ -118,7 +118,7 @@ pub enum TrackingMode {
 }
 
 /// Options of the [`Tracker`].
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct FrontEndOptions {
     /// Corner detection and description (default: the vision crate's defaults, 1500
     /// corners per image).
@@ -188,6 +188,19 @@ impl Default for FrontEndOptions {
 }
 
 impl FrontEndOptions {
+    /// True if trackers with `self` and with `other` find the same [`StereoCorners`] in
+    /// the same images without a stereo prior (module docs, steps 1-2): the same corner
+    /// detection, descriptor matching, stereo RANSAC, epipolar band and fewest matches
+    /// (the tracking mode, the temporal and drive matching and the refinement do not
+    /// enter them).
+    pub fn detects_like(&self, other: &Self) -> bool {
+        self.features == other.features
+            && self.matching == other.matching
+            && self.stereo == other.stereo
+            && self.epipolar_band_px == other.epipolar_band_px
+            && self.min_matches == other.min_matches
+    }
+
     /// Check every option.
     pub fn validate(&self) -> Result<(), AlignError> {
         let bad = |m: String| Err(AlignError::InvalidOption(m));
@@ -653,54 +666,106 @@ impl Tracker {
         stereo_prior: Option<&Matrix3<f64>>,
     ) -> Result<(StereoCapture, ViewTracking), AlignError> {
         crate::timing::time(crate::timing::Stage::FrontEnd, || {
-            let o = &self.options;
-            // The two images' corners on their own (in parallel).
-            let (left, right) = rayon::join(
-                || detect_and_describe(&images.left, &o.features),
-                || detect_and_describe(&images.right, &o.features),
-            );
-            let left = left.map_err(vision("left image"))?;
-            let right = right.map_err(vision("right image"))?;
-            let stereo = self.stereo(&left, &right, view, stereo_prior)?;
-            let mut report = ViewTracking {
-                corners: [left.len(), right.len()],
-                stereo_matches: stereo.len(),
-                ..ViewTracking::default()
-            };
-            let mut corners = ViewCorners::new(left, right, stereo);
-            // Track ids (module docs, step 4): fresh for the first view, else inherited.
-            self.next_id = match &self.reference {
-                None => first_view_ids(self.next_id, &mut corners),
-                Some(r) if o.mode == TrackingMode::Previous => {
-                    self.ids_across_drive(r, &mut corners, &mut report)
-                }
-                Some(r) => self.ids_from_reference(r, &mut corners, view, &mut report)?,
-            };
-            if let Some(ro) = &o.refine {
-                self.refine_view(ro, images, &mut corners, &mut report);
-            }
-            let capture = corners.capture(images);
-            report.observations = [capture.left.len(), capture.right.len()];
-            let earlier = self.reference.as_ref().map(|r| r.name.as_str());
-            report.localisation = corners.localisation(view, earlier);
-            if self.reference.is_none() || self.options.mode == TrackingMode::Previous {
-                let ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var, .. } =
-                    corners;
-                self.reference = Some(Reference {
-                    left,
-                    right,
-                    left_ids,
-                    right_ids,
-                    stereo,
-                    left_var,
-                    right_var,
-                    name: view.to_string(),
-                    left_image: images.left.clone(),
-                    right_image: images.right.clone(),
-                });
-            }
-            Ok((capture, report))
+            let corners = self.detect(images, view, stereo_prior)?;
+            self.track_detected(images, view, corners)
         })
+    }
+
+    /// [`Self::track`] that also hands back the view's [`StereoCorners`] (as detected and
+    /// stereo-matched, before track ids and patch refinement), so that another tracker
+    /// whose options detect alike ([`FrontEndOptions::detects_like`]) can track the same
+    /// images from them ([`Self::track_corners`]) instead of detecting again.
+    pub fn track_keeping_corners(
+        &mut self,
+        images: &StereoImages,
+        view: &str,
+    ) -> Result<(StereoCapture, ViewTracking, StereoCorners), AlignError> {
+        crate::timing::time(crate::timing::Stage::FrontEnd, || {
+            let corners = self.detect(images, view, None)?;
+            let (capture, report) = self.track_detected(images, view, corners.clone())?;
+            Ok((capture, report, corners))
+        })
+    }
+
+    /// [`Self::track`] from the view's corners and stereo matches as another tracker
+    /// detected them in the same images ([`Self::track_keeping_corners`]; its options must
+    /// detect like this tracker's, [`FrontEndOptions::detects_like`]): the same result as
+    /// [`Self::track`], without detecting again.
+    pub fn track_corners(
+        &mut self,
+        images: &StereoImages,
+        view: &str,
+        corners: StereoCorners,
+    ) -> Result<(StereoCapture, ViewTracking), AlignError> {
+        crate::timing::time(crate::timing::Stage::FrontEnd, || self.track_detected(images, view, corners))
+    }
+
+    /// Steps 1-2 of the module docs for one view: both images' corners (in parallel) and
+    /// their stereo matches.
+    fn detect(
+        &self,
+        images: &StereoImages,
+        view: &str,
+        stereo_prior: Option<&Matrix3<f64>>,
+    ) -> Result<StereoCorners, AlignError> {
+        let o = &self.options;
+        let (left, right) = rayon::join(
+            || detect_and_describe(&images.left, &o.features),
+            || detect_and_describe(&images.right, &o.features),
+        );
+        let left = left.map_err(vision("left image"))?;
+        let right = right.map_err(vision("right image"))?;
+        let stereo = self.stereo(&left, &right, view, stereo_prior)?;
+        Ok(StereoCorners { left, right, stereo })
+    }
+
+    /// Steps 3-5 of the module docs for one view from its [`StereoCorners`]: track ids,
+    /// patch refinement, the capture and the report; the first view (and every view in
+    /// [`TrackingMode::Previous`]) becomes the reference.
+    fn track_detected(
+        &mut self,
+        images: &StereoImages,
+        view: &str,
+        detected: StereoCorners,
+    ) -> Result<(StereoCapture, ViewTracking), AlignError> {
+        let StereoCorners { left, right, stereo } = detected;
+        let mut report = ViewTracking {
+            corners: [left.len(), right.len()],
+            stereo_matches: stereo.len(),
+            ..ViewTracking::default()
+        };
+        let mut corners = ViewCorners::new(left, right, stereo);
+        // Track ids (module docs, step 4): fresh for the first view, else inherited.
+        self.next_id = match &self.reference {
+            None => first_view_ids(self.next_id, &mut corners),
+            Some(r) if self.options.mode == TrackingMode::Previous => {
+                self.ids_across_drive(r, &mut corners, &mut report)
+            }
+            Some(r) => self.ids_from_reference(r, &mut corners, view, &mut report)?,
+        };
+        if let Some(ro) = &self.options.refine {
+            self.refine_view(ro, images, &mut corners, &mut report);
+        }
+        let capture = corners.capture(images);
+        report.observations = [capture.left.len(), capture.right.len()];
+        let earlier = self.reference.as_ref().map(|r| r.name.as_str());
+        report.localisation = corners.localisation(view, earlier);
+        if self.reference.is_none() || self.options.mode == TrackingMode::Previous {
+            let ViewCorners { left, right, stereo, left_ids, right_ids, left_var, right_var, .. } = corners;
+            self.reference = Some(Reference {
+                left,
+                right,
+                left_ids,
+                right_ids,
+                stereo,
+                left_var,
+                right_var,
+                name: view.to_string(),
+                left_image: images.left.clone(),
+                right_image: images.right.clone(),
+            });
+        }
+        Ok((capture, report))
     }
 
     /// [`TrackingMode::Previous`] (module docs): the track ids of a view after a drive.
@@ -885,6 +950,16 @@ impl Tracker {
         }
         report.alignment_sigma_px = sigmas.map(median);
     }
+}
+
+/// One view's corners in both images and their stereo matches `(left index, right index)`,
+/// as detected (module docs, steps 1-2), before track ids and patch refinement
+/// ([`Tracker::track_keeping_corners`], [`Tracker::track_corners`]).
+#[derive(Debug, Clone)]
+pub struct StereoCorners {
+    left: Features,
+    right: Features,
+    stereo: Vec<(usize, usize)>,
 }
 
 /// One view's corners while they are tracked: both images' features, the stereo pairs

@@ -2,9 +2,13 @@
 //! ([`BASE_LENS`]), the criterion of [`crate::rig::lens_choice`] on its observations, and
 //! the chosen model's own run (that module's docs: what it computes, degrees of freedom,
 //! units, pitfalls). A sequence's refits hold its segment gauges as its adjustment does.
+//! On the reference route the chosen model's run takes the radial-tangential run's F,
+//! frame and 3D homographies of the captured pixels (`super::fits`: they do not depend on
+//! the lens model) instead of fitting them again.
 
 use headalign_geometry::bundle::{BundleOptions, RigState};
 
+use super::fits::ChainFits;
 use super::two_pass::calibrate_two_pass;
 use super::{CalibrateOptions, MotionCalibration, calibrate_once_from, with_restarts};
 use crate::error::AlignError;
@@ -16,10 +20,13 @@ pub(super) fn calibrate_choosing_lens(
     views: &[View],
     options: &CalibrateOptions,
 ) -> Result<MotionCalibration, AlignError> {
+    // The runs' steps 2-3 on the captured pixels do not depend on the lens model: the
+    // chosen model's run takes the radial-tangential run's (`fits` module docs).
+    let fits = ChainFits::default();
     let from_refit = |o: &CalibrateOptions, state: &RigState| {
-        with_restarts(o, |o, seeded| calibrate_once_from(views, o, seeded, None, Some(state)))
+        with_restarts(o, |o, seeded| calibrate_once_from(views, o, seeded, None, Some(state), Some(&fits)))
     };
-    choose_lens(options, |o| calibrate_two_pass(views, o), Some(&from_refit))
+    choose_lens(options, |o| calibrate_two_pass(views, o, Some(&fits)), Some(&from_refit))
 }
 
 /// A chain from a start: the chosen model's run with the refitted candidate as a start of

@@ -81,7 +81,8 @@
 //! `two_pass` (the start of a lens estimate when the chain fails), `lens_auto`
 //! ([`LensChoice::Auto`] over either chain), `fit_checks` (the residual structure and
 //! image-noise checks applied to a calibration), `lens_sigmas` (the bootstrap of the lens
-//! and focal sigmas), `density` (the corner density of self-calibration from images); the
+//! and focal sigmas), `density` (the corner density of self-calibration from images),
+//! `fits` (steps 2-3 fitted once when runs of several lens models repeat them); the
 //! lens models, their choice and the checks themselves are [`crate::rig`]'s, shared with
 //! the verge/tilt route;
 //! `calibrate_once` chains them; `views` is the one entry point for a list of stereo
@@ -93,6 +94,7 @@ mod bundle_starts;
 mod density;
 mod depth;
 mod fit_checks;
+mod fits;
 mod graph;
 mod lens_auto;
 pub mod lens_sigmas;
@@ -371,7 +373,7 @@ pub fn calibrate_rig(views: &[View], options: &CalibrateOptions) -> Result<Motio
     let mut result = if options.lens == LensChoice::Auto {
         lens_auto::calibrate_choosing_lens(views, options)?
     } else {
-        two_pass::calibrate_two_pass(views, options)?
+        two_pass::calibrate_two_pass(views, options, None)?
     };
     widen_lens_sigmas(&mut result, options);
     fit_checks::check_and_widen(&mut result);
@@ -474,19 +476,21 @@ fn calibrate_once(
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
 ) -> Result<MotionCalibration, AlignError> {
-    calibrate_once_from(views, options, seeded, None, None)
+    calibrate_once_from(views, options, seeded, None, None, None)
 }
 
 /// [`calibrate_once`] with an optional lens start ([`two_pass`]): steps 2-4 then run on
 /// the rig views' pixels undistorted by its lenses, the adjustment on the original pixels
-/// from starts that carry its distortion; and an optional third start of the adjustment,
-/// another run's result `other` (its cameras, lenses and motions; [`two_pass`]).
+/// from starts that carry its distortion; an optional third start of the adjustment,
+/// another run's result `other` (its cameras, lenses and motions; [`two_pass`]); and the
+/// steps 2-3 other runs on the same views fitted (`fits`, [`fits`]).
 fn calibrate_once_from(
     views: &[View],
     options: &CalibrateOptions,
     seeded: &mut Option<Seeded>,
     lens_start: Option<&two_pass::LensStart>,
     other: Option<&headalign_geometry::bundle::RigState>,
+    fits: Option<&fits::ChainFits>,
 ) -> Result<MotionCalibration, AlignError> {
     // 1. The views of the rig.
     let depth::RigViews { rig, skipped, planarity, image_size } = depth::select_views(views, options)?;
@@ -495,20 +499,9 @@ fn calibrate_once_from(
     // guess for the narrow models' grid, the grid lens's own K for a wide model).
     let k0 = lens_start.map_or_else(|| Intrinsics::rough_guess(w, h), |l| l.chain[0].k);
     let est = &options.estimation;
-    // 2-3. F from all views, frame, triangulation; 3D homographies from the reference (or
-    // those the lens grid fitted with this seed under the lens start: the same inputs).
-    let fitted;
-    let (stereo, motions) = match lens_start.and_then(|l| l.fitted.as_ref()).filter(|f| f.seed == est.seed) {
-        Some(f) => (&f.stereo, f.motions.as_slice()),
-        None => {
-            let chain_rig = lens_start.map(|l| l.chain_views(&rig));
-            let chain: &[View] = chain_rig.as_deref().unwrap_or(&rig);
-            let stereo = rig_stereo::stereo_geometry(chain, &k0, est)?;
-            let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
-            fitted = (stereo, motions);
-            (&fitted.0, fitted.1.as_slice())
-        }
-    };
+    // 2-3. F from all views, frame, triangulation; 3D homographies from the reference.
+    let fitted = fit_stereo_motions(&rig, &k0, options, seeded, lens_start, fits)?;
+    let (stereo, motions) = (&fitted.stereo, fitted.motions.as_slice());
     // The point set and the observations (as in estimate).
     let points = bundle_starts::point_set(&rig, &stereo.recon, motions);
     let problem = bundle_starts::Problem {
@@ -568,4 +561,33 @@ fn calibrate_once_from(
         image_size: [w, h],
         report,
     })
+}
+
+/// Steps 2-3 of [`calibrate_once_from`] on the rig views `rig` conditioned by `k0`: those
+/// the lens grid fitted with this seed under the lens start, or (no lens start) those
+/// another run on the same views fitted with the same inputs (`fits`), or fitted here (on
+/// the pixels undistorted by the lens start's lenses, if any).
+fn fit_stereo_motions(
+    rig: &[View],
+    k0: &Intrinsics,
+    options: &CalibrateOptions,
+    seeded: &mut Option<Seeded>,
+    lens_start: Option<&two_pass::LensStart>,
+    fits: Option<&fits::ChainFits>,
+) -> Result<std::sync::Arc<two_pass::GridFit>, AlignError> {
+    let est = &options.estimation;
+    if let Some(f) = lens_start.and_then(|l| l.fitted.as_ref()).filter(|f| f.seed == est.seed) {
+        return Ok(f.clone());
+    }
+    let mut fit = || {
+        let chain_rig = lens_start.map(|l| l.chain_views(rig));
+        let chain: &[View] = chain_rig.as_deref().unwrap_or(rig);
+        let stereo = rig_stereo::stereo_geometry(chain, k0, est)?;
+        let motions = motion::fit_motions(chain, &stereo.recon, &stereo.frame, options, seeded)?;
+        Ok(two_pass::GridFit { seed: est.seed, stereo, motions })
+    };
+    match fits.filter(|_| lens_start.is_none()) {
+        Some(kept) => kept.get_or_fit(fits::FitKey::of(options, k0), fit),
+        None => fit().map(std::sync::Arc::new),
+    }
 }

@@ -17,7 +17,10 @@
 //!
 //! The reference attempt stops at the first view that does not overlap the first, so a
 //! sequence pays for the tracking of the views before it twice (bounded by
-//! [`REFERENCE_ROUTE_MAX_VIEWS`]). Units: track counts. Pitfalls: tracking against the
+//! [`REFERENCE_ROUTE_MAX_VIEWS`]). When the views' own stereo matching has run already
+//! (the scene-depth check of [`super::calibrate_views`]) with a front end that detects
+//! alike, the reference attempt takes each view's corners and stereo matches from it, and
+//! the first view's tracking ([`OwnMatching`]): the same tracks as detecting again. Units: track counts. Pitfalls: tracking against the
 //! first view can return a few wrong tracks for a view that shows another place; the
 //! threshold is the reference chain's minimum, so such a view either calibrates on that
 //! route as it always did or goes to the sequence route.
@@ -25,7 +28,7 @@
 //! [`TrackingMode::Reference`]: crate::tracking::TrackingMode::Reference
 //! [`TrackingMode::Previous`]: crate::tracking::TrackingMode::Previous
 
-use headalign_platform::StereoImages;
+use headalign_platform::{StereoCapture, StereoImages};
 use serde::Serialize;
 
 use super::graph::ViewTracks;
@@ -35,7 +38,7 @@ use super::{
 };
 use crate::error::AlignError;
 use crate::observations::View;
-use crate::tracking::{FrontEndOptions, Tracker, TrackingMode, ViewTracking};
+use crate::tracking::{FrontEndOptions, StereoCorners, Tracker, TrackingMode, ViewTracking};
 
 /// Folders of more views than this are tracked as sequences whatever their overlap
 /// (module docs): the reference chain adjusts every view, and matching every view to the
@@ -138,11 +141,75 @@ pub fn track_views_reporting(
     options: &CalibrateOptions,
     progress: &mut dyn FnMut(TrackingProgress),
 ) -> Result<TrackedViews, AlignError> {
+    track_views_sharing(images, front, options, None, progress)
+}
+
+/// The views' own stereo matching as the scene-depth check ran it
+/// (`views::stereo_only`): the front end it ran with, each view's corners and stereo
+/// matches, and the first view's tracking (the tracker after it, its capture and report).
+/// The reference tracking of the same views with a front end that detects alike
+/// ([`FrontEndOptions::detects_like`]) takes them instead of detecting again: the same
+/// inputs, the same tracks.
+pub(super) struct OwnMatching {
+    pub(super) front: FrontEndOptions,
+    pub(super) names: Vec<String>,
+    pub(super) corners: Vec<StereoCorners>,
+    pub(super) first: Option<(Tracker, StereoCapture, ViewTracking)>,
+}
+
+impl OwnMatching {
+    /// The matching of `images` if it is theirs and `front` (the reference tracking's)
+    /// detects like the one it ran with.
+    fn of<'a>(
+        own: Option<&'a Self>,
+        images: &[(String, StereoImages)],
+        front: &FrontEndOptions,
+    ) -> Option<&'a Self> {
+        own.filter(|o| {
+            o.front.detects_like(front)
+                && o.names.len() == images.len()
+                && o.names.iter().zip(images).all(|(n, (name, _))| n == name)
+        })
+    }
+
+    /// View `i` tracked by `tracker` (a tracker with options `front` that has tracked
+    /// views `0..i`) from the kept matching: the first view's tracking itself when its
+    /// tracker ran with the same options, else the view's corners tracked anew.
+    fn track(
+        &self,
+        tracker: &mut Tracker,
+        front: &FrontEndOptions,
+        i: usize,
+        images: &StereoImages,
+        name: &str,
+    ) -> Result<(StereoCapture, ViewTracking), AlignError> {
+        match &self.first {
+            Some((first, capture, report)) if i == 0 && self.front == *front => {
+                *tracker = first.clone();
+                Ok((capture.clone(), report.clone()))
+            }
+            _ => match self.corners.get(i) {
+                Some(c) => tracker.track_corners(images, name, c.clone()),
+                None => tracker.track(images, name),
+            },
+        }
+    }
+}
+
+/// [`track_views_reporting`], the reference tracking taking the views' own stereo
+/// matching `own` where it applies ([`OwnMatching`]).
+pub(super) fn track_views_sharing(
+    images: &[(String, StereoImages)],
+    front: &FrontEndOptions,
+    options: &CalibrateOptions,
+    own: Option<&OwnMatching>,
+    progress: &mut dyn FnMut(TrackingProgress),
+) -> Result<TrackedViews, AlignError> {
     let mut notes = Vec::new();
     let total = images.len();
     if images.len() <= REFERENCE_ROUTE_MAX_VIEWS {
         let mut on_view = |done| progress(TrackingProgress { route: Route::Reference, done, total });
-        match against_first(images, front, options.estimation.min_tracks, &mut on_view)? {
+        match against_first(images, front, options.estimation.min_tracks, own, &mut on_view)? {
             Ok(tracked) => return Ok(tracked),
             Err(why) => notes.push(why),
         }
@@ -175,13 +242,20 @@ fn against_first(
     images: &[(String, StereoImages)],
     front: &FrontEndOptions,
     min_tracks: usize,
+    own: Option<&OwnMatching>,
     on_view: &mut dyn FnMut(usize),
 ) -> Result<Result<TrackedViews, String>, AlignError> {
-    let mut tracker = Tracker::new(FrontEndOptions { mode: TrackingMode::Reference, ..front.clone() })?;
+    let front = FrontEndOptions { mode: TrackingMode::Reference, ..front.clone() };
+    let own = OwnMatching::of(own, images, &front);
+    let mut tracker = Tracker::new(front.clone())?;
     let (mut views, mut tracking): (Vec<View>, Vec<ViewTracking>) = (Vec::new(), Vec::new());
     let mut first: Option<ViewTracks> = None;
-    for (name, pair) in images {
-        let (capture, report) = match tracker.track(pair, name) {
+    for (i, (name, pair)) in images.iter().enumerate() {
+        let tracked = match own {
+            Some(o) => o.track(&mut tracker, &front, i, pair, name),
+            None => tracker.track(pair, name),
+        };
+        let (capture, report) = match tracked {
             Ok(t) => t,
             Err(e) if first.is_some() => {
                 return Ok(Err(format!("'{name}' does not track against the first view ({e}): a sequence")));

@@ -1063,3 +1063,44 @@ fn the_result_is_the_same_at_any_thread_count() {
     assert!(one.2 == two.2, "observations differ");
     assert!(one.3 == two.3, "reports differ:\n{}\n{}", one.3, two.3);
 }
+
+/// The reference tracking that takes the depth check's corners, stereo matches and first
+/// view (`route::OwnMatching`) gives exactly the tracks, pixels and reports of tracking
+/// from the images alone (the same detector settings find the same corners), and a front
+/// end that detects otherwise (another corner count) does not take them.
+#[test]
+fn tracking_from_the_depth_checks_matching_is_tracking_anew() {
+    use headalign_platform::ImagingHead;
+    let mut head =
+        SimulatedHead::new(Scenario { seed: 3, rotation_deg: 3.0, ..Scenario::default() }).unwrap();
+    let e0 = head.encoders();
+    let images: Vec<(String, headalign_platform::StereoImages)> =
+        [("initial", e0), ("elevation", e0.moved(Joint::Elevation, 3.0)), ("pan", e0.moved(Joint::Pan, 3.0))]
+            .into_iter()
+            .map(|(name, enc)| {
+                head.move_to(&enc).unwrap();
+                (name.to_string(), head.capture_images().unwrap())
+            })
+            .collect();
+    let front = crate::tracking::FrontEndOptions::default();
+    let options = CalibrateOptions::default();
+    let (own, kept) = views::stereo_only_keeping(&images, &front).unwrap();
+    assert_eq!(own.len(), images.len());
+    let anew = track_views(&images, &front, &options).unwrap();
+    let shared = route::track_views_sharing(&images, &front, &options, Some(&kept), &mut |_| {}).unwrap();
+    assert_eq!(anew.route, Route::Reference);
+    assert_eq!(anew.views, shared.views);
+    assert_eq!(anew.tracking.len(), shared.tracking.len());
+    for (a, b) in anew.tracking.iter().zip(&shared.tracking) {
+        // The localisation maps compared as maps (their Debug order is the hasher's).
+        assert_eq!(a.localisation, b.localisation);
+        let without = |t: &crate::tracking::ViewTracking| {
+            format!("{:?}", crate::tracking::ViewTracking { localisation: Default::default(), ..t.clone() })
+        };
+        assert_eq!(without(a), without(b));
+    }
+    assert_eq!(own[0], shared.views[0]);
+    let mut denser = front.clone();
+    denser.features.max_features = 2 * front.features.max_features;
+    assert!(!kept.front.detects_like(&denser));
+}

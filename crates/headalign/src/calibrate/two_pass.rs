@@ -65,6 +65,7 @@ use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::{Distortion, LensKind};
 use rayon::prelude::*;
 
+use super::fits::ChainFits;
 use super::motion::ViewMotion;
 use super::rig_stereo::StereoGeometry;
 use super::{
@@ -93,7 +94,7 @@ pub(super) struct LensStart {
     /// The stereo geometry and 3D homographies the grid fitted under [`Self::chain`] with
     /// the estimation seed it holds: the run with that seed takes them instead of fitting
     /// them again (the same inputs give the same result); `None`: fitted by the run.
-    pub(super) fitted: Option<GridFit>,
+    pub(super) fitted: Option<std::sync::Arc<GridFit>>,
 }
 
 /// What the lens grid fitted under its winning lens (steps 2-3 of the chain), for the run
@@ -159,9 +160,12 @@ pub(super) fn original_pixels(recon: &[Reconstruction], rig: &[View]) -> Vec<Rec
 }
 
 /// Steps 1-3 of the module docs; the pinhole is [`calibrate_with_restarts`] unchanged.
+/// The first estimate's steps 2-3 are taken from `fits` when another run on the same
+/// views fitted them with the same inputs ([`super::fits`]).
 pub(super) fn calibrate_two_pass(
     views: &[View],
     options: &CalibrateOptions,
+    fits: Option<&ChainFits>,
 ) -> Result<MotionCalibration, AlignError> {
     let Some(kind) = options.lens.kind() else {
         return calibrate_with_restarts(views, options);
@@ -171,14 +175,14 @@ pub(super) fn calibrate_two_pass(
     }
     // The run on pixels undistorted by the grid's lens (steps 2-3).
     let second = grid_start(views, options, kind).map(|start| {
-        with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, Some(&start), None))
+        with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, Some(&start), None, None))
     });
     // The first estimate, its adjustment also started from the second run's result.
     let other = match &second {
         Some(Ok(c)) if plausible(c) => Some(&c.bundle.state),
         _ => None,
     };
-    let first = with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, None, other));
+    let first = with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, None, other, fits));
     if first.as_ref().is_ok_and(plausible) {
         return first;
     }
@@ -233,7 +237,7 @@ fn grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -> Opt
             chain: [LensModel { k: k0, distortion: d }; 2],
             distortion: [d, d],
             max_ray_deg: None,
-            fitted: Some(fit),
+            fitted: Some(std::sync::Arc::new(fit)),
         })
     })
 }

@@ -9,8 +9,11 @@
 //! Images ([`StereoViews::Images`]) are first checked for scene depth on each view's own
 //! stereo matches ([`require_depth`]; a planar target fails there with the degeneracy
 //! named, not later in matching across views; a long sequence checks its keyframes
-//! instead), then tracked ([`track_views_reporting`]) and self-calibrated
-//! ([`calibrate_tracked`]) at each corner count. Tracked points
+//! instead), then tracked ([`super::track_views_reporting`]) and self-calibrated
+//! ([`calibrate_tracked`]) at each corner count. Each view's corners and stereo matches
+//! are found once at the first corner count: the tracking takes the depth check's (the
+//! same front end finds the same ones), and the first view's tracking is the depth
+//! check's own; the denser retry detects anew. Tracked points
 //! ([`StereoViews::Tracked`], a point-mode session) have no corner density: one
 //! [`super::calibrate_rig`]. The result carries the call's seconds per stage
 //! ([`crate::timing`]). Units and thresholds: those of the steps called.
@@ -20,15 +23,16 @@ use std::time::Instant;
 use headalign_platform::{Encoders, StereoImages};
 use rayon::prelude::*;
 
+use super::route::{OwnMatching, track_views_sharing};
 use super::{
     CalibrateOptions, Density, DensityReport, DensityTrial, LensModel, MotionCalibration,
     REFERENCE_ROUTE_MAX_VIEWS, TrackingProgress, calibrate_rig, calibrate_tracked, require_depth, select_rig,
-    track_views_reporting, undistort_views,
+    undistort_views,
 };
 use crate::error::AlignError;
 use crate::observations::View;
 use crate::timing::StageTimes;
-use crate::tracking::{FrontEndOptions, Tracker};
+use crate::tracking::{FrontEndOptions, StereoCorners, Tracker, ViewTracking};
 
 /// The views to calibrate from.
 #[derive(Clone, Copy)]
@@ -150,17 +154,42 @@ pub fn stereo_only(
     views: &[(String, StereoImages)],
     front: &FrontEndOptions,
 ) -> Result<Vec<View>, AlignError> {
+    Ok(stereo_only_keeping(views, front)?.0)
+}
+
+/// [`stereo_only`], also keeping what the tracking of the same views with the same front
+/// end can take from it ([`OwnMatching`]: each view's corners and stereo matches, and the
+/// first view's tracking).
+pub(super) fn stereo_only_keeping(
+    views: &[(String, StereoImages)],
+    front: &FrontEndOptions,
+) -> Result<(Vec<View>, OwnMatching), AlignError> {
     // The views on their own (in parallel); the first error in the views' order.
-    let own: Vec<Result<View, AlignError>> = views
+    type Own = (View, StereoCorners, Option<(Tracker, ViewTracking)>);
+    let own: Vec<Result<Own, AlignError>> = views
         .par_iter()
-        .map(|(name, images)| {
+        .enumerate()
+        .map(|(i, (name, images))| {
             let mut t = Tracker::new(front.clone())?;
-            let (capture, _) =
-                t.track(images, name).map_err(|e| e.in_step(&format!("stereo matching of '{name}'")))?;
-            Ok(View { name: name.clone(), capture })
+            let (capture, report, corners) = t
+                .track_keeping_corners(images, name)
+                .map_err(|e| e.in_step(&format!("stereo matching of '{name}'")))?;
+            let first = (i == 0).then_some((t, report));
+            Ok((View { name: name.clone(), capture }, corners, first))
         })
         .collect();
-    own.into_iter().collect()
+    let mut out = Vec::with_capacity(own.len());
+    let mut kept = OwnMatching { front: front.clone(), names: Vec::new(), corners: Vec::new(), first: None };
+    for o in own {
+        let (view, corners, first) = o?;
+        kept.names.push(view.name.clone());
+        kept.corners.push(corners);
+        if let Some((tracker, report)) = first {
+            kept.first = Some((tracker, view.capture.clone(), report));
+        }
+        out.push(view);
+    }
+    Ok((out, kept))
 }
 
 /// Self-calibrate a stereo rig from `views` (module docs); `progress` hears each step on
@@ -202,12 +231,13 @@ fn density_trial(
     views: &[(String, StereoImages)],
     corners: usize,
     options: &CalibrateViewsOptions,
+    own: Option<&OwnMatching>,
     progress: &mut dyn FnMut(ViewsProgress),
 ) -> (Result<MotionCalibration, AlignError>, DensityTrial) {
     let t = Instant::now();
     let opts = &options.calibrate;
     let result = (|| {
-        let tracked = track_views_reporting(views, &options.front_end_at(corners), opts, &mut |p| {
+        let tracked = track_views_sharing(views, &options.front_end_at(corners), opts, own, &mut |p| {
             progress(ViewsProgress::Tracking { corners, progress: p })
         });
         progress(ViewsProgress::Tracked { corners });
@@ -245,21 +275,26 @@ fn calibrate_images(
     let density = options.density;
     let Some((_, first)) = views.first() else { return Err(AlignError::Observations("no views".into())) };
     let image_size = first.image_size();
+    let mut kept = None;
     if views.len() <= REFERENCE_ROUTE_MAX_VIEWS {
-        let own = stereo_only(views, &options.front_end_at(density.corners))?;
+        let (own, matching) = stereo_only_keeping(views, &options.front_end_at(density.corners))?;
         let own = match &options.lenses {
             Some(l) => undistort_views(&own, l),
             None => own,
         };
         require_depth(&own, &options.calibrate)?;
+        kept = Some(matching);
     }
-    let (first_result, first_trial) = density_trial(views, density.corners, options, progress);
+    // The first density's tracking takes the corners the depth check found (the same
+    // front end); the retry's detects its own.
+    let (first_result, first_trial) = density_trial(views, density.corners, options, kept.as_ref(), progress);
     // A missing motion or a bad option is not a matter of density.
     let structural =
         matches!(&first_result, Err(AlignError::MissingMotion(_) | AlignError::InvalidOption(_)));
     let automatic = options.automatic_density;
     let (mut cal, report) = if density.retry(&first_trial) && !structural {
-        let (denser_result, denser_trial) = density_trial(views, density.retry_corners, options, progress);
+        let (denser_result, denser_trial) =
+            density_trial(views, density.retry_corners, options, None, progress);
         let report = DensityReport::choose(automatic, first_trial, Some(denser_trial));
         let cal = match (first_result, denser_result) {
             (Ok(first), Ok(denser)) => {

@@ -76,7 +76,8 @@ pub(super) fn calibrate_wide(
             kind.kalibr_name()
         ))
     })?;
-    let run = with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, Some(&start), None))?;
+    let run =
+        with_restarts(options, |o, seeded| calibrate_once_from(views, o, seeded, Some(&start), None, None))?;
     let rig = super::depth::select_views(views, options)?;
     Ok(choose_along_valley(run, &rig.rig, options))
 }
@@ -134,7 +135,7 @@ fn wide_grid_start(views: &[View], options: &CalibrateOptions, kind: LensKind) -
             chain: [lens; 2],
             distortion: [lens.distortion; 2],
             max_ray_deg: Some(WIDE_CHAIN_MAX_RAY_DEG),
-            fitted: Some(fit),
+            fitted: Some(std::sync::Arc::new(fit)),
         })
     })
 }
