@@ -122,7 +122,7 @@ impl Default for Workspace {
 /// `m` as a zero `rows x cols` matrix, in place when it has that shape already.
 fn zero_matrix(m: &mut DMatrix<f64>, rows: usize, cols: usize) {
     if m.shape() == (rows, cols) {
-        m.fill(0.0);
+        m.as_mut_slice().fill(0.0);
     } else {
         *m = DMatrix::zeros(rows, cols);
     }
