@@ -134,6 +134,9 @@ pub trait LeastSquares {
     fn keep_going(&mut self, _iterations: usize, _state: &Self::State, _current: &Self::Eval) -> bool {
         true
     }
+    /// Given the back end of an iteration that is done with it, whose storage the next
+    /// [`Self::linearise`] may reuse (default: dropped).
+    fn recycle(&mut self, _normal: Self::Normal) {}
 }
 
 /// Why [`run`] stopped (module docs, Stopping rules).
@@ -228,7 +231,9 @@ pub fn run<P: LeastSquares>(
             termination = Termination::LinearisationFailed;
             break;
         };
-        if let Some(stop) = step(problem, options, &normal, &mut it)? {
+        let stop = step(problem, options, &normal, &mut it)?;
+        problem.recycle(normal);
+        if let Some(stop) = stop {
             termination = stop;
             break;
         }

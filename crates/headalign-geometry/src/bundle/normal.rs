@@ -21,12 +21,27 @@
 //!   synthesis", 2000, section 6; Hartley & Zisserman, 2nd ed., appendix A6, sparse
 //!   Levenberg-Marquardt).
 //! - `solve_rhs` / `solve`: Cholesky of `S` for the camera step, back-substitution for the
-//!   points; the depth-scale pseudo-residual's dense rank-one term by Sherman-Morrison.
-//!   Marquardt's scaling: the damping adds `lambda` times the diagonal clamped to
-//!   `[1e-6, 1e32]` (`lm::damping_diagonal`).
+//!   points; the depth-scale pseudo-residual's dense rank-one term by Sherman-Morrison
+//!   (its two right-hand sides share one factorisation). Marquardt's scaling: the damping
+//!   adds `lambda` times the diagonal clamped to `[1e-6, 1e32]` (`lm::damping_diagonal`).
 //! - `predicted_decrease`: the decrease of the local quadratic model for a damped step, the
 //!   denominator of Nielsen's gain ratio (`crate::lm`). `Normal` is the point-Schur back
 //!   end of `crate::lm` (`lm::Linearisation`).
+//!
+//! # Block layout and storage
+//!
+//! The per-point quantities are fixed-size (`V_p`, `L_p^-1` and `V_p^-1` 3x3 matrices,
+//! `g_p` 3-vectors, on the stack). The dense `W` is one column-major `c x 3n` matrix:
+//! point `p`'s block `W_p` is the contiguous columns `3p..3p+3`, and so is its block of
+//! `M = W L^-T` (same layout); `M_p`, `W_p x` and `W_p^T x` are formed column by column
+//! over those 3 columns, `S -= M M^T` is one matrix product over all points (`M^T` a
+//! strided view of `M`, not a copy). The large storage lives in the `Normal` and is
+//! reused: its `Workspace` (`M`, `S` and its factor, the per-point `L_p^-1` and
+//! `V_p^-1`) serves every solve of one linearisation (the Levenberg-Marquardt loop solves
+//! again after each rejected step), and the bundle adjustment hands the whole `Normal`
+//! back to the next linearisation (`Problem::normal_equations_reusing`, through
+//! `lm::LeastSquares::recycle`), which zeroes and refills `U`, `W`, the point blocks and
+//! the camera blocks' rows in place instead of allocating them again.
 //!
 //! # Pitfalls
 //!
@@ -36,9 +51,14 @@
 //! - All observations of one (view, side) pair must yield the same camera columns in the
 //!   same order; otherwise `normal_equations` gives `None`.
 //! - `S` is symmetrised (`(S + S^T) / 2`) before Cholesky; the order of the sums is part of
-//!   the results (they are compared bit for bit across refactors).
+//!   the results (they are compared bit for bit across refactors: the per-point products
+//!   written out here keep the order of nalgebra's own, and reused storage is zeroed, so
+//!   the results do not depend on whether storage was reused).
 
-use nalgebra::{DMatrix, DVector, Dyn, Matrix3, OMatrix, RowVector3, U3, Vector3};
+use std::cell::RefCell;
+use std::rc::Rc;
+
+use nalgebra::{Cholesky, DMatrix, DMatrixView, DVector, Dyn, Matrix3, OMatrix, RowVector3, U3, Vector3};
 
 use super::covariance::{log_depth_scale_jacobian, log_depth_scale_of};
 use super::layout::side_index;
@@ -48,7 +68,6 @@ use super::robust::robust;
 use super::sparse::{ProfileCholesky, SparseStructure, schur, view_first_order};
 use super::state::RigState;
 use crate::lm::damping_diagonal;
-use std::rc::Rc;
 
 /// The normal equations of a point-Schur problem at one state (module docs).
 pub(crate) struct Normal {
@@ -65,6 +84,139 @@ pub(crate) struct Normal {
     /// The order of the profile Cholesky of the sparse form (`sparse.rs`): the per-view
     /// parameters, then the shared ones; `None` for the dense form.
     pub(super) order: Option<Vec<usize>>,
+    /// The camera blocks, one per (view, side) pair (kept for their storage).
+    blocks: Vec<CameraBlock>,
+    /// The solves' storage (module docs, Block layout and storage).
+    work: RefCell<Workspace>,
+}
+
+/// Storage of the solves of a [`Normal`], reused by each (module docs).
+struct Workspace {
+    /// `M = W L^-T` of the dense form, `c x 3n` column-major (only `c * 3n` entries used).
+    m: Vec<f64>,
+    /// `S`; moved into the dense Cholesky factor during a solve and back after it.
+    s: DMatrix<f64>,
+    /// The profile Cholesky's factor (sparse form).
+    profile: Vec<f64>,
+    /// Per point `L_p^-1` (`None`: a point left out).
+    l_inv: Vec<Option<Matrix3<f64>>>,
+    /// Per point `V_p^-1` of the damped blocks.
+    v_inv: Vec<Matrix3<f64>>,
+    /// A camera block's share of `U`.
+    h: DMatrix<f64>,
+}
+
+impl Default for Workspace {
+    fn default() -> Self {
+        Self {
+            m: Vec::new(),
+            s: DMatrix::zeros(0, 0),
+            profile: Vec::new(),
+            l_inv: Vec::new(),
+            v_inv: Vec::new(),
+            h: DMatrix::zeros(0, 0),
+        }
+    }
+}
+
+/// `m` as a zero `rows x cols` matrix, in place when it has that shape already.
+fn zero_matrix(m: &mut DMatrix<f64>, rows: usize, cols: usize) {
+    if m.shape() == (rows, cols) {
+        m.as_mut_slice().fill(0.0);
+    } else {
+        *m = DMatrix::zeros(rows, cols);
+    }
+}
+
+/// `v` as `len` copies of `value`, in its own storage.
+fn refill<T: Clone>(v: &mut Vec<T>, len: usize, value: T) {
+    v.clear();
+    v.resize(len, value);
+}
+
+impl Normal {
+    /// Zero normal equations of `nc` camera parameters, `np` points and `blocks` camera
+    /// blocks, `W` sparse over `structure` if given, dense otherwise; in the storage of
+    /// `spare` when given (module docs, Block layout and storage).
+    fn cleared(
+        spare: Option<Normal>,
+        nc: usize,
+        np: usize,
+        blocks: usize,
+        structure: Option<Rc<SparseStructure>>,
+    ) -> Normal {
+        let mut n = spare.unwrap_or_else(|| Normal {
+            u: DMatrix::zeros(0, 0),
+            gc: DVector::zeros(0),
+            v: Vec::new(),
+            gp: Vec::new(),
+            w: PointBlocks::Dense(DMatrix::zeros(0, 0)),
+            sum_wsq: 0.0,
+            depth: None,
+            order: None,
+            blocks: Vec::new(),
+            work: RefCell::default(),
+        });
+        zero_matrix(&mut n.u, nc, nc);
+        if n.gc.len() == nc {
+            n.gc.fill(0.0);
+        } else {
+            n.gc = DVector::zeros(nc);
+        }
+        refill(&mut n.v, np, Matrix3::zeros());
+        refill(&mut n.gp, np, Vector3::zeros());
+        let old = std::mem::replace(&mut n.w, PointBlocks::Dense(DMatrix::zeros(0, 0)));
+        n.w = match (structure, old) {
+            (Some(s), PointBlocks::Sparse(_, mut values)) => {
+                refill(&mut values, s.slot_count(), RowVector3::zeros());
+                PointBlocks::Sparse(s, values)
+            }
+            (Some(s), PointBlocks::Dense(_)) => {
+                let values = s.zeros();
+                PointBlocks::Sparse(s, values)
+            }
+            (None, PointBlocks::Dense(mut w)) => {
+                zero_matrix(&mut w, nc, 3 * np);
+                PointBlocks::Dense(w)
+            }
+            (None, PointBlocks::Sparse(..)) => PointBlocks::Dense(DMatrix::zeros(nc, 3 * np)),
+        };
+        n.sum_wsq = 0.0;
+        n.depth = None;
+        n.order = None;
+        for b in &mut n.blocks {
+            b.used = false;
+            b.idx.clear();
+            b.rows.clear();
+        }
+        n.blocks.resize_with(blocks, CameraBlock::default);
+        n
+    }
+
+    /// `U += sqrt(w) J^T sqrt(w) J` of every camera block used, one matrix product per
+    /// block (`J^T` a strided view of its rows), scattered to the block's columns.
+    fn add_camera_blocks(&mut self) {
+        let h = &mut self.work.get_mut().h;
+        for block in self.blocks.iter().filter(|b| b.used) {
+            let k = block.idx.len();
+            let m = block.rows.len() / k.max(1);
+            if k == 0 || m == 0 {
+                continue;
+            }
+            // The row-major rows of `sqrt(w) J` are the columns of its transpose.
+            let jt = DMatrixView::from_slice(&block.rows, k, m);
+            let j = DMatrixView::from_slice_with_strides(&block.rows, m, k, k, 1);
+            if h.shape() != (k, k) {
+                *h = DMatrix::zeros(k, k);
+            }
+            h.gemm(1.0, &jt, &j, 0.0);
+            for (i, &a) in block.idx.iter().enumerate() {
+                for (j, &b) in block.idx.iter().enumerate() {
+                    self.u[(a, b)] += h[(i, j)];
+                }
+            }
+        }
+    }
 }
 
 impl Problem<'_> {
@@ -96,26 +248,27 @@ impl Problem<'_> {
         Some(Some(s))
     }
 
+    /// The normal equations at `state` (module docs), the angle priors weighted by
+    /// `prior_weight`; `None` if an observation does not linearise.
     pub(super) fn normal_equations(&self, state: &RigState, prior_weight: f64) -> Option<Normal> {
-        let nc = self.layout.len();
-        let np = self.points.len();
+        self.normal_equations_reusing(state, prior_weight, None)
+    }
+
+    /// [`Self::normal_equations`] in the storage of `spare`, normal equations of this
+    /// problem at an earlier state (module docs, Block layout and storage): the same
+    /// values, without allocating the large matrices again.
+    pub(super) fn normal_equations_reusing(
+        &self,
+        state: &RigState,
+        prior_weight: f64,
+        spare: Option<Normal>,
+    ) -> Option<Normal> {
         let views = view_geoms(state, &self.layout, true);
         let rig = rig_geom(state);
         let structure = self.sparse_structure(state, &views, &rig)?;
-        let mut n = Normal {
-            u: DMatrix::zeros(nc, nc),
-            gc: DVector::zeros(nc),
-            v: vec![Matrix3::zeros(); np],
-            gp: vec![Vector3::zeros(); np],
-            w: match &structure {
-                Some(structure) => PointBlocks::Sparse(structure.clone(), structure.zeros()),
-                None => PointBlocks::Dense(DMatrix::zeros(nc, 3 * np)),
-            },
-            sum_wsq: 0.0,
-            depth: None,
-            order: None,
-        };
-        if matches!(n.w, PointBlocks::Sparse(..)) {
+        let sparse = structure.is_some();
+        let mut n = Normal::cleared(spare, self.layout.len(), self.points.len(), 2 * views.len(), structure);
+        if sparse {
             n.order = Some(view_first_order(&self.layout));
         }
         if let Some((target, tol)) = self.depth {
@@ -123,25 +276,52 @@ impl Problem<'_> {
             let row = log_depth_scale_jacobian(state, &self.points)?;
             n.depth = Some((row.into_iter().map(|a| a / tol).collect(), r));
         }
-        // Every observation of one (view, side) pair has the same camera-parameter
-        // columns in the same order (they follow from the layout, the side and the view
-        // alone), so the pair's weighted Jacobian rows are stacked densely over that list
-        // and its share of `U` is one matrix product, scattered once at the end.
-        let mut blocks: Vec<Option<CameraBlock>> = (0..2 * views.len()).map(|_| None).collect();
+        self.add_observations(state, &views, &rig, &mut n)?;
+        n.add_camera_blocks();
+        for row in self.prior_terms(state) {
+            for &(a, da) in &row.entries {
+                n.gc[a] += prior_weight * row.residual * da;
+                for &(b, db) in &row.entries {
+                    n.u[(a, b)] += prior_weight * da * db;
+                }
+            }
+        }
+        Some(n)
+    }
+
+    /// The observations' terms of `n` (zero on entry) but for `U`'s: `V_p`, `g_p`, `g_c`,
+    /// `W` and the weighted squares, and each (view, side) pair's rows of `sqrt(w) J` in its
+    /// camera block. Every observation of one pair has the same camera-parameter columns
+    /// in the same order (they follow from the layout, the side and the view alone), so
+    /// the pair's rows are stacked densely over that list and its share of `U` is one
+    /// matrix product ([`Normal::add_camera_blocks`]). `None` if an observation does not
+    /// linearise or breaks that rule.
+    fn add_observations(
+        &self,
+        state: &RigState,
+        views: &[ViewGeom],
+        rig: &RigGeom,
+        n: &mut Normal,
+    ) -> Option<()> {
+        let structure = match &n.w {
+            PointBlocks::Sparse(s, _) => Some(s.clone()),
+            PointBlocks::Dense(_) => None,
+        };
         let mut cols = Vec::with_capacity(32);
         for (oi, (o, &p)) in self.obs.iter().zip(&self.obs_point).enumerate() {
             let x = state.points.get(*self.points.get(p)?)?;
-            let (r, jp) = self.observe(state, &views, &rig, o, x, Some(&mut cols))?;
+            let (r, jp) = self.observe(state, views, rig, o, x, Some(&mut cols))?;
             let s2 = r.norm_squared();
             let wt = robust(self.options.robust, s2).1;
             n.sum_wsq += wt * s2;
             let jpw = jp * wt;
             *n.v.get_mut(p)? += jp.transpose() * jpw;
             *n.gp.get_mut(p)? += jpw.transpose() * r;
-            let block = blocks.get_mut(2 * o.view + side_index(o.side))?.get_or_insert_with(|| CameraBlock {
-                idx: cols.iter().map(|c| c.0).collect(),
-                rows: Vec::new(),
-            });
+            let block = n.blocks.get_mut(2 * o.view + side_index(o.side))?;
+            if !block.used {
+                block.used = true;
+                block.idx.extend(cols.iter().map(|c| c.0));
+            }
             if !block.idx.iter().eq(cols.iter().map(|c| &c.0)) {
                 return None;
             }
@@ -155,26 +335,7 @@ impl Problem<'_> {
                 n.w.add(slots.get(j), a, p, &wrow);
             }
         }
-        for block in blocks.into_iter().flatten() {
-            let k = block.idx.len();
-            // The row-major rows of `sqrt(w) J` are the columns of its transpose.
-            let jt = DMatrix::from_vec(k, block.rows.len() / k.max(1), block.rows);
-            let h = &jt * jt.transpose();
-            for (i, &a) in block.idx.iter().enumerate() {
-                for (j, &b) in block.idx.iter().enumerate() {
-                    n.u[(a, b)] += h[(i, j)];
-                }
-            }
-        }
-        for row in self.prior_terms(state) {
-            for &(a, da) in &row.entries {
-                n.gc[a] += prior_weight * row.residual * da;
-                for &(b, db) in &row.entries {
-                    n.u[(a, b)] += prior_weight * da * db;
-                }
-            }
-        }
-        Some(n)
+        Some(())
     }
 }
 
@@ -201,6 +362,12 @@ pub(super) enum PointBlocks {
 /// the sums is part of them).
 pub(super) const DENSE_SCHUR_MAX_VIEWS: usize = 8;
 
+/// Point `p`'s 3 columns of a column-major matrix of `rows` rows stored in `data`.
+fn point_columns(data: &[f64], rows: usize, p: usize) -> Option<[&[f64]; 3]> {
+    let at = |c: usize| data.get((3 * p + c) * rows..(3 * p + c + 1) * rows);
+    Some([at(0)?, at(1)?, at(2)?])
+}
+
 impl PointBlocks {
     /// `W[a, point p] += row` for a column (parameter `a`) of an observation's Jacobian
     /// whose slot in the sparse form is `slot` (the column's entry of
@@ -220,10 +387,17 @@ impl PointBlocks {
         }
     }
 
-    /// `b -= W_p x`.
+    /// `b -= W_p x` (the dense form in the order of nalgebra's `gemv`: column by column).
     fn sub_times(&self, p: usize, x: &Vector3<f64>, b: &mut DVector<f64>) {
         match self {
-            PointBlocks::Dense(w) => b.gemv(-1.0, &w.columns(3 * p, 3), x, 1.0),
+            PointBlocks::Dense(w) => {
+                let Some([w0, w1, w2]) = point_columns(w.as_slice(), w.nrows(), p) else { return };
+                for (((bi, a0), a1), a2) in b.iter_mut().zip(w0).zip(w1).zip(w2) {
+                    *bi -= a0 * x[0];
+                    *bi -= a1 * x[1];
+                    *bi -= a2 * x[2];
+                }
+            }
             PointBlocks::Sparse(structure, values) => {
                 for (a, row) in structure.block(values, p) {
                     b[a] -= row.dot(&x.transpose());
@@ -235,10 +409,7 @@ impl PointBlocks {
     /// `W_p^T x`.
     fn tr_mul(&self, p: usize, x: &DVector<f64>) -> Vector3<f64> {
         match self {
-            PointBlocks::Dense(w) => {
-                let t = w.columns(3 * p, 3).tr_mul(x);
-                Vector3::new(t[0], t[1], t[2])
-            }
+            PointBlocks::Dense(w) => w.fixed_columns::<3>(3 * p).tr_mul(x),
             PointBlocks::Sparse(structure, values) => {
                 structure.block(values, p).map(|(a, row)| row.transpose() * x[a]).sum()
             }
@@ -248,7 +419,7 @@ impl PointBlocks {
     /// `W_p m` as a dense `c x 3` matrix (`c` camera parameters).
     pub(super) fn times(&self, p: usize, m: &Matrix3<f64>, nc: usize) -> OMatrix<f64, Dyn, U3> {
         match self {
-            PointBlocks::Dense(w) => w.columns(3 * p, 3) * m,
+            PointBlocks::Dense(w) => w.fixed_columns::<3>(3 * p) * m,
             PointBlocks::Sparse(structure, values) => {
                 let mut out = OMatrix::<f64, Dyn, U3>::zeros(nc);
                 for (a, row) in structure.block(values, p) {
@@ -262,10 +433,12 @@ impl PointBlocks {
 
 /// The camera-parameter Jacobian of the observations of one (view, side) pair: their
 /// parameter indices in column order and the rows of `sqrt(w) J`, row-major (two per
-/// observation).
+/// observation); `used` once an observation of the current linearisation filled it.
+#[derive(Default)]
 struct CameraBlock {
     idx: Vec<usize>,
     rows: Vec<f64>,
+    used: bool,
 }
 
 /// `S` and the points' `L_p^-1` (see [`reduced_camera_system`]).
@@ -281,53 +454,175 @@ pub(super) fn reduced_camera_system(
     damp: impl Fn(f64) -> f64,
     skip_singular: bool,
 ) -> Option<ReducedSystem> {
+    let mut work = n.work.borrow_mut();
+    reduce(n, damp, skip_singular, &mut work)?;
+    Some((std::mem::replace(&mut work.s, DMatrix::zeros(0, 0)), std::mem::take(&mut work.l_inv)))
+}
+
+/// [`reduced_camera_system`] into `work.s` and `work.l_inv`.
+fn reduce(n: &Normal, damp: impl Fn(f64) -> f64, skip_singular: bool, work: &mut Workspace) -> Option<()> {
+    let Workspace { m, s, l_inv, .. } = work;
     let nc = n.u.nrows();
-    let mut s = n.u.clone();
+    if s.shape() == n.u.shape() {
+        s.copy_from(&n.u);
+    } else {
+        *s = n.u.clone();
+    }
     for i in 0..nc {
         s[(i, i)] += damp(n.u[(i, i)]);
     }
+    l_inv.clear();
     let w = match &n.w {
         PointBlocks::Dense(w) => w,
         PointBlocks::Sparse(structure, values) => {
-            let l_inv = schur(&n.v, structure, values, &mut s, &damp, skip_singular)?;
-            return Some((s, l_inv));
+            return schur(&n.v, structure, values, s, &damp, skip_singular, l_inv);
         }
     };
-    let mut m = DMatrix::zeros(nc, w.ncols());
-    let mut l_inv = Vec::with_capacity(n.v.len());
+    let len = nc * w.ncols();
+    if m.len() < len {
+        m.resize(len, 0.0);
+    }
     for (p, v) in n.v.iter().enumerate() {
+        let mp = m.get_mut(3 * p * nc..3 * (p + 1) * nc)?;
         let mut vd = *v;
         for i in 0..3 {
             vd[(i, i)] += damp(v[(i, i)]);
         }
-        let li = vd.cholesky().and_then(|ch| ch.l().try_inverse());
-        let Some(li) = li else {
+        let Some(li) = vd.cholesky().and_then(|ch| ch.l().try_inverse()) else {
             if skip_singular {
+                mp.fill(0.0);
                 l_inv.push(None);
                 continue;
             }
             return None;
         };
-        m.columns_mut(3 * p, 3).gemm(1.0, &w.columns(3 * p, 3), &li.transpose(), 0.0);
+        point_times(point_columns(w.as_slice(), nc, p)?, &li.transpose(), mp);
         l_inv.push(Some(li));
     }
-    s.gemm(-1.0, &m, &m.transpose(), 1.0);
-    Some((0.5 * (&s + s.transpose()), l_inv))
+    if len > 0 {
+        // S -= M M^T, M^T a strided view of M.
+        let mm = DMatrixView::from_slice(&m[..len], nc, w.ncols());
+        let mt = DMatrixView::from_slice_with_strides(&m[..len], w.ncols(), nc, nc, 1);
+        s.gemm(-1.0, &mm, &mt, 1.0);
+    }
+    // (S + S^T) / 2 in place: each pair's mean, the same sum both ways.
+    for j in 0..nc {
+        for i in j..nc {
+            let mean = 0.5 * (s[(i, j)] + s[(j, i)]);
+            s[(i, j)] = mean;
+            s[(j, i)] = mean;
+        }
+    }
+    Some(())
+}
+
+/// `out = W_p t` for a point's 3 columns `w` of `c` rows each (`out` column-major `c x
+/// 3`), column by column in the order of nalgebra's `gemm` of a `c x 3` by a 3x3 matrix
+/// (per entry `w_0 t_0j + w_1 t_1j + w_2 t_2j`, left to right).
+fn point_times(w: [&[f64]; 3], t: &Matrix3<f64>, out: &mut [f64]) {
+    let c = w[0].len();
+    for (j, col) in out.chunks_exact_mut(c.max(1)).take(3).enumerate() {
+        let (t0, t1, t2) = (t[(0, j)], t[(1, j)], t[(2, j)]);
+        for (((o, a0), a1), a2) in col.iter_mut().zip(w[0]).zip(w[1]).zip(w[2]) {
+            *o = a0 * t0 + a1 * t1 + a2 * t2;
+        }
+    }
+}
+
+/// The factored damped system of one solve: the Cholesky factor of `S` (dense or
+/// profile); the points' `V_p^-1` are in the workspace.
+enum Factor {
+    Dense(Cholesky<f64, Dyn>),
+    Profile(ProfileCholesky),
+}
+
+impl Factor {
+    /// `S^-1 b`.
+    fn solve(&self, b: &DVector<f64>) -> DVector<f64> {
+        match self {
+            Factor::Dense(ch) => ch.solve(b),
+            Factor::Profile(f) => f.solve(b),
+        }
+    }
+
+    /// Give the factor's storage back to `work`.
+    fn release(self, work: &mut Workspace) {
+        match self {
+            Factor::Dense(ch) => work.s = ch.unpack_dirty(),
+            Factor::Profile(f) => work.profile = f.into_storage(),
+        }
+    }
+}
+
+/// Form and factor the system of `n` damped by `lambda` ([`reduce`]); the points'
+/// `V_p^-1` into `work.v_inv`. `None` if a damped block or `S` is not positive definite.
+fn factor(n: &Normal, lambda: f64, work: &mut Workspace) -> Option<Factor> {
+    reduce(n, |d| lambda * damping_diagonal(d), false, work)?;
+    // V_p^-1 = L_p^-T L_p^-1.
+    work.v_inv.clear();
+    for li in &work.l_inv {
+        let li = (*li)?;
+        work.v_inv.push(li.transpose() * li);
+    }
+    match &n.w {
+        PointBlocks::Dense(_) => {
+            std::mem::replace(&mut work.s, DMatrix::zeros(0, 0)).cholesky().map(Factor::Dense)
+        }
+        PointBlocks::Sparse(..) => {
+            let storage = std::mem::take(&mut work.profile);
+            ProfileCholesky::new_in(&work.s, n.order.clone()?, storage).map(Factor::Profile)
+        }
+    }
+}
+
+/// The step of the factored system `f` (points' `V_p^-1` in `v_inv`) for the right-hand
+/// side `(rc, rp)`: the camera step from `S`, then each point's by back-substitution.
+fn back_substitute(
+    n: &Normal,
+    f: &Factor,
+    v_inv: &[Matrix3<f64>],
+    rc: &DVector<f64>,
+    rp: &[Vector3<f64>],
+) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
+    let mut b = rc.clone();
+    for (p, (vi, g)) in v_inv.iter().zip(rp).enumerate() {
+        n.w.sub_times(p, &(vi * g), &mut b);
+    }
+    let dc = f.solve(&b);
+    if !dc.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let dp = v_inv.iter().zip(rp).enumerate().map(|(p, (vi, g))| vi * (g - n.w.tr_mul(p, &dc))).collect();
+    Some((dc, dp))
 }
 
 /// Solve the damped normal equations by the Schur complement over the points; with a
 /// depth-scale pseudo-residual `r_s` (Jacobian `a`, points only) the normal matrix gains
 /// the dense rank-one term `a a^T` and the gradient `a r_s`, solved by Sherman-Morrison:
-/// `x = y - z (a.y) / (1 + a.z)` with `N y = -g - a r_s`, `N z = a`.
+/// `x = y - z (a.y) / (1 + a.z)` with `N y = -g - a r_s`, `N z = a` (one factorisation
+/// of `N` for both).
 pub(super) fn solve(n: &Normal, lambda: f64) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
+    let mut work = n.work.borrow_mut();
+    let f = factor(n, lambda, &mut work)?;
+    let out = solve_factored(n, &f, &work.v_inv);
+    f.release(&mut work);
+    out
+}
+
+/// [`solve`] with the system factored.
+fn solve_factored(
+    n: &Normal,
+    f: &Factor,
+    v_inv: &[Matrix3<f64>],
+) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
     let rc = -&n.gc;
     let Some((a, r)) = &n.depth else {
         let rp: Vec<Vector3<f64>> = n.gp.iter().map(|g| -g).collect();
-        return solve_rhs(n, lambda, &rc, &rp);
+        return back_substitute(n, f, v_inv, &rc, &rp);
     };
     let rp: Vec<Vector3<f64>> = n.gp.iter().zip(a).map(|(g, ai)| -g - ai * *r).collect();
-    let (yc, yp) = solve_rhs(n, lambda, &rc, &rp)?;
-    let (zc, zp) = solve_rhs(n, lambda, &DVector::zeros(rc.len()), a)?;
+    let (yc, yp) = back_substitute(n, f, v_inv, &rc, &rp)?;
+    let (zc, zp) = back_substitute(n, f, v_inv, &DVector::zeros(rc.len()), a)?;
     let ay: f64 = a.iter().zip(&yp).map(|(ai, y)| ai.dot(y)).sum();
     let az: f64 = a.iter().zip(&zp).map(|(ai, z)| ai.dot(z)).sum();
     let f = ay / (1.0 + az);
@@ -367,7 +662,18 @@ impl Normal {
         gp: Vec<Vector3<f64>>,
         w: DMatrix<f64>,
     ) -> Normal {
-        Normal { u, gc, v, gp, w: PointBlocks::Dense(w), sum_wsq: 0.0, depth: None, order: None }
+        Normal {
+            u,
+            gc,
+            v,
+            gp,
+            w: PointBlocks::Dense(w),
+            sum_wsq: 0.0,
+            depth: None,
+            order: None,
+            blocks: Vec::new(),
+            work: RefCell::default(),
+        }
     }
 
     /// The undamped reduced camera system `S = U - W V^-1 W^T`; `None` if a point block
@@ -398,23 +704,11 @@ pub(super) fn solve_rhs(
     rc: &DVector<f64>,
     rp: &[Vector3<f64>],
 ) -> Option<(DVector<f64>, Vec<Vector3<f64>>)> {
-    let (s, l_inv) = reduced_camera_system(n, |d| lambda * damping_diagonal(d), false)?;
-    // V_p^-1 = L_p^-T L_p^-1.
-    let v_inv: Vec<Matrix3<f64>> =
-        l_inv.into_iter().map(|li| li.map(|li| li.transpose() * li)).collect::<Option<_>>()?;
-    let mut b = rc.clone();
-    for (p, (vi, g)) in v_inv.iter().zip(rp).enumerate() {
-        n.w.sub_times(p, &(vi * g), &mut b);
-    }
-    let dc = match &n.w {
-        PointBlocks::Dense(_) => s.cholesky()?.solve(&b),
-        PointBlocks::Sparse(..) => ProfileCholesky::new(&s, n.order.clone()?)?.solve(&b),
-    };
-    if !dc.iter().all(|v| v.is_finite()) {
-        return None;
-    }
-    let dp = v_inv.iter().zip(rp).enumerate().map(|(p, (vi, g))| vi * (g - n.w.tr_mul(p, &dc))).collect();
-    Some((dc, dp))
+    let mut work = n.work.borrow_mut();
+    let f = factor(n, lambda, &mut work)?;
+    let out = back_substitute(n, &f, &work.v_inv, rc, rp);
+    f.release(&mut work);
+    out
 }
 
 #[cfg(test)]

@@ -186,11 +186,15 @@ fn setup<'a>(
 /// The bundle adjustment as a [`lm::LeastSquares`] problem: the linearisation is the
 /// point-Schur back end (`normal.rs`), the retraction [`candidate`], the evaluation the
 /// robust cost, the state norm [`x_norm`]; the checkpoint's callback decides
-/// [`lm::LeastSquares::keep_going`].
+/// [`lm::LeastSquares::keep_going`]; each iteration's normal equations come back
+/// ([`lm::LeastSquares::recycle`]) to lend their storage to the next.
 struct Adjustment<'p, 'a, 'c> {
     problem: &'p Problem<'a>,
     checkpoint: Option<Checkpoint<'c>>,
     n_obs: usize,
+    /// The normal equations of the last iteration, whose storage the next linearisation
+    /// reuses (`normal.rs`).
+    spare: Option<Normal>,
 }
 
 impl lm::Evaluation for Eval {
@@ -206,7 +210,7 @@ impl lm::LeastSquares for Adjustment<'_, '_, '_> {
     type Error = GeometryError;
 
     fn linearise(&mut self, state: &RigState) -> Result<Option<Normal>> {
-        match self.problem.normal_equations(state, self.problem.prior_weight) {
+        match self.problem.normal_equations_reusing(state, self.problem.prior_weight, self.spare.take()) {
             Some(n) => Ok(Some(n)),
             None => Err(GeometryError::Numerical("linearisation failed at an accepted state".into())),
         }
@@ -230,6 +234,10 @@ impl lm::LeastSquares for Adjustment<'_, '_, '_> {
 
     fn keep_going(&mut self, iterations: usize, state: &RigState, current: &Eval) -> bool {
         keep_going(&mut self.checkpoint, iterations, state, current, self.n_obs)
+    }
+
+    fn recycle(&mut self, normal: Normal) {
+        self.spare = Some(normal);
     }
 }
 
@@ -354,7 +362,7 @@ fn adjust(
         function_tolerance: options.function_tolerance,
         parameter_tolerance: options.parameter_tolerance,
     };
-    let mut adjustment = Adjustment { problem: &problem, checkpoint, n_obs };
+    let mut adjustment = Adjustment { problem: &problem, checkpoint, n_obs, spare: None };
     let out = lm::run(&mut adjustment, state, first, &lm_options)?;
     if out.termination == lm::Termination::Abandoned {
         return Ok(None);

@@ -86,6 +86,11 @@ impl SparseStructure {
         Some(Self { point_start, rows, obs_start, slots })
     }
 
+    /// The number of slots (rows of `W` over all points).
+    pub(super) fn slot_count(&self) -> usize {
+        self.rows.len()
+    }
+
     /// Storage for the values of `W` (one 3-vector row per slot), zero.
     pub(super) fn zeros(&self) -> Vec<RowVector3<f64>> {
         vec![RowVector3::zeros(); self.rows.len()]
@@ -114,10 +119,11 @@ impl SparseStructure {
 }
 
 /// `s -= M_p M_p^T` (`M_p = W_p L_p^-T`) over every point (module docs), each point's
-/// `V_p` damped by `damp` of its diagonal; the points' `L_p^-1`, `None` for a block that
-/// is not positive definite (skipped when `skip_singular`, otherwise the whole result is
-/// `None`). The products go to the lower triangle, which then replaces the upper one:
-/// `s` comes out exactly symmetric (its upper triangle was `U`'s, symmetric too).
+/// `V_p` damped by `damp` of its diagonal; the points' `L_p^-1` into `l_inv` (cleared
+/// first), `None` for a block that is not positive definite (skipped when
+/// `skip_singular`, otherwise the whole result is `None`). The products go to the lower
+/// triangle, which then replaces the upper one: `s` comes out exactly symmetric (its upper
+/// triangle was `U`'s, symmetric too).
 pub(super) fn schur(
     v: &[Matrix3<f64>],
     structure: &SparseStructure,
@@ -125,8 +131,9 @@ pub(super) fn schur(
     s: &mut DMatrix<f64>,
     damp: &impl Fn(f64) -> f64,
     skip_singular: bool,
-) -> Option<Vec<Option<Matrix3<f64>>>> {
-    let mut l_inv = Vec::with_capacity(v.len());
+    l_inv: &mut Vec<Option<Matrix3<f64>>>,
+) -> Option<()> {
+    l_inv.clear();
     let mut m: Vec<(usize, RowVector3<f64>)> = Vec::new();
     for (p, vp) in v.iter().enumerate() {
         let mut vd = *vp;
@@ -157,7 +164,7 @@ pub(super) fn schur(
             s[(j, i)] = s[(i, j)];
         }
     }
-    Some(l_inv)
+    Some(())
 }
 
 /// The order of the profile factor (module docs): the per-view parameters of `layout`
@@ -175,7 +182,8 @@ pub(super) struct ProfileCholesky {
     perm: Vec<usize>,
     /// First non-zero column of each row of `L`.
     first: Vec<usize>,
-    /// `L`, row-major `n x n` (only the envelope is written).
+    /// `L`, row-major `n x n` (only the envelope is written and read; the rest may hold
+    /// an earlier factor's values).
     l: Vec<f64>,
     n: usize,
 }
@@ -184,6 +192,13 @@ impl ProfileCholesky {
     /// Factor the symmetric `s` in the order `perm`; `None` if it is not positive definite
     /// (or `perm` is not a permutation of its rows).
     pub(super) fn new(s: &DMatrix<f64>, perm: Vec<usize>) -> Option<Self> {
+        Self::new_in(s, perm, Vec::new())
+    }
+
+    /// [`Self::new`] in `storage` (of an earlier factor, [`Self::into_storage`]): only the
+    /// envelope of the factor is written, and only the envelope is ever read, so the
+    /// storage needs no zeroing.
+    pub(super) fn new_in(s: &DMatrix<f64>, perm: Vec<usize>, storage: Vec<f64>) -> Option<Self> {
         let n = s.nrows();
         let mut seen = vec![false; n];
         for &i in &perm {
@@ -194,7 +209,8 @@ impl ProfileCholesky {
         if perm.len() != n || s.ncols() != n {
             return None;
         }
-        let mut l = vec![0.0; n * n];
+        let mut l = storage;
+        l.resize(n * n, 0.0);
         let mut first = vec![0; n];
         for i in 0..n {
             let pi = perm[i];
@@ -239,6 +255,11 @@ impl ProfileCholesky {
             out[p] = y[i];
         }
         out
+    }
+
+    /// The factor's storage, for [`Self::new_in`].
+    pub(super) fn into_storage(self) -> Vec<f64> {
+        self.l
     }
 
     /// `S^-1`, column by column.
