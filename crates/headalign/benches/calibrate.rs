@@ -30,53 +30,15 @@ use headalign::calibrate::{
     CalibrateOptions, CalibrateViewsOptions, LensChoice, StereoViews, calibrate_views,
 };
 use headalign::timing::{Stage, StageTimes, time};
-use headalign_geometry::camera::Intrinsics;
 use headalign_geometry::distortion::LensKind;
-use headalign_platform::{GrayImage, ImagingHead, StereoImages};
-use headalign_sim::rigmotion::screw_motion;
-use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::Vector3;
+use headalign_platform::{GrayImage, StereoImages};
 
-type Error = Box<dyn std::error::Error + Send + Sync>;
+#[path = "shared/rendered_path.rs"]
+mod rendered_path;
+use rendered_path::{Error, render};
 
 /// Views of the rendered case.
 const RENDERED: usize = 10;
-
-/// The sequence benchmark's simulated rig (`benches/sequence.rs`).
-fn scenario() -> Scenario {
-    Scenario {
-        seed: 7,
-        image_size: [752, 480],
-        left: Intrinsics::new(458.0, 457.0, 367.0, 248.0),
-        right: Intrinsics::new(457.0, 456.0, 380.0, 255.0),
-        baseline_m: 0.11,
-        ..Scenario::default()
-    }
-}
-
-/// The sequence benchmark's rig pose at view `i` (`benches/sequence.rs`), robot frame.
-fn pose(i: usize) -> nalgebra::Isometry3<f64> {
-    let t = i as f64;
-    let turn = screw_motion(-Vector3::y(), 2.0 * t, 0.15 * (std::f64::consts::TAU * t / 60.0).sin());
-    let tilt = screw_motion(Vector3::x(), 6.0 * (std::f64::consts::TAU * t / 40.0).sin(), 0.0);
-    turn * tilt
-}
-
-/// Render the rendered case into `dir` unless it is there already.
-fn render(dir: &Path) -> Result<(), Error> {
-    if dir.join(format!("right{:02}.png", RENDERED - 1)).exists() {
-        return Ok(());
-    }
-    std::fs::create_dir_all(dir)?;
-    let mut head = SimulatedHead::new(scenario())?;
-    for i in 0..RENDERED {
-        head.set_world_from_robot(pose(i));
-        let pair = head.capture_images()?;
-        pair.left.save(&dir.join(format!("left{i:02}.png")))?;
-        pair.right.save(&dir.join(format!("right{i:02}.png")))?;
-    }
-    Ok(())
-}
 
 /// Stereo pairs `(left, right)` read as named views, timed as [`Stage::Reading`].
 fn read(files: &[(PathBuf, PathBuf)]) -> Result<Vec<(String, StereoImages)>, Error> {
@@ -107,7 +69,7 @@ fn case(name: &str, rendered: &Path) -> Result<(Vec<(PathBuf, PathBuf)>, LensCho
         "pairs-radtan" => euroc(LensChoice::Model(LensKind::RadialTangential)),
         "pairs-equidistant" => euroc(LensChoice::Model(LensKind::Equidistant)),
         "rendered-10" => {
-            render(rendered)?;
+            render(rendered, RENDERED, 2)?;
             let files = (0..RENDERED)
                 .map(|i| {
                     (rendered.join(format!("left{i:02}.png")), rendered.join(format!("right{i:02}.png")))

@@ -29,57 +29,14 @@ use std::time::Instant;
 
 use headalign::calibrate::{CalibrateOptions, calibrate_tracked, track_views, weak_data};
 use headalign::tracking::FrontEndOptions;
-use headalign_geometry::camera::Intrinsics;
-use headalign_platform::{GrayImage, ImagingHead, StereoImages};
-use headalign_sim::rigmotion::screw_motion;
-use headalign_sim::{Scenario, SimulatedHead};
-use nalgebra::Vector3;
+use headalign_platform::{GrayImage, StereoImages};
 
-type Error = Box<dyn std::error::Error>;
+#[path = "shared/rendered_path.rs"]
+mod rendered_path;
+use rendered_path::{Error, render, scenario};
 
 /// Views of the longest sequence rendered.
 const RENDERED: usize = 200;
-
-/// The simulated rig (module docs).
-fn scenario() -> Scenario {
-    Scenario {
-        seed: 7,
-        image_size: [752, 480],
-        left: Intrinsics::new(458.0, 457.0, 367.0, 248.0),
-        right: Intrinsics::new(457.0, 456.0, 380.0, 255.0),
-        baseline_m: 0.11,
-        ..Scenario::default()
-    }
-}
-
-/// The rig's pose at view `i` (module docs), robot frame.
-fn pose(i: usize) -> nalgebra::Isometry3<f64> {
-    let t = i as f64;
-    let turn = screw_motion(-Vector3::y(), 2.0 * t, 0.15 * (std::f64::consts::TAU * t / 60.0).sin());
-    let tilt = screw_motion(Vector3::x(), 6.0 * (std::f64::consts::TAU * t / 40.0).sin(), 0.0);
-    turn * tilt
-}
-
-/// Render the sequence into `dir` unless it is there already.
-fn render(dir: &Path) -> Result<(), Error> {
-    let last = dir.join(format!("right{:03}.png", RENDERED - 1));
-    if last.exists() {
-        return Ok(());
-    }
-    std::fs::create_dir_all(dir)?;
-    let mut head = SimulatedHead::new(scenario())?;
-    let t = Instant::now();
-    for i in 0..RENDERED {
-        head.set_world_from_robot(pose(i));
-        let pair = head.capture_images()?;
-        pair.left.save(&dir.join(format!("left{i:03}.png")))?;
-        pair.right.save(&dir.join(format!("right{i:03}.png")))?;
-        if i % 20 == 19 {
-            eprintln!("rendered {} views ({:.0} s)", i + 1, t.elapsed().as_secs_f64());
-        }
-    }
-    Ok(())
-}
 
 /// The first `n` views of the rendered sequence, as a folder of their own (hard links)
 /// and in memory.
@@ -127,7 +84,7 @@ fn main() -> Result<(), Error> {
         return Err(format!("lengths must be in 1..={RENDERED}").into());
     }
     let all = Path::new(env!("CARGO_TARGET_TMPDIR")).join("sequence-752x480");
-    render(&all)?;
+    render(&all, RENDERED, 3)?;
     let options = CalibrateOptions::default();
     println!(
         "views  keyframes  segments  wall s  cpu s  front end wall s  calibration wall s  wall ms/view  f err %  weak  folder"
